@@ -1,0 +1,39 @@
+"""vkray: Vulkan ray-tracing acceleration structures from numpy arrays, and batched ray casting.
+
+>>> import numpy as np, vkray
+>>> device = vkray.Device()
+>>> mesh = device.mesh(vertices, faces)          # (V, 3) floats, (F, 3) ints -> BLAS
+>>> scene = device.scene([mesh])                 # instances -> TLAS
+>>> hits = scene.intersect(origins, directions)  # (N, 3) rays -> Hits of numpy arrays
+"""
+
+from ._api import (
+    DEFAULT_FIELDS,
+    HIT_FIELDS,
+    Device,
+    DeviceInfo,
+    Hits,
+    Instance,
+    Mesh,
+    Scene,
+    devices,
+)
+from ._core import NoDeviceError, UnsupportedError, ValidationError, VkrayError, VulkanError
+
+__all__ = [
+    "DEFAULT_FIELDS",
+    "HIT_FIELDS",
+    "Device",
+    "DeviceInfo",
+    "Hits",
+    "Instance",
+    "Mesh",
+    "Scene",
+    "devices",
+    "VkrayError",
+    "NoDeviceError",
+    "UnsupportedError",
+    "VulkanError",
+    "ValidationError",
+]
+__version__ = "0.1.0"

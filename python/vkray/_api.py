@@ -1,0 +1,342 @@
+"""vkray's public classes: Device, Mesh, Instance, Scene and Hits."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _arrays, _core
+
+#: Every hit field a query can return, in the order the hit record holds them.
+HIT_FIELDS: Tuple[str, ...] = ("t", "prim_id", "instance_id", "custom_index", "uv", "normal", "geometry_id")
+#: Fields `Scene.intersect` returns unless asked otherwise.
+DEFAULT_FIELDS: Tuple[str, ...] = ("t", "prim_id", "instance_id", "custom_index", "uv", "normal")
+
+_BUILDS = ("fast_trace", "fast_build", "low_memory")
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """A usable Vulkan device, as `devices()` lists it."""
+
+    index: int
+    name: str
+    device_type: str
+    is_software: bool
+    api_version: str
+    driver: str
+    ray_query: bool
+    ray_tracing_pipeline: bool
+    shader_float64: bool
+
+
+def devices() -> List[DeviceInfo]:
+    """The Vulkan devices vkray can use, best first (GPUs before software rasterizers).
+
+    A device qualifies with Vulkan 1.2, acceleration structures, buffer device addresses, 64-bit
+    shader integers, and ray queries or a ray-tracing pipeline.
+    """
+    return [DeviceInfo(**info) for info in _core.devices()]
+
+
+class Device:
+    """A Vulkan device that builds acceleration structures and traces rays.
+
+    Parameters
+    ----------
+    device:
+        Index into `devices()` or a case-insensitive substring of the device name. ``None`` takes
+        the ``VKRAY_DEVICE`` environment variable, else the best device (a GPU before lavapipe).
+    backend:
+        ``"ray_query"`` (compute shaders with ray queries) or ``"pipeline"`` (a ray-tracing
+        pipeline). ``None`` takes ``VKRAY_BACKEND``, else ray queries where the device has them.
+    validation:
+        Enable the Khronos validation layer; every message it reports becomes a
+        `vkray.ValidationError`. ``VKRAY_VALIDATION=1`` turns it on as well.
+    """
+
+    def __init__(
+        self,
+        device: Union[int, str, None] = None,
+        backend: Optional[str] = None,
+        *,
+        validation: bool = False,
+    ) -> None:
+        if device is not None and not isinstance(device, (int, str)) or isinstance(device, bool):
+            raise TypeError(f"device must be an index, a name or None, got {device!r}")
+        if backend is not None and backend not in ("ray_query", "pipeline"):
+            raise ValueError(f"backend must be 'ray_query' or 'pipeline', got {backend!r}")
+        selector = None if device is None else str(device)
+        self._core = _core.Device(selector, backend, bool(validation))
+        info = self._core.info
+        self.info = DeviceInfo(**info)
+
+    @property
+    def name(self) -> str:
+        return self.info.name
+
+    @property
+    def backend(self) -> str:
+        """``"ray_query"`` or ``"pipeline"``: how this device traces."""
+        return self._core.backend
+
+    @property
+    def is_software(self) -> bool:
+        """True for CPU implementations such as Mesa's lavapipe."""
+        return self.info.is_software
+
+    @property
+    def validation(self) -> bool:
+        return self._core.validation
+
+    @property
+    def limits(self) -> Dict[str, Any]:
+        """The device limits vkray queried and obeys (scratch alignment, dispatch sizes, SBT...)."""
+        return dict(self._core.limits)
+
+    @property
+    def chunk_rays(self) -> int:
+        """Rays traced per submission. Staging memory holds two chunks (72 bytes a ray each)."""
+        return self._core.chunk_rays
+
+    @chunk_rays.setter
+    def chunk_rays(self, rays: int) -> None:
+        self._core.chunk_rays = int(rays)
+
+    def mesh(
+        self,
+        vertices: Any,
+        faces: Any,
+        *,
+        build: str = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+    ) -> "Mesh":
+        """Uploads a triangle mesh and builds its bottom-level acceleration structure.
+
+        vertices: (V, 3) float32/float64 (other real dtypes become float64); any memory layout.
+        faces: (F, 3) int32/int64/uint32/uint16 corner indices into vertices.
+        build: ``"fast_trace"`` (default), ``"fast_build"`` or ``"low_memory"``.
+        compact: compact the structure after building (smaller, built slower).
+        """
+        _check_build(build)
+        v = _arrays.points("vertices", vertices)
+        f = _arrays.faces(faces)
+        core = self._core.mesh(v, f, build, bool(allow_update), bool(compact))
+        return Mesh(self, core, v, f)
+
+    def scene(
+        self,
+        items: Union["Mesh", "Instance", Iterable[Union["Mesh", "Instance"]]],
+        *,
+        build: str = "fast_build",
+        allow_update: bool = False,
+        compact: bool = False,
+    ) -> "Scene":
+        """Builds a top-level acceleration structure over meshes and instances.
+
+        A bare `Mesh` is an instance with the identity transform. Instance ids (``Hits.instance_id``)
+        follow the order of `items`.
+        """
+        _check_build(build)
+        if isinstance(items, (Mesh, Instance)):
+            items = [items]
+        instances = []
+        for i, item in enumerate(items):
+            if isinstance(item, Mesh):
+                item = Instance(item)
+            if not isinstance(item, Instance):
+                raise TypeError(f"scene item {i} must be a Mesh or an Instance, got {type(item).__name__}")
+            if item.mesh.device is not self:
+                raise ValueError(f"scene item {i} uses a mesh built on another Device")
+            instances.append(item)
+        core = self._core.scene(
+            [(x.mesh._core, x.transform, x.custom_index, x.mask) for x in instances],
+            build,
+            bool(allow_update),
+            bool(compact),
+        )
+        return Scene(self, core, instances)
+
+    def __repr__(self) -> str:
+        return f"<vkray.Device {self.name!r} backend={self.backend!r} type={self.info.device_type!r}>"
+
+
+def _check_build(build: str) -> None:
+    if build not in _BUILDS:
+        raise ValueError(f"build must be one of {_BUILDS}, got {build!r}")
+
+
+class Mesh:
+    """Triangles on a device with their bottom-level acceleration structure (BLAS).
+
+    Made by `Device.mesh`. Keeps its device buffers alive as long as any scene uses it.
+    """
+
+    def __init__(self, device: Device, core: Any, vertices: np.ndarray, faces: np.ndarray) -> None:
+        self.device = device
+        self._core = core
+        self.vertices = vertices
+        self.faces = faces
+
+    @property
+    def vertex_count(self) -> int:
+        return self._core.vertex_count
+
+    @property
+    def triangle_count(self) -> int:
+        return self._core.triangle_count
+
+    @property
+    def stats(self) -> Dict[str, Any]:
+        """Build figures: ``bytes`` (size now), ``built_bytes``, ``scratch_bytes``, ``build_seconds``..."""
+        return dict(self._core.stats)
+
+    def __repr__(self) -> str:
+        return f"<vkray.Mesh {self.vertex_count} vertices, {self.triangle_count} triangles>"
+
+
+_MAX_CUSTOM_INDEX = (1 << 24) - 1
+
+
+class Instance:
+    """A mesh placed in a scene.
+
+    transform: 4×4 or 3×4 affine matrix, row-major, acting on column vectors (``M @ [x, y, z, 1]``,
+    the way numpy code writes it); ``None`` is the identity.
+    custom_index: 24-bit value returned as ``Hits.custom_index`` for hits on this instance.
+    mask: 8-bit visibility mask (rays use mask 0xFF: an instance with mask 0 is never hit).
+    """
+
+    def __init__(self, mesh: Mesh, transform: Any = None, *, custom_index: int = 0, mask: int = 0xFF) -> None:
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"mesh must be a vkray.Mesh, got {type(mesh).__name__}")
+        if not isinstance(custom_index, (int, np.integer)) or isinstance(custom_index, bool):
+            raise TypeError("custom_index must be an integer")
+        if not 0 <= int(custom_index) <= _MAX_CUSTOM_INDEX:
+            raise ValueError(f"custom_index must be in [0, {_MAX_CUSTOM_INDEX}] (24 bits), got {custom_index}")
+        if not isinstance(mask, (int, np.integer)) or isinstance(mask, bool):
+            raise TypeError("mask must be an integer")
+        if not 0 <= int(mask) <= 0xFF:
+            raise ValueError(f"mask must be in [0, 255] (8 bits), got {mask}")
+        self.mesh = mesh
+        self.transform = None if transform is None else _arrays.transform(transform)
+        self.custom_index = int(custom_index)
+        self.mask = int(mask)
+
+    def __repr__(self) -> str:
+        return f"<vkray.Instance of {self.mesh!r} custom_index={self.custom_index} mask={self.mask:#04x}>"
+
+
+class Hits:
+    """Per-ray results of `Scene.intersect`, shaped like the rays (``S``).
+
+    t: float32 ``S``, distance in units of the direction's length; ``inf`` on a miss.
+    prim_id, instance_id, custom_index, geometry_id: int32 ``S``; -1 on a miss.
+    uv: float32 ``S + (2,)``, barycentric weights of the triangle's vertices 1 and 2 (Vulkan's and
+    Embree's convention; vertex 0 weighs ``1 - u - v``); NaN on a miss.
+    normal: float32 ``S + (3,)``, unit geometric normal in world space, right-handed in the
+    triangle's winding (``cross(v1 - v0, v2 - v0)``, transformed); NaN on a miss.
+    Fields not asked for are ``None``.
+    """
+
+    t: Optional[np.ndarray]
+    prim_id: Optional[np.ndarray]
+    instance_id: Optional[np.ndarray]
+    custom_index: Optional[np.ndarray]
+    uv: Optional[np.ndarray]
+    normal: Optional[np.ndarray]
+    geometry_id: Optional[np.ndarray]
+
+    def __init__(self, shape: Tuple[int, ...], fields: Dict[str, np.ndarray]) -> None:
+        self.shape = shape
+        for name in HIT_FIELDS:
+            array = fields.get(name)
+            if array is not None:
+                array = array.reshape(shape + array.shape[1:])
+            setattr(self, name, array)
+
+    @property
+    def hit(self) -> np.ndarray:
+        """bool ``S``: whether each ray hit anything."""
+        if self.prim_id is not None:
+            return self.prim_id >= 0
+        return np.isfinite(self.t)
+
+    def __len__(self) -> int:
+        return self.shape[0] if self.shape else 1
+
+    def __repr__(self) -> str:
+        fields = [name for name in HIT_FIELDS if getattr(self, name) is not None]
+        return f"<vkray.Hits shape={self.shape} hits={int(self.hit.sum())} fields={fields}>"
+
+
+class Scene:
+    """Instances of meshes under a top-level acceleration structure (TLAS), ready for queries.
+
+    Made by `Device.scene`.
+    """
+
+    def __init__(self, device: Device, core: Any, instances: List[Instance]) -> None:
+        self.device = device
+        self._core = core
+        self.instances = tuple(instances)
+
+    @property
+    def stats(self) -> Dict[str, Any]:
+        """TLAS build figures, as `Mesh.stats`."""
+        return dict(self._core.stats)
+
+    def intersect(
+        self,
+        origins: Any,
+        directions: Any,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        outputs: Optional[Sequence[str]] = None,
+    ) -> Hits:
+        """The closest hit of each ray within [tmin, tmax].
+
+        origins, directions: arrays of shape ``S + (3,)`` that broadcast together (one origin for
+        many directions is fine); float32 or float64. Directions need not be unit length: ``t`` is
+        measured in units of the direction's length.
+        tmin, tmax: scalars or arrays of shape ``S``; ``0 <= tmin <= tmax``. Hits exactly at the
+        bounds follow Vulkan's rules (the interval is closed up to f32 rounding of traversal).
+        outputs: which `Hits` fields to compute (default: all but ``geometry_id``). Unasked fields
+        are never written by the GPU and come back as ``None`` (``prim_id`` is added when neither
+        it nor ``t`` is asked, so that ``Hits.hit`` works).
+        """
+        fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
+        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        arrays = self._core.trace(o, d, lo, hi, "closest", list(fields))
+        return Hits(shape, arrays)
+
+    def occluded(self, origins: Any, directions: Any, *, tmin: Any = 0.0, tmax: Any = np.inf) -> np.ndarray:
+        """bool ``S``: whether anything lies along each ray within [tmin, tmax].
+
+        Traversal stops at the first hit found (TerminateOnFirstHit), so this is cheaper than
+        `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray.
+        """
+        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"])
+        return (arrays["prim_id"] >= 0).reshape(shape)
+
+    def __repr__(self) -> str:
+        return f"<vkray.Scene {len(self.instances)} instances on {self.device.name!r}>"
+
+
+def _check_outputs(outputs: Sequence[str]) -> Tuple[str, ...]:
+    if isinstance(outputs, str):
+        outputs = (outputs,)
+    unknown = [name for name in outputs if name not in HIT_FIELDS]
+    if unknown:
+        raise ValueError(f"unknown hit fields {unknown}; choose from {HIT_FIELDS}")
+    fields = tuple(dict.fromkeys(outputs))
+    if not fields:
+        raise ValueError("outputs must name at least one hit field")
+    if "t" not in fields and "prim_id" not in fields:
+        fields += ("prim_id",)  # Hits.hit needs one of them
+    return fields

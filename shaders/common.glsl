@@ -1,0 +1,132 @@
+// Shared by every tracer backend: the ray record, the hit record, the outputs, and the parameters
+// a dispatch receives. Everything is reached through buffer device addresses in push constants,
+// so the ray-query and ray-tracing-pipeline backends bind nothing else and share this file.
+#extension GL_EXT_buffer_reference : require
+#extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
+
+// Bits of OUTPUTS: which hit fields the caller asked for. Unasked fields are never written.
+const uint OUT_T = 1u;
+const uint OUT_PRIM = 2u;
+const uint OUT_INSTANCE = 4u;
+const uint OUT_CUSTOM = 8u;
+const uint OUT_UV = 16u;
+const uint OUT_NORMAL = 32u;
+const uint OUT_GEOMETRY = 64u;
+
+// Specialization constants: resolved when the pipeline variant is created, so a query only pays
+// for what its scene holds and what its caller asked.
+layout(constant_id = 0) const uint OUTPUTS = 0x7Fu;
+layout(constant_id = 1) const uint RAY_FLAGS = 0u;
+
+// One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).
+layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer RayBuffer { vec4 v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer FloatOut { float v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer IntOut { int v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Floats { float v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Words { uint v[]; };
+
+// Where the triangles of one geometry live, for the outputs that need vertices (normal).
+// Indexed by instance (TLAS order); `geometries` points at that BLAS's GeometrySource array.
+struct GeometrySource {
+  uint64_t vertices;  // float xyz, tightly packed
+  uint64_t indices;   // uint32 triples, or uint16 triples packed into words
+  uint index_is_u16;
+  uint pad;
+};
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer GeometrySources { GeometrySource g[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer InstanceGeometries { uint64_t geometries[]; };
+
+layout(push_constant, std430) uniform Params {
+  uint64_t rays;
+  uint64_t instances;  // InstanceGeometries
+  uint64_t tlas;
+  uint64_t out_t;
+  uint64_t out_prim;
+  uint64_t out_instance;
+  uint64_t out_custom;
+  uint64_t out_uv;
+  uint64_t out_normal;
+  uint64_t out_geometry;
+  uint count;
+} params;
+
+struct Ray {
+  vec3 origin;
+  float tmin;
+  vec3 direction;
+  float tmax;
+};
+
+Ray load_ray(uint i) {
+  RayBuffer rays = RayBuffer(params.rays);
+  vec4 a = rays.v[2u * i];
+  vec4 b = rays.v[2u * i + 1u];
+  return Ray(a.xyz, a.w, b.xyz, b.w);
+}
+
+// What traversal found: prim < 0 means a miss.
+struct Hit {
+  float t;
+  int prim;
+  int instance;
+  int custom;
+  int geometry;
+  vec2 uv;
+  vec3 normal;
+};
+
+Hit miss_hit() {
+  float nan = uintBitsToFloat(0x7fc00000u);
+  return Hit(uintBitsToFloat(0x7f800000u), -1, -1, -1, -1, vec2(nan), vec3(nan));
+}
+
+uvec3 triangle_indices(GeometrySource src, uint prim) {
+  Words words = Words(src.indices);
+  if (src.index_is_u16 != 0u) {
+    uint first = 3u * prim;
+    uvec3 idx;
+    for (uint k = 0u; k < 3u; ++k) {
+      uint word = words.v[(first + k) >> 1u];
+      idx[k] = ((first + k) & 1u) == 0u ? (word & 0xFFFFu) : (word >> 16u);
+    }
+    return idx;
+  }
+  return uvec3(words.v[3u * prim], words.v[3u * prim + 1u], words.v[3u * prim + 2u]);
+}
+
+vec3 vertex_at(GeometrySource src, uint index) {
+  Floats f = Floats(src.vertices);
+  return vec3(f.v[3u * index], f.v[3u * index + 1u], f.v[3u * index + 2u]);
+}
+
+// Unit geometric normal of the hit triangle in world space, right-handed in the triangle's winding
+// (v0, v1, v2). Built from the transformed edges, so mirroring instances flip it as they flip the
+// triangle.
+vec3 world_normal(int instance, int geometry, int prim, mat4x3 object_to_world) {
+  uint64_t sources = InstanceGeometries(params.instances).geometries[instance];
+  GeometrySource src = GeometrySources(sources).g[geometry];
+  uvec3 idx = triangle_indices(src, uint(prim));
+  mat3 linear = mat3(object_to_world);
+  vec3 e1 = linear * (vertex_at(src, idx.y) - vertex_at(src, idx.x));
+  vec3 e2 = linear * (vertex_at(src, idx.z) - vertex_at(src, idx.x));
+  return normalize(cross(e1, e2));
+}
+
+void store_hit(uint i, Hit h) {
+  if ((OUTPUTS & OUT_T) != 0u) FloatOut(params.out_t).v[i] = h.t;
+  if ((OUTPUTS & OUT_PRIM) != 0u) IntOut(params.out_prim).v[i] = h.prim;
+  if ((OUTPUTS & OUT_INSTANCE) != 0u) IntOut(params.out_instance).v[i] = h.instance;
+  if ((OUTPUTS & OUT_CUSTOM) != 0u) IntOut(params.out_custom).v[i] = h.custom;
+  if ((OUTPUTS & OUT_GEOMETRY) != 0u) IntOut(params.out_geometry).v[i] = h.geometry;
+  if ((OUTPUTS & OUT_UV) != 0u) {
+    FloatOut uv = FloatOut(params.out_uv);
+    uv.v[2u * i] = h.uv.x;
+    uv.v[2u * i + 1u] = h.uv.y;
+  }
+  if ((OUTPUTS & OUT_NORMAL) != 0u) {
+    FloatOut n = FloatOut(params.out_normal);
+    n.v[3u * i] = h.normal.x;
+    n.v[3u * i + 1u] = h.normal.y;
+    n.v[3u * i + 2u] = h.normal.z;
+  }
+}

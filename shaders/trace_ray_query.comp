@@ -1,0 +1,35 @@
+#version 460
+// Ray-query backend: one invocation traces one ray from a compute shader.
+#extension GL_EXT_ray_query : require
+#extension GL_EXT_ray_flags_primitive_culling : require
+#include "common.glsl"
+
+layout(local_size_x_id = 2) in;
+
+void main() {
+  uint i = gl_GlobalInvocationID.x;
+  if (i >= params.count) return;
+  Ray ray = load_ray(i);
+
+  rayQueryEXT query;
+  rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, 0xFFu,
+                        ray.origin, ray.tmin, ray.direction, ray.tmax);
+  // Every triangle is opaque, so traversal commits hits itself and yields no candidates to judge.
+  while (rayQueryProceedEXT(query)) {
+  }
+
+  Hit hit = miss_hit();
+  if (rayQueryGetIntersectionTypeEXT(query, true) == gl_RayQueryCommittedIntersectionTriangleEXT) {
+    hit.t = rayQueryGetIntersectionTEXT(query, true);
+    hit.prim = rayQueryGetIntersectionPrimitiveIndexEXT(query, true);
+    hit.instance = rayQueryGetIntersectionInstanceIdEXT(query, true);
+    hit.custom = rayQueryGetIntersectionInstanceCustomIndexEXT(query, true);
+    hit.geometry = rayQueryGetIntersectionGeometryIndexEXT(query, true);
+    hit.uv = rayQueryGetIntersectionBarycentricsEXT(query, true);
+    if ((OUTPUTS & OUT_NORMAL) != 0u) {
+      hit.normal = world_normal(hit.instance, hit.geometry, hit.prim,
+                                rayQueryGetIntersectionObjectToWorldEXT(query, true));
+    }
+  }
+  store_hit(i, hit);
+}

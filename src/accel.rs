@@ -1,0 +1,330 @@
+//! Acceleration structures: build flags, size queries, scratch memory, building and compaction.
+//! This is the "build data → builder" level; `scene` composes it into meshes and scenes.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use ash::vk;
+
+use crate::context::{Context, Wait};
+use crate::error::{invalid_value, Result, VkResultExt};
+use crate::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
+
+/// What a build optimizes for (the `VK_BUILD_ACCELERATION_STRUCTURE_PREFER_*` flags).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BuildPreference {
+    FastTrace,
+    FastBuild,
+    LowMemory,
+}
+
+impl BuildPreference {
+    pub fn parse(name: &str) -> Result<BuildPreference> {
+        match name {
+            "fast_trace" => Ok(BuildPreference::FastTrace),
+            "fast_build" => Ok(BuildPreference::FastBuild),
+            "low_memory" => Ok(BuildPreference::LowMemory),
+            other => {
+                Err(invalid_value(format!("build must be 'fast_trace', 'fast_build' or 'low_memory', got {other:?}")))
+            }
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            BuildPreference::FastTrace => "fast_trace",
+            BuildPreference::FastBuild => "fast_build",
+            BuildPreference::LowMemory => "low_memory",
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct BuildOptions {
+    pub preference: BuildPreference,
+    pub allow_update: bool,
+    pub compact: bool,
+}
+
+impl BuildOptions {
+    pub fn flags(&self) -> vk::BuildAccelerationStructureFlagsKHR {
+        use vk::BuildAccelerationStructureFlagsKHR as F;
+        let mut flags = match self.preference {
+            BuildPreference::FastTrace => F::PREFER_FAST_TRACE,
+            BuildPreference::FastBuild => F::PREFER_FAST_BUILD,
+            BuildPreference::LowMemory => F::LOW_MEMORY,
+        };
+        if self.allow_update {
+            flags |= F::ALLOW_UPDATE;
+        }
+        if self.compact {
+            flags |= F::ALLOW_COMPACTION;
+        }
+        flags
+    }
+}
+
+/// Sizes and time of one build.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct BuildStats {
+    /// Bytes of the structure as built.
+    pub built_size: u64,
+    /// Bytes it occupies now (after compaction where asked).
+    pub size: u64,
+    pub scratch_size: u64,
+    pub update_scratch_size: u64,
+    /// Wall time from submission to a usable structure, compaction included.
+    pub build_seconds: f64,
+}
+
+/// A VkAccelerationStructureKHR and the buffer holding it.
+pub struct AccelerationStructure {
+    ctx: Arc<Context>,
+    raw: vk::AccelerationStructureKHR,
+    _storage: Buffer,
+    address: u64,
+}
+
+impl AccelerationStructure {
+    fn new(ctx: &Arc<Context>, ty: vk::AccelerationStructureTypeKHR, size: u64, name: &str) -> Result<Self> {
+        let storage = Buffer::new(
+            ctx,
+            size,
+            vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+            MemoryLocation::GpuOnly,
+            name,
+        )?;
+        let info = vk::AccelerationStructureCreateInfoKHR::default().buffer(storage.raw()).size(size).ty(ty);
+        let raw =
+            unsafe { ctx.accel.create_acceleration_structure(&info, None) }.vk("vkCreateAccelerationStructureKHR")?;
+        let address_info = vk::AccelerationStructureDeviceAddressInfoKHR::default().acceleration_structure(raw);
+        let address = unsafe { ctx.accel.get_acceleration_structure_device_address(&address_info) };
+        ctx.name_object(raw, name);
+        Ok(AccelerationStructure { ctx: ctx.clone(), raw, _storage: storage, address })
+    }
+
+    pub fn raw(&self) -> vk::AccelerationStructureKHR {
+        self.raw
+    }
+
+    pub fn address(&self) -> u64 {
+        self.address
+    }
+}
+
+impl Drop for AccelerationStructure {
+    fn drop(&mut self) {
+        unsafe { self.ctx.accel.destroy_acceleration_structure(self.raw, None) };
+    }
+}
+
+/// Geometry of one build: what `vkCmdBuildAccelerationStructuresKHR` reads.
+pub struct BuildInput<'a> {
+    pub ty: vk::AccelerationStructureTypeKHR,
+    pub geometries: Vec<vk::AccelerationStructureGeometryKHR<'a>>,
+    pub primitive_counts: Vec<u32>,
+    pub name: &'a str,
+}
+
+/// A scratch buffer whose device address honours the device's scratch alignment.
+struct Scratch {
+    _buffer: Buffer,
+    address: u64,
+}
+
+impl Scratch {
+    fn new(ctx: &Arc<Context>, size: u64) -> Result<Scratch> {
+        let alignment = ctx.limits.min_scratch_offset_alignment as u64;
+        let buffer = Buffer::new(
+            ctx,
+            size + alignment,
+            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+            MemoryLocation::GpuOnly,
+            "scratch",
+        )?;
+        let address = align_up(buffer.address(), alignment);
+        Ok(Scratch { _buffer: buffer, address })
+    }
+}
+
+/// Builds one acceleration structure: uploads (recorded in the same submission), the build, and a
+/// compacting copy where asked. Returns the structure and its figures.
+pub fn build(
+    ctx: &Arc<Context>,
+    input: &BuildInput,
+    options: BuildOptions,
+    uploads: &Uploads,
+    wait: &dyn Wait,
+) -> Result<(AccelerationStructure, BuildStats)> {
+    let started = Instant::now();
+    let mut info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+        .ty(input.ty)
+        .flags(options.flags())
+        .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+        .geometries(&input.geometries);
+    let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
+    unsafe {
+        ctx.accel.get_acceleration_structure_build_sizes(
+            vk::AccelerationStructureBuildTypeKHR::DEVICE,
+            &info,
+            &input.primitive_counts,
+            &mut sizes,
+        )
+    };
+    let structure = AccelerationStructure::new(ctx, input.ty, sizes.acceleration_structure_size, input.name)?;
+    let scratch = Scratch::new(ctx, sizes.build_scratch_size)?;
+    info = info
+        .dst_acceleration_structure(structure.raw())
+        .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
+    let ranges: Vec<vk::AccelerationStructureBuildRangeInfoKHR> = input
+        .primitive_counts
+        .iter()
+        .map(|&count| vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(count))
+        .collect();
+
+    let query_pool = if options.compact { Some(CompactedSizeQuery::new(ctx)?) } else { None };
+    ctx.run_commands(wait, |cmd| {
+        uploads.record(ctx, cmd);
+        if let Some(query) = &query_pool {
+            unsafe { ctx.device.cmd_reset_query_pool(cmd, query.pool, 0, 1) };
+        }
+        unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, std::slice::from_ref(&info), &[&ranges]) };
+        // Later commands, in this submission or any after it, see the finished structure.
+        memory_barrier(
+            ctx,
+            cmd,
+            vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
+            vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
+            vk::PipelineStageFlags::ALL_COMMANDS,
+            vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+        );
+        if let Some(query) = &query_pool {
+            unsafe {
+                ctx.accel.cmd_write_acceleration_structures_properties(
+                    cmd,
+                    &[structure.raw()],
+                    vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR,
+                    query.pool,
+                    0,
+                )
+            };
+        }
+        Ok(())
+    })?;
+
+    let mut stats = BuildStats {
+        built_size: sizes.acceleration_structure_size,
+        size: sizes.acceleration_structure_size,
+        scratch_size: sizes.build_scratch_size,
+        update_scratch_size: sizes.update_scratch_size,
+        build_seconds: 0.0,
+    };
+    let structure = match query_pool {
+        Some(query) => {
+            let compacted_size = query.read()?;
+            let compacted = AccelerationStructure::new(ctx, input.ty, compacted_size, input.name)?;
+            ctx.run_commands(wait, |cmd| {
+                let copy = vk::CopyAccelerationStructureInfoKHR::default()
+                    .src(structure.raw())
+                    .dst(compacted.raw())
+                    .mode(vk::CopyAccelerationStructureModeKHR::COMPACT);
+                unsafe { ctx.accel.cmd_copy_acceleration_structure(cmd, &copy) };
+                memory_barrier(
+                    ctx,
+                    cmd,
+                    vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
+                    vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
+                    vk::PipelineStageFlags::ALL_COMMANDS,
+                    vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+                );
+                Ok(())
+            })?;
+            stats.size = compacted_size;
+            compacted
+        }
+        None => structure,
+    };
+    stats.build_seconds = started.elapsed().as_secs_f64();
+    Ok((structure, stats))
+}
+
+/// A one-query pool reading back an acceleration structure's compacted size.
+struct CompactedSizeQuery<'a> {
+    ctx: &'a Context,
+    pool: vk::QueryPool,
+}
+
+impl<'a> CompactedSizeQuery<'a> {
+    fn new(ctx: &'a Context) -> Result<Self> {
+        let info = vk::QueryPoolCreateInfo::default()
+            .query_type(vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR)
+            .query_count(1);
+        let pool = unsafe { ctx.device.create_query_pool(&info, None) }.vk("vkCreateQueryPool")?;
+        Ok(CompactedSizeQuery { ctx, pool })
+    }
+
+    fn read(&self) -> Result<u64> {
+        let mut size = [0u64];
+        unsafe {
+            self.ctx.device.get_query_pool_results(
+                self.pool,
+                0,
+                &mut size,
+                vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+            )
+        }
+        .vk("vkGetQueryPoolResults")?;
+        Ok(size[0])
+    }
+}
+
+impl Drop for CompactedSizeQuery<'_> {
+    fn drop(&mut self) {
+        unsafe { self.ctx.device.destroy_query_pool(self.pool, None) };
+    }
+}
+
+/// Instance flags of `VkGeometryInstanceFlagBitsKHR`.
+pub const INSTANCE_TRIANGLE_FACING_CULL_DISABLE: u8 = 0x1;
+
+/// One `VkAccelerationStructureInstanceKHR` (64 bytes): transform, 24-bit custom index and 8-bit
+/// mask, 24-bit hit-group offset and 8-bit flags, and the BLAS address.
+pub fn instance_record(transform: &[f32; 12], custom_index: u32, mask: u8, flags: u8, blas_address: u64) -> [u8; 64] {
+    debug_assert!(custom_index < (1 << 24));
+    let mut record = [0u8; 64];
+    for (dst, value) in record.chunks_exact_mut(4).zip(transform.iter()) {
+        dst.copy_from_slice(&value.to_ne_bytes());
+    }
+    record[48..52].copy_from_slice(&(custom_index | (mask as u32) << 24).to_ne_bytes());
+    record[52..56].copy_from_slice(&((flags as u32) << 24).to_ne_bytes());
+    record[56..64].copy_from_slice(&blas_address.to_ne_bytes());
+    record
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn instance_record_matches_vulkan_layout() {
+        let transform = [1.0, 0.0, 0.0, 5.0, 0.0, 1.0, 0.0, 6.0, 0.0, 0.0, 1.0, 7.0];
+        let record = instance_record(&transform, 0x00AB_CDEF, 0x0F, 0x1, 0x1122_3344_5566_7788);
+        assert_eq!(&record[12..16], &5.0f32.to_ne_bytes());
+        assert_eq!(u32::from_ne_bytes(record[48..52].try_into().unwrap()), 0x0FAB_CDEF);
+        assert_eq!(u32::from_ne_bytes(record[52..56].try_into().unwrap()), 0x0100_0000);
+        assert_eq!(u64::from_ne_bytes(record[56..64].try_into().unwrap()), 0x1122_3344_5566_7788);
+        // Vulkan's own struct is the same size.
+        assert_eq!(std::mem::size_of::<vk::AccelerationStructureInstanceKHR>(), 64);
+    }
+
+    #[test]
+    fn build_flags_follow_options() {
+        use vk::BuildAccelerationStructureFlagsKHR as F;
+        let options = BuildOptions { preference: BuildPreference::FastBuild, allow_update: true, compact: true };
+        assert_eq!(options.flags(), F::PREFER_FAST_BUILD | F::ALLOW_UPDATE | F::ALLOW_COMPACTION);
+        for name in ["fast_trace", "fast_build", "low_memory"] {
+            assert_eq!(BuildPreference::parse(name).unwrap().name(), name);
+        }
+        assert!(BuildPreference::parse("fastest").is_err());
+    }
+}

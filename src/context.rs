@@ -1,0 +1,682 @@
+//! The Vulkan side of a device: loader, instance, device selection, the logical device with only the
+//! features vkray uses, its queue, memory allocator, and one-shot command submission.
+
+use std::ffi::{c_void, CStr, CString};
+use std::mem::ManuallyDrop;
+use std::sync::{Arc, Mutex};
+
+use ash::{ext, khr, vk};
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+
+use crate::error::{Error, Result, VkResultExt};
+
+/// How rays are traced: ray queries from a compute shader, or a ray-tracing pipeline.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Backend {
+    RayQuery,
+    Pipeline,
+}
+
+impl Backend {
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::RayQuery => "ray_query",
+            Backend::Pipeline => "pipeline",
+        }
+    }
+
+    pub fn parse(name: &str) -> Result<Backend> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "ray_query" | "rayquery" | "query" => Ok(Backend::RayQuery),
+            "pipeline" | "ray_tracing_pipeline" | "rt" => Ok(Backend::Pipeline),
+            other => Err(Error::InvalidValue(format!("backend must be 'ray_query' or 'pipeline', got {other:?}"))),
+        }
+    }
+}
+
+/// What selecting a device found out about it.
+#[derive(Clone, Debug)]
+pub struct DeviceInfo {
+    /// Position in the ranked list of usable devices (the list `vkray.devices()` returns).
+    pub index: usize,
+    pub name: String,
+    /// "discrete", "integrated", "virtual", "cpu" or "other".
+    pub device_type: &'static str,
+    pub is_software: bool,
+    pub api_version: String,
+    pub driver: String,
+    pub ray_query: bool,
+    pub ray_tracing_pipeline: bool,
+    pub shader_float64: bool,
+}
+
+/// Device limits vkray depends on; always queried, never assumed.
+#[derive(Clone, Debug, Default)]
+pub struct Limits {
+    pub min_scratch_offset_alignment: u32,
+    pub max_primitive_count: u64,
+    pub max_instance_count: u64,
+    pub max_geometry_count: u64,
+    pub max_compute_work_group_count: [u32; 3],
+    pub max_compute_work_group_size: [u32; 3],
+    pub max_compute_work_group_invocations: u32,
+    pub max_push_constants_size: u32,
+    pub shader_group_handle_size: u32,
+    pub shader_group_handle_alignment: u32,
+    pub shader_group_base_alignment: u32,
+    pub max_ray_dispatch_invocation_count: u32,
+    pub max_shader_group_stride: u32,
+    pub ray_traversal_primitive_culling: bool,
+}
+
+/// Which device and backend to open.
+#[derive(Clone, Debug, Default)]
+pub struct DeviceRequest {
+    /// Index into the ranked device list, or a case-insensitive substring of the device name.
+    pub selector: Option<String>,
+    pub backend: Option<Backend>,
+    /// Enable the Khronos validation layer and report its messages as errors.
+    pub validation: bool,
+}
+
+impl DeviceRequest {
+    /// Fills what the caller left open from `VKRAY_DEVICE`, `VKRAY_BACKEND` and `VKRAY_VALIDATION`.
+    pub fn with_environment(mut self) -> Result<DeviceRequest> {
+        if self.selector.is_none() {
+            self.selector = std::env::var("VKRAY_DEVICE").ok().filter(|s| !s.trim().is_empty());
+        }
+        if self.backend.is_none() {
+            if let Some(name) = std::env::var("VKRAY_BACKEND").ok().filter(|s| !s.trim().is_empty()) {
+                self.backend = Some(Backend::parse(&name)?);
+            }
+        }
+        if let Ok(flag) = std::env::var("VKRAY_VALIDATION") {
+            self.validation |= !matches!(flag.trim(), "" | "0" | "false" | "no" | "off");
+        }
+        Ok(self)
+    }
+}
+
+/// Runs the blocking part of a GPU wait. The Python binding releases the GIL around it.
+pub trait Wait {
+    fn wait(&self, block: &(dyn Fn() -> Result<()> + Sync)) -> Result<()>;
+}
+
+/// Waits on the calling thread as it is.
+pub struct WaitInPlace;
+
+impl Wait for WaitInPlace {
+    fn wait(&self, block: &(dyn Fn() -> Result<()> + Sync)) -> Result<()> {
+        block()
+    }
+}
+
+const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
+
+type MessageSink = Mutex<Vec<String>>;
+
+struct Debug {
+    loader: ext::debug_utils::Instance,
+    messenger: vk::DebugUtilsMessengerEXT,
+    messages: Box<MessageSink>,
+}
+
+unsafe extern "system" fn collect_message(
+    severity: vk::DebugUtilsMessageSeverityFlagsEXT,
+    types: vk::DebugUtilsMessageTypeFlagsEXT,
+    data: *const vk::DebugUtilsMessengerCallbackDataEXT<'_>,
+    sink: *mut c_void,
+) -> vk::Bool32 {
+    // Loader chatter (general warnings) is not about our use of the API; validation findings are.
+    let relevant = types.contains(vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION)
+        || severity.contains(vk::DebugUtilsMessageSeverityFlagsEXT::ERROR);
+    if relevant && !data.is_null() && !sink.is_null() {
+        let message = (*data).message_as_c_str().map(|m| m.to_string_lossy().into_owned());
+        let sink = &*(sink as *const MessageSink);
+        if let (Some(message), Ok(mut messages)) = (message, sink.lock()) {
+            messages.push(message);
+        }
+    }
+    vk::FALSE
+}
+
+fn messenger_info(sink: &MessageSink) -> vk::DebugUtilsMessengerCreateInfoEXT<'static> {
+    vk::DebugUtilsMessengerCreateInfoEXT::default()
+        .message_severity(vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR)
+        .message_type(
+            vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
+                | vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
+                | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
+        )
+        .pfn_user_callback(Some(collect_message))
+        .user_data(sink as *const MessageSink as *mut c_void)
+}
+
+struct InstanceHandle {
+    // Holds the loaded libvulkan; every function pointer below comes from it.
+    _entry: ash::Entry,
+    instance: ash::Instance,
+    debug: Option<Debug>,
+}
+
+impl InstanceHandle {
+    fn new(validation: bool) -> Result<InstanceHandle> {
+        let entry = unsafe { ash::Entry::load() }.map_err(|e| {
+            Error::NoDevice(format!("the Vulkan loader could not be loaded ({e}); install it (Debian: libvulkan1)"))
+        })?;
+        let api = unsafe { entry.try_enumerate_instance_version() }
+            .vk("vkEnumerateInstanceVersion")?
+            .unwrap_or(vk::API_VERSION_1_0);
+        if api < vk::API_VERSION_1_2 {
+            return Err(Error::NoDevice(format!(
+                "the Vulkan loader supports only Vulkan {}; vkray needs 1.2",
+                version_string(api)
+            )));
+        }
+        let app_name = c"vkray";
+        let app = vk::ApplicationInfo::default()
+            .application_name(app_name)
+            .engine_name(app_name)
+            .api_version(vk::API_VERSION_1_2);
+        let mut layers: Vec<*const i8> = Vec::new();
+        let mut extensions: Vec<*const i8> = Vec::new();
+        let messages: Box<MessageSink> = Box::default();
+        let mut early_messenger = messenger_info(&messages);
+        if validation {
+            let available =
+                unsafe { entry.enumerate_instance_layer_properties() }.vk("vkEnumerateInstanceLayerProperties")?;
+            if !available.iter().any(|l| l.layer_name_as_c_str() == Ok(VALIDATION_LAYER)) {
+                return Err(Error::Unsupported(
+                    "validation was requested (VKRAY_VALIDATION) but the Khronos validation layer is not \
+                     installed (Debian: vulkan-validationlayers)"
+                        .into(),
+                ));
+            }
+            layers.push(VALIDATION_LAYER.as_ptr());
+            extensions.push(ext::debug_utils::NAME.as_ptr());
+        }
+        let mut info = vk::InstanceCreateInfo::default()
+            .application_info(&app)
+            .enabled_layer_names(&layers)
+            .enabled_extension_names(&extensions);
+        if validation {
+            info = info.push_next(&mut early_messenger);
+        }
+        let instance = unsafe { entry.create_instance(&info, None) }.vk("vkCreateInstance")?;
+        let debug = if validation {
+            let loader = ext::debug_utils::Instance::new(&entry, &instance);
+            let messenger = unsafe { loader.create_debug_utils_messenger(&messenger_info(&messages), None) };
+            match messenger {
+                Ok(messenger) => Some(Debug { loader, messenger, messages }),
+                Err(result) => {
+                    unsafe { instance.destroy_instance(None) };
+                    return Err(Error::Vulkan { call: "vkCreateDebugUtilsMessengerEXT", result });
+                }
+            }
+        } else {
+            None
+        };
+        Ok(InstanceHandle { _entry: entry, instance, debug })
+    }
+}
+
+impl Drop for InstanceHandle {
+    fn drop(&mut self) {
+        unsafe {
+            if let Some(debug) = &self.debug {
+                debug.loader.destroy_debug_utils_messenger(debug.messenger, None);
+            }
+            self.instance.destroy_instance(None);
+        }
+    }
+}
+
+fn version_string(v: u32) -> String {
+    format!("{}.{}.{}", vk::api_version_major(v), vk::api_version_minor(v), vk::api_version_patch(v))
+}
+
+fn device_type_name(t: vk::PhysicalDeviceType) -> &'static str {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => "discrete",
+        vk::PhysicalDeviceType::INTEGRATED_GPU => "integrated",
+        vk::PhysicalDeviceType::VIRTUAL_GPU => "virtual",
+        vk::PhysicalDeviceType::CPU => "cpu",
+        _ => "other",
+    }
+}
+
+/// Real GPUs first, software rasterizers last.
+fn device_rank(t: vk::PhysicalDeviceType) -> u32 {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => 0,
+        vk::PhysicalDeviceType::INTEGRATED_GPU => 1,
+        vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
+        vk::PhysicalDeviceType::CPU => 4,
+        _ => 3,
+    }
+}
+
+struct Candidate {
+    physical: vk::PhysicalDevice,
+    kind: vk::PhysicalDeviceType,
+    info: DeviceInfo,
+    limits: Limits,
+    queue_family: u32,
+    unified_memory: bool,
+}
+
+/// Usable devices: Vulkan 1.2, acceleration structures, buffer device addresses, 64-bit integers in
+/// shaders, a compute queue, and ray queries or a ray-tracing pipeline. Ranked, GPUs first.
+fn candidates(instance: &ash::Instance) -> Result<Vec<Candidate>> {
+    let physicals = unsafe { instance.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
+    let mut found = Vec::new();
+    for physical in physicals {
+        if let Some(candidate) = inspect(instance, physical)? {
+            found.push(candidate);
+        }
+    }
+    found.sort_by_key(|c| device_rank(c.kind));
+    for (index, candidate) in found.iter_mut().enumerate() {
+        candidate.info.index = index;
+    }
+    Ok(found)
+}
+
+fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Option<Candidate>> {
+    let base = unsafe { instance.get_physical_device_properties(physical) };
+    if base.api_version < vk::API_VERSION_1_2 {
+        return Ok(None);
+    }
+    let extensions = unsafe { instance.enumerate_device_extension_properties(physical) }
+        .vk("vkEnumerateDeviceExtensionProperties")?;
+    let has = |name: &CStr| extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(name));
+    if !has(khr::acceleration_structure::NAME) || !has(khr::deferred_host_operations::NAME) {
+        return Ok(None);
+    }
+    let has_ray_query_ext = has(khr::ray_query::NAME);
+    let has_pipeline_ext = has(khr::ray_tracing_pipeline::NAME);
+
+    // Only chain structures of extensions the device has: anything else is invalid usage.
+    let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+    let mut f_accel = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
+    let mut f_query = vk::PhysicalDeviceRayQueryFeaturesKHR::default();
+    let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default();
+    let mut features = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12).push_next(&mut f_accel);
+    if has_ray_query_ext {
+        features = features.push_next(&mut f_query);
+    }
+    if has_pipeline_ext {
+        features = features.push_next(&mut f_pipeline);
+    }
+    unsafe { instance.get_physical_device_features2(physical, &mut features) };
+    let core = features.features;
+    let ray_query = has_ray_query_ext && f_query.ray_query == vk::TRUE;
+    let ray_tracing_pipeline = has_pipeline_ext && f_pipeline.ray_tracing_pipeline == vk::TRUE;
+    let primitive_culling = has_pipeline_ext && f_pipeline.ray_traversal_primitive_culling == vk::TRUE;
+    if f_accel.acceleration_structure != vk::TRUE
+        || f12.buffer_device_address != vk::TRUE
+        || core.shader_int64 != vk::TRUE
+        || !(ray_query || ray_tracing_pipeline)
+    {
+        return Ok(None);
+    }
+
+    let mut p_accel = vk::PhysicalDeviceAccelerationStructurePropertiesKHR::default();
+    let mut p_pipeline = vk::PhysicalDeviceRayTracingPipelinePropertiesKHR::default();
+    let mut p_driver = vk::PhysicalDeviceDriverProperties::default();
+    let mut properties = vk::PhysicalDeviceProperties2::default().push_next(&mut p_accel).push_next(&mut p_driver);
+    if has_pipeline_ext {
+        properties = properties.push_next(&mut p_pipeline);
+    }
+    unsafe { instance.get_physical_device_properties2(physical, &mut properties) };
+    let props = properties.properties;
+
+    let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
+    let Some(queue_family) =
+        families.iter().position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && f.queue_count > 0)
+    else {
+        return Ok(None);
+    };
+
+    let name = props.device_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let driver_name = p_driver.driver_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let driver_info = p_driver.driver_info_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let l = props.limits;
+    let limits = Limits {
+        min_scratch_offset_alignment: p_accel.min_acceleration_structure_scratch_offset_alignment,
+        max_primitive_count: p_accel.max_primitive_count,
+        max_instance_count: p_accel.max_instance_count,
+        max_geometry_count: p_accel.max_geometry_count,
+        max_compute_work_group_count: l.max_compute_work_group_count,
+        max_compute_work_group_size: l.max_compute_work_group_size,
+        max_compute_work_group_invocations: l.max_compute_work_group_invocations,
+        max_push_constants_size: l.max_push_constants_size,
+        shader_group_handle_size: p_pipeline.shader_group_handle_size,
+        shader_group_handle_alignment: p_pipeline.shader_group_handle_alignment,
+        shader_group_base_alignment: p_pipeline.shader_group_base_alignment,
+        max_ray_dispatch_invocation_count: p_pipeline.max_ray_dispatch_invocation_count,
+        max_shader_group_stride: p_pipeline.max_shader_group_stride,
+        ray_traversal_primitive_culling: primitive_culling,
+    };
+    let device_type = device_type_name(props.device_type);
+    let info = DeviceInfo {
+        index: 0,
+        name,
+        device_type,
+        is_software: props.device_type == vk::PhysicalDeviceType::CPU,
+        api_version: version_string(props.api_version),
+        driver: format!("{driver_name} {driver_info}").trim().to_string(),
+        ray_query,
+        ray_tracing_pipeline,
+        shader_float64: core.shader_float64 == vk::TRUE,
+    };
+    // Where the device and the host share memory, device buffers are written and read in place;
+    // a discrete GPU gets staging copies instead (its host-visible device memory is slow to read).
+    let unified_memory =
+        matches!(props.device_type, vk::PhysicalDeviceType::CPU | vk::PhysicalDeviceType::INTEGRATED_GPU);
+    Ok(Some(Candidate {
+        physical,
+        kind: props.device_type,
+        info,
+        limits,
+        queue_family: queue_family as u32,
+        unified_memory,
+    }))
+}
+
+/// Lists the usable devices, ranked as `Context::new` ranks them.
+pub fn list_devices() -> Result<Vec<DeviceInfo>> {
+    let handle = InstanceHandle::new(false)?;
+    Ok(candidates(&handle.instance)?.into_iter().map(|c| c.info).collect())
+}
+
+fn choose(mut found: Vec<Candidate>, selector: Option<&str>) -> Result<Candidate> {
+    if found.is_empty() {
+        return Err(Error::NoDevice(
+            "no Vulkan device with acceleration structures and ray queries or ray-tracing pipelines was \
+             found (on a CPU-only machine, install Mesa >= 24.1's lavapipe: mesa-vulkan-drivers)"
+                .into(),
+        ));
+    }
+    let Some(selector) = selector else {
+        return Ok(found.remove(0));
+    };
+    let names: Vec<String> = found.iter().map(|c| format!("{}: {}", c.info.index, c.info.name)).collect();
+    let position = match selector.trim().parse::<usize>() {
+        Ok(index) => (index < found.len()).then_some(index),
+        Err(_) => {
+            let needle = selector.to_lowercase();
+            found.iter().position(|c| c.info.name.to_lowercase().contains(&needle))
+        }
+    };
+    match position {
+        Some(index) => Ok(found.swap_remove(index)),
+        None => Err(Error::NoDevice(format!(
+            "no usable device matches {selector:?}; usable devices are [{}]",
+            names.join(", ")
+        ))),
+    }
+}
+
+/// An open Vulkan device and everything bound to its lifetime.
+pub struct Context {
+    instance: InstanceHandle,
+    pub physical: vk::PhysicalDevice,
+    pub device: ash::Device,
+    queue: Mutex<vk::Queue>,
+    pub queue_family: u32,
+    pub accel: khr::acceleration_structure::Device,
+    pub pipeline_ext: Option<khr::ray_tracing_pipeline::Device>,
+    object_names: Option<ext::debug_utils::Device>,
+    allocator: ManuallyDrop<Mutex<Allocator>>,
+    pub info: DeviceInfo,
+    pub limits: Limits,
+    pub backend: Backend,
+    pub validation: bool,
+    pub unified_memory: bool,
+}
+
+impl Context {
+    pub fn new(request: &DeviceRequest) -> Result<Arc<Context>> {
+        let instance = InstanceHandle::new(request.validation)?;
+        let candidate = choose(candidates(&instance.instance)?, request.selector.as_deref())?;
+        let backend = match request.backend {
+            Some(Backend::RayQuery) if !candidate.info.ray_query => {
+                return Err(Error::Unsupported(format!(
+                    "{} has no ray queries (rayQuery feature); use backend='pipeline'",
+                    candidate.info.name
+                )))
+            }
+            Some(Backend::Pipeline) if !candidate.info.ray_tracing_pipeline => {
+                return Err(Error::Unsupported(format!(
+                    "{} has no ray-tracing pipeline (rayTracingPipeline feature); use backend='ray_query'",
+                    candidate.info.name
+                )))
+            }
+            Some(backend) => backend,
+            // Decided by the feature bit, not the extension list: an extension may be listed while
+            // its feature is off.
+            None if candidate.info.ray_query => Backend::RayQuery,
+            None => Backend::Pipeline,
+        };
+
+        let mut extensions =
+            vec![khr::acceleration_structure::NAME.as_ptr(), khr::deferred_host_operations::NAME.as_ptr()];
+        let mut f12 = vk::PhysicalDeviceVulkan12Features::default().buffer_device_address(true);
+        let mut f_accel = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default().acceleration_structure(true);
+        let mut f_query = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
+        let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default()
+            .ray_tracing_pipeline(true)
+            .ray_traversal_primitive_culling(candidate.limits.ray_traversal_primitive_culling);
+        let core = vk::PhysicalDeviceFeatures::default().shader_int64(true);
+        let mut features =
+            vk::PhysicalDeviceFeatures2::default().features(core).push_next(&mut f12).push_next(&mut f_accel);
+        match backend {
+            Backend::RayQuery => {
+                extensions.push(khr::ray_query::NAME.as_ptr());
+                features = features.push_next(&mut f_query);
+            }
+            Backend::Pipeline => {
+                extensions.push(khr::ray_tracing_pipeline::NAME.as_ptr());
+                features = features.push_next(&mut f_pipeline);
+            }
+        }
+        let priorities = [1.0f32];
+        let queues = [vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(candidate.queue_family)
+            .queue_priorities(&priorities)];
+        let create = vk::DeviceCreateInfo::default()
+            .queue_create_infos(&queues)
+            .enabled_extension_names(&extensions)
+            .push_next(&mut features);
+        let device =
+            unsafe { instance.instance.create_device(candidate.physical, &create, None) }.vk("vkCreateDevice")?;
+        let queue = unsafe { device.get_device_queue(candidate.queue_family, 0) };
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: instance.instance.clone(),
+            device: device.clone(),
+            physical_device: candidate.physical,
+            debug_settings: Default::default(),
+            buffer_device_address: true,
+            allocation_sizes: Default::default(),
+        });
+        let allocator = match allocator {
+            Ok(a) => a,
+            Err(e) => {
+                unsafe { device.destroy_device(None) };
+                return Err(e.into());
+            }
+        };
+        let accel = khr::acceleration_structure::Device::new(&instance.instance, &device);
+        let pipeline_ext =
+            (backend == Backend::Pipeline).then(|| khr::ray_tracing_pipeline::Device::new(&instance.instance, &device));
+        let object_names = request.validation.then(|| ext::debug_utils::Device::new(&instance.instance, &device));
+        let context = Context {
+            object_names,
+            physical: candidate.physical,
+            device,
+            queue: Mutex::new(queue),
+            queue_family: candidate.queue_family,
+            accel,
+            pipeline_ext,
+            allocator: ManuallyDrop::new(Mutex::new(allocator)),
+            info: candidate.info,
+            limits: candidate.limits,
+            backend,
+            validation: request.validation,
+            unified_memory: candidate.unified_memory,
+            instance,
+        };
+        context.check_validation()?;
+        Ok(Arc::new(context))
+    }
+
+    pub fn instance(&self) -> &ash::Instance {
+        &self.instance.instance
+    }
+
+    pub(crate) fn allocator(&self) -> std::sync::MutexGuard<'_, Allocator> {
+        // A panic while allocating leaves the allocator consistent; keep using it.
+        self.allocator.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Turns what the validation layer reported since the last check into an error.
+    pub fn check_validation(&self) -> Result<()> {
+        let Some(debug) = &self.instance.debug else { return Ok(()) };
+        let mut messages = debug.messages.lock().unwrap_or_else(|e| e.into_inner());
+        if messages.is_empty() {
+            return Ok(());
+        }
+        let text = messages.drain(..).collect::<Vec<_>>().join("\n");
+        Err(Error::Validation(text))
+    }
+
+    /// Submits one recorded command buffer and signals `fence` when it completes.
+    pub(crate) fn submit(&self, command_buffer: vk::CommandBuffer, fence: vk::Fence) -> Result<()> {
+        let buffers = [command_buffer];
+        let submit = [vk::SubmitInfo::default().command_buffers(&buffers)];
+        let queue = self.queue.lock().unwrap_or_else(|e| e.into_inner());
+        unsafe { self.device.queue_submit(*queue, &submit, fence) }.vk("vkQueueSubmit")
+    }
+
+    pub(crate) fn wait_fence(&self, fence: vk::Fence) -> Result<()> {
+        unsafe { self.device.wait_for_fences(&[fence], true, u64::MAX) }.vk("vkWaitForFences")
+    }
+
+    /// Records commands with `record`, submits them, and waits (through `wait`) for completion.
+    pub fn run_commands(&self, wait: &dyn Wait, record: impl FnOnce(vk::CommandBuffer) -> Result<()>) -> Result<()> {
+        let mut commands = Commands::new(self)?;
+        commands.begin()?;
+        record(commands.buffer)?;
+        commands.submit()?;
+        commands.wait(wait)?;
+        self.check_validation()
+    }
+
+    /// Names a Vulkan object for validation messages and debuggers (only with validation on).
+    pub(crate) fn name_object<H: vk::Handle>(&self, handle: H, name: &str) {
+        if let Some(loader) = &self.object_names {
+            let Ok(name) = CString::new(name) else { return };
+            let info = vk::DebugUtilsObjectNameInfoEXT::default().object_handle(handle).object_name(&name);
+            // Naming is best effort: a failure changes nothing about the work.
+            let _ = unsafe { loader.set_debug_utils_object_name(&info) };
+        }
+    }
+}
+
+impl Drop for Context {
+    fn drop(&mut self) {
+        unsafe {
+            let _ = self.device.device_wait_idle();
+            ManuallyDrop::drop(&mut self.allocator);
+            self.device.destroy_device(None);
+        }
+    }
+}
+
+/// A command pool with one primary command buffer and a fence: one submission at a time.
+pub(crate) struct Commands<'a> {
+    ctx: &'a Context,
+    pool: vk::CommandPool,
+    pub buffer: vk::CommandBuffer,
+    fence: vk::Fence,
+    pending: bool,
+}
+
+impl<'a> Commands<'a> {
+    pub fn new(ctx: &'a Context) -> Result<Commands<'a>> {
+        let pool_info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(ctx.queue_family)
+            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER | vk::CommandPoolCreateFlags::TRANSIENT);
+        let pool = unsafe { ctx.device.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool")?;
+        let mut commands =
+            Commands { ctx, pool, buffer: vk::CommandBuffer::null(), fence: vk::Fence::null(), pending: false };
+        let alloc = vk::CommandBufferAllocateInfo::default()
+            .command_pool(pool)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(1);
+        commands.buffer = unsafe { ctx.device.allocate_command_buffers(&alloc) }.vk("vkAllocateCommandBuffers")?[0];
+        commands.fence =
+            unsafe { ctx.device.create_fence(&vk::FenceCreateInfo::default(), None) }.vk("vkCreateFence")?;
+        Ok(commands)
+    }
+
+    pub fn begin(&mut self) -> Result<()> {
+        let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        unsafe { self.ctx.device.begin_command_buffer(self.buffer, &info) }.vk("vkBeginCommandBuffer")
+    }
+
+    pub fn submit(&mut self) -> Result<()> {
+        unsafe { self.ctx.device.end_command_buffer(self.buffer) }.vk("vkEndCommandBuffer")?;
+        unsafe { self.ctx.device.reset_fences(&[self.fence]) }.vk("vkResetFences")?;
+        self.ctx.submit(self.buffer, self.fence)?;
+        self.pending = true;
+        Ok(())
+    }
+
+    pub fn wait(&mut self, wait: &dyn Wait) -> Result<()> {
+        if self.pending {
+            let (ctx, fence) = (self.ctx, self.fence);
+            wait.wait(&|| ctx.wait_fence(fence))?;
+            self.pending = false;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Commands<'_> {
+    fn drop(&mut self) {
+        unsafe {
+            // Only reached pending on an error path; the GPU must finish before its pool goes away.
+            if self.pending {
+                let _ = self.ctx.wait_fence(self.fence);
+            }
+            if self.fence != vk::Fence::null() {
+                self.ctx.device.destroy_fence(self.fence, None);
+            }
+            self.ctx.device.destroy_command_pool(self.pool, None);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backend_names_round_trip() {
+        for backend in [Backend::RayQuery, Backend::Pipeline] {
+            assert_eq!(Backend::parse(backend.name()).unwrap(), backend);
+        }
+        assert!(Backend::parse("cuda").is_err());
+    }
+
+    #[test]
+    fn gpus_rank_before_software() {
+        assert!(
+            device_rank(vk::PhysicalDeviceType::DISCRETE_GPU) < device_rank(vk::PhysicalDeviceType::INTEGRATED_GPU)
+        );
+        assert!(device_rank(vk::PhysicalDeviceType::INTEGRATED_GPU) < device_rank(vk::PhysicalDeviceType::CPU));
+        assert!(device_rank(vk::PhysicalDeviceType::OTHER) < device_rank(vk::PhysicalDeviceType::CPU));
+    }
+}

@@ -1,0 +1,184 @@
+//! Buffers in device memory (through gpu-allocator) and their uploads.
+
+use std::sync::Arc;
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+pub use gpu_allocator::MemoryLocation;
+
+use crate::context::Context;
+use crate::error::{Result, VkResultExt};
+
+/// A Vulkan buffer with its own memory allocation; freed when dropped.
+pub struct Buffer {
+    ctx: Arc<Context>,
+    raw: vk::Buffer,
+    allocation: Option<Allocation>,
+    size: u64,
+    address: u64,
+}
+
+impl Buffer {
+    /// A buffer of `size` bytes (at least 1). Buffers used by shaders or acceleration-structure
+    /// builds get `SHADER_DEVICE_ADDRESS` so they can be reached by address.
+    pub fn new(
+        ctx: &Arc<Context>,
+        size: u64,
+        usage: vk::BufferUsageFlags,
+        location: MemoryLocation,
+        name: &str,
+    ) -> Result<Buffer> {
+        let size = size.max(1);
+        let info = vk::BufferCreateInfo::default().size(size).usage(usage).sharing_mode(vk::SharingMode::EXCLUSIVE);
+        let device = &ctx.device;
+        let raw = unsafe { device.create_buffer(&info, None) }.vk("vkCreateBuffer")?;
+        let mut buffer = Buffer { ctx: ctx.clone(), raw, allocation: None, size, address: 0 };
+        let requirements = unsafe { device.get_buffer_memory_requirements(raw) };
+        let allocation = ctx.allocator().allocate(&AllocationCreateDesc {
+            name,
+            requirements,
+            location,
+            linear: true,
+            allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+        })?;
+        unsafe { device.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) }.vk("vkBindBufferMemory")?;
+        buffer.allocation = Some(allocation);
+        if usage.contains(vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS) {
+            let info = vk::BufferDeviceAddressInfo::default().buffer(raw);
+            buffer.address = unsafe { device.get_buffer_device_address(&info) };
+        }
+        ctx.name_object(raw, name);
+        Ok(buffer)
+    }
+
+    pub fn raw(&self) -> vk::Buffer {
+        self.raw
+    }
+
+    pub fn size(&self) -> u64 {
+        self.size
+    }
+
+    /// The buffer's device address (0 unless created with `SHADER_DEVICE_ADDRESS`).
+    pub fn address(&self) -> u64 {
+        self.address
+    }
+
+    /// The buffer's bytes, where its memory is host-visible.
+    pub fn mapped(&self) -> Option<&[u8]> {
+        let allocation = self.allocation.as_ref()?;
+        let slice = allocation.mapped_slice()?;
+        Some(&slice[..self.size as usize])
+    }
+
+    pub fn mapped_mut(&mut self) -> Option<&mut [u8]> {
+        let size = self.size as usize;
+        let slice = self.allocation.as_mut()?.mapped_slice_mut()?;
+        Some(&mut slice[..size])
+    }
+}
+
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        unsafe { self.ctx.device.destroy_buffer(self.raw, None) };
+        if let Some(allocation) = self.allocation.take() {
+            // Freeing only fails for allocations this allocator does not own; nothing to undo.
+            let _ = self.ctx.allocator().free(allocation);
+        }
+    }
+}
+
+/// Rounds `value` up to a multiple of `alignment` (a power of two, or 0/1 for none).
+pub fn align_up(value: u64, alignment: u64) -> u64 {
+    if alignment <= 1 {
+        value
+    } else {
+        value.div_ceil(alignment) * alignment
+    }
+}
+
+/// Fills device-local buffers from the host. Where the device shares memory with the host (lavapipe,
+/// integrated GPUs) the bytes are written in place; otherwise they go into staging buffers whose
+/// copies are recorded by `record` into the command buffer that then uses them.
+#[derive(Default)]
+pub struct Uploads {
+    staging: Vec<(Buffer, vk::Buffer, u64)>,
+}
+
+impl Uploads {
+    /// A device-local buffer of `size` bytes whose contents `fill` writes; `fill` also gets the
+    /// buffer's device address, for contents that must start at an aligned address.
+    pub fn buffer(
+        &mut self,
+        ctx: &Arc<Context>,
+        size: u64,
+        usage: vk::BufferUsageFlags,
+        name: &str,
+        fill: impl FnOnce(&mut [u8], u64),
+    ) -> Result<Buffer> {
+        let location = if ctx.unified_memory { MemoryLocation::CpuToGpu } else { MemoryLocation::GpuOnly };
+        let mut buffer = Buffer::new(ctx, size, usage | vk::BufferUsageFlags::TRANSFER_DST, location, name)?;
+        let address = buffer.address();
+        if let Some(bytes) = buffer.mapped_mut() {
+            fill(&mut bytes[..size as usize], address);
+            return Ok(buffer);
+        }
+        let mut staging =
+            Buffer::new(ctx, size, vk::BufferUsageFlags::TRANSFER_SRC, MemoryLocation::CpuToGpu, "staging")?;
+        let bytes = staging.mapped_mut().expect("CpuToGpu memory is host-visible");
+        fill(&mut bytes[..size as usize], address);
+        if size > 0 {
+            self.staging.push((staging, buffer.raw(), size));
+        }
+        Ok(buffer)
+    }
+
+    /// Records the staging copies and a barrier that makes them visible to every later command.
+    pub fn record(&self, ctx: &Context, cmd: vk::CommandBuffer) {
+        if self.staging.is_empty() {
+            return;
+        }
+        for (staging, dst, size) in &self.staging {
+            let region = [vk::BufferCopy::default().size(*size)];
+            unsafe { ctx.device.cmd_copy_buffer(cmd, staging.raw(), *dst, &region) };
+        }
+        memory_barrier(
+            ctx,
+            cmd,
+            vk::PipelineStageFlags::TRANSFER,
+            vk::AccessFlags::TRANSFER_WRITE,
+            vk::PipelineStageFlags::ALL_COMMANDS,
+            vk::AccessFlags::MEMORY_READ,
+        );
+    }
+}
+
+/// A global memory barrier between two stages.
+pub fn memory_barrier(
+    ctx: &Context,
+    cmd: vk::CommandBuffer,
+    src_stage: vk::PipelineStageFlags,
+    src_access: vk::AccessFlags,
+    dst_stage: vk::PipelineStageFlags,
+    dst_access: vk::AccessFlags,
+) {
+    let barrier = [vk::MemoryBarrier::default().src_access_mask(src_access).dst_access_mask(dst_access)];
+    unsafe {
+        ctx.device.cmd_pipeline_barrier(cmd, src_stage, dst_stage, vk::DependencyFlags::empty(), &barrier, &[], &[])
+    };
+}
+
+#[cfg(test)]
+mod tests {
+    use super::align_up;
+
+    #[test]
+    fn align_up_rounds_to_multiples() {
+        assert_eq!(align_up(0, 128), 0);
+        assert_eq!(align_up(1, 128), 128);
+        assert_eq!(align_up(128, 128), 128);
+        assert_eq!(align_up(129, 8), 136);
+        assert_eq!(align_up(7, 0), 7);
+        assert_eq!(align_up(7, 1), 7);
+    }
+}

@@ -1,0 +1,25 @@
+//! SPIR-V modules compiled from shaders/ by build.rs.
+
+macro_rules! spirv {
+    ($name:literal) => {
+        include_bytes!(concat!(env!("OUT_DIR"), "/", $name, ".spv"))
+    };
+}
+
+pub const TRACE_RAY_QUERY: &[u8] = spirv!("trace_ray_query.comp");
+pub const RAYGEN: &[u8] = spirv!("raygen.rgen");
+pub const CLOSEST_HIT: &[u8] = spirv!("closest_hit.rchit");
+pub const MISS: &[u8] = spirv!("miss.rmiss");
+
+/// Every embedded module with its source name (for `spirv-val` in the tests).
+pub const ALL: &[(&str, &[u8])] = &[
+    ("trace_ray_query.comp", TRACE_RAY_QUERY),
+    ("raygen.rgen", RAYGEN),
+    ("closest_hit.rchit", CLOSEST_HIT),
+    ("miss.rmiss", MISS),
+];
+
+/// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).
+pub fn words(bytes: &[u8]) -> Vec<u32> {
+    ash::util::read_spv(&mut std::io::Cursor::new(bytes)).expect("embedded SPIR-V is whole words")
+}
