@@ -80,6 +80,16 @@ fn devices(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
     infos.iter().map(|info| info_dict(py, info)).collect()
 }
 
+/// The SPIR-V modules embedded in this build, by source name (for `spirv-val` in the tests).
+#[pyfunction]
+fn spirv_modules(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let d = PyDict::new(py);
+    for (name, bytes) in crate::shaders::ALL {
+        d.set_item(*name, pyo3::types::PyBytes::new(py, bytes))?;
+    }
+    Ok(d)
+}
+
 fn build_options(build: &str, allow_update: bool, compact: bool) -> Result<BuildOptions> {
     Ok(BuildOptions { preference: BuildPreference::parse(build)?, allow_update, compact })
 }
@@ -424,6 +434,7 @@ fn field_elements(field: Field) -> usize {
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
     m.add_function(wrap_pyfunction!(devices, m)?)?;
+    m.add_function(wrap_pyfunction!(spirv_modules, m)?)?;
     m.add_class::<PyDevice>()?;
     m.add_class::<PyMesh>()?;
     m.add_class::<PyScene>()?;

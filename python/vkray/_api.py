@@ -266,7 +266,9 @@ class Hits:
         return np.isfinite(self.t)
 
     def __len__(self) -> int:
-        return self.shape[0] if self.shape else 1
+        if not self.shape:
+            raise TypeError("len() of hits of a single ray (0-d)")
+        return self.shape[0]
 
     def __repr__(self) -> str:
         fields = [name for name in HIT_FIELDS if getattr(self, name) is not None]

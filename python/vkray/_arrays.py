@@ -65,31 +65,27 @@ def transform(value: object) -> np.ndarray:
 def rays(
     origins: object, directions: object, tmin: object, tmax: object
 ) -> Tuple[Tuple[int, ...], np.ndarray, np.ndarray, object, object]:
-    """Broadcasts origins and directions (shape ``S + (3,)``) and tmin/tmax (shape ``S`` or
-    scalars) together; returns ``S`` and flat (N, 3) arrays and float-or-(N,) bounds."""
+    """Broadcasts origins and directions (``... + (3,)``) and tmin/tmax (scalars or arrays) to one
+    batch shape ``S``, as numpy would; returns ``S``, flat (N, 3) arrays and float-or-(N,) bounds."""
     o = real_coordinates("origins", origins)
     d = real_coordinates("directions", directions)
     for name, array in (("origins", o), ("directions", d)):
         if array.ndim == 0 or array.shape[-1] != 3:
             raise ValueError(f"{name} must have shape (..., 3), got {array.shape}")
+    lo = real_coordinates("tmin", tmin)
+    hi = real_coordinates("tmax", tmax)
     try:
-        shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1])
+        shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1], lo.shape, hi.shape)
     except ValueError:
         raise ValueError(
-            f"origins {o.shape} and directions {d.shape} do not broadcast to one batch of rays"
+            f"origins {o.shape}, directions {d.shape}, tmin {lo.shape} and tmax {hi.shape} "
+            "do not broadcast to one batch of rays"
         ) from None
-    bounds = []
-    for name, value in (("tmin", tmin), ("tmax", tmax)):
-        array = real_coordinates(name, value)
-        if array.ndim == 0:
-            bounds.append(float(array))
-            continue
-        try:
-            array = np.broadcast_to(array, shape)
-        except ValueError:
-            raise ValueError(f"{name} of shape {array.shape} does not match the rays' shape {shape}") from None
-        bounds.append(np.ascontiguousarray(array.reshape(-1), dtype=np.float64))
-    flat = (int(np.prod(shape, dtype=np.int64)), 3)
-    o = np.ascontiguousarray(np.broadcast_to(o, shape + (3,)).reshape(flat))
-    d = np.ascontiguousarray(np.broadcast_to(d, shape + (3,)).reshape(flat))
+    n = int(np.prod(shape, dtype=np.int64))
+    o = np.ascontiguousarray(np.broadcast_to(o, shape + (3,)).reshape(n, 3))
+    d = np.ascontiguousarray(np.broadcast_to(d, shape + (3,)).reshape(n, 3))
+    bounds = [
+        float(b) if b.ndim == 0 else np.ascontiguousarray(np.broadcast_to(b, shape).reshape(n), dtype=np.float64)
+        for b in (lo, hi)
+    ]
     return shape, o, d, bounds[0], bounds[1]

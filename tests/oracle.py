@@ -1,0 +1,89 @@
+"""Independent references for the tests: OBJ loading, Embree (embreex) and plain numpy geometry."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+from embreex import rtcore_scene as rtcs
+from embreex.mesh_construction import TriangleMesh
+
+MESH_DIR = pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes"
+MESH_NAMES = ("stanford-bunny", "fandisk", "spot", "cow", "teapot")
+
+EMBREE_MISS_T = 1e37
+
+
+def load_obj(name: str):
+    """(vertices float64 (V, 3), faces int64 (F, 3)) of a v/f-only OBJ in ../shared/meshes."""
+    vertices, faces = [], []
+    with open(MESH_DIR / f"{name}.obj") as f:
+        for line in f:
+            if line.startswith("v "):
+                vertices.append(line.split()[1:4])
+            elif line.startswith("f "):
+                faces.append([c.split("/")[0] for c in line.split()[1:4]])
+    return np.array(vertices, dtype=np.float64), np.array(faces, dtype=np.int64) - 1
+
+
+def embree(triangle_sets, origins, directions, tmax=None, query="INTERSECT"):
+    """Embree's answer for rays against meshes given as (vertices, faces) pairs (geomID = order)."""
+    scene = rtcs.EmbreeScene()
+    for vertices, faces in triangle_sets:
+        TriangleMesh(scene, np.ascontiguousarray(vertices[faces], dtype=np.float32))
+    o = np.ascontiguousarray(origins, dtype=np.float32)
+    d = np.ascontiguousarray(directions, dtype=np.float32)
+    dists = None if tmax is None else np.ascontiguousarray(tmax, dtype=np.float32)
+    if query == "OCCLUDED":
+        return scene.run(o, d, dists=dists, query="OCCLUDED") >= 0
+    return scene.run(o, d, dists=dists, output=1)
+
+
+def bounds(vertices):
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    return (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+
+
+def camera_rays(vertices, width=256, height=256, direction=(0.3, -0.4, -1.0)):
+    """A pinhole camera looking at the mesh's centre from 2.5 radii away: (origin (3,), dirs (H*W, 3))."""
+    centre, radius = bounds(vertices)
+    forward = np.asarray(direction, dtype=np.float64)
+    forward /= np.linalg.norm(forward)
+    origin = centre - 2.5 * radius * forward
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    ys, xs = np.meshgrid(np.linspace(0.5, -0.5, height), np.linspace(-0.5, 0.5, width), indexing="ij")
+    dirs = forward + xs[..., None] * right + ys[..., None] * up
+    return origin, dirs.reshape(-1, 3)
+
+
+def random_rays(vertices, n, seed=0):
+    """Rays from a sphere around the mesh towards random points of its bounding box, plus a
+    quarter in uniformly random directions (many of which miss)."""
+    rng = np.random.default_rng(seed)
+    centre, radius = bounds(vertices)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    u = rng.normal(size=(n, 3))
+    origins = centre + 2.0 * radius * u / np.linalg.norm(u, axis=1, keepdims=True)
+    targets = rng.uniform(lo, hi, size=(n, 3))
+    directions = targets - origins
+    wild = rng.random(n) < 0.25
+    directions[wild] = rng.normal(size=(int(wild.sum()), 3))
+    return origins, directions
+
+
+def triangle_normals(vertices, faces, prim):
+    tri = vertices[faces[prim]]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def barycentric_points(vertices, faces, prim, uv):
+    tri = vertices[faces[prim]]
+    u, v = uv[:, :1].astype(np.float64), uv[:, 1:].astype(np.float64)
+    return (1 - u - v) * tri[:, 0] + u * tri[:, 1] + v * tri[:, 2]
+
+
+def transform_points(matrix, points):
+    return points @ matrix[:3, :3].T + matrix[:3, 3]

@@ -1,0 +1,175 @@
+"""Query semantics: interval bounds, occlusion, outputs, shapes, chunking, the GIL, backends."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import vkray
+from conftest import BACKENDS, make_device
+from oracle import embree, load_obj, random_rays
+
+# One triangle in the plane z = 1 covering (0,0)-(1,0)-(0,1).
+TRIANGLE = (np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], np.float32), np.array([[0, 1, 2]], np.int32))
+
+
+@pytest.fixture
+def triangle_scene(device):
+    return device.scene(device.mesh(*TRIANGLE))
+
+
+def test_t_is_in_units_of_direction_length(triangle_scene):
+    hits = triangle_scene.intersect([[0.2, 0.2, 0.0]] * 3, [[0, 0, 1], [0, 0, 2], [0, 0, 0.25]])
+    np.testing.assert_allclose(hits.t, [1.0, 0.5, 4.0], rtol=1e-6)
+
+
+def test_tmin_tmax_bound_the_interval(triangle_scene):
+    o = [0.2, 0.2, 0.0]
+    d = [0.0, 0.0, 1.0]
+    # One ray in, 0-d results out, as numpy broadcasting gives.
+    assert triangle_scene.intersect(o, d, tmax=0.5).hit.shape == ()
+    assert not triangle_scene.intersect(o, d, tmax=0.5).hit
+    assert triangle_scene.intersect(o, d, tmax=1.5).hit
+    assert not triangle_scene.intersect(o, d, tmin=1.5).hit
+    assert triangle_scene.intersect(o, d, tmin=0.5, tmax=1.5).hit
+    # Per-ray bounds, broadcast against one ray.
+    tmax = np.array([0.5, 0.999, 1.001, np.inf])
+    assert triangle_scene.intersect(o, d, tmax=tmax).hit.tolist() == [False, False, True, True]
+    tmin = np.array([0.0, 0.999, 1.001, 2.0])
+    assert triangle_scene.intersect(o, d, tmin=tmin).hit.tolist() == [True, True, False, False]
+    assert triangle_scene.occluded(o, d, tmin=tmin).tolist() == [True, True, False, False]
+
+
+def test_rays_from_behind_and_missing(triangle_scene):
+    hits = triangle_scene.intersect([[0.2, 0.2, 2.0], [0.9, 0.9, 0.0], [0.2, 0.2, 0.0]], [[0, 0, -1], [0, 0, 1], [0, 0, -1]])
+    assert hits.hit.tolist() == [True, False, False]
+    # Back faces are hit too (no culling); the normal keeps the triangle's winding.
+    np.testing.assert_allclose(hits.normal[0], [0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(hits.uv[0], [0.2, 0.2], atol=1e-6)
+
+
+def test_occluded_equals_intersect_hit(device):
+    v, f = load_obj("stanford-bunny")
+    scene = device.scene(device.mesh(v, f))
+    origins, directions = random_rays(v, 50000, seed=5)
+    tmax = np.random.default_rng(5).uniform(0.2, 1.2, len(origins))
+    hits = scene.intersect(origins, directions, tmax=tmax)
+    blocked = scene.occluded(origins, directions, tmax=tmax)
+    np.testing.assert_array_equal(blocked, hits.hit)
+    assert 0.1 < blocked.mean() < 0.9
+    np.testing.assert_array_equal(blocked, embree([(v, f)], origins, directions, tmax=tmax, query="OCCLUDED"))
+
+
+def test_outputs_select_fields(triangle_scene):
+    hits = triangle_scene.intersect([0.2, 0.2, 0.0], [0, 0, 1], outputs=["normal"])
+    assert hits.t is None and hits.uv is None
+    assert hits.normal is not None and hits.prim_id is not None  # prim_id keeps Hits.hit working
+    assert hits.hit
+    every = triangle_scene.intersect([[0.2, 0.2, 0.0]], [0, 0, 1], outputs=vkray.HIT_FIELDS)
+    assert every.geometry_id.tolist() == [0]
+    with pytest.raises(ValueError, match="unknown hit fields"):
+        triangle_scene.intersect([0.2, 0.2, 0.0], [0, 0, 1], outputs=["colour"])
+
+
+def test_hits_keep_the_rays_shape(triangle_scene):
+    ys, xs = np.mgrid[0.01:0.99:8j, 0.02:0.97:5j]  # no ray through an edge
+    origins = np.stack([xs, ys, np.zeros_like(xs)], axis=-1)
+    hits = triangle_scene.intersect(origins, [0, 0, 1])
+    assert hits.t.shape == (8, 5) and hits.uv.shape == (8, 5, 2) and hits.normal.shape == (8, 5, 3)
+    np.testing.assert_array_equal(hits.hit, xs + ys < 1.0)
+    assert 0 < hits.hit.sum() < hits.hit.size
+    assert triangle_scene.occluded(origins, [0, 0, 1]).shape == (8, 5)
+
+
+def test_zero_rays(triangle_scene):
+    hits = triangle_scene.intersect(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert hits.t.shape == (0,) and hits.uv.shape == (0, 2) and hits.normal.shape == (0, 3) and len(hits) == 0
+    assert triangle_scene.occluded(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
+
+
+def test_empty_scene_misses_everything(device):
+    hits = device.scene([]).intersect([[0, 0, 0]], [[0, 0, 1]])
+    assert hits.hit.tolist() == [False] and hits.prim_id.tolist() == [-1]
+
+
+def test_mixed_dtypes_and_layouts_agree(triangle_scene):
+    rng = np.random.default_rng(6)
+    o = np.column_stack([rng.uniform(-0.2, 1.2, (500, 2)), np.zeros(500)])
+    d = np.tile([0.0, 0.0, 1.0], (500, 1))
+    base = triangle_scene.intersect(o, d)
+    fortran = triangle_scene.intersect(np.asfortranarray(o.astype(np.float32)), d[:, ::-1][:, ::-1])
+    np.testing.assert_array_equal(base.t, fortran.t)
+    strided = np.zeros((500, 6))
+    strided[:, ::2] = o
+    np.testing.assert_array_equal(triangle_scene.intersect(strided[:, ::2], d).t, base.t)
+    np.testing.assert_array_equal(triangle_scene.intersect(o.tolist(), d.astype(np.int64)).t, base.t)
+
+
+def test_chunk_boundaries_do_not_change_results(device):
+    v, f = load_obj("spot")
+    scene = device.scene(device.mesh(v, f))
+    origins, directions = random_rays(v, 10007, seed=7)
+    whole = scene.intersect(origins, directions, outputs=vkray.HIT_FIELDS)
+    saved = device.chunk_rays
+    try:
+        device.chunk_rays = 1000  # 11 chunks, the last one partial, two in flight
+        chunked = scene.intersect(origins, directions, outputs=vkray.HIT_FIELDS)
+        with pytest.raises(ValueError):
+            device.chunk_rays = 0
+    finally:
+        device.chunk_rays = saved
+    for name in vkray.HIT_FIELDS:
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
+
+
+def test_ten_million_rays(device):
+    """Beyond one chunk (and, on lavapipe, well past nothing but the staging bound)."""
+    n = 10_000_000
+    assert n > device.chunk_rays
+    v = np.array([[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], np.float32)
+    scene = device.scene(device.mesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.uint16)))
+    rng = np.random.default_rng(8)
+    origins = np.zeros((n, 3), np.float32)
+    origins[:, :2] = rng.uniform(-1.5, 1.5, (n, 2))
+    hits = scene.intersect(origins, np.array([0, 0, 2], np.float32), outputs=["t"])
+    inside = np.all(np.abs(origins[:, :2]) < 1, axis=1)
+    edge = np.any(np.abs(np.abs(origins[:, :2]) - 1) < 1e-6, axis=1)
+    assert np.array_equal(np.isfinite(hits.t)[~edge], inside[~edge])
+    np.testing.assert_allclose(hits.t[inside], 0.5, rtol=1e-6)
+
+
+def test_gil_is_released_while_tracing(device):
+    v, f = load_obj("stanford-bunny")
+    scene = device.scene(device.mesh(v, f))
+    origins, directions = random_rays(v, 400_000, seed=9)
+    done = threading.Event()
+    worker = threading.Thread(target=lambda: (scene.intersect(origins, directions), done.set()))
+    ticks = 0
+    started = time.perf_counter()
+    worker.start()
+    while not done.is_set():
+        ticks += 1
+        time.sleep(0.001)
+    worker.join()
+    elapsed = time.perf_counter() - started
+    # Had the trace held the GIL, this thread could not have run while the GPU worked.
+    assert ticks >= 0.3 * elapsed / 0.002, f"{ticks} ticks in {elapsed:.2f}s"
+
+
+@pytest.mark.skipif(len(BACKENDS) < 2, reason="the device offers one backend")
+@pytest.mark.parametrize("name", ["stanford-bunny", "fandisk", "spot", "cow", "teapot"])
+def test_backends_return_identical_hits(name):
+    v, f = load_obj(name)
+    origins, directions = random_rays(v, 30000, seed=10)
+    results = []
+    for backend in ("ray_query", "pipeline"):
+        device = make_device(backend)
+        scene = device.scene(device.mesh(v, f))
+        results.append(scene.intersect(origins, directions, outputs=vkray.HIT_FIELDS))
+    a, b = results
+    for name in ("prim_id", "instance_id", "custom_index", "geometry_id"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    hit = a.hit
+    ulps = np.abs(a.t[hit].view(np.int32).astype(np.int64) - b.t[hit].view(np.int32).astype(np.int64))
+    assert ulps.max(initial=0) <= 1
