@@ -12,7 +12,5 @@ void main() {
   payload.custom = gl_InstanceCustomIndexEXT;
   payload.geometry = gl_GeometryIndexEXT;
   payload.uv = barycentrics;
-  if ((OUTPUTS & OUT_NORMAL) != 0u) {
-    payload.normal = world_normal(gl_InstanceID, gl_GeometryIndexEXT, gl_PrimitiveID, gl_ObjectToWorldEXT);
-  }
+  resolve_triangle(payload, gl_ObjectToWorldEXT);
 }

@@ -24,12 +24,14 @@ layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Fl
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer IntOut { int v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Floats { float v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Words { uint v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Ints { int v[]; };
 
-// Where the triangles of one geometry live, for the outputs that need vertices (normal).
+// Where the triangles of one geometry live, for the outputs that need them (normal, prim_id).
 // Indexed by instance (TLAS order); `geometries` points at that BLAS's GeometrySource array.
 struct GeometrySource {
-  uint64_t vertices;  // float xyz, tightly packed
-  uint64_t indices;   // uint32 triples, or uint16 triples packed into words
+  uint64_t vertices;         // float xyz, tightly packed
+  uint64_t indices;          // uint32 triples, or uint16 triples packed into words
+  uint64_t primitive_order;  // device triangle -> caller's triangle (int32), or 0 if the same
   uint index_is_u16;
   uint pad;
 };
@@ -66,7 +68,7 @@ Ray load_ray(uint i) {
 
 // What traversal found: prim < 0 means a miss.
 struct Hit {
-  float t;
+  float t;  // prim is the caller's triangle index, -1 on a miss
   int prim;
   int instance;
   int custom;
@@ -99,17 +101,33 @@ vec3 vertex_at(GeometrySource src, uint index) {
   return vec3(f.v[3u * index], f.v[3u * index + 1u], f.v[3u * index + 2u]);
 }
 
+GeometrySource geometry_source(int instance, int geometry) {
+  uint64_t sources = InstanceGeometries(params.instances).geometries[instance];
+  return GeometrySources(sources).g[geometry];
+}
+
+// The caller's index of a triangle the device may hold in another order (see scene.rs).
+int caller_primitive(GeometrySource src, int prim) {
+  return src.primitive_order == 0ul ? prim : Ints(src.primitive_order).v[prim];
+}
+
 // Unit geometric normal of the hit triangle in world space, right-handed in the triangle's winding
 // (v0, v1, v2). Built from the transformed edges, so mirroring instances flip it as they flip the
 // triangle.
-vec3 world_normal(int instance, int geometry, int prim, mat4x3 object_to_world) {
-  uint64_t sources = InstanceGeometries(params.instances).geometries[instance];
-  GeometrySource src = GeometrySources(sources).g[geometry];
+vec3 world_normal(GeometrySource src, int prim, mat4x3 object_to_world) {
   uvec3 idx = triangle_indices(src, uint(prim));
   mat3 linear = mat3(object_to_world);
   vec3 e1 = linear * (vertex_at(src, idx.y) - vertex_at(src, idx.x));
   vec3 e2 = linear * (vertex_at(src, idx.z) - vertex_at(src, idx.x));
   return normalize(cross(e1, e2));
+}
+
+// Fills the fields that need the triangle's source: its caller index and its normal.
+void resolve_triangle(inout Hit hit, mat4x3 object_to_world) {
+  if ((OUTPUTS & (OUT_PRIM | OUT_NORMAL)) == 0u) return;
+  GeometrySource src = geometry_source(hit.instance, hit.geometry);
+  if ((OUTPUTS & OUT_NORMAL) != 0u) hit.normal = world_normal(src, hit.prim, object_to_world);
+  hit.prim = caller_primitive(src, hit.prim);
 }
 
 void store_hit(uint i, Hit h) {

@@ -26,10 +26,7 @@ void main() {
     hit.custom = rayQueryGetIntersectionInstanceCustomIndexEXT(query, true);
     hit.geometry = rayQueryGetIntersectionGeometryIndexEXT(query, true);
     hit.uv = rayQueryGetIntersectionBarycentricsEXT(query, true);
-    if ((OUTPUTS & OUT_NORMAL) != 0u) {
-      hit.normal = world_normal(hit.instance, hit.geometry, hit.prim,
-                                rayQueryGetIntersectionObjectToWorldEXT(query, true));
-    }
+    resolve_triangle(hit, rayQueryGetIntersectionObjectToWorldEXT(query, true));
   }
   store_hit(i, hit);
 }

@@ -434,6 +434,10 @@ pub struct Context {
     pub backend: Backend,
     pub validation: bool,
     pub unified_memory: bool,
+    /// Whether meshes go to the device with triangles in spatial (Morton) order. lavapipe's BVH
+    /// builder splits primitives in the order given, so its trees are only as good as that order;
+    /// GPU drivers sort spatially themselves.
+    pub presort_primitives: bool,
 }
 
 impl Context {
@@ -520,6 +524,7 @@ impl Context {
             accel,
             pipeline_ext,
             allocator: ManuallyDrop::new(Mutex::new(allocator)),
+            presort_primitives: candidate.info.is_software,
             info: candidate.info,
             limits: candidate.limits,
             backend,

@@ -83,22 +83,77 @@ impl Indices<'_> {
         }
     }
 
-    /// Writes the device copy; indices must have passed `check_faces`.
-    pub fn write_device(&self, out: &mut [u8]) {
-        match self {
-            Indices::U16(v) => {
-                for (dst, &src) in out.chunks_exact_mut(2).zip(v.iter()) {
-                    dst.copy_from_slice(&src.to_ne_bytes());
+    /// Writes the device copy, triangles in `order` (new position -> caller's triangle) where
+    /// given; indices must have passed `check_faces`.
+    pub fn write_device(&self, out: &mut [u8], order: Option<&[u32]>) {
+        let source = |k: usize| match order {
+            Some(order) => 3 * order[k / 3] as usize + k % 3,
+            None => k,
+        };
+        match (self, order) {
+            (Indices::U32(v), None) => out[..4 * v.len()].copy_from_slice(as_bytes(v)),
+            (Indices::U16(_), _) => {
+                for (k, dst) in out.chunks_exact_mut(2).take(self.len()).enumerate() {
+                    dst.copy_from_slice(&(self.get(source(k)) as u16).to_ne_bytes());
                 }
             }
-            Indices::U32(v) => out[..4 * v.len()].copy_from_slice(as_bytes(v)),
             _ => {
                 for (k, dst) in out.chunks_exact_mut(4).take(self.len()).enumerate() {
-                    dst.copy_from_slice(&(self.get(k) as u32).to_ne_bytes());
+                    dst.copy_from_slice(&(self.get(source(k)) as u32).to_ne_bytes());
                 }
             }
         }
     }
+
+    fn corner(&self, triangle: usize, k: usize) -> usize {
+        self.get(3 * triangle + k) as usize
+    }
+}
+
+/// Spreads the low 21 bits of `x` to every third bit.
+fn spread_bits(x: u64) -> u64 {
+    let mut x = x & 0x1f_ffff;
+    x = (x | x << 32) & 0x1f_0000_0000_ffff;
+    x = (x | x << 16) & 0x1f_0000_ff00_00ff;
+    x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
+    x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
+    (x | x << 2) & 0x1249_2492_4924_9249
+}
+
+/// Triangles sorted along a Morton (Z-order) curve through their centroids: new position ->
+/// caller's triangle. Neighbours in this order are neighbours in space, which is what a BVH
+/// builder that splits primitives in input order (lavapipe's) needs to build a good tree.
+pub fn morton_order(vertices: Vec3s, faces: Indices) -> Vec<u32> {
+    let n = faces.triangles();
+    let centroid = |t: usize| {
+        let mut c = [0.0f64; 3];
+        for k in 0..3 {
+            let v = vertices.row_f64(faces.corner(t, k));
+            for a in 0..3 {
+                c[a] += v[a] / 3.0;
+            }
+        }
+        c
+    };
+    let centroids: Vec<[f64; 3]> = (0..n).map(centroid).collect();
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for c in &centroids {
+        for a in 0..3 {
+            lo[a] = lo[a].min(c[a]);
+            hi[a] = hi[a].max(c[a]);
+        }
+    }
+    let scale: Vec<f64> = (0..3).map(|a| if hi[a] > lo[a] { 2097151.0 / (hi[a] - lo[a]) } else { 0.0 }).collect();
+    let mut keyed: Vec<(u64, u32)> = centroids
+        .iter()
+        .enumerate()
+        .map(|(t, c)| {
+            let q = |a: usize| ((c[a] - lo[a]) * scale[a]) as u64;
+            (spread_bits(q(0)) | spread_bits(q(1)) << 1 | spread_bits(q(2)) << 2, t as u32)
+        })
+        .collect();
+    keyed.sort_unstable();
+    keyed.into_iter().map(|(_, t)| t).collect()
 }
 
 fn as_bytes<T: Copy>(values: &[T]) -> &[u8] {
@@ -316,13 +371,36 @@ mod tests {
     fn indices_pack_to_device_widths() {
         let faces = [1i64, 2, 3];
         let mut out = vec![0u8; Indices::I64(&faces).device_bytes() as usize];
-        Indices::I64(&faces).write_device(&mut out);
+        Indices::I64(&faces).write_device(&mut out, None);
         assert_eq!(out, [1u32, 2, 3].iter().flat_map(|v| v.to_ne_bytes()).collect::<Vec<_>>());
         let short = [7u16, 8, 9];
         assert_eq!(Indices::U16(&short).device_bytes(), 8);
         let mut out = vec![0u8; 8];
-        Indices::U16(&short).write_device(&mut out);
+        Indices::U16(&short).write_device(&mut out, None);
         assert_eq!(&out[..6], [7u16, 8, 9].iter().flat_map(|v| v.to_ne_bytes()).collect::<Vec<_>>().as_slice());
+    }
+
+    #[test]
+    fn reordered_indices_follow_the_order() {
+        let faces = [0u16, 1, 2, 3, 4, 5];
+        let mut out = vec![0u8; 12];
+        Indices::U16(&faces).write_device(&mut out, Some(&[1, 0]));
+        assert_eq!(out, [3u16, 4, 5, 0, 1, 2].iter().flat_map(|v| v.to_ne_bytes()).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn morton_order_groups_neighbours() {
+        // Four triangles along x, given far-near-far-near: the order visits them left to right.
+        let mut v = Vec::new();
+        for x in [3.0, 0.0, 2.0, 1.0] {
+            v.extend_from_slice(&[x, 0.0, 0.0, x + 0.1, 0.0, 0.0, x, 0.1, 0.0]);
+        }
+        let f: Vec<u32> = (0..12).collect();
+        assert_eq!(morton_order(Vec3s::F64(&v), Indices::U32(&f)), vec![1, 3, 2, 0]);
+        // A permutation of every triangle.
+        let mut sorted = morton_order(Vec3s::F64(&v), Indices::U32(&f));
+        sorted.sort();
+        assert_eq!(sorted, vec![0, 1, 2, 3]);
     }
 
     #[test]

@@ -8,7 +8,7 @@ use ash::vk;
 use crate::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
 use crate::context::{Context, Wait};
 use crate::error::{invalid_value, Error, Result};
-use crate::input::{check_faces, check_vertices, write_vertices_f32, Indices, Vec3s};
+use crate::input::{check_faces, check_vertices, morton_order, write_vertices_f32, Indices, Vec3s};
 use crate::memory::{Buffer, Uploads};
 
 const GEOMETRY_INPUT: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
@@ -18,7 +18,7 @@ const GEOMETRY_INPUT: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
 );
 
 /// Bytes of one `GeometrySource` record in `shaders/common.glsl`.
-const GEOMETRY_SOURCE_BYTES: usize = 24;
+const GEOMETRY_SOURCE_BYTES: usize = 32;
 
 /// A triangle mesh on the device with its bottom-level acceleration structure.
 pub struct Mesh {
@@ -30,6 +30,7 @@ pub struct Mesh {
     // Read by shaders (normals) through `sources`; kept alive as long as the mesh.
     _vertices: Buffer,
     _indices: Buffer,
+    _primitive_order: Option<Buffer>,
     sources: Buffer,
 }
 
@@ -55,14 +56,28 @@ impl Mesh {
         let vertex_bytes = 12 * vertices.rows() as u64;
         let vertex_buffer = uploads
             .buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| write_vertices_f32(vertices, out))?;
-        let index_buffer =
-            uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| faces.write_device(out))?;
+        let order = ctx.presort_primitives.then(|| morton_order(vertices, faces));
+        let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
+            faces.write_device(out, order.as_deref())
+        })?;
+        // Shaders map the device's triangle order back to the caller's.
+        let primitive_order = match &order {
+            Some(order) => {
+                Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "primitive order", |out, _| {
+                    for (dst, t) in out.chunks_exact_mut(4).zip(order) {
+                        dst.copy_from_slice(&t.to_ne_bytes());
+                    }
+                })?)
+            }
+            None => None,
+        };
         let sources =
             uploads.buffer(ctx, GEOMETRY_SOURCE_BYTES as u64, GEOMETRY_INPUT, "geometry sources", |out, _| {
                 out[0..8].copy_from_slice(&vertex_buffer.address().to_ne_bytes());
                 out[8..16].copy_from_slice(&index_buffer.address().to_ne_bytes());
-                out[16..20].copy_from_slice(&(faces.is_u16() as u32).to_ne_bytes());
-                out[20..24].fill(0);
+                out[16..24].copy_from_slice(&primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
+                out[24..28].copy_from_slice(&(faces.is_u16() as u32).to_ne_bytes());
+                out[28..32].fill(0);
             })?;
 
         let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
@@ -91,6 +106,7 @@ impl Mesh {
             blas,
             _vertices: vertex_buffer,
             _indices: index_buffer,
+            _primitive_order: primitive_order,
             sources,
         })
     }
