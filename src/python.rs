@@ -245,6 +245,22 @@ impl PyDevice {
         Ok(d)
     }
 
+    /// Where the host's time went in this device's last trace, in seconds.
+    #[getter]
+    fn last_trace_profile<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let p = self.tracer.last_profile();
+        let d = PyDict::new(py);
+        d.set_item("rays", p.rays)?;
+        d.set_item("chunks", p.chunks)?;
+        d.set_item("check", p.check)?;
+        d.set_item("pack", p.pack)?;
+        d.set_item("submit", p.submit)?;
+        d.set_item("wait", p.wait)?;
+        d.set_item("unpack", p.unpack)?;
+        d.set_item("total", p.total)?;
+        Ok(d)
+    }
+
     #[getter]
     fn get_chunk_rays(&self) -> usize {
         self.tracer.chunk_rays()

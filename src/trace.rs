@@ -6,6 +6,7 @@
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use ash::vk;
 
@@ -185,6 +186,25 @@ impl Slot {
     }
 }
 
+/// Where the host's time went in the last trace (seconds). With two chunks in flight, `wait` is
+/// the GPU time that packing and unpacking did not hide.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TraceProfile {
+    pub rays: usize,
+    pub chunks: usize,
+    /// Checking every ray before anything is submitted.
+    pub check: f64,
+    /// Converting and packing rays into staging (the upload, on shared-memory devices).
+    pub pack: f64,
+    /// Recording and submitting command buffers.
+    pub submit: f64,
+    /// Waiting for the GPU.
+    pub wait: f64,
+    /// Copying hit fields from readback memory into the result arrays.
+    pub unpack: f64,
+    pub total: f64,
+}
+
 /// Traces rays on one device; owns the pipeline variants and reusable staging.
 pub struct Tracer {
     ctx: Arc<Context>,
@@ -192,6 +212,7 @@ pub struct Tracer {
     modules: Vec<vk::ShaderModule>,
     variants: Mutex<HashMap<VariantKey, Arc<Variant>>>,
     idle_slots: Mutex<Vec<Slot>>,
+    last_profile: Mutex<TraceProfile>,
     /// Rays per chunk: bounds staging memory (two chunks in flight).
     chunk_rays: AtomicUsize,
     local_size: u32,
@@ -225,6 +246,7 @@ impl Tracer {
             modules: Vec::new(),
             variants: Mutex::new(HashMap::new()),
             idle_slots: Mutex::new(Vec::new()),
+            last_profile: Mutex::new(TraceProfile::default()),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
             local_size: 64u32
                 .min(ctx.limits.max_compute_work_group_size[0])
@@ -242,6 +264,10 @@ impl Tracer {
         }
         ctx.check_validation()?;
         Ok(tracer)
+    }
+
+    pub fn last_profile(&self) -> TraceProfile {
+        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Rays per chunk: staging holds two chunks of rays and hits (72 bytes a ray each).
@@ -421,7 +447,10 @@ impl Tracer {
     /// Traces `rays` against `scene`, writing the fields `sink` asks for. Rays are checked in full
     /// before anything is submitted; `wait` runs every blocking wait (the binding frees the GIL).
     pub fn trace(&self, scene: &Scene, rays: &Rays, query: Query, sink: &mut HitSink, wait: &dyn Wait) -> Result<()> {
+        let started = Instant::now();
         rays.check()?;
+        let mut profile =
+            TraceProfile { rays: rays.len(), check: started.elapsed().as_secs_f64(), ..Default::default() };
         let n = rays.len();
         for field in FIELDS {
             if let Some(out) = &sink.fields[field as usize] {
@@ -438,9 +467,11 @@ impl Tracer {
         let variant = self.variant(key, wait)?;
         let capacity = self.chunk_rays().min(self.max_dispatch_rays()).min(n).max(1);
         let mut slots = self.take_slots(capacity)?;
-        let result = self.trace_chunks(scene, rays, &variant, outputs, sink, &mut slots, capacity, wait);
+        let result = self.trace_chunks(scene, rays, &variant, outputs, sink, &mut slots, capacity, wait, &mut profile);
         self.return_slots(slots);
         result?;
+        profile.total = started.elapsed().as_secs_f64();
+        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
         self.ctx.check_validation()
     }
 
@@ -455,32 +486,47 @@ impl Tracer {
         slots: &mut [Slot; 2],
         capacity: usize,
         wait: &dyn Wait,
+        profile: &mut TraceProfile,
     ) -> Result<()> {
         let n = rays.len();
+        let mut clock = Instant::now();
+        let mut lap = |into: &mut f64| {
+            let now = Instant::now();
+            *into += (now - clock).as_secs_f64();
+            clock = now;
+        };
         let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
         let mut in_flight: [Option<(usize, usize)>; 2] = [None, None];
         for (chunk, start) in (0..n).step_by(capacity).enumerate() {
             let s = chunk % 2;
             let len = capacity.min(n - start);
+            lap(&mut profile.submit);
             commands[s].wait(wait)?;
+            lap(&mut profile.wait);
             if let Some((prev_start, prev_len)) = in_flight[s].take() {
                 unpack(&slots[s], prev_start, prev_len, outputs, sink);
             }
+            lap(&mut profile.unpack);
             let slot = &mut slots[s];
             let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
             // SAFETY: the staging buffer holds `capacity` rays of 8 f32 each, suitably aligned.
             let floats = unsafe { std::slice::from_raw_parts_mut(packed.as_mut_ptr() as *mut f32, len * RAY_FLOATS) };
             rays.pack(start, floats);
+            lap(&mut profile.pack);
+            profile.chunks += 1;
             commands[s].begin()?;
             self.record_chunk(commands[s].buffer, scene, variant, outputs, slot, len);
             commands[s].submit()?;
             in_flight[s] = Some((start, len));
         }
+        lap(&mut profile.submit);
         for s in 0..2 {
             commands[s].wait(wait)?;
+            lap(&mut profile.wait);
             if let Some((start, len)) = in_flight[s].take() {
                 unpack(&slots[s], start, len, outputs, sink);
             }
+            lap(&mut profile.unpack);
         }
         Ok(())
     }

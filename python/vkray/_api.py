@@ -97,6 +97,13 @@ class Device:
         return dict(self._core.limits)
 
     @property
+    def last_trace_profile(self) -> Dict[str, float]:
+        """Host-side split of this device's last trace in seconds: ``check`` (validating rays),
+        ``pack`` (converting rays into staging), ``submit``, ``wait`` (GPU time not hidden behind
+        packing), ``unpack`` (copying hits out), ``total``; plus ``rays`` and ``chunks``."""
+        return dict(self._core.last_trace_profile)
+
+    @property
     def chunk_rays(self) -> int:
         """Rays traced per submission. Staging memory holds two chunks (72 bytes a ray each)."""
         return self._core.chunk_rays
