@@ -372,8 +372,10 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
     };
     // Where the device and the host share memory, device buffers are written and read in place;
     // a discrete GPU gets staging copies instead (its host-visible device memory is slow to read).
+    // VKRAY_STAGING=1 forces the discrete-GPU path anywhere (to test it on lavapipe).
     let unified_memory =
-        matches!(props.device_type, vk::PhysicalDeviceType::CPU | vk::PhysicalDeviceType::INTEGRATED_GPU);
+        matches!(props.device_type, vk::PhysicalDeviceType::CPU | vk::PhysicalDeviceType::INTEGRATED_GPU)
+            && std::env::var("VKRAY_STAGING").map_or(true, |v| v != "1");
     Ok(Some(Candidate {
         physical,
         kind: props.device_type,

@@ -358,9 +358,15 @@ impl Tracer {
                 .any_hit_shader(vk::SHADER_UNUSED_KHR)
                 .intersection_shader(vk::SHADER_UNUSED_KHR),
         ];
+        // No scene holds AABBs yet: traversal skips them for the whole pipeline (a flag Vulkan
+        // allows only with the primitive-culling feature).
+        let flags = if ctx.limits.ray_traversal_primitive_culling {
+            vk::PipelineCreateFlags::RAY_TRACING_SKIP_AABBS_KHR
+        } else {
+            vk::PipelineCreateFlags::empty()
+        };
         let info = [vk::RayTracingPipelineCreateInfoKHR::default()
-            // No scene holds AABBs yet: traversal skips them for the whole pipeline.
-            .flags(vk::PipelineCreateFlags::RAY_TRACING_SKIP_AABBS_KHR)
+            .flags(flags)
             .stages(&stages)
             .groups(&groups)
             .max_pipeline_ray_recursion_depth(1)

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
 
 import numpy as np
 from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
-MESH_DIR = pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes"
+# ../shared/meshes beside the checkout; VKRAY_MESHES points elsewhere (machines without it).
+MESH_DIR = pathlib.Path(os.environ.get("VKRAY_MESHES") or pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes")
 MESH_NAMES = ("stanford-bunny", "fandisk", "spot", "cow", "teapot")
 
 EMBREE_MISS_T = 1e37
