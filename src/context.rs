@@ -202,7 +202,15 @@ impl InstanceHandle {
         if validation {
             info = info.push_next(&mut early_messenger);
         }
-        let instance = unsafe { entry.create_instance(&info, None) }.vk("vkCreateInstance")?;
+        let instance = unsafe { entry.create_instance(&info, None) }.map_err(|result| match result {
+            vk::Result::ERROR_INCOMPATIBLE_DRIVER => Error::NoDevice(
+                "the Vulkan loader found no driver (install Mesa's mesa-vulkan-drivers, or point \
+                 VK_DRIVER_FILES at your GPU driver's ICD JSON, e.g. \
+                 /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json)"
+                    .into(),
+            ),
+            result => Error::Vulkan { call: "vkCreateInstance", result },
+        })?;
         let debug = if validation {
             let loader = ext::debug_utils::Instance::new(&entry, &instance);
             let messenger = unsafe { loader.create_debug_utils_messenger(&messenger_info(&messages), None) };

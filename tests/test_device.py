@@ -58,3 +58,13 @@ def test_default_backend_follows_ray_query_feature():
     info = vkray.devices()[0]
     expected = "ray_query" if info.ray_query else "pipeline"
     assert vkray.Device(0).backend == expected
+
+
+def test_missing_driver_is_a_clear_no_device_error(tmp_path):
+    import subprocess
+    import sys
+
+    script = "import vkray\ntry:\n    vkray.devices()\nexcept vkray.NoDeviceError as e:\n    print('NoDeviceError', e)\n"
+    env = dict(__import__("os").environ, VK_DRIVER_FILES=str(tmp_path / "none.json"))
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env).stdout
+    assert out.startswith("NoDeviceError") and "VK_DRIVER_FILES" in out
