@@ -67,6 +67,10 @@ pub struct Limits {
     pub max_ray_dispatch_invocation_count: u32,
     pub max_shader_group_stride: u32,
     pub ray_traversal_primitive_culling: bool,
+    /// Nanoseconds per timestamp tick.
+    pub timestamp_period: f32,
+    /// Meaningful bits of the queue's timestamps; 0 where the queue cannot write them.
+    pub timestamp_valid_bits: u32,
 }
 
 /// Which device and backend to open.
@@ -346,6 +350,7 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
         return Ok(None);
     };
 
+    let timestamp_valid_bits = families[queue_family].timestamp_valid_bits;
     let name = props.device_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let driver_name = p_driver.driver_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let driver_info = p_driver.driver_info_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
@@ -365,6 +370,8 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
         max_ray_dispatch_invocation_count: p_pipeline.max_ray_dispatch_invocation_count,
         max_shader_group_stride: p_pipeline.max_shader_group_stride,
         ray_traversal_primitive_culling: primitive_culling,
+        timestamp_period: l.timestamp_period,
+        timestamp_valid_bits,
     };
     let device_type = device_type_name(props.device_type);
     let info = DeviceInfo {

@@ -2,6 +2,8 @@
 //! Everything here runs before anything reaches the GPU, so bad input becomes an error naming the
 //! argument and the first offending row, never undefined behaviour on the device.
 
+use rayon::prelude::*;
+
 use crate::error::{invalid_value, Result};
 
 /// Rows of three coordinates, as the caller's dtype.
@@ -254,7 +256,9 @@ impl PerRay<'_> {
     }
 }
 
-/// A batch of rays as the caller gave it.
+/// A batch of rays as the caller gave it. `origins` or `directions` may hold a single row shared
+/// by every ray (a camera's eye), so that broadcasting never copies it; per-ray bounds then give
+/// the batch its size.
 #[derive(Clone, Copy, Debug)]
 pub struct Rays<'a> {
     pub origins: Vec3s<'a>,
@@ -266,21 +270,41 @@ pub struct Rays<'a> {
 /// Floats one packed ray takes: origin, tmin, direction, tmax.
 pub const RAY_FLOATS: usize = 8;
 
+/// Rays one thread checks and packs at a time: large enough to amortize scheduling, small enough
+/// to spread a chunk over every core.
+const PACK_PIECE: usize = 1 << 14;
+
 impl Rays<'_> {
+    /// The batch size: the longest of the four arrays (the others have one row or value).
     pub fn len(&self) -> usize {
-        self.origins.rows()
+        let bound_len = |b: PerRay| match b {
+            PerRay::All(_) => 0,
+            PerRay::Each(v) => v.len(),
+        };
+        self.origins.rows().max(self.directions.rows()).max(bound_len(self.tmin)).max(bound_len(self.tmax))
     }
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
-    /// Every ray must be valid for Vulkan once in f32: finite origin, finite non-zero direction,
-    /// 0 <= tmin <= tmax, no NaN (tmax may be +inf).
-    pub fn check(&self) -> Result<()> {
+    #[inline]
+    fn origin(&self, i: usize) -> [f32; 3] {
+        self.origins.row_f32(if self.origins.rows() == 1 { 0 } else { i })
+    }
+
+    #[inline]
+    fn direction(&self, i: usize) -> [f32; 3] {
+        self.directions.row_f32(if self.directions.rows() == 1 { 0 } else { i })
+    }
+
+    /// Array lengths must agree (one shared origin or direction row is allowed).
+    pub fn check_shapes(&self) -> Result<()> {
         let n = self.len();
-        if self.directions.rows() != n {
-            return Err(invalid_value(format!("origins has {n} rows but directions has {}", self.directions.rows())));
+        for (name, rows) in [("origins", self.origins.rows()), ("directions", self.directions.rows())] {
+            if rows != n && rows != 1 {
+                return Err(invalid_value(format!("{name} has {rows} rows for {n} rays")));
+            }
         }
         for (name, bound) in [("tmin", self.tmin), ("tmax", self.tmax)] {
             if let PerRay::Each(values) = bound {
@@ -289,48 +313,77 @@ impl Rays<'_> {
                 }
             }
         }
-        for i in 0..n {
-            let o = self.origins.row_f32(i);
-            if !o.iter().all(|c| c.is_finite()) {
-                return Err(invalid_value(format!(
-                    "origins row {i} is not finite in float32: {}",
-                    fmt_row(self.origins.row_f64(i))
-                )));
-            }
-            let d = self.directions.row_f32(i);
-            if !d.iter().all(|c| c.is_finite()) {
-                return Err(invalid_value(format!(
-                    "directions row {i} is not finite in float32: {}",
-                    fmt_row(self.directions.row_f64(i))
-                )));
-            }
-            if d.iter().all(|c| *c == 0.0) {
-                return Err(invalid_value(format!(
-                    "directions row {i} has zero length in float32: {}",
-                    fmt_row(self.directions.row_f64(i))
-                )));
-            }
-            let (tmin, tmax) = (self.tmin.get(i), self.tmax.get(i));
-            if !(tmin >= 0.0) || !(tmin as f32).is_finite() {
-                return Err(invalid_value(format!("tmin of ray {i} must be finite and >= 0, got {tmin}")));
-            }
-            if !(tmax >= tmin) {
-                return Err(invalid_value(format!("ray {i} has tmax ({tmax}) below tmin ({tmin}) or NaN")));
-            }
-        }
         Ok(())
     }
 
-    /// Packs rays `start..start + out.len() / 8` for the GPU. Rays must have passed `check`.
-    pub fn pack(&self, start: usize, out: &mut [f32]) {
-        for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
-            let i = start + k;
-            let o = self.origins.row_f32(i);
-            let d = self.directions.row_f32(i);
-            // Vulkan wants finite bounds; the largest float is as far as +inf for any f32 scene.
-            let tmax = (self.tmax.get(i) as f32).min(f32::MAX);
-            ray.copy_from_slice(&[o[0], o[1], o[2], self.tmin.get(i) as f32, d[0], d[1], d[2], tmax]);
-        }
+    /// Whether ray `i` is valid for Vulkan once in f32: finite origin, finite non-zero direction,
+    /// 0 <= tmin <= tmax, no NaN (tmax may be +inf).
+    #[inline]
+    fn is_valid(&self, i: usize) -> bool {
+        let (o, d) = (self.origin(i), self.direction(i));
+        let (tmin, tmax) = (self.tmin.get(i), self.tmax.get(i));
+        o.iter().all(|c| c.is_finite())
+            && d.iter().all(|c| c.is_finite())
+            && d.iter().any(|c| *c != 0.0)
+            && tmin >= 0.0
+            && (tmin as f32).is_finite()
+            && tmax >= tmin
+    }
+
+    /// Why ray `i` is invalid, naming the array and the row.
+    fn invalid_ray(&self, i: usize) -> crate::error::Error {
+        let row = |v: &Vec3s| v.row_f64(if v.rows() == 1 { 0 } else { i });
+        let (tmin, tmax) = (self.tmin.get(i), self.tmax.get(i));
+        let tmin_ok = tmin >= 0.0 && (tmin as f32).is_finite();
+        let message = if !self.origin(i).iter().all(|c| c.is_finite()) {
+            format!("origins row {i} is not finite in float32: {}", fmt_row(row(&self.origins)))
+        } else if !self.direction(i).iter().all(|c| c.is_finite()) {
+            format!("directions row {i} is not finite in float32: {}", fmt_row(row(&self.directions)))
+        } else if self.direction(i).iter().all(|c| *c == 0.0) {
+            format!("directions row {i} has zero length in float32: {}", fmt_row(row(&self.directions)))
+        } else if !tmin_ok {
+            format!("tmin of ray {i} must be finite and >= 0, got {tmin}")
+        } else {
+            format!("ray {i} has tmax ({tmax}) below tmin ({tmin}) or NaN")
+        };
+        invalid_value(message)
+    }
+
+    /// Checks every ray, on all cores; the error names the first invalid one.
+    pub fn check(&self) -> Result<()> {
+        self.check_shapes()?;
+        let first_bad = (0..self.len().div_ceil(PACK_PIECE))
+            .into_par_iter()
+            .filter_map(|piece| {
+                let range = piece * PACK_PIECE..((piece + 1) * PACK_PIECE).min(self.len());
+                range.into_iter().find(|&i| !self.is_valid(i))
+            })
+            .min();
+        first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
+    }
+
+    /// Checks rays `start..start + out.len() / 8` and packs them for the GPU, on all cores, in one
+    /// pass over the caller's arrays. The error names the first invalid ray of the range.
+    pub fn pack(&self, start: usize, out: &mut [f32]) -> Result<()> {
+        let first_bad = out
+            .par_chunks_mut(PACK_PIECE * RAY_FLOATS)
+            .enumerate()
+            .filter_map(|(piece, out)| {
+                let first = start + piece * PACK_PIECE;
+                for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
+                    let i = first + k;
+                    if !self.is_valid(i) {
+                        return Some(i);
+                    }
+                    let (o, d) = (self.origin(i), self.direction(i));
+                    // Vulkan wants finite bounds; the largest float is as far as +inf for any f32 scene.
+                    let tmax = (self.tmax.get(i) as f32).min(f32::MAX);
+                    ray.copy_from_slice(&[o[0], o[1], o[2], self.tmin.get(i) as f32, d[0], d[1], d[2], tmax]);
+                }
+                None
+            })
+            .min();
+        first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
     }
 }
 
@@ -437,6 +490,28 @@ mod tests {
     }
 
     #[test]
+    fn packing_names_the_first_bad_ray_of_many_pieces() {
+        let n = 3 * PACK_PIECE + 5;
+        let o = [0.5f32, 0.0, 0.0]; // one origin shared by every ray
+        let mut d = vec![0.0f32; 3 * n];
+        d.iter_mut().skip(2).step_by(3).for_each(|z| *z = 1.0);
+        let (late, early) = (2 * PACK_PIECE + 3, PACK_PIECE + 1);
+        d[3 * late + 2] = f32::NAN;
+        d[3 * early + 2] = 0.0;
+        let r = rays(&o, &d, PerRay::All(0.0), PerRay::All(1.0));
+        let mut out = vec![0f32; n * RAY_FLOATS];
+        let text = message(r.pack(0, &mut out));
+        assert!(text.contains(&format!("directions row {early} has zero length")), "{text}");
+        assert!(message(r.check()).contains(&format!("row {early}")));
+        // Packing from an offset reports caller row numbers.
+        let tail = &mut out[..(n - late) * RAY_FLOATS];
+        assert!(message(r.pack(late, tail)).contains(&format!("directions row {late} is not finite")));
+        let mut first = [0f32; RAY_FLOATS];
+        r.pack(0, &mut first).unwrap();
+        assert_eq!(first, [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0]);
+    }
+
+    #[test]
     fn rays_pack_with_finite_bounds() {
         let o = [1.0f64, 2.0, 3.0];
         let d = [0.0f64, 0.0, -1.0];
@@ -447,7 +522,7 @@ mod tests {
             tmax: PerRay::All(f64::INFINITY),
         };
         let mut out = [0f32; RAY_FLOATS];
-        r.pack(0, &mut out);
+        r.pack(0, &mut out).unwrap();
         assert_eq!(out, [1.0, 2.0, 3.0, 0.5, 0.0, 0.0, -1.0, f32::MAX]);
     }
 }

@@ -242,6 +242,8 @@ impl PyDevice {
         d.set_item("shader_group_handle_alignment", l.shader_group_handle_alignment)?;
         d.set_item("shader_group_base_alignment", l.shader_group_base_alignment)?;
         d.set_item("max_ray_dispatch_invocation_count", l.max_ray_dispatch_invocation_count)?;
+        d.set_item("timestamp_period_ns", l.timestamp_period)?;
+        d.set_item("timestamp_valid_bits", l.timestamp_valid_bits)?;
         Ok(d)
     }
 
@@ -252,12 +254,14 @@ impl PyDevice {
         let d = PyDict::new(py);
         d.set_item("rays", p.rays)?;
         d.set_item("chunks", p.chunks)?;
-        d.set_item("check", p.check)?;
         d.set_item("pack", p.pack)?;
         d.set_item("submit", p.submit)?;
         d.set_item("wait", p.wait)?;
         d.set_item("unpack", p.unpack)?;
         d.set_item("total", p.total)?;
+        d.set_item("gpu_upload", p.gpu_upload)?;
+        d.set_item("gpu_trace", p.gpu_trace)?;
+        d.set_item("gpu_readback", p.gpu_readback)?;
         Ok(d)
     }
 

@@ -9,6 +9,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use ash::vk;
+use rayon::prelude::*;
 
 use crate::context::{Backend, Commands, Context, Wait};
 use crate::error::{invalid_value, Result, VkResultExt};
@@ -116,6 +117,7 @@ impl Params {
 }
 
 const PARAMS_BYTES: u32 = std::mem::size_of::<Params>() as u32;
+const _: () = assert!(PARAMS_BYTES <= 128, "within the push-constant size every device offers");
 
 /// Bytes of all hit fields of one ray.
 const HIT_BYTES_PER_RAY: usize = 40;
@@ -186,15 +188,14 @@ impl Slot {
     }
 }
 
-/// Where the host's time went in the last trace (seconds). With two chunks in flight, `wait` is
-/// the GPU time that packing and unpacking did not hide.
+/// Where the time went in the last trace (seconds). The host clock splits the caller's wait;
+/// with two chunks in flight, `wait` is the GPU time that packing and unpacking did not hide. The
+/// device's own timestamps (where its queue has them) split the GPU's part, summed over chunks.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct TraceProfile {
     pub rays: usize,
     pub chunks: usize,
-    /// Checking every ray before anything is submitted.
-    pub check: f64,
-    /// Converting and packing rays into staging (the upload, on shared-memory devices).
+    /// Checking rays and converting them into staging (the upload, on shared-memory devices).
     pub pack: f64,
     /// Recording and submitting command buffers.
     pub submit: f64,
@@ -203,6 +204,67 @@ pub struct TraceProfile {
     /// Copying hit fields from readback memory into the result arrays.
     pub unpack: f64,
     pub total: f64,
+    /// GPU time copying rays from staging to device memory (0 on shared-memory devices).
+    pub gpu_upload: Option<f64>,
+    /// GPU time tracing (the dispatch or trace-rays command alone).
+    pub gpu_trace: Option<f64>,
+    /// GPU time copying hits to readback memory (0 on shared-memory devices).
+    pub gpu_readback: Option<f64>,
+}
+
+/// Timestamps around each phase of a chunk: start, after upload, after trace, after readback.
+const STAMPS_PER_CHUNK: u32 = 4;
+
+/// A timestamp query pool with one set of stamps per chunk slot.
+struct Stamps {
+    pool: vk::QueryPool,
+    tick_seconds: f64,
+    mask: u64,
+}
+
+impl Stamps {
+    fn new(ctx: &Context) -> Result<Option<Stamps>> {
+        let bits = ctx.limits.timestamp_valid_bits;
+        if bits == 0 || ctx.limits.timestamp_period <= 0.0 {
+            return Ok(None);
+        }
+        let info =
+            vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(2 * STAMPS_PER_CHUNK);
+        let pool = unsafe { ctx.device.create_query_pool(&info, None) }.vk("vkCreateQueryPool")?;
+        let mask = if bits >= 64 { u64::MAX } else { (1u64 << bits) - 1 };
+        Ok(Some(Stamps { pool, tick_seconds: ctx.limits.timestamp_period as f64 * 1e-9, mask }))
+    }
+
+    fn reset(&self, ctx: &Context, cmd: vk::CommandBuffer, slot: usize) {
+        unsafe { ctx.device.cmd_reset_query_pool(cmd, self.pool, slot as u32 * STAMPS_PER_CHUNK, STAMPS_PER_CHUNK) };
+    }
+
+    /// Writes stamp `k` of `slot` once all earlier commands are done.
+    fn write(&self, ctx: &Context, cmd: vk::CommandBuffer, slot: usize, k: u32) {
+        let stage = if k == 0 { vk::PipelineStageFlags::TOP_OF_PIPE } else { vk::PipelineStageFlags::BOTTOM_OF_PIPE };
+        unsafe { ctx.device.cmd_write_timestamp(cmd, stage, self.pool, slot as u32 * STAMPS_PER_CHUNK + k) };
+    }
+
+    /// Adds a finished chunk's upload, trace and readback times to `profile`.
+    fn add(&self, ctx: &Context, slot: usize, profile: &mut TraceProfile) -> Result<()> {
+        let mut ticks = [0u64; STAMPS_PER_CHUNK as usize];
+        unsafe {
+            ctx.device.get_query_pool_results(
+                self.pool,
+                slot as u32 * STAMPS_PER_CHUNK,
+                &mut ticks,
+                vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+            )
+        }
+        .vk("vkGetQueryPoolResults")?;
+        let span = |k: usize| (ticks[k + 1].wrapping_sub(ticks[k]) & self.mask) as f64 * self.tick_seconds;
+        for (k, phase) in
+            [&mut profile.gpu_upload, &mut profile.gpu_trace, &mut profile.gpu_readback].into_iter().enumerate()
+        {
+            *phase = Some(phase.unwrap_or(0.0) + span(k));
+        }
+        Ok(())
+    }
 }
 
 /// Traces rays on one device; owns the pipeline variants and reusable staging.
@@ -213,6 +275,8 @@ pub struct Tracer {
     variants: Mutex<HashMap<VariantKey, Arc<Variant>>>,
     idle_slots: Mutex<Vec<Slot>>,
     last_profile: Mutex<TraceProfile>,
+    /// Timestamps of the chunks in flight; one trace at a time uses them (the lock is held).
+    stamps: Mutex<Option<Stamps>>,
     /// Rays per chunk: bounds staging memory (two chunks in flight).
     chunk_rays: AtomicUsize,
     local_size: u32,
@@ -247,6 +311,7 @@ impl Tracer {
             variants: Mutex::new(HashMap::new()),
             idle_slots: Mutex::new(Vec::new()),
             last_profile: Mutex::new(TraceProfile::default()),
+            stamps: Mutex::new(Stamps::new(ctx)?),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
             local_size: 64u32
                 .min(ctx.limits.max_compute_work_group_size[0])
@@ -450,13 +515,14 @@ impl Tracer {
         idle.truncate(4);
     }
 
-    /// Traces `rays` against `scene`, writing the fields `sink` asks for. Rays are checked in full
-    /// before anything is submitted; `wait` runs every blocking wait (the binding frees the GIL).
+    /// Traces `rays` against `scene`, writing the fields `sink` asks for. Each chunk's rays are
+    /// checked as they are packed; an invalid ray stops the trace with an error naming it (chunks
+    /// already in flight finish first, and what they wrote is not the caller's to read). `wait`
+    /// runs every blocking wait (the binding frees the GIL).
     pub fn trace(&self, scene: &Scene, rays: &Rays, query: Query, sink: &mut HitSink, wait: &dyn Wait) -> Result<()> {
         let started = Instant::now();
-        rays.check()?;
-        let mut profile =
-            TraceProfile { rays: rays.len(), check: started.elapsed().as_secs_f64(), ..Default::default() };
+        rays.check_shapes()?;
+        let mut profile = TraceProfile { rays: rays.len(), ..Default::default() };
         let n = rays.len();
         for field in FIELDS {
             if let Some(out) = &sink.fields[field as usize] {
@@ -501,6 +567,8 @@ impl Tracer {
             *into += (now - clock).as_secs_f64();
             clock = now;
         };
+        let stamps_lock = self.stamps.lock().unwrap_or_else(|e| e.into_inner());
+        let stamps = stamps_lock.as_ref();
         let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
         let mut in_flight: [Option<(usize, usize)>; 2] = [None, None];
         for (chunk, start) in (0..n).step_by(capacity).enumerate() {
@@ -510,6 +578,9 @@ impl Tracer {
             commands[s].wait(wait)?;
             lap(&mut profile.wait);
             if let Some((prev_start, prev_len)) = in_flight[s].take() {
+                if let Some(stamps) = stamps {
+                    stamps.add(&self.ctx, s, profile)?;
+                }
                 unpack(&slots[s], prev_start, prev_len, outputs, sink);
             }
             lap(&mut profile.unpack);
@@ -517,11 +588,12 @@ impl Tracer {
             let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
             // SAFETY: the staging buffer holds `capacity` rays of 8 f32 each, suitably aligned.
             let floats = unsafe { std::slice::from_raw_parts_mut(packed.as_mut_ptr() as *mut f32, len * RAY_FLOATS) };
-            rays.pack(start, floats);
+            // On an invalid ray, dropping `commands` waits for the chunks in flight.
+            rays.pack(start, floats)?;
             lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_chunk(commands[s].buffer, scene, variant, outputs, slot, len);
+            self.record_chunk(commands[s].buffer, scene, variant, outputs, slot, s, len, stamps);
             commands[s].submit()?;
             in_flight[s] = Some((start, len));
         }
@@ -530,6 +602,9 @@ impl Tracer {
             commands[s].wait(wait)?;
             lap(&mut profile.wait);
             if let Some((start, len)) = in_flight[s].take() {
+                if let Some(stamps) = stamps {
+                    stamps.add(&self.ctx, s, profile)?;
+                }
                 unpack(&slots[s], start, len, outputs, sink);
             }
             lap(&mut profile.unpack);
@@ -537,6 +612,7 @@ impl Tracer {
         Ok(())
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn record_chunk(
         &self,
         cmd: vk::CommandBuffer,
@@ -544,8 +620,19 @@ impl Tracer {
         variant: &Variant,
         outputs: u32,
         slot: &Slot,
+        slot_index: usize,
         len: usize,
+        stamps: Option<&Stamps>,
     ) {
+        let stamp = |k| {
+            if let Some(stamps) = stamps {
+                stamps.write(&self.ctx, cmd, slot_index, k);
+            }
+        };
+        if let Some(stamps) = stamps {
+            stamps.reset(&self.ctx, cmd, slot_index);
+        }
+        stamp(0);
         let ctx = &self.ctx;
         let device = &ctx.device;
         let (bind_point, shader_stage) = match ctx.backend {
@@ -566,6 +653,7 @@ impl Tracer {
                 vk::AccessFlags::SHADER_READ,
             );
         }
+        stamp(1);
         let mut params = Params {
             rays: slot.rays_address(),
             instances: scene.instance_geometries_address(),
@@ -597,6 +685,7 @@ impl Tracer {
             },
             _ => unsafe { device.cmd_dispatch(cmd, (len as u32).div_ceil(self.local_size), 1, 1) },
         }
+        stamp(2);
         match &slot.device {
             Some((_, hits_device)) => {
                 memory_barrier(
@@ -637,11 +726,13 @@ impl Tracer {
                 vk::AccessFlags::HOST_READ,
             ),
         }
+        stamp(3);
     }
 }
 
-/// Copies a finished chunk's requested fields into the caller's arrays.
+/// Copies a finished chunk's requested fields into the caller's arrays, on all cores.
 fn unpack(slot: &Slot, start: usize, len: usize, outputs: u32, sink: &mut HitSink) {
+    const PIECE_BYTES: usize = 1 << 20;
     let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
     for field in FIELDS {
         if outputs & field.bit() == 0 {
@@ -650,7 +741,10 @@ fn unpack(slot: &Slot, start: usize, len: usize, outputs: u32, sink: &mut HitSin
         let Some(out) = sink.fields[field as usize].as_deref_mut() else { continue };
         let width = field.bytes_per_ray();
         let from = slot.field_offset(field);
-        out[start * width..(start + len) * width].copy_from_slice(&hits[from..from + len * width]);
+        out[start * width..(start + len) * width]
+            .par_chunks_mut(PIECE_BYTES)
+            .zip(hits[from..from + len * width].par_chunks(PIECE_BYTES))
+            .for_each(|(dst, src)| dst.copy_from_slice(src));
     }
 }
 
@@ -696,6 +790,9 @@ impl Drop for Tracer {
                 device.destroy_shader_module(*module, None);
             }
             device.destroy_pipeline_layout(self.layout, None);
+            if let Some(stamps) = self.stamps.get_mut().unwrap_or_else(|e| e.into_inner()) {
+                device.destroy_query_pool(stamps.pool, None);
+            }
         }
     }
 }
@@ -708,7 +805,6 @@ mod tests {
     fn params_match_the_shader_block() {
         // 10 addresses and a count, padded to 8 bytes: the GLSL block's std430 size.
         assert_eq!(PARAMS_BYTES, 88);
-        assert!(PARAMS_BYTES <= 128, "within the push-constant size every device offers");
     }
 
     #[test]

@@ -115,12 +115,35 @@ def test_chunk_boundaries_do_not_change_results(device):
     try:
         device.chunk_rays = 1000  # 11 chunks, the last one partial, two in flight
         chunked = scene.intersect(origins, directions, outputs=vkray.HIT_FIELDS)
+        # Rays are checked as each chunk is packed: a bad ray in chunk 9, with chunks in flight,
+        # is reported by its own row, and the device carries on.
+        bad = directions.copy()
+        bad[8500] = np.nan
+        with pytest.raises(ValueError, match="directions row 8500 is not finite"):
+            scene.intersect(origins, bad)
         with pytest.raises(ValueError):
             device.chunk_rays = 0
     finally:
         device.chunk_rays = saved
     for name in vkray.HIT_FIELDS:
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
+
+
+def test_profile_splits_host_and_gpu_time(device):
+    v, f = load_obj("stanford-bunny")
+    scene = device.scene(device.mesh(v, f))
+    origins, directions = random_rays(v, 50_000, seed=3)
+    scene.intersect(origins, directions)
+    p = device.last_trace_profile
+    assert p["rays"] == 50_000 and p["chunks"] == 1
+    host = p["pack"] + p["submit"] + p["wait"] + p["unpack"]
+    assert 0 < host <= p["total"]
+    if device.limits["timestamp_valid_bits"]:
+        # The device's clock: the trace itself takes time, and all GPU phases fit in the wait.
+        assert p["gpu_trace"] > 0
+        assert p["gpu_upload"] + p["gpu_trace"] + p["gpu_readback"] <= p["total"]
+    else:
+        assert p["gpu_trace"] is None
 
 
 def test_ten_million_rays(device):

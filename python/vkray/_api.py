@@ -98,9 +98,13 @@ class Device:
 
     @property
     def last_trace_profile(self) -> Dict[str, float]:
-        """Host-side split of this device's last trace in seconds: ``check`` (validating rays),
-        ``pack`` (converting rays into staging), ``submit``, ``wait`` (GPU time not hidden behind
-        packing), ``unpack`` (copying hits out), ``total``; plus ``rays`` and ``chunks``."""
+        """Where this device's last trace spent its time, in seconds.
+
+        Host clock: ``pack`` (checking rays and converting them into staging), ``submit``,
+        ``wait`` (GPU time not hidden behind packing), ``unpack`` (copying hits out), ``total``.
+        GPU timestamps, summed over chunks (``None`` where the queue has no timestamps):
+        ``gpu_upload`` (staging → device copy), ``gpu_trace`` (the trace alone), ``gpu_readback``.
+        Plus ``rays`` and ``chunks``."""
         return dict(self._core.last_trace_profile)
 
     @property

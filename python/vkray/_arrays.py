@@ -66,7 +66,9 @@ def rays(
     origins: object, directions: object, tmin: object, tmax: object
 ) -> Tuple[Tuple[int, ...], np.ndarray, np.ndarray, object, object]:
     """Broadcasts origins and directions (``... + (3,)``) and tmin/tmax (scalars or arrays) to one
-    batch shape ``S``, as numpy would; returns ``S``, flat (N, 3) arrays and float-or-(N,) bounds."""
+    batch shape ``S``, as numpy would; returns ``S``, flat (N, 3) arrays and float-or-(N,) bounds.
+    A single origin or direction shared by every ray stays one (1, 3) row: the core reads it for
+    each ray, so a camera's eye is never copied N times."""
     o = real_coordinates("origins", origins)
     d = real_coordinates("directions", directions)
     for name, array in (("origins", o), ("directions", d)):
@@ -82,8 +84,13 @@ def rays(
             "do not broadcast to one batch of rays"
         ) from None
     n = int(np.prod(shape, dtype=np.int64))
-    o = np.ascontiguousarray(np.broadcast_to(o, shape + (3,)).reshape(n, 3))
-    d = np.ascontiguousarray(np.broadcast_to(d, shape + (3,)).reshape(n, 3))
+
+    def flat(array: np.ndarray) -> np.ndarray:
+        if n > 0 and array.size == 3:
+            return np.ascontiguousarray(array.reshape(1, 3))
+        return np.ascontiguousarray(np.broadcast_to(array, shape + (3,)).reshape(n, 3))
+
+    o, d = flat(o), flat(d)
     bounds = [
         float(b) if b.ndim == 0 else np.ascontiguousarray(np.broadcast_to(b, shape).reshape(n), dtype=np.float64)
         for b in (lo, hi)
