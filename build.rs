@@ -3,7 +3,15 @@
 use std::path::PathBuf;
 use std::process::Command;
 
-const SHADERS: &[&str] = &["trace_ray_query.comp", "raygen.rgen", "closest_hit.rchit", "miss.rmiss"];
+const SHADERS: &[&str] = &[
+    "trace_ray_query.comp",
+    "raygen.rgen",
+    "closest_hit.rchit",
+    "miss.rmiss",
+    "trace_exact_ray_query.comp",
+    "raygen_exact.rgen",
+    "intersection_exact.rint",
+];
 
 fn main() {
     let out = PathBuf::from(std::env::var("OUT_DIR").unwrap());

@@ -49,7 +49,9 @@ layout(push_constant, std430) uniform Params {
   uint64_t out_uv;
   uint64_t out_normal;
   uint64_t out_geometry;
+  uint64_t scratch;    // exact tier, pipeline backend: ExactBest per ray
   uint count;
+  float bounds[6];     // exact tier: the scene's bounds (min xyz, max xyz), rounded outward
 } params;
 
 struct Ray {
@@ -82,9 +84,10 @@ Hit miss_hit() {
   return Hit(uintBitsToFloat(0x7f800000u), -1, -1, -1, -1, vec2(nan), vec3(nan));
 }
 
-uvec3 triangle_indices(GeometrySource src, uint prim) {
-  Words words = Words(src.indices);
-  if (src.index_is_u16 != 0u) {
+// Corner indices of triangle `prim` in an index buffer of uint32, or of uint16 packed in words.
+uvec3 triangle_indices_at(uint64_t indices, uint index_is_u16, uint prim) {
+  Words words = Words(indices);
+  if (index_is_u16 != 0u) {
     uint first = 3u * prim;
     uvec3 idx;
     for (uint k = 0u; k < 3u; ++k) {
@@ -94,6 +97,10 @@ uvec3 triangle_indices(GeometrySource src, uint prim) {
     return idx;
   }
   return uvec3(words.v[3u * prim], words.v[3u * prim + 1u], words.v[3u * prim + 2u]);
+}
+
+uvec3 triangle_indices(GeometrySource src, uint prim) {
+  return triangle_indices_at(src.indices, src.index_is_u16, prim);
 }
 
 vec3 vertex_at(GeometrySource src, uint index) {
@@ -106,9 +113,14 @@ GeometrySource geometry_source(int instance, int geometry) {
   return GeometrySources(sources).g[geometry];
 }
 
-// The caller's index of a triangle the device may hold in another order (see scene.rs).
+// The caller's index of a triangle the device may hold in another order (see scene.rs):
+// `order` maps device triangles to the caller's, or is 0 where they agree.
+int caller_index(uint64_t order, int prim) {
+  return order == 0ul ? prim : Ints(order).v[prim];
+}
+
 int caller_primitive(GeometrySource src, int prim) {
-  return src.primitive_order == 0ul ? prim : Ints(src.primitive_order).v[prim];
+  return caller_index(src.primitive_order, prim);
 }
 
 // Unit geometric normal of the hit triangle in world space, right-handed in the triangle's winding

@@ -107,6 +107,10 @@ impl AccelerationStructure {
         self.raw
     }
 
+    pub fn context(&self) -> &Arc<Context> {
+        &self.ctx
+    }
+
     pub fn address(&self) -> u64 {
         self.address
     }

@@ -489,7 +489,9 @@ impl Context {
         let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default()
             .ray_tracing_pipeline(true)
             .ray_traversal_primitive_culling(candidate.limits.ray_traversal_primitive_culling);
-        let core = vk::PhysicalDeviceFeatures::default().shader_int64(true);
+        // f64 is optional: only the exact precision tier needs it.
+        let core =
+            vk::PhysicalDeviceFeatures::default().shader_int64(true).shader_float64(candidate.info.shader_float64);
         let mut features =
             vk::PhysicalDeviceFeatures2::default().features(core).push_next(&mut f12).push_next(&mut f_accel);
         match backend {

@@ -2,9 +2,11 @@
 //! Everything here runs before anything reaches the GPU, so bad input becomes an error naming the
 //! argument and the first offending row, never undefined behaviour on the device.
 
+use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::error::{invalid_value, Result};
+use crate::precision::Ray64;
 
 /// Rows of three coordinates, as the caller's dtype.
 #[derive(Clone, Copy, Debug)]
@@ -107,7 +109,7 @@ impl Indices<'_> {
         }
     }
 
-    fn corner(&self, triangle: usize, k: usize) -> usize {
+    pub fn corner(&self, triangle: usize, k: usize) -> usize {
         self.get(3 * triangle + k) as usize
     }
 }
@@ -214,9 +216,10 @@ pub fn write_vertices_f32(vertices: Vec3s, out: &mut [u8]) {
     }
 }
 
-/// A row-major 3×4 or 4×4 matrix acting on column vectors (numpy's `M @ p`), as the 3×4 row-major
-/// float matrix Vulkan's `VkTransformMatrixKHR` holds. A 4×4 must be affine (last row 0 0 0 1).
-pub fn instance_transform(values: &[f64], rows: usize) -> Result<[f32; 12]> {
+/// A row-major 3×4 or 4×4 matrix acting on column vectors (numpy's `M @ p`), as its 3×4 rows in
+/// f64 (scenes subtract their centre before the f32 of `VkTransformMatrixKHR`). A 4×4 must be
+/// affine (last row 0 0 0 1).
+pub fn instance_transform(values: &[f64], rows: usize) -> Result<[f64; 12]> {
     if !(rows == 3 || rows == 4) || values.len() != rows * 4 {
         return Err(crate::error::Error::InvalidType(format!(
             "transform must be a 3x4 or 4x4 matrix, got {} values in {rows} rows",
@@ -232,10 +235,8 @@ pub fn instance_transform(values: &[f64], rows: usize) -> Result<[f32; 12]> {
             &values[12..16]
         )));
     }
-    let mut out = [0f32; 12];
-    for (o, v) in out.iter_mut().zip(values.iter()) {
-        *o = *v as f32;
-    }
+    let mut out = [0f64; 12];
+    out.copy_from_slice(&values[..12]);
     Ok(out)
 }
 
@@ -296,6 +297,17 @@ impl Rays<'_> {
     #[inline]
     fn direction(&self, i: usize) -> [f32; 3] {
         self.directions.row_f32(if self.directions.rows() == 1 { 0 } else { i })
+    }
+
+    /// Ray `i` in f64, its origin shifted by `-shift` (into a scene's frame).
+    pub fn ray64(&self, i: usize, shift: DVec3) -> Ray64 {
+        let row = |v: &Vec3s| DVec3::from_array(v.row_f64(if v.rows() == 1 { 0 } else { i }));
+        Ray64 {
+            origin: row(&self.origins) - shift,
+            direction: row(&self.directions),
+            tmin: self.tmin.get(i),
+            tmax: self.tmax.get(i),
+        }
     }
 
     /// Array lengths must agree (one shared origin or direction row is allowed).
@@ -362,9 +374,31 @@ impl Rays<'_> {
         first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
     }
 
-    /// Checks rays `start..start + out.len() / 8` and packs them for the GPU, on all cores, in one
-    /// pass over the caller's arrays. The error names the first invalid ray of the range.
-    pub fn pack(&self, start: usize, out: &mut [f32]) -> Result<()> {
+    /// Checks rays `start..` and packs them for the GPU with their origins moved by `-shift`
+    /// (into a scene's frame): 8 f32 a ray (origin, tmin, direction, tmax), as many rays as `out`
+    /// holds. One pass over the caller's arrays on all cores; the error names the first invalid ray.
+    pub fn pack(&self, start: usize, out: &mut [f32], shift: DVec3) -> Result<()> {
+        self.pack_with(start, out, |i, ray| {
+            let (mut o, d) = (self.origin(i), self.direction(i));
+            if shift != DVec3::ZERO {
+                o = self.ray64(i, shift).origin.as_vec3().to_array();
+            }
+            // Vulkan wants finite bounds; the largest float is as far as +inf for any f32 scene.
+            let tmax = (self.tmax.get(i) as f32).min(f32::MAX);
+            ray.copy_from_slice(&[o[0], o[1], o[2], self.tmin.get(i) as f32, d[0], d[1], d[2], tmax]);
+        })
+    }
+
+    /// As `pack`, in f64 for the exact tier (tmax stays +inf where it is).
+    pub fn pack_f64(&self, start: usize, out: &mut [f64], shift: DVec3) -> Result<()> {
+        self.pack_with(start, out, |i, ray| {
+            let r = self.ray64(i, shift);
+            let (o, d) = (r.origin, r.direction);
+            ray.copy_from_slice(&[o.x, o.y, o.z, r.tmin, d.x, d.y, d.z, r.tmax]);
+        })
+    }
+
+    fn pack_with<T: Send>(&self, start: usize, out: &mut [T], write: impl Fn(usize, &mut [T]) + Sync) -> Result<()> {
         let first_bad = out
             .par_chunks_mut(PACK_PIECE * RAY_FLOATS)
             .enumerate()
@@ -375,10 +409,7 @@ impl Rays<'_> {
                     if !self.is_valid(i) {
                         return Some(i);
                     }
-                    let (o, d) = (self.origin(i), self.direction(i));
-                    // Vulkan wants finite bounds; the largest float is as far as +inf for any f32 scene.
-                    let tmax = (self.tmax.get(i) as f32).min(f32::MAX);
-                    ray.copy_from_slice(&[o[0], o[1], o[2], self.tmin.get(i) as f32, d[0], d[1], d[2], tmax]);
+                    write(i, ray);
                 }
                 None
             })
@@ -500,14 +531,14 @@ mod tests {
         d[3 * early + 2] = 0.0;
         let r = rays(&o, &d, PerRay::All(0.0), PerRay::All(1.0));
         let mut out = vec![0f32; n * RAY_FLOATS];
-        let text = message(r.pack(0, &mut out));
+        let text = message(r.pack(0, &mut out, DVec3::ZERO));
         assert!(text.contains(&format!("directions row {early} has zero length")), "{text}");
         assert!(message(r.check()).contains(&format!("row {early}")));
         // Packing from an offset reports caller row numbers.
         let tail = &mut out[..(n - late) * RAY_FLOATS];
-        assert!(message(r.pack(late, tail)).contains(&format!("directions row {late} is not finite")));
+        assert!(message(r.pack(late, tail, DVec3::ZERO)).contains(&format!("directions row {late} is not finite")));
         let mut first = [0f32; RAY_FLOATS];
-        r.pack(0, &mut first).unwrap();
+        r.pack(0, &mut first, DVec3::ZERO).unwrap();
         assert_eq!(first, [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0]);
     }
 
@@ -522,7 +553,7 @@ mod tests {
             tmax: PerRay::All(f64::INFINITY),
         };
         let mut out = [0f32; RAY_FLOATS];
-        r.pack(0, &mut out).unwrap();
+        r.pack(0, &mut out, DVec3::ZERO).unwrap();
         assert_eq!(out, [1.0, 2.0, 3.0, 0.5, 0.0, 0.0, -1.0, f32::MAX]);
     }
 }

@@ -8,8 +8,11 @@ pub mod context;
 pub mod error;
 pub mod input;
 pub mod memory;
+pub mod precision;
+pub mod reference;
 pub mod scene;
 pub mod shaders;
+pub mod tiers;
 pub mod trace;
 
 #[cfg(feature = "python")]

@@ -14,6 +14,7 @@ use crate::accel::{BuildOptions, BuildPreference, BuildStats};
 use crate::context::{Backend, Context, DeviceInfo, DeviceRequest, Wait};
 use crate::error::{Error, Result};
 use crate::input::{instance_transform, Indices, PerRay, Rays, Vec3s};
+use crate::precision::Precision;
 use crate::scene::{Instance, Mesh, Scene, IDENTITY};
 use crate::trace::{Field, HitSink, Query, Tracer};
 
@@ -42,7 +43,7 @@ struct ReleaseGil<'py>(Python<'py>);
 
 impl Wait for ReleaseGil<'_> {
     fn wait(&self, block: &(dyn Fn() -> Result<()> + Sync)) -> Result<()> {
-        self.0.detach(|| block())
+        self.0.detach(block)
     }
 }
 
@@ -262,6 +263,7 @@ impl PyDevice {
         d.set_item("gpu_upload", p.gpu_upload)?;
         d.set_item("gpu_trace", p.gpu_trace)?;
         d.set_item("gpu_readback", p.gpu_readback)?;
+        d.set_item("host_f64", p.host_f64)?;
         Ok(d)
     }
 
@@ -383,8 +385,9 @@ impl PyScene {
     }
 
     /// Traces rays; returns {field name: array} for the fields asked for.
-    /// `query` is "closest" or "occluded".
-    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields))]
+    /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`.
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast"))]
+    #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
         py: Python<'py>,
@@ -394,7 +397,10 @@ impl PyScene {
         tmax: &Bound<'py, PyAny>,
         query: &str,
         fields: Vec<String>,
+        precision: &str,
     ) -> PyResult<Bound<'py, PyDict>> {
+        let precision = Precision::parse(precision)?;
+        let wide = precision.is_f64();
         let query = match query {
             "closest" => Query::Closest,
             "occluded" => Query::Occluded,
@@ -412,14 +418,27 @@ impl PyScene {
         let n = rays.len();
 
         let mut arrays: Vec<(Field, Bound<'py, PyAny>)> = Vec::new();
+        let mut position = None;
         for name in &fields {
+            if name == "position" {
+                let array = if wide {
+                    unsafe { PyArray2::<f64>::new(py, [n, 3], false) }.into_any()
+                } else {
+                    unsafe { PyArray2::<f32>::new(py, [n, 3], false) }.into_any()
+                };
+                result.set_item(name, &array)?;
+                position = Some(array);
+                continue;
+            }
             let Some((_, field)) = FIELD_NAMES.iter().find(|(n, _)| n == name) else {
                 return Err(PyValueError::new_err(format!("unknown hit field {name:?}")));
             };
-            let array: Bound<'py, PyAny> = match field {
-                Field::T => unsafe { PyArray1::<f32>::new(py, [n], false) }.into_any(),
-                Field::Uv => unsafe { PyArray2::<f32>::new(py, [n, 2], false) }.into_any(),
-                Field::Normal => unsafe { PyArray2::<f32>::new(py, [n, 3], false) }.into_any(),
+            let array: Bound<'py, PyAny> = match (field, wide) {
+                (Field::T, false) => unsafe { PyArray1::<f32>::new(py, [n], false) }.into_any(),
+                (Field::T, true) => unsafe { PyArray1::<f64>::new(py, [n], false) }.into_any(),
+                (Field::Uv, false) => unsafe { PyArray2::<f32>::new(py, [n, 2], false) }.into_any(),
+                (Field::Uv, true) => unsafe { PyArray2::<f64>::new(py, [n, 2], false) }.into_any(),
+                (Field::Normal, _) => unsafe { PyArray2::<f32>::new(py, [n, 3], false) }.into_any(),
                 _ => unsafe { PyArray1::<i32>::new(py, [n], false) }.into_any(),
             };
             result.set_item(name, &array)?;
@@ -431,13 +450,21 @@ impl PyScene {
             // through this slice until trace returns.
             let bytes = unsafe {
                 let untyped = array.downcast_unchecked::<numpy::PyUntypedArray>();
-                let len = untyped.len() * field.bytes_per_ray() / field_elements(*field);
+                let len = untyped.len() * field.bytes_per_ray(wide) / field_elements(*field);
                 let ptr = (*untyped.as_array_ptr()).data as *mut u8;
                 std::slice::from_raw_parts_mut(ptr, len)
             };
             sink.set(*field, bytes);
         }
-        self.tracer.trace(&self.scene, &rays, query, &mut sink, &ReleaseGil(py))?;
+        if let Some(array) = &position {
+            // SAFETY: as above; (n, 3) floats of 4 or 8 bytes.
+            sink.position = Some(unsafe {
+                let untyped = array.downcast_unchecked::<numpy::PyUntypedArray>();
+                let ptr = (*untyped.as_array_ptr()).data as *mut u8;
+                std::slice::from_raw_parts_mut(ptr, n * 3 * if wide { 8 } else { 4 })
+            });
+        }
+        self.tracer.trace(&self.scene, &rays, query, precision, &mut sink, &ReleaseGil(py))?;
         Ok(result)
     }
 }

@@ -10,6 +10,9 @@ pub const TRACE_RAY_QUERY: &[u8] = spirv!("trace_ray_query.comp");
 pub const RAYGEN: &[u8] = spirv!("raygen.rgen");
 pub const CLOSEST_HIT: &[u8] = spirv!("closest_hit.rchit");
 pub const MISS: &[u8] = spirv!("miss.rmiss");
+pub const TRACE_EXACT_RAY_QUERY: &[u8] = spirv!("trace_exact_ray_query.comp");
+pub const RAYGEN_EXACT: &[u8] = spirv!("raygen_exact.rgen");
+pub const INTERSECTION_EXACT: &[u8] = spirv!("intersection_exact.rint");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -17,6 +20,9 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("raygen.rgen", RAYGEN),
     ("closest_hit.rchit", CLOSEST_HIT),
     ("miss.rmiss", MISS),
+    ("trace_exact_ray_query.comp", TRACE_EXACT_RAY_QUERY),
+    ("raygen_exact.rgen", RAYGEN_EXACT),
+    ("intersection_exact.rint", INTERSECTION_EXACT),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

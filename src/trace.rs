@@ -15,8 +15,10 @@ use crate::context::{Backend, Commands, Context, Wait};
 use crate::error::{invalid_value, Result, VkResultExt};
 use crate::input::{Rays, RAY_FLOATS};
 use crate::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
-use crate::scene::Scene;
+use crate::precision::Precision;
+use crate::scene::{ExactScene, Scene};
 use crate::shaders;
+use crate::tiers;
 
 /// What a query asks of each ray.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -45,10 +47,13 @@ const FIELDS: [Field; FIELD_COUNT] =
     [Field::T, Field::Prim, Field::Instance, Field::Custom, Field::Uv, Field::Normal, Field::Geometry];
 
 impl Field {
-    pub fn bytes_per_ray(self) -> usize {
-        match self {
-            Field::Uv => 8,
-            Field::Normal => 12,
+    /// Bytes of one ray's value; `wide`: `t` and `uv` in f64 (the f64 precision tiers).
+    pub fn bytes_per_ray(self, wide: bool) -> usize {
+        match (self, wide) {
+            (Field::T, true) => 8,
+            (Field::Uv, false) => 8,
+            (Field::Uv, true) => 16,
+            (Field::Normal, _) => 12,
             _ => 4,
         }
     }
@@ -59,14 +64,29 @@ impl Field {
 }
 
 /// Where the caller wants each requested field written, as raw bytes of its output array.
+/// `position` (the world-space hit point: 3 f32, or 3 f64 in the f64 tiers) is computed on the
+/// host from the hit triangle and its barycentrics, never by a shader.
 #[derive(Default)]
 pub struct HitSink<'a> {
     fields: [Option<&'a mut [u8]>; FIELD_COUNT],
+    pub position: Option<&'a mut [u8]>,
 }
 
 impl<'a> HitSink<'a> {
     pub fn set(&mut self, field: Field, out: &'a mut [u8]) {
         self.fields[field as usize] = Some(out);
+    }
+
+    pub fn field(&self, field: Field) -> Option<&[u8]> {
+        self.fields[field as usize].as_deref()
+    }
+
+    pub fn field_mut(&mut self, field: Field) -> Option<&mut [u8]> {
+        self.fields[field as usize].as_deref_mut()
+    }
+
+    pub fn take(&mut self, field: Field) -> Option<&'a mut [u8]> {
+        self.fields[field as usize].take()
     }
 
     fn outputs(&self) -> u32 {
@@ -80,12 +100,13 @@ const RAY_FLAG_SKIP_CLOSEST_HIT_SHADER: u32 = 0x8;
 const RAY_FLAG_CULL_NO_OPAQUE: u32 = 0x80;
 const RAY_FLAG_SKIP_AABBS: u32 = 0x200;
 
-/// Ray flags resolved statically for a query on a scene: every triangle is opaque and no scene
-/// holds AABBs yet, so non-opaque and procedural paths are culled at compile time.
-fn ray_flags(query: Query, backend: Backend) -> u32 {
+/// Ray flags resolved statically for a query on a scene: every triangle is opaque and only the
+/// exact tier's structures hold AABBs (and nothing else), so non-opaque paths are culled at
+/// compile time, and procedural ones too where no AABB can be met.
+fn ray_flags(query: Query, backend: Backend, exact: bool) -> u32 {
     let mut flags = RAY_FLAG_CULL_NO_OPAQUE;
     // The pipeline backend skips AABBs with a pipeline flag instead, which needs no device feature.
-    if backend == Backend::RayQuery {
+    if backend == Backend::RayQuery && !exact {
         flags |= RAY_FLAG_SKIP_AABBS;
     }
     if query == Query::Occluded {
@@ -102,16 +123,21 @@ fn ray_flags(query: Query, backend: Backend) -> u32 {
 #[derive(Clone, Copy, Default)]
 struct Params {
     rays: u64,
+    /// InstanceGeometries (fast tier) or ExactInstances (exact tier).
     instances: u64,
     tlas: u64,
     outputs: [u64; FIELD_COUNT],
+    /// Exact tier, pipeline backend: the per-ray best-hit records its intersection shader keeps.
+    scratch: u64,
     count: u32,
+    /// Exact tier: the scene's bounds (min xyz, max xyz) in its frame, rounded outward to f32.
+    bounds: [f32; 6],
     pad: u32,
 }
 
 impl Params {
     fn bytes(&self) -> &[u8] {
-        // SAFETY: plain old data, no padding holes (count + pad complete the last 8 bytes).
+        // SAFETY: plain old data, no padding holes (bounds + pad complete the last 8 bytes).
         unsafe { std::slice::from_raw_parts(self as *const Params as *const u8, std::mem::size_of::<Params>()) }
     }
 }
@@ -119,13 +145,14 @@ impl Params {
 const PARAMS_BYTES: u32 = std::mem::size_of::<Params>() as u32;
 const _: () = assert!(PARAMS_BYTES <= 128, "within the push-constant size every device offers");
 
-/// Bytes of all hit fields of one ray.
-const HIT_BYTES_PER_RAY: usize = 40;
+/// Bytes of the exact pipeline's per-ray best-hit record (`ExactBest` in shaders/exact.glsl).
+const EXACT_SCRATCH_BYTES: usize = 40;
 
 #[derive(Clone, Copy, PartialEq, Eq, Hash)]
 struct VariantKey {
     outputs: u32,
     ray_flags: u32,
+    exact: bool,
 }
 
 struct ShaderBindingTable {
@@ -140,43 +167,61 @@ struct Variant {
     sbt: Option<ShaderBindingTable>,
 }
 
-/// Host-visible staging for one chunk in flight (plus device copies on discrete GPUs).
+/// Host-visible staging for one chunk in flight (plus device copies on discrete GPUs). An exact
+/// slot holds f64 rays, f64 `t`/`uv` and the pipeline's scratch records.
 struct Slot {
     rays_host: Buffer,
     hits_host: Buffer,
     device: Option<(Buffer, Buffer)>,
     capacity: usize,
+    exact: bool,
 }
 
 impl Slot {
-    fn new(ctx: &Arc<Context>, capacity: usize) -> Result<Slot> {
+    fn new(ctx: &Arc<Context>, capacity: usize, exact: bool) -> Result<Slot> {
         use vk::BufferUsageFlags as U;
         let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
-        let ray_bytes = (capacity * RAY_FLOATS * 4) as u64;
-        let hit_bytes = (capacity * HIT_BYTES_PER_RAY) as u64;
-        if ctx.unified_memory {
-            Ok(Slot {
-                rays_host: Buffer::new(ctx, ray_bytes, storage, MemoryLocation::CpuToGpu, "rays")?,
-                hits_host: Buffer::new(ctx, hit_bytes, storage, MemoryLocation::GpuToCpu, "hits")?,
-                device: None,
-                capacity,
-            })
+        let ray_bytes = (capacity * RAY_FLOATS * if exact { 8 } else { 4 }) as u64;
+        let hit_bytes = Slot::layout(capacity, exact).1 as u64;
+        let (rays_host, hits_host, device) = if ctx.unified_memory {
+            let rays = Buffer::new(ctx, ray_bytes, storage, MemoryLocation::CpuToGpu, "rays")?;
+            (rays, Buffer::new(ctx, hit_bytes, storage, MemoryLocation::GpuToCpu, "hits")?, None)
         } else {
-            Ok(Slot {
-                rays_host: Buffer::new(ctx, ray_bytes, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "rays staging")?,
-                hits_host: Buffer::new(ctx, hit_bytes, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hits readback")?,
-                device: Some((
+            (
+                Buffer::new(ctx, ray_bytes, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "rays staging")?,
+                Buffer::new(ctx, hit_bytes, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hits readback")?,
+                Some((
                     Buffer::new(ctx, ray_bytes, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "rays")?,
                     Buffer::new(ctx, hit_bytes, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hits")?,
                 )),
-                capacity,
-            })
+            )
+        };
+        Ok(Slot { rays_host, hits_host, device, capacity, exact })
+    }
+
+    /// Byte offsets of each field's array and of the scratch records, and the total, each array
+    /// 8-byte aligned (f64 fields).
+    fn layout(capacity: usize, exact: bool) -> ([usize; FIELD_COUNT + 1], usize) {
+        let mut offsets = [0; FIELD_COUNT + 1];
+        let mut at = 0;
+        for field in FIELDS {
+            offsets[field as usize] = at;
+            at = align_up((at + capacity * field.bytes_per_ray(exact)) as u64, 8) as usize;
         }
+        offsets[FIELD_COUNT] = at;
+        if exact {
+            at += capacity * EXACT_SCRATCH_BYTES;
+        }
+        (offsets, at)
     }
 
     /// Byte offset of a field's array within the hits buffer.
     fn field_offset(&self, field: Field) -> usize {
-        FIELDS[..field as usize].iter().map(|f| f.bytes_per_ray()).sum::<usize>() * self.capacity
+        Slot::layout(self.capacity, self.exact).0[field as usize]
+    }
+
+    fn scratch_offset(&self) -> usize {
+        Slot::layout(self.capacity, self.exact).0[FIELD_COUNT]
     }
 
     fn rays_address(&self) -> u64 {
@@ -210,6 +255,8 @@ pub struct TraceProfile {
     pub gpu_trace: Option<f64>,
     /// GPU time copying hits to readback memory (0 on shared-memory devices).
     pub gpu_readback: Option<f64>,
+    /// Host time in f64 work: refining hits (`"refined"`) or the CPU tracer (`"reference"`).
+    pub host_f64: f64,
 }
 
 /// Timestamps around each phase of a chunk: start, after upload, after trace, after readback.
@@ -291,16 +338,27 @@ fn default_chunk_rays(ctx: &Context) -> usize {
     }
 }
 
+/// The stages that read the push constants.
+fn push_constant_stages(backend: Backend) -> vk::ShaderStageFlags {
+    use vk::ShaderStageFlags as S;
+    match backend {
+        Backend::RayQuery => S::COMPUTE,
+        Backend::Pipeline => S::RAYGEN_KHR | S::CLOSEST_HIT_KHR | S::MISS_KHR | S::INTERSECTION_KHR,
+    }
+}
+
+// Positions of the shader modules in `Tracer::modules`, per backend.
+const QUERY_MODULE: usize = 0;
+const QUERY_EXACT_MODULE: usize = 1;
+const RAYGEN_MODULE: usize = 0;
+const MISS_MODULE: usize = 1;
+const CLOSEST_HIT_MODULE: usize = 2;
+const RAYGEN_EXACT_MODULE: usize = 3;
+const INTERSECTION_EXACT_MODULE: usize = 4;
+
 impl Tracer {
     pub fn new(ctx: &Arc<Context>) -> Result<Tracer> {
-        let stages = match ctx.backend {
-            Backend::RayQuery => vk::ShaderStageFlags::COMPUTE,
-            Backend::Pipeline => {
-                vk::ShaderStageFlags::RAYGEN_KHR
-                    | vk::ShaderStageFlags::CLOSEST_HIT_KHR
-                    | vk::ShaderStageFlags::MISS_KHR
-            }
-        };
+        let stages = push_constant_stages(ctx.backend);
         let ranges = [vk::PushConstantRange::default().stage_flags(stages).size(PARAMS_BYTES)];
         let layout_info = vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&ranges);
         let layout = unsafe { ctx.device.create_pipeline_layout(&layout_info, None) }.vk("vkCreatePipelineLayout")?;
@@ -317,9 +375,18 @@ impl Tracer {
                 .min(ctx.limits.max_compute_work_group_size[0])
                 .min(ctx.limits.max_compute_work_group_invocations),
         };
-        let sources: &[&[u8]] = match ctx.backend {
-            Backend::RayQuery => &[shaders::TRACE_RAY_QUERY],
-            Backend::Pipeline => &[shaders::RAYGEN, shaders::MISS, shaders::CLOSEST_HIT],
+        // The exact tier's modules use f64, which only devices with shaderFloat64 may load.
+        let sources: &[&[u8]] = match (ctx.backend, ctx.info.shader_float64) {
+            (Backend::RayQuery, false) => &[shaders::TRACE_RAY_QUERY],
+            (Backend::RayQuery, true) => &[shaders::TRACE_RAY_QUERY, shaders::TRACE_EXACT_RAY_QUERY],
+            (Backend::Pipeline, false) => &[shaders::RAYGEN, shaders::MISS, shaders::CLOSEST_HIT],
+            (Backend::Pipeline, true) => &[
+                shaders::RAYGEN,
+                shaders::MISS,
+                shaders::CLOSEST_HIT,
+                shaders::RAYGEN_EXACT,
+                shaders::INTERSECTION_EXACT,
+            ],
         };
         for source in sources {
             let code = shaders::words(source);
@@ -377,7 +444,7 @@ impl Tracer {
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(as_bytes(&values));
         let stage = vk::PipelineShaderStageCreateInfo::default()
             .stage(vk::ShaderStageFlags::COMPUTE)
-            .module(self.modules[0])
+            .module(self.modules[if key.exact { QUERY_EXACT_MODULE } else { QUERY_MODULE }])
             .name(c"main")
             .specialization_info(&spec);
         let info = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(self.layout)];
@@ -400,11 +467,20 @@ impl Tracer {
                 .name(c"main")
                 .specialization_info(&spec)
         };
-        let stages = [
-            stage(vk::ShaderStageFlags::RAYGEN_KHR, self.modules[0]),
-            stage(vk::ShaderStageFlags::MISS_KHR, self.modules[1]),
-            stage(vk::ShaderStageFlags::CLOSEST_HIT_KHR, self.modules[2]),
-        ];
+        use vk::ShaderStageFlags as S;
+        let stages = if key.exact {
+            [
+                stage(S::RAYGEN_KHR, self.modules[RAYGEN_EXACT_MODULE]),
+                stage(S::MISS_KHR, self.modules[MISS_MODULE]),
+                stage(S::INTERSECTION_KHR, self.modules[INTERSECTION_EXACT_MODULE]),
+            ]
+        } else {
+            [
+                stage(S::RAYGEN_KHR, self.modules[RAYGEN_MODULE]),
+                stage(S::MISS_KHR, self.modules[MISS_MODULE]),
+                stage(S::CLOSEST_HIT_KHR, self.modules[CLOSEST_HIT_MODULE]),
+            ]
+        };
         let general = |index| {
             vk::RayTracingShaderGroupCreateInfoKHR::default()
                 .ty(vk::RayTracingShaderGroupTypeKHR::GENERAL)
@@ -413,22 +489,30 @@ impl Tracer {
                 .any_hit_shader(vk::SHADER_UNUSED_KHR)
                 .intersection_shader(vk::SHADER_UNUSED_KHR)
         };
-        let groups = [
-            general(0),
-            general(1),
+        // Fast tier: triangles with a closest-hit shader. Exact tier: boxes whose intersection
+        // shader runs the f64 test and keeps the best hit itself, so no closest-hit shader.
+        let hit_group = if key.exact {
+            vk::RayTracingShaderGroupCreateInfoKHR::default()
+                .ty(vk::RayTracingShaderGroupTypeKHR::PROCEDURAL_HIT_GROUP)
+                .general_shader(vk::SHADER_UNUSED_KHR)
+                .closest_hit_shader(vk::SHADER_UNUSED_KHR)
+                .any_hit_shader(vk::SHADER_UNUSED_KHR)
+                .intersection_shader(2)
+        } else {
             vk::RayTracingShaderGroupCreateInfoKHR::default()
                 .ty(vk::RayTracingShaderGroupTypeKHR::TRIANGLES_HIT_GROUP)
                 .general_shader(vk::SHADER_UNUSED_KHR)
                 .closest_hit_shader(2)
                 .any_hit_shader(vk::SHADER_UNUSED_KHR)
-                .intersection_shader(vk::SHADER_UNUSED_KHR),
-        ];
-        // No scene holds AABBs yet: traversal skips them for the whole pipeline (a flag Vulkan
-        // allows only with the primitive-culling feature).
-        let flags = if ctx.limits.ray_traversal_primitive_culling {
-            vk::PipelineCreateFlags::RAY_TRACING_SKIP_AABBS_KHR
-        } else {
-            vk::PipelineCreateFlags::empty()
+                .intersection_shader(vk::SHADER_UNUSED_KHR)
+        };
+        let groups = [general(0), general(1), hit_group];
+        // Each tier's structures hold one kind of primitive: traversal skips the other for the
+        // whole pipeline (a flag Vulkan allows only with the primitive-culling feature).
+        let flags = match (ctx.limits.ray_traversal_primitive_culling, key.exact) {
+            (false, _) => vk::PipelineCreateFlags::empty(),
+            (true, false) => vk::PipelineCreateFlags::RAY_TRACING_SKIP_AABBS_KHR,
+            (true, true) => vk::PipelineCreateFlags::RAY_TRACING_SKIP_TRIANGLES_KHR,
         };
         let info = [vk::RayTracingPipelineCreateInfoKHR::default()
             .flags(flags)
@@ -501,10 +585,13 @@ impl Tracer {
         Ok(ShaderBindingTable { raygen: region(0), miss: region(1), hit: region(2), _buffer: buffer })
     }
 
-    fn take_slots(&self, capacity: usize) -> Result<[Slot; 2]> {
+    fn take_slots(&self, capacity: usize, exact: bool) -> Result<[Slot; 2]> {
         let mut idle = self.idle_slots.lock().unwrap_or_else(|e| e.into_inner());
-        idle.retain(|s| s.capacity >= capacity);
-        let mut take = || idle.pop().map_or_else(|| Slot::new(&self.ctx, capacity), Ok);
+        idle.retain(|s| s.capacity >= capacity || s.exact != exact);
+        let mut take = || match idle.iter().position(|s| s.exact == exact) {
+            Some(k) => Ok(idle.swap_remove(k)),
+            None => Slot::new(&self.ctx, capacity, exact),
+        };
         Ok([take()?, take()?])
     }
 
@@ -515,42 +602,152 @@ impl Tracer {
         idle.truncate(4);
     }
 
-    /// Traces `rays` against `scene`, writing the fields `sink` asks for. Each chunk's rays are
-    /// checked as they are packed; an invalid ray stops the trace with an error naming it (chunks
-    /// already in flight finish first, and what they wrote is not the caller's to read). `wait`
-    /// runs every blocking wait (the binding frees the GIL).
-    pub fn trace(&self, scene: &Scene, rays: &Rays, query: Query, sink: &mut HitSink, wait: &dyn Wait) -> Result<()> {
+    /// Traces `rays` against `scene` at `precision`, writing the fields `sink` asks for (`t` and
+    /// `uv` as f64 in the f64 tiers). Each chunk's rays are checked as they are packed; an invalid
+    /// ray stops the trace with an error naming it (chunks already in flight finish first, and
+    /// what they wrote is not the caller's to read). `wait` runs every blocking wait (the binding
+    /// frees the GIL).
+    pub fn trace(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        query: Query,
+        precision: Precision,
+        sink: &mut HitSink,
+        wait: &dyn Wait,
+    ) -> Result<()> {
         let started = Instant::now();
         rays.check_shapes()?;
         let mut profile = TraceProfile { rays: rays.len(), ..Default::default() };
         let n = rays.len();
         for field in FIELDS {
             if let Some(out) = &sink.fields[field as usize] {
-                if out.len() != n * field.bytes_per_ray() {
+                if out.len() != n * field.bytes_per_ray(precision.is_f64()) {
                     return Err(invalid_value(format!("output for {field:?} has {} bytes for {n} rays", out.len())));
                 }
             }
         }
-        let outputs = sink.outputs();
-        if n == 0 || outputs == 0 {
+        if let Some(out) = &sink.position {
+            if out.len() != n * 3 * if precision.is_f64() { 8 } else { 4 } {
+                return Err(invalid_value(format!("output for position has {} bytes for {n} rays", out.len())));
+            }
+        }
+        let position = if query == Query::Closest { sink.position.take() } else { None };
+        if n == 0 || (sink.outputs() == 0 && position.is_none()) {
             return Ok(());
         }
-        let key = VariantKey { outputs, ray_flags: ray_flags(query, self.ctx.backend) };
-        let variant = self.variant(key, wait)?;
-        let capacity = self.chunk_rays().min(self.max_dispatch_rays()).min(n).max(1);
-        let mut slots = self.take_slots(capacity)?;
-        let result = self.trace_chunks(scene, rays, &variant, outputs, sink, &mut slots, capacity, wait, &mut profile);
-        self.return_slots(slots);
-        result?;
+        // The host needs the hit triangles (and barycentrics) of rays whose caller did not ask.
+        let refine = precision == Precision::Refined && query == Query::Closest;
+        let mut work = HitSink::default();
+        for (field, out) in FIELDS.iter().zip(sink.fields.iter_mut()) {
+            if let Some(out) = out.as_deref_mut() {
+                work.set(*field, out);
+            }
+        }
+        let (mut prim_temp, mut instance_temp) = (Vec::new(), Vec::new());
+        let mut uv_temp;
+        if refine || position.is_some() {
+            for (field, temp) in [(Field::Prim, &mut prim_temp), (Field::Instance, &mut instance_temp)] {
+                if work.field(field).is_none() {
+                    *temp = vec![0u8; 4 * n];
+                    work.set(field, temp);
+                }
+            }
+        }
+        if position.is_some() && work.field(Field::Uv).is_none() {
+            uv_temp = vec![0u8; n * Field::Uv.bytes_per_ray(precision.is_f64())];
+            work.set(Field::Uv, &mut uv_temp);
+        }
+        match (precision, refine) {
+            (Precision::Fast, _) | (Precision::Refined, false) => {
+                self.trace_gpu(scene, rays, query, false, &mut work, wait, &mut profile)?
+            }
+            (Precision::Exact, _) => self.trace_gpu(scene, rays, query, true, &mut work, wait, &mut profile)?,
+            (Precision::Refined, true) => {
+                // The GPU finds which triangle; the host recomputes where, in f64.
+                let (t, uv) = (work.take(Field::T), work.take(Field::Uv));
+                self.trace_gpu(scene, rays, query, false, &mut work, wait, &mut profile)?;
+                let host = Instant::now();
+                let (prim, instance) =
+                    (work.field(Field::Prim).unwrap_or_default(), work.field(Field::Instance).unwrap_or_default());
+                let outputs = Mutex::new((t, uv));
+                wait.wait(&|| {
+                    let (t, uv) = &mut *outputs.lock().unwrap_or_else(|e| e.into_inner());
+                    tiers::refine(scene, rays, prim, instance, t.as_deref_mut(), uv.as_deref_mut());
+                    Ok(())
+                })?;
+                let (t, uv) = outputs.into_inner().unwrap_or_else(|e| e.into_inner());
+                t.map(|t| work.set(Field::T, t));
+                uv.map(|uv| work.set(Field::Uv, uv));
+                profile.host_f64 = host.elapsed().as_secs_f64();
+            }
+            (Precision::Reference, _) => {
+                rays.check()?;
+                let host = Instant::now();
+                let sink = Mutex::new(&mut work);
+                wait.wait(&|| {
+                    let mut sink = sink.lock().unwrap_or_else(|e| e.into_inner());
+                    tiers::reference(scene, rays, query == Query::Occluded, &mut sink);
+                    Ok(())
+                })?;
+                profile.host_f64 = host.elapsed().as_secs_f64();
+            }
+        }
+        if let Some(out) = position {
+            let hits = tiers::HitTriangles {
+                prim: work.field(Field::Prim).unwrap_or_default(),
+                instance: work.field(Field::Instance).unwrap_or_default(),
+                uv: work.field(Field::Uv).unwrap_or_default(),
+                wide: precision.is_f64(),
+            };
+            tiers::positions(scene, &hits, out);
+        }
         profile.total = started.elapsed().as_secs_f64();
         *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
         self.ctx.check_validation()
+    }
+
+    /// The GPU's part of a query: traversal in f32 (`exact`: through the scene's per-triangle
+    /// boxes, each candidate decided by the f64 test).
+    #[allow(clippy::too_many_arguments)]
+    fn trace_gpu(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        query: Query,
+        exact: bool,
+        sink: &mut HitSink,
+        wait: &dyn Wait,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let outputs = sink.outputs();
+        // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
+        let exact_scene = if exact { Some(scene.exact(wait)?) } else { None };
+        let key = VariantKey { outputs, ray_flags: ray_flags(query, self.ctx.backend, exact), exact };
+        let variant = self.variant(key, wait)?;
+        let capacity = self.chunk_rays().min(self.max_dispatch_rays()).min(rays.len()).max(1);
+        let mut slots = self.take_slots(capacity, exact)?;
+        let result = self.trace_chunks(
+            scene,
+            exact_scene.as_deref(),
+            rays,
+            &variant,
+            outputs,
+            sink,
+            &mut slots,
+            capacity,
+            wait,
+            profile,
+        );
+        self.return_slots(slots);
+        result
     }
 
     #[allow(clippy::too_many_arguments)]
     fn trace_chunks(
         &self,
         scene: &Scene,
+        exact: Option<&ExactScene>,
         rays: &Rays,
         variant: &Variant,
         outputs: u32,
@@ -586,14 +783,22 @@ impl Tracer {
             lap(&mut profile.unpack);
             let slot = &mut slots[s];
             let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
-            // SAFETY: the staging buffer holds `capacity` rays of 8 f32 each, suitably aligned.
-            let floats = unsafe { std::slice::from_raw_parts_mut(packed.as_mut_ptr() as *mut f32, len * RAY_FLOATS) };
-            // On an invalid ray, dropping `commands` waits for the chunks in flight.
-            rays.pack(start, floats)?;
+            // SAFETY: the staging buffer holds `capacity` rays of 8 f32 (8 f64 in an exact slot),
+            // aligned for either. On an invalid ray, dropping `commands` waits for the chunks in flight.
+            unsafe {
+                if slot.exact {
+                    let out = std::slice::from_raw_parts_mut(packed.as_mut_ptr() as *mut f64, len * RAY_FLOATS);
+                    rays.pack_f64(start, out, scene.center)?;
+                } else {
+                    let out = std::slice::from_raw_parts_mut(packed.as_mut_ptr() as *mut f32, len * RAY_FLOATS);
+                    rays.pack(start, out, scene.center)?;
+                }
+            }
             lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_chunk(commands[s].buffer, scene, variant, outputs, slot, s, len, stamps);
+            let job = Chunk { scene, exact, variant, outputs, slot, slot_index: s, len };
+            self.record_chunk(commands[s].buffer, &job, stamps);
             commands[s].submit()?;
             in_flight[s] = Some((start, len));
         }
@@ -612,18 +817,8 @@ impl Tracer {
         Ok(())
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn record_chunk(
-        &self,
-        cmd: vk::CommandBuffer,
-        scene: &Scene,
-        variant: &Variant,
-        outputs: u32,
-        slot: &Slot,
-        slot_index: usize,
-        len: usize,
-        stamps: Option<&Stamps>,
-    ) {
+    fn record_chunk(&self, cmd: vk::CommandBuffer, job: &Chunk, stamps: Option<&Stamps>) {
+        let Chunk { scene, exact, variant, outputs, slot, slot_index, len } = *job;
         let stamp = |k| {
             if let Some(stamps) = stamps {
                 stamps.write(&self.ctx, cmd, slot_index, k);
@@ -642,7 +837,8 @@ impl Tracer {
             }
         };
         if let Some((rays_device, _)) = &slot.device {
-            let region = [vk::BufferCopy::default().size((len * RAY_FLOATS * 4) as u64)];
+            let bytes_per_ray = RAY_FLOATS * if slot.exact { 8 } else { 4 };
+            let region = [vk::BufferCopy::default().size((len * bytes_per_ray) as u64)];
             unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &region) };
             memory_barrier(
                 ctx,
@@ -654,26 +850,25 @@ impl Tracer {
             );
         }
         stamp(1);
-        let mut params = Params {
-            rays: slot.rays_address(),
-            instances: scene.instance_geometries_address(),
-            tlas: scene.tlas_address(),
-            count: len as u32,
-            ..Default::default()
-        };
+        let mut params = Params { rays: slot.rays_address(), count: len as u32, ..Default::default() };
+        match exact {
+            Some(exact) => {
+                params.instances = exact.instances_address();
+                params.tlas = exact.tlas_address();
+                params.scratch = slot.hits_address() + slot.scratch_offset() as u64;
+                params.bounds = exact.bounds_f32();
+            }
+            None => {
+                params.instances = scene.instance_geometries_address();
+                params.tlas = scene.tlas_address();
+            }
+        }
         for field in FIELDS {
             if outputs & field.bit() != 0 {
                 params.outputs[field as usize] = slot.hits_address() + slot.field_offset(field) as u64;
             }
         }
-        let stages = match ctx.backend {
-            Backend::RayQuery => vk::ShaderStageFlags::COMPUTE,
-            Backend::Pipeline => {
-                vk::ShaderStageFlags::RAYGEN_KHR
-                    | vk::ShaderStageFlags::CLOSEST_HIT_KHR
-                    | vk::ShaderStageFlags::MISS_KHR
-            }
-        };
+        let stages = push_constant_stages(ctx.backend);
         unsafe {
             device.cmd_bind_pipeline(cmd, bind_point, variant.pipeline);
             device.cmd_push_constants(cmd, self.layout, stages, 0, params.bytes());
@@ -704,7 +899,7 @@ impl Tracer {
                         vk::BufferCopy::default()
                             .src_offset(offset)
                             .dst_offset(offset)
-                            .size((len * f.bytes_per_ray()) as u64)
+                            .size((len * f.bytes_per_ray(slot.exact)) as u64)
                     })
                     .collect();
                 unsafe { device.cmd_copy_buffer(cmd, hits_device.raw(), slot.hits_host.raw(), &regions) };
@@ -730,6 +925,18 @@ impl Tracer {
     }
 }
 
+/// One chunk's trace, as recorded into a command buffer.
+#[derive(Clone, Copy)]
+struct Chunk<'a> {
+    scene: &'a Scene,
+    exact: Option<&'a ExactScene>,
+    variant: &'a Variant,
+    outputs: u32,
+    slot: &'a Slot,
+    slot_index: usize,
+    len: usize,
+}
+
 /// Copies a finished chunk's requested fields into the caller's arrays, on all cores.
 fn unpack(slot: &Slot, start: usize, len: usize, outputs: u32, sink: &mut HitSink) {
     const PIECE_BYTES: usize = 1 << 20;
@@ -739,7 +946,7 @@ fn unpack(slot: &Slot, start: usize, len: usize, outputs: u32, sink: &mut HitSin
             continue;
         }
         let Some(out) = sink.fields[field as usize].as_deref_mut() else { continue };
-        let width = field.bytes_per_ray();
+        let width = field.bytes_per_ray(slot.exact);
         let from = slot.field_offset(field);
         out[start * width..(start + len) * width]
             .par_chunks_mut(PIECE_BYTES)
@@ -803,16 +1010,22 @@ mod tests {
 
     #[test]
     fn params_match_the_shader_block() {
-        // 10 addresses and a count, padded to 8 bytes: the GLSL block's std430 size.
-        assert_eq!(PARAMS_BYTES, 88);
+        // 11 addresses, a count and 6 floats, padded to 8 bytes: the GLSL block's std430 size.
+        assert_eq!(PARAMS_BYTES, 120);
     }
 
     #[test]
-    fn hit_fields_fill_their_record() {
-        assert_eq!(FIELDS.iter().map(|f| f.bytes_per_ray()).sum::<usize>(), HIT_BYTES_PER_RAY);
+    fn hit_fields_are_laid_out_aligned() {
         for (i, f) in FIELDS.iter().enumerate() {
             assert_eq!(*f as usize, i);
         }
+        // 7 rays: odd counts must still leave every f64 array 8-byte aligned.
+        let (offsets, total) = Slot::layout(7, true);
+        assert!(offsets.iter().all(|o| o % 8 == 0));
+        assert_eq!(offsets[Field::Prim as usize], 56);
+        assert_eq!(total, offsets[FIELD_COUNT] + 7 * EXACT_SCRATCH_BYTES);
+        let (_, fast_total) = Slot::layout(8, false);
+        assert_eq!(fast_total, 8 * 40);
     }
 
     #[test]
@@ -834,10 +1047,14 @@ mod tests {
     #[test]
     fn occlusion_flags_terminate_on_first_hit() {
         for backend in [Backend::RayQuery, Backend::Pipeline] {
-            assert_ne!(ray_flags(Query::Occluded, backend) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
-            assert_eq!(ray_flags(Query::Closest, backend) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+            for exact in [false, true] {
+                assert_ne!(ray_flags(Query::Occluded, backend, exact) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                assert_eq!(ray_flags(Query::Closest, backend, exact) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                // The exact tier's structures are all AABBs.
+                assert_eq!(ray_flags(Query::Closest, backend, true) & RAY_FLAG_SKIP_AABBS, 0);
+            }
         }
-        assert_ne!(ray_flags(Query::Occluded, Backend::Pipeline) & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, 0);
-        assert_eq!(ray_flags(Query::Closest, Backend::Pipeline) & RAY_FLAG_SKIP_AABBS, 0);
+        assert_ne!(ray_flags(Query::Occluded, Backend::Pipeline, false) & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, 0);
+        assert_eq!(ray_flags(Query::Closest, Backend::Pipeline, false) & RAY_FLAG_SKIP_AABBS, 0);
     }
 }

@@ -10,6 +10,7 @@
 from ._api import (
     DEFAULT_FIELDS,
     HIT_FIELDS,
+    PRECISIONS,
     Device,
     DeviceInfo,
     Hits,
@@ -18,11 +19,14 @@ from ._api import (
     Scene,
     devices,
 )
+from ._secondary import offset_origins
 from ._core import NoDeviceError, UnsupportedError, ValidationError, VkrayError, VulkanError
 
 __all__ = [
     "DEFAULT_FIELDS",
     "HIT_FIELDS",
+    "PRECISIONS",
+    "offset_origins",
     "Device",
     "DeviceInfo",
     "Hits",

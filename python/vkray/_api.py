@@ -9,10 +9,21 @@ import numpy as np
 
 from . import _arrays, _core
 
-#: Every hit field a query can return, in the order the hit record holds them.
-HIT_FIELDS: Tuple[str, ...] = ("t", "prim_id", "instance_id", "custom_index", "uv", "normal", "geometry_id")
+#: Every hit field a query can return.
+HIT_FIELDS: Tuple[str, ...] = (
+    "t",
+    "prim_id",
+    "instance_id",
+    "custom_index",
+    "uv",
+    "normal",
+    "geometry_id",
+    "position",
+)
 #: Fields `Scene.intersect` returns unless asked otherwise.
 DEFAULT_FIELDS: Tuple[str, ...] = ("t", "prim_id", "instance_id", "custom_index", "uv", "normal")
+#: Precision tiers, from the fastest to the CPU oracle (see `Scene.intersect` and docs/accuracy.md).
+PRECISIONS: Tuple[str, ...] = ("fast", "refined", "exact", "reference")
 
 _BUILDS = ("fast_trace", "fast_build", "low_memory")
 
@@ -244,13 +255,17 @@ class Instance:
 class Hits:
     """Per-ray results of `Scene.intersect`, shaped like the rays (``S``).
 
-    t: float32 ``S``, distance in units of the direction's length; ``inf`` on a miss.
+    t: ``S``, distance in units of the direction's length; ``inf`` on a miss.
     prim_id, instance_id, custom_index, geometry_id: int32 ``S``; -1 on a miss.
-    uv: float32 ``S + (2,)``, barycentric weights of the triangle's vertices 1 and 2 (Vulkan's and
+    uv: ``S + (2,)``, barycentric weights of the triangle's vertices 1 and 2 (Vulkan's and
     Embree's convention; vertex 0 weighs ``1 - u - v``); NaN on a miss.
     normal: float32 ``S + (3,)``, unit geometric normal in world space, right-handed in the
     triangle's winding (``cross(v1 - v0, v2 - v0)``, transformed); NaN on a miss.
-    Fields not asked for are ``None``.
+    position: ``S + (3,)``, the world-space hit point, interpolated from the hit triangle's
+    vertices in f64 (so it lies on the triangle to the precision of its own coordinates, however
+    long the ray); NaN on a miss. Asked for with ``outputs=[..., "position"]``.
+    t, uv and position are float32 in the ``"fast"`` tier and float64 in the others.
+    precision: the tier that produced these hits. Fields not asked for are ``None``.
     """
 
     t: Optional[np.ndarray]
@@ -260,9 +275,11 @@ class Hits:
     uv: Optional[np.ndarray]
     normal: Optional[np.ndarray]
     geometry_id: Optional[np.ndarray]
+    position: Optional[np.ndarray]
 
-    def __init__(self, shape: Tuple[int, ...], fields: Dict[str, np.ndarray]) -> None:
+    def __init__(self, shape: Tuple[int, ...], fields: Dict[str, np.ndarray], precision: str = "fast") -> None:
         self.shape = shape
+        self.precision = precision
         for name in HIT_FIELDS:
             array = fields.get(name)
             if array is not None:
@@ -283,7 +300,7 @@ class Hits:
 
     def __repr__(self) -> str:
         fields = [name for name in HIT_FIELDS if getattr(self, name) is not None]
-        return f"<vkray.Hits shape={self.shape} hits={int(self.hit.sum())} fields={fields}>"
+        return f"<vkray.Hits shape={self.shape} hits={int(self.hit.sum())} precision={self.precision!r} fields={fields}>"
 
 
 class Scene:
@@ -310,6 +327,7 @@ class Scene:
         tmin: Any = 0.0,
         tmax: Any = np.inf,
         outputs: Optional[Sequence[str]] = None,
+        precision: str = "fast",
     ) -> Hits:
         """The closest hit of each ray within [tmin, tmax].
 
@@ -321,24 +339,51 @@ class Scene:
         outputs: which `Hits` fields to compute (default: all but ``geometry_id``). Unasked fields
         are never written by the GPU and come back as ``None`` (``prim_id`` is added when neither
         it nor ``t`` is asked, so that ``Hits.hit`` works).
+        precision: which tier answers (docs/accuracy.md has what each costs and gains):
+
+        - ``"fast"``: f32 hits straight from hardware traversal. Meshes and scenes are re-centred
+          in f64 before anything becomes f32, so far from the origin they keep the precision of
+          their own size, but a ray through a shared edge may still miss or hit twice.
+        - ``"refined"``: the same traversal; each hit is then re-intersected with its triangle in
+          f64 on the host, so ``t``, ``uv`` and ``position`` are float64 to ~1e-15 of the scene.
+          Which triangle is hit is still f32's decision.
+        - ``"exact"``: f64 watertight test (Woop et al.) on the GPU, with a tie-break rule: a ray
+          through a shared edge or vertex reports exactly one triangle, at any offset. Needs the
+          device's shaderFloat64.
+        - ``"reference"``: the same test on the CPU (all cores), no GPU involved: the oracle the
+          other tiers are measured against.
+
+        Hits at the interval's ends: ``"fast"`` and ``"refined"`` follow Vulkan (tmin and tmax
+        compared in f32 by the traversal); ``"exact"`` and ``"reference"`` accept
+        ``tmin <= t <= tmax`` exactly in f64.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
+        _check_precision(precision)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        arrays = self._core.trace(o, d, lo, hi, "closest", list(fields))
-        return Hits(shape, arrays)
+        arrays = self._core.trace(o, d, lo, hi, "closest", list(fields), precision)
+        return Hits(shape, arrays, precision)
 
-    def occluded(self, origins: Any, directions: Any, *, tmin: Any = 0.0, tmax: Any = np.inf) -> np.ndarray:
+    def occluded(
+        self, origins: Any, directions: Any, *, tmin: Any = 0.0, tmax: Any = np.inf, precision: str = "fast"
+    ) -> np.ndarray:
         """bool ``S``: whether anything lies along each ray within [tmin, tmax].
 
         Traversal stops at the first hit found (TerminateOnFirstHit), so this is cheaper than
-        `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray.
+        `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray, in every tier
+        (``"refined"`` decides hits as ``"fast"`` does).
         """
+        _check_precision(precision)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"])
+        arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"], precision)
         return (arrays["prim_id"] >= 0).reshape(shape)
 
     def __repr__(self) -> str:
         return f"<vkray.Scene {len(self.instances)} instances on {self.device.name!r}>"
+
+
+def _check_precision(precision: str) -> None:
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
 
 
 def _check_outputs(outputs: Sequence[str]) -> Tuple[str, ...]:

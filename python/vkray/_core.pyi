@@ -58,4 +58,5 @@ class Scene:
         tmax: Union[float, np.ndarray],
         query: str,
         fields: List[str],
+        precision: str = "fast",
     ) -> Dict[str, np.ndarray]: ...

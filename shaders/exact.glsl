@@ -1,0 +1,191 @@
+// The "exact" precision tier: the f64 watertight ray/triangle test of src/precision.rs, evaluated
+// with the same operations in the same order, for candidates that f32 traversal of conservative
+// per-triangle boxes yields. `precise` forbids fused multiply-adds: the two triangles sharing an
+// edge must compute exact negations of one edge function, or rays could slip between them.
+// Include after common.glsl.
+
+// Per instance: the f64 map from the scene's frame to the mesh's (rows: xyz linear, w offset),
+// and where the mesh's f64 vertices and device-ordered triangles live.
+struct ExactInstance {
+  dvec4 rows[3];
+  uint64_t vertices;         // f64 xyz per vertex
+  uint64_t indices;          // as GeometrySource.indices
+  uint64_t primitive_order;  // as GeometrySource.primitive_order
+  uint index_is_u16;
+  uint pad;
+};
+layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer ExactInstances { ExactInstance x[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer DoubleOut { double v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer Ray64Buffer { dvec4 v[]; };
+
+// One ray in f64, in the scene's frame: origin and tmin, direction and tmax (64 bytes).
+struct Ray64 {
+  dvec3 origin;
+  double tmin;
+  dvec3 direction;
+  double tmax;
+};
+
+Ray64 load_ray64(uint i) {
+  Ray64Buffer rays = Ray64Buffer(params.rays);
+  dvec4 a = rays.v[2u * i];
+  dvec4 b = rays.v[2u * i + 1u];
+  return Ray64(a.xyz, a.w, b.xyz, b.w);
+}
+
+// The best hit so far: t and barycentrics in f64, the device's triangle index (prim < 0: none).
+struct ExactBest {
+  double t;
+  double u;
+  double v;
+  int instance;
+  int prim;
+  int custom;
+  int geometry;
+};
+layout(buffer_reference, std430, buffer_reference_align = 8) buffer ExactScratch { ExactBest b[]; };
+
+ExactBest exact_miss() {
+  return ExactBest(1.0 / 0.0, 0.0, 0.0, -1, -1, -1, -1);
+}
+
+// f32 traversal starts where the ray enters the scene's padded bounds, so that the f32 ray's
+// rounding is a few ulps of the scene's size, not of the origin's distance. Returns that distance
+// along the ray (f64), or -1 when the ray misses the bounds within [tmin, tmax].
+double scene_entry(Ray64 ray) {
+  dvec3 lo = dvec3(params.bounds[0], params.bounds[1], params.bounds[2]);
+  dvec3 hi = dvec3(params.bounds[3], params.bounds[4], params.bounds[5]);
+  dvec3 inv = 1.0 / ray.direction;
+  dvec3 t0 = (lo - ray.origin) * inv;
+  dvec3 t1 = (hi - ray.origin) * inv;
+  // NaN (0 * inf: an origin on a face, moving along it) must not reject: min/max drop NaN.
+  dvec3 near = min(t1, t0);
+  dvec3 far = max(t1, t0);
+  double enter = max(max(ray.tmin, near.x), max(near.y, near.z));
+  double leave = min(min(ray.tmax, far.x), min(far.y, far.z));
+  return enter <= leave ? max(enter, 0.0) : -1.0;
+}
+
+// The f32 ray traversal follows, shifted to start at `entry`, with its interval widened a little:
+// boxes are padded and the f64 test judges [tmin, tmax] itself.
+struct TraversalRay {
+  vec3 origin;
+  float tmin;
+  vec3 direction;
+  float tmax;
+};
+
+TraversalRay traversal_ray(Ray64 ray, double entry) {
+  const float FLT_MAX = 3.402823466e38;
+  float tmin = float(max(ray.tmin - entry, 0.0)) * (1.0 - 1.0 / 1048576.0);
+  float tmax = min(float(ray.tmax - entry) * (1.0 + 1.0 / 1048576.0), FLT_MAX);
+  return TraversalRay(vec3(ray.origin + entry * ray.direction), tmin, vec3(ray.direction), tmax);
+}
+
+bool owns_edge(dvec2 direction) {
+  return direction.y > 0.0 || (direction.y == 0.0 && direction.x > 0.0);
+}
+
+// Whether the candidate (t, instance, caller's prim) comes before the best: nearer, then lower ids.
+bool is_before(double t, int instance, int prim, ExactBest best, int best_prim) {
+  return t < best.t || (t == best.t && (instance < best.instance || (instance == best.instance && prim < best_prim)));
+}
+
+dvec3 exact_vertex(ExactInstance x, uint index) {
+  Doubles d = Doubles(x.vertices);
+  return dvec3(d.v[3u * index], d.v[3u * index + 1u], d.v[3u * index + 2u]);
+}
+
+// Runs the watertight test of device triangle `prim` of `instance`; updates `best` and returns
+// true when it is hit and comes before `best`.
+bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, int custom, int geometry) {
+  ExactInstance x = ExactInstances(params.instances).x[instance];
+  precise dvec3 o;
+  precise dvec3 d;
+  for (int r = 0; r < 3; ++r) {
+    precise double ox = x.rows[r].x * ray.origin.x + x.rows[r].y * ray.origin.y + x.rows[r].z * ray.origin.z + x.rows[r].w;
+    precise double dx = x.rows[r].x * ray.direction.x + x.rows[r].y * ray.direction.y + x.rows[r].z * ray.direction.z;
+    o[r] = ox;
+    d[r] = dx;
+  }
+  // Woop, Benthin and Wald: permute so that z is the dominant axis, shear onto +z.
+  dvec3 a = abs(d);
+  int kz = (a.x >= a.y && a.x >= a.z) ? 0 : (a.y >= a.z ? 1 : 2);
+  int kx = (kz + 1) % 3;
+  int ky = (kz + 2) % 3;
+  if (d[kz] < 0.0) {
+    int swap = kx;
+    kx = ky;
+    ky = swap;
+  }
+  precise double sx = d[kx] / d[kz];
+  precise double sy = d[ky] / d[kz];
+  precise double sz = 1.0 / d[kz];
+
+  uvec3 idx = triangle_indices_at(x.indices, x.index_is_u16, uint(prim));
+  dvec3 p[3];
+  for (int k = 0; k < 3; ++k) {
+    precise dvec3 v = exact_vertex(x, idx[k]) - o;
+    precise double px = v[kx] - sx * v[kz];
+    precise double py = v[ky] - sy * v[kz];
+    precise double pz = sz * v[kz];
+    p[k] = dvec3(px, py, pz);
+  }
+  precise double u = p[2].x * p[1].y - p[2].y * p[1].x;
+  precise double v = p[0].x * p[2].y - p[0].y * p[2].x;
+  precise double w = p[1].x * p[0].y - p[1].y * p[0].x;
+  if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) return false;
+  precise double det = u + v + w;
+  if (det == 0.0) return false;
+  double sign = det > 0.0 ? 1.0 : -1.0;
+  if (u == 0.0 && !owns_edge(sign * (p[2].xy - p[1].xy))) return false;
+  if (v == 0.0 && !owns_edge(sign * (p[0].xy - p[2].xy))) return false;
+  if (w == 0.0 && !owns_edge(sign * (p[1].xy - p[0].xy))) return false;
+  precise double t = (u * p[0].z + v * p[1].z + w * p[2].z) / det;
+  if (!(t >= ray.tmin && t <= ray.tmax)) return false;
+
+  int caller = caller_index(x.primitive_order, prim);
+  int best_caller = best.prim < 0 ? 0 : caller_index(ExactInstances(params.instances).x[best.instance].primitive_order, best.prim);
+  if (best.prim >= 0 && !is_before(t, instance, caller, best, best_caller)) return false;
+  best = ExactBest(t, v / det, w / det, instance, prim, custom, geometry);
+  return true;
+}
+
+// Writes the requested fields of the best hit: t and uv in f64, the normal from f64 vertices.
+void store_exact(uint i, ExactBest best) {
+  bool hit = best.prim >= 0;
+  ExactInstance x;
+  int caller = -1;
+  vec3 normal = vec3(uintBitsToFloat(0x7fc00000u));
+  if (hit) {
+    x = ExactInstances(params.instances).x[best.instance];
+    caller = caller_index(x.primitive_order, best.prim);
+    if ((OUTPUTS & OUT_NORMAL) != 0u) {
+      uvec3 idx = triangle_indices_at(x.indices, x.index_is_u16, uint(best.prim));
+      dvec3 a = exact_vertex(x, idx.x);
+      dvec3 n = cross(exact_vertex(x, idx.y) - a, exact_vertex(x, idx.z) - a);
+      // The inverse transpose of the mesh-to-scene map is the transpose of its inverse (rows).
+      dvec3 world = x.rows[0].xyz * n.x + x.rows[1].xyz * n.y + x.rows[2].xyz * n.z;
+      double det = dot(x.rows[0].xyz, cross(x.rows[1].xyz, x.rows[2].xyz));
+      normal = vec3(normalize(det < 0.0 ? -world : world));
+    }
+  }
+  double nan = 0.0 / 0.0;
+  if ((OUTPUTS & OUT_T) != 0u) DoubleOut(params.out_t).v[i] = hit ? best.t : 1.0 / 0.0;
+  if ((OUTPUTS & OUT_PRIM) != 0u) IntOut(params.out_prim).v[i] = caller;
+  if ((OUTPUTS & OUT_INSTANCE) != 0u) IntOut(params.out_instance).v[i] = hit ? best.instance : -1;
+  if ((OUTPUTS & OUT_CUSTOM) != 0u) IntOut(params.out_custom).v[i] = hit ? best.custom : -1;
+  if ((OUTPUTS & OUT_GEOMETRY) != 0u) IntOut(params.out_geometry).v[i] = hit ? best.geometry : -1;
+  if ((OUTPUTS & OUT_UV) != 0u) {
+    DoubleOut uv = DoubleOut(params.out_uv);
+    uv.v[2u * i] = hit ? best.u : nan;
+    uv.v[2u * i + 1u] = hit ? best.v : nan;
+  }
+  if ((OUTPUTS & OUT_NORMAL) != 0u) {
+    FloatOut n = FloatOut(params.out_normal);
+    n.v[3u * i] = normal.x;
+    n.v[3u * i + 1u] = normal.y;
+    n.v[3u * i + 2u] = normal.z;
+  }
+}

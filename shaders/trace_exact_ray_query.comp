@@ -1,0 +1,38 @@
+#version 460
+// Ray-query backend, "exact" tier: f32 traversal of per-triangle boxes, every candidate decided
+// by the f64 watertight test (shaders/exact.glsl).
+#extension GL_EXT_ray_query : require
+#include "common.glsl"
+#include "exact.glsl"
+
+layout(local_size_x_id = 2) in;
+
+const uint RAY_FLAG_TERMINATE_ON_FIRST_HIT = 4u;
+
+void main() {
+  uint i = gl_GlobalInvocationID.x;
+  if (i >= params.count) return;
+  Ray64 ray = load_ray64(i);
+  ExactBest best = exact_miss();
+  double entry = scene_entry(ray);
+  if (entry >= 0.0) {
+    TraversalRay r = traversal_ray(ray, entry);
+    rayQueryEXT query;
+    rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, 0xFFu, r.origin, r.tmin,
+                          r.direction, r.tmax);
+    float committed = r.tmax;
+    while (rayQueryProceedEXT(query)) {
+      if (rayQueryGetIntersectionTypeEXT(query, false) != gl_RayQueryCandidateIntersectionAABBEXT) continue;
+      if (exact_candidate(best, ray, rayQueryGetIntersectionInstanceIdEXT(query, false),
+                          rayQueryGetIntersectionPrimitiveIndexEXT(query, false),
+                          rayQueryGetIntersectionInstanceCustomIndexEXT(query, false),
+                          rayQueryGetIntersectionGeometryIndexEXT(query, false))) {
+        // Commit in f32 too, so that traversal skips boxes beyond the best hit.
+        committed = clamp(float(best.t - entry), r.tmin, committed);
+        rayQueryGenerateIntersectionEXT(query, committed);
+        if ((RAY_FLAGS & RAY_FLAG_TERMINATE_ON_FIRST_HIT) != 0u) rayQueryTerminateEXT(query);
+      }
+    }
+  }
+  store_exact(i, best);
+}

@@ -1,0 +1,364 @@
+//! Double-precision ray–triangle geometry shared by the f64 tiers: the watertight test with its
+//! tie-break rule (the `"exact"` tier evaluates the same arithmetic in `shaders/exact.glsl`), the
+//! plane solve that refines f32 hits, and instance transforms in f64.
+//!
+//! The watertight test is Woop, Benthin and Wald, "Watertight Ray/Triangle Intersection" (JCGT
+//! 2013), evaluated in f64 from the start, so its f32-to-f64 fallback is already taken. Its edge
+//! functions depend on the two vertices of an edge alone, and the two triangles sharing an edge
+//! compute exact negations of each other's value (products commute, `a - b == -(b - a)` in IEEE
+//! arithmetic), so no ray slips between them. A ray exactly on an edge or vertex makes some edge
+//! functions zero in both neighbours; a half-plane rule on the edge's projected direction (the
+//! top-left rule of rasterizers) gives each such edge to exactly one side, so the ray reports one
+//! triangle, never two.
+
+use glam::{DMat3, DVec2, DVec3};
+
+/// Which of several precision tiers answers a query.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Precision {
+    /// f32 hits straight from traversal.
+    Fast,
+    /// f32 traversal of the re-centred scene, each hit re-intersected in f64 on the host.
+    Refined,
+    /// The f64 watertight test on the GPU, through conservative per-triangle boxes.
+    Exact,
+    /// The f64 watertight test on the CPU, on all cores: the other tiers' oracle.
+    Reference,
+}
+
+impl Precision {
+    pub fn parse(name: &str) -> crate::error::Result<Precision> {
+        match name {
+            "fast" => Ok(Precision::Fast),
+            "refined" => Ok(Precision::Refined),
+            "exact" => Ok(Precision::Exact),
+            "reference" => Ok(Precision::Reference),
+            other => Err(crate::error::invalid_value(format!(
+                "precision must be 'fast', 'refined', 'exact' or 'reference', got {other:?}"
+            ))),
+        }
+    }
+
+    /// Whether `t` and `uv` come back as f64.
+    pub fn is_f64(self) -> bool {
+        self != Precision::Fast
+    }
+}
+
+/// An affine map `p -> linear * p + offset`, in f64.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Affine {
+    pub linear: DMat3,
+    pub offset: DVec3,
+}
+
+impl Affine {
+    pub const IDENTITY: Affine = Affine { linear: DMat3::IDENTITY, offset: DVec3::ZERO };
+
+    /// From a row-major 3×4 matrix acting on column vectors.
+    pub fn from_rows(m: &[f64; 12]) -> Affine {
+        Affine {
+            linear: DMat3::from_cols(
+                DVec3::new(m[0], m[4], m[8]),
+                DVec3::new(m[1], m[5], m[9]),
+                DVec3::new(m[2], m[6], m[10]),
+            ),
+            offset: DVec3::new(m[3], m[7], m[11]),
+        }
+    }
+
+    /// Row-major 3×4, as Vulkan's instance transform holds it.
+    pub fn to_rows_f32(&self) -> [f32; 12] {
+        let (l, o) = (self.linear, self.offset);
+        let rows = [l.row(0), l.row(1), l.row(2)];
+        let mut out = [0f32; 12];
+        for r in 0..3 {
+            out[4 * r] = rows[r].x as f32;
+            out[4 * r + 1] = rows[r].y as f32;
+            out[4 * r + 2] = rows[r].z as f32;
+            out[4 * r + 3] = o[r] as f32;
+        }
+        out
+    }
+
+    pub fn point(&self, p: DVec3) -> DVec3 {
+        self.linear * p + self.offset
+    }
+
+    pub fn vector(&self, v: DVec3) -> DVec3 {
+        self.linear * v
+    }
+
+    /// The inverse map, or None when the linear part is singular (or nearly: its determinant is
+    /// zero or not finite).
+    pub fn inverse(&self) -> Option<Affine> {
+        let det = self.linear.determinant();
+        if det == 0.0 || !det.is_finite() {
+            return None;
+        }
+        let linear = self.linear.inverse();
+        Some(Affine { linear, offset: -(linear * self.offset) })
+    }
+}
+
+/// A ray in f64: `origin + t * direction` for t in [tmin, tmax].
+#[derive(Clone, Copy, Debug)]
+pub struct Ray64 {
+    pub origin: DVec3,
+    pub direction: DVec3,
+    pub tmin: f64,
+    pub tmax: f64,
+}
+
+impl Ray64 {
+    /// This ray in the frame that `to_local` maps to; `t` keeps its meaning.
+    pub fn transformed(&self, to_local: &Affine) -> Ray64 {
+        Ray64 { origin: to_local.point(self.origin), direction: to_local.vector(self.direction), ..*self }
+    }
+}
+
+/// A ray prepared for Woop's test: the axis permutation and shear that map it to +z.
+#[derive(Clone, Copy, Debug)]
+pub struct ShearedRay {
+    pub ray: Ray64,
+    k: [usize; 3],
+    shear: DVec3,
+}
+
+impl ShearedRay {
+    pub fn new(ray: Ray64) -> ShearedRay {
+        let d = ray.direction;
+        let abs = d.abs();
+        let kz = if abs.x >= abs.y && abs.x >= abs.z {
+            0
+        } else if abs.y >= abs.z {
+            1
+        } else {
+            2
+        };
+        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
+        // Keep the winding: a negative dominant axis mirrors the projection.
+        if d[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        ShearedRay { ray, k: [kx, ky, kz], shear: DVec3::new(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]) }
+    }
+
+    /// A vertex relative to the origin, sheared: (x, y) in the ray's projection plane, z along it.
+    fn project(&self, v: DVec3) -> DVec3 {
+        let p = v - self.ray.origin;
+        let [kx, ky, kz] = self.k;
+        DVec3::new(p[kx] - self.shear.x * p[kz], p[ky] - self.shear.y * p[kz], self.shear.z * p[kz])
+    }
+}
+
+/// A hit on one triangle: `t` along the ray and barycentrics (u weights b, v weights c).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TriangleHit {
+    pub t: f64,
+    pub u: f64,
+    pub v: f64,
+}
+
+/// Whether an edge whose edge function is exactly zero belongs to this triangle: its projected
+/// direction, in the triangle's normalized winding, must point into the upper half-plane (or along
+/// +x). The neighbour across the edge sees the opposite direction and so the opposite answer.
+fn owns_edge(direction: DVec2) -> bool {
+    direction.y > 0.0 || (direction.y == 0.0 && direction.x > 0.0)
+}
+
+/// The watertight test with its tie-break: a hit when the ray meets the closed triangle (a, b, c)
+/// within [tmin, tmax], rays through shared edges and vertices reporting exactly one of the
+/// triangles there. Degenerate triangles and rays in the triangle's plane never hit.
+pub fn watertight(ray: &ShearedRay, a: DVec3, b: DVec3, c: DVec3) -> Option<TriangleHit> {
+    let (pa, pb, pc) = (ray.project(a), ray.project(b), ray.project(c));
+    // Edge functions: u for edge b→c, v for c→a, w for a→b.
+    let u = pc.x * pb.y - pc.y * pb.x;
+    let v = pa.x * pc.y - pa.y * pc.x;
+    let w = pb.x * pa.y - pb.y * pa.x;
+    if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+        return None;
+    }
+    let det = u + v + w;
+    if det == 0.0 {
+        return None;
+    }
+    let sign = if det > 0.0 { 1.0 } else { -1.0 };
+    let edges = [(u, pb, pc), (v, pc, pa), (w, pa, pb)];
+    for (f, from, to) in edges {
+        if f == 0.0 && !owns_edge(sign * (to.truncate() - from.truncate())) {
+            return None;
+        }
+    }
+    let t = (u * pa.z + v * pb.z + w * pc.z) / det;
+    if !(t >= ray.ray.tmin && t <= ray.ray.tmax) {
+        return None;
+    }
+    Some(TriangleHit { t, u: v / det, v: w / det })
+}
+
+/// Where the ray meets the plane of (a, b, c), with barycentrics of that point, whether or not it
+/// lies inside; None for a ray parallel to the plane or a degenerate triangle. Refines a hit that
+/// f32 traversal already found.
+pub fn plane_hit(ray: &Ray64, a: DVec3, b: DVec3, c: DVec3) -> Option<TriangleHit> {
+    let (e1, e2) = (b - a, c - a);
+    let p = ray.direction.cross(e2);
+    let det = e1.dot(p);
+    if det == 0.0 || !det.is_finite() {
+        return None;
+    }
+    let s = ray.origin - a;
+    let q = s.cross(e1);
+    Some(TriangleHit { t: e2.dot(q) / det, u: s.dot(p) / det, v: ray.direction.dot(q) / det })
+}
+
+/// Unit geometric normal of the triangle as placed in the world, right-handed in its winding
+/// (`to_local` maps world to the triangle's frame). `cross(M e1, M e2) = det(M) M^-T cross(e1, e2)`,
+/// so a mirroring placement flips the normal with the winding, as on the GPU.
+pub fn world_normal(to_local: &Affine, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
+    let sign = to_local.linear.determinant().signum();
+    (sign * (to_local.linear.transpose() * (b - a).cross(c - a))).normalize()
+}
+
+/// An axis-aligned box.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Aabb {
+    pub min: DVec3,
+    pub max: DVec3,
+}
+
+impl Aabb {
+    pub const EMPTY: Aabb = Aabb { min: DVec3::INFINITY, max: DVec3::NEG_INFINITY };
+
+    pub fn of_points(points: impl IntoIterator<Item = DVec3>) -> Aabb {
+        points.into_iter().fold(Aabb::EMPTY, |b, p| Aabb { min: b.min.min(p), max: b.max.max(p) })
+    }
+
+    pub fn union(&self, other: &Aabb) -> Aabb {
+        Aabb { min: self.min.min(other.min), max: self.max.max(other.max) }
+    }
+
+    pub fn center(&self) -> DVec3 {
+        0.5 * (self.min + self.max)
+    }
+
+    pub fn extent(&self) -> DVec3 {
+        (self.max - self.min).max(DVec3::ZERO)
+    }
+
+    /// This box grown by `pad` on every side.
+    pub fn padded(&self, pad: f64) -> Aabb {
+        Aabb { min: self.min - DVec3::splat(pad), max: self.max + DVec3::splat(pad) }
+    }
+
+    /// The box holding this one after an affine map.
+    pub fn transformed(&self, map: &Affine) -> Aabb {
+        Aabb::of_points((0..8).map(|k| {
+            map.point(DVec3::new(
+                if k & 1 == 0 { self.min.x } else { self.max.x },
+                if k & 2 == 0 { self.min.y } else { self.max.y },
+                if k & 4 == 0 { self.min.z } else { self.max.z },
+            ))
+        }))
+    }
+
+    /// Entry distance of the ray into the box within [tmin, tmax], or None. NaN slabs (an origin
+    /// on a face of a flat box with a direction along it) count as inside: conservative.
+    pub fn entry(&self, ray: &Ray64, inverse_direction: DVec3) -> Option<f64> {
+        let t0 = (self.min - ray.origin) * inverse_direction;
+        let t1 = (self.max - ray.origin) * inverse_direction;
+        let near = t0.min(t1);
+        let far = t0.max(t1);
+        let enter = ray.tmin.max(near.x).max(near.y).max(near.z);
+        let exit = ray.tmax.min(far.x).min(far.y).min(far.z);
+        (enter <= exit).then_some(enter)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ray(o: [f64; 3], d: [f64; 3]) -> ShearedRay {
+        ShearedRay::new(Ray64 {
+            origin: DVec3::from_array(o),
+            direction: DVec3::from_array(d),
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        })
+    }
+
+    fn v(x: f64, y: f64, z: f64) -> DVec3 {
+        DVec3::new(x, y, z)
+    }
+
+    #[test]
+    fn hits_the_inside_with_vulkan_barycentrics() {
+        let (a, b, c) = (v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0));
+        let hit = watertight(&ray([0.25, 0.5, 2.0], [0.0, 0.0, -1.0]), a, b, c).unwrap();
+        assert_eq!(hit, TriangleHit { t: 2.0, u: 0.25, v: 0.5 });
+        // Back faces too, with the same barycentrics.
+        let back = watertight(&ray([0.25, 0.5, -2.0], [0.0, 0.0, 1.0]), a, b, c).unwrap();
+        assert_eq!(back, hit);
+        assert!(watertight(&ray([0.75, 0.5, 2.0], [0.0, 0.0, -1.0]), a, b, c).is_none());
+    }
+
+    #[test]
+    fn shared_edges_and_vertices_report_one_triangle() {
+        // A closed fan of six triangles around the origin, and the two triangles of a square.
+        let ring: Vec<DVec3> = (0..6)
+            .map(|k| {
+                let a = k as f64 * std::f64::consts::PI / 3.0;
+                v(a.cos(), a.sin(), 0.0)
+            })
+            .collect();
+        let fan: Vec<[DVec3; 3]> = (0..6).map(|k| [DVec3::ZERO, ring[k], ring[(k + 1) % 6]]).collect();
+        let targets = [[0.0, 0.0], [0.5, 0.0], [-0.25, -0.25 * 3f64.sqrt()], [0.25, 0.25 * 3f64.sqrt()]];
+        for (dx, dy) in [(0.0, 0.0), (0.3, -0.2), (-0.7, 0.9)] {
+            for z in [1.0, -1.0] {
+                for [x, y] in targets {
+                    let r = ray([x + dx, y + dy, z], [-dx, -dy, -z]);
+                    let count = fan.iter().filter(|[a, b, c]| watertight(&r, *a, *b, *c).is_some()).count();
+                    assert_eq!(count, 1, "target ({x}, {y}) from offset ({dx}, {dy}, {z})");
+                    // Reversing the winding of every triangle changes nothing.
+                    let count = fan.iter().filter(|[a, b, c]| watertight(&r, *a, *c, *b).is_some()).count();
+                    assert_eq!(count, 1);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn degenerate_and_in_plane_rays_miss() {
+        let (a, b) = (v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0));
+        assert!(watertight(&ray([0.5, 0.0, 1.0], [0.0, 0.0, -1.0]), a, b, b).is_none());
+        assert!(watertight(&ray([0.5, 0.0, 1.0], [0.0, 0.0, -1.0]), a, b, v(2.0, 0.0, 0.0)).is_none());
+        assert!(watertight(&ray([-1.0, 0.2, 0.0], [1.0, 0.0, 0.0]), a, b, v(0.0, 1.0, 0.0)).is_none());
+    }
+
+    #[test]
+    fn plane_hit_refines_and_affine_inverts() {
+        let (a, b, c) = (v(0.0, 0.0, 1e7), v(1.0, 0.0, 1e7), v(0.0, 1.0, 1e7));
+        let r = Ray64 { origin: v(0.2, 0.3, 0.0), direction: v(0.0, 0.0, 1.0), tmin: 0.0, tmax: f64::INFINITY };
+        let hit = plane_hit(&r, a, b, c).unwrap();
+        assert_eq!((hit.t, hit.u, hit.v), (1e7, 0.2, 0.3));
+        let m = Affine::from_rows(&[0.0, -2.0, 0.0, 5.0, 2.0, 0.0, 0.0, 6.0, 0.0, 0.0, 2.0, 1e6]);
+        let p = v(1.0, 2.0, 3.0);
+        assert!((m.inverse().unwrap().point(m.point(p)) - p).length() < 1e-9);
+        assert!(Affine::from_rows(&[0.0; 12]).inverse().is_none());
+        // Normals follow the mirror: a reflection flips the winding's normal.
+        let mirror = Affine::from_rows(&[-1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+        let n = world_normal(&mirror.inverse().unwrap(), DVec3::ZERO, DVec3::X, DVec3::Y);
+        assert_eq!(n, DVec3::new(0.0, 0.0, -1.0));
+    }
+
+    #[test]
+    fn box_entry_is_conservative_for_flat_boxes() {
+        let flat = Aabb { min: v(0.0, 0.0, 1.0), max: v(1.0, 1.0, 1.0) };
+        let r = Ray64 { origin: v(0.5, 0.5, 0.0), direction: v(0.0, 0.0, 1.0), tmin: 0.0, tmax: 5.0 };
+        assert_eq!(flat.entry(&r, r.direction.recip()), Some(1.0));
+        // Along the face of a flat box: 0 * inf is NaN, which must not reject.
+        let along = Ray64 { origin: v(-1.0, 0.5, 1.0), direction: v(1.0, 0.0, 0.0), tmin: 0.0, tmax: 5.0 };
+        assert_eq!(flat.entry(&along, along.direction.recip()), Some(1.0));
+    }
+}

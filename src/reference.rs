@@ -1,0 +1,300 @@
+//! The `"reference"` tier: a CPU tracer in f64 over two levels of bounding-volume hierarchies,
+//! running the same watertight test and tie-break rules as the `"exact"` GPU tier, on all cores.
+//! It needs no GPU and is the oracle the other tiers are measured against.
+
+use std::sync::OnceLock;
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use crate::precision::{watertight, Aabb, Affine, Ray64, ShearedRay};
+
+/// Items one leaf holds at most.
+const LEAF_ITEMS: usize = 4;
+
+struct Node {
+    bounds: Aabb,
+    /// Leaf: first item in `Bvh::items`; inner node: index of the left child (the right follows).
+    first: u32,
+    /// Items of a leaf; 0 for an inner node.
+    count: u32,
+}
+
+/// A binary BVH over boxes, split at the median centroid along the widest axis.
+pub struct Bvh {
+    nodes: Vec<Node>,
+    items: Vec<u32>,
+}
+
+impl Bvh {
+    /// `boxes` must be conservative: the traversal trusts them to hold every hit.
+    pub fn build(boxes: &[Aabb]) -> Bvh {
+        let mut bvh = Bvh { nodes: Vec::with_capacity(2 * boxes.len() / LEAF_ITEMS + 1), items: Vec::new() };
+        let mut items: Vec<u32> = (0..boxes.len() as u32).collect();
+        if boxes.is_empty() {
+            return bvh;
+        }
+        bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+        // (node, range of `items`) still to split.
+        let mut todo = vec![(0usize, 0usize, items.len())];
+        while let Some((node, lo, hi)) = todo.pop() {
+            let slice = &mut items[lo..hi];
+            let bounds = slice.iter().fold(Aabb::EMPTY, |b, &i| b.union(&boxes[i as usize]));
+            bvh.nodes[node].bounds = bounds;
+            if slice.len() <= LEAF_ITEMS {
+                bvh.nodes[node].first = lo as u32;
+                bvh.nodes[node].count = slice.len() as u32;
+                continue;
+            }
+            let centroids = Aabb::of_points(slice.iter().map(|&i| boxes[i as usize].center()));
+            let extent = centroids.extent();
+            let axis = if extent.x >= extent.y && extent.x >= extent.z {
+                0
+            } else if extent.y >= extent.z {
+                1
+            } else {
+                2
+            };
+            let mid = slice.len() / 2;
+            slice.select_nth_unstable_by(mid, |&a, &b| {
+                boxes[a as usize].center()[axis].total_cmp(&boxes[b as usize].center()[axis])
+            });
+            let left = bvh.nodes.len();
+            bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+            bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+            bvh.nodes[node].first = left as u32;
+            todo.push((left, lo, lo + mid));
+            todo.push((left + 1, lo + mid, hi));
+        }
+        bvh.items = items;
+        bvh
+    }
+
+    /// Calls `visit` with every item whose box the ray enters before `*tmax`; `visit` may lower
+    /// `*tmax` (a closer hit) or return false to stop (an occlusion query's first hit).
+    pub fn traverse(&self, ray: &Ray64, tmax: &mut f64, mut visit: impl FnMut(u32, &mut f64) -> bool) {
+        if self.nodes.is_empty() {
+            return;
+        }
+        let inverse_direction = ray.direction.recip();
+        let mut stack = Vec::with_capacity(64);
+        stack.push(0u32);
+        while let Some(index) = stack.pop() {
+            let node = &self.nodes[index as usize];
+            let bounded = Ray64 { tmax: *tmax, ..*ray };
+            if node.bounds.entry(&bounded, inverse_direction).is_none() {
+                continue;
+            }
+            if node.count > 0 {
+                for &item in &self.items[node.first as usize..(node.first + node.count) as usize] {
+                    if !visit(item, tmax) {
+                        return;
+                    }
+                }
+            } else {
+                stack.push(node.first);
+                stack.push(node.first + 1);
+            }
+        }
+    }
+}
+
+/// Triangles of one mesh in its own (re-centred) frame, in f64, with their hierarchy (built on
+/// first use: only the reference tier needs it).
+pub struct TriangleSet {
+    pub vertices: Vec<DVec3>,
+    pub faces: Vec<[u32; 3]>,
+    pub bounds: Aabb,
+    bvh: OnceLock<Bvh>,
+}
+
+impl TriangleSet {
+    pub fn new(vertices: Vec<DVec3>, faces: Vec<[u32; 3]>) -> TriangleSet {
+        let bounds = Aabb::of_points(vertices.iter().copied());
+        TriangleSet { vertices, faces, bounds, bvh: OnceLock::new() }
+    }
+
+    fn bvh(&self) -> &Bvh {
+        self.bvh.get_or_init(|| {
+            // Boxes grow by a hair of the mesh's size so that f64 rounding in the slab test cannot
+            // reject a triangle that lies on its own box's face.
+            let pad = 1e-9 * self.bounds.extent().max_element().max(f64::MIN_POSITIVE);
+            let boxes: Vec<Aabb> =
+                (0..self.faces.len()).into_par_iter().map(|p| Aabb::of_points(self.triangle(p)).padded(pad)).collect();
+            Bvh::build(&boxes)
+        })
+    }
+
+    pub fn triangle(&self, prim: usize) -> [DVec3; 3] {
+        self.faces[prim].map(|i| self.vertices[i as usize])
+    }
+}
+
+/// One placement of a triangle set, for the CPU tracer.
+pub struct PlacedSet<'a> {
+    pub triangles: &'a TriangleSet,
+    /// From the scene's frame to the set's.
+    pub to_local: Affine,
+    pub custom_index: u32,
+    pub mask: u8,
+    /// The set's bounds in the scene's frame.
+    pub bounds: Aabb,
+}
+
+/// What the CPU tracer found for one ray.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReferenceHit {
+    pub t: f64,
+    pub u: f64,
+    pub v: f64,
+    pub instance: u32,
+    pub prim: u32,
+}
+
+impl ReferenceHit {
+    /// The order that decides between hits: nearer first, then the lower (instance, prim), so
+    /// that every tier picks the same one of several triangles at the same distance.
+    pub fn is_before(&self, other: &ReferenceHit) -> bool {
+        self.t < other.t || (self.t == other.t && (self.instance, self.prim) < (other.instance, other.prim))
+    }
+}
+
+/// Two-level CPU tracer over placed triangle sets.
+pub struct ReferenceTracer<'a> {
+    sets: Vec<PlacedSet<'a>>,
+    top: Bvh,
+}
+
+impl<'a> ReferenceTracer<'a> {
+    pub fn new(sets: Vec<PlacedSet<'a>>) -> ReferenceTracer<'a> {
+        let boxes: Vec<Aabb> = sets.iter().map(|s| s.bounds).collect();
+        ReferenceTracer { top: Bvh::build(&boxes), sets }
+    }
+
+    /// The first hit of `ray` by the tie-break order; with `any`, the first one found.
+    pub fn trace(&self, ray: &Ray64, any: bool) -> Option<ReferenceHit> {
+        let mut best: Option<ReferenceHit> = None;
+        let mut tmax = ray.tmax;
+        self.top.traverse(ray, &mut tmax, |instance, tmax| {
+            let set = &self.sets[instance as usize];
+            if set.mask == 0 {
+                return true;
+            }
+            let local = ShearedRay::new(Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) });
+            let mut stop = false;
+            set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
+                let [a, b, c] = set.triangles.triangle(prim as usize);
+                let Some(hit) = watertight(&local, a, b, c) else { return true };
+                if hit.t > *tmax {
+                    return true;
+                }
+                let candidate = ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim };
+                if best.is_none_or(|b| candidate.is_before(&b)) {
+                    best = Some(candidate);
+                    *tmax = hit.t;
+                }
+                stop = any;
+                !any
+            });
+            !stop
+        });
+        best
+    }
+
+    /// Traces every ray on all cores; `out[i]` gets ray i's hit.
+    pub fn trace_all(&self, rays: impl Fn(usize) -> Ray64 + Sync, any: bool, out: &mut [Option<ReferenceHit>]) {
+        out.par_iter_mut().enumerate().with_min_len(256).for_each(|(i, slot)| *slot = self.trace(&rays(i), any));
+    }
+
+    pub fn set(&self, instance: u32) -> &PlacedSet<'a> {
+        &self.sets[instance as usize]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A grid of `n`×`n` unit squares (two triangles each) in the plane z = 0.
+    fn grid(n: u32) -> TriangleSet {
+        let mut vertices = Vec::new();
+        for y in 0..=n {
+            for x in 0..=n {
+                vertices.push(DVec3::new(x as f64, y as f64, 0.0));
+            }
+        }
+        let at = |x: u32, y: u32| y * (n + 1) + x;
+        let mut faces = Vec::new();
+        for y in 0..n {
+            for x in 0..n {
+                faces.push([at(x, y), at(x + 1, y), at(x + 1, y + 1)]);
+                faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
+            }
+        }
+        TriangleSet::new(vertices, faces)
+    }
+
+    #[test]
+    fn every_grid_vertex_and_edge_is_hit_exactly_once() {
+        let set = grid(8);
+        let bounds = set.bounds;
+        let tracer = ReferenceTracer::new(vec![PlacedSet {
+            triangles: &set,
+            to_local: Affine::IDENTITY,
+            custom_index: 0,
+            mask: 0xFF,
+            bounds,
+        }]);
+        let brute = |ray: &Ray64| -> Vec<usize> {
+            let sheared = ShearedRay::new(*ray);
+            (0..set.faces.len())
+                .filter(|&p| {
+                    let [a, b, c] = set.triangle(p);
+                    watertight(&sheared, a, b, c).is_some()
+                })
+                .collect()
+        };
+        for k in 0..=16 {
+            for j in 0..=16 {
+                let target = DVec3::new(k as f64 * 0.5, j as f64 * 0.5, 0.0);
+                let origin = DVec3::new(3.3, -2.1, 5.0);
+                let ray = Ray64 { origin, direction: target - origin, tmin: 0.0, tmax: f64::INFINITY };
+                // Interior vertices, edges and faces: exactly one triangle; the border may miss.
+                let interior = (1..16).contains(&k) && (1..16).contains(&j);
+                let count = brute(&ray).len();
+                if interior {
+                    assert_eq!(count, 1, "target {target}");
+                }
+                let hit = tracer.trace(&ray, false);
+                assert_eq!(hit.is_some(), count == 1);
+                if let Some(hit) = hit {
+                    assert_eq!(vec![hit.prim as usize], brute(&ray));
+                    assert!((hit.t - 1.0).abs() < 1e-15);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_nearer_of_two_instances_wins() {
+        let set = grid(2);
+        let lifted = Affine { offset: DVec3::new(0.0, 0.0, -1.0), ..Affine::IDENTITY };
+        let place = |to_local: Affine| PlacedSet {
+            triangles: &set,
+            to_local,
+            custom_index: 0,
+            mask: 0xFF,
+            bounds: Aabb::of_points(set.vertices.iter().copied()).transformed(&to_local.inverse().unwrap()),
+        };
+        let tracer = ReferenceTracer::new(vec![place(Affine::IDENTITY), place(lifted)]);
+        let ray = Ray64 {
+            origin: DVec3::new(0.3, 0.6, 5.0),
+            direction: DVec3::new(0.0, 0.0, -1.0),
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        };
+        let hit = tracer.trace(&ray, false).unwrap();
+        assert_eq!((hit.instance, hit.t), (1, 4.0));
+        assert!(tracer.trace(&Ray64 { tmax: 3.5, ..ray }, true).is_none());
+    }
+}

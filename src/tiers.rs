@@ -1,0 +1,143 @@
+//! The host's part of the f64 precision tiers: refining f32 hits against their triangles
+//! (`"refined"`) and tracing on the CPU (`"reference"`), each writing the caller's hit fields.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use crate::input::Rays;
+use crate::precision::{plane_hit, world_normal, TriangleHit};
+use crate::reference::ReferenceHit;
+use crate::scene::Scene;
+use crate::trace::{Field, HitSink};
+
+/// Writes one field for every ray, on all cores: `value(i, out)` fills ray i's bytes.
+fn write_field(sink: &mut HitSink, field: Field, wide: bool, value: impl Fn(usize, &mut [u8]) + Sync) {
+    if let Some(out) = sink.field_mut(field) {
+        let width = field.bytes_per_ray(wide);
+        out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| value(i, dst));
+    }
+}
+
+fn put_f64s(dst: &mut [u8], values: &[f64]) {
+    for (d, v) in dst.chunks_exact_mut(8).zip(values) {
+        d.copy_from_slice(&v.to_ne_bytes());
+    }
+}
+
+fn put_f32s(dst: &mut [u8], values: &[f32]) {
+    for (d, v) in dst.chunks_exact_mut(4).zip(values) {
+        d.copy_from_slice(&v.to_ne_bytes());
+    }
+}
+
+fn int_at(bytes: &[u8], i: usize) -> i32 {
+    i32::from_ne_bytes(bytes[4 * i..4 * i + 4].try_into().expect("4 bytes"))
+}
+
+/// Re-intersects each hit the GPU found (`prim`, `instance`: int32 per ray, -1 on a miss) with
+/// its triangle in f64, in the mesh's own frame, and writes `t` and `uv` as f64.
+pub fn refine(scene: &Scene, rays: &Rays, prim: &[u8], instance: &[u8], t: Option<&mut [u8]>, uv: Option<&mut [u8]>) {
+    let hits: Vec<Option<TriangleHit>> = (0..rays.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let (p, k) = (int_at(prim, i), int_at(instance, i));
+            if p < 0 {
+                return None;
+            }
+            let placement = &scene.placements[k as usize];
+            let ray = rays.ray64(i, scene.center).transformed(&placement.to_local);
+            let [a, b, c] = placement.mesh.triangles.triangle(p as usize);
+            // A ray the f32 traversal hit is not parallel to the plane; if rounding says it is,
+            // the f32 answer stands in for t (NaN barycentrics tell the caller).
+            Some(plane_hit(&ray, a, b, c).unwrap_or(TriangleHit { t: f64::NAN, u: f64::NAN, v: f64::NAN }))
+        })
+        .collect();
+    let mut sink = HitSink::default();
+    if let Some(t) = t {
+        sink.set(Field::T, t);
+    }
+    if let Some(uv) = uv {
+        sink.set(Field::Uv, uv);
+    }
+    write_hits_t_uv(&mut sink, &hits, |h| (h.t, h.u, h.v));
+}
+
+fn write_hits_t_uv<H: Sync>(sink: &mut HitSink, hits: &[Option<H>], tuv: impl Fn(&H) -> (f64, f64, f64) + Sync) {
+    write_field(sink, Field::T, true, |i, dst| put_f64s(dst, &[hits[i].as_ref().map_or(f64::INFINITY, |h| tuv(h).0)]));
+    write_field(sink, Field::Uv, true, |i, dst| {
+        let (u, v) = hits[i].as_ref().map_or((f64::NAN, f64::NAN), |h| (tuv(h).1, tuv(h).2));
+        put_f64s(dst, &[u, v])
+    });
+}
+
+/// Traces every ray on the CPU in f64 and writes every field the sink asks for.
+pub fn reference(scene: &Scene, rays: &Rays, any: bool, sink: &mut HitSink) {
+    let tracer = scene.reference_tracer();
+    let mut hits: Vec<Option<ReferenceHit>> = vec![None; rays.len()];
+    tracer.trace_all(|i| rays.ray64(i, scene.center), any, &mut hits);
+    write_hits_t_uv(sink, &hits, |h| (h.t, h.u, h.v));
+    let found = &hits;
+    let ids = |value: fn(&ReferenceHit) -> i32| {
+        move |i: usize, dst: &mut [u8]| dst.copy_from_slice(&found[i].as_ref().map_or(-1, value).to_ne_bytes())
+    };
+    write_field(sink, Field::Prim, true, ids(|h| h.prim as i32));
+    write_field(sink, Field::Instance, true, ids(|h| h.instance as i32));
+    write_field(sink, Field::Custom, true, |i, dst| {
+        let custom = hits[i].as_ref().map_or(-1, |h| tracer.set(h.instance).custom_index as i32);
+        dst.copy_from_slice(&custom.to_ne_bytes())
+    });
+    write_field(sink, Field::Geometry, true, ids(|_| 0));
+    write_field(sink, Field::Normal, true, |i, dst| {
+        let n = hits[i].as_ref().map_or(DVec3::NAN, |h| {
+            let set = tracer.set(h.instance);
+            let [a, b, c] = set.triangles.triangle(h.prim as usize);
+            world_normal(&set.to_local, a, b, c)
+        });
+        put_f32s(dst, &n.as_vec3().to_array())
+    });
+}
+
+/// The hit triangles of a batch: caller's prim and instance (int32, -1 on a miss) and
+/// barycentrics (2 f32, or 2 f64 when `wide`) per ray.
+pub struct HitTriangles<'a> {
+    pub prim: &'a [u8],
+    pub instance: &'a [u8],
+    pub uv: &'a [u8],
+    pub wide: bool,
+}
+
+impl HitTriangles<'_> {
+    fn uv(&self, i: usize) -> (f64, f64) {
+        if self.wide {
+            let at = |k: usize| f64::from_ne_bytes(self.uv[8 * k..8 * k + 8].try_into().expect("8 bytes"));
+            (at(2 * i), at(2 * i + 1))
+        } else {
+            let at = |k: usize| f32::from_ne_bytes(self.uv[4 * k..4 * k + 4].try_into().expect("4 bytes")) as f64;
+            (at(2 * i), at(2 * i + 1))
+        }
+    }
+}
+
+/// World-space hit points from each hit's triangle and barycentrics, interpolated in f64 in the
+/// mesh's frame (so their error is relative to the triangle's size, not to the ray's length or
+/// the origin's distance); 3 f64 per ray when `hits.wide`, else 3 f32. NaN on a miss.
+pub fn positions(scene: &Scene, hits: &HitTriangles, out: &mut [u8]) {
+    let width = if hits.wide { 24 } else { 12 };
+    out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| {
+        let p = int_at(hits.prim, i);
+        let point = if p < 0 {
+            DVec3::NAN
+        } else {
+            let placement = &scene.placements[int_at(hits.instance, i) as usize];
+            let [a, b, c] = placement.mesh.triangles.triangle(p as usize);
+            let (u, v) = hits.uv(i);
+            placement.to_scene.point(a + u * (b - a) + v * (c - a)) + scene.center
+        };
+        if hits.wide {
+            put_f64s(dst, &point.to_array());
+        } else {
+            put_f32s(dst, &point.as_vec3().to_array());
+        }
+    });
+}
