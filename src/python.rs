@@ -299,7 +299,7 @@ impl PyDevice {
     fn scene(
         &self,
         py: Python<'_>,
-        items: Vec<(PyRef<'_, PyMesh>, Option<Bound<'_, PyAny>>, u32, u8)>,
+        items: Vec<InstanceItem<'_>>,
         build: &str,
         allow_update: bool,
         compact: bool,
@@ -371,6 +371,9 @@ const FIELD_NAMES: [(&str, Field); 7] = [
     ("normal", Field::Normal),
     ("geometry_id", Field::Geometry),
 ];
+
+/// (mesh, transform or None, custom_index, mask) of one instance, as the Python layer passes it.
+type InstanceItem<'py> = (PyRef<'py, PyMesh>, Option<Bound<'py, PyAny>>, u32, u8);
 
 #[pymethods]
 impl PyScene {

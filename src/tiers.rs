@@ -5,7 +5,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::input::Rays;
-use crate::precision::{plane_hit, world_normal, TriangleHit};
+use crate::precision::{plane_hit, world_normal};
 use crate::reference::ReferenceHit;
 use crate::scene::Scene;
 use crate::trace::{Field, HitSink};
@@ -34,41 +34,42 @@ fn int_at(bytes: &[u8], i: usize) -> i32 {
     i32::from_ne_bytes(bytes[4 * i..4 * i + 4].try_into().expect("4 bytes"))
 }
 
-/// Re-intersects each hit the GPU found (`prim`, `instance`: int32 per ray, -1 on a miss) with
-/// its triangle in f64, in the mesh's own frame, and writes `t` and `uv` as f64.
-pub fn refine(scene: &Scene, rays: &Rays, prim: &[u8], instance: &[u8], t: Option<&mut [u8]>, uv: Option<&mut [u8]>) {
-    let hits: Vec<Option<TriangleHit>> = (0..rays.len())
+/// Re-intersects each hit the GPU found (the sink's `prim` and `instance`, -1 on a miss) with its
+/// triangle in f64, in the mesh's own frame, and writes the fields the sink asks for (`t` and
+/// `uv` as f64, the normal from f64 vertices). Where the f64 answer leaves the ray's interval
+/// (f32 traversal accepted a triangle the ray only grazes, or one just behind an origin that
+/// sits on it, as secondary rays do), that ray is traced again by the CPU tracer.
+pub fn refine(scene: &Scene, rays: &Rays, sink: &mut HitSink) {
+    let (prim, instance) =
+        (sink.field(Field::Prim).unwrap_or_default(), sink.field(Field::Instance).unwrap_or_default());
+    let refined: Vec<Result<Option<ReferenceHit>, ()>> = (0..rays.len())
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
             let (p, k) = (int_at(prim, i), int_at(instance, i));
             if p < 0 {
-                return None;
+                return Ok(None);
             }
             let placement = &scene.placements[k as usize];
             let ray = rays.ray64(i, scene.center).transformed(&placement.to_local);
             let [a, b, c] = placement.mesh.triangles.triangle(p as usize);
-            // A ray the f32 traversal hit is not parallel to the plane; if rounding says it is,
-            // the f32 answer stands in for t (NaN barycentrics tell the caller).
-            Some(plane_hit(&ray, a, b, c).unwrap_or(TriangleHit { t: f64::NAN, u: f64::NAN, v: f64::NAN }))
+            match plane_hit(&ray, a, b, c) {
+                Some(h) if h.t >= ray.tmin && h.t <= ray.tmax => {
+                    Ok(Some(ReferenceHit { t: h.t, u: h.u, v: h.v, instance: k as u32, prim: p as u32 }))
+                }
+                _ => Err(()),
+            }
         })
         .collect();
-    let mut sink = HitSink::default();
-    if let Some(t) = t {
-        sink.set(Field::T, t);
+    let again: Vec<usize> = (0..rays.len()).filter(|&i| refined[i].is_err()).collect();
+    let mut hits: Vec<Option<ReferenceHit>> = refined.into_iter().map(|r| r.unwrap_or(None)).collect();
+    if !again.is_empty() {
+        let tracer = scene.reference_tracer();
+        for i in again {
+            hits[i] = tracer.trace(&rays.ray64(i, scene.center), false);
+        }
     }
-    if let Some(uv) = uv {
-        sink.set(Field::Uv, uv);
-    }
-    write_hits_t_uv(&mut sink, &hits, |h| (h.t, h.u, h.v));
-}
-
-fn write_hits_t_uv<H: Sync>(sink: &mut HitSink, hits: &[Option<H>], tuv: impl Fn(&H) -> (f64, f64, f64) + Sync) {
-    write_field(sink, Field::T, true, |i, dst| put_f64s(dst, &[hits[i].as_ref().map_or(f64::INFINITY, |h| tuv(h).0)]));
-    write_field(sink, Field::Uv, true, |i, dst| {
-        let (u, v) = hits[i].as_ref().map_or((f64::NAN, f64::NAN), |h| (tuv(h).1, tuv(h).2));
-        put_f64s(dst, &[u, v])
-    });
+    write_hits(scene, sink, &hits);
 }
 
 /// Traces every ray on the CPU in f64 and writes every field the sink asks for.
@@ -76,23 +77,28 @@ pub fn reference(scene: &Scene, rays: &Rays, any: bool, sink: &mut HitSink) {
     let tracer = scene.reference_tracer();
     let mut hits: Vec<Option<ReferenceHit>> = vec![None; rays.len()];
     tracer.trace_all(|i| rays.ray64(i, scene.center), any, &mut hits);
-    write_hits_t_uv(sink, &hits, |h| (h.t, h.u, h.v));
-    let found = &hits;
-    let ids = |value: fn(&ReferenceHit) -> i32| {
-        move |i: usize, dst: &mut [u8]| dst.copy_from_slice(&found[i].as_ref().map_or(-1, value).to_ne_bytes())
+    write_hits(scene, sink, &hits);
+}
+
+/// Writes every field the sink asks for from f64 hits: `t` and `uv` as f64, normals from the
+/// f64 vertices.
+fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) {
+    write_field(sink, Field::T, true, |i, dst| put_f64s(dst, &[hits[i].map_or(f64::INFINITY, |h| h.t)]));
+    write_field(sink, Field::Uv, true, |i, dst| put_f64s(dst, &hits[i].map_or([f64::NAN; 2], |h| [h.u, h.v])));
+    let ids = |value: fn(&Scene, &ReferenceHit) -> i32| {
+        move |i: usize, dst: &mut [u8]| {
+            dst.copy_from_slice(&hits[i].as_ref().map_or(-1, |h| value(scene, h)).to_ne_bytes())
+        }
     };
-    write_field(sink, Field::Prim, true, ids(|h| h.prim as i32));
-    write_field(sink, Field::Instance, true, ids(|h| h.instance as i32));
-    write_field(sink, Field::Custom, true, |i, dst| {
-        let custom = hits[i].as_ref().map_or(-1, |h| tracer.set(h.instance).custom_index as i32);
-        dst.copy_from_slice(&custom.to_ne_bytes())
-    });
-    write_field(sink, Field::Geometry, true, ids(|_| 0));
+    write_field(sink, Field::Prim, true, ids(|_, h| h.prim as i32));
+    write_field(sink, Field::Instance, true, ids(|_, h| h.instance as i32));
+    write_field(sink, Field::Custom, true, ids(|s, h| s.placements[h.instance as usize].custom_index as i32));
+    write_field(sink, Field::Geometry, true, ids(|_, _| 0));
     write_field(sink, Field::Normal, true, |i, dst| {
         let n = hits[i].as_ref().map_or(DVec3::NAN, |h| {
-            let set = tracer.set(h.instance);
-            let [a, b, c] = set.triangles.triangle(h.prim as usize);
-            world_normal(&set.to_local, a, b, c)
+            let placement = &scene.placements[h.instance as usize];
+            let [a, b, c] = placement.mesh.triangles.triangle(h.prim as usize);
+            world_normal(&placement.to_local, a, b, c)
         });
         put_f32s(dst, &n.as_vec3().to_array())
     });

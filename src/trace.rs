@@ -324,6 +324,8 @@ pub struct Tracer {
     last_profile: Mutex<TraceProfile>,
     /// Timestamps of the chunks in flight; one trace at a time uses them (the lock is held).
     stamps: Mutex<Option<Stamps>>,
+    /// Whether this driver runs the exact tier's intersection shader (see `check_exact_pipeline`).
+    exact_pipeline_works: Mutex<Option<bool>>,
     /// Rays per chunk: bounds staging memory (two chunks in flight).
     chunk_rays: AtomicUsize,
     local_size: u32,
@@ -370,6 +372,7 @@ impl Tracer {
             idle_slots: Mutex::new(Vec::new()),
             last_profile: Mutex::new(TraceProfile::default()),
             stamps: Mutex::new(Stamps::new(ctx)?),
+            exact_pipeline_works: Mutex::new(None),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
             local_size: 64u32
                 .min(ctx.limits.max_compute_work_group_size[0])
@@ -665,20 +668,24 @@ impl Tracer {
             (Precision::Exact, _) => self.trace_gpu(scene, rays, query, true, &mut work, wait, &mut profile)?,
             (Precision::Refined, true) => {
                 // The GPU finds which triangle; the host recomputes where, in f64.
-                let (t, uv) = (work.take(Field::T), work.take(Field::Uv));
+                let mut host_fields = HitSink::default();
+                for field in [Field::T, Field::Uv, Field::Normal] {
+                    if let Some(out) = work.take(field) {
+                        host_fields.set(field, out);
+                    }
+                }
                 self.trace_gpu(scene, rays, query, false, &mut work, wait, &mut profile)?;
+                for field in [Field::T, Field::Uv, Field::Normal] {
+                    if let Some(out) = host_fields.take(field) {
+                        work.set(field, out);
+                    }
+                }
                 let host = Instant::now();
-                let (prim, instance) =
-                    (work.field(Field::Prim).unwrap_or_default(), work.field(Field::Instance).unwrap_or_default());
-                let outputs = Mutex::new((t, uv));
+                let sink = Mutex::new(&mut work);
                 wait.wait(&|| {
-                    let (t, uv) = &mut *outputs.lock().unwrap_or_else(|e| e.into_inner());
-                    tiers::refine(scene, rays, prim, instance, t.as_deref_mut(), uv.as_deref_mut());
+                    tiers::refine(scene, rays, &mut sink.lock().unwrap_or_else(|e| e.into_inner()));
                     Ok(())
                 })?;
-                let (t, uv) = outputs.into_inner().unwrap_or_else(|e| e.into_inner());
-                t.map(|t| work.set(Field::T, t));
-                uv.map(|uv| work.set(Field::Uv, uv));
                 profile.host_f64 = host.elapsed().as_secs_f64();
             }
             (Precision::Reference, _) => {
@@ -707,10 +714,71 @@ impl Tracer {
         self.ctx.check_validation()
     }
 
+    /// The pipeline backend's exact tier needs intersection shaders, which some drivers accept but
+    /// never run (Mesa 25.0's lavapipe: every ray misses). One ray through one triangle, once per
+    /// device, tells; such a driver gets a clear error instead of wrong answers.
+    fn check_exact_pipeline(&self, wait: &dyn Wait) -> Result<()> {
+        if self.ctx.backend != Backend::Pipeline {
+            return Ok(());
+        }
+        let mut known = self.exact_pipeline_works.lock().unwrap_or_else(|e| e.into_inner());
+        if known.is_none() {
+            use crate::input::{Indices, PerRay, Vec3s};
+            use crate::scene::{Instance, Mesh, IDENTITY};
+            let options = crate::accel::BuildOptions {
+                preference: crate::accel::BuildPreference::FastBuild,
+                allow_update: false,
+                compact: false,
+            };
+            let triangle = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+            let mesh =
+                Arc::new(Mesh::build(&self.ctx, Vec3s::F64(&triangle), Indices::U32(&[0, 1, 2]), options, wait)?);
+            let instance = Instance { mesh, transform: IDENTITY, custom_index: 0, mask: 0xFF };
+            let probe = Scene::build(&self.ctx, &[instance], options, wait)?;
+            let (origin, direction) = ([0.25, 0.25, 1.0], [0.0, 0.0, -1.0]);
+            let rays = Rays {
+                origins: Vec3s::F64(&origin),
+                directions: Vec3s::F64(&direction),
+                tmin: PerRay::All(0.0),
+                tmax: PerRay::All(f64::INFINITY),
+            };
+            let mut prim = [0u8; 4];
+            let mut sink = HitSink::default();
+            sink.set(Field::Prim, &mut prim);
+            self.run_gpu(&probe, &rays, Query::Closest, true, &mut sink, wait, &mut TraceProfile::default())?;
+            *known = Some(i32::from_ne_bytes(prim) == 0);
+        }
+        if *known == Some(false) {
+            return Err(crate::error::Error::Unsupported(format!(
+                "{} ({}) does not run the intersection shaders of precision='exact' in ray-tracing pipelines; \
+                 use backend='ray_query' or precision='reference' (same answers, on the CPU)",
+                self.ctx.info.name, self.ctx.info.driver
+            )));
+        }
+        Ok(())
+    }
+
     /// The GPU's part of a query: traversal in f32 (`exact`: through the scene's per-triangle
     /// boxes, each candidate decided by the f64 test).
     #[allow(clippy::too_many_arguments)]
     fn trace_gpu(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        query: Query,
+        exact: bool,
+        sink: &mut HitSink,
+        wait: &dyn Wait,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        if exact {
+            self.check_exact_pipeline(wait)?;
+        }
+        self.run_gpu(scene, rays, query, exact, sink, wait, profile)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn run_gpu(
         &self,
         scene: &Scene,
         rays: &Rays,

@@ -89,3 +89,41 @@ def barycentric_points(vertices, faces, prim, uv):
 
 def transform_points(matrix, points):
     return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def heightfield(n: int, seed: int, offset: float = 0.0):
+    """A random heightfield of (n-1)^2 quads, two triangles each, translated by `offset` along
+    every axis (baked into the float64 vertices): (vertices, faces, color) where `color` gives
+    every triangle one of 18 classes such that triangles sharing a vertex never share a class."""
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(n, dtype=np.float64), np.arange(n, dtype=np.float64), indexing="xy")
+    z = rng.uniform(0.0, 0.5, (n, n))
+    vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3) + offset
+    at = lambda i, j: j * n + i  # noqa: E731
+    faces, color = [], []
+    for j in range(n - 1):
+        for i in range(n - 1):
+            faces += [[at(i, j), at(i + 1, j), at(i + 1, j + 1)], [at(i, j), at(i + 1, j + 1), at(i, j + 1)]]
+            color += [((i % 3) * 3 + j % 3) * 2, ((i % 3) * 3 + j % 3) * 2 + 1]
+    return vertices, np.array(faces, dtype=np.int64), np.array(color)
+
+
+def shared_targets(vertices, faces, n: int):
+    """Points of a heightfield that several triangles share: interior vertices and the midpoints
+    of interior edges (axis-aligned and diagonal)."""
+    grid = vertices.reshape(n, n, 3)
+    inner = grid[1:-1, 1:-1].reshape(-1, 3)
+    right = 0.5 * (grid[1:-1, 1:-2] + grid[1:-1, 2:-1])
+    up = 0.5 * (grid[1:-2, 1:-1] + grid[2:-1, 1:-1])
+    diagonal = 0.5 * (grid[1:-2, 1:-2] + grid[2:-1, 2:-1])
+    return np.concatenate([inner, right.reshape(-1, 3), up.reshape(-1, 3), diagonal.reshape(-1, 3)])
+
+
+def rays_through(targets, seed: int, distance: float = 5.0):
+    """Rays from above (random tilts up to 45 degrees) that pass through `targets` at t = 1."""
+    rng = np.random.default_rng(seed)
+    tilt = rng.uniform(-1.0, 1.0, (len(targets), 2))
+    away = np.column_stack([tilt, np.ones(len(targets))])
+    away *= distance / np.linalg.norm(away, axis=1, keepdims=True)
+    origins = targets + away
+    return origins, targets - origins
