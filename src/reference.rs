@@ -167,6 +167,12 @@ pub struct ReferenceTracer<'a> {
 
 impl<'a> ReferenceTracer<'a> {
     pub fn new(sets: Vec<PlacedSet<'a>>) -> ReferenceTracer<'a> {
+        // Build every hierarchy here, before tracing: built lazily inside the parallel trace, a
+        // thread waiting on one under construction could be the thread constructing it (rayon
+        // steals work while it waits) and never wake.
+        for set in &sets {
+            set.triangles.bvh();
+        }
         let boxes: Vec<Aabb> = sets.iter().map(|s| s.bounds).collect();
         ReferenceTracer { top: Bvh::build(&boxes), sets }
     }
