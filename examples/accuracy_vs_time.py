@@ -4,8 +4,9 @@ the f64 reference, with Embree (embreex, robust mode) measured the same way as a
     python examples/accuracy_vs_time.py                 # updates docs/accuracy.md, writes docs/accuracy.png
     python examples/accuracy_vs_time.py --out /tmp/acc  # elsewhere
 
-The measured table replaces what lies between the `<!-- measured -->` and `<!-- /measured -->`
-lines of accuracy.md (the file is made if missing), so the prose around it stays.
+The measured table replaces what lies between the `<!-- SECTION -->` and `<!-- /SECTION -->`
+lines of accuracy.md (`--section`, default `measured`; the file is made if missing), so the
+prose around it stays and several devices can each have their block.
 
 Two workloads, at offsets 0, 1e3, 1e5 and 1e7 (added to every coordinate, baked into float64
 vertices):
@@ -201,6 +202,7 @@ def main():
     parser.add_argument("--rays", type=int, default=100_000, help="random rays through the bunny")
     parser.add_argument("--grid", type=int, default=24, help="heightfield vertices per side")
     parser.add_argument("--out", type=pathlib.Path, default=ROOT / "docs")
+    parser.add_argument("--section", default="measured", help="which marked block of accuracy.md to replace")
     args = parser.parse_args()
 
     info = vkray.devices()[0]
@@ -214,17 +216,20 @@ def main():
             bunny_workload(tracers, rows, args.rays, offset)
     rows.sort(key=lambda r: (r["workload"], r["offset"], "embree" in r["tier"], r["backend"], vkray.PRECISIONS.index(r["tier"]) if r["tier"] in vkray.PRECISIONS else 9))
     args.out.mkdir(parents=True, exist_ok=True)
-    plot(rows, args.out / "accuracy.png")
+    plot(rows, args.out / ("accuracy.png" if args.section == "measured" else f"accuracy-{args.section}.png"))
     table = write_table(rows)
     command = "python examples/accuracy_vs_time.py" + "".join(f" {a}" for a in sys.argv[1:])
     device = vkray.Device()
     measured = (f"Command: `{command}`\n\nDevice: {device.name} ({device.info.device_type}), driver "
                 f"{device.info.driver}; Embree (embreex) on one core.\n\n{table}\n")
     doc = args.out / "accuracy.md"
-    text = doc.read_text() if doc.exists() else "# Accuracy and its cost\n\n<!-- measured -->\n<!-- /measured -->\n"
-    head, rest = text.split("<!-- measured -->\n", 1)
-    tail = rest.split("<!-- /measured -->", 1)[1]
-    doc.write_text(f"{head}<!-- measured -->\n{measured}<!-- /measured -->{tail}")
+    start, end = f"<!-- {args.section} -->\n", f"<!-- /{args.section} -->"
+    text = doc.read_text() if doc.exists() else "# Accuracy and its cost\n\n"
+    if start not in text:
+        text += f"\n{start}{end}\n"
+    head, rest = text.split(start, 1)
+    tail = rest.split(end, 1)[1]
+    doc.write_text(f"{head}{start}{measured}{end}{tail}")
     print(measured)
 
 

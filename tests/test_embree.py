@@ -46,14 +46,16 @@ def assert_agrees_with_embree(hits, reference, vertices, faces, origins, directi
     assert both.sum() > n // 10, "the rays must actually hit the mesh"
     same = both & (hits.prim_id == reference["primID"])
     assert same.sum() >= 0.999 * both.sum()
-    np.testing.assert_allclose(hits.t[same], reference["tfar"][same], rtol=1e-5, atol=0)
+    # Both are f32 traversals: t agrees to a few f32 ulps of the mesh's size along the ray.
+    _, radius = bounds(vertices)
+    length = np.linalg.norm(directions[same], axis=1)
+    assert (np.abs(hits.t[same] - reference["tfar"][same]) * length <= 1e-5 * radius).all()
     assert np.all(np.isinf(hits.t[~hits.hit])) and np.all(hits.prim_id[~hits.hit] == -1)
 
     # uv: the barycentric point of the reported triangle is where the ray is at t.
     prim = hits.prim_id[both]
     at_t = origins[both] + hits.t[both, None].astype(np.float64) * directions[both]
     on_triangle = barycentric_points(vertices, faces, prim, hits.uv[both])
-    _, radius = bounds(vertices)
     assert np.abs(on_triangle - at_t).max() <= 1e-4 * radius
     assert np.all(hits.uv[both] >= -1e-6) and np.all(hits.uv[both].sum(axis=1) <= 1 + 1e-6)
     # normal: the unit normal of the reported triangle in its winding, and Embree's Ng direction.
