@@ -104,6 +104,33 @@ def test_shared_edges_and_vertices_report_exactly_one_triangle(device, offset):
             assert (counts >= 1).mean() > 0.95
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e3, 1e5, 1e7])
+def test_closed_fans_report_exactly_one_triangle(device, offset):
+    """A closed fan of 11 triangles with irregular angles around a raised centre vertex: rays
+    through the centre and through every spoke's midpoint, from random directions above. Correct
+    answer: exactly one triangle each (the fan covers the centre's neighbourhood once). Each
+    triangle is its own scene, so that a double count shows as hits in two scenes."""
+    rng = np.random.default_rng(12)
+    angles = 2 * np.pi * np.arange(11) / 11 + rng.uniform(-0.2, 0.2, 11)  # no gap of half a turn
+    ring = np.column_stack([np.cos(angles), np.sin(angles), rng.uniform(-0.2, 0.2, 11)])
+    v = np.vstack([[0.0, 0.0, 0.3], ring]) + offset
+    f = np.array([[0, 1 + k, 1 + (k + 1) % 11] for k in range(11)])
+    targets = np.vstack([v[0], 0.5 * (v[0] + v[1:])])
+    targets = np.repeat(targets, 20, axis=0)
+    origins, directions = rays_through(targets, seed=13)
+    length = np.linalg.norm(directions, axis=1)
+    scenes = [device.scene(device.mesh(v, f[k : k + 1])) for k in range(11)]
+    for tier in tiers(device):
+        counts = np.zeros(len(targets), int)
+        for scene in scenes:
+            t = scene.intersect(origins, directions, precision=tier, outputs=["t"]).t
+            counts += np.abs(t - 1.0) * length < 1e-3
+        if tier in F64_TIERS:
+            assert (counts == 1).all(), f"{tier}: {np.sum(counts == 0)} misses, {np.sum(counts > 1)} double counts"
+        else:
+            assert (counts >= 1).mean() > 0.9, tier
+
+
 def test_rays_in_a_triangles_plane_do_not_hit(device):
     """A ray inside the triangle's plane meets it in a segment, not a point: a zero-area
     projection, so no hit (Vulkan's and the watertight test's definition)."""
