@@ -252,6 +252,49 @@ pub fn build(
     Ok((structure, stats))
 }
 
+/// Refits `structure` in place to new contents of the buffers `input` reads (Vulkan's UPDATE mode
+/// with source = destination): same geometry counts and flags as its build, which must have
+/// allowed updates. Returns the seconds from submission to a usable structure.
+pub fn update(
+    ctx: &Arc<Context>,
+    structure: &AccelerationStructure,
+    input: &BuildInput,
+    options: BuildOptions,
+    update_scratch_size: u64,
+    uploads: &Uploads,
+    wait: &dyn Wait,
+) -> Result<f64> {
+    let started = Instant::now();
+    let scratch = Scratch::new(ctx, update_scratch_size)?;
+    let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+        .ty(input.ty)
+        .flags(options.flags())
+        .mode(vk::BuildAccelerationStructureModeKHR::UPDATE)
+        .geometries(&input.geometries)
+        .src_acceleration_structure(structure.raw())
+        .dst_acceleration_structure(structure.raw())
+        .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
+    let ranges: Vec<vk::AccelerationStructureBuildRangeInfoKHR> = input
+        .primitive_counts
+        .iter()
+        .map(|&count| vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(count))
+        .collect();
+    ctx.run_commands(wait, |cmd| {
+        uploads.record(ctx, cmd);
+        unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, std::slice::from_ref(&info), &[&ranges]) };
+        memory_barrier(
+            ctx,
+            cmd,
+            vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
+            vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
+            vk::PipelineStageFlags::ALL_COMMANDS,
+            vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+        );
+        Ok(())
+    })?;
+    Ok(started.elapsed().as_secs_f64())
+}
+
 /// A one-query pool reading back an acceleration structure's compacted size.
 struct CompactedSizeQuery<'a> {
     ctx: &'a Context,

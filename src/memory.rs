@@ -71,6 +71,11 @@ impl Buffer {
         Some(&slice[..self.size as usize])
     }
 
+    /// Where a host-visible buffer is mapped, for writers that hold it shared.
+    pub fn mapped_ptr(&self) -> Option<*mut u8> {
+        self.allocation.as_ref()?.mapped_ptr().map(|p| p.as_ptr() as *mut u8)
+    }
+
     pub fn mapped_mut(&mut self) -> Option<&mut [u8]> {
         let size = self.size as usize;
         let slice = self.allocation.as_mut()?.mapped_slice_mut()?;
@@ -131,6 +136,25 @@ impl Uploads {
             self.staging.push((staging, buffer.raw(), size));
         }
         Ok(buffer)
+    }
+
+    /// New contents for an existing device buffer of `Uploads::buffer`'s making: written in place
+    /// where mapped, else through staging copied by `record`. The caller makes sure the device is
+    /// not reading the buffer meanwhile.
+    pub fn overwrite(&mut self, ctx: &Arc<Context>, buffer: &Buffer, fill: impl FnOnce(&mut [u8])) -> Result<()> {
+        let size = buffer.size();
+        if let Some(ptr) = buffer.mapped_ptr() {
+            // SAFETY: a persistently mapped allocation of `size` bytes that no one else touches now.
+            fill(unsafe { std::slice::from_raw_parts_mut(ptr, size as usize) });
+            return Ok(());
+        }
+        let mut staging =
+            Buffer::new(ctx, size, vk::BufferUsageFlags::TRANSFER_SRC, MemoryLocation::CpuToGpu, "staging")?;
+        fill(&mut staging.mapped_mut().expect("CpuToGpu memory is host-visible")[..size as usize]);
+        if size > 0 {
+            self.staging.push((staging, buffer.raw(), size));
+        }
+        Ok(())
     }
 
     /// Records the staging copies and a barrier that makes them visible to every later command.

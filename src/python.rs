@@ -2,9 +2,11 @@
 //! accepted dtype (the Python layer sees to that); inputs are read while the GIL is held and every
 //! wait on the GPU runs with the GIL released.
 
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 
-use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
@@ -327,7 +329,7 @@ impl PyDevice {
             instances.push(Instance { mesh: mesh.mesh.clone(), transform, custom_index: *custom_index, mask: *mask });
         }
         let scene = Scene::build(&self.ctx, &instances, options, &ReleaseGil(py))?;
-        Ok(PyScene { scene: Arc::new(scene), tracer: self.tracer.clone() })
+        Ok(PyScene { scene: RwLock::new(scene), tracer: self.tracer.clone() })
     }
 }
 
@@ -351,14 +353,25 @@ impl PyMesh {
 
     #[getter]
     fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        stats_dict(py, &self.mesh.stats, &self.mesh.options)
+        let d = stats_dict(py, &self.mesh.stats, &self.mesh.options)?;
+        d.set_item("update_seconds", self.mesh.last_update_seconds())?;
+        Ok(d)
+    }
+
+    /// Moves the vertices ((V, 3), same V) and refits the BLAS in place.
+    fn update(&self, py: Python<'_>, vertices: &Bound<'_, PyAny>) -> PyResult<()> {
+        let vertices = Vec3Array::extract("vertices", vertices)?;
+        self.mesh.update(vertices.view()?, &ReleaseGil(py))?;
+        Ok(())
     }
 }
 
 /// Instances under a top-level acceleration structure, ready for queries.
 #[pyclass(name = "Scene", module = "vkray._core", frozen)]
 struct PyScene {
-    scene: Arc<Scene>,
+    /// Queries share it, `update` takes it alone; neither waits for the other (a wait that held
+    /// the GIL could deadlock with a query that needs the GIL back): contention is an error.
+    scene: RwLock<Scene>,
     tracer: Arc<Tracer>,
 }
 
@@ -375,16 +388,55 @@ const FIELD_NAMES: [(&str, Field); 7] = [
 /// (mesh, transform or None, custom_index, mask) of one instance, as the Python layer passes it.
 type InstanceItem<'py> = (PyRef<'py, PyMesh>, Option<Bound<'py, PyAny>>, u32, u8);
 
+impl PyScene {
+    fn read(&self) -> PyResult<std::sync::RwLockReadGuard<'_, Scene>> {
+        self.scene.try_read().map_err(|_| PyRuntimeError::new_err("the scene is being updated by another thread"))
+    }
+}
+
 #[pymethods]
 impl PyScene {
+    /// Refits the TLAS: new `transforms` ((N, 3, 4) or (N, 4, 4) float64) and/or `masks` ((N,) uint8)
+    /// for its N instances, and its meshes' own updates.
+    #[pyo3(signature = (transforms=None, masks=None))]
+    fn update(
+        &self,
+        py: Python<'_>,
+        transforms: Option<PyReadonlyArray3<'_, f64>>,
+        masks: Option<PyReadonlyArray1<'_, u8>>,
+    ) -> PyResult<()> {
+        let transforms = match &transforms {
+            None => None,
+            Some(t) => {
+                let rows = t.shape()[1];
+                let values = t.as_slice()?;
+                let per = rows * 4;
+                if t.shape()[2] != 4 || per == 0 {
+                    return Err(PyValueError::new_err("transforms must have shape (N, 3, 4) or (N, 4, 4)"));
+                }
+                Some(values.chunks_exact(per).map(|m| instance_transform(m, rows)).collect::<crate::Result<Vec<_>>>()?)
+            }
+        };
+        let masks = masks.as_ref().map(|m| m.as_slice().map(|m| m.to_vec())).transpose()?;
+        let mut scene = self
+            .scene
+            .try_write()
+            .map_err(|_| PyRuntimeError::new_err("the scene is in use by a query running in another thread"))?;
+        scene.update(transforms, masks, &ReleaseGil(py))?;
+        Ok(())
+    }
+
     #[getter]
-    fn instance_count(&self) -> usize {
-        self.scene.instance_count
+    fn instance_count(&self) -> PyResult<usize> {
+        Ok(self.read()?.instance_count)
     }
 
     #[getter]
     fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        stats_dict(py, &self.scene.stats, &self.scene.options)
+        let scene = self.read()?;
+        let d = stats_dict(py, &scene.stats, &scene.options)?;
+        d.set_item("update_seconds", scene.last_update_seconds())?;
+        Ok(d)
     }
 
     /// Traces rays; returns {field name: array} for the fields asked for.
@@ -467,7 +519,7 @@ impl PyScene {
                 std::slice::from_raw_parts_mut(ptr, n * 3 * if wide { 8 } else { 4 })
             });
         }
-        self.tracer.trace(&self.scene, &rays, query, precision, &mut sink, &ReleaseGil(py))?;
+        self.tracer.trace(&*self.read()?, &rays, query, precision, &mut sink, &ReleaseGil(py))?;
         Ok(result)
     }
 }

@@ -1,7 +1,9 @@
 //! Meshes (a bottom-level structure over device copies of vertices and faces) and scenes (a
 //! top-level structure over instances of meshes): the level users work at.
 
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Instant;
 
 use ash::vk;
 use glam::DVec3;
@@ -33,14 +35,19 @@ pub struct Mesh {
     pub vertex_count: usize,
     pub triangle_count: usize,
     pub center: DVec3,
-    pub triangles: TriangleSet,
     pub options: BuildOptions,
     pub stats: BuildStats,
+    /// The host's f64 copy, replaced whole by `update` (scenes hold the one they were placed with).
+    triangles: RwLock<Arc<TriangleSet>>,
+    /// Counts `update`s, so that scenes can tell they hold an older copy.
+    generation: AtomicU64,
+    /// Seconds the last `update` took (upload and refit), 0 before any.
+    last_update_seconds: Mutex<f64>,
     blas: AccelerationStructure,
     /// Device triangle -> caller's triangle, where the device holds them in another order.
     device_order: Option<Vec<u32>>,
     // Read by shaders (normals) through `sources`; kept alive as long as the mesh.
-    _vertices: Buffer,
+    vertices: Buffer,
     indices: Buffer,
     index_is_u16: bool,
     primitive_order: Option<Buffer>,
@@ -100,34 +107,26 @@ impl Mesh {
                 out[28..32].fill(0);
             })?;
 
-        let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
-            .vertex_format(vk::Format::R32G32B32_SFLOAT)
-            .vertex_data(vk::DeviceOrHostAddressConstKHR { device_address: vertex_buffer.address() })
-            .vertex_stride(12)
-            .max_vertex(vertices.rows() as u32 - 1)
-            .index_type(if faces.is_u16() { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
-            .index_data(vk::DeviceOrHostAddressConstKHR { device_address: index_buffer.address() });
-        let geometry = vk::AccelerationStructureGeometryKHR::default()
-            .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
-            .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
-            .flags(vk::GeometryFlagsKHR::OPAQUE);
-        let input = BuildInput {
-            ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-            geometries: vec![geometry],
-            primitive_counts: vec![triangle_count as u32],
-            name: "mesh BLAS",
-        };
+        let input = triangles_input(
+            vertex_buffer.address(),
+            vertices.rows(),
+            index_buffer.address(),
+            faces.is_u16(),
+            triangle_count,
+        );
         let (blas, stats) = accel::build(ctx, &input, options, &uploads, wait)?;
         Ok(Mesh {
             vertex_count: vertices.rows(),
             triangle_count,
             center,
-            triangles: host_triangles,
+            triangles: RwLock::new(Arc::new(host_triangles)),
+            generation: AtomicU64::new(0),
+            last_update_seconds: Mutex::new(0.0),
             options,
             stats,
             blas,
             device_order: order,
-            _vertices: vertex_buffer,
+            vertices: vertex_buffer,
             indices: index_buffer,
             index_is_u16: faces.is_u16(),
             primitive_order,
@@ -139,9 +138,88 @@ impl Mesh {
         self.blas.address()
     }
 
+    /// The host's f64 copy of the triangles as they are now.
+    pub fn triangles(&self) -> Arc<TriangleSet> {
+        self.triangles.read().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    pub fn generation(&self) -> u64 {
+        self.generation.load(Ordering::Acquire)
+    }
+
+    pub fn last_update_seconds(&self) -> f64 {
+        *self.last_update_seconds.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Moves the vertices (same count, same faces) and refits the BLAS in place (Vulkan's UPDATE
+    /// mode with source = destination) instead of rebuilding it. Needs `allow_update` at build.
+    /// Scenes holding the mesh must be `update`d before they trace again. Not to be called while
+    /// a query on a scene holding this mesh runs.
+    pub fn update(&self, vertices: Vec3s, wait: &dyn Wait) -> Result<()> {
+        let ctx = self.blas.context();
+        if !self.options.allow_update {
+            return Err(invalid_value("this mesh was built without allow_update=True, so it cannot be refitted"));
+        }
+        if vertices.rows() != self.vertex_count {
+            return Err(invalid_value(format!(
+                "update needs the same {} vertices (the faces stay), got {}: rebuild the mesh to change its topology",
+                self.vertex_count,
+                vertices.rows()
+            )));
+        }
+        check_vertices("vertices", vertices)?;
+        let started = Instant::now();
+        // The same centre as at build: scenes' transforms and the exact tier's frames keep meaning.
+        let local: Vec<DVec3> =
+            (0..vertices.rows()).map(|i| DVec3::from_array(vertices.row_f64(i)) - self.center).collect();
+        let flat: Vec<f64> = local.iter().flat_map(|v| v.to_array()).collect();
+        let mut uploads = Uploads::default();
+        uploads.overwrite(ctx, &self.vertices, |out| write_vertices_f32(Vec3s::F64(&flat), out))?;
+        let faces = self.triangles().faces.clone();
+        let input = triangles_input(
+            self.vertices.address(),
+            self.vertex_count,
+            self.indices.address(),
+            self.index_is_u16,
+            self.triangle_count,
+        );
+        accel::update(ctx, &self.blas, &input, self.options, self.stats.update_scratch_size, &uploads, wait)?;
+        *self.triangles.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(TriangleSet::new(local, faces));
+        self.generation.fetch_add(1, Ordering::AcqRel);
+        *self.last_update_seconds.lock().unwrap_or_else(|e| e.into_inner()) = started.elapsed().as_secs_f64();
+        Ok(())
+    }
+
     /// The caller's triangle held at `device` on the device.
     fn caller_triangle(&self, device: usize) -> usize {
         self.device_order.as_ref().map_or(device, |order| order[device] as usize)
+    }
+}
+
+/// The build input of a mesh's BLAS: one opaque triangle geometry over its device buffers.
+fn triangles_input(
+    vertex_address: u64,
+    vertex_count: usize,
+    index_address: u64,
+    index_is_u16: bool,
+    triangle_count: usize,
+) -> BuildInput<'static> {
+    let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
+        .vertex_format(vk::Format::R32G32B32_SFLOAT)
+        .vertex_data(vk::DeviceOrHostAddressConstKHR { device_address: vertex_address })
+        .vertex_stride(12)
+        .max_vertex(vertex_count as u32 - 1)
+        .index_type(if index_is_u16 { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
+        .index_data(vk::DeviceOrHostAddressConstKHR { device_address: index_address });
+    let geometry = vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
+        .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
+        .flags(vk::GeometryFlagsKHR::OPAQUE);
+    BuildInput {
+        ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+        geometries: vec![geometry],
+        primitive_counts: vec![triangle_count as u32],
+        name: "mesh BLAS",
     }
 }
 
@@ -169,6 +247,8 @@ pub const IDENTITY: [f64; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.
 /// Where an instance's mesh sits in the scene's frame (world coordinates minus the scene centre).
 pub struct Placement {
     pub mesh: Arc<Mesh>,
+    /// The mesh's f64 triangles as this scene placed them (see `Scene::update`).
+    pub triangles: Arc<TriangleSet>,
     /// From the mesh's re-centred frame to the scene's frame.
     pub to_scene: Affine,
     /// The inverse: from the scene's frame to the mesh's.
@@ -196,9 +276,13 @@ pub struct Scene {
     tlas: AccelerationStructure,
     // Where each instance's triangles live, for shaders (normals).
     instance_geometries: Buffer,
-    _instance_records: Buffer,
+    instance_records: Buffer,
+    instances: Vec<Instance>,
     // The meshes' BLAS and buffers must outlive the TLAS that points at them.
     meshes: Vec<Arc<Mesh>>,
+    /// Each mesh's `generation` when this scene last placed it.
+    mesh_generations: Vec<u64>,
+    last_update_seconds: f64,
     /// The exact tier's structures, built on its first query.
     exact: Mutex<Option<Arc<ExactScene>>>,
 }
@@ -218,18 +302,10 @@ impl Scene {
                 instance.custom_index
             )));
         }
-        let (center, placements) = place(instances)?;
+        let (center, placements) = place(instances, None)?;
         let mut uploads = Uploads::default();
         let records = uploads.buffer(ctx, 64 * instances.len() as u64, GEOMETRY_INPUT, "instances", |out, _| {
-            for (dst, p) in out.chunks_exact_mut(64).zip(&placements) {
-                dst.copy_from_slice(&accel::instance_record(
-                    &p.to_scene.to_rows_f32(),
-                    p.custom_index,
-                    p.mask,
-                    0,
-                    p.mesh.blas_address(),
-                ));
-            }
+            write_instance_records(&placements, out)
         })?;
         debug_assert_eq!(records.address() % 16, 0, "Vulkan wants instance data 16-byte aligned");
         let instance_geometries =
@@ -238,18 +314,7 @@ impl Scene {
                     dst.copy_from_slice(&x.mesh.sources.address().to_ne_bytes());
                 }
             })?;
-        let instances_data = vk::AccelerationStructureGeometryInstancesDataKHR::default()
-            .array_of_pointers(false)
-            .data(vk::DeviceOrHostAddressConstKHR { device_address: records.address() });
-        let geometry = vk::AccelerationStructureGeometryKHR::default()
-            .geometry_type(vk::GeometryTypeKHR::INSTANCES)
-            .geometry(vk::AccelerationStructureGeometryDataKHR { instances: instances_data });
-        let input = BuildInput {
-            ty: vk::AccelerationStructureTypeKHR::TOP_LEVEL,
-            geometries: vec![geometry],
-            primitive_counts: vec![instances.len() as u32],
-            name: "scene TLAS",
-        };
+        let input = instances_input(records.address(), instances.len());
         let (tlas, stats) = accel::build(ctx, &input, options, &uploads, wait)?;
         let mut meshes: Vec<Arc<Mesh>> = Vec::new();
         for instance in instances {
@@ -265,10 +330,70 @@ impl Scene {
             stats,
             tlas,
             instance_geometries,
-            _instance_records: records,
+            instance_records: records,
+            instances: instances.to_vec(),
+            mesh_generations: meshes.iter().map(|m| m.generation()).collect(),
             meshes,
+            last_update_seconds: 0.0,
             exact: Mutex::new(None),
         })
+    }
+
+    /// Refits the TLAS in place after its instances moved (`transforms`, row-major 3×4 in f64)
+    /// or changed masks, and picks up its meshes' `update`s. Needs `allow_update` at build; the
+    /// scene keeps its frame (centre), so moves far from it cost f32 precision until a rebuild.
+    pub fn update(
+        &mut self,
+        transforms: Option<Vec<[f64; 12]>>,
+        masks: Option<Vec<u8>>,
+        wait: &dyn Wait,
+    ) -> Result<()> {
+        if !self.options.allow_update {
+            return Err(invalid_value("this scene was built without allow_update=True, so it cannot be refitted"));
+        }
+        let n = self.instances.len();
+        for (name, len) in [("transforms", transforms.as_ref().map(Vec::len)), ("masks", masks.as_ref().map(Vec::len))]
+        {
+            if let Some(len) = len.filter(|&len| len != n) {
+                return Err(invalid_value(format!("{name} has {len} entries for the scene's {n} instances")));
+            }
+        }
+        let started = Instant::now();
+        let mut instances = self.instances.clone();
+        for (k, x) in instances.iter_mut().enumerate() {
+            if let Some(t) = &transforms {
+                x.transform = t[k];
+            }
+            if let Some(m) = &masks {
+                x.mask = m[k];
+            }
+        }
+        let (_, placements) = place(&instances, Some(self.center))?;
+        let ctx = self.tlas.context().clone();
+        let mut uploads = Uploads::default();
+        uploads.overwrite(&ctx, &self.instance_records, |out| write_instance_records(&placements, out))?;
+        let input = instances_input(self.instance_records.address(), n);
+        accel::update(&ctx, &self.tlas, &input, self.options, self.stats.update_scratch_size, &uploads, wait)?;
+        self.instances = instances;
+        self.placements = placements;
+        self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
+        *self.exact.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
+        self.last_update_seconds = started.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    pub fn last_update_seconds(&self) -> f64 {
+        self.last_update_seconds
+    }
+
+    /// Tracing a scene whose meshes moved since it last placed them would use stale bounds.
+    pub fn check_current(&self) -> Result<()> {
+        match self.meshes.iter().zip(&self.mesh_generations).position(|(m, g)| m.generation() != *g) {
+            Some(_) => Err(invalid_value(
+                "a mesh of this scene was updated since the scene was built or updated: call scene.update() first",
+            )),
+            None => Ok(()),
+        }
     }
 
     pub fn tlas_address(&self) -> u64 {
@@ -294,7 +419,7 @@ impl Scene {
             self.placements
                 .iter()
                 .map(|p| PlacedSet {
-                    triangles: &p.mesh.triangles,
+                    triangles: &p.triangles,
                     to_local: p.to_local,
                     custom_index: p.custom_index,
                     mask: p.mask,
@@ -305,8 +430,38 @@ impl Scene {
     }
 }
 
-/// The scene's centre and each instance's placement relative to it, all in f64.
-fn place(instances: &[Instance]) -> Result<(DVec3, Vec<Placement>)> {
+fn write_instance_records(placements: &[Placement], out: &mut [u8]) {
+    for (dst, p) in out.chunks_exact_mut(64).zip(placements) {
+        dst.copy_from_slice(&accel::instance_record(
+            &p.to_scene.to_rows_f32(),
+            p.custom_index,
+            p.mask,
+            0,
+            p.mesh.blas_address(),
+        ));
+    }
+}
+
+/// The build input of a TLAS over `count` instance records at `address`.
+fn instances_input(address: u64, count: usize) -> BuildInput<'static> {
+    let data = vk::AccelerationStructureGeometryInstancesDataKHR::default()
+        .array_of_pointers(false)
+        .data(vk::DeviceOrHostAddressConstKHR { device_address: address });
+    let geometry = vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::INSTANCES)
+        .geometry(vk::AccelerationStructureGeometryDataKHR { instances: data });
+    BuildInput {
+        ty: vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+        geometries: vec![geometry],
+        primitive_counts: vec![count as u32],
+        name: "scene TLAS",
+    }
+}
+
+/// The scene's centre (the middle of its instances' bounds, unless `center` keeps an earlier one)
+/// and each instance's placement relative to it, all in f64.
+fn place(instances: &[Instance], center: Option<DVec3>) -> Result<(DVec3, Vec<Placement>)> {
+    let triangles: Vec<Arc<TriangleSet>> = instances.iter().map(|x| x.mesh.triangles()).collect();
     // Object to world for the re-centred mesh: M (v + c) + T = M v + (M c + T).
     let to_world: Vec<Affine> = instances
         .iter()
@@ -315,18 +470,18 @@ fn place(instances: &[Instance]) -> Result<(DVec3, Vec<Placement>)> {
             Affine { linear: user.linear, offset: user.point(x.mesh.center) }
         })
         .collect();
-    let bounds =
-        instances.iter().zip(&to_world).fold(Aabb::EMPTY, |b, (x, m)| b.union(&x.mesh.triangles.bounds.transformed(m)));
-    let center = if instances.is_empty() { DVec3::ZERO } else { bounds.center() };
+    let bounds = triangles.iter().zip(&to_world).fold(Aabb::EMPTY, |b, (t, m)| b.union(&t.bounds.transformed(m)));
+    let center = center.unwrap_or(if instances.is_empty() { DVec3::ZERO } else { bounds.center() });
     let mut placements = Vec::with_capacity(instances.len());
-    for (i, (x, m)) in instances.iter().zip(&to_world).enumerate() {
+    for (i, ((x, m), triangles)) in instances.iter().zip(&to_world).zip(triangles).enumerate() {
         let to_scene = Affine { offset: m.offset - center, ..*m };
         let to_local = to_scene.inverse().ok_or_else(|| {
             invalid_value(format!("instance {i} has a singular transform (its 3x3 part has no inverse)"))
         })?;
         placements.push(Placement {
             mesh: x.mesh.clone(),
-            bounds: x.mesh.triangles.bounds.transformed(&to_scene),
+            bounds: triangles.bounds.transformed(&to_scene),
+            triangles,
             to_scene,
             to_local,
             custom_index: x.custom_index,
@@ -370,6 +525,8 @@ impl ExactScene {
         let options = BuildOptions { preference: BuildPreference::FastTrace, allow_update: false, compact: false };
         let mut built: Vec<(AccelerationStructure, Buffer, Buffer)> = Vec::new();
         for mesh in &scene.meshes {
+            let triangles =
+                &scene.placements.iter().find(|p| Arc::ptr_eq(&p.mesh, mesh)).expect("placed mesh").triangles;
             // How far the world's slack reaches in this mesh's frame: the most any placement of
             // it stretches a vector (the max-row-sum norm of its world-to-mesh map).
             let stretch = scene
@@ -381,12 +538,12 @@ impl ExactScene {
                     (0..3).map(|r| m.col(r).abs().element_sum()).fold(0.0, f64::max)
                 })
                 .fold(0.0, f64::max);
-            let pad = world_slack * stretch + EXACT_SLACK * mesh.triangles.bounds.extent().max_element();
+            let pad = world_slack * stretch + EXACT_SLACK * triangles.bounds.extent().max_element();
             let mut uploads = Uploads::default();
             let aabbs =
                 uploads.buffer(ctx, 24 * mesh.triangle_count as u64, GEOMETRY_INPUT, "exact boxes", |out, _| {
                     for (device, dst) in out.chunks_exact_mut(24).enumerate() {
-                        let b = Aabb::of_points(mesh.triangles.triangle(mesh.caller_triangle(device))).padded(pad);
+                        let b = Aabb::of_points(triangles.triangle(mesh.caller_triangle(device))).padded(pad);
                         let corners = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
                         for (k, (d, v)) in dst.chunks_exact_mut(4).zip(corners).enumerate() {
                             d.copy_from_slice(&round_outward(v, k < 3).to_ne_bytes());
@@ -395,7 +552,7 @@ impl ExactScene {
                 })?;
             let vertices64 =
                 uploads.buffer(ctx, 24 * mesh.vertex_count as u64, GEOMETRY_INPUT, "exact vertices", |out, _| {
-                    for (dst, v) in out.chunks_exact_mut(24).zip(&mesh.triangles.vertices) {
+                    for (dst, v) in out.chunks_exact_mut(24).zip(&triangles.vertices) {
                         for (d, c) in dst.chunks_exact_mut(8).zip(v.to_array()) {
                             d.copy_from_slice(&c.to_ne_bytes());
                         }
@@ -458,18 +615,7 @@ impl ExactScene {
                 }
             },
         )?;
-        let data = vk::AccelerationStructureGeometryInstancesDataKHR::default()
-            .array_of_pointers(false)
-            .data(vk::DeviceOrHostAddressConstKHR { device_address: records.address() });
-        let geometry = vk::AccelerationStructureGeometryKHR::default()
-            .geometry_type(vk::GeometryTypeKHR::INSTANCES)
-            .geometry(vk::AccelerationStructureGeometryDataKHR { instances: data });
-        let input = BuildInput {
-            ty: vk::AccelerationStructureTypeKHR::TOP_LEVEL,
-            geometries: vec![geometry],
-            primitive_counts: vec![n as u32],
-            name: "exact TLAS",
-        };
+        let input = instances_input(records.address(), n);
         let (tlas, _) = accel::build(ctx, &input, scene.options, &uploads, wait)?;
         let padded =
             if n == 0 { Aabb { min: DVec3::ZERO, max: DVec3::ZERO } } else { scene_bounds.padded(world_slack) };

@@ -52,7 +52,7 @@ pub fn refine(scene: &Scene, rays: &Rays, sink: &mut HitSink) {
             }
             let placement = &scene.placements[k as usize];
             let ray = rays.ray64(i, scene.center).transformed(&placement.to_local);
-            let [a, b, c] = placement.mesh.triangles.triangle(p as usize);
+            let [a, b, c] = placement.triangles.triangle(p as usize);
             match plane_hit(&ray, a, b, c) {
                 Some(h) if h.t >= ray.tmin && h.t <= ray.tmax => {
                     Ok(Some(ReferenceHit { t: h.t, u: h.u, v: h.v, instance: k as u32, prim: p as u32 }))
@@ -97,7 +97,7 @@ fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) 
     write_field(sink, Field::Normal, true, |i, dst| {
         let n = hits[i].as_ref().map_or(DVec3::NAN, |h| {
             let placement = &scene.placements[h.instance as usize];
-            let [a, b, c] = placement.mesh.triangles.triangle(h.prim as usize);
+            let [a, b, c] = placement.triangles.triangle(h.prim as usize);
             world_normal(&placement.to_local, a, b, c)
         });
         put_f32s(dst, &n.as_vec3().to_array())
@@ -136,7 +136,7 @@ pub fn positions(scene: &Scene, hits: &HitTriangles, out: &mut [u8]) {
             DVec3::NAN
         } else {
             let placement = &scene.placements[int_at(hits.instance, i) as usize];
-            let [a, b, c] = placement.mesh.triangles.triangle(p as usize);
+            let [a, b, c] = placement.triangles.triangle(p as usize);
             let (u, v) = hits.uv(i);
             placement.to_scene.point(a + u * (b - a) + v * (c - a)) + scene.center
         };

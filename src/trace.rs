@@ -620,6 +620,7 @@ impl Tracer {
         wait: &dyn Wait,
     ) -> Result<()> {
         let started = Instant::now();
+        scene.check_current()?;
         rays.check_shapes()?;
         let mut profile = TraceProfile { rays: rays.len(), ..Default::default() };
         let n = rays.len();

@@ -213,8 +213,20 @@ class Mesh:
 
     @property
     def stats(self) -> Dict[str, Any]:
-        """Build figures: ``bytes`` (size now), ``built_bytes``, ``scratch_bytes``, ``build_seconds``..."""
+        """Build figures: ``bytes`` (size now), ``built_bytes`` (before compaction),
+        ``scratch_bytes``, ``update_scratch_bytes``, ``build_seconds``, ``update_seconds`` (the
+        last `update`), and the options built with."""
         return dict(self._core.stats)
+
+    def update(self, vertices: Any) -> None:
+        """Moves the vertices and refits the BLAS in place instead of rebuilding it (the mesh
+        must be built with ``allow_update=True``). Same vertex count, same faces; a refitted
+        BVH traces a little slower than a fresh one as the shape drifts from the one it was built
+        for. Scenes holding the mesh must be `Scene.update`d before their next query (they raise
+        until then). Not to be called while another thread queries a scene holding this mesh."""
+        array = _arrays.points("vertices", vertices)
+        self._core.update(array)
+        self.vertices = array
 
     def __repr__(self) -> str:
         return f"<vkray.Mesh {self.vertex_count} vertices, {self.triangle_count} triangles>"
@@ -318,6 +330,34 @@ class Scene:
     def stats(self) -> Dict[str, Any]:
         """TLAS build figures, as `Mesh.stats`."""
         return dict(self._core.stats)
+
+    def update(self, transforms: Any = None, masks: Any = None) -> None:
+        """Refits the TLAS in place (the scene must be built with ``allow_update=True``).
+
+        transforms: ``(N, 3, 4)`` or ``(N, 4, 4)``, one per instance (as `Instance` takes them);
+        masks: ``(N,)`` 8-bit masks. Either may be omitted to keep the current ones. Also picks up
+        the `Mesh.update`s of its meshes. The scene keeps the frame it was built in, so instances
+        moved far away lose f32 precision (in the f32 tiers) until the scene is rebuilt.
+        """
+        n = len(self.instances)
+        t = None
+        if transforms is not None:
+            t = _arrays.real_coordinates("transforms", transforms).astype(np.float64)
+            if t.ndim != 3 or t.shape[0] != n or t.shape[1:] not in ((3, 4), (4, 4)):
+                raise ValueError(f"transforms must have shape ({n}, 3, 4) or ({n}, 4, 4), got {t.shape}")
+            t = np.ascontiguousarray(t)
+        m = None
+        if masks is not None:
+            m = np.asarray(masks)
+            if m.shape != (n,) or m.dtype.kind not in "iu" or (m.size and (m.min() < 0 or m.max() > 0xFF)):
+                raise ValueError(f"masks must be {n} integers in [0, 255]")
+            m = np.ascontiguousarray(m, dtype=np.uint8)
+        self._core.update(t, m)
+        for k, instance in enumerate(self.instances):
+            if t is not None:
+                instance.transform = t[k]
+            if m is not None:
+                instance.mask = int(m[k])
 
     def intersect(
         self,
