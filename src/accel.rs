@@ -73,8 +73,11 @@ pub struct BuildStats {
     pub size: u64,
     pub scratch_size: u64,
     pub update_scratch_size: u64,
-    /// Wall time from submission to a usable structure, compaction included.
+    /// Wall time from submission to a usable structure, compaction included (for structures
+    /// built together, their batch's time).
     pub build_seconds: f64,
+    /// Which submission of a batched build made it (0 for a single build).
+    pub batch: u32,
 }
 
 /// A VkAccelerationStructureKHR and the buffer holding it.
@@ -160,40 +163,182 @@ pub fn build(
     uploads: &Uploads,
     wait: &dyn Wait,
 ) -> Result<(AccelerationStructure, BuildStats)> {
-    let started = Instant::now();
-    let mut info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
-        .ty(input.ty)
-        .flags(options.flags())
-        .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
-        .geometries(&input.geometries);
-    let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
-    unsafe {
-        ctx.accel.get_acceleration_structure_build_sizes(
-            vk::AccelerationStructureBuildTypeKHR::DEVICE,
-            &info,
-            &input.primitive_counts,
-            &mut sizes,
-        )
-    };
-    let structure = AccelerationStructure::new(ctx, input.ty, sizes.acceleration_structure_size, input.name)?;
-    let scratch = Scratch::new(ctx, sizes.build_scratch_size)?;
-    info = info
-        .dst_acceleration_structure(structure.raw())
-        .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
-    let ranges: Vec<vk::AccelerationStructureBuildRangeInfoKHR> = input
-        .primitive_counts
-        .iter()
-        .map(|&count| vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(count))
-        .collect();
+    let mut built = build_many(ctx, std::slice::from_ref(input), options, uploads, u64::MAX, wait)?;
+    Ok(built.pop().expect("one structure per input"))
+}
 
-    let query_pool = if options.compact { Some(CompactedSizeQuery::new(ctx)?) } else { None };
-    ctx.run_commands(wait, |cmd| {
-        uploads.record(ctx, cmd);
-        if let Some(query) = &query_pool {
-            unsafe { ctx.device.cmd_reset_query_pool(cmd, query.pool, 0, 1) };
+/// Builds many acceleration structures in as few submissions as a scratch budget allows (the
+/// Vulkan guides' build-until-the-budget-is-spent loop): each batch's builds share one scratch
+/// buffer at aligned offsets, and where compaction is asked each batch is compacted before the
+/// next starts, so the uncompacted copies never all exist at once. `uploads` are recorded before
+/// the first batch. Stats carry their batch's wall time and number.
+pub fn build_many(
+    ctx: &Arc<Context>,
+    inputs: &[BuildInput],
+    options: BuildOptions,
+    uploads: &Uploads,
+    scratch_budget: u64,
+    wait: &dyn Wait,
+) -> Result<Vec<(AccelerationStructure, BuildStats)>> {
+    let alignment = (ctx.limits.min_scratch_offset_alignment as u64).max(1);
+    let infos: Vec<vk::AccelerationStructureBuildGeometryInfoKHR> = inputs
+        .iter()
+        .map(|input| {
+            vk::AccelerationStructureBuildGeometryInfoKHR::default()
+                .ty(input.ty)
+                .flags(options.flags())
+                .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+                .geometries(&input.geometries)
+        })
+        .collect();
+    let sizes: Vec<vk::AccelerationStructureBuildSizesInfoKHR> = infos
+        .iter()
+        .zip(inputs)
+        .map(|(info, input)| {
+            let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
+            unsafe {
+                ctx.accel.get_acceleration_structure_build_sizes(
+                    vk::AccelerationStructureBuildTypeKHR::DEVICE,
+                    info,
+                    &input.primitive_counts,
+                    &mut sizes,
+                )
+            };
+            sizes
+        })
+        .collect();
+    let scratch_of = |k: usize| align_up(sizes[k].build_scratch_size, alignment);
+    if let Some(k) = (0..inputs.len()).find(|&k| scratch_of(k) > scratch_budget) {
+        return Err(invalid_value(format!(
+            "structure {k} needs {} bytes of build scratch, more than the budget of {scratch_budget}",
+            scratch_of(k)
+        )));
+    }
+    // Consecutive batches, each as long as its scratch fits the budget.
+    let mut batches: Vec<std::ops::Range<usize>> = Vec::new();
+    let mut used = 0u64;
+    for k in 0..inputs.len() {
+        match batches.last_mut() {
+            Some(batch) if used + scratch_of(k) <= scratch_budget => batch.end = k + 1,
+            _ => {
+                batches.push(k..k + 1);
+                used = 0;
+            }
         }
-        unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, std::slice::from_ref(&info), &[&ranges]) };
-        // Later commands, in this submission or any after it, see the finished structure.
+        used += scratch_of(k);
+    }
+    let scratch_size = batches.iter().map(|b| b.clone().map(scratch_of).sum::<u64>()).max().unwrap_or(0);
+    let scratch = Scratch::new(ctx, scratch_size)?;
+
+    let mut built = Vec::with_capacity(inputs.len());
+    for (number, batch) in batches.into_iter().enumerate() {
+        let started = Instant::now();
+        let structures = batch
+            .clone()
+            .map(|k| {
+                AccelerationStructure::new(ctx, inputs[k].ty, sizes[k].acceleration_structure_size, inputs[k].name)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let mut offset = 0;
+        let batch_infos: Vec<_> = batch
+            .clone()
+            .zip(&structures)
+            .map(|(k, structure)| {
+                let info = infos[k]
+                    .dst_acceleration_structure(structure.raw())
+                    .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address + offset });
+                offset += scratch_of(k);
+                info
+            })
+            .collect();
+        let ranges: Vec<Vec<vk::AccelerationStructureBuildRangeInfoKHR>> = batch
+            .clone()
+            .map(|k| {
+                inputs[k]
+                    .primitive_counts
+                    .iter()
+                    .map(|&count| vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(count))
+                    .collect()
+            })
+            .collect();
+        let range_refs: Vec<&[vk::AccelerationStructureBuildRangeInfoKHR]> = ranges.iter().map(Vec::as_slice).collect();
+        let query = if options.compact { Some(CompactedSizeQuery::new(ctx, structures.len() as u32)?) } else { None };
+        ctx.run_commands(wait, |cmd| {
+            if number == 0 {
+                uploads.record(ctx, cmd);
+            }
+            if let Some(query) = &query {
+                unsafe { ctx.device.cmd_reset_query_pool(cmd, query.pool, 0, query.count) };
+            }
+            unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, &batch_infos, &range_refs) };
+            // Later commands, in this submission or any after it, see the finished structures.
+            memory_barrier(
+                ctx,
+                cmd,
+                vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
+                vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
+                vk::PipelineStageFlags::ALL_COMMANDS,
+                vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+            );
+            if let Some(query) = &query {
+                let raw: Vec<_> = structures.iter().map(|s| s.raw()).collect();
+                unsafe {
+                    ctx.accel.cmd_write_acceleration_structures_properties(
+                        cmd,
+                        &raw,
+                        vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR,
+                        query.pool,
+                        0,
+                    )
+                };
+            }
+            Ok(())
+        })?;
+        let final_sizes: Vec<u64> = match &query {
+            Some(query) => query.read()?,
+            None => batch.clone().map(|k| sizes[k].acceleration_structure_size).collect(),
+        };
+        let structures = match query {
+            Some(_) => compact(ctx, &inputs[batch.clone()], structures, &final_sizes, wait)?,
+            None => structures,
+        };
+        let seconds = started.elapsed().as_secs_f64();
+        for ((k, structure), size) in batch.zip(structures).zip(final_sizes) {
+            let stats = BuildStats {
+                built_size: sizes[k].acceleration_structure_size,
+                size,
+                scratch_size: sizes[k].build_scratch_size,
+                update_scratch_size: sizes[k].update_scratch_size,
+                build_seconds: seconds,
+                batch: number as u32,
+            };
+            built.push((structure, stats));
+        }
+    }
+    Ok(built)
+}
+
+/// Copies freshly built structures into new ones of their compacted sizes (one submission).
+fn compact(
+    ctx: &Arc<Context>,
+    inputs: &[BuildInput],
+    structures: Vec<AccelerationStructure>,
+    compacted_sizes: &[u64],
+    wait: &dyn Wait,
+) -> Result<Vec<AccelerationStructure>> {
+    let compacted = inputs
+        .iter()
+        .zip(compacted_sizes)
+        .map(|(input, &size)| AccelerationStructure::new(ctx, input.ty, size, input.name))
+        .collect::<Result<Vec<_>>>()?;
+    ctx.run_commands(wait, |cmd| {
+        for (from, to) in structures.iter().zip(&compacted) {
+            let copy = vk::CopyAccelerationStructureInfoKHR::default()
+                .src(from.raw())
+                .dst(to.raw())
+                .mode(vk::CopyAccelerationStructureModeKHR::COMPACT);
+            unsafe { ctx.accel.cmd_copy_acceleration_structure(cmd, &copy) };
+        }
         memory_barrier(
             ctx,
             cmd,
@@ -202,54 +347,9 @@ pub fn build(
             vk::PipelineStageFlags::ALL_COMMANDS,
             vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
         );
-        if let Some(query) = &query_pool {
-            unsafe {
-                ctx.accel.cmd_write_acceleration_structures_properties(
-                    cmd,
-                    &[structure.raw()],
-                    vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR,
-                    query.pool,
-                    0,
-                )
-            };
-        }
         Ok(())
     })?;
-
-    let mut stats = BuildStats {
-        built_size: sizes.acceleration_structure_size,
-        size: sizes.acceleration_structure_size,
-        scratch_size: sizes.build_scratch_size,
-        update_scratch_size: sizes.update_scratch_size,
-        build_seconds: 0.0,
-    };
-    let structure = match query_pool {
-        Some(query) => {
-            let compacted_size = query.read()?;
-            let compacted = AccelerationStructure::new(ctx, input.ty, compacted_size, input.name)?;
-            ctx.run_commands(wait, |cmd| {
-                let copy = vk::CopyAccelerationStructureInfoKHR::default()
-                    .src(structure.raw())
-                    .dst(compacted.raw())
-                    .mode(vk::CopyAccelerationStructureModeKHR::COMPACT);
-                unsafe { ctx.accel.cmd_copy_acceleration_structure(cmd, &copy) };
-                memory_barrier(
-                    ctx,
-                    cmd,
-                    vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
-                    vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
-                    vk::PipelineStageFlags::ALL_COMMANDS,
-                    vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
-                );
-                Ok(())
-            })?;
-            stats.size = compacted_size;
-            compacted
-        }
-        None => structure,
-    };
-    stats.build_seconds = started.elapsed().as_secs_f64();
-    Ok((structure, stats))
+    Ok(compacted)
 }
 
 /// Refits `structure` in place to new contents of the buffers `input` reads (Vulkan's UPDATE mode
@@ -295,33 +395,34 @@ pub fn update(
     Ok(started.elapsed().as_secs_f64())
 }
 
-/// A one-query pool reading back an acceleration structure's compacted size.
+/// A query pool reading back the compacted sizes of `count` acceleration structures.
 struct CompactedSizeQuery<'a> {
     ctx: &'a Context,
     pool: vk::QueryPool,
+    count: u32,
 }
 
 impl<'a> CompactedSizeQuery<'a> {
-    fn new(ctx: &'a Context) -> Result<Self> {
+    fn new(ctx: &'a Context, count: u32) -> Result<Self> {
         let info = vk::QueryPoolCreateInfo::default()
             .query_type(vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR)
-            .query_count(1);
+            .query_count(count);
         let pool = unsafe { ctx.device.create_query_pool(&info, None) }.vk("vkCreateQueryPool")?;
-        Ok(CompactedSizeQuery { ctx, pool })
+        Ok(CompactedSizeQuery { ctx, pool, count })
     }
 
-    fn read(&self) -> Result<u64> {
-        let mut size = [0u64];
+    fn read(&self) -> Result<Vec<u64>> {
+        let mut sizes = vec![0u64; self.count as usize];
         unsafe {
             self.ctx.device.get_query_pool_results(
                 self.pool,
                 0,
-                &mut size,
+                &mut sizes,
                 vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
             )
         }
         .vk("vkGetQueryPoolResults")?;
-        Ok(size[0])
+        Ok(sizes)
     }
 }
 

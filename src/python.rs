@@ -73,6 +73,7 @@ fn stats_dict<'py>(py: Python<'py>, stats: &BuildStats, options: &BuildOptions) 
     d.set_item("scratch_bytes", stats.scratch_size)?;
     d.set_item("update_scratch_bytes", stats.update_scratch_size)?;
     d.set_item("build_seconds", stats.build_seconds)?;
+    d.set_item("batch", stats.batch)?;
     Ok(d)
 }
 
@@ -294,6 +295,27 @@ impl PyDevice {
         let faces = IndexArray::extract(faces)?;
         let mesh = Mesh::build(&self.ctx, vertices.view()?, faces.view()?, options, &ReleaseGil(py))?;
         Ok(PyMesh { mesh: Arc::new(mesh) })
+    }
+
+    /// Many meshes in as few submissions as `budget_bytes` of build scratch allow.
+    #[pyo3(signature = (items, build="fast_trace", allow_update=false, compact=false, budget_bytes=None))]
+    fn meshes(
+        &self,
+        py: Python<'_>,
+        items: Vec<(Bound<'_, PyAny>, Bound<'_, PyAny>)>,
+        build: &str,
+        allow_update: bool,
+        compact: bool,
+        budget_bytes: Option<u64>,
+    ) -> PyResult<Vec<PyMesh>> {
+        let options = build_options(build, allow_update, compact)?;
+        let arrays = items
+            .iter()
+            .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
+            .collect::<PyResult<Vec<_>>>()?;
+        let views = arrays.iter().map(|(v, f)| Ok((v.view()?, f.view()?))).collect::<PyResult<Vec<_>>>()?;
+        let meshes = Mesh::build_many(&self.ctx, &views, options, budget_bytes.unwrap_or(u64::MAX), &ReleaseGil(py))?;
+        Ok(meshes.into_iter().map(|mesh| PyMesh { mesh: Arc::new(mesh) }).collect())
     }
 
     /// `items`: (mesh, transform or None, custom_index, mask) per instance.

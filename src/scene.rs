@@ -63,75 +63,33 @@ impl Mesh {
         options: BuildOptions,
         wait: &dyn Wait,
     ) -> Result<Mesh> {
-        check_vertices("vertices", vertices)?;
-        check_faces("faces", faces, vertices.rows())?;
-        let triangle_count = faces.triangles();
-        if triangle_count as u64 > ctx.limits.max_primitive_count {
-            return Err(Error::Unsupported(format!(
-                "{triangle_count} triangles exceed this device's maxPrimitiveCount ({})",
-                ctx.limits.max_primitive_count
-            )));
-        }
-        let (host_triangles, center) = recentred_triangles(vertices, faces);
-        let local: &[f64] = {
-            // SAFETY: DVec3 is three f64 in a repr(C) struct, so a slice of them is a slice of f64.
-            let v = &host_triangles.vertices;
-            unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f64, 3 * v.len()) }
-        };
-        let mut uploads = Uploads::default();
-        let vertex_bytes = 12 * vertices.rows() as u64;
-        let vertex_buffer = uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| {
-            write_vertices_f32(Vec3s::F64(local), out)
-        })?;
-        let order = ctx.presort_primitives.then(|| morton_order(vertices, faces));
-        let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
-            faces.write_device(out, order.as_deref())
-        })?;
-        // Shaders map the device's triangle order back to the caller's.
-        let primitive_order = match &order {
-            Some(order) => {
-                Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "primitive order", |out, _| {
-                    for (dst, t) in out.chunks_exact_mut(4).zip(order) {
-                        dst.copy_from_slice(&t.to_ne_bytes());
-                    }
-                })?)
-            }
-            None => None,
-        };
-        let sources =
-            uploads.buffer(ctx, GEOMETRY_SOURCE_BYTES as u64, GEOMETRY_INPUT, "geometry sources", |out, _| {
-                out[0..8].copy_from_slice(&vertex_buffer.address().to_ne_bytes());
-                out[8..16].copy_from_slice(&index_buffer.address().to_ne_bytes());
-                out[16..24].copy_from_slice(&primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
-                out[24..28].copy_from_slice(&(faces.is_u16() as u32).to_ne_bytes());
-                out[28..32].fill(0);
-            })?;
+        let mut meshes = Mesh::build_many(ctx, &[(vertices, faces)], options, u64::MAX, wait)?;
+        Ok(meshes.pop().expect("one mesh per input"))
+    }
 
-        let input = triangles_input(
-            vertex_buffer.address(),
-            vertices.rows(),
-            index_buffer.address(),
-            faces.is_u16(),
-            triangle_count,
-        );
-        let (blas, stats) = accel::build(ctx, &input, options, &uploads, wait)?;
-        Ok(Mesh {
-            vertex_count: vertices.rows(),
-            triangle_count,
-            center,
-            triangles: RwLock::new(Arc::new(host_triangles)),
-            generation: AtomicU64::new(0),
-            last_update_seconds: Mutex::new(0.0),
-            options,
-            stats,
-            blas,
-            device_order: order,
-            vertices: vertex_buffer,
-            indices: index_buffer,
-            index_is_u16: faces.is_u16(),
-            primitive_order,
-            sources,
-        })
+    /// Builds many meshes in as few submissions as `scratch_budget` bytes of build scratch allow
+    /// (see `accel::build_many`); the error of a bad input names its position.
+    pub fn build_many(
+        ctx: &Arc<Context>,
+        items: &[(Vec3s, Indices)],
+        options: BuildOptions,
+        scratch_budget: u64,
+        wait: &dyn Wait,
+    ) -> Result<Vec<Mesh>> {
+        let mut uploads = Uploads::default();
+        let prepared = items
+            .iter()
+            .enumerate()
+            .map(|(k, (vertices, faces))| {
+                PreparedMesh::new(ctx, *vertices, *faces, &mut uploads).map_err(|e| match (e, items.len()) {
+                    (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("mesh {k}: {m}")),
+                    (e, _) => e,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let inputs: Vec<BuildInput> = prepared.iter().map(PreparedMesh::input).collect();
+        let built = accel::build_many(ctx, &inputs, options, &uploads, scratch_budget, wait)?;
+        Ok(prepared.into_iter().zip(built).map(|(p, (blas, stats))| p.finish(options, blas, stats)).collect())
     }
 
     pub fn blas_address(&self) -> u64 {
@@ -193,6 +151,110 @@ impl Mesh {
     /// The caller's triangle held at `device` on the device.
     fn caller_triangle(&self, device: usize) -> usize {
         self.device_order.as_ref().map_or(device, |order| order[device] as usize)
+    }
+}
+
+/// A mesh's device buffers and host copy, uploaded (or recorded for upload) and ready for its
+/// BLAS build.
+struct PreparedMesh {
+    vertex_count: usize,
+    triangle_count: usize,
+    center: DVec3,
+    host_triangles: TriangleSet,
+    order: Option<Vec<u32>>,
+    vertices: Buffer,
+    indices: Buffer,
+    index_is_u16: bool,
+    primitive_order: Option<Buffer>,
+    sources: Buffer,
+}
+
+impl PreparedMesh {
+    fn new(ctx: &Arc<Context>, vertices: Vec3s, faces: Indices, uploads: &mut Uploads) -> Result<PreparedMesh> {
+        check_vertices("vertices", vertices)?;
+        check_faces("faces", faces, vertices.rows())?;
+        let triangle_count = faces.triangles();
+        if triangle_count as u64 > ctx.limits.max_primitive_count {
+            return Err(Error::Unsupported(format!(
+                "{triangle_count} triangles exceed this device's maxPrimitiveCount ({})",
+                ctx.limits.max_primitive_count
+            )));
+        }
+        let (host_triangles, center) = recentred_triangles(vertices, faces);
+        let local: &[f64] = {
+            // SAFETY: DVec3 is three f64 in a repr(C) struct, so a slice of them is a slice of f64.
+            let v = &host_triangles.vertices;
+            unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f64, 3 * v.len()) }
+        };
+        let vertex_bytes = 12 * vertices.rows() as u64;
+        let vertex_buffer = uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| {
+            write_vertices_f32(Vec3s::F64(local), out)
+        })?;
+        let order = ctx.presort_primitives.then(|| morton_order(vertices, faces));
+        let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
+            faces.write_device(out, order.as_deref())
+        })?;
+        // Shaders map the device's triangle order back to the caller's.
+        let primitive_order = match &order {
+            Some(order) => {
+                Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "primitive order", |out, _| {
+                    for (dst, t) in out.chunks_exact_mut(4).zip(order) {
+                        dst.copy_from_slice(&t.to_ne_bytes());
+                    }
+                })?)
+            }
+            None => None,
+        };
+        let sources =
+            uploads.buffer(ctx, GEOMETRY_SOURCE_BYTES as u64, GEOMETRY_INPUT, "geometry sources", |out, _| {
+                out[0..8].copy_from_slice(&vertex_buffer.address().to_ne_bytes());
+                out[8..16].copy_from_slice(&index_buffer.address().to_ne_bytes());
+                out[16..24].copy_from_slice(&primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
+                out[24..28].copy_from_slice(&(faces.is_u16() as u32).to_ne_bytes());
+                out[28..32].fill(0);
+            })?;
+        Ok(PreparedMesh {
+            vertex_count: vertices.rows(),
+            triangle_count,
+            center,
+            host_triangles,
+            order,
+            vertices: vertex_buffer,
+            indices: index_buffer,
+            index_is_u16: faces.is_u16(),
+            primitive_order,
+            sources,
+        })
+    }
+
+    fn input(&self) -> BuildInput<'static> {
+        triangles_input(
+            self.vertices.address(),
+            self.vertex_count,
+            self.indices.address(),
+            self.index_is_u16,
+            self.triangle_count,
+        )
+    }
+
+    fn finish(self, options: BuildOptions, blas: AccelerationStructure, stats: BuildStats) -> Mesh {
+        Mesh {
+            vertex_count: self.vertex_count,
+            triangle_count: self.triangle_count,
+            center: self.center,
+            triangles: RwLock::new(Arc::new(self.host_triangles)),
+            generation: AtomicU64::new(0),
+            last_update_seconds: Mutex::new(0.0),
+            options,
+            stats,
+            blas,
+            device_order: self.order,
+            vertices: self.vertices,
+            indices: self.indices,
+            index_is_u16: self.index_is_u16,
+            primitive_order: self.primitive_order,
+            sources: self.sources,
+        }
     }
 }
 

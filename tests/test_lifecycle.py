@@ -119,3 +119,39 @@ def test_compaction_shrinks_and_keeps_hits(device, name):
     b = device.scene(compacted).intersect(origins, directions)
     np.testing.assert_array_equal(a.prim_id, b.prim_id)
     np.testing.assert_array_equal(a.t, b.t)
+
+
+def test_many_meshes_under_a_scratch_budget(device):
+    """Five shared meshes built at once: one submission unbounded, several under a budget that
+    holds about two builds' scratch, and every mesh traces as one built alone."""
+    from oracle import MESH_NAMES
+
+    items = [load_obj(name) for name in MESH_NAMES]
+    single = [device.mesh(v, f) for v, f in items]
+    together = device.meshes(items)
+    assert {m.stats["batch"] for m in together} == {0}
+    scratch = sorted(m.stats["scratch_bytes"] for m in single)
+    budget = scratch[-1] + scratch[-2]
+    batched = device.meshes(items, budget_bytes=budget, compact=True)
+    batches = [m.stats["batch"] for m in batched]
+    assert batches == sorted(batches) and batches[-1] >= 1
+    for (v, f), alone, many, compacted in zip(items, single, together, batched):
+        assert compacted.stats["compacted"] and compacted.stats["bytes"] <= compacted.stats["built_bytes"]
+        origins, directions = random_rays(v, 3000, seed=35)
+        expected = device.scene(alone).intersect(origins, directions)
+        for mesh in (many, compacted):
+            hits = device.scene(mesh).intersect(origins, directions)
+            np.testing.assert_array_equal(hits.prim_id, expected.prim_id)
+            np.testing.assert_array_equal(hits.t, expected.t)
+
+
+def test_many_meshes_reject_what_cannot_fit(any_device):
+    v, f = load_obj("spot")
+    with pytest.raises(ValueError, match="structure 0 needs .* bytes of build scratch"):
+        any_device.meshes([(v, f)], budget_bytes=1)
+    with pytest.raises(ValueError, match="mesh 1: faces row 0"):
+        any_device.meshes([(v, f), (v, [[0, 1, len(v)]])])
+    with pytest.raises(ValueError, match="budget_bytes"):
+        any_device.meshes([(v, f)], budget_bytes=0)
+    with pytest.raises(TypeError, match="pair"):
+        any_device.meshes([v])

@@ -149,6 +149,38 @@ class Device:
         core = self._core.mesh(v, f, build, bool(allow_update), bool(compact))
         return Mesh(self, core, v, f)
 
+    def meshes(
+        self,
+        items: Iterable[Tuple[Any, Any]],
+        *,
+        build: str = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        budget_bytes: Optional[int] = None,
+    ) -> List["Mesh"]:
+        """Builds many meshes at once: ``items`` are (vertices, faces) pairs as `mesh` takes them.
+
+        The builds go to the device in as few submissions as ``budget_bytes`` of build scratch
+        memory allow (one scratch buffer, reused by every batch at aligned offsets; unbounded by
+        default: one submission). With ``compact=True`` each batch is compacted before the next is
+        built, so the uncompacted structures never all exist at once. ``Mesh.stats["batch"]`` tells
+        which submission built a mesh, ``build_seconds`` that batch's time. A mesh whose own build
+        needs more scratch than the budget raises ValueError naming it.
+        """
+        _check_build(build)
+        if budget_bytes is not None and (not isinstance(budget_bytes, (int, np.integer)) or budget_bytes <= 0):
+            raise ValueError(f"budget_bytes must be a positive integer, got {budget_bytes!r}")
+        arrays = []
+        for k, item in enumerate(items):
+            try:
+                vertices, faces = item
+            except (TypeError, ValueError):
+                raise TypeError(f"meshes item {k} must be a (vertices, faces) pair") from None
+            arrays.append((_arrays.points("vertices", vertices), _arrays.faces(faces)))
+        cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact),
+                                  None if budget_bytes is None else int(budget_bytes))
+        return [Mesh(self, core, v, f) for core, (v, f) in zip(cores, arrays)]
+
     def scene(
         self,
         items: Union["Mesh", "Instance", Iterable[Union["Mesh", "Instance"]]],

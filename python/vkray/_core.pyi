@@ -26,6 +26,14 @@ class Device:
     @property
     def last_trace_profile(self) -> Dict[str, float]: ...
     chunk_rays: int
+    def meshes(
+        self,
+        items: List[Tuple[np.ndarray, np.ndarray]],
+        build: str = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        budget_bytes: Optional[int] = None,
+    ) -> List[Mesh]: ...
     def mesh(
         self, vertices: np.ndarray, faces: np.ndarray, build: str = ..., allow_update: bool = ..., compact: bool = ...
     ) -> Mesh: ...
