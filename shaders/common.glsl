@@ -50,9 +50,16 @@ layout(push_constant, std430) uniform Params {
   uint64_t out_normal;
   uint64_t out_geometry;
   uint64_t scratch;    // exact tier, pipeline backend: ExactBest per ray
+  uint64_t masks;      // one uint cull mask per ray, or 0: every ray uses ray_mask
   uint count;
   float bounds[6];     // exact tier: the scene's bounds (min xyz, max xyz), rounded outward
+  uint ray_mask;
 } params;
+
+// Ray flags the shaders test themselves.
+const uint RAY_FLAG_CULL_BACK = 0x10u;
+const uint RAY_FLAG_CULL_FRONT = 0x20u;
+const uint RAY_FLAG_CULL_NO_OPAQUE = 0x80u;
 
 struct Ray {
   vec3 origin;
@@ -60,6 +67,10 @@ struct Ray {
   vec3 direction;
   float tmax;
 };
+
+uint ray_cull_mask(uint i) {
+  return params.masks == 0ul ? params.ray_mask : Words(params.masks).v[i];
+}
 
 Ray load_ray(uint i) {
   RayBuffer rays = RayBuffer(params.rays);

@@ -12,7 +12,7 @@ struct ExactInstance {
   uint64_t indices;          // as GeometrySource.indices
   uint64_t primitive_order;  // as GeometrySource.primitive_order
   uint index_is_u16;
-  uint pad;
+  uint flags;                // 1: culling disabled; 2: front is opposite the object-space normal
 };
 layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer ExactInstances { ExactInstance x[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
@@ -138,6 +138,12 @@ bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, in
   if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) return false;
   precise double det = u + v + w;
   if (det == 0.0) return false;
+  // Query culling: front is the side the hit's normal points to (see InstanceFlags).
+  bool front = (det > 0.0) != ((x.flags & 2u) != 0u);
+  if ((x.flags & 1u) == 0u && ((RAY_FLAGS & RAY_FLAG_CULL_BACK) != 0u && !front ||
+                               (RAY_FLAGS & RAY_FLAG_CULL_FRONT) != 0u && front)) {
+    return false;
+  }
   double sign = det > 0.0 ? 1.0 : -1.0;
   if (u == 0.0 && !owns_edge(sign * (p[2].xy - p[1].xy))) return false;
   if (v == 0.0 && !owns_edge(sign * (p[0].xy - p[2].xy))) return false;

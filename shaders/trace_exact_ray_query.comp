@@ -18,7 +18,7 @@ void main() {
   if (entry >= 0.0) {
     TraversalRay r = traversal_ray(ray, entry);
     rayQueryEXT query;
-    rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, 0xFFu, r.origin, r.tmin,
+    rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i), r.origin, r.tmin,
                           r.direction, r.tmax);
     float committed = r.tmax;
     while (rayQueryProceedEXT(query)) {

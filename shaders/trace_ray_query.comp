@@ -12,10 +12,16 @@ void main() {
   Ray ray = load_ray(i);
 
   rayQueryEXT query;
-  rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, 0xFFu,
+  rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i),
                         ray.origin, ray.tmin, ray.direction, ray.tmax);
-  // Every triangle is opaque, so traversal commits hits itself and yields no candidates to judge.
+  // Opaque triangles are committed by traversal itself. Where a scene has non-opaque instances
+  // (RAY_FLAGS then lacks CULL_NO_OPAQUE), their candidates come here and are accepted: vkray has
+  // no any-hit programs. For all-opaque scenes this branch is compiled out.
   while (rayQueryProceedEXT(query)) {
+    if ((RAY_FLAGS & RAY_FLAG_CULL_NO_OPAQUE) == 0u &&
+        rayQueryGetIntersectionTypeEXT(query, false) == gl_RayQueryCandidateIntersectionTriangleEXT) {
+      rayQueryConfirmIntersectionEXT(query);
+    }
   }
 
   Hit hit = miss_hit();

@@ -257,6 +257,23 @@ impl PerRay<'_> {
     }
 }
 
+/// Per-ray 8-bit visibility masks: a ray sees an instance when `instance mask & ray mask != 0`.
+#[derive(Clone, Copy, Debug)]
+pub enum Masks<'a> {
+    All(u8),
+    Each(&'a [u8]),
+}
+
+impl Masks<'_> {
+    #[inline]
+    pub fn get(&self, i: usize) -> u8 {
+        match self {
+            Masks::All(m) => *m,
+            Masks::Each(m) => m[i],
+        }
+    }
+}
+
 /// A batch of rays as the caller gave it. `origins` or `directions` may hold a single row shared
 /// by every ray (a camera's eye), so that broadcasting never copies it; per-ray bounds then give
 /// the batch its size.
@@ -266,6 +283,7 @@ pub struct Rays<'a> {
     pub directions: Vec3s<'a>,
     pub tmin: PerRay<'a>,
     pub tmax: PerRay<'a>,
+    pub mask: Masks<'a>,
 }
 
 /// Floats one packed ray takes: origin, tmin, direction, tmax.
@@ -282,7 +300,16 @@ impl Rays<'_> {
             PerRay::All(_) => 0,
             PerRay::Each(v) => v.len(),
         };
-        self.origins.rows().max(self.directions.rows()).max(bound_len(self.tmin)).max(bound_len(self.tmax))
+        let mask_len = match self.mask {
+            Masks::All(_) => 0,
+            Masks::Each(m) => m.len(),
+        };
+        self.origins
+            .rows()
+            .max(self.directions.rows())
+            .max(bound_len(self.tmin))
+            .max(bound_len(self.tmax))
+            .max(mask_len)
     }
 
     pub fn is_empty(&self) -> bool {
@@ -323,6 +350,11 @@ impl Rays<'_> {
                 if values.len() != n {
                     return Err(invalid_value(format!("{name} has {} values for {n} rays", values.len())));
                 }
+            }
+        }
+        if let Masks::Each(masks) = self.mask {
+            if masks.len() != n {
+                return Err(invalid_value(format!("mask has {} values for {n} rays", masks.len())));
             }
         }
         Ok(())
@@ -501,7 +533,7 @@ mod tests {
     }
 
     fn rays<'a>(o: &'a [f32], d: &'a [f32], tmin: PerRay<'a>, tmax: PerRay<'a>) -> Rays<'a> {
-        Rays { origins: Vec3s::F32(o), directions: Vec3s::F32(d), tmin, tmax }
+        Rays { origins: Vec3s::F32(o), directions: Vec3s::F32(d), tmin, tmax, mask: Masks::All(0xFF) }
     }
 
     #[test]
@@ -551,6 +583,7 @@ mod tests {
             directions: Vec3s::F64(&d),
             tmin: PerRay::All(0.5),
             tmax: PerRay::All(f64::INFINITY),
+            mask: Masks::All(0xFF),
         };
         let mut out = [0f32; RAY_FLOATS];
         r.pack(0, &mut out, DVec3::ZERO).unwrap();

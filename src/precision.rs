@@ -45,6 +45,38 @@ impl Precision {
     }
 }
 
+/// Which triangles a query ignores by the side the ray meets. "Front" is the side the hit's
+/// `normal` points to (right-handed in the triangle's winding, flipped by mirroring instances).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
+pub enum Cull {
+    #[default]
+    None,
+    Back,
+    Front,
+}
+
+impl Cull {
+    pub fn parse(name: Option<&str>) -> crate::error::Result<Cull> {
+        match name {
+            None => Ok(Cull::None),
+            Some("back") => Ok(Cull::Back),
+            Some("front") => Ok(Cull::Front),
+            Some(other) => {
+                Err(crate::error::invalid_value(format!("cull must be 'back', 'front' or None, got {other:?}")))
+            }
+        }
+    }
+
+    /// Whether a hit on the `front` (or back) side survives this culling.
+    pub fn keeps(self, front: bool) -> bool {
+        match self {
+            Cull::None => true,
+            Cull::Back => front,
+            Cull::Front => !front,
+        }
+    }
+}
+
 /// An affine map `p -> linear * p + offset`, in f64.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Affine {
@@ -158,6 +190,8 @@ pub struct TriangleHit {
     pub t: f64,
     pub u: f64,
     pub v: f64,
+    /// Whether the ray meets the side `cross(b - a, c - a)` points to (a positive determinant).
+    pub front: bool,
 }
 
 /// Whether an edge whose edge function is exactly zero belongs to this triangle: its projected
@@ -194,7 +228,7 @@ pub fn watertight(ray: &ShearedRay, a: DVec3, b: DVec3, c: DVec3) -> Option<Tria
     if !(t >= ray.ray.tmin && t <= ray.ray.tmax) {
         return None;
     }
-    Some(TriangleHit { t, u: v / det, v: w / det })
+    Some(TriangleHit { t, u: v / det, v: w / det, front: det > 0.0 })
 }
 
 /// Where the ray meets the plane of (a, b, c), with barycentrics of that point, whether or not it
@@ -209,7 +243,8 @@ pub fn plane_hit(ray: &Ray64, a: DVec3, b: DVec3, c: DVec3) -> Option<TriangleHi
     }
     let s = ray.origin - a;
     let q = s.cross(e1);
-    Some(TriangleHit { t: e2.dot(q) / det, u: s.dot(p) / det, v: ray.direction.dot(q) / det })
+    // det = -dot(direction, cross(e1, e2)): positive when the ray meets the normal's side.
+    Some(TriangleHit { t: e2.dot(q) / det, u: s.dot(p) / det, v: ray.direction.dot(q) / det, front: det > 0.0 })
 }
 
 /// Unit geometric normal of the triangle as placed in the world, right-handed in its winding
@@ -296,10 +331,10 @@ mod tests {
     fn hits_the_inside_with_vulkan_barycentrics() {
         let (a, b, c) = (v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0));
         let hit = watertight(&ray([0.25, 0.5, 2.0], [0.0, 0.0, -1.0]), a, b, c).unwrap();
-        assert_eq!(hit, TriangleHit { t: 2.0, u: 0.25, v: 0.5 });
+        assert_eq!(hit, TriangleHit { t: 2.0, u: 0.25, v: 0.5, front: true });
         // Back faces too, with the same barycentrics.
         let back = watertight(&ray([0.25, 0.5, -2.0], [0.0, 0.0, 1.0]), a, b, c).unwrap();
-        assert_eq!(back, hit);
+        assert_eq!(back, TriangleHit { front: false, ..hit });
         assert!(watertight(&ray([0.75, 0.5, 2.0], [0.0, 0.0, -1.0]), a, b, c).is_none());
     }
 
@@ -341,7 +376,7 @@ mod tests {
         let (a, b, c) = (v(0.0, 0.0, 1e7), v(1.0, 0.0, 1e7), v(0.0, 1.0, 1e7));
         let r = Ray64 { origin: v(0.2, 0.3, 0.0), direction: v(0.0, 0.0, 1.0), tmin: 0.0, tmax: f64::INFINITY };
         let hit = plane_hit(&r, a, b, c).unwrap();
-        assert_eq!((hit.t, hit.u, hit.v), (1e7, 0.2, 0.3));
+        assert_eq!((hit.t, hit.u, hit.v, hit.front), (1e7, 0.2, 0.3, false));
         let m = Affine::from_rows(&[0.0, -2.0, 0.0, 5.0, 2.0, 0.0, 0.0, 6.0, 0.0, 0.0, 2.0, 1e6]);
         let p = v(1.0, 2.0, 3.0);
         assert!((m.inverse().unwrap().point(m.point(p)) - p).length() < 1e-9);

@@ -15,10 +15,10 @@ use pyo3::types::PyDict;
 use crate::accel::{BuildOptions, BuildPreference, BuildStats};
 use crate::context::{Backend, Context, DeviceInfo, DeviceRequest, Wait};
 use crate::error::{Error, Result};
-use crate::input::{instance_transform, Indices, PerRay, Rays, Vec3s};
-use crate::precision::Precision;
-use crate::scene::{Instance, Mesh, Scene, IDENTITY};
-use crate::trace::{Field, HitSink, Query, Tracer};
+use crate::input::{instance_transform, Indices, Masks, PerRay, Rays, Vec3s};
+use crate::precision::{Cull, Precision};
+use crate::scene::{Instance, InstanceFlags, Mesh, Scene, IDENTITY};
+use crate::trace::{Field, HitSink, Query, Request, Tracer};
 
 create_exception!(_core, VkrayError, PyRuntimeError, "Base class of vkray's own errors.");
 create_exception!(_core, NoDeviceError, VkrayError, "No usable Vulkan device (or loader) was found.");
@@ -194,6 +194,31 @@ impl<'py> Bound1<'py> {
     }
 }
 
+/// Per-ray masks: one 8-bit value or a uint8 array.
+enum MaskArray<'py> {
+    All(u8),
+    Each(PyReadonlyArray1<'py, u8>),
+}
+
+impl<'py> MaskArray<'py> {
+    fn extract(value: &Bound<'py, PyAny>) -> PyResult<Self> {
+        if let Ok(array) = value.downcast::<PyArray1<u8>>() {
+            return Ok(MaskArray::Each(array.readonly()));
+        }
+        value
+            .extract::<u8>()
+            .map(MaskArray::All)
+            .map_err(|_| PyValueError::new_err("mask must be an integer in [0, 255] or a uint8 array of shape (N,)"))
+    }
+
+    fn view(&self) -> PyResult<Masks<'_>> {
+        Ok(match self {
+            MaskArray::All(m) => Masks::All(*m),
+            MaskArray::Each(a) => Masks::Each(a.as_slice()?),
+        })
+    }
+}
+
 /// A Vulkan device able to build acceleration structures and trace rays.
 #[pyclass(name = "Device", module = "vkray._core", frozen)]
 struct PyDevice {
@@ -330,7 +355,7 @@ impl PyDevice {
     ) -> PyResult<PyScene> {
         let options = build_options(build, allow_update, compact)?;
         let mut instances = Vec::with_capacity(items.len());
-        for (i, (mesh, transform, custom_index, mask)) in items.iter().enumerate() {
+        for (i, (mesh, transform, custom_index, mask, flags)) in items.iter().enumerate() {
             let transform = match transform {
                 None => IDENTITY,
                 Some(t) => {
@@ -348,7 +373,22 @@ impl PyDevice {
                     })?
                 }
             };
-            instances.push(Instance { mesh: mesh.mesh.clone(), transform, custom_index: *custom_index, mask: *mask });
+            let flags = InstanceFlags {
+                cull_disable: flags & 1 != 0,
+                flip_facing: flags & 2 != 0,
+                force_opaque: flags & 4 != 0,
+                force_no_opaque: flags & 8 != 0,
+            };
+            if flags.force_opaque && flags.force_no_opaque {
+                return Err(PyValueError::new_err(format!("instance {i} cannot be forced both opaque and non-opaque")));
+            }
+            instances.push(Instance {
+                mesh: mesh.mesh.clone(),
+                transform,
+                custom_index: *custom_index,
+                mask: *mask,
+                flags,
+            });
         }
         let scene = Scene::build(&self.ctx, &instances, options, &ReleaseGil(py))?;
         Ok(PyScene { scene: RwLock::new(scene), tracer: self.tracer.clone() })
@@ -407,8 +447,9 @@ const FIELD_NAMES: [(&str, Field); 7] = [
     ("geometry_id", Field::Geometry),
 ];
 
-/// (mesh, transform or None, custom_index, mask) of one instance, as the Python layer passes it.
-type InstanceItem<'py> = (PyRef<'py, PyMesh>, Option<Bound<'py, PyAny>>, u32, u8);
+/// (mesh, transform or None, custom_index, mask, flags) of one instance, as the Python layer
+/// passes it; flags: 1 cull_disable, 2 flip_facing, 4 force_opaque, 8 force_no_opaque.
+type InstanceItem<'py> = (PyRef<'py, PyMesh>, Option<Bound<'py, PyAny>>, u32, u8, u8);
 
 impl PyScene {
     fn read(&self) -> PyResult<std::sync::RwLockReadGuard<'_, Scene>> {
@@ -463,7 +504,7 @@ impl PyScene {
 
     /// Traces rays; returns {field name: array} for the fields asked for.
     /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`.
-    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast"))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
@@ -475,8 +516,12 @@ impl PyScene {
         query: &str,
         fields: Vec<String>,
         precision: &str,
+        cull: Option<&str>,
+        mask: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let precision = Precision::parse(precision)?;
+        let cull = Cull::parse(cull)?;
+        let mask = mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF));
         let wide = precision.is_f64();
         let query = match query {
             "closest" => Query::Closest,
@@ -490,8 +535,13 @@ impl PyScene {
         let tmin = Bound1::extract("tmin", tmin)?;
         let tmax = Bound1::extract("tmax", tmax)?;
         let result = PyDict::new(py);
-        let rays =
-            Rays { origins: origins.view()?, directions: directions.view()?, tmin: tmin.view()?, tmax: tmax.view()? };
+        let rays = Rays {
+            origins: origins.view()?,
+            directions: directions.view()?,
+            tmin: tmin.view()?,
+            tmax: tmax.view()?,
+            mask: mask.view()?,
+        };
         let n = rays.len();
 
         let mut arrays: Vec<(Field, Bound<'py, PyAny>)> = Vec::new();
@@ -541,7 +591,8 @@ impl PyScene {
                 std::slice::from_raw_parts_mut(ptr, n * 3 * if wide { 8 } else { 4 })
             });
         }
-        self.tracer.trace(&*self.read()?, &rays, query, precision, &mut sink, &ReleaseGil(py))?;
+        let request = Request { query, precision, cull };
+        self.tracer.trace(&*self.read()?, &rays, request, &mut sink, &ReleaseGil(py))?;
         Ok(result)
     }
 }

@@ -7,7 +7,7 @@ use std::sync::OnceLock;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::precision::{watertight, Aabb, Affine, Ray64, ShearedRay};
+use crate::precision::{watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
 
 /// Items one leaf holds at most.
 const LEAF_ITEMS: usize = 4;
@@ -139,6 +139,10 @@ pub struct PlacedSet<'a> {
     pub mask: u8,
     /// The set's bounds in the scene's frame.
     pub bounds: Aabb,
+    /// Front is the side opposite the object-space normal (a mirroring placement, or flipped).
+    pub flip_facing: bool,
+    /// Query culling does not apply to this set.
+    pub cull_disable: bool,
 }
 
 /// What the CPU tracer found for one ray.
@@ -177,13 +181,14 @@ impl<'a> ReferenceTracer<'a> {
         ReferenceTracer { top: Bvh::build(&boxes), sets }
     }
 
-    /// The first hit of `ray` by the tie-break order; with `any`, the first one found.
-    pub fn trace(&self, ray: &Ray64, any: bool) -> Option<ReferenceHit> {
+    /// The first hit of `ray` by the tie-break order among the sets its `mask` sees and the
+    /// sides `cull` keeps; with `any`, the first one found.
+    pub fn trace(&self, ray: &Ray64, mask: u8, cull: Cull, any: bool) -> Option<ReferenceHit> {
         let mut best: Option<ReferenceHit> = None;
         let mut tmax = ray.tmax;
         self.top.traverse(ray, &mut tmax, |instance, tmax| {
             let set = &self.sets[instance as usize];
-            if set.mask == 0 {
+            if set.mask & mask == 0 {
                 return true;
             }
             let local = ShearedRay::new(Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) });
@@ -191,7 +196,7 @@ impl<'a> ReferenceTracer<'a> {
             set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
                 let [a, b, c] = set.triangles.triangle(prim as usize);
                 let Some(hit) = watertight(&local, a, b, c) else { return true };
-                if hit.t > *tmax {
+                if hit.t > *tmax || !(set.cull_disable || cull.keeps(hit.front != set.flip_facing)) {
                     return true;
                 }
                 let candidate = ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim };
@@ -207,9 +212,18 @@ impl<'a> ReferenceTracer<'a> {
         best
     }
 
-    /// Traces every ray on all cores; `out[i]` gets ray i's hit.
-    pub fn trace_all(&self, rays: impl Fn(usize) -> Ray64 + Sync, any: bool, out: &mut [Option<ReferenceHit>]) {
-        out.par_iter_mut().enumerate().with_min_len(256).for_each(|(i, slot)| *slot = self.trace(&rays(i), any));
+    /// Traces every ray (and its mask) on all cores; `out[i]` gets ray i's hit.
+    pub fn trace_all(
+        &self,
+        rays: impl Fn(usize) -> (Ray64, u8) + Sync,
+        cull: Cull,
+        any: bool,
+        out: &mut [Option<ReferenceHit>],
+    ) {
+        out.par_iter_mut().enumerate().with_min_len(256).for_each(|(i, slot)| {
+            let (ray, mask) = rays(i);
+            *slot = self.trace(&ray, mask, cull, any)
+        });
     }
 
     pub fn set(&self, instance: u32) -> &PlacedSet<'a> {
@@ -250,6 +264,8 @@ mod tests {
             custom_index: 0,
             mask: 0xFF,
             bounds,
+            flip_facing: false,
+            cull_disable: false,
         }]);
         let brute = |ray: &Ray64| -> Vec<usize> {
             let sheared = ShearedRay::new(*ray);
@@ -271,7 +287,7 @@ mod tests {
                 if interior {
                     assert_eq!(count, 1, "target {target}");
                 }
-                let hit = tracer.trace(&ray, false);
+                let hit = tracer.trace(&ray, 0xFF, Cull::None, false);
                 assert_eq!(hit.is_some(), count == 1);
                 if let Some(hit) = hit {
                     assert_eq!(vec![hit.prim as usize], brute(&ray));
@@ -291,6 +307,8 @@ mod tests {
             custom_index: 0,
             mask: 0xFF,
             bounds: Aabb::of_points(set.vertices.iter().copied()).transformed(&to_local.inverse().unwrap()),
+            flip_facing: false,
+            cull_disable: false,
         };
         let tracer = ReferenceTracer::new(vec![place(Affine::IDENTITY), place(lifted)]);
         let ray = Ray64 {
@@ -299,8 +317,11 @@ mod tests {
             tmin: 0.0,
             tmax: f64::INFINITY,
         };
-        let hit = tracer.trace(&ray, false).unwrap();
+        let hit = tracer.trace(&ray, 0xFF, Cull::None, false).unwrap();
         assert_eq!((hit.instance, hit.t), (1, 4.0));
-        assert!(tracer.trace(&Ray64 { tmax: 3.5, ..ray }, true).is_none());
+        assert!(tracer.trace(&Ray64 { tmax: 3.5, ..ray }, 0xFF, Cull::None, true).is_none());
+        // The grid faces +z and the ray comes from above: culling front faces leaves nothing.
+        assert!(tracer.trace(&ray, 0xFF, Cull::Front, false).is_none());
+        assert_eq!(tracer.trace(&ray, 0xFF, Cull::Back, false).unwrap().instance, 1);
     }
 }

@@ -302,7 +302,28 @@ pub struct Instance {
     pub transform: [f64; 12],
     pub custom_index: u32,
     pub mask: u8,
+    pub flags: InstanceFlags,
 }
+
+/// What an instance asks of traversal beyond its placement.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct InstanceFlags {
+    /// Query culling (`Cull`) does not apply to this instance.
+    pub cull_disable: bool,
+    /// Swap front and back (front is otherwise the side the hit's normal points to).
+    pub flip_facing: bool,
+    /// Treat the triangles as opaque (they are; kept for the guides' vocabulary).
+    pub force_opaque: bool,
+    /// Treat the triangles as non-opaque: traversal hands them to the shader, which accepts
+    /// them (vkray has no any-hit programs), the path a future any-hit stage takes.
+    pub force_no_opaque: bool,
+}
+
+// Instance flags of `VkGeometryInstanceFlagBitsKHR`.
+const INSTANCE_CULL_DISABLE: u8 = 0x1;
+const INSTANCE_FRONT_COUNTERCLOCKWISE: u8 = 0x2;
+const INSTANCE_FORCE_OPAQUE: u8 = 0x4;
+const INSTANCE_FORCE_NO_OPAQUE: u8 = 0x8;
 
 pub const IDENTITY: [f64; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
 
@@ -319,6 +340,32 @@ pub struct Placement {
     pub mask: u8,
     /// The mesh's bounds in the scene's frame.
     pub bounds: Aabb,
+    pub flags: InstanceFlags,
+    /// Front is the side opposite the object-space normal: a mirroring transform (which flips the
+    /// world normal) or `flip_facing`, not both.
+    pub flip_facing: bool,
+}
+
+impl Placement {
+    /// Vulkan's instance flags. Vulkan judges facing in object space and by default calls front
+    /// the side `cross(v1 - v0, v2 - v0)` points to (clockwise seen from the ray, in its
+    /// left-handed wording), our convention too; its counter-clockwise flag swaps the two.
+    fn vulkan_flags(&self) -> u8 {
+        let mut flags = 0;
+        if self.flags.cull_disable {
+            flags |= INSTANCE_CULL_DISABLE;
+        }
+        if self.flip_facing {
+            flags |= INSTANCE_FRONT_COUNTERCLOCKWISE;
+        }
+        if self.flags.force_opaque {
+            flags |= INSTANCE_FORCE_OPAQUE;
+        }
+        if self.flags.force_no_opaque {
+            flags |= INSTANCE_FORCE_NO_OPAQUE;
+        }
+        flags
+    }
 }
 
 /// Largest custom index an instance can carry (24 bits).
@@ -462,6 +509,11 @@ impl Scene {
         self.tlas.address()
     }
 
+    /// Whether every instance's triangles are opaque (no `force_no_opaque`).
+    pub fn all_opaque(&self) -> bool {
+        self.placements.iter().all(|p| !p.flags.force_no_opaque)
+    }
+
     pub fn instance_geometries_address(&self) -> u64 {
         self.instance_geometries.address()
     }
@@ -486,6 +538,8 @@ impl Scene {
                     custom_index: p.custom_index,
                     mask: p.mask,
                     bounds: p.bounds,
+                    flip_facing: p.flip_facing,
+                    cull_disable: p.flags.cull_disable,
                 })
                 .collect(),
         )
@@ -498,7 +552,7 @@ fn write_instance_records(placements: &[Placement], out: &mut [u8]) {
             &p.to_scene.to_rows_f32(),
             p.custom_index,
             p.mask,
-            0,
+            p.vulkan_flags(),
             p.mesh.blas_address(),
         ));
     }
@@ -548,6 +602,8 @@ fn place(instances: &[Instance], center: Option<DVec3>) -> Result<(DVec3, Vec<Pl
             to_local,
             custom_index: x.custom_index,
             mask: x.mask,
+            flags: x.flags,
+            flip_facing: (to_scene.linear.determinant() < 0.0) != x.flags.flip_facing,
         });
     }
     Ok((center, placements))
@@ -673,7 +729,8 @@ impl ExactScene {
                     dst[112..120]
                         .copy_from_slice(&mesh.primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
                     dst[120..124].copy_from_slice(&(mesh.index_is_u16 as u32).to_ne_bytes());
-                    dst[124..128].fill(0);
+                    let flags = p.flags.cull_disable as u32 | (p.flip_facing as u32) << 1;
+                    dst[124..128].copy_from_slice(&flags.to_ne_bytes());
                 }
             },
         )?;

@@ -5,7 +5,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::input::Rays;
-use crate::precision::{plane_hit, world_normal};
+use crate::precision::{plane_hit, world_normal, Cull};
 use crate::reference::ReferenceHit;
 use crate::scene::Scene;
 use crate::trace::{Field, HitSink};
@@ -39,7 +39,7 @@ fn int_at(bytes: &[u8], i: usize) -> i32 {
 /// `uv` as f64, the normal from f64 vertices). Where the f64 answer leaves the ray's interval
 /// (f32 traversal accepted a triangle the ray only grazes, or one just behind an origin that
 /// sits on it, as secondary rays do), that ray is traced again by the CPU tracer.
-pub fn refine(scene: &Scene, rays: &Rays, sink: &mut HitSink) {
+pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink) {
     let (prim, instance) =
         (sink.field(Field::Prim).unwrap_or_default(), sink.field(Field::Instance).unwrap_or_default());
     let refined: Vec<Result<Option<ReferenceHit>, ()>> = (0..rays.len())
@@ -66,17 +66,17 @@ pub fn refine(scene: &Scene, rays: &Rays, sink: &mut HitSink) {
     if !again.is_empty() {
         let tracer = scene.reference_tracer();
         for i in again {
-            hits[i] = tracer.trace(&rays.ray64(i, scene.center), false);
+            hits[i] = tracer.trace(&rays.ray64(i, scene.center), rays.mask.get(i), cull, false);
         }
     }
     write_hits(scene, sink, &hits);
 }
 
 /// Traces every ray on the CPU in f64 and writes every field the sink asks for.
-pub fn reference(scene: &Scene, rays: &Rays, any: bool, sink: &mut HitSink) {
+pub fn reference(scene: &Scene, rays: &Rays, cull: Cull, any: bool, sink: &mut HitSink) {
     let tracer = scene.reference_tracer();
     let mut hits: Vec<Option<ReferenceHit>> = vec![None; rays.len()];
-    tracer.trace_all(|i| rays.ray64(i, scene.center), any, &mut hits);
+    tracer.trace_all(|i| (rays.ray64(i, scene.center), rays.mask.get(i)), cull, any, &mut hits);
     write_hits(scene, sink, &hits);
 }
 

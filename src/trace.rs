@@ -13,9 +13,9 @@ use rayon::prelude::*;
 
 use crate::context::{Backend, Commands, Context, Wait};
 use crate::error::{invalid_value, Result, VkResultExt};
-use crate::input::{Rays, RAY_FLOATS};
+use crate::input::{Masks, Rays, RAY_FLOATS};
 use crate::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
-use crate::precision::Precision;
+use crate::precision::{Cull, Precision};
 use crate::scene::{ExactScene, Scene};
 use crate::shaders;
 use crate::tiers;
@@ -27,6 +27,14 @@ pub enum Query {
     Closest,
     /// Whether anything is hit in [tmin, tmax]; traversal stops at the first hit.
     Occluded,
+}
+
+/// Everything a trace asks besides its rays: which query, at which precision, culling which side.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Request {
+    pub query: Query,
+    pub precision: Precision,
+    pub cull: Cull,
 }
 
 /// A field of the hit record. The discriminant is the field's position among the shaders' output
@@ -97,14 +105,22 @@ impl<'a> HitSink<'a> {
 // Ray flags (SPIR-V RayFlags).
 const RAY_FLAG_TERMINATE_ON_FIRST_HIT: u32 = 0x4;
 const RAY_FLAG_SKIP_CLOSEST_HIT_SHADER: u32 = 0x8;
+const RAY_FLAG_CULL_BACK_FACING_TRIANGLES: u32 = 0x10;
+const RAY_FLAG_CULL_FRONT_FACING_TRIANGLES: u32 = 0x20;
 const RAY_FLAG_CULL_NO_OPAQUE: u32 = 0x80;
 const RAY_FLAG_SKIP_AABBS: u32 = 0x200;
 
-/// Ray flags resolved statically for a query on a scene: every triangle is opaque and only the
-/// exact tier's structures hold AABBs (and nothing else), so non-opaque paths are culled at
-/// compile time, and procedural ones too where no AABB can be met.
-fn ray_flags(query: Query, backend: Backend, exact: bool) -> u32 {
-    let mut flags = RAY_FLAG_CULL_NO_OPAQUE;
+/// Ray flags resolved statically for a query on a scene: where every triangle is opaque the
+/// non-opaque path is culled at compile time; only the exact tier's structures hold AABBs (and
+/// nothing else), so procedural paths are culled too where no AABB can be met; culling is the
+/// query's. The exact tier's shader reads the culling bits itself (they do not apply to boxes).
+fn ray_flags(query: Query, cull: Cull, backend: Backend, exact: bool, all_opaque: bool) -> u32 {
+    let mut flags = if all_opaque { RAY_FLAG_CULL_NO_OPAQUE } else { 0 };
+    flags |= match cull {
+        Cull::None => 0,
+        Cull::Back => RAY_FLAG_CULL_BACK_FACING_TRIANGLES,
+        Cull::Front => RAY_FLAG_CULL_FRONT_FACING_TRIANGLES,
+    };
     // The pipeline backend skips AABBs with a pipeline flag instead, which needs no device feature.
     if backend == Backend::RayQuery && !exact {
         flags |= RAY_FLAG_SKIP_AABBS;
@@ -129,15 +145,17 @@ struct Params {
     outputs: [u64; FIELD_COUNT],
     /// Exact tier, pipeline backend: the per-ray best-hit records its intersection shader keeps.
     scratch: u64,
+    /// Per-ray masks (one u32 each), or 0 when every ray uses `ray_mask`.
+    masks: u64,
     count: u32,
     /// Exact tier: the scene's bounds (min xyz, max xyz) in its frame, rounded outward to f32.
     bounds: [f32; 6],
-    pad: u32,
+    ray_mask: u32,
 }
 
 impl Params {
     fn bytes(&self) -> &[u8] {
-        // SAFETY: plain old data, no padding holes (bounds + pad complete the last 8 bytes).
+        // SAFETY: plain old data, no padding holes (bounds + ray_mask complete the last 8 bytes).
         unsafe { std::slice::from_raw_parts(self as *const Params as *const u8, std::mem::size_of::<Params>()) }
     }
 }
@@ -181,7 +199,7 @@ impl Slot {
     fn new(ctx: &Arc<Context>, capacity: usize, exact: bool) -> Result<Slot> {
         use vk::BufferUsageFlags as U;
         let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
-        let ray_bytes = (capacity * RAY_FLOATS * if exact { 8 } else { 4 }) as u64;
+        let ray_bytes = (capacity * (Slot::ray_bytes(exact) + 4)) as u64;
         let hit_bytes = Slot::layout(capacity, exact).1 as u64;
         let (rays_host, hits_host, device) = if ctx.unified_memory {
             let rays = Buffer::new(ctx, ray_bytes, storage, MemoryLocation::CpuToGpu, "rays")?;
@@ -197,6 +215,15 @@ impl Slot {
             )
         };
         Ok(Slot { rays_host, hits_host, device, capacity, exact })
+    }
+
+    /// Bytes of one packed ray; the rays buffer holds `capacity` of them, then one u32 mask each.
+    fn ray_bytes(exact: bool) -> usize {
+        RAY_FLOATS * if exact { 8 } else { 4 }
+    }
+
+    fn masks_offset(&self) -> usize {
+        self.capacity * Slot::ray_bytes(self.exact)
     }
 
     /// Byte offsets of each field's array and of the scratch records, and the total, each array
@@ -614,11 +641,11 @@ impl Tracer {
         &self,
         scene: &Scene,
         rays: &Rays,
-        query: Query,
-        precision: Precision,
+        request: Request,
         sink: &mut HitSink,
         wait: &dyn Wait,
     ) -> Result<()> {
+        let Request { query, precision, cull } = request;
         let started = Instant::now();
         scene.check_current()?;
         rays.check_shapes()?;
@@ -664,9 +691,9 @@ impl Tracer {
         }
         match (precision, refine) {
             (Precision::Fast, _) | (Precision::Refined, false) => {
-                self.trace_gpu(scene, rays, query, false, &mut work, wait, &mut profile)?
+                self.trace_gpu(scene, rays, request, false, &mut work, wait, &mut profile)?
             }
-            (Precision::Exact, _) => self.trace_gpu(scene, rays, query, true, &mut work, wait, &mut profile)?,
+            (Precision::Exact, _) => self.trace_gpu(scene, rays, request, true, &mut work, wait, &mut profile)?,
             (Precision::Refined, true) => {
                 // The GPU finds which triangle; the host recomputes where, in f64.
                 let mut host_fields = HitSink::default();
@@ -675,7 +702,7 @@ impl Tracer {
                         host_fields.set(field, out);
                     }
                 }
-                self.trace_gpu(scene, rays, query, false, &mut work, wait, &mut profile)?;
+                self.trace_gpu(scene, rays, request, false, &mut work, wait, &mut profile)?;
                 for field in [Field::T, Field::Uv, Field::Normal] {
                     if let Some(out) = host_fields.take(field) {
                         work.set(field, out);
@@ -684,7 +711,7 @@ impl Tracer {
                 let host = Instant::now();
                 let sink = Mutex::new(&mut work);
                 wait.wait(&|| {
-                    tiers::refine(scene, rays, &mut sink.lock().unwrap_or_else(|e| e.into_inner()));
+                    tiers::refine(scene, rays, cull, &mut sink.lock().unwrap_or_else(|e| e.into_inner()));
                     Ok(())
                 })?;
                 profile.host_f64 = host.elapsed().as_secs_f64();
@@ -695,7 +722,7 @@ impl Tracer {
                 let sink = Mutex::new(&mut work);
                 wait.wait(&|| {
                     let mut sink = sink.lock().unwrap_or_else(|e| e.into_inner());
-                    tiers::reference(scene, rays, query == Query::Occluded, &mut sink);
+                    tiers::reference(scene, rays, cull, query == Query::Occluded, &mut sink);
                     Ok(())
                 })?;
                 profile.host_f64 = host.elapsed().as_secs_f64();
@@ -724,7 +751,7 @@ impl Tracer {
         }
         let mut known = self.exact_pipeline_works.lock().unwrap_or_else(|e| e.into_inner());
         if known.is_none() {
-            use crate::input::{Indices, PerRay, Vec3s};
+            use crate::input::{Indices, Masks, PerRay, Vec3s};
             use crate::scene::{Instance, Mesh, IDENTITY};
             let options = crate::accel::BuildOptions {
                 preference: crate::accel::BuildPreference::FastBuild,
@@ -734,7 +761,8 @@ impl Tracer {
             let triangle = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
             let mesh =
                 Arc::new(Mesh::build(&self.ctx, Vec3s::F64(&triangle), Indices::U32(&[0, 1, 2]), options, wait)?);
-            let instance = Instance { mesh, transform: IDENTITY, custom_index: 0, mask: 0xFF };
+            let instance =
+                Instance { mesh, transform: IDENTITY, custom_index: 0, mask: 0xFF, flags: Default::default() };
             let probe = Scene::build(&self.ctx, &[instance], options, wait)?;
             let (origin, direction) = ([0.25, 0.25, 1.0], [0.0, 0.0, -1.0]);
             let rays = Rays {
@@ -742,11 +770,13 @@ impl Tracer {
                 directions: Vec3s::F64(&direction),
                 tmin: PerRay::All(0.0),
                 tmax: PerRay::All(f64::INFINITY),
+                mask: Masks::All(0xFF),
             };
             let mut prim = [0u8; 4];
             let mut sink = HitSink::default();
             sink.set(Field::Prim, &mut prim);
-            self.run_gpu(&probe, &rays, Query::Closest, true, &mut sink, wait, &mut TraceProfile::default())?;
+            let request = Request { query: Query::Closest, precision: Precision::Exact, cull: Cull::None };
+            self.run_gpu(&probe, &rays, request, true, &mut sink, wait, &mut TraceProfile::default())?;
             *known = Some(i32::from_ne_bytes(prim) == 0);
         }
         if *known == Some(false) {
@@ -766,7 +796,7 @@ impl Tracer {
         &self,
         scene: &Scene,
         rays: &Rays,
-        query: Query,
+        request: Request,
         exact: bool,
         sink: &mut HitSink,
         wait: &dyn Wait,
@@ -775,7 +805,7 @@ impl Tracer {
         if exact {
             self.check_exact_pipeline(wait)?;
         }
-        self.run_gpu(scene, rays, query, exact, sink, wait, profile)
+        self.run_gpu(scene, rays, request, exact, sink, wait, profile)
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -783,7 +813,7 @@ impl Tracer {
         &self,
         scene: &Scene,
         rays: &Rays,
-        query: Query,
+        request: Request,
         exact: bool,
         sink: &mut HitSink,
         wait: &dyn Wait,
@@ -792,7 +822,8 @@ impl Tracer {
         let outputs = sink.outputs();
         // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
         let exact_scene = if exact { Some(scene.exact(wait)?) } else { None };
-        let key = VariantKey { outputs, ray_flags: ray_flags(query, self.ctx.backend, exact), exact };
+        let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque());
+        let key = VariantKey { outputs, ray_flags: flags, exact };
         let variant = self.variant(key, wait)?;
         let capacity = self.chunk_rays().min(self.max_dispatch_rays()).min(rays.len()).max(1);
         let mut slots = self.take_slots(capacity, exact)?;
@@ -851,6 +882,7 @@ impl Tracer {
             }
             lap(&mut profile.unpack);
             let slot = &mut slots[s];
+            let masks_at = slot.masks_offset();
             let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
             // SAFETY: the staging buffer holds `capacity` rays of 8 f32 (8 f64 in an exact slot),
             // aligned for either. On an invalid ray, dropping `commands` waits for the chunks in flight.
@@ -863,10 +895,16 @@ impl Tracer {
                     rays.pack(start, out, scene.center)?;
                 }
             }
+            if let Masks::Each(masks) = rays.mask {
+                for (dst, m) in packed[masks_at..masks_at + 4 * len].chunks_exact_mut(4).zip(&masks[start..start + len])
+                {
+                    dst.copy_from_slice(&(*m as u32).to_ne_bytes());
+                }
+            }
             lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
-            let job = Chunk { scene, exact, variant, outputs, slot, slot_index: s, len };
+            let job = Chunk { scene, exact, variant, outputs, slot, slot_index: s, len, mask: rays.mask };
             self.record_chunk(commands[s].buffer, &job, stamps);
             commands[s].submit()?;
             in_flight[s] = Some((start, len));
@@ -887,7 +925,7 @@ impl Tracer {
     }
 
     fn record_chunk(&self, cmd: vk::CommandBuffer, job: &Chunk, stamps: Option<&Stamps>) {
-        let Chunk { scene, exact, variant, outputs, slot, slot_index, len } = *job;
+        let Chunk { scene, exact, variant, outputs, slot, slot_index, len, mask } = *job;
         let stamp = |k| {
             if let Some(stamps) = stamps {
                 stamps.write(&self.ctx, cmd, slot_index, k);
@@ -906,9 +944,14 @@ impl Tracer {
             }
         };
         if let Some((rays_device, _)) = &slot.device {
-            let bytes_per_ray = RAY_FLOATS * if slot.exact { 8 } else { 4 };
-            let region = [vk::BufferCopy::default().size((len * bytes_per_ray) as u64)];
-            unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &region) };
+            let masks_at = slot.masks_offset() as u64;
+            let rays_region = vk::BufferCopy::default().size((len * Slot::ray_bytes(slot.exact)) as u64);
+            let masks_region = vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
+            let regions = match mask {
+                Masks::Each(_) => vec![rays_region, masks_region],
+                Masks::All(_) => vec![rays_region],
+            };
+            unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &regions) };
             memory_barrier(
                 ctx,
                 cmd,
@@ -920,6 +963,10 @@ impl Tracer {
         }
         stamp(1);
         let mut params = Params { rays: slot.rays_address(), count: len as u32, ..Default::default() };
+        match mask {
+            Masks::All(m) => params.ray_mask = m as u32,
+            Masks::Each(_) => params.masks = slot.rays_address() + slot.masks_offset() as u64,
+        }
         match exact {
             Some(exact) => {
                 params.instances = exact.instances_address();
@@ -1004,6 +1051,7 @@ struct Chunk<'a> {
     slot: &'a Slot,
     slot_index: usize,
     len: usize,
+    mask: Masks<'a>,
 }
 
 /// Copies a finished chunk's requested fields into the caller's arrays, on all cores.
@@ -1079,8 +1127,8 @@ mod tests {
 
     #[test]
     fn params_match_the_shader_block() {
-        // 11 addresses, a count and 6 floats, padded to 8 bytes: the GLSL block's std430 size.
-        assert_eq!(PARAMS_BYTES, 120);
+        // 12 addresses, a count, 6 floats and a mask: the GLSL block's std430 size.
+        assert_eq!(PARAMS_BYTES, 128);
     }
 
     #[test]
@@ -1117,13 +1165,19 @@ mod tests {
     fn occlusion_flags_terminate_on_first_hit() {
         for backend in [Backend::RayQuery, Backend::Pipeline] {
             for exact in [false, true] {
-                assert_ne!(ray_flags(Query::Occluded, backend, exact) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
-                assert_eq!(ray_flags(Query::Closest, backend, exact) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                let flags = |query| ray_flags(query, Cull::None, backend, exact, true);
+                assert_ne!(flags(Query::Occluded) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                assert_eq!(flags(Query::Closest) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
                 // The exact tier's structures are all AABBs.
-                assert_eq!(ray_flags(Query::Closest, backend, true) & RAY_FLAG_SKIP_AABBS, 0);
+                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, true, true) & RAY_FLAG_SKIP_AABBS, 0);
             }
         }
-        assert_ne!(ray_flags(Query::Occluded, Backend::Pipeline, false) & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, 0);
-        assert_eq!(ray_flags(Query::Closest, Backend::Pipeline, false) & RAY_FLAG_SKIP_AABBS, 0);
+        let pipeline = |query, cull, all_opaque| ray_flags(query, cull, Backend::Pipeline, false, all_opaque);
+        assert_ne!(pipeline(Query::Occluded, Cull::None, true) & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, 0);
+        assert_eq!(pipeline(Query::Closest, Cull::None, true) & RAY_FLAG_SKIP_AABBS, 0);
+        // Non-opaque instances must not be culled; culling follows the query.
+        assert_eq!(pipeline(Query::Closest, Cull::None, false) & RAY_FLAG_CULL_NO_OPAQUE, 0);
+        assert_ne!(pipeline(Query::Closest, Cull::Back, true) & RAY_FLAG_CULL_BACK_FACING_TRIANGLES, 0);
+        assert_ne!(pipeline(Query::Closest, Cull::Front, true) & RAY_FLAG_CULL_FRONT_FACING_TRIANGLES, 0);
     }
 }

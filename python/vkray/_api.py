@@ -207,7 +207,7 @@ class Device:
                 raise ValueError(f"scene item {i} uses a mesh built on another Device")
             instances.append(item)
         core = self._core.scene(
-            [(x.mesh._core, x.transform, x.custom_index, x.mask) for x in instances],
+            [(x.mesh._core, x.transform, x.custom_index, x.mask, x._flags()) for x in instances],
             build,
             bool(allow_update),
             bool(compact),
@@ -273,10 +273,27 @@ class Instance:
     transform: 4×4 or 3×4 affine matrix, row-major, acting on column vectors (``M @ [x, y, z, 1]``,
     the way numpy code writes it); ``None`` is the identity.
     custom_index: 24-bit value returned as ``Hits.custom_index`` for hits on this instance.
-    mask: 8-bit visibility mask (rays use mask 0xFF: an instance with mask 0 is never hit).
+    mask: 8-bit visibility mask: a ray sees the instance when ``instance mask & ray mask != 0``
+    (rays' masks default to 0xFF: an instance with mask 0 is never hit).
+    cull_disable: queries' ``cull=`` does not apply to this instance.
+    flip_facing: swap front and back for ``cull=``. Front is the side the hit's ``normal`` points
+    to (so a mirroring transform, which flips the normal, flips facing with it).
+    opaque: ``True`` forces opaque, ``False`` non-opaque (traversal then hands its triangles to the
+    shader, which accepts them: vkray has no any-hit programs yet), ``None`` keeps the geometry's
+    (opaque).
     """
 
-    def __init__(self, mesh: Mesh, transform: Any = None, *, custom_index: int = 0, mask: int = 0xFF) -> None:
+    def __init__(
+        self,
+        mesh: Mesh,
+        transform: Any = None,
+        *,
+        custom_index: int = 0,
+        mask: int = 0xFF,
+        cull_disable: bool = False,
+        flip_facing: bool = False,
+        opaque: Optional[bool] = None,
+    ) -> None:
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh must be a vkray.Mesh, got {type(mesh).__name__}")
         if not isinstance(custom_index, (int, np.integer)) or isinstance(custom_index, bool):
@@ -291,6 +308,19 @@ class Instance:
         self.transform = None if transform is None else _arrays.transform(transform)
         self.custom_index = int(custom_index)
         self.mask = int(mask)
+        if opaque not in (None, True, False):
+            raise TypeError(f"opaque must be True, False or None, got {opaque!r}")
+        self.cull_disable = bool(cull_disable)
+        self.flip_facing = bool(flip_facing)
+        self.opaque = opaque
+
+    def _flags(self) -> int:
+        return (
+            int(self.cull_disable)
+            | int(self.flip_facing) << 1
+            | int(self.opaque is True) << 2
+            | int(self.opaque is False) << 3
+        )
 
     def __repr__(self) -> str:
         return f"<vkray.Instance of {self.mesh!r} custom_index={self.custom_index} mask={self.mask:#04x}>"
@@ -400,6 +430,8 @@ class Scene:
         tmax: Any = np.inf,
         outputs: Optional[Sequence[str]] = None,
         precision: str = "fast",
+        cull: Optional[str] = None,
+        mask: Any = 0xFF,
     ) -> Hits:
         """The closest hit of each ray within [tmin, tmax].
 
@@ -428,29 +460,49 @@ class Scene:
         Hits at the interval's ends: ``"fast"`` and ``"refined"`` follow Vulkan (tmin and tmax
         compared in f32 by the traversal); ``"exact"`` and ``"reference"`` accept
         ``tmin <= t <= tmax`` exactly in f64.
+        cull: ``"back"`` ignores triangles whose back the ray meets, ``"front"`` those whose front
+        (the side their ``normal`` points to); ``None`` (default) culls nothing. Instances made
+        with ``cull_disable=True`` are never culled; ``flip_facing=True`` swaps their sides.
+        mask: 8-bit ray mask, one for all rays or an integer array of shape ``S``: a ray sees an
+        instance when ``instance.mask & mask != 0``.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         _check_precision(precision)
+        _check_cull(cull)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        arrays = self._core.trace(o, d, lo, hi, "closest", list(fields), precision)
+        arrays = self._core.trace(o, d, lo, hi, "closest", list(fields), precision, cull, _arrays.masks(mask, shape))
         return Hits(shape, arrays, precision)
 
     def occluded(
-        self, origins: Any, directions: Any, *, tmin: Any = 0.0, tmax: Any = np.inf, precision: str = "fast"
+        self,
+        origins: Any,
+        directions: Any,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: str = "fast",
+        cull: Optional[str] = None,
+        mask: Any = 0xFF,
     ) -> np.ndarray:
         """bool ``S``: whether anything lies along each ray within [tmin, tmax].
 
         Traversal stops at the first hit found (TerminateOnFirstHit), so this is cheaper than
         `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray, in every tier
-        (``"refined"`` decides hits as ``"fast"`` does).
+        (``"refined"`` decides hits as ``"fast"`` does). ``cull`` and ``mask`` as in `intersect`.
         """
         _check_precision(precision)
+        _check_cull(cull)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"], precision)
+        arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"], precision, cull, _arrays.masks(mask, shape))
         return (arrays["prim_id"] >= 0).reshape(shape)
 
     def __repr__(self) -> str:
         return f"<vkray.Scene {len(self.instances)} instances on {self.device.name!r}>"
+
+
+def _check_cull(cull: Optional[str]) -> None:
+    if cull not in (None, "back", "front"):
+        raise ValueError(f"cull must be 'back', 'front' or None, got {cull!r}")
 
 
 def _check_precision(precision: str) -> None:

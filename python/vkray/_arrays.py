@@ -96,3 +96,19 @@ def rays(
         for b in (lo, hi)
     ]
     return shape, o, d, bounds[0], bounds[1]
+
+
+def masks(value: object, shape: Tuple[int, ...]) -> object:
+    """An 8-bit ray mask as an int, or uint8 (N,) for per-ray masks broadcast to ``shape``."""
+    array = np.asarray(value)
+    if array.dtype.kind not in "iu":
+        raise TypeError(f"mask must hold integers, got dtype {array.dtype}")
+    if array.size and (array.min() < 0 or array.max() > 0xFF):
+        raise ValueError("mask values must be in [0, 255] (8 bits)")
+    if array.ndim == 0:
+        return int(array)
+    try:
+        array = np.broadcast_to(array, shape)
+    except ValueError:
+        raise ValueError(f"mask of shape {array.shape} does not broadcast to the rays' shape {shape}") from None
+    return np.ascontiguousarray(array.reshape(-1), dtype=np.uint8)

@@ -39,7 +39,7 @@ class Device:
     ) -> Mesh: ...
     def scene(
         self,
-        items: Sequence[Tuple[Mesh, Optional[np.ndarray], int, int]],
+        items: Sequence[Tuple[Mesh, Optional[np.ndarray], int, int, int]],
         build: str = ...,
         allow_update: bool = ...,
         compact: bool = ...,
@@ -69,4 +69,6 @@ class Scene:
         query: str,
         fields: List[str],
         precision: str = "fast",
+        cull: Optional[str] = None,
+        mask: Union[int, np.ndarray, None] = None,
     ) -> Dict[str, np.ndarray]: ...
