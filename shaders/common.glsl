@@ -29,12 +29,15 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Int
 // Where the triangles of one geometry live, for the outputs that need them (normal, prim_id).
 // Indexed by instance (TLAS order); `geometries` points at that BLAS's GeometrySource array.
 struct GeometrySource {
-  uint64_t vertices;         // float xyz, tightly packed
+  uint64_t vertices;         // float xyz tightly packed; or 4 halves / 4 snorm16 (VERTEX_*)
   uint64_t indices;          // uint32 triples, or uint16 triples packed into words
   uint64_t primitive_order;  // device triangle -> caller's triangle (int32), or 0 if the same
   uint index_is_u16;
-  uint pad;
+  uint vertex_format;        // VERTEX_F32, VERTEX_F16 or VERTEX_SNORM16 (input.rs VertexFormat)
 };
+const uint VERTEX_F32 = 0u;
+const uint VERTEX_F16 = 1u;
+const uint VERTEX_SNORM16 = 2u;
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer GeometrySources { GeometrySource g[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer InstanceGeometries { uint64_t geometries[]; };
 
@@ -114,9 +117,18 @@ uvec3 triangle_indices(GeometrySource src, uint prim) {
   return triangle_indices_at(src.indices, src.index_is_u16, prim);
 }
 
+// A vertex in the mesh's device frame, decoded as the acceleration structure reads it.
 vec3 vertex_at(GeometrySource src, uint index) {
-  Floats f = Floats(src.vertices);
-  return vec3(f.v[3u * index], f.v[3u * index + 1u], f.v[3u * index + 2u]);
+  if (src.vertex_format == VERTEX_F32) {
+    Floats f = Floats(src.vertices);
+    return vec3(f.v[3u * index], f.v[3u * index + 1u], f.v[3u * index + 2u]);
+  }
+  Words w = Words(src.vertices);
+  uvec2 packed = uvec2(w.v[2u * index], w.v[2u * index + 1u]);
+  if (src.vertex_format == VERTEX_F16) {
+    return vec3(unpackHalf2x16(packed.x), unpackHalf2x16(packed.y).x);
+  }
+  return vec3(unpackSnorm2x16(packed.x), unpackSnorm2x16(packed.y).x);
 }
 
 GeometrySource geometry_source(int instance, int geometry) {

@@ -9,6 +9,7 @@ use ash::{ext, khr, vk};
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
 use crate::error::{Error, Result, VkResultExt};
+use crate::input::VertexFormat;
 
 /// How rays are traced: ray queries from a compute shader, or a ray-tracing pipeline.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -71,6 +72,8 @@ pub struct Limits {
     pub timestamp_period: f32,
     /// Meaningful bits of the queue's timestamps; 0 where the queue cannot write them.
     pub timestamp_valid_bits: u32,
+    /// Vertex formats acceleration structures can be built from (float32 always).
+    pub vertex_formats: Vec<crate::input::VertexFormat>,
 }
 
 /// Which device and backend to open.
@@ -372,6 +375,15 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
         ray_traversal_primitive_culling: primitive_culling,
         timestamp_period: l.timestamp_period,
         timestamp_valid_bits,
+        vertex_formats: [VertexFormat::F32, VertexFormat::F16, VertexFormat::Snorm16]
+            .into_iter()
+            .filter(|f| {
+                let properties = unsafe {
+                    instance.get_physical_device_format_properties(physical, crate::scene::vulkan_vertex_format(*f))
+                };
+                properties.buffer_features.contains(vk::FormatFeatureFlags::ACCELERATION_STRUCTURE_VERTEX_BUFFER_KHR)
+            })
+            .collect(),
     };
     let device_type = device_type_name(props.device_type);
     let info = DeviceInfo {

@@ -15,7 +15,7 @@ use pyo3::types::PyDict;
 use crate::accel::{BuildOptions, BuildPreference, BuildStats};
 use crate::context::{Backend, Context, DeviceInfo, DeviceRequest, Wait};
 use crate::error::{Error, Result};
-use crate::input::{instance_transform, Indices, Masks, PerRay, Rays, Vec3s};
+use crate::input::{instance_transform, Indices, Masks, PerRay, Rays, Vec3s, VertexFormat};
 use crate::precision::{Cull, Precision};
 use crate::scene::{Instance, InstanceFlags, Mesh, Scene, IDENTITY};
 use crate::trace::{Field, HitSink, Query, Request, Tracer};
@@ -273,6 +273,7 @@ impl PyDevice {
         d.set_item("max_ray_dispatch_invocation_count", l.max_ray_dispatch_invocation_count)?;
         d.set_item("timestamp_period_ns", l.timestamp_period)?;
         d.set_item("timestamp_valid_bits", l.timestamp_valid_bits)?;
+        d.set_item("vertex_formats", l.vertex_formats.iter().map(|f| f.name()).collect::<Vec<_>>())?;
         Ok(d)
     }
 
@@ -305,7 +306,8 @@ impl PyDevice {
         Ok(self.tracer.set_chunk_rays(rays)?)
     }
 
-    #[pyo3(signature = (vertices, faces, build="fast_trace", allow_update=false, compact=false))]
+    #[pyo3(signature = (vertices, faces, build="fast_trace", allow_update=false, compact=false, vertex_format="float32"))]
+    #[allow(clippy::too_many_arguments)]
     fn mesh(
         &self,
         py: Python<'_>,
@@ -314,16 +316,19 @@ impl PyDevice {
         build: &str,
         allow_update: bool,
         compact: bool,
+        vertex_format: &str,
     ) -> PyResult<PyMesh> {
         let options = build_options(build, allow_update, compact)?;
+        let format = VertexFormat::parse(vertex_format)?;
         let vertices = Vec3Array::extract("vertices", vertices)?;
         let faces = IndexArray::extract(faces)?;
-        let mesh = Mesh::build(&self.ctx, vertices.view()?, faces.view()?, options, &ReleaseGil(py))?;
+        let mesh = Mesh::build(&self.ctx, vertices.view()?, faces.view()?, options, format, &ReleaseGil(py))?;
         Ok(PyMesh { mesh: Arc::new(mesh) })
     }
 
     /// Many meshes in as few submissions as `budget_bytes` of build scratch allow.
-    #[pyo3(signature = (items, build="fast_trace", allow_update=false, compact=false, budget_bytes=None))]
+    #[pyo3(signature = (items, build="fast_trace", allow_update=false, compact=false, budget_bytes=None, vertex_format="float32"))]
+    #[allow(clippy::too_many_arguments)]
     fn meshes(
         &self,
         py: Python<'_>,
@@ -332,14 +337,17 @@ impl PyDevice {
         allow_update: bool,
         compact: bool,
         budget_bytes: Option<u64>,
+        vertex_format: &str,
     ) -> PyResult<Vec<PyMesh>> {
         let options = build_options(build, allow_update, compact)?;
+        let format = VertexFormat::parse(vertex_format)?;
         let arrays = items
             .iter()
             .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
             .collect::<PyResult<Vec<_>>>()?;
         let views = arrays.iter().map(|(v, f)| Ok((v.view()?, f.view()?))).collect::<PyResult<Vec<_>>>()?;
-        let meshes = Mesh::build_many(&self.ctx, &views, options, budget_bytes.unwrap_or(u64::MAX), &ReleaseGil(py))?;
+        let meshes =
+            Mesh::build_many(&self.ctx, &views, options, format, budget_bytes.unwrap_or(u64::MAX), &ReleaseGil(py))?;
         Ok(meshes.into_iter().map(|mesh| PyMesh { mesh: Arc::new(mesh) }).collect())
     }
 
@@ -417,6 +425,8 @@ impl PyMesh {
     fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let d = stats_dict(py, &self.mesh.stats, &self.mesh.options)?;
         d.set_item("update_seconds", self.mesh.last_update_seconds())?;
+        d.set_item("vertex_format", self.mesh.vertex_format.name())?;
+        d.set_item("vertex_bytes", self.mesh.vertex_format.stride() * self.mesh.vertex_count)?;
         Ok(d)
     }
 

@@ -11,7 +11,7 @@ use glam::DVec3;
 use crate::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildPreference, BuildStats};
 use crate::context::{Context, Wait};
 use crate::error::{invalid_value, Error, Result};
-use crate::input::{check_faces, check_vertices, morton_order, write_vertices_f32, Indices, Vec3s};
+use crate::input::{check_faces, check_vertices, morton_order, Indices, Vec3s, VertexFormat};
 use crate::memory::{Buffer, Uploads};
 use crate::precision::{Aabb, Affine};
 use crate::reference::{PlacedSet, ReferenceTracer, TriangleSet};
@@ -35,6 +35,10 @@ pub struct Mesh {
     pub vertex_count: usize,
     pub triangle_count: usize,
     pub center: DVec3,
+    /// Device coordinates are `(v - center) / scale`: 1 in float32, the largest magnitude of
+    /// `v - center` in the 16-bit formats (whose range is [-1, 1]).
+    pub scale: f64,
+    pub vertex_format: VertexFormat,
     pub options: BuildOptions,
     pub stats: BuildStats,
     /// The host's f64 copy, replaced whole by `update` (scenes hold the one they were placed with).
@@ -61,9 +65,10 @@ impl Mesh {
         vertices: Vec3s,
         faces: Indices,
         options: BuildOptions,
+        format: VertexFormat,
         wait: &dyn Wait,
     ) -> Result<Mesh> {
-        let mut meshes = Mesh::build_many(ctx, &[(vertices, faces)], options, u64::MAX, wait)?;
+        let mut meshes = Mesh::build_many(ctx, &[(vertices, faces)], options, format, u64::MAX, wait)?;
         Ok(meshes.pop().expect("one mesh per input"))
     }
 
@@ -73,6 +78,7 @@ impl Mesh {
         ctx: &Arc<Context>,
         items: &[(Vec3s, Indices)],
         options: BuildOptions,
+        format: VertexFormat,
         scratch_budget: u64,
         wait: &dyn Wait,
     ) -> Result<Vec<Mesh>> {
@@ -81,7 +87,7 @@ impl Mesh {
             .iter()
             .enumerate()
             .map(|(k, (vertices, faces))| {
-                PreparedMesh::new(ctx, *vertices, *faces, &mut uploads).map_err(|e| match (e, items.len()) {
+                PreparedMesh::new(ctx, *vertices, *faces, format, &mut uploads).map_err(|e| match (e, items.len()) {
                     (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("mesh {k}: {m}")),
                     (e, _) => e,
                 })
@@ -127,16 +133,24 @@ impl Mesh {
         }
         check_vertices("vertices", vertices)?;
         let started = Instant::now();
-        // The same centre as at build: scenes' transforms and the exact tier's frames keep meaning.
-        let local: Vec<DVec3> =
-            (0..vertices.rows()).map(|i| DVec3::from_array(vertices.row_f64(i)) - self.center).collect();
+        // The same frame as at build: scenes' transforms and the exact tier's frames keep meaning.
+        let outside = (0..vertices.rows())
+            .any(|i| ((DVec3::from_array(vertices.row_f64(i)) - self.center) / self.scale).abs().max_element() > 1.0);
+        let local = device_coordinates(vertices, self.center, self.scale, self.vertex_format);
+        if self.vertex_format != VertexFormat::F32 && outside {
+            return Err(invalid_value(format!(
+                "update moves vertices beyond the range {} was built for: rebuild the mesh",
+                self.vertex_format.name()
+            )));
+        }
         let flat: Vec<f64> = local.iter().flat_map(|v| v.to_array()).collect();
         let mut uploads = Uploads::default();
-        uploads.overwrite(ctx, &self.vertices, |out| write_vertices_f32(Vec3s::F64(&flat), out))?;
+        uploads.overwrite(ctx, &self.vertices, |out| self.vertex_format.write(&flat, out))?;
         let faces = self.triangles().faces.clone();
         let input = triangles_input(
             self.vertices.address(),
             self.vertex_count,
+            self.vertex_format,
             self.indices.address(),
             self.index_is_u16,
             self.triangle_count,
@@ -160,6 +174,8 @@ struct PreparedMesh {
     vertex_count: usize,
     triangle_count: usize,
     center: DVec3,
+    scale: f64,
+    vertex_format: VertexFormat,
     host_triangles: TriangleSet,
     order: Option<Vec<u32>>,
     vertices: Buffer,
@@ -170,7 +186,13 @@ struct PreparedMesh {
 }
 
 impl PreparedMesh {
-    fn new(ctx: &Arc<Context>, vertices: Vec3s, faces: Indices, uploads: &mut Uploads) -> Result<PreparedMesh> {
+    fn new(
+        ctx: &Arc<Context>,
+        vertices: Vec3s,
+        faces: Indices,
+        format: VertexFormat,
+        uploads: &mut Uploads,
+    ) -> Result<PreparedMesh> {
         check_vertices("vertices", vertices)?;
         check_faces("faces", faces, vertices.rows())?;
         let triangle_count = faces.triangles();
@@ -180,16 +202,22 @@ impl PreparedMesh {
                 ctx.limits.max_primitive_count
             )));
         }
-        let (host_triangles, center) = recentred_triangles(vertices, faces);
+        if format != VertexFormat::F32 && !ctx.limits.vertex_formats.contains(&format) {
+            return Err(Error::Unsupported(format!(
+                "{} cannot build acceleration structures from {} vertices",
+                ctx.info.name,
+                format.name()
+            )));
+        }
+        let (host_triangles, center, scale) = device_triangles(vertices, faces, format);
         let local: &[f64] = {
             // SAFETY: DVec3 is three f64 in a repr(C) struct, so a slice of them is a slice of f64.
             let v = &host_triangles.vertices;
             unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f64, 3 * v.len()) }
         };
-        let vertex_bytes = 12 * vertices.rows() as u64;
-        let vertex_buffer = uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| {
-            write_vertices_f32(Vec3s::F64(local), out)
-        })?;
+        let vertex_bytes = (format.stride() * vertices.rows()) as u64;
+        let vertex_buffer =
+            uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| format.write(local, out))?;
         let order = ctx.presort_primitives.then(|| morton_order(vertices, faces));
         let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
             faces.write_device(out, order.as_deref())
@@ -211,12 +239,14 @@ impl PreparedMesh {
                 out[8..16].copy_from_slice(&index_buffer.address().to_ne_bytes());
                 out[16..24].copy_from_slice(&primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
                 out[24..28].copy_from_slice(&(faces.is_u16() as u32).to_ne_bytes());
-                out[28..32].fill(0);
+                out[28..32].copy_from_slice(&(format as u32).to_ne_bytes());
             })?;
         Ok(PreparedMesh {
             vertex_count: vertices.rows(),
             triangle_count,
             center,
+            scale,
+            vertex_format: format,
             host_triangles,
             order,
             vertices: vertex_buffer,
@@ -231,6 +261,7 @@ impl PreparedMesh {
         triangles_input(
             self.vertices.address(),
             self.vertex_count,
+            self.vertex_format,
             self.indices.address(),
             self.index_is_u16,
             self.triangle_count,
@@ -242,6 +273,8 @@ impl PreparedMesh {
             vertex_count: self.vertex_count,
             triangle_count: self.triangle_count,
             center: self.center,
+            scale: self.scale,
+            vertex_format: self.vertex_format,
             triangles: RwLock::new(Arc::new(self.host_triangles)),
             generation: AtomicU64::new(0),
             last_update_seconds: Mutex::new(0.0),
@@ -262,14 +295,15 @@ impl PreparedMesh {
 fn triangles_input(
     vertex_address: u64,
     vertex_count: usize,
+    format: VertexFormat,
     index_address: u64,
     index_is_u16: bool,
     triangle_count: usize,
 ) -> BuildInput<'static> {
     let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
-        .vertex_format(vk::Format::R32G32B32_SFLOAT)
+        .vertex_format(vulkan_vertex_format(format))
         .vertex_data(vk::DeviceOrHostAddressConstKHR { device_address: vertex_address })
-        .vertex_stride(12)
+        .vertex_stride(format.stride() as u64)
         .max_vertex(vertex_count as u32 - 1)
         .index_type(if index_is_u16 { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
         .index_data(vk::DeviceOrHostAddressConstKHR { device_address: index_address });
@@ -285,13 +319,34 @@ fn triangles_input(
     }
 }
 
-/// The mesh in f64, re-centred on its bounding box, and that centre.
-fn recentred_triangles(vertices: Vec3s, faces: Indices) -> (TriangleSet, DVec3) {
-    let points: Vec<DVec3> = (0..vertices.rows()).map(|i| DVec3::from_array(vertices.row_f64(i))).collect();
-    let center = Aabb::of_points(points.iter().copied()).center();
-    let local = points.into_iter().map(|p| p - center).collect();
+pub fn vulkan_vertex_format(format: VertexFormat) -> vk::Format {
+    match format {
+        VertexFormat::F32 => vk::Format::R32G32B32_SFLOAT,
+        VertexFormat::F16 => vk::Format::R16G16B16A16_SFLOAT,
+        VertexFormat::Snorm16 => vk::Format::R16G16B16A16_SNORM,
+    }
+}
+
+/// The vertices in the device's frame, `(v - center) / scale`, as the device will hold them
+/// (quantized to `format`), in f64.
+fn device_coordinates(vertices: Vec3s, center: DVec3, scale: f64, format: VertexFormat) -> Vec<DVec3> {
+    (0..vertices.rows())
+        .map(|i| ((DVec3::from_array(vertices.row_f64(i)) - center) / scale).to_array().map(|c| format.quantize(c)))
+        .map(DVec3::from_array)
+        .collect()
+}
+
+/// The mesh as the device holds it, in f64 (re-centred on its bounding box, and for the 16-bit
+/// formats scaled into [-1, 1] and quantized, so that every tier sees the same surface), with
+/// that centre and scale.
+fn device_triangles(vertices: Vec3s, faces: Indices, format: VertexFormat) -> (TriangleSet, DVec3, f64) {
+    let bounds = Aabb::of_points((0..vertices.rows()).map(|i| DVec3::from_array(vertices.row_f64(i))));
+    let center = bounds.center();
+    let half_extent = 0.5 * bounds.extent().max_element();
+    let scale = if format == VertexFormat::F32 || half_extent == 0.0 { 1.0 } else { half_extent };
+    let local = device_coordinates(vertices, center, scale, format);
     let corners = (0..faces.triangles()).map(|t| [0, 1, 2].map(|k| faces.corner(t, k) as u32)).collect();
-    (TriangleSet::new(local, corners), center)
+    (TriangleSet::new(local, corners), center, scale)
 }
 
 /// One placement of a mesh in a scene.
@@ -578,12 +633,12 @@ fn instances_input(address: u64, count: usize) -> BuildInput<'static> {
 /// and each instance's placement relative to it, all in f64.
 fn place(instances: &[Instance], center: Option<DVec3>) -> Result<(DVec3, Vec<Placement>)> {
     let triangles: Vec<Arc<TriangleSet>> = instances.iter().map(|x| x.mesh.triangles()).collect();
-    // Object to world for the re-centred mesh: M (v + c) + T = M v + (M c + T).
+    // Object to world for the mesh's device frame: M (s v + c) + T = (s M) v + (M c + T).
     let to_world: Vec<Affine> = instances
         .iter()
         .map(|x| {
             let user = Affine::from_rows(&x.transform);
-            Affine { linear: user.linear, offset: user.point(x.mesh.center) }
+            Affine { linear: user.linear * x.mesh.scale, offset: user.point(x.mesh.center) }
         })
         .collect();
     let bounds = triangles.iter().zip(&to_world).fold(Aabb::EMPTY, |b, (t, m)| b.union(&t.bounds.transformed(m)));

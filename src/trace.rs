@@ -751,7 +751,7 @@ impl Tracer {
         }
         let mut known = self.exact_pipeline_works.lock().unwrap_or_else(|e| e.into_inner());
         if known.is_none() {
-            use crate::input::{Indices, Masks, PerRay, Vec3s};
+            use crate::input::{Indices, Masks, PerRay, Vec3s, VertexFormat};
             use crate::scene::{Instance, Mesh, IDENTITY};
             let options = crate::accel::BuildOptions {
                 preference: crate::accel::BuildPreference::FastBuild,
@@ -759,8 +759,14 @@ impl Tracer {
                 compact: false,
             };
             let triangle = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
-            let mesh =
-                Arc::new(Mesh::build(&self.ctx, Vec3s::F64(&triangle), Indices::U32(&[0, 1, 2]), options, wait)?);
+            let mesh = Arc::new(Mesh::build(
+                &self.ctx,
+                Vec3s::F64(&triangle),
+                Indices::U32(&[0, 1, 2]),
+                options,
+                VertexFormat::F32,
+                wait,
+            )?);
             let instance =
                 Instance { mesh, transform: IDENTITY, custom_index: 0, mask: 0xFF, flags: Default::default() };
             let probe = Scene::build(&self.ctx, &[instance], options, wait)?;

@@ -155,3 +155,35 @@ def test_many_meshes_reject_what_cannot_fit(any_device):
         any_device.meshes([(v, f)], budget_bytes=0)
     with pytest.raises(TypeError, match="pair"):
         any_device.meshes([v])
+
+
+@pytest.mark.parametrize("vertex_format, tolerance", [("float16", 2e-3), ("snorm16", 1e-4)])
+def test_quantized_vertices_save_memory_and_stay_close(device, vertex_format, tolerance):
+    """16-bit vertices take 8 bytes instead of 12. Every tier traces the same quantized surface
+    (the f64 tiers are given the dequantized vertices), so the tiers agree with each other as on
+    float32 meshes; against the float32 mesh, hits move by at most the quantization step:
+    2^-11 of the half-size for float16, 2^-15 for snorm16 (`tolerance` of the size, p99)."""
+    if vertex_format not in device.limits["vertex_formats"]:
+        pytest.skip(f"{device.name} does not build from {vertex_format}")
+    v, f = load_obj("stanford-bunny")
+    size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
+    full = device.mesh(v, f)
+    small = device.mesh(v, f, vertex_format=vertex_format, allow_update=True)
+    assert small.stats["vertex_bytes"] == 8 * len(v) and full.stats["vertex_bytes"] == 12 * len(v)
+    origins, directions = random_rays(v, 20000, seed=36)
+    scene = device.scene(small)
+    ref = scene.intersect(origins, directions, precision="reference")
+    fast = scene.intersect(origins, directions)
+    same = fast.prim_id == ref.prim_id
+    assert same.mean() > 0.999
+    np.testing.assert_allclose(fast.t[same & ref.hit], ref.t[same & ref.hit], rtol=1e-5)
+    np.testing.assert_allclose(fast.normal[same & ref.hit], ref.normal[same & ref.hit], atol=1e-3)
+    exact32 = device.scene(full).intersect(origins, directions, precision="reference")
+    both = ref.hit & exact32.hit
+    moved = np.abs(ref.t[both] - exact32.t[both]) * np.linalg.norm(directions[both], axis=1) / size
+    assert np.percentile(moved, 99) < tolerance
+    assert (ref.hit != exact32.hit).mean() < 0.01
+    with pytest.raises(ValueError, match="beyond the range"):
+        small.update(v * 3)
+    with pytest.raises(ValueError, match="vertex_format must be"):
+        device.mesh(v, f, vertex_format="unorm8")

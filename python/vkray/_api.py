@@ -135,18 +135,25 @@ class Device:
         build: str = "fast_trace",
         allow_update: bool = False,
         compact: bool = False,
+        vertex_format: str = "float32",
     ) -> "Mesh":
         """Uploads a triangle mesh and builds its bottom-level acceleration structure.
 
         vertices: (V, 3) float32/float64 (other real dtypes become float64); any memory layout.
-        faces: (F, 3) int32/int64/uint32/uint16 corner indices into vertices.
+        faces: (F, 3) int32/int64/uint32/uint16 corner indices into vertices (uint16 and uint32
+        reach the device without widening).
         build: ``"fast_trace"`` (default), ``"fast_build"`` or ``"low_memory"``.
+        allow_update: the mesh may be refitted later with `Mesh.update`.
         compact: compact the structure after building (smaller, built slower).
+        vertex_format: ``"float32"`` (default; 12 bytes a vertex), or ``"float16"`` / ``"snorm16"``
+        (8 bytes: the vertices re-centred and scaled into [-1, 1], then quantized). Every tier then
+        traces the quantized surface; docs/benchmarks.md measures the memory saved and the
+        accuracy lost. ``Device.limits["vertex_formats"]`` lists what the device accepts.
         """
         _check_build(build)
         v = _arrays.points("vertices", vertices)
         f = _arrays.faces(faces)
-        core = self._core.mesh(v, f, build, bool(allow_update), bool(compact))
+        core = self._core.mesh(v, f, build, bool(allow_update), bool(compact), vertex_format)
         return Mesh(self, core, v, f)
 
     def meshes(
@@ -157,6 +164,7 @@ class Device:
         allow_update: bool = False,
         compact: bool = False,
         budget_bytes: Optional[int] = None,
+        vertex_format: str = "float32",
     ) -> List["Mesh"]:
         """Builds many meshes at once: ``items`` are (vertices, faces) pairs as `mesh` takes them.
 
@@ -178,7 +186,7 @@ class Device:
                 raise TypeError(f"meshes item {k} must be a (vertices, faces) pair") from None
             arrays.append((_arrays.points("vertices", vertices), _arrays.faces(faces)))
         cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact),
-                                  None if budget_bytes is None else int(budget_bytes))
+                                  None if budget_bytes is None else int(budget_bytes), vertex_format)
         return [Mesh(self, core, v, f) for core, (v, f) in zip(cores, arrays)]
 
     def scene(

@@ -33,9 +33,16 @@ class Device:
         allow_update: bool = False,
         compact: bool = False,
         budget_bytes: Optional[int] = None,
+        vertex_format: str = "float32",
     ) -> List[Mesh]: ...
     def mesh(
-        self, vertices: np.ndarray, faces: np.ndarray, build: str = ..., allow_update: bool = ..., compact: bool = ...
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        build: str = ...,
+        allow_update: bool = ...,
+        compact: bool = ...,
+        vertex_format: str = ...,
     ) -> Mesh: ...
     def scene(
         self,
