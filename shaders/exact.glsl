@@ -5,13 +5,15 @@
 // Include after common.glsl.
 
 // Per instance: the f64 map from the scene's frame to the mesh's (rows: xyz linear, w offset),
-// and where the mesh's f64 vertices and device-ordered triangles live.
+// and where the mesh's f64 vertices and boxed triangles live. Triangles are counted among all
+// parts of the mesh; `part_offsets` splits them back into (geometry, triangle within it).
 struct ExactInstance {
   dvec4 rows[3];
-  uint64_t vertices;         // f64 xyz per vertex
-  uint64_t indices;          // as GeometrySource.indices
-  uint64_t primitive_order;  // as GeometrySource.primitive_order
-  uint index_is_u16;
+  uint64_t vertices;         // f64 xyz per vertex, all parts
+  uint64_t indices;          // uint32 corner triples, in box order
+  uint64_t primitive_order;  // box -> caller's triangle among all parts, or 0 if the same
+  uint64_t part_offsets;     // uint32: first triangle of each part, then the total
+  uint part_count;
   uint flags;                // 1: culling disabled; 2: front is opposite the object-space normal
 };
 layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer ExactInstances { ExactInstance x[]; };
@@ -123,7 +125,7 @@ bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, in
   precise double sy = d[ky] / d[kz];
   precise double sz = 1.0 / d[kz];
 
-  uvec3 idx = triangle_indices_at(x.indices, x.index_is_u16, uint(prim));
+  uvec3 idx = triangle_indices_at(x.indices, 0u, uint(prim));
   dvec3 p[3];
   for (int k = 0; k < 3; ++k) {
     precise dvec3 v = exact_vertex(x, idx[k]) - o;
@@ -158,17 +160,23 @@ bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, in
   return true;
 }
 
-// Writes the requested fields of the best hit: t and uv in f64, the normal from f64 vertices.
+// Writes the requested fields of the best hit: t and uv in f64, the normal from f64 vertices,
+// the caller's triangle as (geometry, triangle within that part).
 void store_exact(uint i, ExactBest best) {
   bool hit = best.prim >= 0;
   ExactInstance x;
   int caller = -1;
+  int geometry = -1;
   vec3 normal = vec3(uintBitsToFloat(0x7fc00000u));
   if (hit) {
     x = ExactInstances(params.instances).x[best.instance];
     caller = caller_index(x.primitive_order, best.prim);
+    Words offsets = Words(x.part_offsets);
+    geometry = 0;
+    while (uint(geometry) + 1u < x.part_count && offsets.v[geometry + 1] <= uint(caller)) ++geometry;
+    caller -= int(offsets.v[geometry]);
     if ((OUTPUTS & OUT_NORMAL) != 0u) {
-      uvec3 idx = triangle_indices_at(x.indices, x.index_is_u16, uint(best.prim));
+      uvec3 idx = triangle_indices_at(x.indices, 0u, uint(best.prim));
       dvec3 a = exact_vertex(x, idx.x);
       dvec3 n = cross(exact_vertex(x, idx.y) - a, exact_vertex(x, idx.z) - a);
       // The inverse transpose of the mesh-to-scene map is the transpose of its inverse (rows).
@@ -182,7 +190,7 @@ void store_exact(uint i, ExactBest best) {
   if ((OUTPUTS & OUT_PRIM) != 0u) IntOut(params.out_prim).v[i] = caller;
   if ((OUTPUTS & OUT_INSTANCE) != 0u) IntOut(params.out_instance).v[i] = hit ? best.instance : -1;
   if ((OUTPUTS & OUT_CUSTOM) != 0u) IntOut(params.out_custom).v[i] = hit ? best.custom : -1;
-  if ((OUTPUTS & OUT_GEOMETRY) != 0u) IntOut(params.out_geometry).v[i] = hit ? best.geometry : -1;
+  if ((OUTPUTS & OUT_GEOMETRY) != 0u) IntOut(params.out_geometry).v[i] = geometry;
   if ((OUTPUTS & OUT_UV) != 0u) {
     DoubleOut uv = DoubleOut(params.out_uv);
     uv.v[2u * i] = hit ? best.u : nan;

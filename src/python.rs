@@ -326,6 +326,28 @@ impl PyDevice {
         Ok(PyMesh { mesh: Arc::new(mesh) })
     }
 
+    /// One mesh of several parts (geometries), each (vertices, faces) with transforms baked in.
+    #[pyo3(signature = (parts, build="fast_trace", allow_update=false, compact=false, vertex_format="float32"))]
+    fn mesh_parts(
+        &self,
+        py: Python<'_>,
+        parts: Vec<(Bound<'_, PyAny>, Bound<'_, PyAny>)>,
+        build: &str,
+        allow_update: bool,
+        compact: bool,
+        vertex_format: &str,
+    ) -> PyResult<PyMesh> {
+        let options = build_options(build, allow_update, compact)?;
+        let format = VertexFormat::parse(vertex_format)?;
+        let arrays = parts
+            .iter()
+            .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
+            .collect::<PyResult<Vec<_>>>()?;
+        let views = arrays.iter().map(|(v, f)| Ok((v.view()?, f.view()?))).collect::<PyResult<Vec<_>>>()?;
+        let mesh = Mesh::build_parts(&self.ctx, &views, options, format, &ReleaseGil(py))?;
+        Ok(PyMesh { mesh: Arc::new(mesh) })
+    }
+
     /// Many meshes in as few submissions as `budget_bytes` of build scratch allow.
     #[pyo3(signature = (items, build="fast_trace", allow_update=false, compact=false, budget_bytes=None, vertex_format="float32"))]
     #[allow(clippy::too_many_arguments)]
@@ -345,9 +367,10 @@ impl PyDevice {
             .iter()
             .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
             .collect::<PyResult<Vec<_>>>()?;
-        let views = arrays.iter().map(|(v, f)| Ok((v.view()?, f.view()?))).collect::<PyResult<Vec<_>>>()?;
+        let views = arrays.iter().map(|(v, f)| Ok([(v.view()?, f.view()?)])).collect::<PyResult<Vec<_>>>()?;
+        let items: Vec<&[(Vec3s, Indices)]> = views.iter().map(|v| v.as_slice()).collect();
         let meshes =
-            Mesh::build_many(&self.ctx, &views, options, format, budget_bytes.unwrap_or(u64::MAX), &ReleaseGil(py))?;
+            Mesh::build_many(&self.ctx, &items, options, format, budget_bytes.unwrap_or(u64::MAX), &ReleaseGil(py))?;
         Ok(meshes.into_iter().map(|mesh| PyMesh { mesh: Arc::new(mesh) }).collect())
     }
 
@@ -419,6 +442,11 @@ impl PyMesh {
     #[getter]
     fn triangle_count(&self) -> usize {
         self.mesh.triangle_count
+    }
+
+    #[getter]
+    fn part_count(&self) -> usize {
+        self.mesh.part_count()
     }
 
     #[getter]

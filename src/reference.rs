@@ -105,13 +105,28 @@ pub struct TriangleSet {
     pub vertices: Vec<DVec3>,
     pub faces: Vec<[u32; 3]>,
     pub bounds: Aabb,
+    /// Where each part (geometry) of a multi-part mesh starts among `faces`, and the end.
+    pub part_offsets: Vec<u32>,
     bvh: OnceLock<Bvh>,
 }
 
 impl TriangleSet {
-    pub fn new(vertices: Vec<DVec3>, faces: Vec<[u32; 3]>) -> TriangleSet {
+    /// `part_offsets`: first triangle of each part, then the total (`[0, faces.len()]` for one).
+    pub fn new(vertices: Vec<DVec3>, faces: Vec<[u32; 3]>, part_offsets: Vec<u32>) -> TriangleSet {
+        debug_assert_eq!(part_offsets.last().copied(), Some(faces.len() as u32));
         let bounds = Aabb::of_points(vertices.iter().copied());
-        TriangleSet { vertices, faces, bounds, bvh: OnceLock::new() }
+        TriangleSet { vertices, faces, bounds, part_offsets, bvh: OnceLock::new() }
+    }
+
+    /// The index among all triangles of triangle `prim` of part `part`.
+    pub fn global(&self, part: usize, prim: usize) -> usize {
+        self.part_offsets[part] as usize + prim
+    }
+
+    /// (part, triangle within it) of a triangle's index among all.
+    pub fn split(&self, global: usize) -> (usize, usize) {
+        let part = self.part_offsets.partition_point(|&start| start as usize <= global) - 1;
+        (part, global - self.part_offsets[part] as usize)
     }
 
     fn bvh(&self) -> &Bvh {
@@ -251,7 +266,8 @@ mod tests {
                 faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
             }
         }
-        TriangleSet::new(vertices, faces)
+        let count = faces.len() as u32;
+        TriangleSet::new(vertices, faces, vec![0, count])
     }
 
     #[test]
@@ -295,6 +311,16 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn parts_split_and_join_triangle_indices() {
+        let set = TriangleSet::new(vec![DVec3::ZERO; 3], vec![[0, 1, 2]; 6], vec![0, 2, 2, 6]);
+        assert_eq!(set.split(0), (0, 0));
+        assert_eq!(set.split(1), (0, 1));
+        assert_eq!(set.split(2), (2, 0)); // part 1 is empty
+        assert_eq!(set.split(5), (2, 3));
+        assert_eq!(set.global(2, 3), 5);
     }
 
     #[test]

@@ -48,14 +48,43 @@ pub struct Mesh {
     /// Seconds the last `update` took (upload and refit), 0 before any.
     last_update_seconds: Mutex<f64>,
     blas: AccelerationStructure,
-    /// Device triangle -> caller's triangle, where the device holds them in another order.
-    device_order: Option<Vec<u32>>,
-    // Read by shaders (normals) through `sources`; kept alive as long as the mesh.
+    /// One per geometry of the BLAS.
+    parts: Vec<Part>,
+    /// A `GeometrySource` per part, read by shaders (normals, caller's triangle indices).
+    sources: Buffer,
+}
+
+/// One geometry of a mesh's BLAS: its device buffers.
+struct Part {
+    vertex_count: usize,
+    triangle_count: usize,
     vertices: Buffer,
     indices: Buffer,
     index_is_u16: bool,
+    /// Device triangle -> caller's triangle, where the device holds them in another order.
+    device_order: Option<Vec<u32>>,
     primitive_order: Option<Buffer>,
-    sources: Buffer,
+}
+
+impl Part {
+    fn geometry(&self, format: VertexFormat) -> vk::AccelerationStructureGeometryKHR<'static> {
+        let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
+            .vertex_format(vulkan_vertex_format(format))
+            .vertex_data(vk::DeviceOrHostAddressConstKHR { device_address: self.vertices.address() })
+            .vertex_stride(format.stride() as u64)
+            .max_vertex(self.vertex_count as u32 - 1)
+            .index_type(if self.index_is_u16 { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
+            .index_data(vk::DeviceOrHostAddressConstKHR { device_address: self.indices.address() });
+        vk::AccelerationStructureGeometryKHR::default()
+            .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
+            .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
+            .flags(vk::GeometryFlagsKHR::OPAQUE)
+    }
+
+    /// The caller's triangle (within this part) held at `device`.
+    fn caller_triangle(&self, device: usize) -> usize {
+        self.device_order.as_ref().map_or(device, |order| order[device] as usize)
+    }
 }
 
 impl Mesh {
@@ -68,15 +97,28 @@ impl Mesh {
         format: VertexFormat,
         wait: &dyn Wait,
     ) -> Result<Mesh> {
-        let mut meshes = Mesh::build_many(ctx, &[(vertices, faces)], options, format, u64::MAX, wait)?;
+        Mesh::build_parts(ctx, &[(vertices, faces)], options, format, wait)
+    }
+
+    /// One mesh from several parts, each a geometry of one BLAS (`Hits.geometry_id` tells them
+    /// apart; triangle ids count within each part).
+    pub fn build_parts(
+        ctx: &Arc<Context>,
+        parts: &[(Vec3s, Indices)],
+        options: BuildOptions,
+        format: VertexFormat,
+        wait: &dyn Wait,
+    ) -> Result<Mesh> {
+        let mut meshes = Mesh::build_many(ctx, &[parts], options, format, u64::MAX, wait)?;
         Ok(meshes.pop().expect("one mesh per input"))
     }
 
-    /// Builds many meshes in as few submissions as `scratch_budget` bytes of build scratch allow
-    /// (see `accel::build_many`); the error of a bad input names its position.
+    /// Builds many meshes (each from its parts) in as few submissions as `scratch_budget` bytes
+    /// of build scratch allow (see `accel::build_many`); the error of a bad input names its
+    /// position.
     pub fn build_many(
         ctx: &Arc<Context>,
-        items: &[(Vec3s, Indices)],
+        items: &[&[(Vec3s, Indices)]],
         options: BuildOptions,
         format: VertexFormat,
         scratch_budget: u64,
@@ -86,8 +128,8 @@ impl Mesh {
         let prepared = items
             .iter()
             .enumerate()
-            .map(|(k, (vertices, faces))| {
-                PreparedMesh::new(ctx, *vertices, *faces, format, &mut uploads).map_err(|e| match (e, items.len()) {
+            .map(|(k, parts)| {
+                PreparedMesh::new(ctx, parts, format, &mut uploads).map_err(|e| match (e, items.len()) {
                     (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("mesh {k}: {m}")),
                     (e, _) => e,
                 })
@@ -124,6 +166,9 @@ impl Mesh {
         if !self.options.allow_update {
             return Err(invalid_value("this mesh was built without allow_update=True, so it cannot be refitted"));
         }
+        let [part] = self.parts.as_slice() else {
+            return Err(Error::Unsupported("Mesh.update refits single-part meshes; rebuild a multi-part mesh".into()));
+        };
         if vertices.rows() != self.vertex_count {
             return Err(invalid_value(format!(
                 "update needs the same {} vertices (the faces stay), got {}: rebuild the mesh to change its topology",
@@ -145,26 +190,19 @@ impl Mesh {
         }
         let flat: Vec<f64> = local.iter().flat_map(|v| v.to_array()).collect();
         let mut uploads = Uploads::default();
-        uploads.overwrite(ctx, &self.vertices, |out| self.vertex_format.write(&flat, out))?;
-        let faces = self.triangles().faces.clone();
-        let input = triangles_input(
-            self.vertices.address(),
-            self.vertex_count,
-            self.vertex_format,
-            self.indices.address(),
-            self.index_is_u16,
-            self.triangle_count,
-        );
+        uploads.overwrite(ctx, &part.vertices, |out| self.vertex_format.write(&flat, out))?;
+        let old = self.triangles();
+        let input = mesh_input(std::slice::from_ref(part), self.vertex_format);
         accel::update(ctx, &self.blas, &input, self.options, self.stats.update_scratch_size, &uploads, wait)?;
-        *self.triangles.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(TriangleSet::new(local, faces));
+        let moved = TriangleSet::new(local, old.faces.clone(), old.part_offsets.clone());
+        *self.triangles.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(moved);
         self.generation.fetch_add(1, Ordering::AcqRel);
         *self.last_update_seconds.lock().unwrap_or_else(|e| e.into_inner()) = started.elapsed().as_secs_f64();
         Ok(())
     }
 
-    /// The caller's triangle held at `device` on the device.
-    fn caller_triangle(&self, device: usize) -> usize {
-        self.device_order.as_ref().map_or(device, |order| order[device] as usize)
+    pub fn part_count(&self) -> usize {
+        self.parts.len()
     }
 }
 
@@ -177,25 +215,36 @@ struct PreparedMesh {
     scale: f64,
     vertex_format: VertexFormat,
     host_triangles: TriangleSet,
-    order: Option<Vec<u32>>,
-    vertices: Buffer,
-    indices: Buffer,
-    index_is_u16: bool,
-    primitive_order: Option<Buffer>,
+    parts: Vec<Part>,
     sources: Buffer,
 }
 
 impl PreparedMesh {
     fn new(
         ctx: &Arc<Context>,
-        vertices: Vec3s,
-        faces: Indices,
+        parts: &[(Vec3s, Indices)],
         format: VertexFormat,
         uploads: &mut Uploads,
     ) -> Result<PreparedMesh> {
-        check_vertices("vertices", vertices)?;
-        check_faces("faces", faces, vertices.rows())?;
-        let triangle_count = faces.triangles();
+        if parts.is_empty() {
+            return Err(invalid_value("a mesh needs at least one part"));
+        }
+        if parts.len() as u64 > ctx.limits.max_geometry_count {
+            return Err(Error::Unsupported(format!(
+                "{} parts exceed this device's maxGeometryCount ({})",
+                parts.len(),
+                ctx.limits.max_geometry_count
+            )));
+        }
+        for (k, (vertices, faces)) in parts.iter().enumerate() {
+            let named = |e: Error| match (e, parts.len()) {
+                (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("part {k}: {m}")),
+                (e, _) => e,
+            };
+            check_vertices("vertices", *vertices).map_err(named)?;
+            check_faces("faces", *faces, vertices.rows()).map_err(named)?;
+        }
+        let triangle_count: usize = parts.iter().map(|(_, f)| f.triangles()).sum();
         if triangle_count as u64 > ctx.limits.max_primitive_count {
             return Err(Error::Unsupported(format!(
                 "{triangle_count} triangles exceed this device's maxPrimitiveCount ({})",
@@ -209,63 +258,75 @@ impl PreparedMesh {
                 format.name()
             )));
         }
-        let (host_triangles, center, scale) = device_triangles(vertices, faces, format);
+        let (host_triangles, center, scale) = device_triangles(parts, format);
         let local: &[f64] = {
             // SAFETY: DVec3 is three f64 in a repr(C) struct, so a slice of them is a slice of f64.
             let v = &host_triangles.vertices;
             unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f64, 3 * v.len()) }
         };
-        let vertex_bytes = (format.stride() * vertices.rows()) as u64;
-        let vertex_buffer =
-            uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| format.write(local, out))?;
-        let order = ctx.presort_primitives.then(|| morton_order(vertices, faces));
-        let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
-            faces.write_device(out, order.as_deref())
-        })?;
-        // Shaders map the device's triangle order back to the caller's.
-        let primitive_order = match &order {
-            Some(order) => {
-                Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "primitive order", |out, _| {
-                    for (dst, t) in out.chunks_exact_mut(4).zip(order) {
-                        dst.copy_from_slice(&t.to_ne_bytes());
-                    }
-                })?)
-            }
-            None => None,
-        };
-        let sources =
-            uploads.buffer(ctx, GEOMETRY_SOURCE_BYTES as u64, GEOMETRY_INPUT, "geometry sources", |out, _| {
-                out[0..8].copy_from_slice(&vertex_buffer.address().to_ne_bytes());
-                out[8..16].copy_from_slice(&index_buffer.address().to_ne_bytes());
-                out[16..24].copy_from_slice(&primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
-                out[24..28].copy_from_slice(&(faces.is_u16() as u32).to_ne_bytes());
-                out[28..32].copy_from_slice(&(format as u32).to_ne_bytes());
+        let mut first_vertex = 0;
+        let mut prepared = Vec::with_capacity(parts.len());
+        for (vertices, faces) in parts {
+            let own = &local[3 * first_vertex..3 * (first_vertex + vertices.rows())];
+            first_vertex += vertices.rows();
+            let vertex_bytes = (format.stride() * vertices.rows()) as u64;
+            let vertex_buffer =
+                uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| format.write(own, out))?;
+            let order = ctx.presort_primitives.then(|| morton_order(*vertices, *faces));
+            let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
+                faces.write_device(out, order.as_deref())
             })?;
+            // Shaders map the device's triangle order back to the caller's.
+            let primitive_order = match &order {
+                Some(order) => {
+                    Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "primitive order", |out, _| {
+                        for (dst, t) in out.chunks_exact_mut(4).zip(order) {
+                            dst.copy_from_slice(&t.to_ne_bytes());
+                        }
+                    })?)
+                }
+                None => None,
+            };
+            prepared.push(Part {
+                vertex_count: vertices.rows(),
+                triangle_count: faces.triangles(),
+                vertices: vertex_buffer,
+                indices: index_buffer,
+                index_is_u16: faces.is_u16(),
+                device_order: order,
+                primitive_order,
+            });
+        }
+        let sources = uploads.buffer(
+            ctx,
+            (GEOMETRY_SOURCE_BYTES * parts.len()) as u64,
+            GEOMETRY_INPUT,
+            "geometry sources",
+            |out, _| {
+                for (dst, part) in out.chunks_exact_mut(GEOMETRY_SOURCE_BYTES).zip(&prepared) {
+                    dst[0..8].copy_from_slice(&part.vertices.address().to_ne_bytes());
+                    dst[8..16].copy_from_slice(&part.indices.address().to_ne_bytes());
+                    dst[16..24]
+                        .copy_from_slice(&part.primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
+                    dst[24..28].copy_from_slice(&(part.index_is_u16 as u32).to_ne_bytes());
+                    dst[28..32].copy_from_slice(&(format as u32).to_ne_bytes());
+                }
+            },
+        )?;
         Ok(PreparedMesh {
-            vertex_count: vertices.rows(),
+            vertex_count: first_vertex,
             triangle_count,
             center,
             scale,
             vertex_format: format,
             host_triangles,
-            order,
-            vertices: vertex_buffer,
-            indices: index_buffer,
-            index_is_u16: faces.is_u16(),
-            primitive_order,
+            parts: prepared,
             sources,
         })
     }
 
     fn input(&self) -> BuildInput<'static> {
-        triangles_input(
-            self.vertices.address(),
-            self.vertex_count,
-            self.vertex_format,
-            self.indices.address(),
-            self.index_is_u16,
-            self.triangle_count,
-        )
+        mesh_input(&self.parts, self.vertex_format)
     }
 
     fn finish(self, options: BuildOptions, blas: AccelerationStructure, stats: BuildStats) -> Mesh {
@@ -281,40 +342,18 @@ impl PreparedMesh {
             options,
             stats,
             blas,
-            device_order: self.order,
-            vertices: self.vertices,
-            indices: self.indices,
-            index_is_u16: self.index_is_u16,
-            primitive_order: self.primitive_order,
+            parts: self.parts,
             sources: self.sources,
         }
     }
 }
 
-/// The build input of a mesh's BLAS: one opaque triangle geometry over its device buffers.
-fn triangles_input(
-    vertex_address: u64,
-    vertex_count: usize,
-    format: VertexFormat,
-    index_address: u64,
-    index_is_u16: bool,
-    triangle_count: usize,
-) -> BuildInput<'static> {
-    let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
-        .vertex_format(vulkan_vertex_format(format))
-        .vertex_data(vk::DeviceOrHostAddressConstKHR { device_address: vertex_address })
-        .vertex_stride(format.stride() as u64)
-        .max_vertex(vertex_count as u32 - 1)
-        .index_type(if index_is_u16 { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
-        .index_data(vk::DeviceOrHostAddressConstKHR { device_address: index_address });
-    let geometry = vk::AccelerationStructureGeometryKHR::default()
-        .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
-        .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
-        .flags(vk::GeometryFlagsKHR::OPAQUE);
+/// The build input of a mesh's BLAS: one opaque triangle geometry per part.
+fn mesh_input(parts: &[Part], format: VertexFormat) -> BuildInput<'static> {
     BuildInput {
         ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-        geometries: vec![geometry],
-        primitive_counts: vec![triangle_count as u32],
+        geometries: parts.iter().map(|p| p.geometry(format)).collect(),
+        primitive_counts: parts.iter().map(|p| p.triangle_count as u32).collect(),
         name: "mesh BLAS",
     }
 }
@@ -336,17 +375,24 @@ fn device_coordinates(vertices: Vec3s, center: DVec3, scale: f64, format: Vertex
         .collect()
 }
 
-/// The mesh as the device holds it, in f64 (re-centred on its bounding box, and for the 16-bit
-/// formats scaled into [-1, 1] and quantized, so that every tier sees the same surface), with
-/// that centre and scale.
-fn device_triangles(vertices: Vec3s, faces: Indices, format: VertexFormat) -> (TriangleSet, DVec3, f64) {
-    let bounds = Aabb::of_points((0..vertices.rows()).map(|i| DVec3::from_array(vertices.row_f64(i))));
+/// The mesh as the device holds it, all parts together, in f64 (re-centred on its bounding box,
+/// and for the 16-bit formats scaled into [-1, 1] and quantized, so that every tier sees the same
+/// surface), with that centre and scale.
+fn device_triangles(parts: &[(Vec3s, Indices)], format: VertexFormat) -> (TriangleSet, DVec3, f64) {
+    let points = || parts.iter().flat_map(|(v, _)| (0..v.rows()).map(move |i| DVec3::from_array(v.row_f64(i))));
+    let bounds = Aabb::of_points(points());
     let center = bounds.center();
     let half_extent = 0.5 * bounds.extent().max_element();
     let scale = if format == VertexFormat::F32 || half_extent == 0.0 { 1.0 } else { half_extent };
-    let local = device_coordinates(vertices, center, scale, format);
-    let corners = (0..faces.triangles()).map(|t| [0, 1, 2].map(|k| faces.corner(t, k) as u32)).collect();
-    (TriangleSet::new(local, corners), center, scale)
+    let local =
+        points().map(|p| DVec3::from_array(((p - center) / scale).to_array().map(|c| format.quantize(c)))).collect();
+    let (mut faces, mut part_offsets, mut first_vertex) = (Vec::new(), vec![0u32], 0u32);
+    for (vertices, indices) in parts {
+        faces.extend((0..indices.triangles()).map(|t| [0, 1, 2].map(|k| first_vertex + indices.corner(t, k) as u32)));
+        part_offsets.push(faces.len() as u32);
+        first_vertex += vertices.rows() as u32;
+    }
+    (TriangleSet::new(local, faces, part_offsets), center, scale)
 }
 
 /// One placement of a mesh in a scene.
@@ -664,8 +710,8 @@ fn place(instances: &[Instance], center: Option<DVec3>) -> Result<(DVec3, Vec<Pl
     Ok((center, placements))
 }
 
-/// Bytes of one `ExactInstance` record in `shaders/exact.glsl`.
-const EXACT_INSTANCE_BYTES: usize = 128;
+/// Bytes of one `ExactInstance` record in `shaders/exact.glsl` (136, padded to its dvec4 alignment).
+const EXACT_INSTANCE_BYTES: usize = 160;
 
 /// Relative slack of the exact tier's boxes: f32 traversal (origin, direction, instance transform
 /// and the hardware's own box test, each a few ulps of the scene's size) must never miss a box
@@ -681,7 +727,21 @@ pub struct ExactScene {
     /// The scene's bounds in its frame, padded and rounded outward to f32 (min xyz, max xyz).
     bounds: [f32; 6],
     _records: Buffer,
-    _meshes: Vec<(AccelerationStructure, Buffer, Buffer)>,
+    _meshes: Vec<ExactMesh>,
+}
+
+/// The exact tier's copy of one mesh: a box per triangle (all parts in one geometry, the device
+/// order of each part in turn) and what the shader reads to test and name them.
+struct ExactMesh {
+    blas: AccelerationStructure,
+    _boxes: Buffer,
+    vertices: Buffer,
+    /// u32 corner triples (indices among all parts' vertices), in box order.
+    faces: Buffer,
+    /// Box -> caller's triangle among all parts, where they differ.
+    primitive_order: Option<Buffer>,
+    /// The first triangle of each part among all, then the total (u32 each).
+    part_offsets: Buffer,
 }
 
 impl ExactScene {
@@ -696,7 +756,7 @@ impl ExactScene {
         let scene_bounds = scene.placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds));
         let world_slack = EXACT_SLACK * scene_bounds.extent().max_element();
         let options = BuildOptions { preference: BuildPreference::FastTrace, allow_update: false, compact: false };
-        let mut built: Vec<(AccelerationStructure, Buffer, Buffer)> = Vec::new();
+        let mut built: Vec<ExactMesh> = Vec::new();
         for mesh in &scene.meshes {
             let triangles =
                 &scene.placements.iter().find(|p| Arc::ptr_eq(&p.mesh, mesh)).expect("placed mesh").triangles;
@@ -712,27 +772,61 @@ impl ExactScene {
                 })
                 .fold(0.0, f64::max);
             let pad = world_slack * stretch + EXACT_SLACK * triangles.bounds.extent().max_element();
+            // Box order: each part's device order in turn, as caller's triangles among all.
+            let order: Vec<u32> = mesh
+                .parts
+                .iter()
+                .enumerate()
+                .flat_map(|(k, part)| {
+                    (0..part.triangle_count).map(move |d| triangles.global(k, part.caller_triangle(d)) as u32)
+                })
+                .collect();
+            let identity = order.iter().enumerate().all(|(d, &t)| d as u32 == t);
             let mut uploads = Uploads::default();
-            let aabbs =
-                uploads.buffer(ctx, 24 * mesh.triangle_count as u64, GEOMETRY_INPUT, "exact boxes", |out, _| {
-                    for (device, dst) in out.chunks_exact_mut(24).enumerate() {
-                        let b = Aabb::of_points(triangles.triangle(mesh.caller_triangle(device))).padded(pad);
-                        let corners = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
-                        for (k, (d, v)) in dst.chunks_exact_mut(4).zip(corners).enumerate() {
-                            d.copy_from_slice(&round_outward(v, k < 3).to_ne_bytes());
-                        }
+            let boxes = uploads.buffer(ctx, 24 * order.len() as u64, GEOMETRY_INPUT, "exact boxes", |out, _| {
+                for (dst, &t) in out.chunks_exact_mut(24).zip(&order) {
+                    let b = Aabb::of_points(triangles.triangle(t as usize)).padded(pad);
+                    let corners = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
+                    for (k, (d, v)) in dst.chunks_exact_mut(4).zip(corners).enumerate() {
+                        d.copy_from_slice(&round_outward(v, k < 3).to_ne_bytes());
                     }
-                })?;
-            let vertices64 =
-                uploads.buffer(ctx, 24 * mesh.vertex_count as u64, GEOMETRY_INPUT, "exact vertices", |out, _| {
+                }
+            })?;
+            let u32s = |values: &mut dyn Iterator<Item = u32>, out: &mut [u8]| {
+                for (dst, v) in out.chunks_exact_mut(4).zip(values) {
+                    dst.copy_from_slice(&v.to_ne_bytes());
+                }
+            };
+            let vertices = uploads.buffer(
+                ctx,
+                24 * triangles.vertices.len() as u64,
+                GEOMETRY_INPUT,
+                "exact vertices",
+                |out, _| {
                     for (dst, v) in out.chunks_exact_mut(24).zip(&triangles.vertices) {
                         for (d, c) in dst.chunks_exact_mut(8).zip(v.to_array()) {
                             d.copy_from_slice(&c.to_ne_bytes());
                         }
                     }
+                },
+            )?;
+            let faces = uploads.buffer(ctx, 12 * order.len() as u64, GEOMETRY_INPUT, "exact faces", |out, _| {
+                u32s(&mut order.iter().flat_map(|&t| triangles.faces[t as usize]), out)
+            })?;
+            let primitive_order = if identity {
+                None
+            } else {
+                Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "exact order", |out, _| {
+                    u32s(&mut order.iter().copied(), out)
+                })?)
+            };
+            let offsets = &triangles.part_offsets;
+            let part_offsets =
+                uploads.buffer(ctx, 4 * offsets.len() as u64, GEOMETRY_INPUT, "exact part offsets", |out, _| {
+                    u32s(&mut offsets.iter().copied(), out)
                 })?;
             let data = vk::AccelerationStructureGeometryAabbsDataKHR::default()
-                .data(vk::DeviceOrHostAddressConstKHR { device_address: aabbs.address() })
+                .data(vk::DeviceOrHostAddressConstKHR { device_address: boxes.address() })
                 .stride(24);
             let geometry = vk::AccelerationStructureGeometryKHR::default()
                 .geometry_type(vk::GeometryTypeKHR::AABBS)
@@ -741,18 +835,18 @@ impl ExactScene {
             let input = BuildInput {
                 ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
                 geometries: vec![geometry],
-                primitive_counts: vec![mesh.triangle_count as u32],
+                primitive_counts: vec![order.len() as u32],
                 name: "exact boxes BLAS",
             };
             let (blas, _) = accel::build(ctx, &input, options, &uploads, wait)?;
-            built.push((blas, aabbs, vertices64));
+            built.push(ExactMesh { blas, _boxes: boxes, vertices, faces, primitive_order, part_offsets });
         }
         let mesh_index = |p: &Placement| scene.meshes.iter().position(|m| Arc::ptr_eq(m, &p.mesh)).expect("scene mesh");
         let mut uploads = Uploads::default();
         let n = scene.placements.len();
         let records = uploads.buffer(ctx, 64 * n as u64, GEOMETRY_INPUT, "exact instances", |out, _| {
             for (dst, p) in out.chunks_exact_mut(64).zip(&scene.placements) {
-                let blas = built[mesh_index(p)].0.address();
+                let blas = built[mesh_index(p)].blas.address();
                 dst.copy_from_slice(&accel::instance_record(
                     &p.to_scene.to_rows_f32(),
                     p.custom_index,
@@ -778,14 +872,17 @@ impl ExactScene {
                     for (d, v) in dst[..96].chunks_exact_mut(8).zip(doubles) {
                         d.copy_from_slice(&v.to_ne_bytes());
                     }
-                    let mesh = &p.mesh;
-                    dst[96..104].copy_from_slice(&built[mesh_index(p)].2.address().to_ne_bytes());
-                    dst[104..112].copy_from_slice(&mesh.indices.address().to_ne_bytes());
-                    dst[112..120]
-                        .copy_from_slice(&mesh.primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
-                    dst[120..124].copy_from_slice(&(mesh.index_is_u16 as u32).to_ne_bytes());
+                    let mesh = &built[mesh_index(p)];
+                    dst[96..104].copy_from_slice(&mesh.vertices.address().to_ne_bytes());
+                    dst[104..112].copy_from_slice(&mesh.faces.address().to_ne_bytes());
+                    let order = mesh.primitive_order.as_ref().map_or(0, |b| b.address());
+                    dst[112..120].copy_from_slice(&order.to_ne_bytes());
+                    dst[120..128].copy_from_slice(&mesh.part_offsets.address().to_ne_bytes());
+                    let parts = p.triangles.part_offsets.len() as u32 - 1;
+                    dst[128..132].copy_from_slice(&parts.to_ne_bytes());
                     let flags = p.flags.cull_disable as u32 | (p.flip_facing as u32) << 1;
-                    dst[124..128].copy_from_slice(&flags.to_ne_bytes());
+                    dst[132..136].copy_from_slice(&flags.to_ne_bytes());
+                    dst[136..].fill(0);
                 }
             },
         )?;

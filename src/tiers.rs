@@ -34,14 +34,17 @@ fn int_at(bytes: &[u8], i: usize) -> i32 {
     i32::from_ne_bytes(bytes[4 * i..4 * i + 4].try_into().expect("4 bytes"))
 }
 
-/// Re-intersects each hit the GPU found (the sink's `prim` and `instance`, -1 on a miss) with its
+/// Re-intersects each hit the GPU found (the sink's `prim`, `instance`, `geometry`) with its
 /// triangle in f64, in the mesh's own frame, and writes the fields the sink asks for (`t` and
 /// `uv` as f64, the normal from f64 vertices). Where the f64 answer leaves the ray's interval
 /// (f32 traversal accepted a triangle the ray only grazes, or one just behind an origin that
 /// sits on it, as secondary rays do), that ray is traced again by the CPU tracer.
 pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink) {
-    let (prim, instance) =
-        (sink.field(Field::Prim).unwrap_or_default(), sink.field(Field::Instance).unwrap_or_default());
+    let (prim, instance, geometry) = (
+        sink.field(Field::Prim).unwrap_or_default(),
+        sink.field(Field::Instance).unwrap_or_default(),
+        sink.field(Field::Geometry).unwrap_or_default(),
+    );
     let refined: Vec<Result<Option<ReferenceHit>, ()>> = (0..rays.len())
         .into_par_iter()
         .with_min_len(1024)
@@ -52,10 +55,11 @@ pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink) {
             }
             let placement = &scene.placements[k as usize];
             let ray = rays.ray64(i, scene.center).transformed(&placement.to_local);
-            let [a, b, c] = placement.triangles.triangle(p as usize);
+            let global = placement.triangles.global(int_at(geometry, i) as usize, p as usize);
+            let [a, b, c] = placement.triangles.triangle(global);
             match plane_hit(&ray, a, b, c) {
                 Some(h) if h.t >= ray.tmin && h.t <= ray.tmax => {
-                    Ok(Some(ReferenceHit { t: h.t, u: h.u, v: h.v, instance: k as u32, prim: p as u32 }))
+                    Ok(Some(ReferenceHit { t: h.t, u: h.u, v: h.v, instance: k as u32, prim: global as u32 }))
                 }
                 _ => Err(()),
             }
@@ -80,8 +84,8 @@ pub fn reference(scene: &Scene, rays: &Rays, cull: Cull, any: bool, sink: &mut H
     write_hits(scene, sink, &hits);
 }
 
-/// Writes every field the sink asks for from f64 hits: `t` and `uv` as f64, normals from the
-/// f64 vertices.
+/// Writes every field the sink asks for from f64 hits (whose `prim` counts among all parts of
+/// the mesh): `t` and `uv` as f64, normals from the f64 vertices, (geometry, triangle in it).
 fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) {
     write_field(sink, Field::T, true, |i, dst| put_f64s(dst, &[hits[i].map_or(f64::INFINITY, |h| h.t)]));
     write_field(sink, Field::Uv, true, |i, dst| put_f64s(dst, &hits[i].map_or([f64::NAN; 2], |h| [h.u, h.v])));
@@ -90,10 +94,13 @@ fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) 
             dst.copy_from_slice(&hits[i].as_ref().map_or(-1, |h| value(scene, h)).to_ne_bytes())
         }
     };
-    write_field(sink, Field::Prim, true, ids(|_, h| h.prim as i32));
+    fn split(s: &Scene, h: &ReferenceHit) -> (usize, usize) {
+        s.placements[h.instance as usize].triangles.split(h.prim as usize)
+    }
+    write_field(sink, Field::Prim, true, ids(|s, h| split(s, h).1 as i32));
     write_field(sink, Field::Instance, true, ids(|_, h| h.instance as i32));
     write_field(sink, Field::Custom, true, ids(|s, h| s.placements[h.instance as usize].custom_index as i32));
-    write_field(sink, Field::Geometry, true, ids(|_, _| 0));
+    write_field(sink, Field::Geometry, true, ids(|s, h| split(s, h).0 as i32));
     write_field(sink, Field::Normal, true, |i, dst| {
         let n = hits[i].as_ref().map_or(DVec3::NAN, |h| {
             let placement = &scene.placements[h.instance as usize];
@@ -104,11 +111,12 @@ fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) 
     });
 }
 
-/// The hit triangles of a batch: caller's prim and instance (int32, -1 on a miss) and
+/// The hit triangles of a batch: caller's prim, instance and geometry (int32, -1 on a miss) and
 /// barycentrics (2 f32, or 2 f64 when `wide`) per ray.
 pub struct HitTriangles<'a> {
     pub prim: &'a [u8],
     pub instance: &'a [u8],
+    pub geometry: &'a [u8],
     pub uv: &'a [u8],
     pub wide: bool,
 }
@@ -136,7 +144,8 @@ pub fn positions(scene: &Scene, hits: &HitTriangles, out: &mut [u8]) {
             DVec3::NAN
         } else {
             let placement = &scene.placements[int_at(hits.instance, i) as usize];
-            let [a, b, c] = placement.triangles.triangle(p as usize);
+            let global = placement.triangles.global(int_at(hits.geometry, i) as usize, p as usize);
+            let [a, b, c] = placement.triangles.triangle(global);
             let (u, v) = hits.uv(i);
             placement.to_scene.point(a + u * (b - a) + v * (c - a)) + scene.center
         };

@@ -675,10 +675,15 @@ impl Tracer {
                 work.set(*field, out);
             }
         }
-        let (mut prim_temp, mut instance_temp) = (Vec::new(), Vec::new());
+        let (mut prim_temp, mut instance_temp, mut geometry_temp) = (Vec::new(), Vec::new(), Vec::new());
         let mut uv_temp;
         if refine || position.is_some() {
-            for (field, temp) in [(Field::Prim, &mut prim_temp), (Field::Instance, &mut instance_temp)] {
+            let temps = [
+                (Field::Prim, &mut prim_temp),
+                (Field::Instance, &mut instance_temp),
+                (Field::Geometry, &mut geometry_temp),
+            ];
+            for (field, temp) in temps {
                 if work.field(field).is_none() {
                     *temp = vec![0u8; 4 * n];
                     work.set(field, temp);
@@ -732,6 +737,7 @@ impl Tracer {
             let hits = tiers::HitTriangles {
                 prim: work.field(Field::Prim).unwrap_or_default(),
                 instance: work.field(Field::Instance).unwrap_or_default(),
+                geometry: work.field(Field::Geometry).unwrap_or_default(),
                 uv: work.field(Field::Uv).unwrap_or_default(),
                 wide: precision.is_f64(),
             };

@@ -90,3 +90,36 @@ def test_non_opaque_instances_are_still_hit(device):
     np.testing.assert_array_equal(scene.occluded(origins, directions), opaque.hit)
     with pytest.raises(TypeError, match="opaque must be"):
         vkray.Instance(mesh, opaque="yes")
+
+
+def test_parts_of_one_mesh_are_told_apart(device):
+    """Three parts in one BLAS (spot, the cow moved by a transform, the teapot): each hit names
+    its part (geometry_id) and its triangle within the part, as the same parts placed as three
+    instances do, in every tier."""
+    parts = [load_obj("spot"), load_obj("cow"), load_obj("teapot")]
+    sizes = [np.linalg.norm(v.max(axis=0) - v.min(axis=0)) for v, _ in parts]
+    moves = [np.eye(4) for _ in parts]
+    for k in (1, 2):
+        moves[k][0, 3] = 1.5 * sum(sizes[:k])
+    moves[1][:3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]  # and turned a quarter
+    mesh = device.mesh_from_parts([(v, f, m) for (v, f), m in zip(parts, moves)])
+    assert mesh.part_count == 3 and mesh.triangle_count == sum(len(f) for _, f in parts)
+    placed = device.scene([vkray.Instance(device.mesh(v, f), m) for (v, f), m in zip(parts, moves)])
+    scene = device.scene(mesh)
+    origins, directions = random_rays(mesh.vertices, 20000, seed=54)
+    for tier in tiers(device):
+        a = scene.intersect(origins, directions, precision=tier, outputs=vkray.HIT_FIELDS)
+        b = placed.intersect(origins, directions, precision=tier, outputs=vkray.HIT_FIELDS)
+        assert set(np.unique(a.geometry_id[a.hit])) == {0, 1, 2}, tier
+        assert (a.instance_id[a.hit] == 0).all() and (a.geometry_id[~a.hit] == -1).all()
+        same = (a.geometry_id == b.instance_id) & (a.prim_id == b.prim_id)
+        assert same.mean() > (0.999 if tier in ("fast", "refined") else 1 - 1e-12), tier
+        hit = same & a.hit
+        np.testing.assert_allclose(a.t[hit], b.t[hit], rtol=1e-5 if tier == "fast" else 1e-9)
+        np.testing.assert_allclose(a.position[hit], b.position[hit], atol=1e-4 if tier == "fast" else 1e-9)
+    with pytest.raises(vkray.UnsupportedError, match="single-part"):
+        device.mesh_from_parts(parts, allow_update=True).update(mesh.vertices)
+    with pytest.raises(ValueError, match="part 1: faces row 0"):
+        device.mesh_from_parts([parts[0], (parts[1][0], [[0, 1, 10**6]])])
+    with pytest.raises(TypeError, match="part 0 must be"):
+        device.mesh_from_parts([parts[0][0]])

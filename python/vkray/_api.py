@@ -156,6 +156,41 @@ class Device:
         core = self._core.mesh(v, f, build, bool(allow_update), bool(compact), vertex_format)
         return Mesh(self, core, v, f)
 
+    def mesh_from_parts(
+        self,
+        parts: Iterable[Tuple[Any, ...]],
+        *,
+        build: str = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        vertex_format: str = "float32",
+    ) -> "Mesh":
+        """One mesh of several parts, each a geometry of one BLAS: ``parts`` are ``(vertices,
+        faces)`` or ``(vertices, faces, transform)`` (a 3×4 or 4×4 affine matrix as `Instance`
+        takes it, applied to that part's vertices in float64 before anything becomes float32).
+
+        ``Hits.geometry_id`` says which part was hit and ``Hits.prim_id`` counts triangles within
+        that part. The mesh's ``vertices`` and ``faces`` are all parts' (transformed) in order.
+        Refitting (`Mesh.update`) is for single-part meshes.
+        """
+        _check_build(build)
+        arrays = []
+        for k, part in enumerate(parts):
+            if not isinstance(part, (tuple, list)) or len(part) not in (2, 3):
+                raise TypeError(f"part {k} must be (vertices, faces) or (vertices, faces, transform)")
+            v = _arrays.points("vertices", part[0])
+            if len(part) == 3 and part[2] is not None:
+                m = _arrays.transform(part[2])
+                v = np.ascontiguousarray(v.astype(np.float64) @ m[:3, :3].T + m[:3, 3])
+            arrays.append((v, _arrays.faces(part[1])))
+        if not arrays:
+            raise ValueError("a mesh needs at least one part")
+        core = self._core.mesh_parts(arrays, build, bool(allow_update), bool(compact), vertex_format)
+        first = np.cumsum([0] + [len(v) for v, _ in arrays[:-1]])
+        vertices = np.concatenate([v.astype(np.float64) for v, _ in arrays])
+        faces = np.concatenate([f.astype(np.int64) + o for (_, f), o in zip(arrays, first)])
+        return Mesh(self, core, vertices, faces)
+
     def meshes(
         self,
         items: Iterable[Tuple[Any, Any]],
@@ -250,6 +285,11 @@ class Mesh:
     @property
     def triangle_count(self) -> int:
         return self._core.triangle_count
+
+    @property
+    def part_count(self) -> int:
+        """Geometries in the BLAS: 1, or the parts of `Device.mesh_from_parts`."""
+        return self._core.part_count
 
     @property
     def stats(self) -> Dict[str, Any]:

@@ -35,6 +35,14 @@ class Device:
         budget_bytes: Optional[int] = None,
         vertex_format: str = "float32",
     ) -> List[Mesh]: ...
+    def mesh_parts(
+        self,
+        parts: List[Tuple[np.ndarray, np.ndarray]],
+        build: str = ...,
+        allow_update: bool = ...,
+        compact: bool = ...,
+        vertex_format: str = ...,
+    ) -> Mesh: ...
     def mesh(
         self,
         vertices: np.ndarray,
@@ -57,6 +65,8 @@ class Mesh:
     def vertex_count(self) -> int: ...
     @property
     def triangle_count(self) -> int: ...
+    @property
+    def part_count(self) -> int: ...
     @property
     def stats(self) -> Dict[str, Any]: ...
     def update(self, vertices: np.ndarray) -> None: ...
