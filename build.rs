@@ -11,6 +11,7 @@ const SHADERS: &[&str] = &[
     "trace_exact_ray_query.comp",
     "raygen_exact.rgen",
     "intersection_exact.rint",
+    "sphere.rint",
 ];
 
 fn main() {

@@ -38,6 +38,7 @@ struct GeometrySource {
 const uint VERTEX_F32 = 0u;
 const uint VERTEX_F16 = 1u;
 const uint VERTEX_SNORM16 = 2u;
+const uint SPHERE_SOURCE = 3u;  // `vertices` holds spheres (vec4: centre, radius), no triangles
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer GeometrySources { GeometrySource g[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer InstanceGeometries { uint64_t geometries[]; };
 
@@ -155,6 +156,44 @@ vec3 world_normal(GeometrySource src, int prim, mat4x3 object_to_world) {
   vec3 e1 = linear * (vertex_at(src, idx.y) - vertex_at(src, idx.x));
   vec3 e2 = linear * (vertex_at(src, idx.z) - vertex_at(src, idx.x));
   return normalize(cross(e1, e2));
+}
+
+layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Spheres { vec4 s[]; };
+
+// The hit kind sphere intersections report (user kinds are 0..127; triangles are 0xFE, 0xFF).
+const uint SPHERE_HIT_KIND = 1u;
+
+vec4 sphere_at(int instance, int geometry, int prim) {
+  return Spheres(geometry_source(instance, geometry).vertices).s[prim];
+}
+
+// Where a ray meets a sphere within [tmin, tmax]: the nearer root inside the interval, or -1.
+// Haines et al. (Ray Tracing Gems, ch. 7): the discriminant from the closest point of the line
+// to the centre, free of the cancellation of b^2 - 4ac for small or distant spheres, and the
+// nearer root from the farther one (q / a and c / q), never as a difference of close numbers.
+float sphere_hit(vec3 origin, vec3 direction, vec4 sphere, float tmin, float tmax) {
+  vec3 f = origin - sphere.xyz;
+  float a = dot(direction, direction);
+  float b = -dot(f, direction);
+  vec3 closest = f + (b / a) * direction;
+  float r2 = sphere.w * sphere.w;
+  float discriminant = r2 - dot(closest, closest);
+  if (discriminant < 0.0) return -1.0;
+  float q = b + (b >= 0.0 ? 1.0 : -1.0) * sqrt(a * discriminant);
+  float c = dot(f, f) - r2;
+  float t0 = q != 0.0 ? c / q : 0.0;
+  float t1 = q / a;
+  float near = min(t0, t1);
+  float far = max(t0, t1);
+  if (near >= tmin && near <= tmax) return near;
+  if (far >= tmin && far <= tmax) return far;
+  return -1.0;
+}
+
+// Unit outward normal of a sphere hit, in world space, from the ray in object space.
+vec3 sphere_normal(vec4 sphere, vec3 object_origin, vec3 object_direction, float t, mat4x3 world_to_object) {
+  vec3 n = (object_origin + t * object_direction - sphere.xyz) / sphere.w;
+  return normalize(transpose(mat3(world_to_object)) * n);
 }
 
 // Fills the fields that need the triangle's source: its caller index and its normal.

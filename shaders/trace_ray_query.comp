@@ -4,6 +4,8 @@
 #extension GL_EXT_ray_flags_primitive_culling : require
 #include "common.glsl"
 
+const uint RAY_FLAG_SKIP_AABBS = 0x200u;
+
 layout(local_size_x_id = 2) in;
 
 void main() {
@@ -17,10 +19,22 @@ void main() {
   // Opaque triangles are committed by traversal itself. Where a scene has non-opaque instances
   // (RAY_FLAGS then lacks CULL_NO_OPAQUE), their candidates come here and are accepted: vkray has
   // no any-hit programs. For all-opaque scenes this branch is compiled out.
+  // Boxes are spheres' (scenes without spheres skip them, RAY_FLAG_SKIP_AABBS): each candidate
+  // is tested here and committed at its distance if nearer than the committed hit.
   while (rayQueryProceedEXT(query)) {
-    if ((RAY_FLAGS & RAY_FLAG_CULL_NO_OPAQUE) == 0u &&
-        rayQueryGetIntersectionTypeEXT(query, false) == gl_RayQueryCandidateIntersectionTriangleEXT) {
+    uint candidate = rayQueryGetIntersectionTypeEXT(query, false);
+    if ((RAY_FLAGS & RAY_FLAG_CULL_NO_OPAQUE) == 0u && candidate == gl_RayQueryCandidateIntersectionTriangleEXT) {
       rayQueryConfirmIntersectionEXT(query);
+    }
+    if ((RAY_FLAGS & RAY_FLAG_SKIP_AABBS) == 0u && candidate == gl_RayQueryCandidateIntersectionAABBEXT) {
+      bool none = rayQueryGetIntersectionTypeEXT(query, true) == gl_RayQueryCommittedIntersectionNoneEXT;
+      float tmax = none ? ray.tmax : rayQueryGetIntersectionTEXT(query, true);
+      vec4 sphere = sphere_at(rayQueryGetIntersectionInstanceIdEXT(query, false),
+                              rayQueryGetIntersectionGeometryIndexEXT(query, false),
+                              rayQueryGetIntersectionPrimitiveIndexEXT(query, false));
+      float t = sphere_hit(rayQueryGetIntersectionObjectRayOriginEXT(query, false),
+                           rayQueryGetIntersectionObjectRayDirectionEXT(query, false), sphere, ray.tmin, tmax);
+      if (t >= 0.0) rayQueryGenerateIntersectionEXT(query, t);
     }
   }
 
@@ -33,6 +47,18 @@ void main() {
     hit.geometry = rayQueryGetIntersectionGeometryIndexEXT(query, true);
     hit.uv = rayQueryGetIntersectionBarycentricsEXT(query, true);
     resolve_triangle(hit, rayQueryGetIntersectionObjectToWorldEXT(query, true));
+  } else if (rayQueryGetIntersectionTypeEXT(query, true) == gl_RayQueryCommittedIntersectionGeneratedEXT) {
+    hit.t = rayQueryGetIntersectionTEXT(query, true);
+    hit.prim = rayQueryGetIntersectionPrimitiveIndexEXT(query, true);
+    hit.instance = rayQueryGetIntersectionInstanceIdEXT(query, true);
+    hit.custom = rayQueryGetIntersectionInstanceCustomIndexEXT(query, true);
+    hit.geometry = rayQueryGetIntersectionGeometryIndexEXT(query, true);
+    if ((OUTPUTS & OUT_NORMAL) != 0u) {
+      hit.normal = sphere_normal(sphere_at(hit.instance, hit.geometry, hit.prim),
+                                 rayQueryGetIntersectionObjectRayOriginEXT(query, true),
+                                 rayQueryGetIntersectionObjectRayDirectionEXT(query, true), hit.t,
+                                 rayQueryGetIntersectionWorldToObjectEXT(query, true));
+    }
   }
   store_hit(i, hit);
 }

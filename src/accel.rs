@@ -435,16 +435,30 @@ impl Drop for CompactedSizeQuery<'_> {
 /// Instance flags of `VkGeometryInstanceFlagBitsKHR`.
 pub const INSTANCE_TRIANGLE_FACING_CULL_DISABLE: u8 = 0x1;
 
+/// Where an instance's hits go: the bits of `VkAccelerationStructureInstanceKHR` besides its
+/// transform and structure.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct InstanceBits {
+    /// 24 bits, read by shaders.
+    pub custom_index: u32,
+    pub mask: u8,
+    /// `VkGeometryInstanceFlagBitsKHR`.
+    pub flags: u8,
+    /// 24 bits: which hit group of the shader binding table its hits use.
+    pub sbt_offset: u32,
+}
+
 /// One `VkAccelerationStructureInstanceKHR` (64 bytes): transform, 24-bit custom index and 8-bit
 /// mask, 24-bit hit-group offset and 8-bit flags, and the BLAS address.
-pub fn instance_record(transform: &[f32; 12], custom_index: u32, mask: u8, flags: u8, blas_address: u64) -> [u8; 64] {
-    debug_assert!(custom_index < (1 << 24));
+pub fn instance_record(transform: &[f32; 12], bits: InstanceBits, blas_address: u64) -> [u8; 64] {
+    let InstanceBits { custom_index, mask, flags, sbt_offset } = bits;
+    debug_assert!(custom_index < (1 << 24) && sbt_offset < (1 << 24));
     let mut record = [0u8; 64];
     for (dst, value) in record.chunks_exact_mut(4).zip(transform.iter()) {
         dst.copy_from_slice(&value.to_ne_bytes());
     }
     record[48..52].copy_from_slice(&(custom_index | (mask as u32) << 24).to_ne_bytes());
-    record[52..56].copy_from_slice(&((flags as u32) << 24).to_ne_bytes());
+    record[52..56].copy_from_slice(&(sbt_offset | (flags as u32) << 24).to_ne_bytes());
     record[56..64].copy_from_slice(&blas_address.to_ne_bytes());
     record
 }
@@ -456,10 +470,11 @@ mod tests {
     #[test]
     fn instance_record_matches_vulkan_layout() {
         let transform = [1.0, 0.0, 0.0, 5.0, 0.0, 1.0, 0.0, 6.0, 0.0, 0.0, 1.0, 7.0];
-        let record = instance_record(&transform, 0x00AB_CDEF, 0x0F, 0x1, 0x1122_3344_5566_7788);
+        let bits = InstanceBits { custom_index: 0x00AB_CDEF, mask: 0x0F, flags: 0x1, sbt_offset: 2 };
+        let record = instance_record(&transform, bits, 0x1122_3344_5566_7788);
         assert_eq!(&record[12..16], &5.0f32.to_ne_bytes());
         assert_eq!(u32::from_ne_bytes(record[48..52].try_into().unwrap()), 0x0FAB_CDEF);
-        assert_eq!(u32::from_ne_bytes(record[52..56].try_into().unwrap()), 0x0100_0000);
+        assert_eq!(u32::from_ne_bytes(record[52..56].try_into().unwrap()), 0x0100_0002);
         assert_eq!(u64::from_ne_bytes(record[56..64].try_into().unwrap()), 0x1122_3344_5566_7788);
         // Vulkan's own struct is the same size.
         assert_eq!(std::mem::size_of::<vk::AccelerationStructureInstanceKHR>(), 64);

@@ -17,7 +17,7 @@ use crate::context::{Backend, Context, DeviceInfo, DeviceRequest, Wait};
 use crate::error::{Error, Result};
 use crate::input::{instance_transform, Indices, Masks, PerRay, Rays, Vec3s, VertexFormat};
 use crate::precision::{Cull, Precision};
-use crate::scene::{Instance, InstanceFlags, Mesh, Scene, IDENTITY};
+use crate::scene::{Instance, InstanceFlags, Mesh, MeshKind, Scene, IDENTITY};
 use crate::trace::{Field, HitSink, Query, Request, Tracer};
 
 create_exception!(_core, VkrayError, PyRuntimeError, "Base class of vkray's own errors.");
@@ -326,6 +326,23 @@ impl PyDevice {
         Ok(PyMesh { mesh: Arc::new(mesh) })
     }
 
+    /// A set of spheres: (N, 3) centres and radii (one float, or float64 (N,)).
+    #[pyo3(signature = (centers, radii, build="fast_trace", compact=false))]
+    fn spheres(
+        &self,
+        py: Python<'_>,
+        centers: &Bound<'_, PyAny>,
+        radii: &Bound<'_, PyAny>,
+        build: &str,
+        compact: bool,
+    ) -> PyResult<PyMesh> {
+        let options = build_options(build, false, compact)?;
+        let centers = Vec3Array::extract("centers", centers)?;
+        let radii = Bound1::extract("radii", radii)?;
+        let mesh = Mesh::spheres(&self.ctx, centers.view()?, radii.view()?, options, &ReleaseGil(py))?;
+        Ok(PyMesh { mesh: Arc::new(mesh) })
+    }
+
     /// One mesh of several parts (geometries), each (vertices, faces) with transforms baked in.
     #[pyo3(signature = (parts, build="fast_trace", allow_update=false, compact=false, vertex_format="float32"))]
     fn mesh_parts(
@@ -447,6 +464,14 @@ impl PyMesh {
     #[getter]
     fn part_count(&self) -> usize {
         self.mesh.part_count()
+    }
+
+    #[getter]
+    fn kind(&self) -> &'static str {
+        match self.mesh.kind {
+            MeshKind::Triangles => "triangles",
+            MeshKind::Spheres => "spheres",
+        }
     }
 
     #[getter]

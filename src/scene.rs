@@ -8,7 +8,7 @@ use std::time::Instant;
 use ash::vk;
 use glam::DVec3;
 
-use crate::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildPreference, BuildStats};
+use crate::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildPreference, BuildStats, InstanceBits};
 use crate::context::{Context, Wait};
 use crate::error::{invalid_value, Error, Result};
 use crate::input::{check_faces, check_vertices, morton_order, Indices, Vec3s, VertexFormat};
@@ -25,6 +25,9 @@ const GEOMETRY_INPUT: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
 /// Bytes of one `GeometrySource` record in `shaders/common.glsl`.
 const GEOMETRY_SOURCE_BYTES: usize = 32;
 
+/// `GeometrySource.vertex_format` of sphere sets (after the `VertexFormat`s).
+const SPHERE_SOURCE: u32 = 3;
+
 /// A triangle mesh on the device with its bottom-level acceleration structure.
 ///
 /// The device holds the vertices re-centred on their bounding box (`center`, subtracted in f64
@@ -32,6 +35,8 @@ const GEOMETRY_SOURCE_BYTES: usize = 32;
 /// scenes add the centre back in their instance transforms. The host keeps the same re-centred
 /// vertices in f64 for the f64 precision tiers.
 pub struct Mesh {
+    pub kind: MeshKind,
+    /// Vertices of a triangle mesh; spheres of a sphere set.
     pub vertex_count: usize,
     pub triangle_count: usize,
     pub center: DVec3,
@@ -54,13 +59,26 @@ pub struct Mesh {
     sources: Buffer,
 }
 
+/// What a mesh's BLAS holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MeshKind {
+    Triangles,
+    /// Spheres, one box each, intersected by a shader.
+    Spheres,
+}
+
 /// One geometry of a mesh's BLAS: its device buffers.
 struct Part {
     vertex_count: usize,
+    /// Triangles, or spheres (boxes).
     triangle_count: usize,
+    /// Triangle vertices; or spheres, as f32 (centre xyz, radius).
     vertices: Buffer,
-    indices: Buffer,
+    /// Triangle corners (none for spheres).
+    indices: Option<Buffer>,
     index_is_u16: bool,
+    /// The spheres' boxes (`VkAabbPositionsKHR`), for sphere sets.
+    boxes: Option<Buffer>,
     /// Device triangle -> caller's triangle, where the device holds them in another order.
     device_order: Option<Vec<u32>>,
     primitive_order: Option<Buffer>,
@@ -68,17 +86,39 @@ struct Part {
 
 impl Part {
     fn geometry(&self, format: VertexFormat) -> vk::AccelerationStructureGeometryKHR<'static> {
+        if let Some(boxes) = &self.boxes {
+            let data = vk::AccelerationStructureGeometryAabbsDataKHR::default()
+                .data(vk::DeviceOrHostAddressConstKHR { device_address: boxes.address() })
+                .stride(24);
+            return vk::AccelerationStructureGeometryKHR::default()
+                .geometry_type(vk::GeometryTypeKHR::AABBS)
+                .geometry(vk::AccelerationStructureGeometryDataKHR { aabbs: data })
+                .flags(vk::GeometryFlagsKHR::OPAQUE);
+        }
+        let indices = self.indices.as_ref().expect("triangle parts have indices");
         let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
             .vertex_format(vulkan_vertex_format(format))
             .vertex_data(vk::DeviceOrHostAddressConstKHR { device_address: self.vertices.address() })
             .vertex_stride(format.stride() as u64)
             .max_vertex(self.vertex_count as u32 - 1)
             .index_type(if self.index_is_u16 { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
-            .index_data(vk::DeviceOrHostAddressConstKHR { device_address: self.indices.address() });
+            .index_data(vk::DeviceOrHostAddressConstKHR { device_address: indices.address() });
         vk::AccelerationStructureGeometryKHR::default()
             .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
             .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
             .flags(vk::GeometryFlagsKHR::OPAQUE)
+    }
+
+    /// This part's `GeometrySource` record (shaders/common.glsl); `kind` is its `vertex_format`
+    /// field (a `VertexFormat`, or `SPHERE_SOURCE`).
+    fn source(&self, kind: u32) -> [u8; GEOMETRY_SOURCE_BYTES] {
+        let mut out = [0u8; GEOMETRY_SOURCE_BYTES];
+        out[0..8].copy_from_slice(&self.vertices.address().to_ne_bytes());
+        out[8..16].copy_from_slice(&self.indices.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
+        out[16..24].copy_from_slice(&self.primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
+        out[24..28].copy_from_slice(&(self.index_is_u16 as u32).to_ne_bytes());
+        out[28..32].copy_from_slice(&kind.to_ne_bytes());
+        out
     }
 
     /// The caller's triangle (within this part) held at `device`.
@@ -98,6 +138,96 @@ impl Mesh {
         wait: &dyn Wait,
     ) -> Result<Mesh> {
         Mesh::build_parts(ctx, &[(vertices, faces)], options, format, wait)
+    }
+
+    /// A set of spheres (`centers` (N, 3), `radii` one per sphere or one for all): a BLAS of one
+    /// box per sphere, whose spheres a shader intersects. Scenes mix them with triangle meshes.
+    pub fn spheres(
+        ctx: &Arc<Context>,
+        centers: Vec3s,
+        radii: crate::input::PerRay,
+        options: BuildOptions,
+        wait: &dyn Wait,
+    ) -> Result<Mesh> {
+        check_vertices("centers", centers)?;
+        let n = centers.rows();
+        if let crate::input::PerRay::Each(r) = radii {
+            if r.len() != n {
+                return Err(invalid_value(format!("radii has {} values for {n} centers", r.len())));
+            }
+        }
+        if let Some(i) = (0..n).find(|&i| !(radii.get(i) > 0.0 && (radii.get(i) as f32).is_finite())) {
+            return Err(invalid_value(format!("radius {i} must be finite and > 0, got {}", radii.get(i))));
+        }
+        if n as u64 > ctx.limits.max_primitive_count {
+            return Err(Error::Unsupported(format!(
+                "{n} spheres exceed this device's maxPrimitiveCount ({})",
+                ctx.limits.max_primitive_count
+            )));
+        }
+        let sphere = |i: usize| (DVec3::from_array(centers.row_f64(i)), radii.get(i));
+        let bounds = (0..n).fold(Aabb::EMPTY, |b, i| {
+            let (c, r) = sphere(i);
+            b.union(&Aabb { min: c - DVec3::splat(r), max: c + DVec3::splat(r) })
+        });
+        let center = bounds.center();
+        let mut uploads = Uploads::default();
+        let records = uploads.buffer(ctx, 16 * n as u64, GEOMETRY_INPUT, "spheres", |out, _| {
+            for (i, dst) in out.chunks_exact_mut(16).enumerate() {
+                let (c, r) = sphere(i);
+                let local = (c - center).as_vec3();
+                for (d, v) in dst.chunks_exact_mut(4).zip([local.x, local.y, local.z, r as f32]) {
+                    d.copy_from_slice(&v.to_ne_bytes());
+                }
+            }
+        })?;
+        // Boxes hold the f32 spheres whole: rounded outward from their f64 extent.
+        let boxes = uploads.buffer(ctx, 24 * n as u64, GEOMETRY_INPUT, "sphere boxes", |out, _| {
+            for (i, dst) in out.chunks_exact_mut(24).enumerate() {
+                let (c, r) = sphere(i);
+                let (lo, hi) =
+                    (c - center - DVec3::splat(r * (1.0 + 1e-6)), c - center + DVec3::splat(r * (1.0 + 1e-6)));
+                let corners = [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z];
+                for (k, (d, v)) in dst.chunks_exact_mut(4).zip(corners).enumerate() {
+                    d.copy_from_slice(&round_outward(v, k < 3).to_ne_bytes());
+                }
+            }
+        })?;
+        let part = Part {
+            vertex_count: n,
+            triangle_count: n,
+            vertices: records,
+            indices: None,
+            index_is_u16: false,
+            boxes: Some(boxes),
+            device_order: None,
+            primitive_order: None,
+        };
+        let sources =
+            uploads.buffer(ctx, GEOMETRY_SOURCE_BYTES as u64, GEOMETRY_INPUT, "geometry sources", |out, _| {
+                out.copy_from_slice(&part.source(SPHERE_SOURCE))
+            })?;
+        // The host keeps the spheres' bounds (two corners each) for scenes' frames; the f64 tiers
+        // do not trace spheres.
+        let corners = (0..n)
+            .flat_map(|i| {
+                let (c, r) = sphere(i);
+                [c - center - DVec3::splat(r), c - center + DVec3::splat(r)]
+            })
+            .collect();
+        let prepared = PreparedMesh {
+            kind: MeshKind::Spheres,
+            vertex_count: n,
+            triangle_count: 0,
+            center,
+            scale: 1.0,
+            vertex_format: VertexFormat::F32,
+            host_triangles: TriangleSet::new(corners, Vec::new(), vec![0, 0]),
+            parts: vec![part],
+            sources,
+        };
+        let (blas, stats) = accel::build(ctx, &prepared.input(), options, &uploads, wait)?;
+        Ok(prepared.finish(options, blas, stats))
     }
 
     /// One mesh from several parts, each a geometry of one BLAS (`Hits.geometry_id` tells them
@@ -169,6 +299,9 @@ impl Mesh {
         let [part] = self.parts.as_slice() else {
             return Err(Error::Unsupported("Mesh.update refits single-part meshes; rebuild a multi-part mesh".into()));
         };
+        if self.kind == MeshKind::Spheres {
+            return Err(Error::Unsupported("Mesh.update refits triangle meshes; rebuild the spheres".into()));
+        }
         if vertices.rows() != self.vertex_count {
             return Err(invalid_value(format!(
                 "update needs the same {} vertices (the faces stay), got {}: rebuild the mesh to change its topology",
@@ -209,6 +342,7 @@ impl Mesh {
 /// A mesh's device buffers and host copy, uploaded (or recorded for upload) and ready for its
 /// BLAS build.
 struct PreparedMesh {
+    kind: MeshKind,
     vertex_count: usize,
     triangle_count: usize,
     center: DVec3,
@@ -291,8 +425,9 @@ impl PreparedMesh {
                 vertex_count: vertices.rows(),
                 triangle_count: faces.triangles(),
                 vertices: vertex_buffer,
-                indices: index_buffer,
+                indices: Some(index_buffer),
                 index_is_u16: faces.is_u16(),
+                boxes: None,
                 device_order: order,
                 primitive_order,
             });
@@ -304,16 +439,12 @@ impl PreparedMesh {
             "geometry sources",
             |out, _| {
                 for (dst, part) in out.chunks_exact_mut(GEOMETRY_SOURCE_BYTES).zip(&prepared) {
-                    dst[0..8].copy_from_slice(&part.vertices.address().to_ne_bytes());
-                    dst[8..16].copy_from_slice(&part.indices.address().to_ne_bytes());
-                    dst[16..24]
-                        .copy_from_slice(&part.primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
-                    dst[24..28].copy_from_slice(&(part.index_is_u16 as u32).to_ne_bytes());
-                    dst[28..32].copy_from_slice(&(format as u32).to_ne_bytes());
+                    dst.copy_from_slice(&part.source(format as u32));
                 }
             },
         )?;
         Ok(PreparedMesh {
+            kind: MeshKind::Triangles,
             vertex_count: first_vertex,
             triangle_count,
             center,
@@ -331,6 +462,7 @@ impl PreparedMesh {
 
     fn finish(self, options: BuildOptions, blas: AccelerationStructure, stats: BuildStats) -> Mesh {
         Mesh {
+            kind: self.kind,
             vertex_count: self.vertex_count,
             triangle_count: self.triangle_count,
             center: self.center,
@@ -448,6 +580,17 @@ pub struct Placement {
 }
 
 impl Placement {
+    /// The bits of this placement's Vulkan instance record: spheres' hits go to the second hit
+    /// group of the shader binding table (the procedural one).
+    fn bits(&self) -> InstanceBits {
+        InstanceBits {
+            custom_index: self.custom_index,
+            mask: self.mask,
+            flags: self.vulkan_flags(),
+            sbt_offset: (self.mesh.kind == MeshKind::Spheres) as u32,
+        }
+    }
+
     /// Vulkan's instance flags. Vulkan judges facing in object space and by default calls front
     /// the side `cross(v1 - v0, v2 - v0)` points to (clockwise seen from the ray, in its
     /// left-handed wording), our convention too; its counter-clockwise flag swaps the two.
@@ -610,6 +753,11 @@ impl Scene {
         self.tlas.address()
     }
 
+    /// Whether any instance is a sphere set (boxes for the shaders' sphere test).
+    pub fn has_spheres(&self) -> bool {
+        self.meshes.iter().any(|m| m.kind == MeshKind::Spheres)
+    }
+
     /// Whether every instance's triangles are opaque (no `force_no_opaque`).
     pub fn all_opaque(&self) -> bool {
         self.placements.iter().all(|p| !p.flags.force_no_opaque)
@@ -649,13 +797,7 @@ impl Scene {
 
 fn write_instance_records(placements: &[Placement], out: &mut [u8]) {
     for (dst, p) in out.chunks_exact_mut(64).zip(placements) {
-        dst.copy_from_slice(&accel::instance_record(
-            &p.to_scene.to_rows_f32(),
-            p.custom_index,
-            p.mask,
-            p.vulkan_flags(),
-            p.mesh.blas_address(),
-        ));
+        dst.copy_from_slice(&accel::instance_record(&p.to_scene.to_rows_f32(), p.bits(), p.mesh.blas_address()));
     }
 }
 
@@ -847,13 +989,9 @@ impl ExactScene {
         let records = uploads.buffer(ctx, 64 * n as u64, GEOMETRY_INPUT, "exact instances", |out, _| {
             for (dst, p) in out.chunks_exact_mut(64).zip(&scene.placements) {
                 let blas = built[mesh_index(p)].blas.address();
-                dst.copy_from_slice(&accel::instance_record(
-                    &p.to_scene.to_rows_f32(),
-                    p.custom_index,
-                    p.mask,
-                    0,
-                    blas,
-                ));
+                // Boxes only: facing and culling are the exact shader's, opacity does not apply.
+                let bits = InstanceBits { flags: 0, sbt_offset: 0, ..p.bits() };
+                dst.copy_from_slice(&accel::instance_record(&p.to_scene.to_rows_f32(), bits, blas));
             }
         })?;
         let instances = uploads.buffer(

@@ -13,6 +13,7 @@ pub const MISS: &[u8] = spirv!("miss.rmiss");
 pub const TRACE_EXACT_RAY_QUERY: &[u8] = spirv!("trace_exact_ray_query.comp");
 pub const RAYGEN_EXACT: &[u8] = spirv!("raygen_exact.rgen");
 pub const INTERSECTION_EXACT: &[u8] = spirv!("intersection_exact.rint");
+pub const SPHERE_INTERSECTION: &[u8] = spirv!("sphere.rint");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -23,6 +24,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("trace_exact_ray_query.comp", TRACE_EXACT_RAY_QUERY),
     ("raygen_exact.rgen", RAYGEN_EXACT),
     ("intersection_exact.rint", INTERSECTION_EXACT),
+    ("sphere.rint", SPHERE_INTERSECTION),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

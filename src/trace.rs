@@ -111,10 +111,9 @@ const RAY_FLAG_CULL_NO_OPAQUE: u32 = 0x80;
 const RAY_FLAG_SKIP_AABBS: u32 = 0x200;
 
 /// Ray flags resolved statically for a query on a scene: where every triangle is opaque the
-/// non-opaque path is culled at compile time; only the exact tier's structures hold AABBs (and
-/// nothing else), so procedural paths are culled too where no AABB can be met; culling is the
-/// query's. The exact tier's shader reads the culling bits itself (they do not apply to boxes).
-fn ray_flags(query: Query, cull: Cull, backend: Backend, exact: bool, all_opaque: bool) -> u32 {
+/// non-opaque path is culled at compile time; AABBs are the exact tier's boxes and sphere sets',
+/// so procedural paths are culled too where no AABB can be met; culling is the query's. The exact tier's shader reads the culling bits itself (they do not apply to boxes).
+fn ray_flags(query: Query, cull: Cull, backend: Backend, exact: bool, all_opaque: bool, spheres: bool) -> u32 {
     let mut flags = if all_opaque { RAY_FLAG_CULL_NO_OPAQUE } else { 0 };
     flags |= match cull {
         Cull::None => 0,
@@ -122,7 +121,7 @@ fn ray_flags(query: Query, cull: Cull, backend: Backend, exact: bool, all_opaque
         Cull::Front => RAY_FLAG_CULL_FRONT_FACING_TRIANGLES,
     };
     // The pipeline backend skips AABBs with a pipeline flag instead, which needs no device feature.
-    if backend == Backend::RayQuery && !exact {
+    if backend == Backend::RayQuery && !exact && !spheres {
         flags |= RAY_FLAG_SKIP_AABBS;
     }
     if query == Query::Occluded {
@@ -171,6 +170,8 @@ struct VariantKey {
     outputs: u32,
     ray_flags: u32,
     exact: bool,
+    /// The scene holds sphere sets (boxes for the sphere shader).
+    spheres: bool,
 }
 
 struct ShaderBindingTable {
@@ -341,6 +342,13 @@ impl Stamps {
     }
 }
 
+/// The two paths through intersection shaders, probed once per device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Probe {
+    Exact = 0,
+    Spheres = 1,
+}
+
 /// Traces rays on one device; owns the pipeline variants and reusable staging.
 pub struct Tracer {
     ctx: Arc<Context>,
@@ -351,8 +359,8 @@ pub struct Tracer {
     last_profile: Mutex<TraceProfile>,
     /// Timestamps of the chunks in flight; one trace at a time uses them (the lock is held).
     stamps: Mutex<Option<Stamps>>,
-    /// Whether this driver runs the exact tier's intersection shader (see `check_exact_pipeline`).
-    exact_pipeline_works: Mutex<Option<bool>>,
+    /// Whether this driver runs the intersection shaders of each `Probe` path.
+    intersection_shaders_run: Mutex<[Option<bool>; 2]>,
     /// Rays per chunk: bounds staging memory (two chunks in flight).
     chunk_rays: AtomicUsize,
     local_size: u32,
@@ -382,8 +390,9 @@ const QUERY_EXACT_MODULE: usize = 1;
 const RAYGEN_MODULE: usize = 0;
 const MISS_MODULE: usize = 1;
 const CLOSEST_HIT_MODULE: usize = 2;
-const RAYGEN_EXACT_MODULE: usize = 3;
-const INTERSECTION_EXACT_MODULE: usize = 4;
+const SPHERE_MODULE: usize = 3;
+const RAYGEN_EXACT_MODULE: usize = 4;
+const INTERSECTION_EXACT_MODULE: usize = 5;
 
 impl Tracer {
     pub fn new(ctx: &Arc<Context>) -> Result<Tracer> {
@@ -399,7 +408,7 @@ impl Tracer {
             idle_slots: Mutex::new(Vec::new()),
             last_profile: Mutex::new(TraceProfile::default()),
             stamps: Mutex::new(Stamps::new(ctx)?),
-            exact_pipeline_works: Mutex::new(None),
+            intersection_shaders_run: Mutex::new([None; 2]),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
             local_size: 64u32
                 .min(ctx.limits.max_compute_work_group_size[0])
@@ -409,11 +418,14 @@ impl Tracer {
         let sources: &[&[u8]] = match (ctx.backend, ctx.info.shader_float64) {
             (Backend::RayQuery, false) => &[shaders::TRACE_RAY_QUERY],
             (Backend::RayQuery, true) => &[shaders::TRACE_RAY_QUERY, shaders::TRACE_EXACT_RAY_QUERY],
-            (Backend::Pipeline, false) => &[shaders::RAYGEN, shaders::MISS, shaders::CLOSEST_HIT],
+            (Backend::Pipeline, false) => {
+                &[shaders::RAYGEN, shaders::MISS, shaders::CLOSEST_HIT, shaders::SPHERE_INTERSECTION]
+            }
             (Backend::Pipeline, true) => &[
                 shaders::RAYGEN,
                 shaders::MISS,
                 shaders::CLOSEST_HIT,
+                shaders::SPHERE_INTERSECTION,
                 shaders::RAYGEN_EXACT,
                 shaders::INTERSECTION_EXACT,
             ],
@@ -498,51 +510,46 @@ impl Tracer {
                 .specialization_info(&spec)
         };
         use vk::ShaderStageFlags as S;
-        let stages = if key.exact {
-            [
-                stage(S::RAYGEN_KHR, self.modules[RAYGEN_EXACT_MODULE]),
-                stage(S::MISS_KHR, self.modules[MISS_MODULE]),
-                stage(S::INTERSECTION_KHR, self.modules[INTERSECTION_EXACT_MODULE]),
-            ]
+        let mut stages = vec![
+            stage(S::RAYGEN_KHR, self.modules[if key.exact { RAYGEN_EXACT_MODULE } else { RAYGEN_MODULE }]),
+            stage(S::MISS_KHR, self.modules[MISS_MODULE]),
+        ];
+        if key.exact {
+            stages.push(stage(S::INTERSECTION_KHR, self.modules[INTERSECTION_EXACT_MODULE]));
         } else {
-            [
-                stage(S::RAYGEN_KHR, self.modules[RAYGEN_MODULE]),
-                stage(S::MISS_KHR, self.modules[MISS_MODULE]),
-                stage(S::CLOSEST_HIT_KHR, self.modules[CLOSEST_HIT_MODULE]),
-            ]
-        };
-        let general = |index| {
+            stages.push(stage(S::CLOSEST_HIT_KHR, self.modules[CLOSEST_HIT_MODULE]));
+            if key.spheres {
+                stages.push(stage(S::INTERSECTION_KHR, self.modules[SPHERE_MODULE]));
+            }
+        }
+        let group = |ty, general, closest_hit, intersection| {
             vk::RayTracingShaderGroupCreateInfoKHR::default()
-                .ty(vk::RayTracingShaderGroupTypeKHR::GENERAL)
-                .general_shader(index)
-                .closest_hit_shader(vk::SHADER_UNUSED_KHR)
+                .ty(ty)
+                .general_shader(general)
+                .closest_hit_shader(closest_hit)
                 .any_hit_shader(vk::SHADER_UNUSED_KHR)
-                .intersection_shader(vk::SHADER_UNUSED_KHR)
+                .intersection_shader(intersection)
         };
-        // Fast tier: triangles with a closest-hit shader. Exact tier: boxes whose intersection
-        // shader runs the f64 test and keeps the best hit itself, so no closest-hit shader.
-        let hit_group = if key.exact {
-            vk::RayTracingShaderGroupCreateInfoKHR::default()
-                .ty(vk::RayTracingShaderGroupTypeKHR::PROCEDURAL_HIT_GROUP)
-                .general_shader(vk::SHADER_UNUSED_KHR)
-                .closest_hit_shader(vk::SHADER_UNUSED_KHR)
-                .any_hit_shader(vk::SHADER_UNUSED_KHR)
-                .intersection_shader(2)
+        use vk::RayTracingShaderGroupTypeKHR as G;
+        const NONE: u32 = vk::SHADER_UNUSED_KHR;
+        let mut groups = vec![group(G::GENERAL, 0, NONE, NONE), group(G::GENERAL, 1, NONE, NONE)];
+        if key.exact {
+            // Boxes whose intersection shader runs the f64 test and keeps the best hit itself.
+            groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, NONE, 2));
         } else {
-            vk::RayTracingShaderGroupCreateInfoKHR::default()
-                .ty(vk::RayTracingShaderGroupTypeKHR::TRIANGLES_HIT_GROUP)
-                .general_shader(vk::SHADER_UNUSED_KHR)
-                .closest_hit_shader(2)
-                .any_hit_shader(vk::SHADER_UNUSED_KHR)
-                .intersection_shader(vk::SHADER_UNUSED_KHR)
-        };
-        let groups = [general(0), general(1), hit_group];
-        // Each tier's structures hold one kind of primitive: traversal skips the other for the
-        // whole pipeline (a flag Vulkan allows only with the primitive-culling feature).
-        let flags = match (ctx.limits.ray_traversal_primitive_culling, key.exact) {
-            (false, _) => vk::PipelineCreateFlags::empty(),
-            (true, false) => vk::PipelineCreateFlags::RAY_TRACING_SKIP_AABBS_KHR,
-            (true, true) => vk::PipelineCreateFlags::RAY_TRACING_SKIP_TRIANGLES_KHR,
+            // Triangles first (instances' hit-group offset 0); spheres second (offset 1), sharing
+            // the closest-hit shader, which tells them apart by hit kind.
+            groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, 2, NONE));
+            if key.spheres {
+                groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, 2, 3));
+            }
+        }
+        // Traversal skips the primitives the structures cannot hold, for the whole pipeline (a
+        // flag Vulkan allows only with the primitive-culling feature).
+        let flags = match (ctx.limits.ray_traversal_primitive_culling, key.exact, key.spheres) {
+            (false, _, _) | (true, false, true) => vk::PipelineCreateFlags::empty(),
+            (true, false, false) => vk::PipelineCreateFlags::RAY_TRACING_SKIP_AABBS_KHR,
+            (true, true, _) => vk::PipelineCreateFlags::RAY_TRACING_SKIP_TRIANGLES_KHR,
         };
         let info = [vk::RayTracingPipelineCreateInfoKHR::default()
             .flags(flags)
@@ -579,6 +586,7 @@ impl Tracer {
             ctx.limits.shader_group_handle_size as u64,
             ctx.limits.shader_group_handle_alignment as u64,
             ctx.limits.shader_group_base_alignment as u64,
+            group_count as u64 - 2,
         );
         let handle_size = ctx.limits.shader_group_handle_size as usize;
         let handles = unsafe {
@@ -596,7 +604,7 @@ impl Tracer {
             |out, address| {
                 start = align_up(address, layout.base_alignment);
                 let pad = (start - address) as usize;
-                for (group, offset) in layout.offsets.iter().enumerate() {
+                for (group, offset) in layout.records.iter().enumerate() {
                     let at = pad + *offset as usize;
                     out[at..at + handle_size].copy_from_slice(&handles[group * handle_size..(group + 1) * handle_size]);
                 }
@@ -606,11 +614,9 @@ impl Tracer {
             uploads.record(ctx, cmd);
             Ok(())
         })?;
-        let region = |group: usize| {
-            vk::StridedDeviceAddressRegionKHR::default()
-                .device_address(start + layout.offsets[group])
-                .stride(layout.strides[group])
-                .size(layout.sizes[group])
+        let region = |k: usize| {
+            let (offset, stride, size) = layout.regions[k];
+            vk::StridedDeviceAddressRegionKHR::default().device_address(start + offset).stride(stride).size(size)
         };
         Ok(ShaderBindingTable { raygen: region(0), miss: region(1), hit: region(2), _buffer: buffer })
     }
@@ -662,6 +668,13 @@ impl Tracer {
             if out.len() != n * 3 * if precision.is_f64() { 8 } else { 4 } {
                 return Err(invalid_value(format!("output for position has {} bytes for {n} rays", out.len())));
             }
+        }
+        if scene.has_spheres() && (precision != Precision::Fast || sink.position.is_some()) {
+            return Err(crate::error::Error::Unsupported(
+                "scenes with spheres trace at precision='fast' and without 'position' (the f64 tiers and positions are \
+                 for triangle meshes)"
+                    .into(),
+            ));
         }
         let position = if query == Query::Closest { sink.position.take() } else { None };
         if n == 0 || (sink.outputs() == 0 && position.is_none()) {
@@ -748,57 +761,76 @@ impl Tracer {
         self.ctx.check_validation()
     }
 
-    /// The pipeline backend's exact tier needs intersection shaders, which some drivers accept but
-    /// never run (Mesa 25.0's lavapipe: every ray misses). One ray through one triangle, once per
-    /// device, tells; such a driver gets a clear error instead of wrong answers.
-    fn check_exact_pipeline(&self, wait: &dyn Wait) -> Result<()> {
+    /// The pipeline backend's exact tier and sphere sets need intersection shaders, which some
+    /// drivers accept but do not run (Mesa 25.0's lavapipe, in the exact tier's hit group: every
+    /// ray misses). One ray through each path, once per device, tells; such a driver gets a clear
+    /// error instead of wrong answers.
+    fn check_intersection_shaders(&self, probe: Probe, wait: &dyn Wait) -> Result<()> {
         if self.ctx.backend != Backend::Pipeline {
             return Ok(());
         }
-        let mut known = self.exact_pipeline_works.lock().unwrap_or_else(|e| e.into_inner());
-        if known.is_none() {
-            use crate::input::{Indices, Masks, PerRay, Vec3s, VertexFormat};
-            use crate::scene::{Instance, Mesh, IDENTITY};
-            let options = crate::accel::BuildOptions {
-                preference: crate::accel::BuildPreference::FastBuild,
-                allow_update: false,
-                compact: false,
-            };
-            let triangle = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
-            let mesh = Arc::new(Mesh::build(
+        let mut known = self.intersection_shaders_run.lock().unwrap_or_else(|e| e.into_inner());
+        let runs = match known[probe as usize] {
+            Some(runs) => runs,
+            None => *known[probe as usize].insert(self.probe(probe, wait)?),
+        };
+        if runs {
+            return Ok(());
+        }
+        let (what, instead) = match probe {
+            Probe::Exact => ("precision='exact'", " or precision='reference' (same answers, on the CPU)"),
+            Probe::Spheres => ("spheres", ""),
+        };
+        Err(crate::error::Error::Unsupported(format!(
+            "{} ({}) does not run the intersection shaders of {what} in ray-tracing pipelines; use backend='ray_query'{instead}",
+            self.ctx.info.name, self.ctx.info.driver
+        )))
+    }
+
+    /// Whether one ray down the `probe` path hits what it must.
+    fn probe(&self, probe: Probe, wait: &dyn Wait) -> Result<bool> {
+        use crate::input::{Indices, Masks, PerRay, Vec3s, VertexFormat};
+        use crate::scene::{Instance, Mesh, IDENTITY};
+        let options = crate::accel::BuildOptions {
+            preference: crate::accel::BuildPreference::FastBuild,
+            allow_update: false,
+            compact: false,
+        };
+        let triangle = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+        let mesh = match probe {
+            Probe::Exact => Mesh::build(
                 &self.ctx,
                 Vec3s::F64(&triangle),
                 Indices::U32(&[0, 1, 2]),
                 options,
                 VertexFormat::F32,
                 wait,
-            )?);
-            let instance =
-                Instance { mesh, transform: IDENTITY, custom_index: 0, mask: 0xFF, flags: Default::default() };
-            let probe = Scene::build(&self.ctx, &[instance], options, wait)?;
-            let (origin, direction) = ([0.25, 0.25, 1.0], [0.0, 0.0, -1.0]);
-            let rays = Rays {
-                origins: Vec3s::F64(&origin),
-                directions: Vec3s::F64(&direction),
-                tmin: PerRay::All(0.0),
-                tmax: PerRay::All(f64::INFINITY),
-                mask: Masks::All(0xFF),
-            };
-            let mut prim = [0u8; 4];
-            let mut sink = HitSink::default();
-            sink.set(Field::Prim, &mut prim);
-            let request = Request { query: Query::Closest, precision: Precision::Exact, cull: Cull::None };
-            self.run_gpu(&probe, &rays, request, true, &mut sink, wait, &mut TraceProfile::default())?;
-            *known = Some(i32::from_ne_bytes(prim) == 0);
-        }
-        if *known == Some(false) {
-            return Err(crate::error::Error::Unsupported(format!(
-                "{} ({}) does not run the intersection shaders of precision='exact' in ray-tracing pipelines; \
-                 use backend='ray_query' or precision='reference' (same answers, on the CPU)",
-                self.ctx.info.name, self.ctx.info.driver
-            )));
-        }
-        Ok(())
+            )?,
+            Probe::Spheres => Mesh::spheres(&self.ctx, Vec3s::F64(&[0.0; 3]), PerRay::All(1.0), options, wait)?,
+        };
+        let instance = Instance {
+            mesh: Arc::new(mesh),
+            transform: IDENTITY,
+            custom_index: 0,
+            mask: 0xFF,
+            flags: Default::default(),
+        };
+        let scene = Scene::build(&self.ctx, &[instance], options, wait)?;
+        let rays = Rays {
+            origins: Vec3s::F64(&[0.25, 0.25, 5.0]),
+            directions: Vec3s::F64(&[0.0, 0.0, -1.0]),
+            tmin: PerRay::All(0.0),
+            tmax: PerRay::All(f64::INFINITY),
+            mask: Masks::All(0xFF),
+        };
+        let mut prim = [0xFFu8; 4];
+        let mut sink = HitSink::default();
+        sink.set(Field::Prim, &mut prim);
+        let exact = probe == Probe::Exact;
+        let precision = if exact { Precision::Exact } else { Precision::Fast };
+        let request = Request { query: Query::Closest, precision, cull: Cull::None };
+        self.run_gpu(&scene, &rays, request, exact, &mut sink, wait, &mut TraceProfile::default())?;
+        Ok(i32::from_ne_bytes(prim) == 0)
     }
 
     /// The GPU's part of a query: traversal in f32 (`exact`: through the scene's per-triangle
@@ -815,7 +847,10 @@ impl Tracer {
         profile: &mut TraceProfile,
     ) -> Result<()> {
         if exact {
-            self.check_exact_pipeline(wait)?;
+            self.check_intersection_shaders(Probe::Exact, wait)?;
+        }
+        if scene.has_spheres() {
+            self.check_intersection_shaders(Probe::Spheres, wait)?;
         }
         self.run_gpu(scene, rays, request, exact, sink, wait, profile)
     }
@@ -834,8 +869,9 @@ impl Tracer {
         let outputs = sink.outputs();
         // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
         let exact_scene = if exact { Some(scene.exact(wait)?) } else { None };
-        let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque());
-        let key = VariantKey { outputs, ray_flags: flags, exact };
+        let spheres = scene.has_spheres();
+        let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres);
+        let key = VariantKey { outputs, ray_flags: flags, exact, spheres };
         let variant = self.variant(key, wait)?;
         let capacity = self.chunk_rays().min(self.max_dispatch_rays()).min(rays.len()).max(1);
         let mut slots = self.take_slots(capacity, exact)?;
@@ -1093,24 +1129,25 @@ fn as_bytes(values: &[u32]) -> &[u8] {
     unsafe { std::slice::from_raw_parts(values.as_ptr() as *const u8, 4 * values.len()) }
 }
 
-/// Offsets, strides and sizes of the raygen, miss and hit regions of a shader binding table.
+/// A shader binding table's layout: the raygen, miss and hit regions (offset, stride, size), and
+/// where each group's record lies (raygen, miss, then the hit groups in order).
 #[derive(Debug, PartialEq)]
 struct SbtLayout {
-    offsets: [u64; 3],
-    strides: [u64; 3],
-    sizes: [u64; 3],
+    regions: [(u64, u64, u64); 3],
+    records: Vec<u64>,
     total: u64,
     base_alignment: u64,
 }
 
 impl SbtLayout {
-    fn new(handle_size: u64, handle_alignment: u64, base_alignment: u64) -> SbtLayout {
+    fn new(handle_size: u64, handle_alignment: u64, base_alignment: u64, hit_groups: u64) -> SbtLayout {
         let stride = align_up(handle_size, handle_alignment);
-        let region = align_up(stride, base_alignment);
+        let raygen = align_up(stride, base_alignment);
+        let hits = align_up(stride * hit_groups, base_alignment);
         // raygen: size must equal stride.
-        let strides = [region, stride, stride];
-        let sizes = [region, region, region];
-        SbtLayout { offsets: [0, region, 2 * region], strides, sizes, total: 3 * region, base_alignment }
+        let regions = [(0, raygen, raygen), (raygen, stride, raygen), (2 * raygen, stride, hits)];
+        let records = [0, raygen].into_iter().chain((0..hit_groups).map(|k| 2 * raygen + k * stride)).collect();
+        SbtLayout { regions, records, total: 2 * raygen + hits, base_alignment }
     }
 }
 
@@ -1159,32 +1196,40 @@ mod tests {
 
     #[test]
     fn sbt_layout_follows_device_alignments() {
-        // lavapipe: handle 32, handle alignment 16, base alignment 32.
-        let lavapipe = SbtLayout::new(32, 16, 32);
-        assert_eq!(lavapipe.offsets, [0, 32, 64]);
-        assert_eq!(lavapipe.strides, [32, 32, 32]);
-        // H100/H200: handle 32, handle alignment 32, base alignment 64.
-        let nvidia = SbtLayout::new(32, 32, 64);
-        assert_eq!(nvidia.offsets, [0, 64, 128]);
-        assert_eq!(nvidia.strides[0], nvidia.sizes[0]);
-        assert_eq!(nvidia.strides[1], 32);
-        for offset in nvidia.offsets {
+        // lavapipe: handle 32, handle alignment 16, base alignment 32; one hit group.
+        let lavapipe = SbtLayout::new(32, 16, 32, 1);
+        assert_eq!(lavapipe.records, [0, 32, 64]);
+        assert_eq!(lavapipe.regions[0], (0, 32, 32));
+        // H100/H200: handle 32, handle alignment 32, base alignment 64; triangles and spheres.
+        let nvidia = SbtLayout::new(32, 32, 64, 2);
+        assert_eq!(nvidia.records, [0, 64, 128, 160]);
+        let (offset, stride, size) = nvidia.regions[0];
+        assert_eq!((offset, stride), (0, size), "raygen size equals its stride");
+        assert_eq!(nvidia.regions[2], (128, 32, 64));
+        for (offset, _, _) in nvidia.regions {
             assert_eq!(offset % 64, 0);
         }
+        assert_eq!(nvidia.total, 192);
     }
 
     #[test]
     fn occlusion_flags_terminate_on_first_hit() {
         for backend in [Backend::RayQuery, Backend::Pipeline] {
             for exact in [false, true] {
-                let flags = |query| ray_flags(query, Cull::None, backend, exact, true);
+                let flags = |query| ray_flags(query, Cull::None, backend, exact, true, false);
                 assert_ne!(flags(Query::Occluded) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
                 assert_eq!(flags(Query::Closest) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
                 // The exact tier's structures are all AABBs.
-                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, true, true) & RAY_FLAG_SKIP_AABBS, 0);
+                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, true, true, false) & RAY_FLAG_SKIP_AABBS, 0);
+                // Spheres are boxes too.
+                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, false, true, true) & RAY_FLAG_SKIP_AABBS, 0);
             }
         }
-        let pipeline = |query, cull, all_opaque| ray_flags(query, cull, Backend::Pipeline, false, all_opaque);
+        let pipeline = |query, cull, all_opaque| ray_flags(query, cull, Backend::Pipeline, false, all_opaque, false);
+        assert_ne!(
+            ray_flags(Query::Closest, Cull::None, Backend::RayQuery, false, true, false) & RAY_FLAG_SKIP_AABBS,
+            0
+        );
         assert_ne!(pipeline(Query::Occluded, Cull::None, true) & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, 0);
         assert_eq!(pipeline(Query::Closest, Cull::None, true) & RAY_FLAG_SKIP_AABBS, 0);
         // Non-opaque instances must not be culled; culling follows the query.

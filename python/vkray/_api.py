@@ -156,6 +156,28 @@ class Device:
         core = self._core.mesh(v, f, build, bool(allow_update), bool(compact), vertex_format)
         return Mesh(self, core, v, f)
 
+    def spheres(self, centers: Any, radii: Any, *, build: str = "fast_trace", compact: bool = False) -> "Mesh":
+        """A set of spheres as one BLAS of boxes, whose spheres a shader intersects (a numerically
+        careful quadratic: Haines et al., Ray Tracing Gems ch. 7), in both backends.
+
+        centers: (N, 3) floats; radii: one positive float or N of them. The result is a `Mesh`
+        (``kind == "spheres"``) that scenes take like any other, mixed with triangle meshes; hits
+        give the sphere's index as ``prim_id`` and the outward unit ``normal``; ``uv`` is NaN.
+        Scenes holding spheres trace at ``precision="fast"`` only, without ``position``, and the
+        queries' ``cull`` does not apply to spheres.
+        """
+        _check_build(build)
+        c = _arrays.points("centers", centers)
+        r = _arrays.real_coordinates("radii", radii)
+        if r.ndim == 0:
+            r = float(r)
+        elif r.shape != (len(c),):
+            raise ValueError(f"radii must be one value or {len(c)} values, got shape {r.shape}")
+        else:
+            r = np.ascontiguousarray(r, dtype=np.float64)
+        core = self._core.spheres(c, r, build, bool(compact))
+        return Mesh(self, core, c, None)
+
     def mesh_from_parts(
         self,
         parts: Iterable[Tuple[Any, ...]],
@@ -287,6 +309,11 @@ class Mesh:
         return self._core.triangle_count
 
     @property
+    def kind(self) -> str:
+        """``"triangles"``, or ``"spheres"`` for `Device.spheres`."""
+        return self._core.kind
+
+    @property
     def part_count(self) -> int:
         """Geometries in the BLAS: 1, or the parts of `Device.mesh_from_parts`."""
         return self._core.part_count
@@ -309,6 +336,8 @@ class Mesh:
         self.vertices = array
 
     def __repr__(self) -> str:
+        if self.kind == "spheres":
+            return f"<vkray.Mesh of {self.vertex_count} spheres>"
         return f"<vkray.Mesh {self.vertex_count} vertices, {self.triangle_count} triangles>"
 
 
