@@ -251,16 +251,7 @@ pub fn build_many(
                 info
             })
             .collect();
-        let ranges: Vec<Vec<vk::AccelerationStructureBuildRangeInfoKHR>> = batch
-            .clone()
-            .map(|k| {
-                inputs[k]
-                    .primitive_counts
-                    .iter()
-                    .map(|&count| vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(count))
-                    .collect()
-            })
-            .collect();
+        let ranges: Vec<_> = batch.clone().map(|k| build_ranges(&inputs[k])).collect();
         let range_refs: Vec<&[vk::AccelerationStructureBuildRangeInfoKHR]> = ranges.iter().map(Vec::as_slice).collect();
         let query = if options.compact { Some(CompactedSizeQuery::new(ctx, structures.len() as u32)?) } else { None };
         ctx.run_commands(wait, |cmd| {
@@ -271,15 +262,7 @@ pub fn build_many(
                 unsafe { ctx.device.cmd_reset_query_pool(cmd, query.pool, 0, query.count) };
             }
             unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, &batch_infos, &range_refs) };
-            // Later commands, in this submission or any after it, see the finished structures.
-            memory_barrier(
-                ctx,
-                cmd,
-                vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
-                vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
-                vk::PipelineStageFlags::ALL_COMMANDS,
-                vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
-            );
+            structures_written(ctx, cmd);
             if let Some(query) = &query {
                 let raw: Vec<_> = structures.iter().map(|s| s.raw()).collect();
                 unsafe {
@@ -339,14 +322,7 @@ fn compact(
                 .mode(vk::CopyAccelerationStructureModeKHR::COMPACT);
             unsafe { ctx.accel.cmd_copy_acceleration_structure(cmd, &copy) };
         }
-        memory_barrier(
-            ctx,
-            cmd,
-            vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
-            vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
-            vk::PipelineStageFlags::ALL_COMMANDS,
-            vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
-        );
+        structures_written(ctx, cmd);
         Ok(())
     })?;
     Ok(compacted)
@@ -374,25 +350,35 @@ pub fn update(
         .src_acceleration_structure(structure.raw())
         .dst_acceleration_structure(structure.raw())
         .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
-    let ranges: Vec<vk::AccelerationStructureBuildRangeInfoKHR> = input
-        .primitive_counts
-        .iter()
-        .map(|&count| vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(count))
-        .collect();
+    let ranges = build_ranges(input);
     ctx.run_commands(wait, |cmd| {
         uploads.record(ctx, cmd);
         unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, std::slice::from_ref(&info), &[&ranges]) };
-        memory_barrier(
-            ctx,
-            cmd,
-            vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
-            vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
-            vk::PipelineStageFlags::ALL_COMMANDS,
-            vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
-        );
+        structures_written(ctx, cmd);
         Ok(())
     })?;
     Ok(started.elapsed().as_secs_f64())
+}
+
+/// One build range per geometry: all of its primitives.
+fn build_ranges(input: &BuildInput) -> Vec<vk::AccelerationStructureBuildRangeInfoKHR> {
+    input
+        .primitive_counts
+        .iter()
+        .map(|&count| vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(count))
+        .collect()
+}
+
+/// Later commands, in this submission or any after it, see the structures built or copied so far.
+fn structures_written(ctx: &Context, cmd: vk::CommandBuffer) {
+    memory_barrier(
+        ctx,
+        cmd,
+        vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
+        vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
+        vk::PipelineStageFlags::ALL_COMMANDS,
+        vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+    );
 }
 
 /// A query pool reading back the compacted sizes of `count` acceleration structures.
