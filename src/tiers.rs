@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use crate::input::Rays;
 use crate::precision::{plane_hit, world_normal, Cull};
 use crate::reference::ReferenceHit;
-use crate::scene::Scene;
+use crate::scene::{MeshKind, Scene};
 use crate::trace::{Field, HitSink};
 
 /// Writes one field for every ray, on all cores: `value(i, out)` fills ray i's bytes.
@@ -111,17 +111,26 @@ fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) 
     });
 }
 
-/// The hit triangles of a batch: caller's prim, instance and geometry (int32, -1 on a miss) and
-/// barycentrics (2 f32, or 2 f64 when `wide`) per ray.
+/// The hit triangles of a batch: caller's prim, instance and geometry (int32, -1 on a miss),
+/// barycentrics (2 f32, or 2 f64 when `wide`) and t (f32 or f64) per ray.
 pub struct HitTriangles<'a> {
     pub prim: &'a [u8],
     pub instance: &'a [u8],
     pub geometry: &'a [u8],
+    pub t: &'a [u8],
     pub uv: &'a [u8],
     pub wide: bool,
 }
 
 impl HitTriangles<'_> {
+    fn t(&self, i: usize) -> f64 {
+        if self.wide {
+            f64::from_ne_bytes(self.t[8 * i..8 * i + 8].try_into().expect("8 bytes"))
+        } else {
+            f32::from_ne_bytes(self.t[4 * i..4 * i + 4].try_into().expect("4 bytes")) as f64
+        }
+    }
+
     fn uv(&self, i: usize) -> (f64, f64) {
         if self.wide {
             let at = |k: usize| f64::from_ne_bytes(self.uv[8 * k..8 * k + 8].try_into().expect("8 bytes"));
@@ -135,19 +144,25 @@ impl HitTriangles<'_> {
 
 /// World-space hit points from each hit's triangle and barycentrics, interpolated in f64 in the
 /// mesh's frame (so their error is relative to the triangle's size, not to the ray's length or
-/// the origin's distance); 3 f64 per ray when `hits.wide`, else 3 f32. NaN on a miss.
-pub fn positions(scene: &Scene, hits: &HitTriangles, out: &mut [u8]) {
+/// the origin's distance); on spheres, `origin + t * direction` in f64. 3 f64 per ray when
+/// `hits.wide`, else 3 f32. NaN on a miss.
+pub fn positions(scene: &Scene, rays: &Rays, hits: &HitTriangles, out: &mut [u8]) {
     let width = if hits.wide { 24 } else { 12 };
     out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| {
         let p = int_at(hits.prim, i);
-        let point = if p < 0 {
-            DVec3::NAN
-        } else {
-            let placement = &scene.placements[int_at(hits.instance, i) as usize];
-            let global = placement.triangles.global(int_at(hits.geometry, i) as usize, p as usize);
-            let [a, b, c] = placement.triangles.triangle(global);
-            let (u, v) = hits.uv(i);
-            placement.to_scene.point(a + u * (b - a) + v * (c - a)) + scene.center
+        let placement = (p >= 0).then(|| &scene.placements[int_at(hits.instance, i) as usize]);
+        let point = match placement {
+            None => DVec3::NAN,
+            Some(placement) if placement.mesh.kind == MeshKind::Spheres => {
+                let ray = rays.ray64(i, DVec3::ZERO);
+                ray.origin + hits.t(i) * ray.direction
+            }
+            Some(placement) => {
+                let global = placement.triangles.global(int_at(hits.geometry, i) as usize, p as usize);
+                let [a, b, c] = placement.triangles.triangle(global);
+                let (u, v) = hits.uv(i);
+                placement.to_scene.point(a + u * (b - a) + v * (c - a)) + scene.center
+            }
         };
         if hits.wide {
             put_f64s(dst, &point.to_array());

@@ -669,11 +669,9 @@ impl Tracer {
                 return Err(invalid_value(format!("output for position has {} bytes for {n} rays", out.len())));
             }
         }
-        if scene.has_spheres() && (precision != Precision::Fast || sink.position.is_some()) {
+        if scene.has_spheres() && precision != Precision::Fast {
             return Err(crate::error::Error::Unsupported(
-                "scenes with spheres trace at precision='fast' and without 'position' (the f64 tiers and positions are \
-                 for triangle meshes)"
-                    .into(),
+                "scenes with spheres trace at precision='fast' (the f64 tiers are for triangle meshes)".into(),
             ));
         }
         let position = if query == Query::Closest { sink.position.take() } else { None };
@@ -706,6 +704,12 @@ impl Tracer {
         if position.is_some() && work.field(Field::Uv).is_none() {
             uv_temp = vec![0u8; n * Field::Uv.bytes_per_ray(precision.is_f64())];
             work.set(Field::Uv, &mut uv_temp);
+        }
+        // Sphere hits' positions come from t.
+        let mut t_temp;
+        if position.is_some() && scene.has_spheres() && work.field(Field::T).is_none() {
+            t_temp = vec![0u8; n * Field::T.bytes_per_ray(precision.is_f64())];
+            work.set(Field::T, &mut t_temp);
         }
         match (precision, refine) {
             (Precision::Fast, _) | (Precision::Refined, false) => {
@@ -751,10 +755,11 @@ impl Tracer {
                 prim: work.field(Field::Prim).unwrap_or_default(),
                 instance: work.field(Field::Instance).unwrap_or_default(),
                 geometry: work.field(Field::Geometry).unwrap_or_default(),
+                t: work.field(Field::T).unwrap_or_default(),
                 uv: work.field(Field::Uv).unwrap_or_default(),
                 wide: precision.is_f64(),
             };
-            tiers::positions(scene, &hits, out);
+            tiers::positions(scene, rays, &hits, out);
         }
         profile.total = started.elapsed().as_secs_f64();
         *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;

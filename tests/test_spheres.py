@@ -98,5 +98,7 @@ def test_sphere_errors(any_device):
     for precision in ("refined", "exact", "reference"):
         with pytest.raises(vkray.UnsupportedError, match="precision='fast'"):
             scene.intersect([0, 0, 5], [0, 0, -1], precision=precision)
-    with pytest.raises(vkray.UnsupportedError, match="position"):
-        scene.intersect([0, 0, 5], [0, 0, -1], outputs=["t", "position"])
+    # Positions of sphere hits: origin + t * direction.
+    hits = scene.intersect([[0, 0, 5], [0, 3, 5]], [0, 0, -1], outputs=["t", "position"])
+    np.testing.assert_allclose(hits.position[0], [0, 0, 1], atol=1e-6)
+    assert np.isnan(hits.position[1]).all()

@@ -163,8 +163,8 @@ class Device:
         centers: (N, 3) floats; radii: one positive float or N of them. The result is a `Mesh`
         (``kind == "spheres"``) that scenes take like any other, mixed with triangle meshes; hits
         give the sphere's index as ``prim_id`` and the outward unit ``normal``; ``uv`` is NaN.
-        Scenes holding spheres trace at ``precision="fast"`` only, without ``position``, and the
-        queries' ``cull`` does not apply to spheres.
+        Scenes holding spheres trace at ``precision="fast"`` only (``position`` of a sphere hit is
+        ``origin + t * direction`` in float64), and the queries' ``cull`` does not apply to spheres.
         """
         _check_build(build)
         c = _arrays.points("centers", centers)
