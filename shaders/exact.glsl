@@ -46,7 +46,10 @@ struct ExactBest {
   int custom;
   int geometry;
 };
-layout(buffer_reference, std430, buffer_reference_align = 8) buffer ExactScratch { ExactBest b[]; };
+// volatile: the intersection shader's stores must reach the ray generation shader's loads after
+// traceRayEXT. A driver that inlines the stages into one function (lavapipe) may otherwise
+// forward raygen's initial store straight to its final load, as if the call wrote nothing.
+layout(buffer_reference, std430, buffer_reference_align = 8) volatile buffer ExactScratch { ExactBest b[]; };
 
 ExactBest exact_miss() {
   return ExactBest(1.0 / 0.0, 0.0, 0.0, -1, -1, -1, -1);

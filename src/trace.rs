@@ -766,10 +766,10 @@ impl Tracer {
         self.ctx.check_validation()
     }
 
-    /// The pipeline backend's exact tier and sphere sets need intersection shaders, which some
-    /// drivers accept but do not run (Mesa 25.0's lavapipe, in the exact tier's hit group: every
-    /// ray misses). One ray through each path, once per device, tells; such a driver gets a clear
-    /// error instead of wrong answers.
+    /// The pipeline backend's exact tier and sphere sets need intersection shaders to run and
+    /// their side effects to be seen (lavapipe lost the exact tier's scratch stores until they
+    /// were made volatile: every ray missed). One ray through each path, once per device, tells;
+    /// a driver that fails gets a clear error instead of wrong answers.
     fn check_intersection_shaders(&self, probe: Probe, wait: &dyn Wait) -> Result<()> {
         if self.ctx.backend != Backend::Pipeline {
             return Ok(());

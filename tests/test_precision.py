@@ -13,7 +13,7 @@ _exact_support = {}
 
 def tiers(device):
     """The tiers this device answers: "exact" needs shaderFloat64 and, in the pipeline backend, a
-    driver that runs intersection shaders (lavapipe 25.0 does not: vkray raises UnsupportedError)."""
+    driver that runs intersection shaders (vkray probes it and raises UnsupportedError if not)."""
     if device.backend not in _exact_support:
         scene = device.scene(device.mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
         try:
