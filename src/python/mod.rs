@@ -12,12 +12,14 @@ use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::accel::{BuildOptions, BuildPreference, BuildStats};
-use crate::context::{Backend, Context, DeviceInfo, DeviceRequest, Wait};
 use crate::error::{Error, Result};
-use crate::input::{instance_transform, Indices, Masks, PerRay, Rays, Vec3s, VertexFormat};
-use crate::precision::{Cull, Precision};
+use crate::geometry::arrays::{instance_transform, Indices, Vec3s};
+use crate::geometry::rays::{Masks, PerRay, Rays};
+use crate::geometry::vertex_format::VertexFormat;
+use crate::gpu::accel::{BuildOptions, BuildPreference, BuildStats};
+use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest, Wait};
 use crate::scene::{Instance, InstanceFlags, Mesh, MeshKind, Scene, IDENTITY};
+use crate::trace::request::{Cull, Precision};
 use crate::trace::{Field, HitSink, Query, Request, Tracer};
 
 create_exception!(_core, VkrayError, PyRuntimeError, "Base class of vkray's own errors.");
@@ -80,7 +82,7 @@ fn stats_dict<'py>(py: Python<'py>, stats: &BuildStats, options: &BuildOptions) 
 /// The usable devices, best first.
 #[pyfunction]
 fn devices(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
-    let infos = crate::context::list_devices()?;
+    let infos = crate::gpu::context::list_devices()?;
     infos.iter().map(|info| info_dict(py, info)).collect()
 }
 
@@ -88,7 +90,7 @@ fn devices(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
 #[pyfunction]
 fn spirv_modules(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     let d = PyDict::new(py);
-    for (name, bytes) in crate::shaders::ALL {
+    for (name, bytes) in crate::gpu::shaders::ALL {
         d.set_item(*name, pyo3::types::PyBytes::new(py, bytes))?;
     }
     Ok(d)

@@ -4,11 +4,12 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use crate::geometry::vertex_format::VertexFormat;
 use ash::vk;
 
-use crate::context::{Context, Wait};
 use crate::error::{invalid_value, Result, VkResultExt};
-use crate::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
+use crate::gpu::context::{Context, Wait};
+use crate::gpu::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
 
 /// What a build optimizes for (the `VK_BUILD_ACCELERATION_STRUCTURE_PREFER_*` flags).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -447,6 +448,15 @@ pub fn instance_record(transform: &[f32; 12], bits: InstanceBits, blas_address: 
     record[52..56].copy_from_slice(&(sbt_offset | (flags as u32) << 24).to_ne_bytes());
     record[56..64].copy_from_slice(&blas_address.to_ne_bytes());
     record
+}
+
+/// The Vulkan format of a vertex buffer in `format`.
+pub fn vulkan_vertex_format(format: VertexFormat) -> vk::Format {
+    match format {
+        VertexFormat::F32 => vk::Format::R32G32B32_SFLOAT,
+        VertexFormat::F16 => vk::Format::R16G16B16A16_SFLOAT,
+        VertexFormat::Snorm16 => vk::Format::R16G16B16A16_SNORM,
+    }
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use ash::{ext, khr, vk};
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
 use crate::error::{Error, Result, VkResultExt};
-use crate::input::VertexFormat;
+use crate::geometry::vertex_format::VertexFormat;
 
 /// How rays are traced: ray queries from a compute shader, or a ray-tracing pipeline.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -73,7 +73,7 @@ pub struct Limits {
     /// Meaningful bits of the queue's timestamps; 0 where the queue cannot write them.
     pub timestamp_valid_bits: u32,
     /// Vertex formats acceleration structures can be built from (float32 always).
-    pub vertex_formats: Vec<crate::input::VertexFormat>,
+    pub vertex_formats: Vec<VertexFormat>,
 }
 
 /// Which device and backend to open.
@@ -379,7 +379,8 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
             .into_iter()
             .filter(|f| {
                 let properties = unsafe {
-                    instance.get_physical_device_format_properties(physical, crate::scene::vulkan_vertex_format(*f))
+                    instance
+                        .get_physical_device_format_properties(physical, crate::gpu::accel::vulkan_vertex_format(*f))
                 };
                 properties.buffer_features.contains(vk::FormatFeatureFlags::ACCELERATION_STRUCTURE_VERTEX_BUFFER_KHR)
             })

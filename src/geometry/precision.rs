@@ -13,38 +13,6 @@
 
 use glam::{DMat3, DVec2, DVec3};
 
-/// Which of several precision tiers answers a query.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum Precision {
-    /// f32 hits straight from traversal.
-    Fast,
-    /// f32 traversal of the re-centred scene, each hit re-intersected in f64 on the host.
-    Refined,
-    /// The f64 watertight test on the GPU, through conservative per-triangle boxes.
-    Exact,
-    /// The f64 watertight test on the CPU, on all cores: the other tiers' oracle.
-    Reference,
-}
-
-impl Precision {
-    pub fn parse(name: &str) -> crate::error::Result<Precision> {
-        match name {
-            "fast" => Ok(Precision::Fast),
-            "refined" => Ok(Precision::Refined),
-            "exact" => Ok(Precision::Exact),
-            "reference" => Ok(Precision::Reference),
-            other => Err(crate::error::invalid_value(format!(
-                "precision must be 'fast', 'refined', 'exact' or 'reference', got {other:?}"
-            ))),
-        }
-    }
-
-    /// Whether `t` and `uv` come back as f64.
-    pub fn is_f64(self) -> bool {
-        self != Precision::Fast
-    }
-}
-
 /// Which triangles a query ignores by the side the ray meets. "Front" is the side the hit's
 /// `normal` points to (right-handed in the triangle's winding, flipped by mirroring instances).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
@@ -307,6 +275,16 @@ impl Aabb {
         let enter = ray.tmin.max(near.x).max(near.y).max(near.z);
         let exit = ray.tmax.min(far.x).min(far.y).min(far.z);
         (enter <= exit).then_some(enter)
+    }
+}
+
+/// The f32 nearest to `v` on the outside of a box: below it for a minimum, above for a maximum.
+pub fn round_outward(v: f64, is_min: bool) -> f32 {
+    let f = v as f32;
+    match (is_min, (f as f64).partial_cmp(&v)) {
+        (true, Some(std::cmp::Ordering::Greater)) => f.next_down(),
+        (false, Some(std::cmp::Ordering::Less)) => f.next_up(),
+        _ => f,
     }
 }
 

@@ -11,31 +11,14 @@ use std::time::Instant;
 use ash::vk;
 use rayon::prelude::*;
 
-use crate::context::{Backend, Commands, Context, Wait};
 use crate::error::{invalid_value, Result, VkResultExt};
-use crate::input::{Masks, Rays, RAY_FLOATS};
-use crate::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
-use crate::precision::{Cull, Precision};
+use crate::geometry::rays::{Masks, Rays, RAY_FLOATS};
+use crate::gpu::context::{Backend, Commands, Context, Wait};
+use crate::gpu::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
+use crate::gpu::shaders;
 use crate::scene::{ExactScene, Scene};
-use crate::shaders;
-use crate::tiers;
-
-/// What a query asks of each ray.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Query {
-    /// The closest hit in [tmin, tmax].
-    Closest,
-    /// Whether anything is hit in [tmin, tmax]; traversal stops at the first hit.
-    Occluded,
-}
-
-/// Everything a trace asks besides its rays: which query, at which precision, culling which side.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Request {
-    pub query: Query,
-    pub precision: Precision,
-    pub cull: Cull,
-}
+use crate::trace::request::{Cull, Precision, Query, Request};
+use crate::trace::tiers;
 
 /// A field of the hit record. The discriminant is the field's position among the shaders' output
 /// addresses and its bit in their OUTPUTS constant is `1 << discriminant`.
@@ -794,10 +777,12 @@ impl Tracer {
 
     /// Whether one ray down the `probe` path hits what it must.
     fn probe(&self, probe: Probe, wait: &dyn Wait) -> Result<bool> {
-        use crate::input::{Indices, Masks, PerRay, Vec3s, VertexFormat};
+        use crate::geometry::arrays::{Indices, Vec3s};
+        use crate::geometry::rays::{Masks, PerRay};
+        use crate::geometry::vertex_format::VertexFormat;
         use crate::scene::{Instance, Mesh, IDENTITY};
-        let options = crate::accel::BuildOptions {
-            preference: crate::accel::BuildPreference::FastBuild,
+        let options = crate::gpu::accel::BuildOptions {
+            preference: crate::gpu::accel::BuildPreference::FastBuild,
             allow_update: false,
             compact: false,
         };

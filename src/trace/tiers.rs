@@ -4,9 +4,9 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::input::Rays;
-use crate::precision::{plane_hit, world_normal, Cull};
-use crate::reference::ReferenceHit;
+use crate::geometry::precision::{plane_hit, world_normal, Cull};
+use crate::geometry::rays::Rays;
+use crate::geometry::reference::ReferenceHit;
 use crate::scene::{MeshKind, Scene};
 use crate::trace::{Field, HitSink};
 

@@ -7,7 +7,7 @@ use std::sync::OnceLock;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::precision::{watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
+use crate::geometry::precision::{watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
 
 /// Items one leaf holds at most.
 const LEAF_ITEMS: usize = 4;

@@ -6,8 +6,17 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 pub use gpu_allocator::MemoryLocation;
 
-use crate::context::Context;
 use crate::error::{Result, VkResultExt};
+pub use crate::geometry::align_up;
+use crate::gpu::context::Context;
+
+/// Usage of buffers that acceleration-structure builds and shaders read (vertices, indices, boxes,
+/// instance records, records shaders reach by address).
+pub const GEOMETRY_INPUT: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
+    vk::BufferUsageFlags::ACCELERATION_STRUCTURE_BUILD_INPUT_READ_ONLY_KHR.as_raw()
+        | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS.as_raw()
+        | vk::BufferUsageFlags::STORAGE_BUFFER.as_raw(),
+);
 
 /// A Vulkan buffer with its own memory allocation; freed when dropped.
 pub struct Buffer {
@@ -90,15 +99,6 @@ impl Drop for Buffer {
             // Freeing only fails for allocations this allocator does not own; nothing to undo.
             let _ = self.ctx.allocator().free(allocation);
         }
-    }
-}
-
-/// Rounds `value` up to a multiple of `alignment` (a power of two, or 0/1 for none).
-pub fn align_up(value: u64, alignment: u64) -> u64 {
-    if alignment <= 1 {
-        value
-    } else {
-        value.div_ceil(alignment) * alignment
     }
 }
 
@@ -190,19 +190,4 @@ pub fn memory_barrier(
     unsafe {
         ctx.device.cmd_pipeline_barrier(cmd, src_stage, dst_stage, vk::DependencyFlags::empty(), &barrier, &[], &[])
     };
-}
-
-#[cfg(test)]
-mod tests {
-    use super::align_up;
-
-    #[test]
-    fn align_up_rounds_to_multiples() {
-        assert_eq!(align_up(0, 128), 0);
-        assert_eq!(align_up(1, 128), 128);
-        assert_eq!(align_up(128, 128), 128);
-        assert_eq!(align_up(129, 8), 136);
-        assert_eq!(align_up(7, 0), 7);
-        assert_eq!(align_up(7, 1), 7);
-    }
 }

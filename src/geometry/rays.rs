@@ -1,0 +1,290 @@
+//! Batches of rays as the caller gave them: checks, and packing into the GPU's ray records.
+//! Bad rays become an error naming the argument and the first offending row.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::arrays::{fmt_row, Vec3s};
+use super::precision::Ray64;
+use crate::error::{invalid_value, Result};
+
+/// A per-ray interval bound: one value for every ray, or one per ray.
+#[derive(Clone, Copy, Debug)]
+pub enum PerRay<'a> {
+    All(f64),
+    Each(&'a [f64]),
+}
+
+impl PerRay<'_> {
+    #[inline]
+    pub fn get(&self, i: usize) -> f64 {
+        match self {
+            PerRay::All(v) => *v,
+            PerRay::Each(v) => v[i],
+        }
+    }
+}
+
+/// Per-ray 8-bit visibility masks: a ray sees an instance when `instance mask & ray mask != 0`.
+#[derive(Clone, Copy, Debug)]
+pub enum Masks<'a> {
+    All(u8),
+    Each(&'a [u8]),
+}
+
+impl Masks<'_> {
+    #[inline]
+    pub fn get(&self, i: usize) -> u8 {
+        match self {
+            Masks::All(m) => *m,
+            Masks::Each(m) => m[i],
+        }
+    }
+}
+
+/// A batch of rays as the caller gave it. `origins` or `directions` may hold a single row shared
+/// by every ray (a camera's eye), so that broadcasting never copies it; per-ray bounds then give
+/// the batch its size.
+#[derive(Clone, Copy, Debug)]
+pub struct Rays<'a> {
+    pub origins: Vec3s<'a>,
+    pub directions: Vec3s<'a>,
+    pub tmin: PerRay<'a>,
+    pub tmax: PerRay<'a>,
+    pub mask: Masks<'a>,
+}
+
+/// Floats one packed ray takes: origin, tmin, direction, tmax.
+pub const RAY_FLOATS: usize = 8;
+
+/// Rays one thread checks and packs at a time: large enough to amortize scheduling, small enough
+/// to spread a chunk over every core.
+const PACK_PIECE: usize = 1 << 14;
+
+impl Rays<'_> {
+    /// The batch size: the longest of the four arrays (the others have one row or value).
+    pub fn len(&self) -> usize {
+        let bound_len = |b: PerRay| match b {
+            PerRay::All(_) => 0,
+            PerRay::Each(v) => v.len(),
+        };
+        let mask_len = match self.mask {
+            Masks::All(_) => 0,
+            Masks::Each(m) => m.len(),
+        };
+        self.origins
+            .rows()
+            .max(self.directions.rows())
+            .max(bound_len(self.tmin))
+            .max(bound_len(self.tmax))
+            .max(mask_len)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    #[inline]
+    fn origin(&self, i: usize) -> [f32; 3] {
+        self.origins.row_f32(if self.origins.rows() == 1 { 0 } else { i })
+    }
+
+    #[inline]
+    fn direction(&self, i: usize) -> [f32; 3] {
+        self.directions.row_f32(if self.directions.rows() == 1 { 0 } else { i })
+    }
+
+    /// Ray `i` in f64, its origin shifted by `-shift` (into a scene's frame).
+    pub fn ray64(&self, i: usize, shift: DVec3) -> Ray64 {
+        let row = |v: &Vec3s| DVec3::from_array(v.row_f64(if v.rows() == 1 { 0 } else { i }));
+        Ray64 {
+            origin: row(&self.origins) - shift,
+            direction: row(&self.directions),
+            tmin: self.tmin.get(i),
+            tmax: self.tmax.get(i),
+        }
+    }
+
+    /// Array lengths must agree (one shared origin or direction row is allowed).
+    pub fn check_shapes(&self) -> Result<()> {
+        let n = self.len();
+        for (name, rows) in [("origins", self.origins.rows()), ("directions", self.directions.rows())] {
+            if rows != n && rows != 1 {
+                return Err(invalid_value(format!("{name} has {rows} rows for {n} rays")));
+            }
+        }
+        for (name, bound) in [("tmin", self.tmin), ("tmax", self.tmax)] {
+            if let PerRay::Each(values) = bound {
+                if values.len() != n {
+                    return Err(invalid_value(format!("{name} has {} values for {n} rays", values.len())));
+                }
+            }
+        }
+        if let Masks::Each(masks) = self.mask {
+            if masks.len() != n {
+                return Err(invalid_value(format!("mask has {} values for {n} rays", masks.len())));
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether ray `i` is valid for Vulkan once in f32: finite origin, finite non-zero direction,
+    /// 0 <= tmin <= tmax, no NaN (tmax may be +inf).
+    #[inline]
+    fn is_valid(&self, i: usize) -> bool {
+        let (o, d) = (self.origin(i), self.direction(i));
+        let (tmin, tmax) = (self.tmin.get(i), self.tmax.get(i));
+        o.iter().all(|c| c.is_finite())
+            && d.iter().all(|c| c.is_finite())
+            && d.iter().any(|c| *c != 0.0)
+            && tmin >= 0.0
+            && (tmin as f32).is_finite()
+            && tmax >= tmin
+    }
+
+    /// Why ray `i` is invalid, naming the array and the row.
+    fn invalid_ray(&self, i: usize) -> crate::error::Error {
+        let row = |v: &Vec3s| v.row_f64(if v.rows() == 1 { 0 } else { i });
+        let (tmin, tmax) = (self.tmin.get(i), self.tmax.get(i));
+        let tmin_ok = tmin >= 0.0 && (tmin as f32).is_finite();
+        let message = if !self.origin(i).iter().all(|c| c.is_finite()) {
+            format!("origins row {i} is not finite in float32: {}", fmt_row(row(&self.origins)))
+        } else if !self.direction(i).iter().all(|c| c.is_finite()) {
+            format!("directions row {i} is not finite in float32: {}", fmt_row(row(&self.directions)))
+        } else if self.direction(i).iter().all(|c| *c == 0.0) {
+            format!("directions row {i} has zero length in float32: {}", fmt_row(row(&self.directions)))
+        } else if !tmin_ok {
+            format!("tmin of ray {i} must be finite and >= 0, got {tmin}")
+        } else {
+            format!("ray {i} has tmax ({tmax}) below tmin ({tmin}) or NaN")
+        };
+        invalid_value(message)
+    }
+
+    /// Checks every ray, on all cores; the error names the first invalid one.
+    pub fn check(&self) -> Result<()> {
+        self.check_shapes()?;
+        let first_bad = (0..self.len().div_ceil(PACK_PIECE))
+            .into_par_iter()
+            .filter_map(|piece| {
+                let range = piece * PACK_PIECE..((piece + 1) * PACK_PIECE).min(self.len());
+                range.into_iter().find(|&i| !self.is_valid(i))
+            })
+            .min();
+        first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
+    }
+
+    /// Checks rays `start..` and packs them for the GPU with their origins moved by `-shift`
+    /// (into a scene's frame): 8 f32 a ray (origin, tmin, direction, tmax), as many rays as `out`
+    /// holds. One pass over the caller's arrays on all cores; the error names the first invalid ray.
+    pub fn pack(&self, start: usize, out: &mut [f32], shift: DVec3) -> Result<()> {
+        self.pack_with(start, out, |i, ray| {
+            let (mut o, d) = (self.origin(i), self.direction(i));
+            if shift != DVec3::ZERO {
+                o = self.ray64(i, shift).origin.as_vec3().to_array();
+            }
+            // Vulkan wants finite bounds; the largest float is as far as +inf for any f32 scene.
+            let tmax = (self.tmax.get(i) as f32).min(f32::MAX);
+            ray.copy_from_slice(&[o[0], o[1], o[2], self.tmin.get(i) as f32, d[0], d[1], d[2], tmax]);
+        })
+    }
+
+    /// As `pack`, in f64 for the exact tier (tmax stays +inf where it is).
+    pub fn pack_f64(&self, start: usize, out: &mut [f64], shift: DVec3) -> Result<()> {
+        self.pack_with(start, out, |i, ray| {
+            let r = self.ray64(i, shift);
+            let (o, d) = (r.origin, r.direction);
+            ray.copy_from_slice(&[o.x, o.y, o.z, r.tmin, d.x, d.y, d.z, r.tmax]);
+        })
+    }
+
+    fn pack_with<T: Send>(&self, start: usize, out: &mut [T], write: impl Fn(usize, &mut [T]) + Sync) -> Result<()> {
+        let first_bad = out
+            .par_chunks_mut(PACK_PIECE * RAY_FLOATS)
+            .enumerate()
+            .filter_map(|(piece, out)| {
+                let first = start + piece * PACK_PIECE;
+                for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
+                    let i = first + k;
+                    if !self.is_valid(i) {
+                        return Some(i);
+                    }
+                    write(i, ray);
+                }
+                None
+            })
+            .min();
+        first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::error::Error;
+
+    fn message(r: Result<()>) -> String {
+        match r {
+            Err(Error::InvalidValue(m)) => m,
+            other => panic!("expected InvalidValue, got {other:?}"),
+        }
+    }
+
+    fn rays<'a>(o: &'a [f32], d: &'a [f32], tmin: PerRay<'a>, tmax: PerRay<'a>) -> Rays<'a> {
+        Rays { origins: Vec3s::F32(o), directions: Vec3s::F32(d), tmin, tmax, mask: Masks::All(0xFF) }
+    }
+
+    #[test]
+    fn rays_are_checked_row_by_row() {
+        let o = [0.0f32; 6];
+        let d = [0.0f32, 0.0, 1.0, 0.0, 0.0, 0.0];
+        assert!(message(rays(&o, &d, PerRay::All(0.0), PerRay::All(f64::INFINITY)).check())
+            .contains("directions row 1 has zero length"));
+        let d = [0.0f32, 0.0, 1.0, 0.0, 1.0, 0.0];
+        assert!(rays(&o, &d, PerRay::All(0.0), PerRay::All(f64::INFINITY)).check().is_ok());
+        let tmax = [1.0, 0.5];
+        assert!(message(rays(&o, &d, PerRay::All(0.75), PerRay::Each(&tmax)).check()).contains("ray 1"));
+        assert!(message(rays(&o, &d, PerRay::All(-1.0), PerRay::All(1.0)).check()).contains("tmin"));
+        assert!(message(rays(&o, &d, PerRay::All(0.0), PerRay::All(f64::NAN)).check()).contains("ray 0"));
+        let o_nan = [0.0f32, f32::NAN, 0.0, 0.0, 0.0, 0.0];
+        assert!(message(rays(&o_nan, &d, PerRay::All(0.0), PerRay::All(1.0)).check()).contains("origins row 0"));
+    }
+
+    #[test]
+    fn packing_names_the_first_bad_ray_of_many_pieces() {
+        let n = 3 * PACK_PIECE + 5;
+        let o = [0.5f32, 0.0, 0.0]; // one origin shared by every ray
+        let mut d = vec![0.0f32; 3 * n];
+        d.iter_mut().skip(2).step_by(3).for_each(|z| *z = 1.0);
+        let (late, early) = (2 * PACK_PIECE + 3, PACK_PIECE + 1);
+        d[3 * late + 2] = f32::NAN;
+        d[3 * early + 2] = 0.0;
+        let r = rays(&o, &d, PerRay::All(0.0), PerRay::All(1.0));
+        let mut out = vec![0f32; n * RAY_FLOATS];
+        let text = message(r.pack(0, &mut out, DVec3::ZERO));
+        assert!(text.contains(&format!("directions row {early} has zero length")), "{text}");
+        assert!(message(r.check()).contains(&format!("row {early}")));
+        // Packing from an offset reports caller row numbers.
+        let tail = &mut out[..(n - late) * RAY_FLOATS];
+        assert!(message(r.pack(late, tail, DVec3::ZERO)).contains(&format!("directions row {late} is not finite")));
+        let mut first = [0f32; RAY_FLOATS];
+        r.pack(0, &mut first, DVec3::ZERO).unwrap();
+        assert_eq!(first, [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn rays_pack_with_finite_bounds() {
+        let o = [1.0f64, 2.0, 3.0];
+        let d = [0.0f64, 0.0, -1.0];
+        let r = Rays {
+            origins: Vec3s::F64(&o),
+            directions: Vec3s::F64(&d),
+            tmin: PerRay::All(0.5),
+            tmax: PerRay::All(f64::INFINITY),
+            mask: Masks::All(0xFF),
+        };
+        let mut out = [0f32; RAY_FLOATS];
+        r.pack(0, &mut out, DVec3::ZERO).unwrap();
+        assert_eq!(out, [1.0, 2.0, 3.0, 0.5, 0.0, 0.0, -1.0, f32::MAX]);
+    }
+}

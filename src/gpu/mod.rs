@@ -1,0 +1,8 @@
+//! The Vulkan side: instance and device selection, memory, acceleration-structure builds, the
+//! records shaders read, and the embedded shaders.
+
+pub mod accel;
+pub mod context;
+pub mod memory;
+pub mod records;
+pub mod shaders;

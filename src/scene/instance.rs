@@ -1,0 +1,134 @@
+//! Instances: placements of meshes in a scene's frame, and the bits of their Vulkan records.
+
+use std::sync::Arc;
+
+use glam::DVec3;
+
+use super::mesh::{Mesh, MeshKind};
+use crate::error::{invalid_value, Result};
+use crate::geometry::precision::{Aabb, Affine};
+use crate::geometry::reference::TriangleSet;
+use crate::gpu::accel::InstanceBits;
+
+/// One placement of a mesh in a scene.
+#[derive(Clone)]
+pub struct Instance {
+    pub mesh: Arc<Mesh>,
+    /// Row-major 3×4 affine transform (object to world), in f64.
+    pub transform: [f64; 12],
+    pub custom_index: u32,
+    pub mask: u8,
+    pub flags: InstanceFlags,
+}
+
+/// What an instance asks of traversal beyond its placement.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct InstanceFlags {
+    /// Query culling (`Cull`) does not apply to this instance.
+    pub cull_disable: bool,
+    /// Swap front and back (front is otherwise the side the hit's normal points to).
+    pub flip_facing: bool,
+    /// Treat the triangles as opaque (they are; kept for the guides' vocabulary).
+    pub force_opaque: bool,
+    /// Treat the triangles as non-opaque: traversal hands them to the shader, which accepts
+    /// them (vkray has no any-hit programs), the path a future any-hit stage takes.
+    pub force_no_opaque: bool,
+}
+
+// Instance flags of `VkGeometryInstanceFlagBitsKHR`.
+const INSTANCE_CULL_DISABLE: u8 = 0x1;
+const INSTANCE_FRONT_COUNTERCLOCKWISE: u8 = 0x2;
+const INSTANCE_FORCE_OPAQUE: u8 = 0x4;
+const INSTANCE_FORCE_NO_OPAQUE: u8 = 0x8;
+
+pub const IDENTITY: [f64; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+
+/// Where an instance's mesh sits in the scene's frame (world coordinates minus the scene centre).
+pub struct Placement {
+    pub mesh: Arc<Mesh>,
+    /// The mesh's f64 triangles as this scene placed them (see `Scene::update`).
+    pub triangles: Arc<TriangleSet>,
+    /// From the mesh's re-centred frame to the scene's frame.
+    pub to_scene: Affine,
+    /// The inverse: from the scene's frame to the mesh's.
+    pub to_local: Affine,
+    pub custom_index: u32,
+    pub mask: u8,
+    /// The mesh's bounds in the scene's frame.
+    pub bounds: Aabb,
+    pub flags: InstanceFlags,
+    /// Front is the side opposite the object-space normal: a mirroring transform (which flips the
+    /// world normal) or `flip_facing`, not both.
+    pub flip_facing: bool,
+}
+
+impl Placement {
+    /// The bits of this placement's Vulkan instance record: spheres' hits go to the second hit
+    /// group of the shader binding table (the procedural one).
+    pub(super) fn bits(&self) -> InstanceBits {
+        InstanceBits {
+            custom_index: self.custom_index,
+            mask: self.mask,
+            flags: self.vulkan_flags(),
+            sbt_offset: (self.mesh.kind == MeshKind::Spheres) as u32,
+        }
+    }
+
+    /// Vulkan's instance flags. Vulkan judges facing in object space and by default calls front
+    /// the side `cross(v1 - v0, v2 - v0)` points to (clockwise seen from the ray, in its
+    /// left-handed wording), our convention too; its counter-clockwise flag swaps the two.
+    fn vulkan_flags(&self) -> u8 {
+        let mut flags = 0;
+        if self.flags.cull_disable {
+            flags |= INSTANCE_CULL_DISABLE;
+        }
+        if self.flip_facing {
+            flags |= INSTANCE_FRONT_COUNTERCLOCKWISE;
+        }
+        if self.flags.force_opaque {
+            flags |= INSTANCE_FORCE_OPAQUE;
+        }
+        if self.flags.force_no_opaque {
+            flags |= INSTANCE_FORCE_NO_OPAQUE;
+        }
+        flags
+    }
+}
+
+/// Largest custom index an instance can carry (24 bits).
+pub const MAX_CUSTOM_INDEX: u32 = (1 << 24) - 1;
+
+/// The scene's centre (the middle of its instances' bounds, unless `center` keeps an earlier one)
+/// and each instance's placement relative to it, all in f64.
+pub(crate) fn place(instances: &[Instance], center: Option<DVec3>) -> Result<(DVec3, Vec<Placement>)> {
+    let triangles: Vec<Arc<TriangleSet>> = instances.iter().map(|x| x.mesh.triangles()).collect();
+    // Object to world for the mesh's device frame: M (s v + c) + T = (s M) v + (M c + T).
+    let to_world: Vec<Affine> = instances
+        .iter()
+        .map(|x| {
+            let user = Affine::from_rows(&x.transform);
+            Affine { linear: user.linear * x.mesh.scale, offset: user.point(x.mesh.center) }
+        })
+        .collect();
+    let bounds = triangles.iter().zip(&to_world).fold(Aabb::EMPTY, |b, (t, m)| b.union(&t.bounds.transformed(m)));
+    let center = center.unwrap_or(if instances.is_empty() { DVec3::ZERO } else { bounds.center() });
+    let mut placements = Vec::with_capacity(instances.len());
+    for (i, ((x, m), triangles)) in instances.iter().zip(&to_world).zip(triangles).enumerate() {
+        let to_scene = Affine { offset: m.offset - center, ..*m };
+        let to_local = to_scene.inverse().ok_or_else(|| {
+            invalid_value(format!("instance {i} has a singular transform (its 3x3 part has no inverse)"))
+        })?;
+        placements.push(Placement {
+            mesh: x.mesh.clone(),
+            bounds: triangles.bounds.transformed(&to_scene),
+            triangles,
+            to_scene,
+            to_local,
+            custom_index: x.custom_index,
+            mask: x.mask,
+            flags: x.flags,
+            flip_facing: (to_scene.linear.determinant() < 0.0) != x.flags.flip_facing,
+        });
+    }
+    Ok((center, placements))
+}

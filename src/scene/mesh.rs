@@ -1,0 +1,517 @@
+//! Meshes: a bottom-level structure over device copies of vertices and faces (or sphere boxes),
+//! with the host's f64 copy of the same surface for the f64 tiers.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Instant;
+
+use ash::vk;
+use glam::DVec3;
+
+use crate::error::{invalid_value, Error, Result};
+use crate::geometry::arrays::{check_faces, check_vertices, Indices, Vec3s};
+use crate::geometry::morton::morton_order;
+use crate::geometry::precision::{round_outward, Aabb};
+use crate::geometry::rays::PerRay;
+use crate::geometry::reference::TriangleSet;
+use crate::geometry::vertex_format::VertexFormat;
+use crate::gpu::accel::{self, vulkan_vertex_format, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
+use crate::gpu::context::{Context, Wait};
+use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
+
+/// Bytes of one `GeometrySource` record in `shaders/common.glsl`.
+const GEOMETRY_SOURCE_BYTES: usize = 32;
+
+/// `GeometrySource.vertex_format` of sphere sets (after the `VertexFormat`s).
+const SPHERE_SOURCE: u32 = 3;
+
+/// A triangle mesh on the device with its bottom-level acceleration structure.
+///
+/// The device holds the vertices re-centred on their bounding box (`center`, subtracted in f64
+/// before anything becomes f32), so that a mesh far from the origin keeps its full f32 precision;
+/// scenes add the centre back in their instance transforms. The host keeps the same re-centred
+/// vertices in f64 for the f64 precision tiers.
+pub struct Mesh {
+    pub kind: MeshKind,
+    /// Vertices of a triangle mesh; spheres of a sphere set.
+    pub vertex_count: usize,
+    pub triangle_count: usize,
+    pub center: DVec3,
+    /// Device coordinates are `(v - center) / scale`: 1 in float32, the largest magnitude of
+    /// `v - center` in the 16-bit formats (whose range is [-1, 1]).
+    pub scale: f64,
+    pub vertex_format: VertexFormat,
+    pub options: BuildOptions,
+    pub stats: BuildStats,
+    /// The host's f64 copy, replaced whole by `update` (scenes hold the one they were placed with).
+    triangles: RwLock<Arc<TriangleSet>>,
+    /// Counts `update`s, so that scenes can tell they hold an older copy.
+    generation: AtomicU64,
+    /// Seconds the last `update` took (upload and refit), 0 before any.
+    last_update_seconds: Mutex<f64>,
+    blas: AccelerationStructure,
+    /// One per geometry of the BLAS.
+    pub(super) parts: Vec<Part>,
+    /// A `GeometrySource` per part, read by shaders (normals, caller's triangle indices).
+    pub(super) sources: Buffer,
+}
+
+/// What a mesh's BLAS holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MeshKind {
+    Triangles,
+    /// Spheres, one box each, intersected by a shader.
+    Spheres,
+}
+
+/// One geometry of a mesh's BLAS: its device buffers.
+pub(super) struct Part {
+    vertex_count: usize,
+    /// Triangles, or spheres (boxes).
+    pub(super) triangle_count: usize,
+    /// Triangle vertices; or spheres, as f32 (centre xyz, radius).
+    vertices: Buffer,
+    /// Triangle corners (none for spheres).
+    indices: Option<Buffer>,
+    index_is_u16: bool,
+    /// The spheres' boxes (`VkAabbPositionsKHR`), for sphere sets.
+    boxes: Option<Buffer>,
+    /// Device triangle -> caller's triangle, where the device holds them in another order.
+    device_order: Option<Vec<u32>>,
+    primitive_order: Option<Buffer>,
+}
+
+impl Part {
+    fn geometry(&self, format: VertexFormat) -> vk::AccelerationStructureGeometryKHR<'static> {
+        if let Some(boxes) = &self.boxes {
+            let data = vk::AccelerationStructureGeometryAabbsDataKHR::default()
+                .data(vk::DeviceOrHostAddressConstKHR { device_address: boxes.address() })
+                .stride(24);
+            return vk::AccelerationStructureGeometryKHR::default()
+                .geometry_type(vk::GeometryTypeKHR::AABBS)
+                .geometry(vk::AccelerationStructureGeometryDataKHR { aabbs: data })
+                .flags(vk::GeometryFlagsKHR::OPAQUE);
+        }
+        let indices = self.indices.as_ref().expect("triangle parts have indices");
+        let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
+            .vertex_format(vulkan_vertex_format(format))
+            .vertex_data(vk::DeviceOrHostAddressConstKHR { device_address: self.vertices.address() })
+            .vertex_stride(format.stride() as u64)
+            .max_vertex(self.vertex_count as u32 - 1)
+            .index_type(if self.index_is_u16 { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
+            .index_data(vk::DeviceOrHostAddressConstKHR { device_address: indices.address() });
+        vk::AccelerationStructureGeometryKHR::default()
+            .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
+            .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
+            .flags(vk::GeometryFlagsKHR::OPAQUE)
+    }
+
+    /// This part's `GeometrySource` record (shaders/common.glsl); `kind` is its `vertex_format`
+    /// field (a `VertexFormat`, or `SPHERE_SOURCE`).
+    fn source(&self, kind: u32) -> [u8; GEOMETRY_SOURCE_BYTES] {
+        let mut out = [0u8; GEOMETRY_SOURCE_BYTES];
+        out[0..8].copy_from_slice(&self.vertices.address().to_ne_bytes());
+        out[8..16].copy_from_slice(&self.indices.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
+        out[16..24].copy_from_slice(&self.primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
+        out[24..28].copy_from_slice(&(self.index_is_u16 as u32).to_ne_bytes());
+        out[28..32].copy_from_slice(&kind.to_ne_bytes());
+        out
+    }
+
+    /// The caller's triangle (within this part) held at `device`.
+    pub(super) fn caller_triangle(&self, device: usize) -> usize {
+        self.device_order.as_ref().map_or(device, |order| order[device] as usize)
+    }
+}
+
+impl Mesh {
+    /// Checks and uploads vertices and faces, then builds the BLAS (opaque triangles).
+    pub fn build(
+        ctx: &Arc<Context>,
+        vertices: Vec3s,
+        faces: Indices,
+        options: BuildOptions,
+        format: VertexFormat,
+        wait: &dyn Wait,
+    ) -> Result<Mesh> {
+        Mesh::build_parts(ctx, &[(vertices, faces)], options, format, wait)
+    }
+
+    /// A set of spheres (`centers` (N, 3), `radii` one per sphere or one for all): a BLAS of one
+    /// box per sphere, whose spheres a shader intersects. Scenes mix them with triangle meshes.
+    pub fn spheres(
+        ctx: &Arc<Context>,
+        centers: Vec3s,
+        radii: PerRay,
+        options: BuildOptions,
+        wait: &dyn Wait,
+    ) -> Result<Mesh> {
+        check_vertices("centers", centers)?;
+        let n = centers.rows();
+        if let PerRay::Each(r) = radii {
+            if r.len() != n {
+                return Err(invalid_value(format!("radii has {} values for {n} centers", r.len())));
+            }
+        }
+        if let Some(i) = (0..n).find(|&i| !(radii.get(i) > 0.0 && (radii.get(i) as f32).is_finite())) {
+            return Err(invalid_value(format!("radius {i} must be finite and > 0, got {}", radii.get(i))));
+        }
+        if n as u64 > ctx.limits.max_primitive_count {
+            return Err(Error::Unsupported(format!(
+                "{n} spheres exceed this device's maxPrimitiveCount ({})",
+                ctx.limits.max_primitive_count
+            )));
+        }
+        let sphere = |i: usize| (DVec3::from_array(centers.row_f64(i)), radii.get(i));
+        let bounds = (0..n).fold(Aabb::EMPTY, |b, i| {
+            let (c, r) = sphere(i);
+            b.union(&Aabb { min: c - DVec3::splat(r), max: c + DVec3::splat(r) })
+        });
+        let center = bounds.center();
+        let mut uploads = Uploads::default();
+        let records = uploads.buffer(ctx, 16 * n as u64, GEOMETRY_INPUT, "spheres", |out, _| {
+            for (i, dst) in out.chunks_exact_mut(16).enumerate() {
+                let (c, r) = sphere(i);
+                let local = (c - center).as_vec3();
+                for (d, v) in dst.chunks_exact_mut(4).zip([local.x, local.y, local.z, r as f32]) {
+                    d.copy_from_slice(&v.to_ne_bytes());
+                }
+            }
+        })?;
+        // Boxes hold the f32 spheres whole: rounded outward from their f64 extent.
+        let boxes = uploads.buffer(ctx, 24 * n as u64, GEOMETRY_INPUT, "sphere boxes", |out, _| {
+            for (i, dst) in out.chunks_exact_mut(24).enumerate() {
+                let (c, r) = sphere(i);
+                let (lo, hi) =
+                    (c - center - DVec3::splat(r * (1.0 + 1e-6)), c - center + DVec3::splat(r * (1.0 + 1e-6)));
+                let corners = [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z];
+                for (k, (d, v)) in dst.chunks_exact_mut(4).zip(corners).enumerate() {
+                    d.copy_from_slice(&round_outward(v, k < 3).to_ne_bytes());
+                }
+            }
+        })?;
+        let part = Part {
+            vertex_count: n,
+            triangle_count: n,
+            vertices: records,
+            indices: None,
+            index_is_u16: false,
+            boxes: Some(boxes),
+            device_order: None,
+            primitive_order: None,
+        };
+        let sources =
+            uploads.buffer(ctx, GEOMETRY_SOURCE_BYTES as u64, GEOMETRY_INPUT, "geometry sources", |out, _| {
+                out.copy_from_slice(&part.source(SPHERE_SOURCE))
+            })?;
+        // The host keeps the spheres' bounds (two corners each) for scenes' frames; the f64 tiers
+        // do not trace spheres.
+        let corners = (0..n)
+            .flat_map(|i| {
+                let (c, r) = sphere(i);
+                [c - center - DVec3::splat(r), c - center + DVec3::splat(r)]
+            })
+            .collect();
+        let prepared = PreparedMesh {
+            kind: MeshKind::Spheres,
+            vertex_count: n,
+            triangle_count: 0,
+            center,
+            scale: 1.0,
+            vertex_format: VertexFormat::F32,
+            host_triangles: TriangleSet::new(corners, Vec::new(), vec![0, 0]),
+            parts: vec![part],
+            sources,
+        };
+        let (blas, stats) = accel::build(ctx, &prepared.input(), options, &uploads, wait)?;
+        Ok(prepared.finish(options, blas, stats))
+    }
+
+    /// One mesh from several parts, each a geometry of one BLAS (`Hits.geometry_id` tells them
+    /// apart; triangle ids count within each part).
+    pub fn build_parts(
+        ctx: &Arc<Context>,
+        parts: &[(Vec3s, Indices)],
+        options: BuildOptions,
+        format: VertexFormat,
+        wait: &dyn Wait,
+    ) -> Result<Mesh> {
+        let mut meshes = Mesh::build_many(ctx, &[parts], options, format, u64::MAX, wait)?;
+        Ok(meshes.pop().expect("one mesh per input"))
+    }
+
+    /// Builds many meshes (each from its parts) in as few submissions as `scratch_budget` bytes
+    /// of build scratch allow (see `accel::build_many`); the error of a bad input names its
+    /// position.
+    pub fn build_many(
+        ctx: &Arc<Context>,
+        items: &[&[(Vec3s, Indices)]],
+        options: BuildOptions,
+        format: VertexFormat,
+        scratch_budget: u64,
+        wait: &dyn Wait,
+    ) -> Result<Vec<Mesh>> {
+        let mut uploads = Uploads::default();
+        let prepared = items
+            .iter()
+            .enumerate()
+            .map(|(k, parts)| {
+                PreparedMesh::new(ctx, parts, format, &mut uploads).map_err(|e| match (e, items.len()) {
+                    (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("mesh {k}: {m}")),
+                    (e, _) => e,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let inputs: Vec<BuildInput> = prepared.iter().map(PreparedMesh::input).collect();
+        let built = accel::build_many(ctx, &inputs, options, &uploads, scratch_budget, wait)?;
+        Ok(prepared.into_iter().zip(built).map(|(p, (blas, stats))| p.finish(options, blas, stats)).collect())
+    }
+
+    pub fn blas_address(&self) -> u64 {
+        self.blas.address()
+    }
+
+    /// The host's f64 copy of the triangles as they are now.
+    pub fn triangles(&self) -> Arc<TriangleSet> {
+        self.triangles.read().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    pub fn generation(&self) -> u64 {
+        self.generation.load(Ordering::Acquire)
+    }
+
+    pub fn last_update_seconds(&self) -> f64 {
+        *self.last_update_seconds.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Moves the vertices (same count, same faces) and refits the BLAS in place (Vulkan's UPDATE
+    /// mode with source = destination) instead of rebuilding it. Needs `allow_update` at build.
+    /// Scenes holding the mesh must be `update`d before they trace again. Not to be called while
+    /// a query on a scene holding this mesh runs.
+    pub fn update(&self, vertices: Vec3s, wait: &dyn Wait) -> Result<()> {
+        let ctx = self.blas.context();
+        if !self.options.allow_update {
+            return Err(invalid_value("this mesh was built without allow_update=True, so it cannot be refitted"));
+        }
+        let [part] = self.parts.as_slice() else {
+            return Err(Error::Unsupported("Mesh.update refits single-part meshes; rebuild a multi-part mesh".into()));
+        };
+        if self.kind == MeshKind::Spheres {
+            return Err(Error::Unsupported("Mesh.update refits triangle meshes; rebuild the spheres".into()));
+        }
+        if vertices.rows() != self.vertex_count {
+            return Err(invalid_value(format!(
+                "update needs the same {} vertices (the faces stay), got {}: rebuild the mesh to change its topology",
+                self.vertex_count,
+                vertices.rows()
+            )));
+        }
+        check_vertices("vertices", vertices)?;
+        let started = Instant::now();
+        // The same frame as at build: scenes' transforms and the exact tier's frames keep meaning.
+        let outside = (0..vertices.rows())
+            .any(|i| ((DVec3::from_array(vertices.row_f64(i)) - self.center) / self.scale).abs().max_element() > 1.0);
+        let local = device_coordinates(vertices, self.center, self.scale, self.vertex_format);
+        if self.vertex_format != VertexFormat::F32 && outside {
+            return Err(invalid_value(format!(
+                "update moves vertices beyond the range {} was built for: rebuild the mesh",
+                self.vertex_format.name()
+            )));
+        }
+        let flat: Vec<f64> = local.iter().flat_map(|v| v.to_array()).collect();
+        let mut uploads = Uploads::default();
+        uploads.overwrite(ctx, &part.vertices, |out| self.vertex_format.write(&flat, out))?;
+        let old = self.triangles();
+        let input = mesh_input(std::slice::from_ref(part), self.vertex_format);
+        accel::update(ctx, &self.blas, &input, self.options, self.stats.update_scratch_size, &uploads, wait)?;
+        let moved = TriangleSet::new(local, old.faces.clone(), old.part_offsets.clone());
+        *self.triangles.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(moved);
+        self.generation.fetch_add(1, Ordering::AcqRel);
+        *self.last_update_seconds.lock().unwrap_or_else(|e| e.into_inner()) = started.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    pub fn part_count(&self) -> usize {
+        self.parts.len()
+    }
+}
+
+/// A mesh's device buffers and host copy, uploaded (or recorded for upload) and ready for its
+/// BLAS build.
+struct PreparedMesh {
+    kind: MeshKind,
+    vertex_count: usize,
+    pub(super) triangle_count: usize,
+    center: DVec3,
+    scale: f64,
+    vertex_format: VertexFormat,
+    host_triangles: TriangleSet,
+    pub(super) parts: Vec<Part>,
+    pub(super) sources: Buffer,
+}
+
+impl PreparedMesh {
+    fn new(
+        ctx: &Arc<Context>,
+        parts: &[(Vec3s, Indices)],
+        format: VertexFormat,
+        uploads: &mut Uploads,
+    ) -> Result<PreparedMesh> {
+        if parts.is_empty() {
+            return Err(invalid_value("a mesh needs at least one part"));
+        }
+        if parts.len() as u64 > ctx.limits.max_geometry_count {
+            return Err(Error::Unsupported(format!(
+                "{} parts exceed this device's maxGeometryCount ({})",
+                parts.len(),
+                ctx.limits.max_geometry_count
+            )));
+        }
+        for (k, (vertices, faces)) in parts.iter().enumerate() {
+            let named = |e: Error| match (e, parts.len()) {
+                (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("part {k}: {m}")),
+                (e, _) => e,
+            };
+            check_vertices("vertices", *vertices).map_err(named)?;
+            check_faces("faces", *faces, vertices.rows()).map_err(named)?;
+        }
+        let triangle_count: usize = parts.iter().map(|(_, f)| f.triangles()).sum();
+        if triangle_count as u64 > ctx.limits.max_primitive_count {
+            return Err(Error::Unsupported(format!(
+                "{triangle_count} triangles exceed this device's maxPrimitiveCount ({})",
+                ctx.limits.max_primitive_count
+            )));
+        }
+        if format != VertexFormat::F32 && !ctx.limits.vertex_formats.contains(&format) {
+            return Err(Error::Unsupported(format!(
+                "{} cannot build acceleration structures from {} vertices",
+                ctx.info.name,
+                format.name()
+            )));
+        }
+        let (host_triangles, center, scale) = device_triangles(parts, format);
+        let local: &[f64] = {
+            // SAFETY: DVec3 is three f64 in a repr(C) struct, so a slice of them is a slice of f64.
+            let v = &host_triangles.vertices;
+            unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f64, 3 * v.len()) }
+        };
+        let mut first_vertex = 0;
+        let mut prepared = Vec::with_capacity(parts.len());
+        for (vertices, faces) in parts {
+            let own = &local[3 * first_vertex..3 * (first_vertex + vertices.rows())];
+            first_vertex += vertices.rows();
+            let vertex_bytes = (format.stride() * vertices.rows()) as u64;
+            let vertex_buffer =
+                uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| format.write(own, out))?;
+            let order = ctx.presort_primitives.then(|| morton_order(*vertices, *faces));
+            let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
+                faces.write_device(out, order.as_deref())
+            })?;
+            // Shaders map the device's triangle order back to the caller's.
+            let primitive_order = match &order {
+                Some(order) => {
+                    Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "primitive order", |out, _| {
+                        for (dst, t) in out.chunks_exact_mut(4).zip(order) {
+                            dst.copy_from_slice(&t.to_ne_bytes());
+                        }
+                    })?)
+                }
+                None => None,
+            };
+            prepared.push(Part {
+                vertex_count: vertices.rows(),
+                triangle_count: faces.triangles(),
+                vertices: vertex_buffer,
+                indices: Some(index_buffer),
+                index_is_u16: faces.is_u16(),
+                boxes: None,
+                device_order: order,
+                primitive_order,
+            });
+        }
+        let sources = uploads.buffer(
+            ctx,
+            (GEOMETRY_SOURCE_BYTES * parts.len()) as u64,
+            GEOMETRY_INPUT,
+            "geometry sources",
+            |out, _| {
+                for (dst, part) in out.chunks_exact_mut(GEOMETRY_SOURCE_BYTES).zip(&prepared) {
+                    dst.copy_from_slice(&part.source(format as u32));
+                }
+            },
+        )?;
+        Ok(PreparedMesh {
+            kind: MeshKind::Triangles,
+            vertex_count: first_vertex,
+            triangle_count,
+            center,
+            scale,
+            vertex_format: format,
+            host_triangles,
+            parts: prepared,
+            sources,
+        })
+    }
+
+    fn input(&self) -> BuildInput<'static> {
+        mesh_input(&self.parts, self.vertex_format)
+    }
+
+    fn finish(self, options: BuildOptions, blas: AccelerationStructure, stats: BuildStats) -> Mesh {
+        Mesh {
+            kind: self.kind,
+            vertex_count: self.vertex_count,
+            triangle_count: self.triangle_count,
+            center: self.center,
+            scale: self.scale,
+            vertex_format: self.vertex_format,
+            triangles: RwLock::new(Arc::new(self.host_triangles)),
+            generation: AtomicU64::new(0),
+            last_update_seconds: Mutex::new(0.0),
+            options,
+            stats,
+            blas,
+            parts: self.parts,
+            sources: self.sources,
+        }
+    }
+}
+
+/// The build input of a mesh's BLAS: one opaque triangle geometry per part.
+fn mesh_input(parts: &[Part], format: VertexFormat) -> BuildInput<'static> {
+    BuildInput {
+        ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+        geometries: parts.iter().map(|p| p.geometry(format)).collect(),
+        primitive_counts: parts.iter().map(|p| p.triangle_count as u32).collect(),
+        name: "mesh BLAS",
+    }
+}
+
+/// The vertices in the device's frame, `(v - center) / scale`, as the device will hold them
+/// (quantized to `format`), in f64.
+fn device_coordinates(vertices: Vec3s, center: DVec3, scale: f64, format: VertexFormat) -> Vec<DVec3> {
+    (0..vertices.rows())
+        .map(|i| ((DVec3::from_array(vertices.row_f64(i)) - center) / scale).to_array().map(|c| format.quantize(c)))
+        .map(DVec3::from_array)
+        .collect()
+}
+
+/// The mesh as the device holds it, all parts together, in f64 (re-centred on its bounding box,
+/// and for the 16-bit formats scaled into [-1, 1] and quantized, so that every tier sees the same
+/// surface), with that centre and scale.
+fn device_triangles(parts: &[(Vec3s, Indices)], format: VertexFormat) -> (TriangleSet, DVec3, f64) {
+    let points = || parts.iter().flat_map(|(v, _)| (0..v.rows()).map(move |i| DVec3::from_array(v.row_f64(i))));
+    let bounds = Aabb::of_points(points());
+    let center = bounds.center();
+    let half_extent = 0.5 * bounds.extent().max_element();
+    let scale = if format == VertexFormat::F32 || half_extent == 0.0 { 1.0 } else { half_extent };
+    let local =
+        points().map(|p| DVec3::from_array(((p - center) / scale).to_array().map(|c| format.quantize(c)))).collect();
+    let (mut faces, mut part_offsets, mut first_vertex) = (Vec::new(), vec![0u32], 0u32);
+    for (vertices, indices) in parts {
+        faces.extend((0..indices.triangles()).map(|t| [0, 1, 2].map(|k| first_vertex + indices.corner(t, k) as u32)));
+        part_offsets.push(faces.len() as u32);
+        first_vertex += vertices.rows() as u32;
+    }
+    (TriangleSet::new(local, faces, part_offsets), center, scale)
+}

@@ -1,0 +1,12 @@
+//! What users build: meshes (BLAS), instances and scenes (TLAS), and the exact tier's view of a
+//! scene.
+
+pub mod exact;
+pub mod instance;
+pub mod mesh;
+pub mod top_level;
+
+pub use exact::ExactScene;
+pub use instance::{Instance, InstanceFlags, Placement, IDENTITY, MAX_CUSTOM_INDEX};
+pub use mesh::{Mesh, MeshKind};
+pub use top_level::Scene;

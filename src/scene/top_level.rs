@@ -1,0 +1,218 @@
+//! Scenes: instances of meshes under one top-level acceleration structure.
+
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use ash::vk;
+use glam::DVec3;
+
+use super::exact::ExactScene;
+use super::instance::{place, Instance, Placement, MAX_CUSTOM_INDEX};
+use super::mesh::{Mesh, MeshKind};
+use crate::error::{invalid_value, Error, Result};
+use crate::geometry::reference::{PlacedSet, ReferenceTracer};
+use crate::gpu::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
+use crate::gpu::context::{Context, Wait};
+use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
+
+/// Instances of meshes under one top-level acceleration structure.
+///
+/// The TLAS lives in the scene's frame: world coordinates minus `center` (the middle of the
+/// instances' bounds), so that instance translations and ray origins far from the origin are
+/// subtracted in f64 and reach f32 as small numbers.
+pub struct Scene {
+    pub instance_count: usize,
+    pub center: DVec3,
+    pub placements: Vec<Placement>,
+    pub options: BuildOptions,
+    pub stats: BuildStats,
+    pub(super) tlas: AccelerationStructure,
+    // Where each instance's triangles live, for shaders (normals).
+    instance_geometries: Buffer,
+    instance_records: Buffer,
+    instances: Vec<Instance>,
+    // The meshes' BLAS and buffers must outlive the TLAS that points at them.
+    pub(super) meshes: Vec<Arc<Mesh>>,
+    /// Each mesh's `generation` when this scene last placed it.
+    mesh_generations: Vec<u64>,
+    last_update_seconds: f64,
+    /// The exact tier's structures, built on its first query.
+    exact: Mutex<Option<Arc<ExactScene>>>,
+}
+
+impl Scene {
+    pub fn build(ctx: &Arc<Context>, instances: &[Instance], options: BuildOptions, wait: &dyn Wait) -> Result<Scene> {
+        if instances.len() as u64 > ctx.limits.max_instance_count {
+            return Err(Error::Unsupported(format!(
+                "{} instances exceed this device's maxInstanceCount ({})",
+                instances.len(),
+                ctx.limits.max_instance_count
+            )));
+        }
+        if let Some((i, instance)) = instances.iter().enumerate().find(|(_, x)| x.custom_index > MAX_CUSTOM_INDEX) {
+            return Err(invalid_value(format!(
+                "instance {i} has custom_index {} but Vulkan keeps 24 bits (at most {MAX_CUSTOM_INDEX})",
+                instance.custom_index
+            )));
+        }
+        let (center, placements) = place(instances, None)?;
+        let mut uploads = Uploads::default();
+        let records = uploads.buffer(ctx, 64 * instances.len() as u64, GEOMETRY_INPUT, "instances", |out, _| {
+            write_instance_records(&placements, out)
+        })?;
+        debug_assert_eq!(records.address() % 16, 0, "Vulkan wants instance data 16-byte aligned");
+        let instance_geometries =
+            uploads.buffer(ctx, 8 * instances.len() as u64, GEOMETRY_INPUT, "instance geometries", |out, _| {
+                for (dst, x) in out.chunks_exact_mut(8).zip(instances) {
+                    dst.copy_from_slice(&x.mesh.sources.address().to_ne_bytes());
+                }
+            })?;
+        let input = instances_input(records.address(), instances.len());
+        let (tlas, stats) = accel::build(ctx, &input, options, &uploads, wait)?;
+        let mut meshes: Vec<Arc<Mesh>> = Vec::new();
+        for instance in instances {
+            if !meshes.iter().any(|m| Arc::ptr_eq(m, &instance.mesh)) {
+                meshes.push(instance.mesh.clone());
+            }
+        }
+        Ok(Scene {
+            instance_count: instances.len(),
+            center,
+            placements,
+            options,
+            stats,
+            tlas,
+            instance_geometries,
+            instance_records: records,
+            instances: instances.to_vec(),
+            mesh_generations: meshes.iter().map(|m| m.generation()).collect(),
+            meshes,
+            last_update_seconds: 0.0,
+            exact: Mutex::new(None),
+        })
+    }
+
+    /// Refits the TLAS in place after its instances moved (`transforms`, row-major 3×4 in f64)
+    /// or changed masks, and picks up its meshes' `update`s. Needs `allow_update` at build; the
+    /// scene keeps its frame (centre), so moves far from it cost f32 precision until a rebuild.
+    pub fn update(
+        &mut self,
+        transforms: Option<Vec<[f64; 12]>>,
+        masks: Option<Vec<u8>>,
+        wait: &dyn Wait,
+    ) -> Result<()> {
+        if !self.options.allow_update {
+            return Err(invalid_value("this scene was built without allow_update=True, so it cannot be refitted"));
+        }
+        let n = self.instances.len();
+        for (name, len) in [("transforms", transforms.as_ref().map(Vec::len)), ("masks", masks.as_ref().map(Vec::len))]
+        {
+            if let Some(len) = len.filter(|&len| len != n) {
+                return Err(invalid_value(format!("{name} has {len} entries for the scene's {n} instances")));
+            }
+        }
+        let started = Instant::now();
+        let mut instances = self.instances.clone();
+        for (k, x) in instances.iter_mut().enumerate() {
+            if let Some(t) = &transforms {
+                x.transform = t[k];
+            }
+            if let Some(m) = &masks {
+                x.mask = m[k];
+            }
+        }
+        let (_, placements) = place(&instances, Some(self.center))?;
+        let ctx = self.tlas.context().clone();
+        let mut uploads = Uploads::default();
+        uploads.overwrite(&ctx, &self.instance_records, |out| write_instance_records(&placements, out))?;
+        let input = instances_input(self.instance_records.address(), n);
+        accel::update(&ctx, &self.tlas, &input, self.options, self.stats.update_scratch_size, &uploads, wait)?;
+        self.instances = instances;
+        self.placements = placements;
+        self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
+        *self.exact.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
+        self.last_update_seconds = started.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    pub fn last_update_seconds(&self) -> f64 {
+        self.last_update_seconds
+    }
+
+    /// Tracing a scene whose meshes moved since it last placed them would use stale bounds.
+    pub fn check_current(&self) -> Result<()> {
+        match self.meshes.iter().zip(&self.mesh_generations).position(|(m, g)| m.generation() != *g) {
+            Some(_) => Err(invalid_value(
+                "a mesh of this scene was updated since the scene was built or updated: call scene.update() first",
+            )),
+            None => Ok(()),
+        }
+    }
+
+    pub fn tlas_address(&self) -> u64 {
+        self.tlas.address()
+    }
+
+    /// Whether any instance is a sphere set (boxes for the shaders' sphere test).
+    pub fn has_spheres(&self) -> bool {
+        self.meshes.iter().any(|m| m.kind == MeshKind::Spheres)
+    }
+
+    /// Whether every instance's triangles are opaque (no `force_no_opaque`).
+    pub fn all_opaque(&self) -> bool {
+        self.placements.iter().all(|p| !p.flags.force_no_opaque)
+    }
+
+    pub fn instance_geometries_address(&self) -> u64 {
+        self.instance_geometries.address()
+    }
+
+    /// The exact tier's structures over this scene, built on first use.
+    pub fn exact(&self, wait: &dyn Wait) -> Result<Arc<ExactScene>> {
+        let mut exact = self.exact.lock().unwrap_or_else(|e| e.into_inner());
+        if exact.is_none() {
+            *exact = Some(Arc::new(ExactScene::build(self, wait)?));
+        }
+        Ok(exact.as_ref().expect("just built").clone())
+    }
+
+    /// The CPU tracer over this scene's instances (each mesh's hierarchy is built once).
+    pub fn reference_tracer(&self) -> ReferenceTracer<'_> {
+        ReferenceTracer::new(
+            self.placements
+                .iter()
+                .map(|p| PlacedSet {
+                    triangles: &p.triangles,
+                    to_local: p.to_local,
+                    custom_index: p.custom_index,
+                    mask: p.mask,
+                    bounds: p.bounds,
+                    flip_facing: p.flip_facing,
+                    cull_disable: p.flags.cull_disable,
+                })
+                .collect(),
+        )
+    }
+}
+
+fn write_instance_records(placements: &[Placement], out: &mut [u8]) {
+    for (dst, p) in out.chunks_exact_mut(64).zip(placements) {
+        dst.copy_from_slice(&accel::instance_record(&p.to_scene.to_rows_f32(), p.bits(), p.mesh.blas_address()));
+    }
+}
+
+/// The build input of a TLAS over `count` instance records at `address`.
+pub(crate) fn instances_input(address: u64, count: usize) -> BuildInput<'static> {
+    let data = vk::AccelerationStructureGeometryInstancesDataKHR::default()
+        .array_of_pointers(false)
+        .data(vk::DeviceOrHostAddressConstKHR { device_address: address });
+    let geometry = vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::INSTANCES)
+        .geometry(vk::AccelerationStructureGeometryDataKHR { instances: data });
+    BuildInput {
+        ty: vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+        geometries: vec![geometry],
+        primitive_counts: vec![count as u32],
+        name: "scene TLAS",
+    }
+}

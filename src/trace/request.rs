@@ -1,0 +1,52 @@
+//! What a query asks: which question, at which precision tier, culling which side.
+
+pub use crate::geometry::precision::Cull;
+
+/// What a query asks of each ray.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Query {
+    /// The closest hit in [tmin, tmax].
+    Closest,
+    /// Whether anything is hit in [tmin, tmax]; traversal stops at the first hit.
+    Occluded,
+}
+
+/// Everything a trace asks besides its rays: which query, at which precision, culling which side.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Request {
+    pub query: Query,
+    pub precision: Precision,
+    pub cull: Cull,
+}
+
+/// Which of several precision tiers answers a query.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Precision {
+    /// f32 hits straight from traversal.
+    Fast,
+    /// f32 traversal of the re-centred scene, each hit re-intersected in f64 on the host.
+    Refined,
+    /// The f64 watertight test on the GPU, through conservative per-triangle boxes.
+    Exact,
+    /// The f64 watertight test on the CPU, on all cores: the other tiers' oracle.
+    Reference,
+}
+
+impl Precision {
+    pub fn parse(name: &str) -> crate::error::Result<Precision> {
+        match name {
+            "fast" => Ok(Precision::Fast),
+            "refined" => Ok(Precision::Refined),
+            "exact" => Ok(Precision::Exact),
+            "reference" => Ok(Precision::Reference),
+            other => Err(crate::error::invalid_value(format!(
+                "precision must be 'fast', 'refined', 'exact' or 'reference', got {other:?}"
+            ))),
+        }
+    }
+
+    /// Whether `t` and `uv` come back as f64.
+    pub fn is_f64(self) -> bool {
+        self != Precision::Fast
+    }
+}
