@@ -19,9 +19,21 @@ pub enum Error {
     /// A Vulkan call failed.
     #[error("{call} failed: {result}")]
     Vulkan { call: &'static str, result: vk::Result },
-    /// Device memory could not be allocated.
+    /// Device memory could not be allocated for another reason than running out.
     #[error("GPU memory allocation failed: {0}")]
-    Allocation(#[from] gpu_allocator::AllocationError),
+    Allocation(gpu_allocator::AllocationError),
+    /// Host or device memory ran out, or a request could never fit (maps to `MemoryError`).
+    #[error("{0}")]
+    OutOfMemory(String),
+    /// The device was opened by the parent of this forked process (maps to `ForkedDeviceError`).
+    #[error("{0}")]
+    Forked(String),
+    /// The caller asked the work to stop (Ctrl-C); the binding raises what its check raised.
+    #[error("interrupted")]
+    Interrupted,
+    /// A bug in vkray: a panic caught before it reached the caller.
+    #[error("internal error in vkray (please report it): {0}")]
+    Internal(String),
     /// The Khronos validation layer reported problems (only with validation enabled).
     #[error("Vulkan validation layer reported:\n{0}")]
     Validation(String),
@@ -36,8 +48,43 @@ pub(crate) trait VkResultExt<T> {
 
 impl<T> VkResultExt<T> for std::result::Result<T, vk::Result> {
     fn vk(self, call: &'static str) -> Result<T> {
-        self.map_err(|result| Error::Vulkan { call, result })
+        self.map_err(|result| vulkan_error(call, result))
     }
+}
+
+/// A failed Vulkan call as an error: running out of memory is `OutOfMemory`, the rest `Vulkan`.
+pub(crate) fn vulkan_error(call: &'static str, result: vk::Result) -> Error {
+    match result {
+        vk::Result::ERROR_OUT_OF_HOST_MEMORY | vk::Result::ERROR_OUT_OF_DEVICE_MEMORY => {
+            Error::OutOfMemory(format!("{call} ran out of memory ({result})"))
+        }
+        result => Error::Vulkan { call, result },
+    }
+}
+
+impl From<gpu_allocator::AllocationError> for Error {
+    fn from(error: gpu_allocator::AllocationError) -> Error {
+        match error {
+            gpu_allocator::AllocationError::OutOfMemory => {
+                Error::OutOfMemory("the device ran out of memory for a buffer".into())
+            }
+            other => Error::Allocation(other),
+        }
+    }
+}
+
+/// A vector of `len` copies of `value`, or `OutOfMemory` where the host cannot give the memory
+/// (a plain `vec!` aborts the process instead).
+pub fn try_vec<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| {
+        Error::OutOfMemory(format!(
+            "{what} needs {} bytes of host memory, which could not be allocated",
+            len.saturating_mul(std::mem::size_of::<T>())
+        ))
+    })?;
+    v.resize(len, value);
+    Ok(v)
 }
 
 pub(crate) fn invalid_value(message: impl Into<String>) -> Error {

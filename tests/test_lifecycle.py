@@ -55,9 +55,27 @@ def test_refit_needs_allow_update_and_the_same_topology(any_device):
         mesh.update(v[:-1])
     with pytest.raises(ValueError, match="not finite"):
         mesh.update(np.where(np.arange(len(v))[:, None] == 3, np.nan, v))
+
+
+def test_scene_without_allow_update_is_rebuilt_after_a_mesh_update(any_device):
+    # The error chain must lead somewhere: a scene built without allow_update=True is rebuilt
+    # (not refitted) by update(), and then traces the moved mesh.
+    v, f = load_obj("spot")
+    mesh = any_device.mesh(v, f, allow_update=True)
     scene = any_device.scene(mesh)
-    with pytest.raises(ValueError, match="allow_update=True"):
-        scene.update()
+    size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
+    moved = v + [0.0, 0.0, 3 * size]
+    mesh.update(moved)
+    o = np.array([[0.0, 0.0, -10 * size]])
+    d = (v.mean(axis=0) + [0.0, 0.0, 3 * size]) - o
+    with pytest.raises(ValueError, match=r"scene\.update\(\)"):
+        scene.intersect(o, d)
+    scene.update()
+    fresh = any_device.scene(any_device.mesh(moved, f))
+    got, want = scene.intersect(o, d), fresh.intersect(o, d)
+    assert want.hit.all()
+    np.testing.assert_array_equal(got.prim_id, want.prim_id)
+    np.testing.assert_allclose(got.t, want.t, rtol=1e-6)
 
 
 def test_scene_refit_moves_and_hides_instances(device):
@@ -135,7 +153,7 @@ def test_many_meshes_under_a_scratch_budget(device):
     batched = device.meshes(items, budget_bytes=budget, compact=True)
     batches = [m.stats["batch"] for m in batched]
     assert batches == sorted(batches) and batches[-1] >= 1
-    for (v, f), alone, many, compacted in zip(items, single, together, batched):
+    for (v, _), alone, many, compacted in zip(items, single, together, batched):
         assert compacted.stats["compacted"] and compacted.stats["bytes"] <= compacted.stats["built_bytes"]
         origins, directions = random_rays(v, 3000, seed=35)
         expected = device.scene(alone).intersect(origins, directions)

@@ -3,6 +3,7 @@
 
 pub mod arrays;
 pub mod morton;
+pub mod parallel;
 pub mod precision;
 pub mod rays;
 pub mod reference;

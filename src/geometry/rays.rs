@@ -174,47 +174,156 @@ impl Rays<'_> {
         first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
     }
 
-    /// Checks rays `start..` and packs them for the GPU with their origins moved by `-shift`
-    /// (into a scene's frame): 8 f32 a ray (origin, tmin, direction, tmax), as many rays as `out`
-    /// holds. One pass over the caller's arrays on all cores; the error names the first invalid ray.
-    pub fn pack(&self, start: usize, out: &mut [f32], shift: DVec3) -> Result<()> {
+    /// Checks rays `start..` and packs them for the GPU in `frame` (origins moved by
+    /// `-frame.shift`): 8 f32 a ray (origin, tmin, direction, tmax), as many rays as `out` holds.
+    /// One pass over the caller's arrays on all cores; the error names the first invalid ray.
+    ///
+    /// The interval is widened outward by one f32 ulp at each end, so that traversal, which
+    /// compares in f32, reports hits exactly at `tmin` or `tmax` (it is closed, not open).
+    ///
+    /// A ray starting far outside the scene (`FAR_RADII` of its bounding radius) would lose its
+    /// precision in f32 before reaching it: its origin is advanced in f64 to just outside the
+    /// scene's bounding sphere, and the distance advanced is returned with the ray's position in
+    /// `out`, for `t` to be corrected after the trace. A far ray that cannot reach the scene
+    /// within its interval is packed as one that misses.
+    pub fn pack(&self, start: usize, out: &mut [f32], frame: &Frame) -> Result<Vec<Advance>> {
         self.pack_with(start, out, |i, ray| {
-            let (mut o, d) = (self.origin(i), self.direction(i));
-            if shift != DVec3::ZERO {
-                o = self.ray64(i, shift).origin.as_vec3().to_array();
-            }
+            let r = self.ray64(i, frame.shift);
+            let d = self.direction(i);
+            let (origin, tmin, tmax, advance) = match frame.advance(&r) {
+                Approach::Near => (r.origin, r.tmin, r.tmax, None),
+                Approach::Advanced(t0) => (r.origin + t0 * r.direction, (r.tmin - t0).max(0.0), r.tmax - t0, Some(t0)),
+                Approach::Never(t0) => (r.origin + t0 * r.direction, 0.0, 0.0, None),
+            };
+            let o = origin.as_vec3().to_array();
+            let tmin = round_down_f32(tmin).next_down().max(0.0);
             // Vulkan wants finite bounds; the largest float is as far as +inf for any f32 scene.
-            let tmax = (self.tmax.get(i) as f32).min(f32::MAX);
-            ray.copy_from_slice(&[o[0], o[1], o[2], self.tmin.get(i) as f32, d[0], d[1], d[2], tmax]);
+            let tmax = if tmax == 0.0 { 0.0 } else { round_up_f32(tmax).next_up().min(f32::MAX) };
+            ray.copy_from_slice(&[o[0], o[1], o[2], tmin, d[0], d[1], d[2], tmax]);
+            advance
         })
     }
 
-    /// As `pack`, in f64 for the exact tier (tmax stays +inf where it is).
+    /// As `pack`, in f64 for the exact tier (tmax stays +inf where it is; the exact shaders start
+    /// f32 traversal where a ray enters the scene's bounds themselves).
     pub fn pack_f64(&self, start: usize, out: &mut [f64], shift: DVec3) -> Result<()> {
         self.pack_with(start, out, |i, ray| {
             let r = self.ray64(i, shift);
             let (o, d) = (r.origin, r.direction);
             ray.copy_from_slice(&[o.x, o.y, o.z, r.tmin, d.x, d.y, d.z, r.tmax]);
+            None
         })
+        .map(|_| ())
     }
 
-    fn pack_with<T: Send>(&self, start: usize, out: &mut [T], write: impl Fn(usize, &mut [T]) + Sync) -> Result<()> {
-        let first_bad = out
+    fn pack_with<T: Send>(
+        &self,
+        start: usize,
+        out: &mut [T],
+        write: impl Fn(usize, &mut [T]) -> Option<f64> + Sync,
+    ) -> Result<Vec<Advance>> {
+        let pieces: Vec<std::result::Result<Vec<Advance>, usize>> = out
             .par_chunks_mut(PACK_PIECE * RAY_FLOATS)
             .enumerate()
-            .filter_map(|(piece, out)| {
-                let first = start + piece * PACK_PIECE;
+            .map(|(piece, out)| {
+                let first = piece * PACK_PIECE;
+                let mut advances = Vec::new();
                 for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
-                    let i = first + k;
+                    let i = start + first + k;
                     if !self.is_valid(i) {
-                        return Some(i);
+                        return Err(i);
                     }
-                    write(i, ray);
+                    if let Some(t) = write(i, ray) {
+                        advances.push(Advance { ray: first + k, t });
+                    }
                 }
-                None
+                Ok(advances)
             })
-            .min();
-        first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
+            .collect();
+        if let Some(i) = pieces.iter().filter_map(|p| p.as_ref().err()).min() {
+            return Err(self.invalid_ray(*i));
+        }
+        Ok(pieces.into_iter().flat_map(|p| p.unwrap_or_default()).collect())
+    }
+}
+
+/// How far a far ray's origin was advanced before packing: `t` (in units of its direction) for
+/// the ray at position `ray` of the packed chunk.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Advance {
+    pub ray: usize,
+    pub t: f64,
+}
+
+/// Rays whose origin lies farther than this many bounding radii from a scene are advanced towards
+/// it in f64 before they become f32 (16: f32 then keeps all but 4 bits of the scene's precision).
+pub const FAR_RADII: f64 = 16.0;
+
+/// A scene's frame for packing rays: the shift from world coordinates into it (the scene's
+/// centre), and the sphere bounding its geometry in it.
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub shift: DVec3,
+    pub bounds_center: DVec3,
+    pub radius: f64,
+}
+
+enum Approach {
+    /// Close enough to trace as given.
+    Near,
+    /// Advanced by this much; nothing lies before it.
+    Advanced(f64),
+    /// Far, and the scene is out of reach within the interval: packed as an empty interval at
+    /// this distance, a point outside the scene.
+    Never(f64),
+}
+
+impl Frame {
+    /// A frame whose rays are never advanced.
+    pub fn at(shift: DVec3) -> Frame {
+        Frame { shift, bounds_center: DVec3::ZERO, radius: f64::INFINITY }
+    }
+
+    fn advance(&self, ray: &Ray64) -> Approach {
+        let to_origin = ray.origin - self.bounds_center;
+        let far = FAR_RADII * self.radius.max(f64::MIN_POSITIVE);
+        if !(to_origin.length_squared() > far * far) {
+            return Approach::Near;
+        }
+        // Every point within `radius` of the centre lies at t >= tca - radius / |d|; stop twice
+        // that short, so that the new origin itself is outside the sphere.
+        let d2 = ray.direction.length_squared();
+        let tca = -to_origin.dot(ray.direction) / d2;
+        let t0 = tca - 2.0 * self.radius / d2.sqrt();
+        if t0 <= 0.0 {
+            // The ray moves away or passes its closest point within 2 radii of a start that is
+            // 16 radii out: it cannot come within one radius of the centre.
+            return Approach::Never(0.0);
+        }
+        if ray.tmax < t0 {
+            return Approach::Never(t0);
+        }
+        Approach::Advanced(t0)
+    }
+}
+
+/// The largest f32 not above `x` (x >= 0).
+fn round_down_f32(x: f64) -> f32 {
+    let f = x as f32;
+    if f as f64 > x {
+        f.next_down()
+    } else {
+        f
+    }
+}
+
+/// The smallest f32 not below `x` (x >= 0; +inf stays).
+fn round_up_f32(x: f64) -> f32 {
+    let f = x as f32;
+    if (f as f64) < x {
+        f.next_up()
+    } else {
+        f
     }
 }
 
@@ -261,15 +370,16 @@ mod tests {
         d[3 * early + 2] = 0.0;
         let r = rays(&o, &d, PerRay::All(0.0), PerRay::All(1.0));
         let mut out = vec![0f32; n * RAY_FLOATS];
-        let text = message(r.pack(0, &mut out, DVec3::ZERO));
+        let text = message(r.pack(0, &mut out, &Frame::at(DVec3::ZERO)).map(|_| ()));
         assert!(text.contains(&format!("directions row {early} has zero length")), "{text}");
         assert!(message(r.check()).contains(&format!("row {early}")));
         // Packing from an offset reports caller row numbers.
         let tail = &mut out[..(n - late) * RAY_FLOATS];
-        assert!(message(r.pack(late, tail, DVec3::ZERO)).contains(&format!("directions row {late} is not finite")));
+        assert!(message(r.pack(late, tail, &Frame::at(DVec3::ZERO)).map(|_| ()))
+            .contains(&format!("directions row {late} is not finite")));
         let mut first = [0f32; RAY_FLOATS];
-        r.pack(0, &mut first, DVec3::ZERO).unwrap();
-        assert_eq!(first, [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0]);
+        r.pack(0, &mut first, &Frame::at(DVec3::ZERO)).unwrap();
+        assert_eq!(first, [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0f32.next_up()]);
     }
 
     #[test]
@@ -284,7 +394,35 @@ mod tests {
             mask: Masks::All(0xFF),
         };
         let mut out = [0f32; RAY_FLOATS];
-        r.pack(0, &mut out, DVec3::ZERO).unwrap();
-        assert_eq!(out, [1.0, 2.0, 3.0, 0.5, 0.0, 0.0, -1.0, f32::MAX]);
+        r.pack(0, &mut out, &Frame::at(DVec3::ZERO)).unwrap();
+        assert_eq!(out, [1.0, 2.0, 3.0, 0.5f32.next_down(), 0.0, 0.0, -1.0, f32::MAX]);
+    }
+
+    #[test]
+    fn far_rays_are_advanced_towards_the_scene_in_f64() {
+        // A scene of radius 1 around (20, 0, 0) in its frame; a ray from 1e9 away along -x.
+        let frame =
+            Frame { shift: DVec3::new(-10.0, 0.0, 0.0), bounds_center: DVec3::new(20.0, 0.0, 0.0), radius: 1.0 };
+        let o = [1e9f64, 0.0, 0.0, 20.0, 0.0, 0.0, 1e9, 0.0, 0.0];
+        let d = [-1.0f64, 0.0, 0.0, -1.0, 0.0, 0.0, 1.0, 0.0, 0.0];
+        let tmax = [f64::INFINITY, f64::INFINITY, f64::INFINITY];
+        let r = Rays {
+            origins: Vec3s::F64(&o),
+            directions: Vec3s::F64(&d),
+            tmin: PerRay::All(0.0),
+            tmax: PerRay::Each(&tmax),
+            mask: Masks::All(0xFF),
+        };
+        let mut out = [0f32; 3 * RAY_FLOATS];
+        let advances = r.pack(0, &mut out, &frame).unwrap();
+        // Ray 0 stops 2 radii short of the sphere: at x = 22 in the frame (32 in the world).
+        assert_eq!(advances.len(), 1);
+        assert_eq!(advances[0].ray, 0);
+        assert_eq!(advances[0].t, 1e9 + 10.0 - 22.0);
+        assert_eq!(out[0], 22.0);
+        // Ray 1 starts near (10 radii out): as given (20 + 10 = 30 in the frame).
+        assert_eq!(out[RAY_FLOATS], 30.0);
+        // Ray 2 moves away: an empty interval.
+        assert_eq!((out[2 * RAY_FLOATS + 3], out[2 * RAY_FLOATS + 7]), (0.0, 0.0));
     }
 }

@@ -8,7 +8,7 @@ use crate::geometry::vertex_format::VertexFormat;
 use ash::vk;
 
 use crate::error::{invalid_value, Result, VkResultExt};
-use crate::gpu::context::{Context, Wait};
+use crate::gpu::context::Context;
 use crate::gpu::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
 
 /// What a build optimizes for (the `VK_BUILD_ACCELERATION_STRUCTURE_PREFER_*` flags).
@@ -122,6 +122,9 @@ impl AccelerationStructure {
 
 impl Drop for AccelerationStructure {
     fn drop(&mut self) {
+        if self.ctx.forked() {
+            return;
+        }
         unsafe { self.ctx.accel.destroy_acceleration_structure(self.raw, None) };
     }
 }
@@ -162,9 +165,8 @@ pub fn build(
     input: &BuildInput,
     options: BuildOptions,
     uploads: &Uploads,
-    wait: &dyn Wait,
 ) -> Result<(AccelerationStructure, BuildStats)> {
-    let mut built = build_many(ctx, std::slice::from_ref(input), options, uploads, u64::MAX, wait)?;
+    let mut built = build_many(ctx, std::slice::from_ref(input), options, uploads, u64::MAX)?;
     Ok(built.pop().expect("one structure per input"))
 }
 
@@ -179,7 +181,6 @@ pub fn build_many(
     options: BuildOptions,
     uploads: &Uploads,
     scratch_budget: u64,
-    wait: &dyn Wait,
 ) -> Result<Vec<(AccelerationStructure, BuildStats)>> {
     let alignment = (ctx.limits.min_scratch_offset_alignment as u64).max(1);
     let infos: Vec<vk::AccelerationStructureBuildGeometryInfoKHR> = inputs
@@ -255,7 +256,7 @@ pub fn build_many(
         let ranges: Vec<_> = batch.clone().map(|k| build_ranges(&inputs[k])).collect();
         let range_refs: Vec<&[vk::AccelerationStructureBuildRangeInfoKHR]> = ranges.iter().map(Vec::as_slice).collect();
         let query = if options.compact { Some(CompactedSizeQuery::new(ctx, structures.len() as u32)?) } else { None };
-        ctx.run_commands(wait, |cmd| {
+        ctx.run_commands(|cmd| {
             if number == 0 {
                 uploads.record(ctx, cmd);
             }
@@ -283,7 +284,7 @@ pub fn build_many(
             None => batch.clone().map(|k| sizes[k].acceleration_structure_size).collect(),
         };
         let structures = match query {
-            Some(_) => compact(ctx, &inputs[batch.clone()], structures, &final_sizes, wait)?,
+            Some(_) => compact(ctx, &inputs[batch.clone()], structures, &final_sizes)?,
             None => structures,
         };
         let seconds = started.elapsed().as_secs_f64();
@@ -308,14 +309,13 @@ fn compact(
     inputs: &[BuildInput],
     structures: Vec<AccelerationStructure>,
     compacted_sizes: &[u64],
-    wait: &dyn Wait,
 ) -> Result<Vec<AccelerationStructure>> {
     let compacted = inputs
         .iter()
         .zip(compacted_sizes)
         .map(|(input, &size)| AccelerationStructure::new(ctx, input.ty, size, input.name))
         .collect::<Result<Vec<_>>>()?;
-    ctx.run_commands(wait, |cmd| {
+    ctx.run_commands(|cmd| {
         for (from, to) in structures.iter().zip(&compacted) {
             let copy = vk::CopyAccelerationStructureInfoKHR::default()
                 .src(from.raw())
@@ -339,7 +339,6 @@ pub fn update(
     options: BuildOptions,
     update_scratch_size: u64,
     uploads: &Uploads,
-    wait: &dyn Wait,
 ) -> Result<f64> {
     let started = Instant::now();
     let scratch = Scratch::new(ctx, update_scratch_size)?;
@@ -352,7 +351,7 @@ pub fn update(
         .dst_acceleration_structure(structure.raw())
         .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
     let ranges = build_ranges(input);
-    ctx.run_commands(wait, |cmd| {
+    ctx.run_commands(|cmd| {
         uploads.record(ctx, cmd);
         unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, std::slice::from_ref(&info), &[&ranges]) };
         structures_written(ctx, cmd);

@@ -3,6 +3,7 @@
 
 use std::ffi::{c_void, CStr, CString};
 use std::mem::ManuallyDrop;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use ash::{ext, khr, vk};
@@ -104,18 +105,28 @@ impl DeviceRequest {
     }
 }
 
-/// Runs the blocking part of a GPU wait. The Python binding releases the GIL around it.
-pub trait Wait {
-    fn wait(&self, block: &(dyn Fn() -> Result<()> + Sync)) -> Result<()>;
+/// Asked between pieces of long work (chunks of rays, blocks of host work) whether the caller
+/// wants it stopped: the Python binding checks for signals there, so Ctrl-C stops a query within
+/// a chunk's time. An error it returns ends the work; the device stays usable.
+pub trait Interrupt: Sync {
+    fn check(&self) -> Result<()>;
 }
 
-/// Waits on the calling thread as it is.
-pub struct WaitInPlace;
+/// Work that nobody interrupts.
+pub struct NoInterrupt;
 
-impl Wait for WaitInPlace {
-    fn wait(&self, block: &(dyn Fn() -> Result<()> + Sync)) -> Result<()> {
-        block()
+impl Interrupt for NoInterrupt {
+    fn check(&self) -> Result<()> {
+        Ok(())
     }
+}
+
+/// How long one fence wait may take before the device is given up as hung (`VKRAY_GPU_TIMEOUT`
+/// seconds; 300 by default: far above any one chunk or build, which take milliseconds on a GPU
+/// and seconds on lavapipe).
+fn gpu_timeout() -> std::time::Duration {
+    let seconds = std::env::var("VKRAY_GPU_TIMEOUT").ok().and_then(|s| s.trim().parse::<f64>().ok());
+    std::time::Duration::from_secs_f64(seconds.filter(|s| *s > 0.0).unwrap_or(300.0))
 }
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
@@ -216,7 +227,7 @@ impl InstanceHandle {
                  /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json)"
                     .into(),
             ),
-            result => Error::Vulkan { call: "vkCreateInstance", result },
+            result => crate::error::vulkan_error("vkCreateInstance", result),
         })?;
         let debug = if validation {
             let loader = ext::debug_utils::Instance::new(&entry, &instance);
@@ -468,6 +479,11 @@ pub struct Context {
     /// builder splits primitives in the order given, so its trees are only as good as that order;
     /// GPU drivers sort spatially themselves.
     pub presort_primitives: bool,
+    /// The process that opened the device: a forked child inherits the handles but not a usable
+    /// device (nor the driver's threads), so it must not touch them.
+    pid: u32,
+    /// Set when a wait timed out or the device was lost: later work fails at once.
+    lost: AtomicBool,
 }
 
 impl Context {
@@ -563,6 +579,8 @@ impl Context {
             validation: request.validation,
             unified_memory: candidate.unified_memory,
             instance,
+            pid: std::process::id(),
+            lost: AtomicBool::new(false),
         };
         context.check_validation()?;
         Ok(Arc::new(context))
@@ -596,17 +614,58 @@ impl Context {
         unsafe { self.device.queue_submit(*queue, &submit, fence) }.vk("vkQueueSubmit")
     }
 
-    pub(crate) fn wait_fence(&self, fence: vk::Fence) -> Result<()> {
-        unsafe { self.device.wait_for_fences(&[fence], true, u64::MAX) }.vk("vkWaitForFences")
+    /// Whether this is a forked child of the process that opened the device.
+    pub fn forked(&self) -> bool {
+        std::process::id() != self.pid
     }
 
-    /// Records commands with `record`, submits them, and waits (through `wait`) for completion.
-    pub fn run_commands(&self, wait: &dyn Wait, record: impl FnOnce(vk::CommandBuffer) -> Result<()>) -> Result<()> {
+    /// Fails unless the device can take work: not in a forked child, not lost or hung.
+    pub fn check_usable(&self) -> Result<()> {
+        if self.forked() {
+            return Err(Error::Forked(format!(
+                "this vkray.Device ({}) was opened by process {} and cannot be used in its forked child \
+                 (process {}): open a new vkray.Device in the child, or start worker processes with \
+                 multiprocessing's 'spawn' or 'forkserver' start method",
+                self.info.name,
+                self.pid,
+                std::process::id()
+            )));
+        }
+        if self.lost.load(Ordering::Acquire) {
+            return Err(Error::Vulkan {
+                call: "an earlier wait (the device was lost or hung; open a new vkray.Device)",
+                result: vk::Result::ERROR_DEVICE_LOST,
+            });
+        }
+        Ok(())
+    }
+
+    /// Waits for `fence`, at most `gpu_timeout()`: a device that never finishes becomes an error
+    /// (and is marked lost) instead of a hang.
+    pub(crate) fn wait_fence(&self, fence: vk::Fence) -> Result<()> {
+        let timeout = gpu_timeout().as_nanos().min(u64::MAX as u128) as u64;
+        // SAFETY: `fence` is a live fence of this device, submitted with work (or never reset).
+        match unsafe { self.device.wait_for_fences(&[fence], true, timeout) } {
+            Ok(()) => Ok(()),
+            Err(result) => {
+                self.lost.store(true, Ordering::Release);
+                let call = match result {
+                    vk::Result::TIMEOUT => "vkWaitForFences (timed out after VKRAY_GPU_TIMEOUT seconds)",
+                    _ => "vkWaitForFences",
+                };
+                Err(Error::Vulkan { call, result })
+            }
+        }
+    }
+
+    /// Records commands with `record`, submits them, and waits for completion.
+    pub fn run_commands(&self, record: impl FnOnce(vk::CommandBuffer) -> Result<()>) -> Result<()> {
+        self.check_usable()?;
         let mut commands = Commands::new(self)?;
         commands.begin()?;
         record(commands.buffer)?;
         commands.submit()?;
-        commands.wait(wait)?;
+        commands.wait()?;
         self.check_validation()
     }
 
@@ -623,6 +682,11 @@ impl Context {
 
 impl Drop for Context {
     fn drop(&mut self) {
+        if self.forked() || self.lost.load(Ordering::Acquire) {
+            // A forked child must not touch the parent's device, and a hung one may never
+            // become idle: leave both to the process's end.
+            return;
+        }
         unsafe {
             let _ = self.device.device_wait_idle();
             ManuallyDrop::drop(&mut self.allocator);
@@ -671,10 +735,10 @@ impl<'a> Commands<'a> {
         Ok(())
     }
 
-    pub fn wait(&mut self, wait: &dyn Wait) -> Result<()> {
+    /// Waits for the submitted work, if any.
+    pub fn wait(&mut self) -> Result<()> {
         if self.pending {
-            let (ctx, fence) = (self.ctx, self.fence);
-            wait.wait(&|| ctx.wait_fence(fence))?;
+            self.ctx.wait_fence(self.fence)?;
             self.pending = false;
         }
         Ok(())
@@ -683,11 +747,15 @@ impl<'a> Commands<'a> {
 
 impl Drop for Commands<'_> {
     fn drop(&mut self) {
+        if self.ctx.forked() {
+            return;
+        }
+        // Only reached pending on an error path; the GPU must finish before its pool goes away.
+        // Where it never does (a hung device), the pool and fence are leaked, never freed in use.
+        if self.pending && self.ctx.wait_fence(self.fence).is_err() {
+            return;
+        }
         unsafe {
-            // Only reached pending on an error path; the GPU must finish before its pool goes away.
-            if self.pending {
-                let _ = self.ctx.wait_fence(self.fence);
-            }
             if self.fence != vk::Fence::null() {
                 self.ctx.device.destroy_fence(self.fence, None);
             }

@@ -6,7 +6,7 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 pub use gpu_allocator::MemoryLocation;
 
-use crate::error::{Result, VkResultExt};
+use crate::error::{Error, Result, VkResultExt};
 pub use crate::geometry::align_up;
 use crate::gpu::context::Context;
 
@@ -37,6 +37,7 @@ impl Buffer {
         location: MemoryLocation,
         name: &str,
     ) -> Result<Buffer> {
+        ctx.check_usable()?;
         let size = size.max(1);
         let info = vk::BufferCreateInfo::default().size(size).usage(usage).sharing_mode(vk::SharingMode::EXCLUSIVE);
         let device = &ctx.device;
@@ -50,8 +51,16 @@ impl Buffer {
             linear: true,
             allocation_scheme: AllocationScheme::GpuAllocatorManaged,
         })?;
-        unsafe { device.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) }.vk("vkBindBufferMemory")?;
+        // Stored first, so that every return below frees it with the buffer.
         buffer.allocation = Some(allocation);
+        let allocation = buffer.allocation.as_ref().expect("just stored");
+        if mapping_failed(allocation) {
+            return Err(Error::OutOfMemory(format!(
+                "{size} bytes of host-visible memory for {name} could not be mapped (the address space is exhausted)"
+            )));
+        }
+        // SAFETY: `raw` is unbound and `allocation` was made for its memory requirements.
+        unsafe { device.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) }.vk("vkBindBufferMemory")?;
         if usage.contains(vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS) {
             let info = vk::BufferDeviceAddressInfo::default().buffer(raw);
             buffer.address = unsafe { device.get_buffer_device_address(&info) };
@@ -92,8 +101,20 @@ impl Buffer {
     }
 }
 
+/// Whether the driver "mapped" the allocation's memory block at `MAP_FAILED` (`(void*)-1`): lavapipe
+/// reports success with that pointer when `mmap` fails under an address-space limit, and writing
+/// through it would crash the process.
+fn mapping_failed(allocation: &Allocation) -> bool {
+    allocation
+        .mapped_ptr()
+        .is_some_and(|p| (p.as_ptr() as usize).wrapping_sub(allocation.offset() as usize) == usize::MAX)
+}
+
 impl Drop for Buffer {
     fn drop(&mut self) {
+        if self.ctx.forked() {
+            return;
+        }
         unsafe { self.ctx.device.destroy_buffer(self.raw, None) };
         if let Some(allocation) = self.allocation.take() {
             // Freeing only fails for allocations this allocator does not own; nothing to undo.
@@ -190,4 +211,25 @@ pub fn memory_barrier(
     unsafe {
         ctx.device.cmd_pipeline_barrier(cmd, src_stage, dst_stage, vk::DependencyFlags::empty(), &barrier, &[], &[])
     };
+}
+
+/// Host memory a new allocation can still count on, in bytes: the kernel's estimate of available
+/// memory, less what an address-space limit (`RLIMIT_AS`) leaves; `None` where neither is known.
+pub fn host_memory_available() -> Option<u64> {
+    let read = |path: &str| std::fs::read_to_string(path).ok();
+    let field = |text: &str, name: &str| -> Option<u64> {
+        let line = text.lines().find(|l| l.starts_with(name))?;
+        line[name.len()..].split_whitespace().next()?.parse().ok()
+    };
+    let available = read("/proc/meminfo").and_then(|t| field(&t, "MemAvailable:")).map(|kb| kb * 1024);
+    let limit = read("/proc/self/limits").and_then(|t| field(&t, "Max address space"));
+    let used = read("/proc/self/status").and_then(|t| field(&t, "VmSize:")).map(|kb| kb * 1024);
+    let headroom = match (limit, used) {
+        (Some(limit), Some(used)) => Some(limit.saturating_sub(used)),
+        _ => None,
+    };
+    match (available, headroom) {
+        (Some(a), Some(h)) => Some(a.min(h)),
+        (a, h) => a.or(h),
+    }
 }

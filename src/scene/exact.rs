@@ -10,7 +10,6 @@ use super::top_level::{instances_input, Scene};
 use crate::error::{Error, Result};
 use crate::geometry::precision::{round_outward, Aabb};
 use crate::gpu::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildPreference, InstanceBits};
-use crate::gpu::context::Wait;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 
 /// Bytes of one `ExactInstance` record in `shaders/exact.glsl` (136, padded to its dvec4 alignment).
@@ -48,7 +47,7 @@ struct ExactMesh {
 }
 
 impl ExactScene {
-    pub(super) fn build(scene: &Scene, wait: &dyn Wait) -> Result<ExactScene> {
+    pub(super) fn build(scene: &Scene) -> Result<ExactScene> {
         let ctx = scene.tlas.context();
         if !ctx.info.shader_float64 {
             return Err(Error::Unsupported(format!(
@@ -141,7 +140,7 @@ impl ExactScene {
                 primitive_counts: vec![order.len() as u32],
                 name: "exact boxes BLAS",
             };
-            let (blas, _) = accel::build(ctx, &input, options, &uploads, wait)?;
+            let (blas, _) = accel::build(ctx, &input, options, &uploads)?;
             built.push(ExactMesh { blas, _boxes: boxes, vertices, faces, primitive_order, part_offsets });
         }
         let mesh_index = |p: &Placement| scene.meshes.iter().position(|m| Arc::ptr_eq(m, &p.mesh)).expect("scene mesh");
@@ -186,7 +185,7 @@ impl ExactScene {
             },
         )?;
         let input = instances_input(records.address(), n);
-        let (tlas, _) = accel::build(ctx, &input, scene.options, &uploads, wait)?;
+        let (tlas, _) = accel::build(ctx, &input, scene.options, &uploads)?;
         let padded =
             if n == 0 { Aabb { min: DVec3::ZERO, max: DVec3::ZERO } } else { scene_bounds.padded(world_slack) };
         let bounds = [

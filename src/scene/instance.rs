@@ -115,12 +115,22 @@ pub(crate) fn place(instances: &[Instance], center: Option<DVec3>) -> Result<(DV
     let mut placements = Vec::with_capacity(instances.len());
     for (i, ((x, m), triangles)) in instances.iter().zip(&to_world).zip(triangles).enumerate() {
         let to_scene = Affine { offset: m.offset - center, ..*m };
+        let bounds = triangles.bounds.transformed(&to_scene);
+        // The TLAS holds the transform, and traversal the instance's extent, in f32.
+        let in_f32 = |v: f64| (v as f32).is_finite();
+        if !(to_scene.to_rows_f32().iter().all(|v| v.is_finite())
+            && bounds.min.to_array().into_iter().chain(bounds.max.to_array()).all(in_f32))
+        {
+            return Err(invalid_value(format!(
+                "instance {i} lies too far from the scene's other instances for float32 (the scene spans more than 3.4e38)"
+            )));
+        }
         let to_local = to_scene.inverse().ok_or_else(|| {
             invalid_value(format!("instance {i} has a singular transform (its 3x3 part has no inverse)"))
         })?;
         placements.push(Placement {
             mesh: x.mesh.clone(),
-            bounds: triangles.bounds.transformed(&to_scene),
+            bounds,
             triangles,
             to_scene,
             to_local,

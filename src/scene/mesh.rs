@@ -2,7 +2,7 @@
 //! with the host's f64 copy of the same surface for the f64 tiers.
 
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex, RwLock, RwLockReadGuard};
 use std::time::Instant;
 
 use ash::vk;
@@ -16,7 +16,7 @@ use crate::geometry::rays::PerRay;
 use crate::geometry::reference::TriangleSet;
 use crate::geometry::vertex_format::VertexFormat;
 use crate::gpu::accel::{self, vulkan_vertex_format, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
-use crate::gpu::context::{Context, Wait};
+use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 
 /// Bytes of one `GeometrySource` record in `shaders/common.glsl`.
@@ -24,6 +24,10 @@ const GEOMETRY_SOURCE_BYTES: usize = 32;
 
 /// `GeometrySource.vertex_format` of sphere sets (after the `VertexFormat`s).
 const SPHERE_SOURCE: u32 = 3;
+
+/// Largest radius, and extent of a sphere set: squares of distances up to a few times this stay
+/// finite in f32 (whose largest value is 3.4e38).
+const MAX_SPHERE_EXTENT: f64 = 1e18;
 
 /// A triangle mesh on the device with its bottom-level acceleration structure.
 ///
@@ -49,6 +53,9 @@ pub struct Mesh {
     generation: AtomicU64,
     /// Seconds the last `update` took (upload and refit), 0 before any.
     last_update_seconds: Mutex<f64>,
+    /// Queries on scenes holding this mesh share it; `update` takes it alone, so it never writes
+    /// what a running trace reads (and waits for running traces instead).
+    in_use: RwLock<()>,
     blas: AccelerationStructure,
     /// One per geometry of the BLAS.
     pub(super) parts: Vec<Part>,
@@ -132,20 +139,13 @@ impl Mesh {
         faces: Indices,
         options: BuildOptions,
         format: VertexFormat,
-        wait: &dyn Wait,
     ) -> Result<Mesh> {
-        Mesh::build_parts(ctx, &[(vertices, faces)], options, format, wait)
+        Mesh::build_parts(ctx, &[(vertices, faces)], options, format)
     }
 
     /// A set of spheres (`centers` (N, 3), `radii` one per sphere or one for all): a BLAS of one
     /// box per sphere, whose spheres a shader intersects. Scenes mix them with triangle meshes.
-    pub fn spheres(
-        ctx: &Arc<Context>,
-        centers: Vec3s,
-        radii: PerRay,
-        options: BuildOptions,
-        wait: &dyn Wait,
-    ) -> Result<Mesh> {
+    pub fn spheres(ctx: &Arc<Context>, centers: Vec3s, radii: PerRay, options: BuildOptions) -> Result<Mesh> {
         check_vertices("centers", centers)?;
         let n = centers.rows();
         if let PerRay::Each(r) = radii {
@@ -153,8 +153,13 @@ impl Mesh {
                 return Err(invalid_value(format!("radii has {} values for {n} centers", r.len())));
             }
         }
-        if let Some(i) = (0..n).find(|&i| !(radii.get(i) > 0.0 && (radii.get(i) as f32).is_finite())) {
-            return Err(invalid_value(format!("radius {i} must be finite and > 0, got {}", radii.get(i))));
+        // The shaders square distances in f32: radii and the spheres' extent must stay well
+        // inside its range.
+        if let Some(i) = (0..n).find(|&i| !(radii.get(i) > 0.0 && radii.get(i) <= MAX_SPHERE_EXTENT)) {
+            return Err(invalid_value(format!(
+                "radius {i} must be finite and > 0, and at most {MAX_SPHERE_EXTENT:e} (the shaders square it in float32), got {}",
+                radii.get(i)
+            )));
         }
         if n as u64 > ctx.limits.max_primitive_count {
             return Err(Error::Unsupported(format!(
@@ -168,6 +173,13 @@ impl Mesh {
             b.union(&Aabb { min: c - DVec3::splat(r), max: c + DVec3::splat(r) })
         });
         let center = bounds.center();
+        if bounds.extent().max_element() > MAX_SPHERE_EXTENT {
+            return Err(invalid_value(format!(
+                "the spheres span {:e}, more than {MAX_SPHERE_EXTENT:e} (the shaders square distances in float32): \
+                 split them into sphere sets placed by instances",
+                bounds.extent().max_element()
+            )));
+        }
         let mut uploads = Uploads::default();
         let records = uploads.buffer(ctx, 16 * n as u64, GEOMETRY_INPUT, "spheres", |out, _| {
             for (i, dst) in out.chunks_exact_mut(16).enumerate() {
@@ -223,7 +235,7 @@ impl Mesh {
             parts: vec![part],
             sources,
         };
-        let (blas, stats) = accel::build(ctx, &prepared.input(), options, &uploads, wait)?;
+        let (blas, stats) = accel::build(ctx, &prepared.input(), options, &uploads)?;
         Ok(prepared.finish(options, blas, stats))
     }
 
@@ -234,9 +246,8 @@ impl Mesh {
         parts: &[(Vec3s, Indices)],
         options: BuildOptions,
         format: VertexFormat,
-        wait: &dyn Wait,
     ) -> Result<Mesh> {
-        let mut meshes = Mesh::build_many(ctx, &[parts], options, format, u64::MAX, wait)?;
+        let mut meshes = Mesh::build_many(ctx, &[parts], options, format, u64::MAX)?;
         Ok(meshes.pop().expect("one mesh per input"))
     }
 
@@ -249,7 +260,6 @@ impl Mesh {
         options: BuildOptions,
         format: VertexFormat,
         scratch_budget: u64,
-        wait: &dyn Wait,
     ) -> Result<Vec<Mesh>> {
         let mut uploads = Uploads::default();
         let prepared = items
@@ -263,7 +273,7 @@ impl Mesh {
             })
             .collect::<Result<Vec<_>>>()?;
         let inputs: Vec<BuildInput> = prepared.iter().map(PreparedMesh::input).collect();
-        let built = accel::build_many(ctx, &inputs, options, &uploads, scratch_budget, wait)?;
+        let built = accel::build_many(ctx, &inputs, options, &uploads, scratch_budget)?;
         Ok(prepared.into_iter().zip(built).map(|(p, (blas, stats))| p.finish(options, blas, stats)).collect())
     }
 
@@ -276,6 +286,11 @@ impl Mesh {
         self.triangles.read().unwrap_or_else(|e| e.into_inner()).clone()
     }
 
+    /// Holds the mesh against `update` while the guard lives (see `Scene::hold_meshes`).
+    pub fn hold(&self) -> RwLockReadGuard<'_, ()> {
+        self.in_use.read().unwrap_or_else(|e| e.into_inner())
+    }
+
     pub fn generation(&self) -> u64 {
         self.generation.load(Ordering::Acquire)
     }
@@ -286,9 +301,9 @@ impl Mesh {
 
     /// Moves the vertices (same count, same faces) and refits the BLAS in place (Vulkan's UPDATE
     /// mode with source = destination) instead of rebuilding it. Needs `allow_update` at build.
-    /// Scenes holding the mesh must be `update`d before they trace again. Not to be called while
-    /// a query on a scene holding this mesh runs.
-    pub fn update(&self, vertices: Vec3s, wait: &dyn Wait) -> Result<()> {
+    /// Scenes holding the mesh must be `update`d before they trace again. Waits for running
+    /// queries on scenes holding the mesh.
+    pub fn update(&self, vertices: Vec3s) -> Result<()> {
         let ctx = self.blas.context();
         if !self.options.allow_update {
             return Err(invalid_value("this mesh was built without allow_update=True, so it cannot be refitted"));
@@ -307,6 +322,8 @@ impl Mesh {
             )));
         }
         check_vertices("vertices", vertices)?;
+        // Waits for queries on scenes holding this mesh to finish; new ones wait for the update.
+        let _exclusive = self.in_use.write().unwrap_or_else(|e| e.into_inner());
         let started = Instant::now();
         // The same frame as at build: scenes' transforms and the exact tier's frames keep meaning.
         let outside = (0..vertices.rows())
@@ -323,7 +340,7 @@ impl Mesh {
         uploads.overwrite(ctx, &part.vertices, |out| self.vertex_format.write(&flat, out))?;
         let old = self.triangles();
         let input = mesh_input(std::slice::from_ref(part), self.vertex_format);
-        accel::update(ctx, &self.blas, &input, self.options, self.stats.update_scratch_size, &uploads, wait)?;
+        accel::update(ctx, &self.blas, &input, self.options, self.stats.update_scratch_size, &uploads)?;
         let moved = TriangleSet::new(local, old.faces.clone(), old.part_offsets.clone());
         *self.triangles.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(moved);
         self.generation.fetch_add(1, Ordering::AcqRel);
@@ -468,6 +485,7 @@ impl PreparedMesh {
             triangles: RwLock::new(Arc::new(self.host_triangles)),
             generation: AtomicU64::new(0),
             last_update_seconds: Mutex::new(0.0),
+            in_use: RwLock::new(()),
             options,
             stats,
             blas,

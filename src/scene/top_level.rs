@@ -1,6 +1,6 @@
 //! Scenes: instances of meshes under one top-level acceleration structure.
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, OnceLock, RwLockReadGuard};
 use std::time::Instant;
 
 use ash::vk;
@@ -10,9 +10,11 @@ use super::exact::ExactScene;
 use super::instance::{place, Instance, Placement, MAX_CUSTOM_INDEX};
 use super::mesh::{Mesh, MeshKind};
 use crate::error::{invalid_value, Error, Result};
+use crate::geometry::precision::Aabb;
+use crate::geometry::rays::Frame;
 use crate::geometry::reference::{PlacedSet, ReferenceTracer};
 use crate::gpu::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
-use crate::gpu::context::{Context, Wait};
+use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 
 /// Instances of meshes under one top-level acceleration structure.
@@ -37,11 +39,13 @@ pub struct Scene {
     mesh_generations: Vec<u64>,
     last_update_seconds: f64,
     /// The exact tier's structures, built on its first query.
-    exact: Mutex<Option<Arc<ExactScene>>>,
+    exact: OnceLock<Arc<ExactScene>>,
+    /// The instances' bounds in the scene's frame.
+    bounds: Aabb,
 }
 
 impl Scene {
-    pub fn build(ctx: &Arc<Context>, instances: &[Instance], options: BuildOptions, wait: &dyn Wait) -> Result<Scene> {
+    pub fn build(ctx: &Arc<Context>, instances: &[Instance], options: BuildOptions) -> Result<Scene> {
         if instances.len() as u64 > ctx.limits.max_instance_count {
             return Err(Error::Unsupported(format!(
                 "{} instances exceed this device's maxInstanceCount ({})",
@@ -68,7 +72,7 @@ impl Scene {
                 }
             })?;
         let input = instances_input(records.address(), instances.len());
-        let (tlas, stats) = accel::build(ctx, &input, options, &uploads, wait)?;
+        let (tlas, stats) = accel::build(ctx, &input, options, &uploads)?;
         let mut meshes: Vec<Arc<Mesh>> = Vec::new();
         for instance in instances {
             if !meshes.iter().any(|m| Arc::ptr_eq(m, &instance.mesh)) {
@@ -76,6 +80,7 @@ impl Scene {
             }
         }
         Ok(Scene {
+            bounds: bounds_of(&placements),
             instance_count: instances.len(),
             center,
             placements,
@@ -88,22 +93,15 @@ impl Scene {
             mesh_generations: meshes.iter().map(|m| m.generation()).collect(),
             meshes,
             last_update_seconds: 0.0,
-            exact: Mutex::new(None),
+            exact: OnceLock::new(),
         })
     }
 
-    /// Refits the TLAS in place after its instances moved (`transforms`, row-major 3×4 in f64)
-    /// or changed masks, and picks up its meshes' `update`s. Needs `allow_update` at build; the
-    /// scene keeps its frame (centre), so moves far from it cost f32 precision until a rebuild.
-    pub fn update(
-        &mut self,
-        transforms: Option<Vec<[f64; 12]>>,
-        masks: Option<Vec<u8>>,
-        wait: &dyn Wait,
-    ) -> Result<()> {
-        if !self.options.allow_update {
-            return Err(invalid_value("this scene was built without allow_update=True, so it cannot be refitted"));
-        }
+    /// Moves its instances (`transforms`, row-major 3×4 in f64) or changes their masks, and picks
+    /// up its meshes' `update`s: refits the TLAS in place where it was built with `allow_update`,
+    /// else builds it again (milliseconds). The scene is re-centred on its instances' new bounds,
+    /// so moves far away keep f32 precision.
+    pub fn update(&mut self, transforms: Option<Vec<[f64; 12]>>, masks: Option<Vec<u8>>) -> Result<()> {
         let n = self.instances.len();
         for (name, len) in [("transforms", transforms.as_ref().map(Vec::len)), ("masks", masks.as_ref().map(Vec::len))]
         {
@@ -121,16 +119,26 @@ impl Scene {
                 x.mask = m[k];
             }
         }
-        let (_, placements) = place(&instances, Some(self.center))?;
+        let (center, placements) = place(&instances, None)?;
         let ctx = self.tlas.context().clone();
         let mut uploads = Uploads::default();
-        uploads.overwrite(&ctx, &self.instance_records, |out| write_instance_records(&placements, out))?;
-        let input = instances_input(self.instance_records.address(), n);
-        accel::update(&ctx, &self.tlas, &input, self.options, self.stats.update_scratch_size, &uploads, wait)?;
+        if self.options.allow_update {
+            uploads.overwrite(&ctx, &self.instance_records, |out| write_instance_records(&placements, out))?;
+            let input = instances_input(self.instance_records.address(), n);
+            accel::update(&ctx, &self.tlas, &input, self.options, self.stats.update_scratch_size, &uploads)?;
+        } else {
+            let records = uploads.buffer(&ctx, 64 * n as u64, GEOMETRY_INPUT, "instances", |out, _| {
+                write_instance_records(&placements, out)
+            })?;
+            let (tlas, stats) = accel::build(&ctx, &instances_input(records.address(), n), self.options, &uploads)?;
+            (self.tlas, self.stats, self.instance_records) = (tlas, stats, records);
+        }
         self.instances = instances;
+        self.center = center;
+        self.bounds = bounds_of(&placements);
         self.placements = placements;
         self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
-        *self.exact.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
+        self.exact = OnceLock::new();
         self.last_update_seconds = started.elapsed().as_secs_f64();
         Ok(())
     }
@@ -167,13 +175,29 @@ impl Scene {
         self.instance_geometries.address()
     }
 
-    /// The exact tier's structures over this scene, built on first use.
-    pub fn exact(&self, wait: &dyn Wait) -> Result<Arc<ExactScene>> {
-        let mut exact = self.exact.lock().unwrap_or_else(|e| e.into_inner());
-        if exact.is_none() {
-            *exact = Some(Arc::new(ExactScene::build(self, wait)?));
+    /// The exact tier's structures over this scene, built on first use (outside any lock: two
+    /// threads may both build them, and the first one stored is kept).
+    pub fn exact(&self) -> Result<Arc<ExactScene>> {
+        if let Some(exact) = self.exact.get() {
+            return Ok(exact.clone());
         }
-        Ok(exact.as_ref().expect("just built").clone())
+        let built = Arc::new(ExactScene::build(self)?);
+        Ok(self.exact.get_or_init(|| built).clone())
+    }
+
+    /// Where rays are packed: the scene's frame and the sphere bounding its instances.
+    pub fn frame(&self) -> Frame {
+        let radius = if self.placements.is_empty() { 0.0 } else { 0.5 * self.bounds.extent().length() };
+        Frame { shift: self.center, bounds_center: self.bounds.center(), radius }
+    }
+
+    /// Holds this scene's meshes against `Mesh::update` until the guards drop (a query's time).
+    /// Taken in one global order (by address), so that queries on scenes sharing meshes never
+    /// wait for each other around a waiting update.
+    pub fn hold_meshes(&self) -> Vec<RwLockReadGuard<'_, ()>> {
+        let mut meshes: Vec<&Arc<Mesh>> = self.meshes.iter().collect();
+        meshes.sort_by_key(|m| Arc::as_ptr(m));
+        meshes.into_iter().map(|m| m.hold()).collect()
     }
 
     /// The CPU tracer over this scene's instances (each mesh's hierarchy is built once).
@@ -193,6 +217,11 @@ impl Scene {
                 .collect(),
         )
     }
+}
+
+/// The union of the placements' bounds.
+fn bounds_of(placements: &[Placement]) -> Aabb {
+    placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds))
 }
 
 fn write_instance_records(placements: &[Placement], out: &mut [u8]) {

@@ -1,9 +1,19 @@
-//! Queries: hit fields, pipeline variants, staging, the chunk loop, the host tiers, and the
-//! tracer that dispatches between them.
+//! Queries: what they ask (`request`), the hit fields they write (`fields`), pipeline variants
+//! and their shader binding tables (`variants`), staging slots (`staging`), the chunk loop
+//! (`chunks`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
+//! tiers (`tiers`), and the tracer that dispatches between them (`tracer`).
 
+mod chunks;
+pub mod fields;
+mod probe;
+pub mod profile;
 pub mod request;
+mod staging;
 pub mod tiers;
 pub mod tracer;
+mod variants;
 
+pub use fields::{Field, HitSink};
+pub use profile::TraceProfile;
 pub use request::{Cull, Precision, Query, Request};
-pub use tracer::{Field, HitSink, TraceProfile, Tracer};
+pub use tracer::Tracer;

@@ -11,6 +11,16 @@ pub enum Query {
     Occluded,
 }
 
+impl Query {
+    pub fn parse(name: &str) -> crate::error::Result<Query> {
+        match name {
+            "closest" => Ok(Query::Closest),
+            "occluded" => Ok(Query::Occluded),
+            other => Err(crate::error::invalid_value(format!("query must be 'closest' or 'occluded', got {other:?}"))),
+        }
+    }
+}
+
 /// Everything a trace asks besides its rays: which query, at which precision, culling which side.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Request {

@@ -4,11 +4,13 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::fields::{Field, HitSink};
+use crate::error::{try_vec, Result};
 use crate::geometry::precision::{plane_hit, world_normal, Cull};
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::ReferenceHit;
+use crate::gpu::context::Interrupt;
 use crate::scene::{MeshKind, Scene};
-use crate::trace::{Field, HitSink};
 
 /// Writes one field for every ray, on all cores: `value(i, out)` fills ray i's bytes.
 fn write_field(sink: &mut HitSink, field: Field, wide: bool, value: impl Fn(usize, &mut [u8]) + Sync) {
@@ -34,54 +36,89 @@ fn int_at(bytes: &[u8], i: usize) -> i32 {
     i32::from_ne_bytes(bytes[4 * i..4 * i + 4].try_into().expect("4 bytes"))
 }
 
+/// Rays the host tiers process between two checks for an interrupt.
+const HOST_BLOCK: usize = 1 << 18;
+
+/// Runs `work` over `0..n` in blocks, asking `interrupt` before each.
+fn in_blocks(n: usize, interrupt: &dyn Interrupt, mut work: impl FnMut(std::ops::Range<usize>)) -> Result<()> {
+    for start in (0..n).step_by(HOST_BLOCK) {
+        interrupt.check()?;
+        work(start..(start + HOST_BLOCK).min(n));
+    }
+    Ok(())
+}
+
 /// Re-intersects each hit the GPU found (the sink's `prim`, `instance`, `geometry`) with its
 /// triangle in f64, in the mesh's own frame, and writes the fields the sink asks for (`t` and
 /// `uv` as f64, the normal from f64 vertices). Where the f64 answer leaves the ray's interval
 /// (f32 traversal accepted a triangle the ray only grazes, or one just behind an origin that
 /// sits on it, as secondary rays do), that ray is traced again by the CPU tracer.
-pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink) {
+pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink, interrupt: &dyn Interrupt) -> Result<()> {
+    let n = rays.len();
     let (prim, instance, geometry) = (
         sink.field(Field::Prim).unwrap_or_default(),
         sink.field(Field::Instance).unwrap_or_default(),
         sink.field(Field::Geometry).unwrap_or_default(),
     );
-    let refined: Vec<Result<Option<ReferenceHit>, ()>> = (0..rays.len())
-        .into_par_iter()
-        .with_min_len(1024)
-        .map(|i| {
-            let (p, k) = (int_at(prim, i), int_at(instance, i));
-            if p < 0 {
-                return Ok(None);
-            }
-            let placement = &scene.placements[k as usize];
-            let ray = rays.ray64(i, scene.center).transformed(&placement.to_local);
-            let global = placement.triangles.global(int_at(geometry, i) as usize, p as usize);
-            let [a, b, c] = placement.triangles.triangle(global);
-            match plane_hit(&ray, a, b, c) {
-                Some(h) if h.t >= ray.tmin && h.t <= ray.tmax => {
-                    Ok(Some(ReferenceHit { t: h.t, u: h.u, v: h.v, instance: k as u32, prim: global as u32 }))
+    let mut hits: Vec<Option<ReferenceHit>> = try_vec(n, None, "refining hits")?;
+    let mut again: Vec<bool> = try_vec(n, false, "refining hits")?;
+    in_blocks(n, interrupt, |range| {
+        let start = range.start;
+        hits[range.clone()].par_iter_mut().zip(&mut again[range]).enumerate().with_min_len(1024).for_each(
+            |(k, (hit, again))| {
+                let i = start + k;
+                let (p, x) = (int_at(prim, i), int_at(instance, i));
+                if p < 0 {
+                    return;
                 }
-                _ => Err(()),
-            }
-        })
-        .collect();
-    let again: Vec<usize> = (0..rays.len()).filter(|&i| refined[i].is_err()).collect();
-    let mut hits: Vec<Option<ReferenceHit>> = refined.into_iter().map(|r| r.unwrap_or(None)).collect();
-    if !again.is_empty() {
+                let placement = &scene.placements[x as usize];
+                let ray = rays.ray64(i, scene.center).transformed(&placement.to_local);
+                let global = placement.triangles.global(int_at(geometry, i) as usize, p as usize);
+                let [a, b, c] = placement.triangles.triangle(global);
+                match plane_hit(&ray, a, b, c) {
+                    Some(h) if h.t >= ray.tmin && h.t <= ray.tmax => {
+                        *hit = Some(ReferenceHit { t: h.t, u: h.u, v: h.v, instance: x as u32, prim: global as u32 })
+                    }
+                    _ => *again = true,
+                }
+            },
+        );
+    })?;
+    let retrace: Vec<usize> = (0..n).filter(|&i| again[i]).collect();
+    if !retrace.is_empty() {
         let tracer = scene.reference_tracer();
-        for i in again {
-            hits[i] = tracer.trace(&rays.ray64(i, scene.center), rays.mask.get(i), cull, false);
-        }
+        in_blocks(retrace.len(), interrupt, |range| {
+            for &i in &retrace[range] {
+                hits[i] = tracer.trace(&rays.ray64(i, scene.center), rays.mask.get(i), cull, false);
+            }
+        })?;
     }
     write_hits(scene, sink, &hits);
+    Ok(())
 }
 
 /// Traces every ray on the CPU in f64 and writes every field the sink asks for.
-pub fn reference(scene: &Scene, rays: &Rays, cull: Cull, any: bool, sink: &mut HitSink) {
+pub fn reference(
+    scene: &Scene,
+    rays: &Rays,
+    cull: Cull,
+    any: bool,
+    sink: &mut HitSink,
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
     let tracer = scene.reference_tracer();
-    let mut hits: Vec<Option<ReferenceHit>> = vec![None; rays.len()];
-    tracer.trace_all(|i| (rays.ray64(i, scene.center), rays.mask.get(i)), cull, any, &mut hits);
+    let mut hits: Vec<Option<ReferenceHit>> = try_vec(rays.len(), None, "the reference tier's hits")?;
+    in_blocks(rays.len(), interrupt, |range| {
+        let start = range.start;
+        tracer.trace_all(
+            |k| (rays.ray64(start + k, scene.center), rays.mask.get(start + k)),
+            cull,
+            any,
+            &mut hits[range],
+        );
+    })?;
     write_hits(scene, sink, &hits);
+    Ok(())
 }
 
 /// Writes every field the sink asks for from f64 hits (whose `prim` counts among all parts of

@@ -1,0 +1,282 @@
+//! `vkray._core.Device`: opens a device and builds meshes and scenes on it.
+
+use std::sync::{Arc, RwLock};
+
+use numpy::{PyArray2, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::exceptions::{PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use super::arrays::{Bound1, IndexArray, Vec3Array};
+use super::mesh::PyMesh;
+use super::run;
+use super::scene::{InstanceItem, PyScene};
+use crate::error::{Error, Result};
+use crate::geometry::arrays::{instance_transform, Indices, Vec3s};
+use crate::geometry::vertex_format::VertexFormat;
+use crate::gpu::accel::{BuildOptions, BuildPreference, BuildStats};
+use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest};
+use crate::scene::{Instance, InstanceFlags, Mesh, Scene, IDENTITY};
+use crate::trace::Tracer;
+
+pub(super) fn info_dict<'py>(py: Python<'py>, info: &DeviceInfo) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("index", info.index)?;
+    d.set_item("name", &info.name)?;
+    d.set_item("device_type", info.device_type)?;
+    d.set_item("is_software", info.is_software)?;
+    d.set_item("api_version", &info.api_version)?;
+    d.set_item("driver", &info.driver)?;
+    d.set_item("ray_query", info.ray_query)?;
+    d.set_item("ray_tracing_pipeline", info.ray_tracing_pipeline)?;
+    d.set_item("shader_float64", info.shader_float64)?;
+    Ok(d)
+}
+
+pub(super) fn stats_dict<'py>(
+    py: Python<'py>,
+    stats: &BuildStats,
+    options: &BuildOptions,
+) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("build", options.preference.name())?;
+    d.set_item("allow_update", options.allow_update)?;
+    d.set_item("compacted", options.compact)?;
+    d.set_item("built_bytes", stats.built_size)?;
+    d.set_item("bytes", stats.size)?;
+    d.set_item("scratch_bytes", stats.scratch_size)?;
+    d.set_item("update_scratch_bytes", stats.update_scratch_size)?;
+    d.set_item("build_seconds", stats.build_seconds)?;
+    d.set_item("batch", stats.batch)?;
+    Ok(d)
+}
+
+fn build_options(build: &str, allow_update: bool, compact: bool) -> Result<BuildOptions> {
+    Ok(BuildOptions { preference: BuildPreference::parse(build)?, allow_update, compact })
+}
+
+/// A Vulkan device able to build acceleration structures and trace rays.
+#[pyclass(name = "Device", module = "vkray._core", frozen)]
+pub(super) struct PyDevice {
+    ctx: Arc<Context>,
+    tracer: Arc<Tracer>,
+}
+
+#[pymethods]
+impl PyDevice {
+    #[new]
+    #[pyo3(signature = (selector=None, backend=None, validation=false))]
+    fn new(py: Python<'_>, selector: Option<String>, backend: Option<&str>, validation: bool) -> PyResult<Self> {
+        let request = DeviceRequest { selector, backend: backend.map(Backend::parse).transpose()?, validation }
+            .with_environment()?;
+        let (ctx, tracer) = run(py, |_| -> Result<_> {
+            let ctx = Context::new(&request)?;
+            let tracer = Arc::new(Tracer::new(&ctx)?);
+            Ok((ctx, tracer))
+        })?;
+        Ok(PyDevice { ctx, tracer })
+    }
+
+    #[getter]
+    fn info<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        info_dict(py, &self.ctx.info)
+    }
+
+    #[getter]
+    fn backend(&self) -> &'static str {
+        self.ctx.backend.name()
+    }
+
+    #[getter]
+    fn validation(&self) -> bool {
+        self.ctx.validation
+    }
+
+    #[getter]
+    fn limits<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let l = &self.ctx.limits;
+        let d = PyDict::new(py);
+        d.set_item("min_acceleration_structure_scratch_offset_alignment", l.min_scratch_offset_alignment)?;
+        d.set_item("max_primitive_count", l.max_primitive_count)?;
+        d.set_item("max_instance_count", l.max_instance_count)?;
+        d.set_item("max_geometry_count", l.max_geometry_count)?;
+        d.set_item("max_compute_work_group_count", l.max_compute_work_group_count.to_vec())?;
+        d.set_item("max_compute_work_group_size", l.max_compute_work_group_size.to_vec())?;
+        d.set_item("max_push_constants_size", l.max_push_constants_size)?;
+        d.set_item("shader_group_handle_size", l.shader_group_handle_size)?;
+        d.set_item("shader_group_handle_alignment", l.shader_group_handle_alignment)?;
+        d.set_item("shader_group_base_alignment", l.shader_group_base_alignment)?;
+        d.set_item("max_ray_dispatch_invocation_count", l.max_ray_dispatch_invocation_count)?;
+        d.set_item("timestamp_period_ns", l.timestamp_period)?;
+        d.set_item("timestamp_valid_bits", l.timestamp_valid_bits)?;
+        d.set_item("vertex_formats", l.vertex_formats.iter().map(|f| f.name()).collect::<Vec<_>>())?;
+        Ok(d)
+    }
+
+    /// Where the host's time went in this device's last trace, in seconds.
+    #[getter]
+    fn last_trace_profile<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let p = self.tracer.last_profile();
+        let d = PyDict::new(py);
+        d.set_item("rays", p.rays)?;
+        d.set_item("chunks", p.chunks)?;
+        d.set_item("pack", p.pack)?;
+        d.set_item("submit", p.submit)?;
+        d.set_item("wait", p.wait)?;
+        d.set_item("unpack", p.unpack)?;
+        d.set_item("total", p.total)?;
+        d.set_item("gpu_upload", p.gpu_upload)?;
+        d.set_item("gpu_trace", p.gpu_trace)?;
+        d.set_item("gpu_readback", p.gpu_readback)?;
+        d.set_item("host_f64", p.host_f64)?;
+        Ok(d)
+    }
+
+    #[getter]
+    fn get_chunk_rays(&self) -> usize {
+        self.tracer.chunk_rays()
+    }
+
+    #[setter]
+    fn set_chunk_rays(&self, rays: usize) -> PyResult<()> {
+        Ok(self.tracer.set_chunk_rays(rays)?)
+    }
+
+    #[pyo3(signature = (vertices, faces, build="fast_trace", allow_update=false, compact=false, vertex_format="float32"))]
+    #[allow(clippy::too_many_arguments)]
+    fn mesh(
+        &self,
+        py: Python<'_>,
+        vertices: &Bound<'_, PyAny>,
+        faces: &Bound<'_, PyAny>,
+        build: &str,
+        allow_update: bool,
+        compact: bool,
+        vertex_format: &str,
+    ) -> PyResult<PyMesh> {
+        let options = build_options(build, allow_update, compact)?;
+        let format = VertexFormat::parse(vertex_format)?;
+        let vertices = Vec3Array::extract("vertices", vertices)?;
+        let faces = IndexArray::extract(faces)?;
+        let (vertices, faces) = (vertices.view()?, faces.view()?);
+        let mesh = run(py, |_| Mesh::build(&self.ctx, vertices, faces, options, format))?;
+        Ok(PyMesh::new(mesh))
+    }
+
+    /// A set of spheres: (N, 3) centres and radii (one float, or float64 (N,)).
+    #[pyo3(signature = (centers, radii, build="fast_trace", compact=false))]
+    fn spheres(
+        &self,
+        py: Python<'_>,
+        centers: &Bound<'_, PyAny>,
+        radii: &Bound<'_, PyAny>,
+        build: &str,
+        compact: bool,
+    ) -> PyResult<PyMesh> {
+        let options = build_options(build, false, compact)?;
+        let centers = Vec3Array::extract("centers", centers)?;
+        let radii = Bound1::extract("radii", radii)?;
+        let (centers, radii) = (centers.view()?, radii.view()?);
+        let mesh = run(py, |_| Mesh::spheres(&self.ctx, centers, radii, options))?;
+        Ok(PyMesh::new(mesh))
+    }
+
+    /// One mesh of several parts (geometries), each (vertices, faces) with transforms baked in.
+    #[pyo3(signature = (parts, build="fast_trace", allow_update=false, compact=false, vertex_format="float32"))]
+    fn mesh_parts(
+        &self,
+        py: Python<'_>,
+        parts: Vec<(Bound<'_, PyAny>, Bound<'_, PyAny>)>,
+        build: &str,
+        allow_update: bool,
+        compact: bool,
+        vertex_format: &str,
+    ) -> PyResult<PyMesh> {
+        let options = build_options(build, allow_update, compact)?;
+        let format = VertexFormat::parse(vertex_format)?;
+        let arrays = parts
+            .iter()
+            .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
+            .collect::<PyResult<Vec<_>>>()?;
+        let views = arrays.iter().map(|(v, f)| Ok((v.view()?, f.view()?))).collect::<PyResult<Vec<_>>>()?;
+        let mesh = run(py, |_| Mesh::build_parts(&self.ctx, &views, options, format))?;
+        Ok(PyMesh::new(mesh))
+    }
+
+    /// Many meshes in as few submissions as `budget_bytes` of build scratch allow.
+    #[pyo3(signature = (items, build="fast_trace", allow_update=false, compact=false, budget_bytes=None, vertex_format="float32"))]
+    #[allow(clippy::too_many_arguments)]
+    fn meshes(
+        &self,
+        py: Python<'_>,
+        items: Vec<(Bound<'_, PyAny>, Bound<'_, PyAny>)>,
+        build: &str,
+        allow_update: bool,
+        compact: bool,
+        budget_bytes: Option<u64>,
+        vertex_format: &str,
+    ) -> PyResult<Vec<PyMesh>> {
+        let options = build_options(build, allow_update, compact)?;
+        let format = VertexFormat::parse(vertex_format)?;
+        let arrays = items
+            .iter()
+            .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
+            .collect::<PyResult<Vec<_>>>()?;
+        let views = arrays.iter().map(|(v, f)| Ok([(v.view()?, f.view()?)])).collect::<PyResult<Vec<_>>>()?;
+        let items: Vec<&[(Vec3s, Indices)]> = views.iter().map(|v| v.as_slice()).collect();
+        let budget = budget_bytes.unwrap_or(u64::MAX);
+        let meshes = run(py, |_| Mesh::build_many(&self.ctx, &items, options, format, budget))?;
+        Ok(meshes.into_iter().map(PyMesh::new).collect())
+    }
+
+    /// `items`: (mesh, transform or None, custom_index, mask) per instance.
+    #[pyo3(signature = (items, build="fast_build", allow_update=false, compact=false))]
+    fn scene(
+        &self,
+        py: Python<'_>,
+        items: Vec<InstanceItem<'_>>,
+        build: &str,
+        allow_update: bool,
+        compact: bool,
+    ) -> PyResult<PyScene> {
+        let options = build_options(build, allow_update, compact)?;
+        let mut instances = Vec::with_capacity(items.len());
+        for (i, (mesh, transform, custom_index, mask, flags)) in items.iter().enumerate() {
+            let transform = match transform {
+                None => IDENTITY,
+                Some(t) => {
+                    let t = t.downcast::<PyArray2<f64>>().map_err(|_| {
+                        PyTypeError::new_err(format!(
+                            "instance {i}: transform must be a float64 (3, 4) or (4, 4) array"
+                        ))
+                    })?;
+                    let rows = t.shape()[0];
+                    let t = t.readonly();
+                    instance_transform(t.as_slice()?, rows).map_err(|e| match e {
+                        Error::InvalidValue(m) => Error::InvalidValue(format!("instance {i}: {m}")),
+                        Error::InvalidType(m) => Error::InvalidType(format!("instance {i}: {m}")),
+                        other => other,
+                    })?
+                }
+            };
+            let flags = InstanceFlags {
+                cull_disable: flags & 1 != 0,
+                flip_facing: flags & 2 != 0,
+                force_opaque: flags & 4 != 0,
+                force_no_opaque: flags & 8 != 0,
+            };
+            if flags.force_opaque && flags.force_no_opaque {
+                return Err(PyValueError::new_err(format!("instance {i} cannot be forced both opaque and non-opaque")));
+            }
+            instances.push(Instance {
+                mesh: mesh.mesh.clone(),
+                transform,
+                custom_index: *custom_index,
+                mask: *mask,
+                flags,
+            });
+        }
+        let scene = run(py, |_| Scene::build(&self.ctx, &instances, options))?;
+        Ok(PyScene { scene: RwLock::new(scene), tracer: self.tracer.clone() })
+    }
+}

@@ -1,0 +1,197 @@
+//! `vkray._core.Scene`: queries and refits. Queries share the scene and `update` takes it alone;
+//! both wait with the GIL released, so neither can deadlock with a thread that needs the GIL.
+
+use std::sync::RwLock;
+
+use numpy::{PyArrayDescrMethods, PyReadonlyArray1, PyReadonlyArray3, PyUntypedArray, PyUntypedArrayMethods};
+use pyo3::exceptions::{PyMemoryError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use super::arrays::{Bound1, MaskArray, Vec3Array};
+use super::device::stats_dict;
+use super::mesh::PyMesh;
+use super::run;
+use crate::geometry::arrays::instance_transform;
+use crate::geometry::rays::Rays;
+use crate::gpu::memory::host_memory_available;
+use crate::scene::Scene;
+use crate::trace::fields::{position_bytes_per_ray, FIELDS};
+use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, Tracer};
+
+/// Instances under a top-level acceleration structure, ready for queries.
+#[pyclass(name = "Scene", module = "vkray._core", frozen)]
+pub(super) struct PyScene {
+    pub(super) scene: RwLock<Scene>,
+    pub(super) tracer: std::sync::Arc<Tracer>,
+}
+
+/// (mesh, transform or None, custom_index, mask, flags) of one instance, as the Python layer
+/// passes it; flags: 1 cull_disable, 2 flip_facing, 4 force_opaque, 8 force_no_opaque.
+pub(super) type InstanceItem<'py> = (PyRef<'py, PyMesh>, Option<Bound<'py, PyAny>>, u32, u8, u8);
+
+/// One output array: its field (None for `position`) and the numpy array.
+type Output<'py> = (Option<Field>, Bound<'py, PyUntypedArray>);
+
+impl PyScene {
+    /// Reads the scene for a moment (getters): waits for an update with the GIL released.
+    fn with_scene<T: Send>(&self, py: Python<'_>, read: impl FnOnce(&Scene) -> T + Send) -> PyResult<T> {
+        run(py, |_| Ok(read(&self.scene.read().unwrap_or_else(|e| e.into_inner()))))
+    }
+}
+
+/// A new uninitialized numpy array (numpy raises MemoryError where it cannot be had); the core
+/// writes every element before the caller sees it.
+fn empty<'py>(py: Python<'py>, shape: &[usize], dtype: &str) -> PyResult<Bound<'py, PyUntypedArray>> {
+    let array = py.import("numpy")?.getattr("empty")?.call1((shape.to_vec(), dtype))?;
+    Ok(array.downcast_into::<PyUntypedArray>()?)
+}
+
+/// The numpy array of each field asked for, in the query's widths.
+fn allocate<'py>(py: Python<'py>, fields: &[String], n: usize, wide: bool) -> PyResult<Vec<(String, Output<'py>)>> {
+    let float = if wide { "float64" } else { "float32" };
+    let mut arrays = Vec::with_capacity(fields.len());
+    for name in fields {
+        if name == "position" {
+            arrays.push((name.clone(), (None, empty(py, &[n, 3], float)?)));
+            continue;
+        }
+        let Some(field) = FIELDS.iter().copied().find(|f| f.name() == name) else {
+            return Err(PyValueError::new_err(format!("unknown hit field {name:?}")));
+        };
+        let array = match field {
+            Field::T => empty(py, &[n], float)?,
+            Field::Uv => empty(py, &[n, 2], float)?,
+            Field::Normal => empty(py, &[n, 3], "float32")?,
+            _ => empty(py, &[n], "int32")?,
+        };
+        arrays.push((name.clone(), (Some(field), array)));
+    }
+    Ok(arrays)
+}
+
+/// The bytes of a fresh numpy array this call made and nobody else holds yet.
+fn bytes_of<'a>(array: &'a Bound<'_, PyUntypedArray>) -> &'a mut [u8] {
+    let bytes = array.len() * array.dtype().itemsize();
+    // SAFETY: a C-contiguous array made by `empty` in this call and not yet returned: its data
+    // is `bytes` long, and this is the only view of it until the call returns.
+    unsafe { std::slice::from_raw_parts_mut((*array.as_array_ptr()).data as *mut u8, bytes) }
+}
+
+#[pymethods]
+impl PyScene {
+    /// Moves the instances (`transforms`, (N, 3, 4) or (N, 4, 4) float64) or changes their masks
+    /// ((N,) uint8) and picks up its meshes' own updates: refits where built with
+    /// allow_update, else rebuilds. Waits for running queries on this scene.
+    #[pyo3(signature = (transforms=None, masks=None))]
+    fn update(
+        &self,
+        py: Python<'_>,
+        transforms: Option<PyReadonlyArray3<'_, f64>>,
+        masks: Option<PyReadonlyArray1<'_, u8>>,
+    ) -> PyResult<()> {
+        let transforms = match &transforms {
+            None => None,
+            Some(t) => {
+                let rows = t.shape()[1];
+                let values = t.as_slice()?;
+                let per = rows * 4;
+                if t.shape()[2] != 4 || per == 0 {
+                    return Err(PyValueError::new_err("transforms must have shape (N, 3, 4) or (N, 4, 4)"));
+                }
+                Some(values.chunks_exact(per).map(|m| instance_transform(m, rows)).collect::<crate::Result<Vec<_>>>()?)
+            }
+        };
+        let masks = masks.as_ref().map(|m| m.as_slice().map(|m| m.to_vec())).transpose()?;
+        run(py, |_| self.scene.write().unwrap_or_else(|e| e.into_inner()).update(transforms, masks))
+    }
+
+    #[getter]
+    fn instance_count(&self, py: Python<'_>) -> PyResult<usize> {
+        self.with_scene(py, |scene| scene.instance_count)
+    }
+
+    #[getter]
+    fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let (stats, options, seconds) =
+            self.with_scene(py, |scene| (scene.stats, scene.options, scene.last_update_seconds()))?;
+        let d = stats_dict(py, &stats, &options)?;
+        d.set_item("update_seconds", seconds)?;
+        Ok(d)
+    }
+
+    /// Traces rays; returns {field name: array} for the fields asked for.
+    /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`.
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn trace<'py>(
+        &self,
+        py: Python<'py>,
+        origins: &Bound<'py, PyAny>,
+        directions: &Bound<'py, PyAny>,
+        tmin: &Bound<'py, PyAny>,
+        tmax: &Bound<'py, PyAny>,
+        query: &str,
+        fields: Vec<String>,
+        precision: &str,
+        cull: Option<&str>,
+        mask: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let request =
+            Request { query: Query::parse(query)?, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
+        let wide = request.precision.is_f64();
+        let mask = mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF));
+        let origins = Vec3Array::extract("origins", origins)?;
+        let directions = Vec3Array::extract("directions", directions)?;
+        let (tmin, tmax) = (Bound1::extract("tmin", tmin)?, Bound1::extract("tmax", tmax)?);
+        let rays = Rays {
+            origins: origins.view()?,
+            directions: directions.view()?,
+            tmin: tmin.view()?,
+            tmax: tmax.view()?,
+            mask: mask.view()?,
+        };
+        let n = rays.len();
+        check_fits(&self.tracer, request, &fields, n)?;
+        let arrays = allocate(py, &fields, n, wide)?;
+        let mut sink = HitSink::default();
+        for (_, (field, array)) in &arrays {
+            match field {
+                Some(field) => sink.set(*field, bytes_of(array)),
+                None => sink.position = Some(bytes_of(array)),
+            }
+        }
+        run(py, |interrupt| {
+            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+            self.tracer.trace(&scene, &rays, request, &mut sink, interrupt)
+        })?;
+        let result = PyDict::new(py);
+        for (name, (_, array)) in arrays {
+            result.set_item(name, array)?;
+        }
+        Ok(result)
+    }
+}
+
+/// Refuses a query whose outputs and working memory exceed the host memory available, before
+/// anything is allocated (rather than growing until the system's OOM killer ends the process).
+fn check_fits(tracer: &Tracer, request: Request, fields: &[String], n: usize) -> PyResult<()> {
+    let wide = request.precision.is_f64();
+    let per_ray: usize = fields
+        .iter()
+        .map(|name| match FIELDS.iter().find(|f| f.name() == name) {
+            Some(field) => field.bytes_per_ray(wide),
+            None => position_bytes_per_ray(wide),
+        })
+        .sum();
+    let needed = (n as u128) * (per_ray as u128) + tracer.working_bytes(request, n) as u128;
+    match host_memory_available() {
+        Some(available) if needed > available as u128 => Err(PyMemoryError::new_err(format!(
+            "a query of {n} rays needs about {:.2} GB of host memory (its outputs and working buffers), \
+             more than the {:.2} GB available: trace fewer rays at a time, or ask fewer outputs",
+            needed as f64 / 1e9,
+            available as f64 / 1e9
+        ))),
+        _ => Ok(()),
+    }
+}

@@ -1,0 +1,297 @@
+//! The chunk loop: rays go through in chunks that fit the device's dispatch limits and the
+//! staging slots, two chunks in flight so that packing the next overlaps tracing the current one.
+//! Between chunks the caller may interrupt (Ctrl-C); chunks in flight finish first.
+
+use std::time::Instant;
+
+use ash::vk;
+use rayon::prelude::*;
+
+use super::fields::{Field, HitSink, FIELDS};
+use super::profile::{Stamp, TraceProfile};
+use super::staging::Slot;
+use super::tracer::Tracer;
+use super::variants::{push_constant_stages, Variant};
+use crate::error::Result;
+use crate::geometry::rays::{Advance, Frame, Masks, Rays, RAY_FLOATS};
+use crate::gpu::context::{Backend, Commands, Interrupt};
+use crate::gpu::memory::memory_barrier;
+use crate::gpu::records::Params;
+use crate::scene::{ExactScene, Scene};
+
+/// What every chunk of one query shares.
+pub(super) struct GpuJob<'a> {
+    pub scene: &'a Scene,
+    /// The exact tier's structures, for exact queries.
+    pub exact: Option<&'a ExactScene>,
+    pub rays: &'a Rays<'a>,
+    pub variant: &'a Variant,
+    pub outputs: u32,
+    pub frame: Frame,
+}
+
+/// A chunk submitted and not yet unpacked: its first ray, its length, and how far its far rays
+/// were advanced.
+struct InFlight {
+    start: usize,
+    len: usize,
+    advances: Vec<Advance>,
+}
+
+impl Tracer {
+    /// Traces every ray of `job` through the two `slots` of `capacity` rays each, unpacking each
+    /// finished chunk into `sink`.
+    pub(super) fn trace_chunks(
+        &self,
+        job: &GpuJob,
+        sink: &mut HitSink,
+        slots: &mut [Slot; 2],
+        capacity: usize,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let n = job.rays.len();
+        let mut clock = Instant::now();
+        let mut lap = |into: &mut f64| {
+            let now = Instant::now();
+            *into += (now - clock).as_secs_f64();
+            clock = now;
+        };
+        // Dropping these on an error waits for the chunks in flight before their memory goes.
+        let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
+        let mut in_flight: [Option<InFlight>; 2] = [None, None];
+        for (chunk, start) in (0..n).step_by(capacity).enumerate() {
+            interrupt.check()?;
+            let s = chunk % 2;
+            let len = capacity.min(n - start);
+            lap(&mut profile.submit);
+            commands[s].wait()?;
+            lap(&mut profile.wait);
+            if let Some(done) = in_flight[s].take() {
+                finish_chunk(&slots[s], &done, job.outputs, sink, profile)?;
+            }
+            lap(&mut profile.unpack);
+            let advances = pack_chunk(job, &mut slots[s], start, len)?;
+            lap(&mut profile.pack);
+            profile.chunks += 1;
+            commands[s].begin()?;
+            self.record_chunk(commands[s].buffer, job, &slots[s], len);
+            commands[s].submit()?;
+            in_flight[s] = Some(InFlight { start, len, advances });
+        }
+        lap(&mut profile.submit);
+        for s in 0..2 {
+            commands[s].wait()?;
+            lap(&mut profile.wait);
+            if let Some(done) = in_flight[s].take() {
+                finish_chunk(&slots[s], &done, job.outputs, sink, profile)?;
+            }
+            lap(&mut profile.unpack);
+        }
+        Ok(())
+    }
+
+    /// Records one chunk: its upload (discrete GPUs), the trace, and its readback.
+    fn record_chunk(&self, cmd: vk::CommandBuffer, job: &GpuJob, slot: &Slot, len: usize) {
+        let ctx = &self.ctx;
+        let device = &ctx.device;
+        let stamp = |k| {
+            if let Some(stamps) = &slot.stamps {
+                stamps.write(cmd, k);
+            }
+        };
+        if let Some(stamps) = &slot.stamps {
+            stamps.reset(cmd);
+        }
+        stamp(Stamp::Start);
+        let (bind_point, shader_stage) = match ctx.backend {
+            Backend::RayQuery => (vk::PipelineBindPoint::COMPUTE, vk::PipelineStageFlags::COMPUTE_SHADER),
+            Backend::Pipeline => {
+                (vk::PipelineBindPoint::RAY_TRACING_KHR, vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR)
+            }
+        };
+        if let Some((rays_device, _)) = &slot.device {
+            let masks_at = slot.masks_offset() as u64;
+            let rays_region = vk::BufferCopy::default().size((len * Slot::ray_bytes(slot.exact)) as u64);
+            let masks_region = vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
+            let regions = match job.rays.mask {
+                Masks::Each(_) => vec![rays_region, masks_region],
+                Masks::All(_) => vec![rays_region],
+            };
+            // SAFETY: `cmd` is recording; both buffers hold `capacity` rays and masks.
+            unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &regions) };
+            memory_barrier(
+                ctx,
+                cmd,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::AccessFlags::TRANSFER_WRITE,
+                shader_stage,
+                vk::AccessFlags::SHADER_READ,
+            );
+        }
+        stamp(Stamp::Uploaded);
+        let params = chunk_params(job, slot, len);
+        // SAFETY: `cmd` is recording; the pipeline and its layout are live, and the push
+        // constants cover exactly the range the layout declares.
+        unsafe {
+            device.cmd_bind_pipeline(cmd, bind_point, job.variant.pipeline);
+            device.cmd_push_constants(
+                cmd,
+                self.variants.layout,
+                push_constant_stages(ctx.backend),
+                0,
+                bytemuck::bytes_of(&params),
+            );
+        }
+        match (&job.variant.sbt, ctx.pipeline_ext.as_ref()) {
+            // SAFETY: the SBT regions were laid out from this device's handle size and alignments
+            // and `len` is within the device's dispatch limits (`Tracer::max_dispatch_rays`).
+            (Some(sbt), Some(rt)) => unsafe {
+                let callable = vk::StridedDeviceAddressRegionKHR::default();
+                rt.cmd_trace_rays(cmd, &sbt.raygen, &sbt.miss, &sbt.hit, &callable, len as u32, 1, 1);
+            },
+            // SAFETY: as above, for the compute dispatch's group count.
+            _ => unsafe { device.cmd_dispatch(cmd, (len as u32).div_ceil(self.variants.local_size), 1, 1) },
+        }
+        stamp(Stamp::Traced);
+        record_readback(ctx, cmd, slot, job.outputs, len, shader_stage);
+        stamp(Stamp::ReadBack);
+    }
+}
+
+/// The push constants of one chunk.
+fn chunk_params(job: &GpuJob, slot: &Slot, len: usize) -> Params {
+    let mut params = Params { rays: slot.rays_address(), count: len as u32, ..Default::default() };
+    match job.rays.mask {
+        Masks::All(m) => params.ray_mask = m as u32,
+        Masks::Each(_) => params.masks = slot.rays_address() + slot.masks_offset() as u64,
+    }
+    match job.exact {
+        Some(exact) => {
+            params.instances = exact.instances_address();
+            params.tlas = exact.tlas_address();
+            params.scratch = slot.hits_address() + slot.scratch_offset() as u64;
+            params.bounds = exact.bounds_f32();
+        }
+        None => {
+            params.instances = job.scene.instance_geometries_address();
+            params.tlas = job.scene.tlas_address();
+        }
+    }
+    for field in FIELDS {
+        if job.outputs & field.bit() != 0 {
+            params.outputs[field as usize] = slot.hits_address() + slot.field_offset(field) as u64;
+        }
+    }
+    params
+}
+
+/// Makes the hits visible to the host: copied to readback memory on discrete GPUs.
+fn record_readback(
+    ctx: &crate::gpu::context::Context,
+    cmd: vk::CommandBuffer,
+    slot: &Slot,
+    outputs: u32,
+    len: usize,
+    shader_stage: vk::PipelineStageFlags,
+) {
+    let Some((_, hits_device)) = &slot.device else {
+        let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
+        memory_barrier(ctx, cmd, shader_stage, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
+        return;
+    };
+    memory_barrier(
+        ctx,
+        cmd,
+        shader_stage,
+        vk::AccessFlags::SHADER_WRITE,
+        vk::PipelineStageFlags::TRANSFER,
+        vk::AccessFlags::TRANSFER_READ,
+    );
+    let regions: Vec<vk::BufferCopy> = FIELDS
+        .iter()
+        .filter(|f| outputs & f.bit() != 0)
+        .map(|f| {
+            let offset = slot.field_offset(*f) as u64;
+            vk::BufferCopy::default()
+                .src_offset(offset)
+                .dst_offset(offset)
+                .size((len * f.bytes_per_ray(slot.exact)) as u64)
+        })
+        .collect();
+    // SAFETY: `cmd` is recording; each region lies within both buffers (same layout).
+    unsafe { ctx.device.cmd_copy_buffer(cmd, hits_device.raw(), slot.hits_host.raw(), &regions) };
+    memory_barrier(
+        ctx,
+        cmd,
+        vk::PipelineStageFlags::TRANSFER,
+        vk::AccessFlags::TRANSFER_WRITE,
+        vk::PipelineStageFlags::HOST,
+        vk::AccessFlags::HOST_READ,
+    );
+}
+
+/// Checks and packs rays `start..start + len` (and their masks) into the slot's staging.
+fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize) -> Result<Vec<Advance>> {
+    let masks_at = slot.masks_offset();
+    let exact = slot.exact;
+    let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
+    let (rays_bytes, masks_bytes) = packed.split_at_mut(masks_at);
+    let advances = if exact {
+        let out: &mut [f64] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 8]);
+        job.rays.pack_f64(start, out, job.frame.shift)?;
+        Vec::new()
+    } else {
+        let out: &mut [f32] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 4]);
+        job.rays.pack(start, out, &job.frame)?
+    };
+    if let Masks::Each(masks) = job.rays.mask {
+        let words: &mut [u32] = bytemuck::cast_slice_mut(&mut masks_bytes[..4 * len]);
+        words.par_iter_mut().zip(&masks[start..start + len]).for_each(|(dst, m)| *dst = *m as u32);
+    }
+    Ok(advances)
+}
+
+/// A finished chunk: its timestamps into the profile, its hits into the caller's arrays.
+fn finish_chunk(
+    slot: &Slot,
+    done: &InFlight,
+    outputs: u32,
+    sink: &mut HitSink,
+    profile: &mut TraceProfile,
+) -> Result<()> {
+    if let Some(stamps) = &slot.stamps {
+        stamps.add_to(profile)?;
+    }
+    unpack(slot, done, outputs, sink);
+    Ok(())
+}
+
+/// Copies a finished chunk's requested fields into the caller's arrays, on all cores, and adds
+/// back to `t` how far each far ray was advanced before tracing.
+fn unpack(slot: &Slot, done: &InFlight, outputs: u32, sink: &mut HitSink) {
+    const PIECE_BYTES: usize = 1 << 20;
+    let InFlight { start, len, advances } = done;
+    let (start, len) = (*start, *len);
+    let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
+    for (field, out) in sink.iter_mut() {
+        if outputs & field.bit() == 0 {
+            continue;
+        }
+        let width = field.bytes_per_ray(slot.exact);
+        let from = slot.field_offset(field);
+        let out = &mut out[start * width..(start + len) * width];
+        out.par_chunks_mut(PIECE_BYTES)
+            .zip(hits[from..from + len * width].par_chunks(PIECE_BYTES))
+            .for_each(|(dst, src)| dst.copy_from_slice(src));
+        if field == Field::T && !slot.exact {
+            let t: &mut [f32] = bytemuck::cast_slice_mut(out);
+            for advance in advances {
+                let hit = &mut t[advance.ray];
+                if hit.is_finite() {
+                    *hit = (*hit as f64 + advance.t) as f32;
+                }
+            }
+        }
+    }
+}

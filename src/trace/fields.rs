@@ -1,0 +1,103 @@
+//! The hit fields a query can write, and where the caller wants each one.
+
+/// A field of the hit record. The discriminant is the field's position among the shaders' output
+/// addresses and its bit in their OUTPUTS constant is `1 << discriminant`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Field {
+    T = 0,
+    Prim = 1,
+    Instance = 2,
+    Custom = 3,
+    Uv = 4,
+    Normal = 5,
+    Geometry = 6,
+}
+
+pub const FIELD_COUNT: usize = 7;
+pub const FIELDS: [Field; FIELD_COUNT] =
+    [Field::T, Field::Prim, Field::Instance, Field::Custom, Field::Uv, Field::Normal, Field::Geometry];
+
+impl Field {
+    /// Bytes of one ray's value; `wide`: `t` and `uv` in f64 (the f64 precision tiers).
+    pub fn bytes_per_ray(self, wide: bool) -> usize {
+        match (self, wide) {
+            (Field::T, true) => 8,
+            (Field::Uv, false) => 8,
+            (Field::Uv, true) => 16,
+            (Field::Normal, _) => 12,
+            _ => 4,
+        }
+    }
+
+    /// Scalars per ray (2 for `uv`, 3 for `normal`).
+    pub fn components(self) -> usize {
+        match self {
+            Field::Uv => 2,
+            Field::Normal => 3,
+            _ => 1,
+        }
+    }
+
+    pub fn bit(self) -> u32 {
+        1 << self as u32
+    }
+
+    /// The field's name in the Python API.
+    pub fn name(self) -> &'static str {
+        match self {
+            Field::T => "t",
+            Field::Prim => "prim_id",
+            Field::Instance => "instance_id",
+            Field::Custom => "custom_index",
+            Field::Uv => "uv",
+            Field::Normal => "normal",
+            Field::Geometry => "geometry_id",
+        }
+    }
+}
+
+/// Bytes of one ray's `position` (3 f32, or 3 f64 in the f64 tiers).
+pub fn position_bytes_per_ray(wide: bool) -> usize {
+    if wide {
+        24
+    } else {
+        12
+    }
+}
+
+/// Where the caller wants each requested field written, as raw bytes of its output array.
+/// `position` (the world-space hit point: 3 f32, or 3 f64 in the f64 tiers) is computed on the
+/// host from the hit triangle and its barycentrics, never by a shader.
+#[derive(Default)]
+pub struct HitSink<'a> {
+    fields: [Option<&'a mut [u8]>; FIELD_COUNT],
+    pub position: Option<&'a mut [u8]>,
+}
+
+impl<'a> HitSink<'a> {
+    pub fn set(&mut self, field: Field, out: &'a mut [u8]) {
+        self.fields[field as usize] = Some(out);
+    }
+
+    pub fn field(&self, field: Field) -> Option<&[u8]> {
+        self.fields[field as usize].as_deref()
+    }
+
+    pub fn field_mut(&mut self, field: Field) -> Option<&mut [u8]> {
+        self.fields[field as usize].as_deref_mut()
+    }
+
+    pub fn take(&mut self, field: Field) -> Option<&'a mut [u8]> {
+        self.fields[field as usize].take()
+    }
+
+    /// The OUTPUTS bits of the fields asked for.
+    pub fn outputs(&self) -> u32 {
+        FIELDS.iter().filter(|f| self.fields[**f as usize].is_some()).map(|f| f.bit()).sum()
+    }
+
+    /// The fields asked for, with their arrays.
+    pub fn iter_mut(&mut self) -> impl Iterator<Item = (Field, &mut [u8])> + use<'_, 'a> {
+        FIELDS.iter().zip(self.fields.iter_mut()).filter_map(|(f, out)| out.as_deref_mut().map(|out| (*f, out)))
+    }
+}

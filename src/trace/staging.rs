@@ -1,0 +1,142 @@
+//! Staging for chunks in flight: host-visible rays and hits (plus device copies on discrete GPUs),
+//! each slot with its own timestamps; and the pool that keeps idle slots for the next query.
+
+use std::sync::{Arc, Mutex};
+
+use ash::vk;
+
+use super::fields::{Field, FIELDS, FIELD_COUNT};
+use super::profile::Stamps;
+use crate::error::Result;
+use crate::geometry::align_up;
+use crate::geometry::rays::RAY_FLOATS;
+use crate::gpu::context::Context;
+use crate::gpu::memory::{Buffer, MemoryLocation};
+use crate::gpu::records::ExactBest;
+
+/// Host-visible staging for one chunk in flight (plus device copies on discrete GPUs). An exact
+/// slot holds f64 rays, f64 `t`/`uv` and the pipeline's scratch records.
+pub struct Slot {
+    pub rays_host: Buffer,
+    pub hits_host: Buffer,
+    pub device: Option<(Buffer, Buffer)>,
+    pub capacity: usize,
+    pub exact: bool,
+    pub stamps: Option<Stamps>,
+}
+
+impl Slot {
+    fn new(ctx: &Arc<Context>, capacity: usize, exact: bool) -> Result<Slot> {
+        use vk::BufferUsageFlags as U;
+        let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
+        let ray_bytes = (capacity * (Slot::ray_bytes(exact) + 4)) as u64;
+        let hit_bytes = Slot::layout(capacity, exact).1 as u64;
+        let (rays_host, hits_host, device) = if ctx.unified_memory {
+            let rays = Buffer::new(ctx, ray_bytes, storage, MemoryLocation::CpuToGpu, "rays")?;
+            (rays, Buffer::new(ctx, hit_bytes, storage, MemoryLocation::GpuToCpu, "hits")?, None)
+        } else {
+            (
+                Buffer::new(ctx, ray_bytes, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "rays staging")?,
+                Buffer::new(ctx, hit_bytes, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hits readback")?,
+                Some((
+                    Buffer::new(ctx, ray_bytes, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "rays")?,
+                    Buffer::new(ctx, hit_bytes, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hits")?,
+                )),
+            )
+        };
+        Ok(Slot { rays_host, hits_host, device, capacity, exact, stamps: Stamps::new(ctx)? })
+    }
+
+    /// Bytes of one packed ray; the rays buffer holds `capacity` of them, then one u32 mask each.
+    pub fn ray_bytes(exact: bool) -> usize {
+        RAY_FLOATS * if exact { 8 } else { 4 }
+    }
+
+    /// Host bytes a slot of `capacity` rays takes (its staging, not its device copies).
+    pub fn host_bytes(capacity: usize, exact: bool) -> usize {
+        capacity * (Slot::ray_bytes(exact) + 4) + Slot::layout(capacity, exact).1
+    }
+
+    pub fn masks_offset(&self) -> usize {
+        self.capacity * Slot::ray_bytes(self.exact)
+    }
+
+    /// Byte offsets of each field's array and of the scratch records, and the total, each array
+    /// 8-byte aligned (f64 fields).
+    pub fn layout(capacity: usize, exact: bool) -> ([usize; FIELD_COUNT + 1], usize) {
+        let mut offsets = [0; FIELD_COUNT + 1];
+        let mut at = 0;
+        for field in FIELDS {
+            offsets[field as usize] = at;
+            at = align_up((at + capacity * field.bytes_per_ray(exact)) as u64, 8) as usize;
+        }
+        offsets[FIELD_COUNT] = at;
+        if exact {
+            at += capacity * std::mem::size_of::<ExactBest>();
+        }
+        (offsets, at)
+    }
+
+    /// Byte offset of a field's array within the hits buffer.
+    pub fn field_offset(&self, field: Field) -> usize {
+        Slot::layout(self.capacity, self.exact).0[field as usize]
+    }
+
+    pub fn scratch_offset(&self) -> usize {
+        Slot::layout(self.capacity, self.exact).0[FIELD_COUNT]
+    }
+
+    pub fn rays_address(&self) -> u64 {
+        self.device.as_ref().map_or(self.rays_host.address(), |(rays, _)| rays.address())
+    }
+
+    pub fn hits_address(&self) -> u64 {
+        self.device.as_ref().map_or(self.hits_host.address(), |(_, hits)| hits.address())
+    }
+}
+
+/// Idle slots kept between queries (allocating staging is slow on discrete GPUs). The lock is
+/// held only to take or return slots, never while anything waits.
+pub struct SlotPool {
+    ctx: Arc<Context>,
+    idle: Mutex<Vec<Slot>>,
+}
+
+/// Two slots serve one query; keep at most two queries' worth around.
+const IDLE_SLOTS: usize = 4;
+
+impl SlotPool {
+    pub fn new(ctx: &Arc<Context>) -> SlotPool {
+        SlotPool { ctx: ctx.clone(), idle: Mutex::new(Vec::new()) }
+    }
+
+    /// Two slots of at least `capacity` rays for one query: idle ones where they fit, new ones
+    /// (allocated outside the lock) otherwise.
+    pub fn take(&self, capacity: usize, exact: bool) -> Result<[Slot; 2]> {
+        let mut found: Vec<Slot> = {
+            let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+            idle.retain(|s| s.capacity >= capacity || s.exact != exact);
+            let mut found = Vec::new();
+            while found.len() < 2 {
+                match idle.iter().position(|s| s.exact == exact) {
+                    Some(k) => found.push(idle.swap_remove(k)),
+                    None => break,
+                }
+            }
+            found
+        };
+        while found.len() < 2 {
+            found.push(Slot::new(&self.ctx, capacity, exact)?);
+        }
+        let second = found.pop().expect("two slots");
+        let first = found.pop().expect("two slots");
+        Ok([first, second])
+    }
+
+    pub fn give_back(&self, slots: [Slot; 2]) {
+        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+        idle.extend(slots);
+        let surplus = idle.len().saturating_sub(IDLE_SLOTS);
+        idle.drain(..surplus);
+    }
+}
