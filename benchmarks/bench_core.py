@@ -21,9 +21,8 @@ import time
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
-from oracle import camera_rays, load_obj, random_rays  # noqa: E402
-
 import vkray  # noqa: E402
+from oracle import camera_rays, load_obj, random_rays  # noqa: E402
 
 _worker = {}
 

@@ -22,9 +22,8 @@ import time
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
-from oracle import MESH_NAMES, load_obj, random_rays  # noqa: E402
-
 import vkray  # noqa: E402
+from oracle import MESH_NAMES, load_obj, random_rays  # noqa: E402
 
 BUILDS = ("fast_trace", "fast_build", "low_memory")
 

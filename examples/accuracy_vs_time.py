@@ -31,9 +31,8 @@ import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-from oracle import heightfield, load_obj, random_rays, rays_through, shared_targets  # noqa: E402
-
 import vkray  # noqa: E402
+from oracle import heightfield, load_obj, random_rays, rays_through, shared_targets  # noqa: E402
 
 OFFSETS = (0.0, 1e3, 1e5, 1e7)
 COLORS = 18

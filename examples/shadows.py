@@ -22,9 +22,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
-from oracle import load_obj  # noqa: E402
-
 import vkray  # noqa: E402
+from oracle import load_obj  # noqa: E402
 
 
 def main() -> None:

@@ -10,7 +10,9 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
 # ../shared/meshes beside the checkout; VKRAY_MESHES points elsewhere (machines without it).
-MESH_DIR = pathlib.Path(os.environ.get("VKRAY_MESHES") or pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes")
+MESH_DIR = pathlib.Path(
+    os.environ.get("VKRAY_MESHES") or pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes"
+)
 MESH_NAMES = ("stanford-bunny", "fandisk", "spot", "cow", "teapot")
 
 EMBREE_MISS_T = 1e37

@@ -64,7 +64,9 @@ def test_missing_driver_is_a_clear_no_device_error(tmp_path):
     import subprocess
     import sys
 
-    script = "import vkray\ntry:\n    vkray.devices()\nexcept vkray.NoDeviceError as e:\n    print('NoDeviceError', e)\n"
+    script = (
+        "import vkray\ntry:\n    vkray.devices()\nexcept vkray.NoDeviceError as e:\n    print('NoDeviceError', e)\n"
+    )
     env = dict(__import__("os").environ, VK_DRIVER_FILES=str(tmp_path / "none.json"))
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env).stdout
     assert out.startswith("NoDeviceError") and "VK_DRIVER_FILES" in out

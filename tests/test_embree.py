@@ -5,7 +5,6 @@ import pytest
 
 import vkray
 from oracle import (
-    EMBREE_MISS_T,
     MESH_NAMES,
     barycentric_points,
     bounds,

@@ -68,7 +68,8 @@ def test_per_ray_masks_select_instances(device):
             np.testing.assert_array_equal(masked.prim_id[masks == bit], hits.prim_id[masks == bit])
         np.testing.assert_array_equal(scene.occluded(origins, directions, mask=masks, precision=tier), masked.hit)
         # One mask for every ray.
-        np.testing.assert_array_equal(scene.intersect(origins, directions, mask=2, precision=tier).prim_id, alone[1].prim_id)
+        one_mask = scene.intersect(origins, directions, mask=2, precision=tier)
+        np.testing.assert_array_equal(one_mask.prim_id, alone[1].prim_id)
     with pytest.raises(ValueError, match="mask values"):
         scene.intersect(origins, directions, mask=256)
     with pytest.raises(ValueError, match="does not broadcast"):

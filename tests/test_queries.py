@@ -42,7 +42,9 @@ def test_tmin_tmax_bound_the_interval(triangle_scene):
 
 
 def test_rays_from_behind_and_missing(triangle_scene):
-    hits = triangle_scene.intersect([[0.2, 0.2, 2.0], [0.9, 0.9, 0.0], [0.2, 0.2, 0.0]], [[0, 0, -1], [0, 0, 1], [0, 0, -1]])
+    hits = triangle_scene.intersect(
+        [[0.2, 0.2, 2.0], [0.9, 0.9, 0.0], [0.2, 0.2, 0.0]], [[0, 0, -1], [0, 0, 1], [0, 0, -1]]
+    )
     assert hits.hit.tolist() == [True, False, False]
     # Back faces are hit too (no culling); the normal keeps the triangle's winding.
     np.testing.assert_allclose(hits.normal[0], [0, 0, 1], atol=1e-6)
@@ -216,7 +218,8 @@ def test_discrete_gpu_staging_path_gives_the_same_hits(device, tmp_path):
         "np.savez(sys.argv[2], t=h.t, prim=h.prim_id, normal=h.normal)\n"
     )
     env = dict(__import__("os").environ, VKRAY_STAGING="1")
-    subprocess.run([sys.executable, "-c", script, str(tmp_path / "rays.npz"), str(tmp_path / "out.npz")], check=True, env=env)
+    command = [sys.executable, "-c", script, str(tmp_path / "rays.npz"), str(tmp_path / "out.npz")]
+    subprocess.run(command, check=True, env=env)
     staged = np.load(tmp_path / "out.npz")
     np.testing.assert_array_equal(staged["t"], hits.t)
     np.testing.assert_array_equal(staged["prim"], hits.prim_id)

@@ -11,21 +11,38 @@ from ._api import (
     DEFAULT_FIELDS,
     HIT_FIELDS,
     PRECISIONS,
+    Backend,
+    Build,
+    Cull,
     Device,
     DeviceInfo,
     Hits,
     Instance,
     Mesh,
+    Precision,
     Scene,
+    VertexFormat,
     devices,
 )
+from ._core import (
+    ForkedDeviceError,
+    NoDeviceError,
+    UnsupportedError,
+    ValidationError,
+    VkrayError,
+    VulkanError,
+)
 from ._secondary import offset_origins
-from ._core import NoDeviceError, UnsupportedError, ValidationError, VkrayError, VulkanError
 
 __all__ = [
     "DEFAULT_FIELDS",
     "HIT_FIELDS",
     "PRECISIONS",
+    "Backend",
+    "Build",
+    "Cull",
+    "Precision",
+    "VertexFormat",
     "offset_origins",
     "Device",
     "DeviceInfo",
@@ -35,6 +52,7 @@ __all__ = [
     "Scene",
     "devices",
     "VkrayError",
+    "ForkedDeviceError",
     "NoDeviceError",
     "UnsupportedError",
     "VulkanError",

@@ -3,11 +3,31 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterable, List, Literal, Optional, Tuple, Union, cast, get_args
 
 import numpy as np
 
 from . import _arrays, _core
+
+# The option strings, as types (the core checks their values and names the choices when wrong).
+# Spelled as unions of one-value Literals, which type checkers read as Literal["a", "b"]: that is
+# also a typing.Union at run time, as `python -m mypy.stubtest vkray` wants a union alias to be.
+#: A precision tier (see `Scene.intersect` and docs/accuracy.md), fastest first.
+Precision = Union[Literal["fast"], Literal["refined"], Literal["exact"], Literal["reference"]]
+#: Which triangles' side a query ignores; ``None`` culls nothing.
+Cull = Optional[Literal["back", "front"]]
+#: What an acceleration structure's build favours.
+Build = Union[Literal["fast_trace"], Literal["fast_build"], Literal["low_memory"]]
+#: How a device traces: compute shaders with ray queries, or a ray-tracing pipeline.
+Backend = Union[Literal["ray_query"], Literal["pipeline"]]
+#: How a mesh's vertices are stored on the device.
+VertexFormat = Union[Literal["float32"], Literal["float16"], Literal["snorm16"]]
+
+
+def _choices(option: object) -> Tuple[str, ...]:
+    """The strings of one of the option types above."""
+    return tuple(value for arg in get_args(option) for value in get_args(arg) if isinstance(value, str))
+
 
 #: Every hit field a query can return.
 HIT_FIELDS: Tuple[str, ...] = (
@@ -23,9 +43,7 @@ HIT_FIELDS: Tuple[str, ...] = (
 #: Fields `Scene.intersect` returns unless asked otherwise.
 DEFAULT_FIELDS: Tuple[str, ...] = ("t", "prim_id", "instance_id", "custom_index", "uv", "normal")
 #: Precision tiers, from the fastest to the CPU oracle (see `Scene.intersect` and docs/accuracy.md).
-PRECISIONS: Tuple[str, ...] = ("fast", "refined", "exact", "reference")
-
-_BUILDS = ("fast_trace", "fast_build", "low_memory")
+PRECISIONS = cast("Tuple[Precision, ...]", _choices(Precision))
 
 
 @dataclass(frozen=True)
@@ -71,16 +89,18 @@ class Device:
     def __init__(
         self,
         device: Union[int, str, None] = None,
-        backend: Optional[str] = None,
+        backend: Optional[Backend] = None,
         *,
         validation: bool = False,
     ) -> None:
-        if device is not None and not isinstance(device, (int, str)) or isinstance(device, bool):
+        if (
+            device is not None
+            and not isinstance(device, (int, np.integer, str))
+            or isinstance(device, (bool, np.bool_))
+        ):
             raise TypeError(f"device must be an index, a name or None, got {device!r}")
-        if backend is not None and backend not in ("ray_query", "pipeline"):
-            raise ValueError(f"backend must be 'ray_query' or 'pipeline', got {backend!r}")
         selector = None if device is None else str(device)
-        self._core = _core.Device(selector, backend, bool(validation))
+        self._core = _core.Device(selector, backend, bool(validation))  # the core checks backend
         info = self._core.info
         self.info = DeviceInfo(**info)
 
@@ -89,7 +109,7 @@ class Device:
         return self.info.name
 
     @property
-    def backend(self) -> str:
+    def backend(self) -> Backend:
         """``"ray_query"`` or ``"pipeline"``: how this device traces."""
         return self._core.backend
 
@@ -108,7 +128,7 @@ class Device:
         return dict(self._core.limits)
 
     @property
-    def last_trace_profile(self) -> Dict[str, float]:
+    def last_trace_profile(self) -> Dict[str, Optional[float]]:
         """Where this device's last trace spent its time, in seconds.
 
         Host clock: ``pack`` (checking rays and converting them into staging), ``submit``,
@@ -125,18 +145,18 @@ class Device:
 
     @chunk_rays.setter
     def chunk_rays(self, rays: int) -> None:
-        self._core.chunk_rays = int(rays)
+        self._core.chunk_rays = _arrays.integer("chunk_rays", rays, 1, _arrays.U64_MAX)
 
     def mesh(
         self,
         vertices: Any,
         faces: Any,
         *,
-        build: str = "fast_trace",
+        build: Build = "fast_trace",
         allow_update: bool = False,
         compact: bool = False,
-        vertex_format: str = "float32",
-    ) -> "Mesh":
+        vertex_format: VertexFormat = "float32",
+    ) -> Mesh:
         """Uploads a triangle mesh and builds its bottom-level acceleration structure.
 
         vertices: (V, 3) float32/float64 (other real dtypes become float64); any memory layout.
@@ -150,13 +170,12 @@ class Device:
         traces the quantized surface; docs/benchmarks.md measures the memory saved and the
         accuracy lost. ``Device.limits["vertex_formats"]`` lists what the device accepts.
         """
-        _check_build(build)
         v = _arrays.points("vertices", vertices)
         f = _arrays.faces(faces)
         core = self._core.mesh(v, f, build, bool(allow_update), bool(compact), vertex_format)
         return Mesh(self, core, v, f)
 
-    def spheres(self, centers: Any, radii: Any, *, build: str = "fast_trace", compact: bool = False) -> "Mesh":
+    def spheres(self, centers: Any, radii: Any, *, build: Build = "fast_trace", compact: bool = False) -> Mesh:
         """A set of spheres as one BLAS of boxes, whose spheres a shader intersects (a numerically
         careful quadratic: Haines et al., Ray Tracing Gems ch. 7), in both backends.
 
@@ -166,27 +185,23 @@ class Device:
         Scenes holding spheres trace at ``precision="fast"`` only (``position`` of a sphere hit is
         ``origin + t * direction`` in float64), and the queries' ``cull`` does not apply to spheres.
         """
-        _check_build(build)
         c = _arrays.points("centers", centers)
         r = _arrays.real_coordinates("radii", radii)
-        if r.ndim == 0:
-            r = float(r)
-        elif r.shape != (len(c),):
+        if r.ndim != 0 and r.shape != (len(c),):
             raise ValueError(f"radii must be one value or {len(c)} values, got shape {r.shape}")
-        else:
-            r = np.ascontiguousarray(r, dtype=np.float64)
-        core = self._core.spheres(c, r, build, bool(compact))
+        radius = float(r) if r.ndim == 0 else np.ascontiguousarray(r, dtype=np.float64)
+        core = self._core.spheres(c, radius, build, bool(compact))
         return Mesh(self, core, c, None)
 
     def mesh_from_parts(
         self,
         parts: Iterable[Tuple[Any, ...]],
         *,
-        build: str = "fast_trace",
+        build: Build = "fast_trace",
         allow_update: bool = False,
         compact: bool = False,
-        vertex_format: str = "float32",
-    ) -> "Mesh":
+        vertex_format: VertexFormat = "float32",
+    ) -> Mesh:
         """One mesh of several parts, each a geometry of one BLAS: ``parts`` are ``(vertices,
         faces)`` or ``(vertices, faces, transform)`` (a 3×4 or 4×4 affine matrix as `Instance`
         takes it, applied to that part's vertices in float64 before anything becomes float32).
@@ -195,14 +210,14 @@ class Device:
         that part. The mesh's ``vertices`` and ``faces`` are all parts' (transformed) in order.
         Refitting (`Mesh.update`) is for single-part meshes.
         """
-        _check_build(build)
         arrays = []
         for k, part in enumerate(parts):
             if not isinstance(part, (tuple, list)) or len(part) not in (2, 3):
                 raise TypeError(f"part {k} must be (vertices, faces) or (vertices, faces, transform)")
             v = _arrays.points("vertices", part[0])
             if len(part) == 3 and part[2] is not None:
-                m = _arrays.transform(part[2])
+                # Rejected as `Instance` transforms are: the Python layer applies this one itself.
+                m = _arrays.affine(_arrays.transform(part[2]), f"part {k}")
                 v = np.ascontiguousarray(v.astype(np.float64) @ m[:3, :3].T + m[:3, 3])
             arrays.append((v, _arrays.faces(part[1])))
         if not arrays:
@@ -217,12 +232,12 @@ class Device:
         self,
         items: Iterable[Tuple[Any, Any]],
         *,
-        build: str = "fast_trace",
+        build: Build = "fast_trace",
         allow_update: bool = False,
         compact: bool = False,
         budget_bytes: Optional[int] = None,
-        vertex_format: str = "float32",
-    ) -> List["Mesh"]:
+        vertex_format: VertexFormat = "float32",
+    ) -> List[Mesh]:
         """Builds many meshes at once: ``items`` are (vertices, faces) pairs as `mesh` takes them.
 
         The builds go to the device in as few submissions as ``budget_bytes`` of build scratch
@@ -232,9 +247,7 @@ class Device:
         which submission built a mesh, ``build_seconds`` that batch's time. A mesh whose own build
         needs more scratch than the budget raises ValueError naming it.
         """
-        _check_build(build)
-        if budget_bytes is not None and (not isinstance(budget_bytes, (int, np.integer)) or budget_bytes <= 0):
-            raise ValueError(f"budget_bytes must be a positive integer, got {budget_bytes!r}")
+        budget = None if budget_bytes is None else _arrays.integer("budget_bytes", budget_bytes, 1, _arrays.U64_MAX)
         arrays = []
         for k, item in enumerate(items):
             try:
@@ -242,24 +255,22 @@ class Device:
             except (TypeError, ValueError):
                 raise TypeError(f"meshes item {k} must be a (vertices, faces) pair") from None
             arrays.append((_arrays.points("vertices", vertices), _arrays.faces(faces)))
-        cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact),
-                                  None if budget_bytes is None else int(budget_bytes), vertex_format)
+        cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact), budget, vertex_format)
         return [Mesh(self, core, v, f) for core, (v, f) in zip(cores, arrays)]
 
     def scene(
         self,
-        items: Union["Mesh", "Instance", Iterable[Union["Mesh", "Instance"]]],
+        items: Union[Mesh, Instance, Iterable[Union[Mesh, Instance]]],
         *,
-        build: str = "fast_build",
+        build: Build = "fast_build",
         allow_update: bool = False,
         compact: bool = False,
-    ) -> "Scene":
+    ) -> Scene:
         """Builds a top-level acceleration structure over meshes and instances.
 
         A bare `Mesh` is an instance with the identity transform. Instance ids (``Hits.instance_id``)
         follow the order of `items`.
         """
-        _check_build(build)
         if isinstance(items, (Mesh, Instance)):
             items = [items]
         instances = []
@@ -283,21 +294,17 @@ class Device:
         return f"<vkray.Device {self.name!r} backend={self.backend!r} type={self.info.device_type!r}>"
 
 
-def _check_build(build: str) -> None:
-    if build not in _BUILDS:
-        raise ValueError(f"build must be one of {_BUILDS}, got {build!r}")
-
-
 class Mesh:
     """Triangles on a device with their bottom-level acceleration structure (BLAS).
 
     Made by `Device.mesh`. Keeps its device buffers alive as long as any scene uses it.
     """
 
-    def __init__(self, device: Device, core: Any, vertices: np.ndarray, faces: np.ndarray) -> None:
+    def __init__(self, device: Device, core: _core.Mesh, vertices: np.ndarray, faces: Optional[np.ndarray]) -> None:
         self.device = device
         self._core = core
         self.vertices = vertices
+        #: The triangles' corner indices; ``None`` for spheres.
         self.faces = faces
 
     @property
@@ -373,23 +380,16 @@ class Instance:
     ) -> None:
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh must be a vkray.Mesh, got {type(mesh).__name__}")
-        if not isinstance(custom_index, (int, np.integer)) or isinstance(custom_index, bool):
-            raise TypeError("custom_index must be an integer")
-        if not 0 <= int(custom_index) <= _MAX_CUSTOM_INDEX:
-            raise ValueError(f"custom_index must be in [0, {_MAX_CUSTOM_INDEX}] (24 bits), got {custom_index}")
-        if not isinstance(mask, (int, np.integer)) or isinstance(mask, bool):
-            raise TypeError("mask must be an integer")
-        if not 0 <= int(mask) <= 0xFF:
-            raise ValueError(f"mask must be in [0, 255] (8 bits), got {mask}")
         self.mesh = mesh
         self.transform = None if transform is None else _arrays.transform(transform)
-        self.custom_index = int(custom_index)
-        self.mask = int(mask)
-        if opaque not in (None, True, False):
+        self.custom_index = _arrays.integer("custom_index", custom_index, 0, _MAX_CUSTOM_INDEX, " (24 bits)")
+        self.mask = _arrays.integer("mask", mask, 0, 0xFF, " (8 bits)")
+        if opaque is not None and not isinstance(opaque, (bool, np.bool_)):
             raise TypeError(f"opaque must be True, False or None, got {opaque!r}")
         self.cull_disable = bool(cull_disable)
         self.flip_facing = bool(flip_facing)
-        self.opaque = opaque
+        #: True (forced opaque), False (forced non-opaque) or None; numpy bools become bools.
+        self.opaque: Optional[bool] = None if opaque is None else bool(opaque)
 
     def _flags(self) -> int:
         return (
@@ -428,9 +428,9 @@ class Hits:
     geometry_id: Optional[np.ndarray]
     position: Optional[np.ndarray]
 
-    def __init__(self, shape: Tuple[int, ...], fields: Dict[str, np.ndarray], precision: str = "fast") -> None:
+    def __init__(self, shape: Tuple[int, ...], fields: Dict[str, np.ndarray], precision: Precision = "fast") -> None:
         self.shape = shape
-        self.precision = precision
+        self.precision: Precision = precision
         for name in HIT_FIELDS:
             array = fields.get(name)
             if array is not None:
@@ -441,8 +441,12 @@ class Hits:
     def hit(self) -> np.ndarray:
         """bool ``S``: whether each ray hit anything."""
         if self.prim_id is not None:
-            return self.prim_id >= 0
-        return np.isfinite(self.t)
+            hit: np.ndarray = self.prim_id >= 0
+        elif self.t is not None:
+            hit = np.isfinite(self.t)
+        else:  # a query always returns prim_id or t
+            raise AttributeError("these hits hold neither prim_id nor t")
+        return hit
 
     def __len__(self) -> int:
         if not self.shape:
@@ -451,7 +455,8 @@ class Hits:
 
     def __repr__(self) -> str:
         fields = [name for name in HIT_FIELDS if getattr(self, name) is not None]
-        return f"<vkray.Hits shape={self.shape} hits={int(self.hit.sum())} precision={self.precision!r} fields={fields}>"
+        hits = int(self.hit.sum())
+        return f"<vkray.Hits shape={self.shape} hits={hits} precision={self.precision!r} fields={fields}>"
 
 
 class Scene:
@@ -460,7 +465,7 @@ class Scene:
     Made by `Device.scene`.
     """
 
-    def __init__(self, device: Device, core: Any, instances: List[Instance]) -> None:
+    def __init__(self, device: Device, core: _core.Scene, instances: List[Instance]) -> None:
         self.device = device
         self._core = core
         self.instances = tuple(instances)
@@ -485,12 +490,7 @@ class Scene:
             if t.ndim != 3 or t.shape[0] != n or t.shape[1:] not in ((3, 4), (4, 4)):
                 raise ValueError(f"transforms must have shape ({n}, 3, 4) or ({n}, 4, 4), got {t.shape}")
             t = np.ascontiguousarray(t)
-        m = None
-        if masks is not None:
-            m = np.asarray(masks)
-            if m.shape != (n,) or m.dtype.kind not in "iu" or (m.size and (m.min() < 0 or m.max() > 0xFF)):
-                raise ValueError(f"masks must be {n} integers in [0, 255]")
-            m = np.ascontiguousarray(m, dtype=np.uint8)
+        m = _arrays.optional_masks(masks, n)
         self._core.update(t, m)
         for k, instance in enumerate(self.instances):
             if t is not None:
@@ -505,9 +505,9 @@ class Scene:
         *,
         tmin: Any = 0.0,
         tmax: Any = np.inf,
-        outputs: Optional[Sequence[str]] = None,
-        precision: str = "fast",
-        cull: Optional[str] = None,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
         mask: Any = 0xFF,
     ) -> Hits:
         """The closest hit of each ray within [tmin, tmax].
@@ -544,8 +544,6 @@ class Scene:
         instance when ``instance.mask & mask != 0``.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
-        _check_precision(precision)
-        _check_cull(cull)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
         arrays = self._core.trace(o, d, lo, hi, "closest", list(fields), precision, cull, _arrays.masks(mask, shape))
         return Hits(shape, arrays, precision)
@@ -557,8 +555,8 @@ class Scene:
         *,
         tmin: Any = 0.0,
         tmax: Any = np.inf,
-        precision: str = "fast",
-        cull: Optional[str] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
         mask: Any = 0xFF,
     ) -> np.ndarray:
         """bool ``S``: whether anything lies along each ray within [tmin, tmax].
@@ -567,8 +565,6 @@ class Scene:
         `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray, in every tier
         (``"refined"`` decides hits as ``"fast"`` does). ``cull`` and ``mask`` as in `intersect`.
         """
-        _check_precision(precision)
-        _check_cull(cull)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
         arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"], precision, cull, _arrays.masks(mask, shape))
         return (arrays["prim_id"] >= 0).reshape(shape)
@@ -577,19 +573,17 @@ class Scene:
         return f"<vkray.Scene {len(self.instances)} instances on {self.device.name!r}>"
 
 
-def _check_cull(cull: Optional[str]) -> None:
-    if cull not in (None, "back", "front"):
-        raise ValueError(f"cull must be 'back', 'front' or None, got {cull!r}")
+# precision, cull, build, backend and vertex_format are checked by the core alone: its
+# ValueError names the argument, the choices and the value given.
 
 
-def _check_precision(precision: str) -> None:
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-
-
-def _check_outputs(outputs: Sequence[str]) -> Tuple[str, ...]:
+def _check_outputs(outputs: Iterable[str]) -> Tuple[str, ...]:
     if isinstance(outputs, str):
         outputs = (outputs,)
+    try:
+        outputs = tuple(outputs)  # once: a generator would be spent by the first look
+    except TypeError:
+        raise TypeError(f"outputs must be hit field names, got {outputs!r}") from None
     unknown = [name for name in outputs if name not in HIT_FIELDS]
     if unknown:
         raise ValueError(f"unknown hit fields {unknown}; choose from {HIT_FIELDS}")

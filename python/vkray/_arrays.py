@@ -2,23 +2,59 @@
 
 Types and shapes are judged here (TypeError / ValueError naming the argument); values (finite
 coordinates, index ranges, ray intervals) are judged by the core, which names the first bad row.
+Every array is handed on in native byte order (the core reads native numbers only).
 """
 
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple, Union
 
 import numpy as np
 
-_FLOATS = (np.float32, np.float64)
-_INDEX_DTYPES = (np.int32, np.int64, np.uint32, np.uint16)
+_FLOATS: Tuple[type, ...] = (np.float32, np.float64)
+_INDEX_DTYPES: Tuple[type, ...] = (np.int32, np.int64, np.uint32, np.uint16)
+
+#: The largest value of the core's 64-bit unsigned counts (byte budgets, ray counts).
+U64_MAX = (1 << 64) - 1
+
+
+def _bound_text(value: int) -> str:
+    return "2**64 - 1" if value == U64_MAX else str(value)
+
+
+def integer(name: str, value: object, low: int, high: int, note: str = "") -> int:
+    """A Python int in ``[low, high]`` from an int or numpy integer (bools refused): TypeError
+    for other types, ValueError naming ``name`` and the range otherwise."""
+    bounds = f"[{_bound_text(low)}, {_bound_text(high)}]{note}"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer in {bounds}, got {value!r}")
+    if not low <= int(value) <= high:
+        raise ValueError(f"{name} must be in {bounds}, got {int(value)}")
+    return int(value)
+
+
+def _native(array: np.ndarray) -> np.ndarray:
+    """The array in native byte order (big-endian input is converted, not refused)."""
+    if not array.dtype.isnative:
+        return array.astype(array.dtype.newbyteorder("="))
+    return array
+
+
+def _big_integers(array: np.ndarray) -> bool:
+    """Whether an object array holds only integers (what numpy makes of ints beyond 64 bits)."""
+    return (
+        array.dtype == object
+        and array.size > 0
+        and all(isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_)) for x in array.flat)
+    )
 
 
 def _asarray(name: str, value: object) -> np.ndarray:
     try:
-        return np.asarray(value)
+        array = np.asarray(value)
     except (TypeError, ValueError) as exc:  # ragged lists and the like
         raise TypeError(f"{name} must be array-like: {exc}") from None
+    return _native(array)
 
 
 def real_coordinates(name: str, value: object) -> np.ndarray:
@@ -28,6 +64,11 @@ def real_coordinates(name: str, value: object) -> np.ndarray:
         return array
     if array.dtype.kind in "iuf":
         return array.astype(np.float64)
+    if _big_integers(array):  # integers beyond 64 bits: still real numbers
+        try:
+            return np.array(array.tolist(), dtype=np.float64)
+        except OverflowError:
+            raise ValueError(f"{name} holds an integer too large for float64") from None
     raise TypeError(f"{name} must hold real numbers (float32 or float64), got dtype {array.dtype}")
 
 
@@ -42,6 +83,12 @@ def points(name: str, value: object) -> np.ndarray:
 def faces(value: object) -> np.ndarray:
     """An (F, 3) C-contiguous index array; int32/int64/uint32/uint16 pass without widening."""
     array = _asarray("faces", value)
+    if _big_integers(array):  # Python ints as objects (numpy's way with ints beyond 64 bits)
+        rows = array.reshape(-1, array.shape[-1] if array.ndim else 1).tolist()
+        bad = next((i for i, row in enumerate(rows) if any(abs(int(x)) >= 1 << 63 for x in row)), None)
+        if bad is not None:
+            raise ValueError(f"faces row {bad if array.ndim == 2 else 0} holds an index too large for any vertex")
+        array = array.astype(np.int64)
     if array.dtype.kind not in "iu":
         raise TypeError(f"faces must hold integers (int32, int64, uint32 or uint16), got dtype {array.dtype}")
     if array.dtype.type not in _INDEX_DTYPES:
@@ -54,17 +101,30 @@ def faces(value: object) -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
-def transform(value: object) -> np.ndarray:
+def transform(value: object, name: str = "transform") -> np.ndarray:
     """A 3×4 or 4×4 float64 matrix (row-major, acting on column vectors: ``M @ [x, y, z, 1]``)."""
-    array = real_coordinates("transform", value)
+    array = real_coordinates(name, value)
     if array.shape not in ((3, 4), (4, 4)):
-        raise ValueError(f"transform must have shape (3, 4) or (4, 4), got {array.shape}")
+        raise ValueError(f"{name} must have shape (3, 4) or (4, 4), got {array.shape}")
     return np.ascontiguousarray(array, dtype=np.float64)
+
+
+def affine(matrix: np.ndarray, name: str) -> np.ndarray:
+    """A transform as `transform` returns it, checked as the core checks instances' (finite, last
+    row of a 4×4 [0, 0, 0, 1]) for transforms the Python layer applies itself."""
+    if not np.isfinite(matrix).all():
+        row, column = np.argwhere(~np.isfinite(matrix))[0]
+        raise ValueError(f"{name}: transform[{row}, {column}] is not finite: {matrix[row, column]}")
+    if matrix.shape == (4, 4) and matrix[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+        raise ValueError(
+            f"{name}: transform's last row must be [0, 0, 0, 1] (an affine transform), got {matrix[3].tolist()}"
+        )
+    return matrix
 
 
 def rays(
     origins: object, directions: object, tmin: object, tmax: object
-) -> Tuple[Tuple[int, ...], np.ndarray, np.ndarray, object, object]:
+) -> Tuple[Tuple[int, ...], np.ndarray, np.ndarray, Union[float, np.ndarray], Union[float, np.ndarray]]:
     """Broadcasts origins and directions (``... + (3,)``) and tmin/tmax (scalars or arrays) to one
     batch shape ``S``, as numpy would; returns ``S``, flat (N, 3) arrays and float-or-(N,) bounds.
     A single origin or direction shared by every ray stays one (1, 3) row: the core reads it for
@@ -90,25 +150,45 @@ def rays(
             return np.ascontiguousarray(array.reshape(1, 3))
         return np.ascontiguousarray(np.broadcast_to(array, shape + (3,)).reshape(n, 3))
 
-    o, d = flat(o), flat(d)
-    bounds = [
-        float(b) if b.ndim == 0 else np.ascontiguousarray(np.broadcast_to(b, shape).reshape(n), dtype=np.float64)
-        for b in (lo, hi)
-    ]
-    return shape, o, d, bounds[0], bounds[1]
+    def bound(array: np.ndarray) -> Union[float, np.ndarray]:
+        if array.ndim == 0:
+            return float(array)
+        return np.ascontiguousarray(np.broadcast_to(array, shape).reshape(n), dtype=np.float64)
+
+    return shape, flat(o), flat(d), bound(lo), bound(hi)
 
 
-def masks(value: object, shape: Tuple[int, ...]) -> object:
+def masks(value: object, shape: Tuple[int, ...], name: str = "mask") -> Union[int, np.ndarray]:
     """An 8-bit ray mask as an int, or uint8 (N,) for per-ray masks broadcast to ``shape``."""
-    array = np.asarray(value)
-    if array.dtype.kind not in "iu":
-        raise TypeError(f"mask must hold integers, got dtype {array.dtype}")
+    if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
+        if not 0 <= int(value) <= 0xFF:  # checked before numpy, which holds ints past 64 bits as objects
+            raise ValueError(f"{name} values must be in [0, 255] (8 bits), got {int(value)}")
+        return int(value)
+    array = _asarray(name, value)
+    if array.dtype.kind not in "iu" and not _big_integers(array):
+        raise TypeError(f"{name} must hold integers in [0, 255] (8 bits), got dtype {array.dtype}")
     if array.size and (array.min() < 0 or array.max() > 0xFF):
-        raise ValueError("mask values must be in [0, 255] (8 bits)")
+        bad = array.min() if array.min() < 0 else array.max()
+        raise ValueError(f"{name} values must be in [0, 255] (8 bits), got {bad}")
     if array.ndim == 0:
         return int(array)
     try:
         array = np.broadcast_to(array, shape)
     except ValueError:
-        raise ValueError(f"mask of shape {array.shape} does not broadcast to the rays' shape {shape}") from None
+        raise ValueError(f"{name} of shape {array.shape} does not broadcast to the rays' shape {shape}") from None
     return np.ascontiguousarray(array.reshape(-1), dtype=np.uint8)
+
+
+def optional_masks(value: object, count: int) -> Optional[np.ndarray]:
+    """`Scene.update`'s masks: None, or uint8 (count,) from ``count`` integers in [0, 255]."""
+    if value is None:
+        return None
+    array = _asarray("masks", value)
+    if array.dtype.kind not in "iu" and not _big_integers(array):
+        raise TypeError(f"masks must hold integers in [0, 255] (8 bits), got dtype {array.dtype}")
+    if array.shape != (count,):
+        raise ValueError(f"masks must have shape ({count},), one per instance, got {array.shape}")
+    if array.size and (array.min() < 0 or array.max() > 0xFF):
+        k = int(np.argmax((array < 0) | (array > 0xFF)))
+        raise ValueError(f"masks[{k}] must be in [0, 255] (8 bits), got {array[k]}")
+    return np.ascontiguousarray(array, dtype=np.uint8)

@@ -1,69 +1,124 @@
-"""Private extension module (Rust). Use the classes in `vkray` instead."""
+"""Private extension module (Rust, src/python/mod.rs). Use the classes in `vkray` instead.
 
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+Arrays arrive C-contiguous, in native byte order and of the dtypes below (vkray._arrays sees to
+that); option strings are checked here, with a ValueError naming the argument and the choices.
+"""
+
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
 
 import numpy as np
+from numpy.typing import NDArray
 
-class VkrayError(RuntimeError): ...
-class NoDeviceError(VkrayError): ...
-class UnsupportedError(VkrayError): ...
-class VulkanError(VkrayError): ...
-class ValidationError(VkrayError): ...
+from ._api import Backend, Build, Cull, Precision, VertexFormat
 
-def devices() -> List[Dict[str, Any]]: ...
-def spirv_modules() -> Dict[str, bytes]: ...
+__all__ = [
+    "devices",
+    "spirv_modules",
+    "host_memory_available",
+    "Device",
+    "Mesh",
+    "Scene",
+    "VkrayError",
+    "NoDeviceError",
+    "UnsupportedError",
+    "VulkanError",
+    "ValidationError",
+    "ForkedDeviceError",
+]
 
+# (N, 3) float32 or float64.
+_Vec3s = Union[NDArray[np.float32], NDArray[np.float64]]
+# (F, 3) triangle corner indices.
+_Indices = Union[NDArray[np.int32], NDArray[np.int64], NDArray[np.uint32], NDArray[np.uint16]]
+# tmin, tmax, radii: one value for all, or float64 (N,).
+_PerItem = Union[float, NDArray[np.float64]]
+
+class VkrayError(RuntimeError):
+    """Base class of vkray's own errors."""
+
+class NoDeviceError(VkrayError):
+    """No usable Vulkan device (or loader) was found."""
+
+class UnsupportedError(VkrayError):
+    """The device lacks something the request needs."""
+
+class VulkanError(VkrayError):
+    """A Vulkan call failed."""
+
+class ValidationError(VkrayError):
+    """The Khronos validation layer reported a problem."""
+
+class ForkedDeviceError(VkrayError):
+    """A Device was used in a forked child of the process that opened it."""
+
+def devices() -> List[Dict[str, Any]]:
+    """The usable devices, best first (each as `vkray.DeviceInfo`'s fields)."""
+
+def spirv_modules() -> Dict[str, bytes]:
+    """The SPIR-V modules embedded in this build, by source name."""
+
+def host_memory_available() -> Optional[int]:
+    """Host memory a new allocation can still count on (bytes), or None where unknown."""
+
+@final
 class Device:
-    def __init__(self, selector: Optional[str] = None, backend: Optional[str] = None, validation: bool = False) -> None: ...
+    def __new__(
+        cls, selector: Optional[str] = None, backend: Optional[Backend] = None, validation: bool = False
+    ) -> Device: ...
     @property
     def info(self) -> Dict[str, Any]: ...
     @property
-    def backend(self) -> str: ...
+    def backend(self) -> Backend: ...
     @property
     def validation(self) -> bool: ...
     @property
     def limits(self) -> Dict[str, Any]: ...
     @property
-    def last_trace_profile(self) -> Dict[str, float]: ...
-    chunk_rays: int
+    def last_trace_profile(self) -> Dict[str, Optional[float]]: ...
+    @property
+    def chunk_rays(self) -> int: ...
+    @chunk_rays.setter
+    def chunk_rays(self, rays: int) -> None: ...
+    def mesh(
+        self,
+        vertices: _Vec3s,
+        faces: _Indices,
+        build: Build = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        vertex_format: VertexFormat = "float32",
+    ) -> Mesh: ...
+    def spheres(self, centers: _Vec3s, radii: _PerItem, build: Build = "fast_trace", compact: bool = False) -> Mesh: ...
+    def mesh_parts(
+        self,
+        parts: Sequence[Tuple[_Vec3s, _Indices]],
+        build: Build = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        vertex_format: VertexFormat = "float32",
+    ) -> Mesh: ...
     def meshes(
         self,
-        items: List[Tuple[np.ndarray, np.ndarray]],
-        build: str = "fast_trace",
+        items: Sequence[Tuple[_Vec3s, _Indices]],
+        build: Build = "fast_trace",
         allow_update: bool = False,
         compact: bool = False,
         budget_bytes: Optional[int] = None,
-        vertex_format: str = "float32",
+        vertex_format: VertexFormat = "float32",
     ) -> List[Mesh]: ...
-    def spheres(
-        self, centers: np.ndarray, radii: Union[float, np.ndarray], build: str = ..., compact: bool = ...
-    ) -> Mesh: ...
-    def mesh_parts(
-        self,
-        parts: List[Tuple[np.ndarray, np.ndarray]],
-        build: str = ...,
-        allow_update: bool = ...,
-        compact: bool = ...,
-        vertex_format: str = ...,
-    ) -> Mesh: ...
-    def mesh(
-        self,
-        vertices: np.ndarray,
-        faces: np.ndarray,
-        build: str = ...,
-        allow_update: bool = ...,
-        compact: bool = ...,
-        vertex_format: str = ...,
-    ) -> Mesh: ...
     def scene(
         self,
-        items: Sequence[Tuple[Mesh, Optional[np.ndarray], int, int, int]],
-        build: str = ...,
-        allow_update: bool = ...,
-        compact: bool = ...,
+        # (mesh, float64 (3, 4) or (4, 4) transform or None, custom_index, mask, flags); flags:
+        # 1 cull_disable, 2 flip_facing, 4 force opaque, 8 force non-opaque.
+        items: Sequence[Tuple[Mesh, Optional[NDArray[np.float64]], int, int, int]],
+        build: Build = "fast_build",
+        allow_update: bool = False,
+        compact: bool = False,
     ) -> Scene: ...
 
+@final
 class Mesh:
+    # Made by Device.mesh and its siblings only: no constructor.
     @property
     def vertex_count(self) -> int: ...
     @property
@@ -74,23 +129,27 @@ class Mesh:
     def kind(self) -> str: ...
     @property
     def stats(self) -> Dict[str, Any]: ...
-    def update(self, vertices: np.ndarray) -> None: ...
+    def update(self, vertices: _Vec3s) -> None: ...
 
+@final
 class Scene:
+    # Made by Device.scene only: no constructor.
+    def update(
+        self, transforms: Optional[NDArray[np.float64]] = None, masks: Optional[NDArray[np.uint8]] = None
+    ) -> None: ...
     @property
     def instance_count(self) -> int: ...
-    def update(self, transforms: Optional[np.ndarray] = None, masks: Optional[np.ndarray] = None) -> None: ...
     @property
     def stats(self) -> Dict[str, Any]: ...
     def trace(
         self,
-        origins: np.ndarray,
-        directions: np.ndarray,
-        tmin: Union[float, np.ndarray],
-        tmax: Union[float, np.ndarray],
+        origins: _Vec3s,
+        directions: _Vec3s,
+        tmin: _PerItem,
+        tmax: _PerItem,
         query: str,
         fields: List[str],
-        precision: str = "fast",
-        cull: Optional[str] = None,
-        mask: Union[int, np.ndarray, None] = None,
-    ) -> Dict[str, np.ndarray]: ...
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Union[int, NDArray[np.uint8], None] = None,
+    ) -> Dict[str, NDArray[Any]]: ...

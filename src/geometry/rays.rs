@@ -192,8 +192,8 @@ impl Rays<'_> {
             let d = self.direction(i);
             let (origin, tmin, tmax, advance) = match frame.advance(&r) {
                 Approach::Near => (r.origin, r.tmin, r.tmax, None),
-                Approach::Advanced(t0) => (r.origin + t0 * r.direction, (r.tmin - t0).max(0.0), r.tmax - t0, Some(t0)),
-                Approach::Never(t0) => (r.origin + t0 * r.direction, 0.0, 0.0, None),
+                Approach::Advanced { origin, t } => (origin, (r.tmin - t).max(0.0), r.tmax - t, Some(t)),
+                Approach::Never { origin } => (origin, 0.0, 0.0, None),
             };
             let o = origin.as_vec3().to_array();
             let tmin = round_down_f32(tmin).next_down().max(0.0);
@@ -271,12 +271,16 @@ pub struct Frame {
 enum Approach {
     /// Close enough to trace as given.
     Near,
-    /// Advanced by this much; nothing lies before it.
-    Advanced(f64),
+    /// Advanced by `t` to `origin`; nothing lies before it.
+    Advanced { origin: DVec3, t: f64 },
     /// Far, and the scene is out of reach within the interval: packed as an empty interval at
-    /// this distance, a point outside the scene.
-    Never(f64),
+    /// `origin`, a point outside the scene.
+    Never { origin: DVec3 },
 }
+
+/// Steps of the advance: each one lands within about 1e-16 of the distance it started from, so
+/// even an origin at the end of f64's range converges in a handful.
+const ADVANCE_STEPS: usize = 24;
 
 impl Frame {
     /// A frame whose rays are never advanced.
@@ -285,25 +289,34 @@ impl Frame {
     }
 
     fn advance(&self, ray: &Ray64) -> Approach {
-        let to_origin = ray.origin - self.bounds_center;
         let far = FAR_RADII * self.radius.max(f64::MIN_POSITIVE);
-        if !(to_origin.length_squared() > far * far) {
+        if !((ray.origin - self.bounds_center).length_squared() > far * far) {
             return Approach::Near;
         }
-        // Every point within `radius` of the centre lies at t >= tca - radius / |d|; stop twice
-        // that short, so that the new origin itself is outside the sphere.
-        let d2 = ray.direction.length_squared();
-        let tca = -to_origin.dot(ray.direction) / d2;
-        let t0 = tca - 2.0 * self.radius / d2.sqrt();
-        if t0 <= 0.0 {
-            // The ray moves away or passes its closest point within 2 radii of a start that is
-            // 16 radii out: it cannot come within one radius of the centre.
-            return Approach::Never(0.0);
+        // Every point within `radius` of the centre lies at t >= tca - radius / |d|; aim twice
+        // that short, so that the new origin is outside the sphere. One step from far away lands
+        // only within f64 rounding of its own length, so step again from there until the step
+        // is small: the along-ray error then shrinks by 1e-16 a step.
+        let (d, d2) = (ray.direction, ray.direction.length_squared());
+        let back_off = 2.0 * self.radius / d2.sqrt();
+        let (mut origin, mut advanced) = (ray.origin, 0.0);
+        for step in 0..ADVANCE_STEPS {
+            let t = -(origin - self.bounds_center).dot(d) / d2 - back_off;
+            if step == 0 && t <= 0.0 {
+                // Moving away, or passing its closest point within 2 radii of a start that is 16
+                // radii out: it never comes within one radius of the centre.
+                return Approach::Never { origin };
+            }
+            origin += t * d;
+            advanced += t;
+            if t.abs() <= 1e-3 * back_off {
+                break;
+            }
         }
-        if ray.tmax < t0 {
-            return Approach::Never(t0);
+        if ray.tmax < advanced {
+            return Approach::Never { origin };
         }
-        Approach::Advanced(t0)
+        Approach::Advanced { origin, t: advanced }
     }
 }
 
@@ -424,5 +437,18 @@ mod tests {
         assert_eq!(out[RAY_FLOATS], 30.0);
         // Ray 2 moves away: an empty interval.
         assert_eq!((out[2 * RAY_FLOATS + 3], out[2 * RAY_FLOATS + 7]), (0.0, 0.0));
+    }
+
+    #[test]
+    fn rays_from_the_end_of_float_range_land_just_outside_the_scene() {
+        let frame = Frame { shift: DVec3::ZERO, bounds_center: DVec3::ZERO, radius: 1.0 };
+        for far in [1e20, 1e38, 1e300] {
+            let ray =
+                Ray64 { origin: DVec3::new(0.25, 0.5, far), direction: DVec3::NEG_Z, tmin: 0.0, tmax: f64::INFINITY };
+            let Approach::Advanced { origin, t } = frame.advance(&ray) else { panic!("{far}: not advanced") };
+            assert_eq!((origin.x, origin.y), (0.25, 0.5), "{far}: the line is kept");
+            assert!((origin.z - 2.0).abs() < 1e-9, "{far}: lands 2 radii out, got {}", origin.z);
+            assert!((t - far).abs() <= 1e-15 * far, "{far}: advanced {t}");
+        }
     }
 }
