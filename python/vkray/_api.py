@@ -170,6 +170,7 @@ class Device:
         traces the quantized surface; docs/benchmarks.md measures the memory saved and the
         accuracy lost. ``Device.limits["vertex_formats"]`` lists what the device accepts.
         """
+        _arrays.check_mesh_size(vertices, faces, int(self._core.limits["max_primitive_count"]))
         v = _arrays.points("vertices", vertices)
         f = _arrays.faces(faces)
         core = self._core.mesh(v, f, build, bool(allow_update), bool(compact), vertex_format)
@@ -214,6 +215,7 @@ class Device:
         for k, part in enumerate(parts):
             if not isinstance(part, (tuple, list)) or len(part) not in (2, 3):
                 raise TypeError(f"part {k} must be (vertices, faces) or (vertices, faces, transform)")
+            _arrays.check_mesh_size(part[0], part[1], int(self._core.limits["max_primitive_count"]))
             v = _arrays.points("vertices", part[0])
             if len(part) == 3 and part[2] is not None:
                 # Rejected as `Instance` transforms are: the Python layer applies this one itself.
@@ -254,6 +256,7 @@ class Device:
                 vertices, faces = item
             except (TypeError, ValueError):
                 raise TypeError(f"meshes item {k} must be a (vertices, faces) pair") from None
+            _arrays.check_mesh_size(vertices, faces, int(self._core.limits["max_primitive_count"]))
             arrays.append((_arrays.points("vertices", vertices), _arrays.faces(faces)))
         cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact), budget, vertex_format)
         return [Mesh(self, core, v, f) for core, (v, f) in zip(cores, arrays)]

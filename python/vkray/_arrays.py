@@ -33,6 +33,27 @@ def integer(name: str, value: object, low: int, high: int, note: str = "") -> in
     return int(value)
 
 
+def check_mesh_size(vertices: object, faces: object, max_triangles: int) -> None:
+    """Refuses a mesh the device cannot hold or the host cannot copy, from the shapes alone:
+    before anything is converted or copied (a ``np.broadcast_to`` view of billions of triangles
+    takes no memory until it is copied)."""
+    from . import _core
+
+    f_shape, v_shape = (getattr(x, "shape", None) or np.shape(np.asarray(x, dtype=object)) for x in (faces, vertices))
+    triangles = int(f_shape[0]) if len(f_shape) == 2 else 0
+    if triangles > max_triangles:
+        raise ValueError(f"faces has {triangles} triangles, more than the device's maxPrimitiveCount ({max_triangles})")
+    # Contiguous native copies (8 bytes a number at most), the device's copy and the host's f64
+    # copy of the vertices: a bound, not an estimate.
+    needed = 3 * 8 * (int(np.prod(v_shape[:-1], dtype=np.int64)) if v_shape else 0) * 3 + 3 * 8 * triangles * 2
+    available = _core.host_memory_available()
+    if available is not None and needed > available:
+        raise MemoryError(
+            f"a mesh of {triangles} triangles needs about {needed / 1e9:.1f} GB of host memory to copy and "
+            f"upload, more than the {available / 1e9:.1f} GB available"
+        )
+
+
 def _native(array: np.ndarray) -> np.ndarray:
     """The array in native byte order (big-endian input is converted, not refused)."""
     if not array.dtype.isnative:
