@@ -1,4 +1,6 @@
-//! Compiles the GLSL in shaders/ to SPIR-V 1.4 with glslc; src/shaders.rs embeds the results.
+//! Compiles the GLSL in shaders/ to SPIR-V 1.4 with glslc; src/gpu/shaders.rs embeds the results.
+//! Modules keep their names (OpName, OpMemberName: `gpu::records`' tests find the records and
+//! their members by name) but no other debug information.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -23,11 +25,41 @@ fn main() {
         let source = PathBuf::from("shaders").join(name);
         let target = out.join(format!("{name}.spv"));
         let status = Command::new(&glslc)
-            .args(["--target-env=vulkan1.2", "--target-spv=spv1.4", "-O", "-Werror", "-o"])
+            .args(["--target-env=vulkan1.2", "--target-spv=spv1.4", "-O", "-g", "-Werror", "-o"])
             .arg(&target)
             .arg(&source)
             .status()
             .unwrap_or_else(|e| panic!("could not run {glslc} (Debian package glslc): {e}"));
         assert!(status.success(), "{glslc} failed on {}", source.display());
+        let spirv = std::fs::read(&target).expect("glslc wrote its output");
+        std::fs::write(&target, names_only(&spirv)).expect("target is writable");
     }
+}
+
+/// The module without the debug instructions `-g` adds besides names: source text, file names,
+/// line numbers, processing notes. Without `-g`, glslc's optimizer strips them all, names too; the
+/// code is the same either way.
+fn names_only(spirv: &[u8]) -> Vec<u8> {
+    const DROPPED: [u32; 7] = [
+        2,   // OpSourceContinued
+        3,   // OpSource
+        4,   // OpSourceExtension
+        7,   // OpString
+        8,   // OpLine
+        317, // OpNoLine
+        330, // OpModuleProcessed
+    ];
+    let words: Vec<u32> = spirv.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().unwrap())).collect();
+    assert!(spirv.len() % 4 == 0 && words.len() >= 5 && words[0] == 0x0723_0203, "glslc wrote little-endian SPIR-V");
+    let mut kept = words[..5].to_vec();
+    let mut at = 5;
+    while at < words.len() {
+        let count = (words[at] >> 16) as usize;
+        assert!(count > 0 && at + count <= words.len(), "malformed SPIR-V instruction at word {at}");
+        if !DROPPED.contains(&(words[at] & 0xFFFF)) {
+            kept.extend_from_slice(&words[at..at + count]);
+        }
+        at += count;
+    }
+    kept.iter().flat_map(|w| w.to_le_bytes()).collect()
 }

@@ -1,6 +1,8 @@
-// Shared by every tracer backend: the ray record, the hit record, the outputs, and the parameters
-// a dispatch receives. Everything is reached through buffer device addresses in push constants,
-// so the ray-query and ray-tracing-pipeline backends bind nothing else and share this file.
+// Shared by every tracer backend: the ray record, the hit record and the outputs; the records the
+// host writes (push constants, geometry sources) are declared in records.glsl. Everything is
+// reached through buffer device addresses in push constants, so the ray-query and
+// ray-tracing-pipeline backends bind nothing else and share this file. Include after enabling
+// GL_EXT_ray_query or GL_EXT_ray_tracing (for the gl_RayFlags*EXT constants).
 #extension GL_EXT_buffer_reference : require
 #extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
 
@@ -26,44 +28,13 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Flo
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Words { uint v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Ints { int v[]; };
 
-// Where the triangles of one geometry live, for the outputs that need them (normal, prim_id).
-// Indexed by instance (TLAS order); `geometries` points at that BLAS's GeometrySource array.
-struct GeometrySource {
-  uint64_t vertices;         // float xyz tightly packed; or 4 halves / 4 snorm16 (VERTEX_*)
-  uint64_t indices;          // uint32 triples, or uint16 triples packed into words
-  uint64_t primitive_order;  // device triangle -> caller's triangle (int32), or 0 if the same
-  uint index_is_u16;
-  uint vertex_format;        // VERTEX_F32, VERTEX_F16 or VERTEX_SNORM16 (input.rs VertexFormat)
-};
-const uint VERTEX_F32 = 0u;
-const uint VERTEX_F16 = 1u;
-const uint VERTEX_SNORM16 = 2u;
-const uint SPHERE_SOURCE = 3u;  // `vertices` holds spheres (vec4: centre, radius), no triangles
+// The records the host writes: Params (the push constants), GeometrySource, the exact tier's.
+#include "records.glsl"
+
+// The GeometrySource records of one BLAS (one per geometry). Indexed by instance (TLAS order),
+// `geometries` points at that BLAS's GeometrySource array.
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer GeometrySources { GeometrySource g[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer InstanceGeometries { uint64_t geometries[]; };
-
-layout(push_constant, std430) uniform Params {
-  uint64_t rays;
-  uint64_t instances;  // InstanceGeometries
-  uint64_t tlas;
-  uint64_t out_t;
-  uint64_t out_prim;
-  uint64_t out_instance;
-  uint64_t out_custom;
-  uint64_t out_uv;
-  uint64_t out_normal;
-  uint64_t out_geometry;
-  uint64_t scratch;    // exact tier, pipeline backend: ExactBest per ray
-  uint64_t masks;      // one uint cull mask per ray, or 0: every ray uses ray_mask
-  uint count;
-  float bounds[6];     // exact tier: the scene's bounds (min xyz, max xyz), rounded outward
-  uint ray_mask;
-} params;
-
-// Ray flags the shaders test themselves.
-const uint RAY_FLAG_CULL_BACK = 0x10u;
-const uint RAY_FLAG_CULL_FRONT = 0x20u;
-const uint RAY_FLAG_CULL_NO_OPAQUE = 0x80u;
 
 struct Ray {
   vec3 origin;
@@ -137,7 +108,7 @@ GeometrySource geometry_source(int instance, int geometry) {
   return GeometrySources(sources).g[geometry];
 }
 
-// The caller's index of a triangle the device may hold in another order (see scene.rs):
+// The caller's index of a triangle the device may hold in another order (see src/scene/mesh.rs):
 // `order` maps device triangles to the caller's, or is 0 where they agree.
 int caller_index(uint64_t order, int prim) {
   return order == 0ul ? prim : Ints(order).v[prim];

@@ -1,21 +1,10 @@
-// The "exact" precision tier: the f64 watertight ray/triangle test of src/precision.rs, evaluated
+// The "exact" precision tier: the f64 watertight ray/triangle test of src/geometry/precision.rs, evaluated
 // with the same operations in the same order, for candidates that f32 traversal of conservative
 // per-triangle boxes yields. `precise` forbids fused multiply-adds: the two triangles sharing an
 // edge must compute exact negations of one edge function, or rays could slip between them.
-// Include after common.glsl.
+// Include after common.glsl (which includes records.glsl).
 
-// Per instance: the f64 map from the scene's frame to the mesh's (rows: xyz linear, w offset),
-// and where the mesh's f64 vertices and boxed triangles live. Triangles are counted among all
-// parts of the mesh; `part_offsets` splits them back into (geometry, triangle within it).
-struct ExactInstance {
-  dvec4 rows[3];
-  uint64_t vertices;         // f64 xyz per vertex, all parts
-  uint64_t indices;          // uint32 corner triples, in box order
-  uint64_t primitive_order;  // box -> caller's triangle among all parts, or 0 if the same
-  uint64_t part_offsets;     // uint32: first triangle of each part, then the total
-  uint part_count;
-  uint flags;                // 1: culling disabled; 2: front is opposite the object-space normal
-};
+// ExactInstance and ExactBest, the records this tier shares with the host, are in records.glsl.
 layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer ExactInstances { ExactInstance x[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer DoubleOut { double v[]; };
@@ -36,16 +25,6 @@ Ray64 load_ray64(uint i) {
   return Ray64(a.xyz, a.w, b.xyz, b.w);
 }
 
-// The best hit so far: t and barycentrics in f64, the device's triangle index (prim < 0: none).
-struct ExactBest {
-  double t;
-  double u;
-  double v;
-  int instance;
-  int prim;
-  int custom;
-  int geometry;
-};
 // volatile: the intersection shader's stores must reach the ray generation shader's loads after
 // traceRayEXT. A driver that inlines the stages into one function (lavapipe) may otherwise
 // forward raygen's initial store straight to its final load, as if the call wrote nothing.
@@ -144,9 +123,10 @@ bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, in
   precise double det = u + v + w;
   if (det == 0.0) return false;
   // Query culling: front is the side the hit's normal points to (see InstanceFlags).
-  bool front = (det > 0.0) != ((x.flags & 2u) != 0u);
-  if ((x.flags & 1u) == 0u && ((RAY_FLAGS & RAY_FLAG_CULL_BACK) != 0u && !front ||
-                               (RAY_FLAGS & RAY_FLAG_CULL_FRONT) != 0u && front)) {
+  bool front = (det > 0.0) != ((x.flags & EXACT_FLIP_FACING) != 0u);
+  if ((x.flags & EXACT_CULL_DISABLE) == 0u &&
+      ((RAY_FLAGS & gl_RayFlagsCullBackFacingTrianglesEXT) != 0u && !front ||
+       (RAY_FLAGS & gl_RayFlagsCullFrontFacingTrianglesEXT) != 0u && front)) {
     return false;
   }
   double sign = det > 0.0 ? 1.0 : -1.0;

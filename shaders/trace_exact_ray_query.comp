@@ -7,8 +7,6 @@
 
 layout(local_size_x_id = 2) in;
 
-const uint RAY_FLAG_TERMINATE_ON_FIRST_HIT = 4u;
-
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
@@ -30,7 +28,7 @@ void main() {
         // Commit in f32 too, so that traversal skips boxes beyond the best hit.
         committed = clamp(float(best.t - entry), r.tmin, committed);
         rayQueryGenerateIntersectionEXT(query, committed);
-        if ((RAY_FLAGS & RAY_FLAG_TERMINATE_ON_FIRST_HIT) != 0u) rayQueryTerminateEXT(query);
+        if ((RAY_FLAGS & gl_RayFlagsTerminateOnFirstHitEXT) != 0u) rayQueryTerminateEXT(query);
       }
     }
   }

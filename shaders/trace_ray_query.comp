@@ -4,8 +4,6 @@
 #extension GL_EXT_ray_flags_primitive_culling : require
 #include "common.glsl"
 
-const uint RAY_FLAG_SKIP_AABBS = 0x200u;
-
 layout(local_size_x_id = 2) in;
 
 void main() {
@@ -19,14 +17,14 @@ void main() {
   // Opaque triangles are committed by traversal itself. Where a scene has non-opaque instances
   // (RAY_FLAGS then lacks CULL_NO_OPAQUE), their candidates come here and are accepted: vkray has
   // no any-hit programs. For all-opaque scenes this branch is compiled out.
-  // Boxes are spheres' (scenes without spheres skip them, RAY_FLAG_SKIP_AABBS): each candidate
+  // Boxes are spheres' (scenes without spheres skip them, gl_RayFlagsSkipAABBEXT): each candidate
   // is tested here and committed at its distance if nearer than the committed hit.
   while (rayQueryProceedEXT(query)) {
     uint candidate = rayQueryGetIntersectionTypeEXT(query, false);
-    if ((RAY_FLAGS & RAY_FLAG_CULL_NO_OPAQUE) == 0u && candidate == gl_RayQueryCandidateIntersectionTriangleEXT) {
+    if ((RAY_FLAGS & gl_RayFlagsCullNoOpaqueEXT) == 0u && candidate == gl_RayQueryCandidateIntersectionTriangleEXT) {
       rayQueryConfirmIntersectionEXT(query);
     }
-    if ((RAY_FLAGS & RAY_FLAG_SKIP_AABBS) == 0u && candidate == gl_RayQueryCandidateIntersectionAABBEXT) {
+    if ((RAY_FLAGS & gl_RayFlagsSkipAABBEXT) == 0u && candidate == gl_RayQueryCandidateIntersectionAABBEXT) {
       bool none = rayQueryGetIntersectionTypeEXT(query, true) == gl_RayQueryCommittedIntersectionNoneEXT;
       float tmax = none ? ray.tmax : rayQueryGetIntersectionTEXT(query, true);
       vec4 sphere = sphere_at(rayQueryGetIntersectionInstanceIdEXT(query, false),

@@ -91,7 +91,7 @@ impl Indices<'_> {
             None => k,
         };
         match (self, order) {
-            (Indices::U32(v), None) => out[..4 * v.len()].copy_from_slice(as_bytes(v)),
+            (Indices::U32(v), None) => out[..4 * v.len()].copy_from_slice(bytemuck::cast_slice(v)),
             (Indices::U16(_), _) => {
                 for (k, dst) in out.chunks_exact_mut(2).take(self.len()).enumerate() {
                     dst.copy_from_slice(&(self.get(source(k)) as u16).to_ne_bytes());
@@ -108,11 +108,6 @@ impl Indices<'_> {
     pub fn corner(&self, triangle: usize, k: usize) -> usize {
         self.get(3 * triangle + k) as usize
     }
-}
-
-pub(crate) fn as_bytes<T: Copy>(values: &[T]) -> &[u8] {
-    // SAFETY: plain numeric data reinterpreted as bytes of the same extent.
-    unsafe { std::slice::from_raw_parts(values.as_ptr() as *const u8, std::mem::size_of_val(values)) }
 }
 
 pub(crate) fn fmt_row(row: [f64; 3]) -> String {
@@ -157,7 +152,7 @@ pub fn check_faces(name: &str, faces: Indices, vertex_count: usize) -> Result<()
 /// Writes vertices as tightly packed float32 xyz.
 pub fn write_vertices_f32(vertices: Vec3s, out: &mut [u8]) {
     match vertices {
-        Vec3s::F32(v) => out[..4 * v.len()].copy_from_slice(as_bytes(v)),
+        Vec3s::F32(v) => out[..4 * v.len()].copy_from_slice(bytemuck::cast_slice(v)),
         Vec3s::F64(v) => {
             for (dst, &src) in out.chunks_exact_mut(4).zip(v.iter()) {
                 dst.copy_from_slice(&(src as f32).to_ne_bytes());

@@ -254,6 +254,14 @@ impl Aabb {
         Aabb { min: self.min - DVec3::splat(pad), max: self.max + DVec3::splat(pad) }
     }
 
+    /// The box in f32, rounded outward (`round_outward`) so that it holds this one whole: min xyz,
+    /// then max xyz (the layout of `VkAabbPositionsKHR`).
+    pub fn outward_f32(&self) -> [f32; 6] {
+        let (lo, hi) =
+            (self.min.to_array().map(|v| round_outward(v, true)), self.max.to_array().map(|v| round_outward(v, false)));
+        [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]]
+    }
+
     /// The box holding this one after an affine map.
     pub fn transformed(&self, map: &Affine) -> Aabb {
         Aabb::of_points((0..8).map(|k| {

@@ -290,7 +290,7 @@ impl Frame {
 
     fn advance(&self, ray: &Ray64) -> Approach {
         let far = FAR_RADII * self.radius.max(f64::MIN_POSITIVE);
-        if !((ray.origin - self.bounds_center).length_squared() > far * far) {
+        if (ray.origin - self.bounds_center).length_squared() <= far * far {
             return Approach::Near;
         }
         // Every point within `radius` of the centre lies at t >= tca - radius / |d|; aim twice

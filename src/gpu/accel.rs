@@ -1,6 +1,7 @@
 //! Acceleration structures: build flags, size queries, scratch memory, building and compaction.
 //! This is the "build data → builder" level; `scene` composes it into meshes and scenes.
 
+use std::ops::Range;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -99,9 +100,12 @@ impl AccelerationStructure {
             name,
         )?;
         let info = vk::AccelerationStructureCreateInfoKHR::default().buffer(storage.raw()).size(size).ty(ty);
+        // SAFETY: `storage` is a live buffer of `size` bytes, bound to memory, with
+        // acceleration-structure storage usage; it lives as long as the structure (a field).
         let raw =
             unsafe { ctx.accel.create_acceleration_structure(&info, None) }.vk("vkCreateAccelerationStructureKHR")?;
         let address_info = vk::AccelerationStructureDeviceAddressInfoKHR::default().acceleration_structure(raw);
+        // SAFETY: `raw` was just created on this device (whose accelerationStructure feature is on).
         let address = unsafe { ctx.accel.get_acceleration_structure_device_address(&address_info) };
         ctx.name_object(raw, name);
         Ok(AccelerationStructure { ctx: ctx.clone(), raw, _storage: storage, address })
@@ -122,9 +126,12 @@ impl AccelerationStructure {
 
 impl Drop for AccelerationStructure {
     fn drop(&mut self) {
-        if self.ctx.forked() {
+        if !self.ctx.can_free() {
             return;
         }
+        // SAFETY: `raw` is destroyed once (before its storage, a later field), and no work in
+        // flight uses it: builds and traces wait for their submissions before returning, while
+        // their caller holds the structure; where a wait gave up, `can_free` leaks it instead.
         unsafe { self.ctx.accel.destroy_acceleration_structure(self.raw, None) };
     }
 }
@@ -182,125 +189,180 @@ pub fn build_many(
     uploads: &Uploads,
     scratch_budget: u64,
 ) -> Result<Vec<(AccelerationStructure, BuildStats)>> {
-    let alignment = (ctx.limits.min_scratch_offset_alignment as u64).max(1);
-    let infos: Vec<vk::AccelerationStructureBuildGeometryInfoKHR> = inputs
-        .iter()
-        .map(|input| {
-            vk::AccelerationStructureBuildGeometryInfoKHR::default()
-                .ty(input.ty)
-                .flags(options.flags())
-                .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
-                .geometries(&input.geometries)
-        })
-        .collect();
-    let sizes: Vec<vk::AccelerationStructureBuildSizesInfoKHR> = infos
-        .iter()
-        .zip(inputs)
-        .map(|(info, input)| {
-            let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
-            unsafe {
-                ctx.accel.get_acceleration_structure_build_sizes(
-                    vk::AccelerationStructureBuildTypeKHR::DEVICE,
-                    info,
-                    &input.primitive_counts,
-                    &mut sizes,
-                )
-            };
-            sizes
-        })
-        .collect();
-    let scratch_of = |k: usize| align_up(sizes[k].build_scratch_size, alignment);
-    if let Some(k) = (0..inputs.len()).find(|&k| scratch_of(k) > scratch_budget) {
+    let plan = BuildPlan::new(ctx, inputs, options);
+    if let Some((k, scratch)) = plan.scratch.iter().enumerate().find(|(_, &scratch)| scratch > scratch_budget) {
         return Err(invalid_value(format!(
-            "structure {k} needs {} bytes of build scratch, more than the budget of {scratch_budget}",
-            scratch_of(k)
+            "structure {k} needs {scratch} bytes of build scratch, more than the budget of {scratch_budget}"
         )));
     }
-    // Consecutive batches, each as long as its scratch fits the budget.
-    let mut batches: Vec<std::ops::Range<usize>> = Vec::new();
-    let mut used = 0u64;
-    for k in 0..inputs.len() {
-        match batches.last_mut() {
-            Some(batch) if used + scratch_of(k) <= scratch_budget => batch.end = k + 1,
-            _ => {
-                batches.push(k..k + 1);
-                used = 0;
-            }
-        }
-        used += scratch_of(k);
-    }
-    let scratch_size = batches.iter().map(|b| b.clone().map(scratch_of).sum::<u64>()).max().unwrap_or(0);
+    let batches = plan.batches(scratch_budget);
+    let scratch_size = batches.iter().map(|b| plan.scratch[b.clone()].iter().sum::<u64>()).max().unwrap_or(0);
     let scratch = Scratch::new(ctx, scratch_size)?;
-
     let mut built = Vec::with_capacity(inputs.len());
     for (number, batch) in batches.into_iter().enumerate() {
+        let uploads = (number == 0).then_some(uploads);
+        built.extend(plan.build_batch(ctx, batch, scratch.address, uploads, number as u32)?);
+    }
+    Ok(built)
+}
+
+/// What `build_many` works out before building: each input's build info (without its
+/// destination and scratch), sizes, and scratch rounded up to the device's scratch alignment.
+struct BuildPlan<'a> {
+    inputs: &'a [BuildInput<'a>],
+    options: BuildOptions,
+    infos: Vec<vk::AccelerationStructureBuildGeometryInfoKHR<'a>>,
+    sizes: Vec<vk::AccelerationStructureBuildSizesInfoKHR<'static>>,
+    scratch: Vec<u64>,
+}
+
+impl<'a> BuildPlan<'a> {
+    fn new(ctx: &Context, inputs: &'a [BuildInput<'a>], options: BuildOptions) -> BuildPlan<'a> {
+        let alignment = (ctx.limits.min_scratch_offset_alignment as u64).max(1);
+        let infos: Vec<_> = inputs
+            .iter()
+            .map(|input| {
+                vk::AccelerationStructureBuildGeometryInfoKHR::default()
+                    .ty(input.ty)
+                    .flags(options.flags())
+                    .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+                    .geometries(&input.geometries)
+            })
+            .collect();
+        let sizes: Vec<_> = infos
+            .iter()
+            .zip(inputs)
+            .map(|(info, input)| {
+                let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
+                // SAFETY: `info` describes `input.geometries` (borrowed, live), with one primitive
+                // count per geometry; a size query reads no device memory.
+                unsafe {
+                    ctx.accel.get_acceleration_structure_build_sizes(
+                        vk::AccelerationStructureBuildTypeKHR::DEVICE,
+                        info,
+                        &input.primitive_counts,
+                        &mut sizes,
+                    )
+                };
+                sizes
+            })
+            .collect();
+        let scratch = sizes.iter().map(|s| align_up(s.build_scratch_size, alignment)).collect();
+        BuildPlan { inputs, options, infos, sizes, scratch }
+    }
+
+    /// Consecutive batches, each as long as its scratch fits the budget.
+    fn batches(&self, budget: u64) -> Vec<Range<usize>> {
+        let mut batches: Vec<Range<usize>> = Vec::new();
+        let mut used = 0u64;
+        for (k, &scratch) in self.scratch.iter().enumerate() {
+            match batches.last_mut() {
+                Some(batch) if used + scratch <= budget => batch.end = k + 1,
+                _ => {
+                    batches.push(k..k + 1);
+                    used = 0;
+                }
+            }
+            used += scratch;
+        }
+        batches
+    }
+
+    /// Builds the structures of `batch` in one submission (after `uploads`, where given), their
+    /// scratch at consecutive offsets from `scratch_address`, then compacts them where asked.
+    fn build_batch(
+        &self,
+        ctx: &Arc<Context>,
+        batch: Range<usize>,
+        scratch_address: u64,
+        uploads: Option<&Uploads>,
+        number: u32,
+    ) -> Result<Vec<(AccelerationStructure, BuildStats)>> {
         let started = Instant::now();
-        let structures = batch
-            .clone()
-            .map(|k| {
-                AccelerationStructure::new(ctx, inputs[k].ty, sizes[k].acceleration_structure_size, inputs[k].name)
+        let (inputs, sizes) = (&self.inputs[batch.clone()], &self.sizes[batch.clone()]);
+        let structures = inputs
+            .iter()
+            .zip(sizes)
+            .map(|(input, size)| {
+                AccelerationStructure::new(ctx, input.ty, size.acceleration_structure_size, input.name)
             })
             .collect::<Result<Vec<_>>>()?;
         let mut offset = 0;
-        let batch_infos: Vec<_> = batch
+        let infos: Vec<_> = batch
             .clone()
             .zip(&structures)
             .map(|(k, structure)| {
-                let info = infos[k]
+                let info = self.infos[k]
                     .dst_acceleration_structure(structure.raw())
-                    .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address + offset });
-                offset += scratch_of(k);
+                    .scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch_address + offset });
+                offset += self.scratch[k];
                 info
             })
             .collect();
-        let ranges: Vec<_> = batch.clone().map(|k| build_ranges(&inputs[k])).collect();
+        let ranges: Vec<_> = inputs.iter().map(build_ranges).collect();
         let range_refs: Vec<&[vk::AccelerationStructureBuildRangeInfoKHR]> = ranges.iter().map(Vec::as_slice).collect();
-        let query = if options.compact { Some(CompactedSizeQuery::new(ctx, structures.len() as u32)?) } else { None };
+        let query =
+            if self.options.compact { Some(CompactedSizeQuery::new(ctx, structures.len() as u32)?) } else { None };
         ctx.run_commands(|cmd| {
-            if number == 0 {
+            if let Some(uploads) = uploads {
                 uploads.record(ctx, cmd);
             }
-            if let Some(query) = &query {
-                unsafe { ctx.device.cmd_reset_query_pool(cmd, query.pool, 0, query.count) };
-            }
-            unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, &batch_infos, &range_refs) };
-            structures_written(ctx, cmd);
-            if let Some(query) = &query {
-                let raw: Vec<_> = structures.iter().map(|s| s.raw()).collect();
-                unsafe {
-                    ctx.accel.cmd_write_acceleration_structures_properties(
-                        cmd,
-                        &raw,
-                        vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR,
-                        query.pool,
-                        0,
-                    )
-                };
-            }
+            record_builds(ctx, cmd, &infos, &range_refs, &structures, query.as_ref());
             Ok(())
         })?;
         let final_sizes: Vec<u64> = match &query {
             Some(query) => query.read()?,
-            None => batch.clone().map(|k| sizes[k].acceleration_structure_size).collect(),
+            None => sizes.iter().map(|s| s.acceleration_structure_size).collect(),
         };
         let structures = match query {
-            Some(_) => compact(ctx, &inputs[batch.clone()], structures, &final_sizes)?,
+            Some(_) => compact(ctx, inputs, structures, &final_sizes)?,
             None => structures,
         };
         let seconds = started.elapsed().as_secs_f64();
-        for ((k, structure), size) in batch.zip(structures).zip(final_sizes) {
-            let stats = BuildStats {
-                built_size: sizes[k].acceleration_structure_size,
-                size,
-                scratch_size: sizes[k].build_scratch_size,
-                update_scratch_size: sizes[k].update_scratch_size,
-                build_seconds: seconds,
-                batch: number as u32,
-            };
-            built.push((structure, stats));
-        }
+        let stats = sizes.iter().zip(final_sizes).map(|(sizes, size)| BuildStats {
+            built_size: sizes.acceleration_structure_size,
+            size,
+            scratch_size: sizes.build_scratch_size,
+            update_scratch_size: sizes.update_scratch_size,
+            build_seconds: seconds,
+            batch: number,
+        });
+        Ok(structures.into_iter().zip(stats).collect())
     }
-    Ok(built)
+}
+
+/// Records the builds of `structures` (`infos` and `ranges` describe them), a barrier after them,
+/// and where `query` is given, the query of their compacted sizes.
+fn record_builds(
+    ctx: &Context,
+    cmd: vk::CommandBuffer,
+    infos: &[vk::AccelerationStructureBuildGeometryInfoKHR],
+    ranges: &[&[vk::AccelerationStructureBuildRangeInfoKHR]],
+    structures: &[AccelerationStructure],
+    query: Option<&CompactedSizeQuery>,
+) {
+    if let Some(query) = query {
+        // SAFETY: `cmd` is recording; the pool is live and holds `count` queries, none in use.
+        unsafe { ctx.device.cmd_reset_query_pool(cmd, query.pool, 0, query.count) };
+    }
+    // SAFETY: `cmd` is recording; every info names a live destination structure, scratch of its
+    // size at a disjoint aligned range, and geometries whose buffers outlive the submission.
+    unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, infos, ranges) };
+    structures_written(ctx, cmd);
+    if let Some(query) = query {
+        let raw: Vec<_> = structures.iter().map(|s| s.raw()).collect();
+        // SAFETY: `cmd` is recording; the structures were built (and made visible) above, and the
+        // pool holds one reset query per structure.
+        unsafe {
+            ctx.accel.cmd_write_acceleration_structures_properties(
+                cmd,
+                &raw,
+                vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR,
+                query.pool,
+                0,
+            )
+        };
+    }
 }
 
 /// Copies freshly built structures into new ones of their compacted sizes (one submission).
@@ -321,6 +383,8 @@ fn compact(
                 .src(from.raw())
                 .dst(to.raw())
                 .mode(vk::CopyAccelerationStructureModeKHR::COMPACT);
+            // SAFETY: `cmd` is recording; `from` was built with ALLOW_COMPACTION by a submission
+            // already waited for, and `to` is live and as large as the compacted size queried.
             unsafe { ctx.accel.cmd_copy_acceleration_structure(cmd, &copy) };
         }
         structures_written(ctx, cmd);
@@ -353,6 +417,10 @@ pub fn update(
     let ranges = build_ranges(input);
     ctx.run_commands(|cmd| {
         uploads.record(ctx, cmd);
+        // SAFETY: `cmd` is recording; `structure` is live and was built with ALLOW_UPDATE from the
+        // same geometry counts (the caller's contract), nothing in flight uses it (its owner holds
+        // it exclusively: `Mesh::update` and `Scene::update`), and the scratch is
+        // `update_scratch_size` bytes at an aligned address; the submission is waited for.
         unsafe { ctx.accel.cmd_build_acceleration_structures(cmd, std::slice::from_ref(&info), &[&ranges]) };
         structures_written(ctx, cmd);
         Ok(())
@@ -393,12 +461,15 @@ impl<'a> CompactedSizeQuery<'a> {
         let info = vk::QueryPoolCreateInfo::default()
             .query_type(vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR)
             .query_count(count);
+        // SAFETY: a valid create info on a live device (with accelerationStructure enabled).
         let pool = unsafe { ctx.device.create_query_pool(&info, None) }.vk("vkCreateQueryPool")?;
         Ok(CompactedSizeQuery { ctx, pool, count })
     }
 
     fn read(&self) -> Result<Vec<u64>> {
         let mut sizes = vec![0u64; self.count as usize];
+        // SAFETY: the pool is live and holds `count` queries, room for as many 64-bit results;
+        // WAIT makes the call wait for queries written by a submission already waited for.
         unsafe {
             self.ctx.device.get_query_pool_results(
                 self.pool,
@@ -414,6 +485,12 @@ impl<'a> CompactedSizeQuery<'a> {
 
 impl Drop for CompactedSizeQuery<'_> {
     fn drop(&mut self) {
+        if !self.ctx.can_free() {
+            return;
+        }
+        // SAFETY: the pool is destroyed once, and the submission using it was waited for (or
+        // never made): `run_commands` waits before returning, and where a wait gave up,
+        // `can_free` leaks the pool instead.
         unsafe { self.ctx.device.destroy_query_pool(self.pool, None) };
     }
 }
@@ -434,20 +511,55 @@ pub struct InstanceBits {
     pub sbt_offset: u32,
 }
 
-/// One `VkAccelerationStructureInstanceKHR` (64 bytes): transform, 24-bit custom index and 8-bit
-/// mask, 24-bit hit-group offset and 8-bit flags, and the BLAS address.
-pub fn instance_record(transform: &[f32; 12], bits: InstanceBits, blas_address: u64) -> [u8; 64] {
+/// One `VkAccelerationStructureInstanceKHR`: transform, 24-bit custom index and 8-bit mask,
+/// 24-bit hit-group offset and 8-bit flags, and the BLAS address.
+pub fn instance_record(
+    transform: &[f32; 12],
+    bits: InstanceBits,
+    blas_address: u64,
+) -> vk::AccelerationStructureInstanceKHR {
     let InstanceBits { custom_index, mask, flags, sbt_offset } = bits;
     debug_assert!(custom_index < (1 << 24) && sbt_offset < (1 << 24));
-    let mut record = [0u8; 64];
-    for (dst, value) in record.chunks_exact_mut(4).zip(transform.iter()) {
-        dst.copy_from_slice(&value.to_ne_bytes());
+    vk::AccelerationStructureInstanceKHR {
+        transform: vk::TransformMatrixKHR { matrix: *transform },
+        instance_custom_index_and_mask: vk::Packed24_8::new(custom_index, mask),
+        instance_shader_binding_table_record_offset_and_flags: vk::Packed24_8::new(sbt_offset, flags),
+        acceleration_structure_reference: vk::AccelerationStructureReferenceKHR { device_handle: blas_address },
     }
-    record[48..52].copy_from_slice(&(custom_index | (mask as u32) << 24).to_ne_bytes());
-    record[52..56].copy_from_slice(&(sbt_offset | (flags as u32) << 24).to_ne_bytes());
-    record[56..64].copy_from_slice(&blas_address.to_ne_bytes());
-    record
 }
+
+// What `instance_bytes` relies on: Vulkan's 64-byte record, without padding.
+const _: () = {
+    use std::mem::{offset_of, size_of};
+    type Instance = vk::AccelerationStructureInstanceKHR;
+    assert!(size_of::<Instance>() == 64);
+    assert!(offset_of!(Instance, instance_custom_index_and_mask) == 48);
+    assert!(offset_of!(Instance, instance_shader_binding_table_record_offset_and_flags) == 52);
+    assert!(offset_of!(Instance, acceleration_structure_reference) == 56);
+    assert!(size_of::<vk::AccelerationStructureReferenceKHR>() == 8);
+};
+
+/// Instance records as the bytes a TLAS build reads.
+pub fn instance_bytes(records: &[vk::AccelerationStructureInstanceKHR]) -> &[u8] {
+    // SAFETY: the record is repr(C) f32s, u32s and a u64-sized union with no padding (asserted
+    // above), and `instance_record` writes the union's whole 8 bytes (`device_handle`), so every
+    // byte of the slice is initialised; u8 has no alignment or validity requirements.
+    unsafe { std::slice::from_raw_parts(records.as_ptr().cast::<u8>(), std::mem::size_of_val(records)) }
+}
+
+/// One opaque geometry of boxes at `address`: tightly packed `VkAabbPositionsKHR`, which hosts
+/// write as `[f32; 6]` (min xyz, max xyz: `Aabb::outward_f32`).
+pub fn aabbs_geometry(address: u64) -> vk::AccelerationStructureGeometryKHR<'static> {
+    let data = vk::AccelerationStructureGeometryAabbsDataKHR::default()
+        .data(vk::DeviceOrHostAddressConstKHR { device_address: address })
+        .stride(std::mem::size_of::<vk::AabbPositionsKHR>() as u64);
+    vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::AABBS)
+        .geometry(vk::AccelerationStructureGeometryDataKHR { aabbs: data })
+        .flags(vk::GeometryFlagsKHR::OPAQUE)
+}
+
+const _: () = assert!(std::mem::size_of::<vk::AabbPositionsKHR>() == std::mem::size_of::<[f32; 6]>());
 
 /// The Vulkan format of a vertex buffer in `format`.
 pub fn vulkan_vertex_format(format: VertexFormat) -> vk::Format {
@@ -466,13 +578,14 @@ mod tests {
     fn instance_record_matches_vulkan_layout() {
         let transform = [1.0, 0.0, 0.0, 5.0, 0.0, 1.0, 0.0, 6.0, 0.0, 0.0, 1.0, 7.0];
         let bits = InstanceBits { custom_index: 0x00AB_CDEF, mask: 0x0F, flags: 0x1, sbt_offset: 2 };
-        let record = instance_record(&transform, bits, 0x1122_3344_5566_7788);
-        assert_eq!(&record[12..16], &5.0f32.to_ne_bytes());
-        assert_eq!(u32::from_ne_bytes(record[48..52].try_into().unwrap()), 0x0FAB_CDEF);
-        assert_eq!(u32::from_ne_bytes(record[52..56].try_into().unwrap()), 0x0100_0002);
-        assert_eq!(u64::from_ne_bytes(record[56..64].try_into().unwrap()), 0x1122_3344_5566_7788);
-        // Vulkan's own struct is the same size.
-        assert_eq!(std::mem::size_of::<vk::AccelerationStructureInstanceKHR>(), 64);
+        let records = [instance_record(&transform, bits, 0x1122_3344_5566_7788)];
+        let bytes = instance_bytes(&records);
+        let word = |at: usize| u32::from_ne_bytes(bytes[at..at + 4].try_into().unwrap());
+        assert_eq!(bytes.len(), 64);
+        assert_eq!(f32::from_bits(word(12)), 5.0);
+        assert_eq!(word(48), 0x0FAB_CDEF);
+        assert_eq!(word(52), 0x0100_0002);
+        assert_eq!(u64::from_ne_bytes(bytes[56..64].try_into().unwrap()), 0x1122_3344_5566_7788);
     }
 
     #[test]

@@ -149,8 +149,11 @@ unsafe extern "system" fn collect_message(
     let relevant = types.contains(vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION)
         || severity.contains(vk::DebugUtilsMessageSeverityFlagsEXT::ERROR);
     if relevant && !data.is_null() && !sink.is_null() {
-        let message = (*data).message_as_c_str().map(|m| m.to_string_lossy().into_owned());
-        let sink = &*(sink as *const MessageSink);
+        // SAFETY: the loader passes callback data valid for this call, and `sink` is the boxed
+        // `MessageSink` of `messenger_info`, which outlives the instance and its messengers (see
+        // `InstanceHandle`).
+        let (data, sink) = unsafe { (&*data, &*(sink as *const MessageSink)) };
+        let message = data.message_as_c_str().map(|m| m.to_string_lossy().into_owned());
         if let (Some(message), Ok(mut messages)) = (message, sink.lock()) {
             messages.push(message);
         }
@@ -179,9 +182,12 @@ struct InstanceHandle {
 
 impl InstanceHandle {
     fn new(validation: bool) -> Result<InstanceHandle> {
+        // SAFETY: loads the system's Vulkan loader, which ash trusts to be a conforming one (its
+        // initialisation runs no code of ours).
         let entry = unsafe { ash::Entry::load() }.map_err(|e| {
             Error::NoDevice(format!("the Vulkan loader could not be loaded ({e}); install it (Debian: libvulkan1)"))
         })?;
+        // SAFETY: `entry` holds a loaded loader.
         let api = unsafe { entry.try_enumerate_instance_version() }
             .vk("vkEnumerateInstanceVersion")?
             .unwrap_or(vk::API_VERSION_1_0);
@@ -201,6 +207,7 @@ impl InstanceHandle {
         let messages: Box<MessageSink> = Box::default();
         let mut early_messenger = messenger_info(&messages);
         if validation {
+            // SAFETY: `entry` holds a loaded loader.
             let available =
                 unsafe { entry.enumerate_instance_layer_properties() }.vk("vkEnumerateInstanceLayerProperties")?;
             if !available.iter().any(|l| l.layer_name_as_c_str() == Ok(VALIDATION_LAYER)) {
@@ -220,6 +227,8 @@ impl InstanceHandle {
         if validation {
             info = info.push_next(&mut early_messenger);
         }
+        // SAFETY: `info` and what it points at (application info, layer and extension names, the
+        // messenger info and its sink `messages`, kept until the instance is destroyed) are live.
         let instance = unsafe { entry.create_instance(&info, None) }.map_err(|result| match result {
             vk::Result::ERROR_INCOMPATIBLE_DRIVER => Error::NoDevice(
                 "the Vulkan loader found no driver (install Mesa's mesa-vulkan-drivers, or point \
@@ -231,10 +240,13 @@ impl InstanceHandle {
         })?;
         let debug = if validation {
             let loader = ext::debug_utils::Instance::new(&entry, &instance);
+            // SAFETY: `instance` is live with VK_EXT_debug_utils enabled; the sink `messages` is
+            // kept in `Debug` until the messenger is destroyed.
             let messenger = unsafe { loader.create_debug_utils_messenger(&messenger_info(&messages), None) };
             match messenger {
                 Ok(messenger) => Some(Debug { loader, messenger, messages }),
                 Err(result) => {
+                    // SAFETY: nothing was created from `instance` yet; `messages` is still live.
                     unsafe { instance.destroy_instance(None) };
                     return Err(Error::Vulkan { call: "vkCreateDebugUtilsMessengerEXT", result });
                 }
@@ -248,6 +260,9 @@ impl InstanceHandle {
 
 impl Drop for InstanceHandle {
     fn drop(&mut self) {
+        // SAFETY: no device of this instance is left (a `Context` destroys its device before its
+        // `InstanceHandle`, or never drops the handle); the messenger goes first, while its sink
+        // (a field, dropped after this) is still live.
         unsafe {
             if let Some(debug) = &self.debug {
                 debug.loader.destroy_debug_utils_messenger(debug.messenger, None);
@@ -294,6 +309,7 @@ struct Candidate {
 /// Usable devices: Vulkan 1.2, acceleration structures, buffer device addresses, 64-bit integers in
 /// shaders, a compute queue, and ray queries or a ray-tracing pipeline. Ranked, GPUs first.
 fn candidates(instance: &ash::Instance) -> Result<Vec<Candidate>> {
+    // SAFETY: `instance` is live.
     let physicals = unsafe { instance.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
     let mut found = Vec::new();
     for physical in physicals {
@@ -308,45 +324,114 @@ fn candidates(instance: &ash::Instance) -> Result<Vec<Candidate>> {
     Ok(found)
 }
 
+/// The device as a `Candidate`, or None where it lacks what vkray needs.
 fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Option<Candidate>> {
+    // SAFETY: `physical` was enumerated from `instance`, which is live.
     let base = unsafe { instance.get_physical_device_properties(physical) };
     if base.api_version < vk::API_VERSION_1_2 {
         return Ok(None);
     }
+    // SAFETY: `physical` was enumerated from `instance`, which is live.
     let extensions = unsafe { instance.enumerate_device_extension_properties(physical) }
         .vk("vkEnumerateDeviceExtensionProperties")?;
     let has = |name: &CStr| extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(name));
     if !has(khr::acceleration_structure::NAME) || !has(khr::deferred_host_operations::NAME) {
         return Ok(None);
     }
-    let has_ray_query_ext = has(khr::ray_query::NAME);
     let has_pipeline_ext = has(khr::ray_tracing_pipeline::NAME);
-
-    // Only chain structures of extensions the device has: anything else is invalid usage.
-    let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
-    let mut f_accel = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
-    let mut f_query = vk::PhysicalDeviceRayQueryFeaturesKHR::default();
-    let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default();
-    let mut features = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12).push_next(&mut f_accel);
-    if has_ray_query_ext {
-        features = features.push_next(&mut f_query);
-    }
-    if has_pipeline_ext {
-        features = features.push_next(&mut f_pipeline);
-    }
-    unsafe { instance.get_physical_device_features2(physical, &mut features) };
-    let core = features.features;
-    let ray_query = has_ray_query_ext && f_query.ray_query == vk::TRUE;
-    let ray_tracing_pipeline = has_pipeline_ext && f_pipeline.ray_tracing_pipeline == vk::TRUE;
-    let primitive_culling = has_pipeline_ext && f_pipeline.ray_traversal_primitive_culling == vk::TRUE;
-    if f_accel.acceleration_structure != vk::TRUE
-        || f12.buffer_device_address != vk::TRUE
-        || core.shader_int64 != vk::TRUE
-        || !(ray_query || ray_tracing_pipeline)
-    {
+    let features = Features::query(instance, physical, has(khr::ray_query::NAME), has_pipeline_ext);
+    if !features.required || !(features.ray_query || features.ray_tracing_pipeline) {
         return Ok(None);
     }
+    // SAFETY: `physical` was enumerated from `instance`, which is live.
+    let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
+    let Some(queue_family) =
+        families.iter().position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && f.queue_count > 0)
+    else {
+        return Ok(None);
+    };
+    let (props, driver, mut limits) = query_properties(instance, physical, has_pipeline_ext);
+    limits.ray_traversal_primitive_culling = features.primitive_culling;
+    limits.timestamp_valid_bits = families[queue_family].timestamp_valid_bits;
+    let info = DeviceInfo {
+        index: 0,
+        name: props.device_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default(),
+        device_type: device_type_name(props.device_type),
+        is_software: props.device_type == vk::PhysicalDeviceType::CPU,
+        api_version: version_string(props.api_version),
+        driver,
+        ray_query: features.ray_query,
+        ray_tracing_pipeline: features.ray_tracing_pipeline,
+        shader_float64: features.shader_float64,
+    };
+    // Where the device and the host share memory, device buffers are written and read in place;
+    // a discrete GPU gets staging copies instead (its host-visible device memory is slow to read).
+    // VKRAY_STAGING=1 forces the discrete-GPU path anywhere (to test it on lavapipe).
+    let unified_memory =
+        matches!(props.device_type, vk::PhysicalDeviceType::CPU | vk::PhysicalDeviceType::INTEGRATED_GPU)
+            && std::env::var("VKRAY_STAGING").map_or(true, |v| v != "1");
+    Ok(Some(Candidate {
+        physical,
+        kind: props.device_type,
+        info,
+        limits,
+        queue_family: queue_family as u32,
+        unified_memory,
+    }))
+}
 
+/// The features `inspect` judges a device by.
+struct Features {
+    /// Acceleration structures, buffer device addresses and 64-bit integers in shaders.
+    required: bool,
+    ray_query: bool,
+    ray_tracing_pipeline: bool,
+    primitive_culling: bool,
+    shader_float64: bool,
+}
+
+impl Features {
+    fn query(
+        instance: &ash::Instance,
+        physical: vk::PhysicalDevice,
+        has_ray_query_ext: bool,
+        has_pipeline_ext: bool,
+    ) -> Features {
+        // Only chain structures of extensions the device has: anything else is invalid usage.
+        let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+        let mut f_accel = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
+        let mut f_query = vk::PhysicalDeviceRayQueryFeaturesKHR::default();
+        let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default();
+        let mut features = vk::PhysicalDeviceFeatures2::default().push_next(&mut f12).push_next(&mut f_accel);
+        if has_ray_query_ext {
+            features = features.push_next(&mut f_query);
+        }
+        if has_pipeline_ext {
+            features = features.push_next(&mut f_pipeline);
+        }
+        // SAFETY: `physical` belongs to the live `instance`; the chain holds only structures of
+        // Vulkan 1.2 and of extensions the device lists, each living through the call.
+        unsafe { instance.get_physical_device_features2(physical, &mut features) };
+        let core = features.features;
+        Features {
+            required: f_accel.acceleration_structure == vk::TRUE
+                && f12.buffer_device_address == vk::TRUE
+                && core.shader_int64 == vk::TRUE,
+            ray_query: has_ray_query_ext && f_query.ray_query == vk::TRUE,
+            ray_tracing_pipeline: has_pipeline_ext && f_pipeline.ray_tracing_pipeline == vk::TRUE,
+            primitive_culling: has_pipeline_ext && f_pipeline.ray_traversal_primitive_culling == vk::TRUE,
+            shader_float64: core.shader_float64 == vk::TRUE,
+        }
+    }
+}
+
+/// The device's core properties, its driver's name and info, and its limits (all but those of
+/// features and queues: primitive culling, timestamp bits).
+fn query_properties(
+    instance: &ash::Instance,
+    physical: vk::PhysicalDevice,
+    has_pipeline_ext: bool,
+) -> (vk::PhysicalDeviceProperties, String, Limits) {
     let mut p_accel = vk::PhysicalDeviceAccelerationStructurePropertiesKHR::default();
     let mut p_pipeline = vk::PhysicalDeviceRayTracingPipelinePropertiesKHR::default();
     let mut p_driver = vk::PhysicalDeviceDriverProperties::default();
@@ -354,18 +439,10 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
     if has_pipeline_ext {
         properties = properties.push_next(&mut p_pipeline);
     }
+    // SAFETY: `physical` belongs to the live `instance`; the chain holds only structures of
+    // Vulkan 1.2 and of extensions the device lists, each living through the call.
     unsafe { instance.get_physical_device_properties2(physical, &mut properties) };
     let props = properties.properties;
-
-    let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
-    let Some(queue_family) =
-        families.iter().position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && f.queue_count > 0)
-    else {
-        return Ok(None);
-    };
-
-    let timestamp_valid_bits = families[queue_family].timestamp_valid_bits;
-    let name = props.device_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let driver_name = p_driver.driver_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let driver_info = p_driver.driver_info_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let l = props.limits;
@@ -383,46 +460,26 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
         shader_group_base_alignment: p_pipeline.shader_group_base_alignment,
         max_ray_dispatch_invocation_count: p_pipeline.max_ray_dispatch_invocation_count,
         max_shader_group_stride: p_pipeline.max_shader_group_stride,
-        ray_traversal_primitive_culling: primitive_culling,
+        ray_traversal_primitive_culling: false,
         timestamp_period: l.timestamp_period,
-        timestamp_valid_bits,
-        vertex_formats: [VertexFormat::F32, VertexFormat::F16, VertexFormat::Snorm16]
-            .into_iter()
-            .filter(|f| {
-                let properties = unsafe {
-                    instance
-                        .get_physical_device_format_properties(physical, crate::gpu::accel::vulkan_vertex_format(*f))
-                };
-                properties.buffer_features.contains(vk::FormatFeatureFlags::ACCELERATION_STRUCTURE_VERTEX_BUFFER_KHR)
-            })
-            .collect(),
+        timestamp_valid_bits: 0,
+        vertex_formats: vertex_formats(instance, physical),
     };
-    let device_type = device_type_name(props.device_type);
-    let info = DeviceInfo {
-        index: 0,
-        name,
-        device_type,
-        is_software: props.device_type == vk::PhysicalDeviceType::CPU,
-        api_version: version_string(props.api_version),
-        driver: format!("{driver_name} {driver_info}").trim().to_string(),
-        ray_query,
-        ray_tracing_pipeline,
-        shader_float64: core.shader_float64 == vk::TRUE,
-    };
-    // Where the device and the host share memory, device buffers are written and read in place;
-    // a discrete GPU gets staging copies instead (its host-visible device memory is slow to read).
-    // VKRAY_STAGING=1 forces the discrete-GPU path anywhere (to test it on lavapipe).
-    let unified_memory =
-        matches!(props.device_type, vk::PhysicalDeviceType::CPU | vk::PhysicalDeviceType::INTEGRATED_GPU)
-            && std::env::var("VKRAY_STAGING").map_or(true, |v| v != "1");
-    Ok(Some(Candidate {
-        physical,
-        kind: props.device_type,
-        info,
-        limits,
-        queue_family: queue_family as u32,
-        unified_memory,
-    }))
+    (props, format!("{driver_name} {driver_info}").trim().to_string(), limits)
+}
+
+/// The vertex formats the device builds acceleration structures from.
+fn vertex_formats(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Vec<VertexFormat> {
+    [VertexFormat::F32, VertexFormat::F16, VertexFormat::Snorm16]
+        .into_iter()
+        .filter(|f| {
+            // SAFETY: `physical` belongs to the live `instance`.
+            let properties = unsafe {
+                instance.get_physical_device_format_properties(physical, crate::gpu::accel::vulkan_vertex_format(*f))
+            };
+            properties.buffer_features.contains(vk::FormatFeatureFlags::ACCELERATION_STRUCTURE_VERTEX_BUFFER_KHR)
+        })
+        .collect()
 }
 
 /// Lists the usable devices, ranked as `Context::new` ranks them.
@@ -459,9 +516,66 @@ fn choose(mut found: Vec<Candidate>, selector: Option<&str>) -> Result<Candidate
     }
 }
 
+/// The backend asked for, where the device has it; else ray queries where it has them.
+fn choose_backend(candidate: &Candidate, requested: Option<Backend>) -> Result<Backend> {
+    match requested {
+        Some(Backend::RayQuery) if !candidate.info.ray_query => Err(Error::Unsupported(format!(
+            "{} has no ray queries (rayQuery feature); use backend='pipeline'",
+            candidate.info.name
+        ))),
+        Some(Backend::Pipeline) if !candidate.info.ray_tracing_pipeline => Err(Error::Unsupported(format!(
+            "{} has no ray-tracing pipeline (rayTracingPipeline feature); use backend='ray_query'",
+            candidate.info.name
+        ))),
+        Some(backend) => Ok(backend),
+        // Decided by the feature bit, not the extension list: an extension may be listed while
+        // its feature is off.
+        None if candidate.info.ray_query => Ok(Backend::RayQuery),
+        None => Ok(Backend::Pipeline),
+    }
+}
+
+/// The logical device, with one queue of the candidate's family and only the extensions and
+/// features vkray uses with `backend`.
+fn create_device(instance: &ash::Instance, candidate: &Candidate, backend: Backend) -> Result<ash::Device> {
+    let mut extensions = vec![khr::acceleration_structure::NAME.as_ptr(), khr::deferred_host_operations::NAME.as_ptr()];
+    let mut f12 = vk::PhysicalDeviceVulkan12Features::default().buffer_device_address(true);
+    let mut f_accel = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default().acceleration_structure(true);
+    let mut f_query = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
+    let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default()
+        .ray_tracing_pipeline(true)
+        .ray_traversal_primitive_culling(candidate.limits.ray_traversal_primitive_culling);
+    // f64 is optional: only the exact precision tier needs it.
+    let core = vk::PhysicalDeviceFeatures::default().shader_int64(true).shader_float64(candidate.info.shader_float64);
+    let mut features =
+        vk::PhysicalDeviceFeatures2::default().features(core).push_next(&mut f12).push_next(&mut f_accel);
+    match backend {
+        Backend::RayQuery => {
+            extensions.push(khr::ray_query::NAME.as_ptr());
+            features = features.push_next(&mut f_query);
+        }
+        Backend::Pipeline => {
+            extensions.push(khr::ray_tracing_pipeline::NAME.as_ptr());
+            features = features.push_next(&mut f_pipeline);
+        }
+    }
+    let priorities = [1.0f32];
+    let queues =
+        [vk::DeviceQueueCreateInfo::default().queue_family_index(candidate.queue_family).queue_priorities(&priorities)];
+    let create = vk::DeviceCreateInfo::default()
+        .queue_create_infos(&queues)
+        .enabled_extension_names(&extensions)
+        .push_next(&mut features);
+    // SAFETY: `candidate.physical` belongs to the live `instance`; `create` and what it points at
+    // (queue infos, extension names, feature structures of core 1.2 and of the extensions it
+    // enables, which the device lists) are live.
+    unsafe { instance.create_device(candidate.physical, &create, None) }.vk("vkCreateDevice")
+}
+
 /// An open Vulkan device and everything bound to its lifetime.
 pub struct Context {
-    instance: InstanceHandle,
+    /// Dropped by `Drop for Context`, after the device (never where the device is left alone).
+    instance: ManuallyDrop<InstanceHandle>,
     pub physical: vk::PhysicalDevice,
     pub device: ash::Device,
     queue: Mutex<vk::Queue>,
@@ -490,59 +604,9 @@ impl Context {
     pub fn new(request: &DeviceRequest) -> Result<Arc<Context>> {
         let instance = InstanceHandle::new(request.validation)?;
         let candidate = choose(candidates(&instance.instance)?, request.selector.as_deref())?;
-        let backend = match request.backend {
-            Some(Backend::RayQuery) if !candidate.info.ray_query => {
-                return Err(Error::Unsupported(format!(
-                    "{} has no ray queries (rayQuery feature); use backend='pipeline'",
-                    candidate.info.name
-                )))
-            }
-            Some(Backend::Pipeline) if !candidate.info.ray_tracing_pipeline => {
-                return Err(Error::Unsupported(format!(
-                    "{} has no ray-tracing pipeline (rayTracingPipeline feature); use backend='ray_query'",
-                    candidate.info.name
-                )))
-            }
-            Some(backend) => backend,
-            // Decided by the feature bit, not the extension list: an extension may be listed while
-            // its feature is off.
-            None if candidate.info.ray_query => Backend::RayQuery,
-            None => Backend::Pipeline,
-        };
-
-        let mut extensions =
-            vec![khr::acceleration_structure::NAME.as_ptr(), khr::deferred_host_operations::NAME.as_ptr()];
-        let mut f12 = vk::PhysicalDeviceVulkan12Features::default().buffer_device_address(true);
-        let mut f_accel = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default().acceleration_structure(true);
-        let mut f_query = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
-        let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default()
-            .ray_tracing_pipeline(true)
-            .ray_traversal_primitive_culling(candidate.limits.ray_traversal_primitive_culling);
-        // f64 is optional: only the exact precision tier needs it.
-        let core =
-            vk::PhysicalDeviceFeatures::default().shader_int64(true).shader_float64(candidate.info.shader_float64);
-        let mut features =
-            vk::PhysicalDeviceFeatures2::default().features(core).push_next(&mut f12).push_next(&mut f_accel);
-        match backend {
-            Backend::RayQuery => {
-                extensions.push(khr::ray_query::NAME.as_ptr());
-                features = features.push_next(&mut f_query);
-            }
-            Backend::Pipeline => {
-                extensions.push(khr::ray_tracing_pipeline::NAME.as_ptr());
-                features = features.push_next(&mut f_pipeline);
-            }
-        }
-        let priorities = [1.0f32];
-        let queues = [vk::DeviceQueueCreateInfo::default()
-            .queue_family_index(candidate.queue_family)
-            .queue_priorities(&priorities)];
-        let create = vk::DeviceCreateInfo::default()
-            .queue_create_infos(&queues)
-            .enabled_extension_names(&extensions)
-            .push_next(&mut features);
-        let device =
-            unsafe { instance.instance.create_device(candidate.physical, &create, None) }.vk("vkCreateDevice")?;
+        let backend = choose_backend(&candidate, request.backend)?;
+        let device = create_device(&instance.instance, &candidate, backend)?;
+        // SAFETY: the device was created with one queue of `queue_family`.
         let queue = unsafe { device.get_device_queue(candidate.queue_family, 0) };
         let allocator = Allocator::new(&AllocatorCreateDesc {
             instance: instance.instance.clone(),
@@ -555,6 +619,7 @@ impl Context {
         let allocator = match allocator {
             Ok(a) => a,
             Err(e) => {
+                // SAFETY: nothing was created from `device` yet.
                 unsafe { device.destroy_device(None) };
                 return Err(e.into());
             }
@@ -578,7 +643,7 @@ impl Context {
             backend,
             validation: request.validation,
             unified_memory: candidate.unified_memory,
-            instance,
+            instance: ManuallyDrop::new(instance),
             pid: std::process::id(),
             lost: AtomicBool::new(false),
         };
@@ -607,16 +672,25 @@ impl Context {
     }
 
     /// Submits one recorded command buffer and signals `fence` when it completes.
-    pub(crate) fn submit(&self, command_buffer: vk::CommandBuffer, fence: vk::Fence) -> Result<()> {
+    fn submit(&self, command_buffer: vk::CommandBuffer, fence: vk::Fence) -> Result<()> {
         let buffers = [command_buffer];
         let submit = [vk::SubmitInfo::default().command_buffers(&buffers)];
         let queue = self.queue.lock().unwrap_or_else(|e| e.into_inner());
+        // SAFETY: the caller ended `command_buffer` and reset `fence` (see `Commands`); the mutex
+        // gives the queue the external synchronisation Vulkan requires.
         unsafe { self.device.queue_submit(*queue, &submit, fence) }.vk("vkQueueSubmit")
     }
 
     /// Whether this is a forked child of the process that opened the device.
     pub fn forked(&self) -> bool {
         std::process::id() != self.pid
+    }
+
+    /// Whether this device's objects may be destroyed now: not in a forked child (they are the
+    /// parent's), and not after a wait gave up on the device (a hung device may still be using
+    /// them: they are leaked instead).
+    pub(crate) fn can_free(&self) -> bool {
+        !self.forked() && !self.lost.load(Ordering::Acquire)
     }
 
     /// Fails unless the device can take work: not in a forked child, not lost or hung.
@@ -675,6 +749,7 @@ impl Context {
             let Ok(name) = CString::new(name) else { return };
             let info = vk::DebugUtilsObjectNameInfoEXT::default().object_handle(handle).object_name(&name);
             // Naming is best effort: a failure changes nothing about the work.
+            // SAFETY: `handle` is a live object of this device; `info` and `name` outlive the call.
             let _ = unsafe { loader.set_debug_utils_object_name(&info) };
         }
     }
@@ -684,13 +759,18 @@ impl Drop for Context {
     fn drop(&mut self) {
         if self.forked() || self.lost.load(Ordering::Acquire) {
             // A forked child must not touch the parent's device, and a hung one may never
-            // become idle: leave both to the process's end.
+            // become idle: leave both, and the instance, to the process's end.
             return;
         }
+        // SAFETY: every object of the device (buffers, structures, pipelines) holds an
+        // `Arc<Context>` and so is already gone; once the device is idle nothing runs on it; the
+        // allocator frees its memory before the device goes, and the instance goes last. Each is
+        // dropped once, here.
         unsafe {
             let _ = self.device.device_wait_idle();
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);
+            ManuallyDrop::drop(&mut self.instance);
         }
     }
 }
@@ -701,6 +781,9 @@ pub(crate) struct Commands<'a> {
     pool: vk::CommandPool,
     pub buffer: vk::CommandBuffer,
     fence: vk::Fence,
+    /// Between `begin` and `submit`.
+    recording: bool,
+    /// Submitted and not yet waited for.
     pending: bool,
 }
 
@@ -709,26 +792,47 @@ impl<'a> Commands<'a> {
         let pool_info = vk::CommandPoolCreateInfo::default()
             .queue_family_index(ctx.queue_family)
             .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER | vk::CommandPoolCreateFlags::TRANSIENT);
+        // SAFETY: a valid create info for a queue family of this live device.
         let pool = unsafe { ctx.device.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool")?;
-        let mut commands =
-            Commands { ctx, pool, buffer: vk::CommandBuffer::null(), fence: vk::Fence::null(), pending: false };
+        let mut commands = Commands {
+            ctx,
+            pool,
+            buffer: vk::CommandBuffer::null(),
+            fence: vk::Fence::null(),
+            recording: false,
+            pending: false,
+        };
         let alloc = vk::CommandBufferAllocateInfo::default()
             .command_pool(pool)
             .level(vk::CommandBufferLevel::PRIMARY)
             .command_buffer_count(1);
+        // SAFETY: `pool` was just created, and only this `Commands` (one thread at a time) uses it.
         commands.buffer = unsafe { ctx.device.allocate_command_buffers(&alloc) }.vk("vkAllocateCommandBuffers")?[0];
+        // SAFETY: a valid create info on a live device.
         commands.fence =
             unsafe { ctx.device.create_fence(&vk::FenceCreateInfo::default(), None) }.vk("vkCreateFence")?;
         Ok(commands)
     }
 
+    /// Starts recording (after waiting for the previous submission, if any).
     pub fn begin(&mut self) -> Result<()> {
+        self.wait()?;
+        assert!(!self.recording, "Commands::begin while recording");
         let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
-        unsafe { self.ctx.device.begin_command_buffer(self.buffer, &info) }.vk("vkBeginCommandBuffer")
+        // SAFETY: the buffer is neither recording nor pending (checked and waited for above), and
+        // its pool lets `begin` reset it (RESET_COMMAND_BUFFER).
+        unsafe { self.ctx.device.begin_command_buffer(self.buffer, &info) }.vk("vkBeginCommandBuffer")?;
+        self.recording = true;
+        Ok(())
     }
 
+    /// Ends the recording and submits it, signalling the fence when it completes.
     pub fn submit(&mut self) -> Result<()> {
+        assert!(self.recording, "Commands::submit without begin");
+        self.recording = false;
+        // SAFETY: the buffer is recording (checked above).
         unsafe { self.ctx.device.end_command_buffer(self.buffer) }.vk("vkEndCommandBuffer")?;
+        // SAFETY: no pending submission uses the fence (`begin` waited for the last one).
         unsafe { self.ctx.device.reset_fences(&[self.fence]) }.vk("vkResetFences")?;
         self.ctx.submit(self.buffer, self.fence)?;
         self.pending = true;
@@ -755,6 +859,8 @@ impl Drop for Commands<'_> {
         if self.pending && self.ctx.wait_fence(self.fence).is_err() {
             return;
         }
+        // SAFETY: nothing submitted from the pool is pending (waited for above, or never
+        // submitted); the buffer goes with its pool, and each object is destroyed once.
         unsafe {
             if self.fence != vk::Fence::null() {
                 self.ctx.device.destroy_fence(self.fence, None);

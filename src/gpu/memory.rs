@@ -3,6 +3,7 @@
 use std::sync::Arc;
 
 use ash::vk;
+use bytemuck::Pod;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 pub use gpu_allocator::MemoryLocation;
 
@@ -41,8 +42,10 @@ impl Buffer {
         let size = size.max(1);
         let info = vk::BufferCreateInfo::default().size(size).usage(usage).sharing_mode(vk::SharingMode::EXCLUSIVE);
         let device = &ctx.device;
+        // SAFETY: a valid create info (size at least 1) on a live device.
         let raw = unsafe { device.create_buffer(&info, None) }.vk("vkCreateBuffer")?;
         let mut buffer = Buffer { ctx: ctx.clone(), raw, allocation: None, size, address: 0 };
+        // SAFETY: `raw` was just created on this device.
         let requirements = unsafe { device.get_buffer_memory_requirements(raw) };
         let allocation = ctx.allocator().allocate(&AllocationCreateDesc {
             name,
@@ -63,6 +66,8 @@ impl Buffer {
         unsafe { device.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) }.vk("vkBindBufferMemory")?;
         if usage.contains(vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS) {
             let info = vk::BufferDeviceAddressInfo::default().buffer(raw);
+            // SAFETY: `raw` is bound to memory and has SHADER_DEVICE_ADDRESS usage (the device has
+            // bufferDeviceAddress on, and the allocator allocates with the device-address flag).
             buffer.address = unsafe { device.get_buffer_device_address(&info) };
         }
         ctx.name_object(raw, name);
@@ -112,9 +117,12 @@ fn mapping_failed(allocation: &Allocation) -> bool {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
-        if self.ctx.forked() {
+        if !self.ctx.can_free() {
             return;
         }
+        // SAFETY: `raw` is destroyed once, and no work in flight uses it: every submission is
+        // waited for before the call that made it returns (the buffer's owner outlives that
+        // call), and where a wait gave up, `can_free` leaks the buffer instead.
         unsafe { self.ctx.device.destroy_buffer(self.raw, None) };
         if let Some(allocation) = self.allocation.take() {
             // Freeing only fails for allocations this allocator does not own; nothing to undo.
@@ -159,13 +167,27 @@ impl Uploads {
         Ok(buffer)
     }
 
+    /// A device-local buffer holding `records` (plain data: numbers, arrays of them, or the
+    /// structs of `gpu::records`), exactly their bytes.
+    pub fn records<T: Pod>(
+        &mut self,
+        ctx: &Arc<Context>,
+        records: &[T],
+        usage: vk::BufferUsageFlags,
+        name: &str,
+    ) -> Result<Buffer> {
+        let bytes: &[u8] = bytemuck::cast_slice(records);
+        self.buffer(ctx, bytes.len() as u64, usage, name, |out, _| out.copy_from_slice(bytes))
+    }
+
     /// New contents for an existing device buffer of `Uploads::buffer`'s making: written in place
     /// where mapped, else through staging copied by `record`. The caller makes sure the device is
     /// not reading the buffer meanwhile.
     pub fn overwrite(&mut self, ctx: &Arc<Context>, buffer: &Buffer, fill: impl FnOnce(&mut [u8])) -> Result<()> {
         let size = buffer.size();
         if let Some(ptr) = buffer.mapped_ptr() {
-            // SAFETY: a persistently mapped allocation of `size` bytes that no one else touches now.
+            // SAFETY: the allocation is persistently mapped and at least `size` bytes; the caller
+            // keeps the device and other threads off the buffer meanwhile (see above).
             fill(unsafe { std::slice::from_raw_parts_mut(ptr, size as usize) });
             return Ok(());
         }
@@ -185,6 +207,9 @@ impl Uploads {
         }
         for (staging, dst, size) in &self.staging {
             let region = [vk::BufferCopy::default().size(*size)];
+            // SAFETY: `cmd` is recording; both buffers are live, at least `size` bytes, with
+            // transfer usage; the staging buffer lives in `self` and `dst` with the caller, both
+            // until the submission is waited for.
             unsafe { ctx.device.cmd_copy_buffer(cmd, staging.raw(), *dst, &region) };
         }
         memory_barrier(
@@ -208,6 +233,7 @@ pub fn memory_barrier(
     dst_access: vk::AccessFlags,
 ) {
     let barrier = [vk::MemoryBarrier::default().src_access_mask(src_access).dst_access_mask(dst_access)];
+    // SAFETY: `cmd` is recording; a global memory barrier names no objects.
     unsafe {
         ctx.device.cmd_pipeline_barrier(cmd, src_stage, dst_stage, vk::DependencyFlags::empty(), &barrier, &[], &[])
     };

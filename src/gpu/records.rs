@@ -99,3 +99,143 @@ layout!(GeometrySource, size 32, vertices @ 0, indices @ 8, primitive_order @ 16
 layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
     part_count @ 128, flags @ 132, _padding @ 136);
 layout!(ExactBest, size 40, t @ 0, u @ 8, v @ 16, instance @ 24, prim @ 28, custom @ 32, geometry @ 36);
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashMap;
+    use std::mem::{offset_of, size_of};
+
+    use super::*;
+    use crate::gpu::shaders;
+
+    /// What one SPIR-V module says about its struct types' layouts.
+    #[derive(Default)]
+    struct Layouts {
+        names: HashMap<u32, String>,
+        member_names: HashMap<(u32, u32), String>,
+        offsets: HashMap<(u32, u32), u32>,
+        array_strides: HashMap<u32, u32>,
+        /// Runtime-array type -> its element type.
+        runtime_arrays: Vec<(u32, u32)>,
+        /// Struct type -> its member count.
+        structs: Vec<(u32, usize)>,
+    }
+
+    /// A literal string operand: UTF-8, nul-terminated, padded to whole words.
+    fn literal_string(words: &[u32]) -> String {
+        let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).take_while(|&b| b != 0).collect();
+        String::from_utf8(bytes).expect("SPIR-V strings are UTF-8")
+    }
+
+    fn parse(words: &[u32]) -> Layouts {
+        const OP_NAME: u32 = 5;
+        const OP_MEMBER_NAME: u32 = 6;
+        const OP_TYPE_RUNTIME_ARRAY: u32 = 29;
+        const OP_TYPE_STRUCT: u32 = 30;
+        const OP_DECORATE: u32 = 71;
+        const OP_MEMBER_DECORATE: u32 = 72;
+        const DECORATION_ARRAY_STRIDE: u32 = 6;
+        const DECORATION_OFFSET: u32 = 35;
+        assert_eq!(words[0], 0x0723_0203, "SPIR-V magic number");
+        let mut layouts = Layouts::default();
+        let mut at = 5;
+        while at < words.len() {
+            let count = (words[at] >> 16) as usize;
+            assert!(count > 0 && at + count <= words.len(), "malformed instruction at word {at}");
+            let operands = &words[at + 1..at + count];
+            match words[at] & 0xFFFF {
+                OP_NAME => {
+                    layouts.names.insert(operands[0], literal_string(&operands[1..]));
+                }
+                OP_MEMBER_NAME => {
+                    layouts.member_names.insert((operands[0], operands[1]), literal_string(&operands[2..]));
+                }
+                OP_TYPE_RUNTIME_ARRAY => layouts.runtime_arrays.push((operands[0], operands[1])),
+                OP_TYPE_STRUCT => layouts.structs.push((operands[0], operands.len() - 1)),
+                OP_DECORATE if operands[1] == DECORATION_ARRAY_STRIDE => {
+                    layouts.array_strides.insert(operands[0], operands[2]);
+                }
+                OP_MEMBER_DECORATE if operands[2] == DECORATION_OFFSET => {
+                    layouts.offsets.insert((operands[0], operands[1]), operands[3]);
+                }
+                _ => {}
+            }
+            at += count;
+        }
+        layouts
+    }
+
+    /// A record's GLSL name, its Rust size, and (GLSL member name, Rust offset) per member.
+    type Expected = (&'static str, usize, Vec<(&'static str, usize)>);
+
+    /// Every record as Rust lays it out. `Params`'s `outputs` array is seven GLSL members, one per
+    /// `trace::Field`; padding has no GLSL member.
+    fn expected() -> Vec<Expected> {
+        macro_rules! members {
+            ($record:ty: $($field:ident),*) => {
+                vec![$((stringify!($field), offset_of!($record, $field))),*]
+            };
+        }
+        let outputs = ["out_t", "out_prim", "out_instance", "out_custom", "out_uv", "out_normal", "out_geometry"];
+        let mut params = members!(Params: rays, instances, tlas);
+        params.extend(outputs.iter().enumerate().map(|(k, &name)| (name, offset_of!(Params, outputs) + 8 * k)));
+        params.extend(members!(Params: scratch, masks, count, bounds, ray_mask));
+        vec![
+            ("Params", size_of::<Params>(), params),
+            (
+                "GeometrySource",
+                size_of::<GeometrySource>(),
+                members!(GeometrySource: vertices, indices, primitive_order, index_is_u16, vertex_format),
+            ),
+            (
+                "ExactInstance",
+                size_of::<ExactInstance>(),
+                members!(ExactInstance: rows, vertices, indices, primitive_order, part_offsets, part_count, flags),
+            ),
+            ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),
+        ]
+    }
+
+    /// The member offsets glslc assigned to each record (every declaration with an explicit
+    /// layout, in every embedded module), and the stride of arrays of it, match the Rust structs.
+    #[test]
+    fn shader_records_match_rust_layouts() {
+        let expected = expected();
+        let mut seen: HashMap<&str, usize> = HashMap::new();
+        for (module, bytes) in shaders::ALL {
+            let layouts = parse(&shaders::words(bytes));
+            for &(id, member_count) in &layouts.structs {
+                let Some((name, size, members)) =
+                    layouts.names.get(&id).and_then(|n| expected.iter().find(|(record, ..)| record == n))
+                else {
+                    continue;
+                };
+                // Declarations without an explicit layout (function-local copies) have no offsets.
+                if !layouts.offsets.contains_key(&(id, 0)) {
+                    continue;
+                }
+                *seen.entry(name).or_default() += 1;
+                assert_eq!(member_count, members.len(), "{module}: {name} has {member_count} members");
+                for index in 0..member_count as u32 {
+                    let member = &layouts.member_names[&(id, index)];
+                    let offset = layouts.offsets[&(id, index)] as usize;
+                    let rust = members.iter().find(|(m, _)| m == member).map(|&(_, offset)| offset);
+                    assert_eq!(
+                        Some(offset),
+                        rust,
+                        "{module}: {name}.{member} (member {index}) is at {offset} in GLSL, at {rust:?} in Rust"
+                    );
+                }
+                for &(array, element) in &layouts.runtime_arrays {
+                    if element == id {
+                        let stride = layouts.array_strides[&array] as usize;
+                        assert_eq!(stride, *size, "{module}: arrays of {name} are {stride} bytes apart, Rust's {size}");
+                    }
+                }
+            }
+        }
+        for (name, ..) in &expected {
+            assert!(seen.contains_key(name), "no embedded module lays out {name}: {seen:?}");
+        }
+    }
+}

@@ -71,6 +71,8 @@ fn allocate<'py>(py: Python<'py>, fields: &[String], n: usize, wide: bool) -> Py
 }
 
 /// The bytes of a fresh numpy array this call made and nobody else holds yet.
+// A mutable view from a shared handle: sound only because the array is this call's own (below).
+#[allow(clippy::mut_from_ref)]
 fn bytes_of<'a>(array: &'a Bound<'_, PyUntypedArray>) -> &'a mut [u8] {
     let bytes = array.len() * array.dtype().itemsize();
     // SAFETY: a C-contiguous array made by `empty` in this call and not yet returned: its data

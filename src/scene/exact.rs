@@ -6,14 +6,14 @@ use ash::vk;
 use glam::DVec3;
 
 use super::instance::Placement;
-use super::top_level::{instances_input, Scene};
+use super::mesh::Mesh;
+use super::top_level::{instances_input, upload_instances, Scene};
 use crate::error::{Error, Result};
-use crate::geometry::precision::{round_outward, Aabb};
+use crate::geometry::precision::Aabb;
+use crate::geometry::reference::TriangleSet;
 use crate::gpu::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildPreference, InstanceBits};
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
-
-/// Bytes of one `ExactInstance` record in `shaders/exact.glsl` (136, padded to its dvec4 alignment).
-const EXACT_INSTANCE_BYTES: usize = 160;
+use crate::gpu::records::{ExactInstance, EXACT_CULL_DISABLE, EXACT_FLIP_FACING};
 
 /// Relative slack of the exact tier's boxes: f32 traversal (origin, direction, instance transform
 /// and the hardware's own box test, each a few ulps of the scene's size) must never miss a box
@@ -57,146 +57,33 @@ impl ExactScene {
         }
         let scene_bounds = scene.placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds));
         let world_slack = EXACT_SLACK * scene_bounds.extent().max_element();
-        let options = BuildOptions { preference: BuildPreference::FastTrace, allow_update: false, compact: false };
-        let mut built: Vec<ExactMesh> = Vec::new();
-        for mesh in &scene.meshes {
-            let triangles =
-                &scene.placements.iter().find(|p| Arc::ptr_eq(&p.mesh, mesh)).expect("placed mesh").triangles;
-            // How far the world's slack reaches in this mesh's frame: the most any placement of
-            // it stretches a vector (the max-row-sum norm of its world-to-mesh map).
-            let stretch = scene
-                .placements
-                .iter()
-                .filter(|p| Arc::ptr_eq(&p.mesh, mesh))
-                .map(|p| {
-                    let m = p.to_local.linear.transpose();
-                    (0..3).map(|r| m.col(r).abs().element_sum()).fold(0.0, f64::max)
-                })
-                .fold(0.0, f64::max);
-            let pad = world_slack * stretch + EXACT_SLACK * triangles.bounds.extent().max_element();
-            // Box order: each part's device order in turn, as caller's triangles among all.
-            let order: Vec<u32> = mesh
-                .parts
-                .iter()
-                .enumerate()
-                .flat_map(|(k, part)| {
-                    (0..part.triangle_count).map(move |d| triangles.global(k, part.caller_triangle(d)) as u32)
-                })
-                .collect();
-            let identity = order.iter().enumerate().all(|(d, &t)| d as u32 == t);
-            let mut uploads = Uploads::default();
-            let boxes = uploads.buffer(ctx, 24 * order.len() as u64, GEOMETRY_INPUT, "exact boxes", |out, _| {
-                for (dst, &t) in out.chunks_exact_mut(24).zip(&order) {
-                    let b = Aabb::of_points(triangles.triangle(t as usize)).padded(pad);
-                    let corners = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
-                    for (k, (d, v)) in dst.chunks_exact_mut(4).zip(corners).enumerate() {
-                        d.copy_from_slice(&round_outward(v, k < 3).to_ne_bytes());
-                    }
-                }
-            })?;
-            let u32s = |values: &mut dyn Iterator<Item = u32>, out: &mut [u8]| {
-                for (dst, v) in out.chunks_exact_mut(4).zip(values) {
-                    dst.copy_from_slice(&v.to_ne_bytes());
-                }
-            };
-            let vertices = uploads.buffer(
-                ctx,
-                24 * triangles.vertices.len() as u64,
-                GEOMETRY_INPUT,
-                "exact vertices",
-                |out, _| {
-                    for (dst, v) in out.chunks_exact_mut(24).zip(&triangles.vertices) {
-                        for (d, c) in dst.chunks_exact_mut(8).zip(v.to_array()) {
-                            d.copy_from_slice(&c.to_ne_bytes());
-                        }
-                    }
-                },
-            )?;
-            let faces = uploads.buffer(ctx, 12 * order.len() as u64, GEOMETRY_INPUT, "exact faces", |out, _| {
-                u32s(&mut order.iter().flat_map(|&t| triangles.faces[t as usize]), out)
-            })?;
-            let primitive_order = if identity {
-                None
-            } else {
-                Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "exact order", |out, _| {
-                    u32s(&mut order.iter().copied(), out)
-                })?)
-            };
-            let offsets = &triangles.part_offsets;
-            let part_offsets =
-                uploads.buffer(ctx, 4 * offsets.len() as u64, GEOMETRY_INPUT, "exact part offsets", |out, _| {
-                    u32s(&mut offsets.iter().copied(), out)
-                })?;
-            let data = vk::AccelerationStructureGeometryAabbsDataKHR::default()
-                .data(vk::DeviceOrHostAddressConstKHR { device_address: boxes.address() })
-                .stride(24);
-            let geometry = vk::AccelerationStructureGeometryKHR::default()
-                .geometry_type(vk::GeometryTypeKHR::AABBS)
-                .geometry(vk::AccelerationStructureGeometryDataKHR { aabbs: data })
-                .flags(vk::GeometryFlagsKHR::OPAQUE);
-            let input = BuildInput {
-                ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-                geometries: vec![geometry],
-                primitive_counts: vec![order.len() as u32],
-                name: "exact boxes BLAS",
-            };
-            let (blas, _) = accel::build(ctx, &input, options, &uploads)?;
-            built.push(ExactMesh { blas, _boxes: boxes, vertices, faces, primitive_order, part_offsets });
-        }
-        let mesh_index = |p: &Placement| scene.meshes.iter().position(|m| Arc::ptr_eq(m, &p.mesh)).expect("scene mesh");
+        let meshes =
+            scene.meshes.iter().map(|mesh| ExactMesh::build(scene, mesh, world_slack)).collect::<Result<Vec<_>>>()?;
+        let mesh_of =
+            |p: &Placement| &meshes[scene.meshes.iter().position(|m| Arc::ptr_eq(m, &p.mesh)).expect("scene mesh")];
         let mut uploads = Uploads::default();
         let n = scene.placements.len();
-        let records = uploads.buffer(ctx, 64 * n as u64, GEOMETRY_INPUT, "exact instances", |out, _| {
-            for (dst, p) in out.chunks_exact_mut(64).zip(&scene.placements) {
-                let blas = built[mesh_index(p)].blas.address();
+        let records: Vec<_> = scene
+            .placements
+            .iter()
+            .map(|p| {
                 // Boxes only: facing and culling are the exact shader's, opacity does not apply.
                 let bits = InstanceBits { flags: 0, sbt_offset: 0, ..p.bits() };
-                dst.copy_from_slice(&accel::instance_record(&p.to_scene.to_rows_f32(), bits, blas));
-            }
-        })?;
-        let instances = uploads.buffer(
-            ctx,
-            (EXACT_INSTANCE_BYTES * n.max(1)) as u64,
-            GEOMETRY_INPUT,
-            "exact instance data",
-            |out, _| {
-                for (dst, p) in out.chunks_exact_mut(EXACT_INSTANCE_BYTES).zip(&scene.placements) {
-                    let (l, o) = (p.to_local.linear, p.to_local.offset);
-                    let mut doubles = [0f64; 12];
-                    for r in 0..3 {
-                        let row = l.row(r);
-                        doubles[4 * r..4 * r + 4].copy_from_slice(&[row.x, row.y, row.z, o[r]]);
-                    }
-                    for (d, v) in dst[..96].chunks_exact_mut(8).zip(doubles) {
-                        d.copy_from_slice(&v.to_ne_bytes());
-                    }
-                    let mesh = &built[mesh_index(p)];
-                    dst[96..104].copy_from_slice(&mesh.vertices.address().to_ne_bytes());
-                    dst[104..112].copy_from_slice(&mesh.faces.address().to_ne_bytes());
-                    let order = mesh.primitive_order.as_ref().map_or(0, |b| b.address());
-                    dst[112..120].copy_from_slice(&order.to_ne_bytes());
-                    dst[120..128].copy_from_slice(&mesh.part_offsets.address().to_ne_bytes());
-                    let parts = p.triangles.part_offsets.len() as u32 - 1;
-                    dst[128..132].copy_from_slice(&parts.to_ne_bytes());
-                    let flags = p.flags.cull_disable as u32 | (p.flip_facing as u32) << 1;
-                    dst[132..136].copy_from_slice(&flags.to_ne_bytes());
-                    dst[136..].fill(0);
-                }
-            },
-        )?;
+                accel::instance_record(&p.to_scene.to_rows_f32(), bits, mesh_of(p).blas.address())
+            })
+            .collect();
+        let records = upload_instances(ctx, &mut uploads, &records, "exact instances")?;
+        let mut data: Vec<ExactInstance> = scene.placements.iter().map(|p| mesh_of(p).instance(p)).collect();
+        if data.is_empty() {
+            // An empty scene still hands the shaders one (zeroed) record's worth of buffer.
+            data.push(ExactInstance::default());
+        }
+        let instances = uploads.records(ctx, &data, GEOMETRY_INPUT, "exact instance data")?;
         let input = instances_input(records.address(), n);
         let (tlas, _) = accel::build(ctx, &input, scene.options, &uploads)?;
         let padded =
             if n == 0 { Aabb { min: DVec3::ZERO, max: DVec3::ZERO } } else { scene_bounds.padded(world_slack) };
-        let bounds = [
-            round_outward(padded.min.x, true),
-            round_outward(padded.min.y, true),
-            round_outward(padded.min.z, true),
-            round_outward(padded.max.x, false),
-            round_outward(padded.max.y, false),
-            round_outward(padded.max.z, false),
-        ];
-        Ok(ExactScene { tlas, instances, bounds, _records: records, _meshes: built })
+        Ok(ExactScene { tlas, instances, bounds: padded.outward_f32(), _records: records, _meshes: meshes })
     }
 
     pub fn tlas_address(&self) -> u64 {
@@ -210,4 +97,81 @@ impl ExactScene {
     pub fn bounds_f32(&self) -> [f32; 6] {
         self.bounds
     }
+}
+
+impl ExactMesh {
+    /// The exact tier's copy of `mesh`, as `scene` placed it: its boxes are padded by the scene's
+    /// slack (`world_slack`, in the scene's frame) as seen in the mesh's frame, and by the mesh's own.
+    fn build(scene: &Scene, mesh: &Arc<Mesh>, world_slack: f64) -> Result<ExactMesh> {
+        let ctx = scene.tlas.context();
+        let placements = || scene.placements.iter().filter(|p| Arc::ptr_eq(&p.mesh, mesh));
+        let triangles = &placements().next().expect("placed mesh").triangles;
+        // How far the world's slack reaches in this mesh's frame: the most any placement of
+        // it stretches a vector (the max-row-sum norm of its world-to-mesh map).
+        let stretch = placements()
+            .map(|p| {
+                let m = p.to_local.linear.transpose();
+                (0..3).map(|r| m.col(r).abs().element_sum()).fold(0.0, f64::max)
+            })
+            .fold(0.0, f64::max);
+        let pad = world_slack * stretch + EXACT_SLACK * triangles.bounds.extent().max_element();
+        let order = box_order(mesh, triangles);
+        let mut uploads = Uploads::default();
+        let boxes: Vec<[f32; 6]> =
+            order.iter().map(|&t| Aabb::of_points(triangles.triangle(t as usize)).padded(pad).outward_f32()).collect();
+        let boxes = uploads.records(ctx, &boxes, GEOMETRY_INPUT, "exact boxes")?;
+        let vertices = uploads.records(ctx, &triangles.vertices, GEOMETRY_INPUT, "exact vertices")?;
+        let faces: Vec<[u32; 3]> = order.iter().map(|&t| triangles.faces[t as usize]).collect();
+        let faces = uploads.records(ctx, &faces, GEOMETRY_INPUT, "exact faces")?;
+        let identity = order.iter().enumerate().all(|(d, &t)| d as u32 == t);
+        let primitive_order =
+            if identity { None } else { Some(uploads.records(ctx, &order, GEOMETRY_INPUT, "exact order")?) };
+        let part_offsets = uploads.records(ctx, &triangles.part_offsets, GEOMETRY_INPUT, "exact part offsets")?;
+        let input = BuildInput {
+            ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+            geometries: vec![accel::aabbs_geometry(boxes.address())],
+            primitive_counts: vec![order.len() as u32],
+            name: "exact boxes BLAS",
+        };
+        let options = BuildOptions { preference: BuildPreference::FastTrace, allow_update: false, compact: false };
+        let (blas, _) = accel::build(ctx, &input, options, &uploads)?;
+        Ok(ExactMesh { blas, _boxes: boxes, vertices, faces, primitive_order, part_offsets })
+    }
+
+    /// The record of an instance of this mesh placed at `p`.
+    fn instance(&self, p: &Placement) -> ExactInstance {
+        let (linear, offset) = (p.to_local.linear, p.to_local.offset);
+        let row = |r: usize| {
+            let row = linear.row(r);
+            [row.x, row.y, row.z, offset[r]]
+        };
+        let mut flags = 0;
+        if p.flags.cull_disable {
+            flags |= EXACT_CULL_DISABLE;
+        }
+        if p.flip_facing {
+            flags |= EXACT_FLIP_FACING;
+        }
+        ExactInstance {
+            rows: [row(0), row(1), row(2)],
+            vertices: self.vertices.address(),
+            indices: self.faces.address(),
+            primitive_order: self.primitive_order.as_ref().map_or(0, |b| b.address()),
+            part_offsets: self.part_offsets.address(),
+            part_count: p.triangles.part_offsets.len() as u32 - 1,
+            flags,
+            _padding: [0; 3],
+        }
+    }
+}
+
+/// The order of a mesh's boxes: each part's device order in turn, as caller's triangles among all.
+fn box_order(mesh: &Mesh, triangles: &TriangleSet) -> Vec<u32> {
+    mesh.parts
+        .iter()
+        .enumerate()
+        .flat_map(|(k, part)| {
+            (0..part.triangle_count).map(move |d| triangles.global(k, part.caller_triangle(d)) as u32)
+        })
+        .collect()
 }

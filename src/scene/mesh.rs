@@ -11,19 +11,14 @@ use glam::DVec3;
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::arrays::{check_faces, check_vertices, Indices, Vec3s};
 use crate::geometry::morton::morton_order;
-use crate::geometry::precision::{round_outward, Aabb};
+use crate::geometry::precision::Aabb;
 use crate::geometry::rays::PerRay;
 use crate::geometry::reference::TriangleSet;
 use crate::geometry::vertex_format::VertexFormat;
 use crate::gpu::accel::{self, vulkan_vertex_format, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
-
-/// Bytes of one `GeometrySource` record in `shaders/common.glsl`.
-const GEOMETRY_SOURCE_BYTES: usize = 32;
-
-/// `GeometrySource.vertex_format` of sphere sets (after the `VertexFormat`s).
-const SPHERE_SOURCE: u32 = 3;
+use crate::gpu::records::{GeometrySource, SPHERE_SOURCE};
 
 /// Largest radius, and extent of a sphere set: squares of distances up to a few times this stay
 /// finite in f32 (whose largest value is 3.4e38).
@@ -91,13 +86,7 @@ pub(super) struct Part {
 impl Part {
     fn geometry(&self, format: VertexFormat) -> vk::AccelerationStructureGeometryKHR<'static> {
         if let Some(boxes) = &self.boxes {
-            let data = vk::AccelerationStructureGeometryAabbsDataKHR::default()
-                .data(vk::DeviceOrHostAddressConstKHR { device_address: boxes.address() })
-                .stride(24);
-            return vk::AccelerationStructureGeometryKHR::default()
-                .geometry_type(vk::GeometryTypeKHR::AABBS)
-                .geometry(vk::AccelerationStructureGeometryDataKHR { aabbs: data })
-                .flags(vk::GeometryFlagsKHR::OPAQUE);
+            return accel::aabbs_geometry(boxes.address());
         }
         let indices = self.indices.as_ref().expect("triangle parts have indices");
         let triangles = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
@@ -113,16 +102,85 @@ impl Part {
             .flags(vk::GeometryFlagsKHR::OPAQUE)
     }
 
-    /// This part's `GeometrySource` record (shaders/common.glsl); `kind` is its `vertex_format`
-    /// field (a `VertexFormat`, or `SPHERE_SOURCE`).
-    fn source(&self, kind: u32) -> [u8; GEOMETRY_SOURCE_BYTES] {
-        let mut out = [0u8; GEOMETRY_SOURCE_BYTES];
-        out[0..8].copy_from_slice(&self.vertices.address().to_ne_bytes());
-        out[8..16].copy_from_slice(&self.indices.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
-        out[16..24].copy_from_slice(&self.primitive_order.as_ref().map_or(0, |b| b.address()).to_ne_bytes());
-        out[24..28].copy_from_slice(&(self.index_is_u16 as u32).to_ne_bytes());
-        out[28..32].copy_from_slice(&kind.to_ne_bytes());
-        out
+    /// Uploads one part of a triangle mesh: `local` holds its vertices in the mesh's device frame
+    /// (f64 xyz, already quantized to `format`).
+    fn triangles(
+        ctx: &Arc<Context>,
+        uploads: &mut Uploads,
+        (vertices, faces): (Vec3s, Indices),
+        local: &[f64],
+        format: VertexFormat,
+    ) -> Result<Part> {
+        let vertex_bytes = (format.stride() * vertices.rows()) as u64;
+        let vertex_buffer =
+            uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| format.write(local, out))?;
+        let order = ctx.presort_primitives.then(|| morton_order(vertices, faces));
+        let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
+            faces.write_device(out, order.as_deref())
+        })?;
+        // Shaders map the device's triangle order back to the caller's.
+        let primitive_order =
+            order.as_ref().map(|order| uploads.records(ctx, order, GEOMETRY_INPUT, "primitive order")).transpose()?;
+        Ok(Part {
+            vertex_count: vertices.rows(),
+            triangle_count: faces.triangles(),
+            vertices: vertex_buffer,
+            indices: Some(index_buffer),
+            index_is_u16: faces.is_u16(),
+            boxes: None,
+            device_order: order,
+            primitive_order,
+        })
+    }
+
+    /// Uploads a sphere set: `n` spheres (`sphere(i)`: centre and radius) re-centred on `center`,
+    /// in f32 (centre, radius), and their boxes.
+    fn spheres(
+        ctx: &Arc<Context>,
+        uploads: &mut Uploads,
+        n: usize,
+        sphere: impl Fn(usize) -> (DVec3, f64),
+        center: DVec3,
+    ) -> Result<Part> {
+        let spheres: Vec<[f32; 4]> = (0..n)
+            .map(|i| {
+                let (c, r) = sphere(i);
+                let local = (c - center).as_vec3();
+                [local.x, local.y, local.z, r as f32]
+            })
+            .collect();
+        let records = uploads.records(ctx, &spheres, GEOMETRY_INPUT, "spheres")?;
+        // Boxes hold the f32 spheres whole: rounded outward from their f64 extent.
+        let boxes: Vec<[f32; 6]> = (0..n)
+            .map(|i| {
+                let (c, r) = sphere(i);
+                let half = DVec3::splat(r * (1.0 + 1e-6));
+                Aabb { min: c - center - half, max: c - center + half }.outward_f32()
+            })
+            .collect();
+        let boxes = uploads.records(ctx, &boxes, GEOMETRY_INPUT, "sphere boxes")?;
+        Ok(Part {
+            vertex_count: n,
+            triangle_count: n,
+            vertices: records,
+            indices: None,
+            index_is_u16: false,
+            boxes: Some(boxes),
+            device_order: None,
+            primitive_order: None,
+        })
+    }
+
+    /// This part's `GeometrySource` record; `kind` is its `vertex_format` field (a `VertexFormat`,
+    /// or `SPHERE_SOURCE`).
+    fn source(&self, kind: u32) -> GeometrySource {
+        GeometrySource {
+            vertices: self.vertices.address(),
+            indices: self.indices.as_ref().map_or(0, |b| b.address()),
+            primitive_order: self.primitive_order.as_ref().map_or(0, |b| b.address()),
+            index_is_u16: self.index_is_u16 as u32,
+            vertex_format: kind,
+        }
     }
 
     /// The caller's triangle (within this part) held at `device`.
@@ -146,76 +204,12 @@ impl Mesh {
     /// A set of spheres (`centers` (N, 3), `radii` one per sphere or one for all): a BLAS of one
     /// box per sphere, whose spheres a shader intersects. Scenes mix them with triangle meshes.
     pub fn spheres(ctx: &Arc<Context>, centers: Vec3s, radii: PerRay, options: BuildOptions) -> Result<Mesh> {
-        check_vertices("centers", centers)?;
-        let n = centers.rows();
-        if let PerRay::Each(r) = radii {
-            if r.len() != n {
-                return Err(invalid_value(format!("radii has {} values for {n} centers", r.len())));
-            }
-        }
-        // The shaders square distances in f32: radii and the spheres' extent must stay well
-        // inside its range.
-        if let Some(i) = (0..n).find(|&i| !(radii.get(i) > 0.0 && radii.get(i) <= MAX_SPHERE_EXTENT)) {
-            return Err(invalid_value(format!(
-                "radius {i} must be finite and > 0, and at most {MAX_SPHERE_EXTENT:e} (the shaders square it in float32), got {}",
-                radii.get(i)
-            )));
-        }
-        if n as u64 > ctx.limits.max_primitive_count {
-            return Err(Error::Unsupported(format!(
-                "{n} spheres exceed this device's maxPrimitiveCount ({})",
-                ctx.limits.max_primitive_count
-            )));
-        }
+        let bounds = check_spheres(ctx, centers, radii)?;
+        let (n, center) = (centers.rows(), bounds.center());
         let sphere = |i: usize| (DVec3::from_array(centers.row_f64(i)), radii.get(i));
-        let bounds = (0..n).fold(Aabb::EMPTY, |b, i| {
-            let (c, r) = sphere(i);
-            b.union(&Aabb { min: c - DVec3::splat(r), max: c + DVec3::splat(r) })
-        });
-        let center = bounds.center();
-        if bounds.extent().max_element() > MAX_SPHERE_EXTENT {
-            return Err(invalid_value(format!(
-                "the spheres span {:e}, more than {MAX_SPHERE_EXTENT:e} (the shaders square distances in float32): \
-                 split them into sphere sets placed by instances",
-                bounds.extent().max_element()
-            )));
-        }
         let mut uploads = Uploads::default();
-        let records = uploads.buffer(ctx, 16 * n as u64, GEOMETRY_INPUT, "spheres", |out, _| {
-            for (i, dst) in out.chunks_exact_mut(16).enumerate() {
-                let (c, r) = sphere(i);
-                let local = (c - center).as_vec3();
-                for (d, v) in dst.chunks_exact_mut(4).zip([local.x, local.y, local.z, r as f32]) {
-                    d.copy_from_slice(&v.to_ne_bytes());
-                }
-            }
-        })?;
-        // Boxes hold the f32 spheres whole: rounded outward from their f64 extent.
-        let boxes = uploads.buffer(ctx, 24 * n as u64, GEOMETRY_INPUT, "sphere boxes", |out, _| {
-            for (i, dst) in out.chunks_exact_mut(24).enumerate() {
-                let (c, r) = sphere(i);
-                let (lo, hi) =
-                    (c - center - DVec3::splat(r * (1.0 + 1e-6)), c - center + DVec3::splat(r * (1.0 + 1e-6)));
-                let corners = [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z];
-                for (k, (d, v)) in dst.chunks_exact_mut(4).zip(corners).enumerate() {
-                    d.copy_from_slice(&round_outward(v, k < 3).to_ne_bytes());
-                }
-            }
-        })?;
-        let part = Part {
-            vertex_count: n,
-            triangle_count: n,
-            vertices: records,
-            indices: None,
-            index_is_u16: false,
-            boxes: Some(boxes),
-            device_order: None,
-            primitive_order: None,
-        };
-        let sources =
-            uploads.buffer(ctx, GEOMETRY_SOURCE_BYTES as u64, GEOMETRY_INPUT, "geometry sources", |out, _| {
-                out.copy_from_slice(&part.source(SPHERE_SOURCE))
-            })?;
+        let part = Part::spheres(ctx, &mut uploads, n, sphere, center)?;
+        let sources = uploads.records(ctx, &[part.source(SPHERE_SOURCE)], GEOMETRY_INPUT, "geometry sources")?;
         // The host keeps the spheres' bounds (two corners each) for scenes' frames; the f64 tiers
         // do not trace spheres.
         let corners = (0..n)
@@ -335,9 +329,8 @@ impl Mesh {
                 self.vertex_format.name()
             )));
         }
-        let flat: Vec<f64> = local.iter().flat_map(|v| v.to_array()).collect();
         let mut uploads = Uploads::default();
-        uploads.overwrite(ctx, &part.vertices, |out| self.vertex_format.write(&flat, out))?;
+        uploads.overwrite(ctx, &part.vertices, |out| self.vertex_format.write(bytemuck::cast_slice(&local), out))?;
         let old = self.triangles();
         let input = mesh_input(std::slice::from_ref(part), self.vertex_format);
         accel::update(ctx, &self.blas, &input, self.options, self.stats.update_scratch_size, &uploads)?;
@@ -374,89 +367,18 @@ impl PreparedMesh {
         format: VertexFormat,
         uploads: &mut Uploads,
     ) -> Result<PreparedMesh> {
-        if parts.is_empty() {
-            return Err(invalid_value("a mesh needs at least one part"));
-        }
-        if parts.len() as u64 > ctx.limits.max_geometry_count {
-            return Err(Error::Unsupported(format!(
-                "{} parts exceed this device's maxGeometryCount ({})",
-                parts.len(),
-                ctx.limits.max_geometry_count
-            )));
-        }
-        for (k, (vertices, faces)) in parts.iter().enumerate() {
-            let named = |e: Error| match (e, parts.len()) {
-                (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("part {k}: {m}")),
-                (e, _) => e,
-            };
-            check_vertices("vertices", *vertices).map_err(named)?;
-            check_faces("faces", *faces, vertices.rows()).map_err(named)?;
-        }
-        let triangle_count: usize = parts.iter().map(|(_, f)| f.triangles()).sum();
-        if triangle_count as u64 > ctx.limits.max_primitive_count {
-            return Err(Error::Unsupported(format!(
-                "{triangle_count} triangles exceed this device's maxPrimitiveCount ({})",
-                ctx.limits.max_primitive_count
-            )));
-        }
-        if format != VertexFormat::F32 && !ctx.limits.vertex_formats.contains(&format) {
-            return Err(Error::Unsupported(format!(
-                "{} cannot build acceleration structures from {} vertices",
-                ctx.info.name,
-                format.name()
-            )));
-        }
+        let triangle_count = check_parts(ctx, parts, format)?;
         let (host_triangles, center, scale) = device_triangles(parts, format);
-        let local: &[f64] = {
-            // SAFETY: DVec3 is three f64 in a repr(C) struct, so a slice of them is a slice of f64.
-            let v = &host_triangles.vertices;
-            unsafe { std::slice::from_raw_parts(v.as_ptr() as *const f64, 3 * v.len()) }
-        };
+        let local: &[f64] = bytemuck::cast_slice(&host_triangles.vertices);
         let mut first_vertex = 0;
         let mut prepared = Vec::with_capacity(parts.len());
-        for (vertices, faces) in parts {
+        for &(vertices, faces) in parts {
             let own = &local[3 * first_vertex..3 * (first_vertex + vertices.rows())];
             first_vertex += vertices.rows();
-            let vertex_bytes = (format.stride() * vertices.rows()) as u64;
-            let vertex_buffer =
-                uploads.buffer(ctx, vertex_bytes, GEOMETRY_INPUT, "vertices", |out, _| format.write(own, out))?;
-            let order = ctx.presort_primitives.then(|| morton_order(*vertices, *faces));
-            let index_buffer = uploads.buffer(ctx, faces.device_bytes(), GEOMETRY_INPUT, "faces", |out, _| {
-                faces.write_device(out, order.as_deref())
-            })?;
-            // Shaders map the device's triangle order back to the caller's.
-            let primitive_order = match &order {
-                Some(order) => {
-                    Some(uploads.buffer(ctx, 4 * order.len() as u64, GEOMETRY_INPUT, "primitive order", |out, _| {
-                        for (dst, t) in out.chunks_exact_mut(4).zip(order) {
-                            dst.copy_from_slice(&t.to_ne_bytes());
-                        }
-                    })?)
-                }
-                None => None,
-            };
-            prepared.push(Part {
-                vertex_count: vertices.rows(),
-                triangle_count: faces.triangles(),
-                vertices: vertex_buffer,
-                indices: Some(index_buffer),
-                index_is_u16: faces.is_u16(),
-                boxes: None,
-                device_order: order,
-                primitive_order,
-            });
+            prepared.push(Part::triangles(ctx, uploads, (vertices, faces), own, format)?);
         }
-        let sources = uploads.buffer(
-            ctx,
-            (GEOMETRY_SOURCE_BYTES * parts.len()) as u64,
-            GEOMETRY_INPUT,
-            "geometry sources",
-            |out, _| {
-                for (dst, part) in out.chunks_exact_mut(GEOMETRY_SOURCE_BYTES).zip(&prepared) {
-                    dst.copy_from_slice(&part.source(format as u32));
-                }
-            },
-        )?;
+        let sources: Vec<GeometrySource> = prepared.iter().map(|part| part.source(format as u32)).collect();
+        let sources = uploads.records(ctx, &sources, GEOMETRY_INPUT, "geometry sources")?;
         Ok(PreparedMesh {
             kind: MeshKind::Triangles,
             vertex_count: first_vertex,
@@ -493,6 +415,81 @@ impl PreparedMesh {
             sources: self.sources,
         }
     }
+}
+
+/// Checks a sphere set against the range the shaders square in f32 and the device's limits;
+/// returns its bounds.
+fn check_spheres(ctx: &Context, centers: Vec3s, radii: PerRay) -> Result<Aabb> {
+    check_vertices("centers", centers)?;
+    let n = centers.rows();
+    if let PerRay::Each(r) = radii {
+        if r.len() != n {
+            return Err(invalid_value(format!("radii has {} values for {n} centers", r.len())));
+        }
+    }
+    // The shaders square distances in f32: radii and the spheres' extent must stay well
+    // inside its range.
+    if let Some(i) = (0..n).find(|&i| !(radii.get(i) > 0.0 && radii.get(i) <= MAX_SPHERE_EXTENT)) {
+        return Err(invalid_value(format!(
+            "radius {i} must be finite and > 0, and at most {MAX_SPHERE_EXTENT:e} (the shaders square it in float32), got {}",
+            radii.get(i)
+        )));
+    }
+    if n as u64 > ctx.limits.max_primitive_count {
+        return Err(Error::Unsupported(format!(
+            "{n} spheres exceed this device's maxPrimitiveCount ({})",
+            ctx.limits.max_primitive_count
+        )));
+    }
+    let bounds = (0..n).fold(Aabb::EMPTY, |b, i| {
+        let (c, r) = (DVec3::from_array(centers.row_f64(i)), radii.get(i));
+        b.union(&Aabb { min: c - DVec3::splat(r), max: c + DVec3::splat(r) })
+    });
+    if bounds.extent().max_element() > MAX_SPHERE_EXTENT {
+        return Err(invalid_value(format!(
+            "the spheres span {:e}, more than {MAX_SPHERE_EXTENT:e} (the shaders square distances in float32): \
+             split them into sphere sets placed by instances",
+            bounds.extent().max_element()
+        )));
+    }
+    Ok(bounds)
+}
+
+/// Checks a mesh's parts and what the device can build from them; returns their triangle count.
+fn check_parts(ctx: &Context, parts: &[(Vec3s, Indices)], format: VertexFormat) -> Result<usize> {
+    if parts.is_empty() {
+        return Err(invalid_value("a mesh needs at least one part"));
+    }
+    if parts.len() as u64 > ctx.limits.max_geometry_count {
+        return Err(Error::Unsupported(format!(
+            "{} parts exceed this device's maxGeometryCount ({})",
+            parts.len(),
+            ctx.limits.max_geometry_count
+        )));
+    }
+    for (k, (vertices, faces)) in parts.iter().enumerate() {
+        let named = |e: Error| match (e, parts.len()) {
+            (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("part {k}: {m}")),
+            (e, _) => e,
+        };
+        check_vertices("vertices", *vertices).map_err(named)?;
+        check_faces("faces", *faces, vertices.rows()).map_err(named)?;
+    }
+    let triangle_count: usize = parts.iter().map(|(_, f)| f.triangles()).sum();
+    if triangle_count as u64 > ctx.limits.max_primitive_count {
+        return Err(Error::Unsupported(format!(
+            "{triangle_count} triangles exceed this device's maxPrimitiveCount ({})",
+            ctx.limits.max_primitive_count
+        )));
+    }
+    if format != VertexFormat::F32 && !ctx.limits.vertex_formats.contains(&format) {
+        return Err(Error::Unsupported(format!(
+            "{} cannot build acceleration structures from {} vertices",
+            ctx.info.name,
+            format.name()
+        )));
+    }
+    Ok(triangle_count)
 }
 
 /// The build input of a mesh's BLAS: one opaque triangle geometry per part.

@@ -61,16 +61,9 @@ impl Scene {
         }
         let (center, placements) = place(instances, None)?;
         let mut uploads = Uploads::default();
-        let records = uploads.buffer(ctx, 64 * instances.len() as u64, GEOMETRY_INPUT, "instances", |out, _| {
-            write_instance_records(&placements, out)
-        })?;
-        debug_assert_eq!(records.address() % 16, 0, "Vulkan wants instance data 16-byte aligned");
-        let instance_geometries =
-            uploads.buffer(ctx, 8 * instances.len() as u64, GEOMETRY_INPUT, "instance geometries", |out, _| {
-                for (dst, x) in out.chunks_exact_mut(8).zip(instances) {
-                    dst.copy_from_slice(&x.mesh.sources.address().to_ne_bytes());
-                }
-            })?;
+        let records = upload_instances(ctx, &mut uploads, &instance_records(&placements), "instances")?;
+        let sources: Vec<u64> = instances.iter().map(|x| x.mesh.sources.address()).collect();
+        let instance_geometries = uploads.records(ctx, &sources, GEOMETRY_INPUT, "instance geometries")?;
         let input = instances_input(records.address(), instances.len());
         let (tlas, stats) = accel::build(ctx, &input, options, &uploads)?;
         let mut meshes: Vec<Arc<Mesh>> = Vec::new();
@@ -122,14 +115,14 @@ impl Scene {
         let (center, placements) = place(&instances, None)?;
         let ctx = self.tlas.context().clone();
         let mut uploads = Uploads::default();
+        let records = instance_records(&placements);
         if self.options.allow_update {
-            uploads.overwrite(&ctx, &self.instance_records, |out| write_instance_records(&placements, out))?;
+            let bytes = accel::instance_bytes(&records);
+            uploads.overwrite(&ctx, &self.instance_records, |out| out[..bytes.len()].copy_from_slice(bytes))?;
             let input = instances_input(self.instance_records.address(), n);
             accel::update(&ctx, &self.tlas, &input, self.options, self.stats.update_scratch_size, &uploads)?;
         } else {
-            let records = uploads.buffer(&ctx, 64 * n as u64, GEOMETRY_INPUT, "instances", |out, _| {
-                write_instance_records(&placements, out)
-            })?;
+            let records = upload_instances(&ctx, &mut uploads, &records, "instances")?;
             let (tlas, stats) = accel::build(&ctx, &instances_input(records.address(), n), self.options, &uploads)?;
             (self.tlas, self.stats, self.instance_records) = (tlas, stats, records);
         }
@@ -224,10 +217,25 @@ fn bounds_of(placements: &[Placement]) -> Aabb {
     placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds))
 }
 
-fn write_instance_records(placements: &[Placement], out: &mut [u8]) {
-    for (dst, p) in out.chunks_exact_mut(64).zip(placements) {
-        dst.copy_from_slice(&accel::instance_record(&p.to_scene.to_rows_f32(), p.bits(), p.mesh.blas_address()));
-    }
+/// The TLAS instance record of each placement.
+fn instance_records(placements: &[Placement]) -> Vec<vk::AccelerationStructureInstanceKHR> {
+    placements
+        .iter()
+        .map(|p| accel::instance_record(&p.to_scene.to_rows_f32(), p.bits(), p.mesh.blas_address()))
+        .collect()
+}
+
+/// A buffer of TLAS instance records, recorded for upload.
+pub(crate) fn upload_instances(
+    ctx: &Arc<Context>,
+    uploads: &mut Uploads,
+    records: &[vk::AccelerationStructureInstanceKHR],
+    name: &str,
+) -> Result<Buffer> {
+    let bytes = accel::instance_bytes(records);
+    let buffer = uploads.buffer(ctx, bytes.len() as u64, GEOMETRY_INPUT, name, |out, _| out.copy_from_slice(bytes))?;
+    debug_assert_eq!(buffer.address() % 16, 0, "Vulkan wants instance data 16-byte aligned");
+    Ok(buffer)
 }
 
 /// The build input of a TLAS over `count` instance records at `address`.

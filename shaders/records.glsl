@@ -1,0 +1,70 @@
+// The records the host writes and shaders read, each declared once, here. src/gpu/records.rs
+// mirrors them as #[repr(C)] structs; its tests compare the member offsets glslc assigns to these
+// declarations (read from the compiled SPIR-V, by member name) with the Rust fields' offsets.
+// Included by common.glsl after its extensions (64-bit integers). The exact tier's records hold
+// doubles: only shaders that use them need shaderFloat64 (glslang emits unused types not at all).
+#ifndef VKRAY_RECORDS_GLSL
+#define VKRAY_RECORDS_GLSL
+
+// Where the triangles of one geometry live, for the outputs that need them (normal, prim_id).
+struct GeometrySource {
+  uint64_t vertices;         // float xyz tightly packed; or 4 halves / 4 snorm16 (VERTEX_*)
+  uint64_t indices;          // uint32 triples, or uint16 triples packed into words
+  uint64_t primitive_order;  // device triangle -> caller's triangle (int32), or 0 if the same
+  uint index_is_u16;
+  uint vertex_format;        // VERTEX_F32, VERTEX_F16 or VERTEX_SNORM16 (VertexFormat), or SPHERE_SOURCE
+};
+const uint VERTEX_F32 = 0u;
+const uint VERTEX_F16 = 1u;
+const uint VERTEX_SNORM16 = 2u;
+const uint SPHERE_SOURCE = 3u;  // `vertices` holds spheres (vec4: centre, radius), no triangles
+
+// The push constants of every query (records.rs Params, whose `outputs` array holds out_t ..
+// out_geometry in trace::Field order).
+layout(push_constant, std430) uniform Params {
+  uint64_t rays;
+  uint64_t instances;  // InstanceGeometries (fast tier) or ExactInstances (exact tier)
+  uint64_t tlas;
+  uint64_t out_t;
+  uint64_t out_prim;
+  uint64_t out_instance;
+  uint64_t out_custom;
+  uint64_t out_uv;
+  uint64_t out_normal;
+  uint64_t out_geometry;
+  uint64_t scratch;    // exact tier, pipeline backend: ExactBest per ray
+  uint64_t masks;      // one uint cull mask per ray, or 0: every ray uses ray_mask
+  uint count;
+  float bounds[6];     // exact tier: the scene's bounds (min xyz, max xyz), rounded outward
+  uint ray_mask;
+} params;
+
+// The exact tier, per instance: the f64 map from the scene's frame to the mesh's (rows: xyz
+// linear, w offset), and where the mesh's f64 vertices and boxed triangles live. Triangles are
+// counted among all parts of the mesh; `part_offsets` splits them back into (geometry, triangle
+// within it). 136 bytes, 160 apart in arrays (the dvec4's 32-byte alignment).
+struct ExactInstance {
+  dvec4 rows[3];
+  uint64_t vertices;         // f64 xyz per vertex, all parts
+  uint64_t indices;          // uint32 corner triples, in box order
+  uint64_t primitive_order;  // box -> caller's triangle among all parts, or 0 if the same
+  uint64_t part_offsets;     // uint32: first triangle of each part, then the total
+  uint part_count;
+  uint flags;                // EXACT_CULL_DISABLE | EXACT_FLIP_FACING
+};
+const uint EXACT_CULL_DISABLE = 1u;  // query culling does not apply to this instance
+const uint EXACT_FLIP_FACING = 2u;   // front is the side opposite the object-space normal
+
+// The exact tier's best hit so far: t and barycentrics in f64, the device's triangle index
+// (prim < 0: none).
+struct ExactBest {
+  double t;
+  double u;
+  double v;
+  int instance;
+  int prim;
+  int custom;
+  int geometry;
+};
+
+#endif
