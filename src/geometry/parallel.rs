@@ -10,6 +10,9 @@ static POOL: Mutex<Option<(u32, Arc<ThreadPool>)>> = Mutex::new(None);
 
 /// Runs `work` in this process's pool, so that every parallel iterator inside it uses live
 /// threads; falls back to the calling thread's default pool if no threads can be started.
+///
+/// `work` must be pure computation: a pool thread waiting for its share of one call's work may
+/// run another call's, so nothing inside may take a lock or wait for the GPU.
 pub fn install<R: Send>(work: impl FnOnce() -> R + Send) -> R {
     match pool() {
         Some(pool) => pool.install(work),

@@ -5,6 +5,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::arrays::{fmt_row, Vec3s};
+use super::parallel;
 use super::precision::Ray64;
 use crate::error::{invalid_value, Result};
 
@@ -164,13 +165,15 @@ impl Rays<'_> {
     /// Checks every ray, on all cores; the error names the first invalid one.
     pub fn check(&self) -> Result<()> {
         self.check_shapes()?;
-        let first_bad = (0..self.len().div_ceil(PACK_PIECE))
-            .into_par_iter()
-            .filter_map(|piece| {
-                let range = piece * PACK_PIECE..((piece + 1) * PACK_PIECE).min(self.len());
-                range.into_iter().find(|&i| !self.is_valid(i))
-            })
-            .min();
+        let first_bad = parallel::install(|| {
+            (0..self.len().div_ceil(PACK_PIECE))
+                .into_par_iter()
+                .filter_map(|piece| {
+                    let range = piece * PACK_PIECE..((piece + 1) * PACK_PIECE).min(self.len());
+                    range.into_iter().find(|&i| !self.is_valid(i))
+                })
+                .min()
+        });
         first_bad.map_or(Ok(()), |i| Err(self.invalid_ray(i)))
     }
 
@@ -222,24 +225,25 @@ impl Rays<'_> {
         out: &mut [T],
         write: impl Fn(usize, &mut [T]) -> Option<f64> + Sync,
     ) -> Result<Vec<Advance>> {
-        let pieces: Vec<std::result::Result<Vec<Advance>, usize>> = out
-            .par_chunks_mut(PACK_PIECE * RAY_FLOATS)
-            .enumerate()
-            .map(|(piece, out)| {
-                let first = piece * PACK_PIECE;
-                let mut advances = Vec::new();
-                for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
-                    let i = start + first + k;
-                    if !self.is_valid(i) {
-                        return Err(i);
+        let pieces: Vec<std::result::Result<Vec<Advance>, usize>> = parallel::install(|| {
+            out.par_chunks_mut(PACK_PIECE * RAY_FLOATS)
+                .enumerate()
+                .map(|(piece, out)| {
+                    let first = piece * PACK_PIECE;
+                    let mut advances = Vec::new();
+                    for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
+                        let i = start + first + k;
+                        if !self.is_valid(i) {
+                            return Err(i);
+                        }
+                        if let Some(t) = write(i, ray) {
+                            advances.push(Advance { ray: first + k, t });
+                        }
                     }
-                    if let Some(t) = write(i, ray) {
-                        advances.push(Advance { ray: first + k, t });
-                    }
-                }
-                Ok(advances)
-            })
-            .collect();
+                    Ok(advances)
+                })
+                .collect()
+        });
         if let Some(i) = pieces.iter().filter_map(|p| p.as_ref().err()).min() {
             return Err(self.invalid_ray(*i));
         }

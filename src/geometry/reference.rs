@@ -7,6 +7,8 @@ use std::sync::OnceLock;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::parallel;
+
 use crate::geometry::precision::{watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
 
 /// Items one leaf holds at most.
@@ -134,8 +136,9 @@ impl TriangleSet {
             // Boxes grow by a hair of the mesh's size so that f64 rounding in the slab test cannot
             // reject a triangle that lies on its own box's face.
             let pad = 1e-9 * self.bounds.extent().max_element().max(f64::MIN_POSITIVE);
-            let boxes: Vec<Aabb> =
-                (0..self.faces.len()).into_par_iter().map(|p| Aabb::of_points(self.triangle(p)).padded(pad)).collect();
+            let boxes: Vec<Aabb> = parallel::install(|| {
+                (0..self.faces.len()).into_par_iter().map(|p| Aabb::of_points(self.triangle(p)).padded(pad)).collect()
+            });
             Bvh::build(&boxes)
         })
     }
@@ -235,9 +238,11 @@ impl<'a> ReferenceTracer<'a> {
         any: bool,
         out: &mut [Option<ReferenceHit>],
     ) {
-        out.par_iter_mut().enumerate().with_min_len(256).for_each(|(i, slot)| {
-            let (ray, mask) = rays(i);
-            *slot = self.trace(&ray, mask, cull, any)
+        parallel::install(|| {
+            out.par_iter_mut().enumerate().with_min_len(256).for_each(|(i, slot)| {
+                let (ray, mask) = rays(i);
+                *slot = self.trace(&ray, mask, cull, any)
+            })
         });
     }
 

@@ -19,7 +19,6 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use crate::error::{Error, Result};
-use crate::geometry::parallel;
 use crate::gpu::context::Interrupt;
 
 create_exception!(_core, VkrayError, PyRuntimeError, "Base class of vkray's own errors.");
@@ -68,11 +67,14 @@ impl Interrupt for Signals {
     }
 }
 
-/// Runs core work with the GIL released, in this process's thread pool, interruptible between
-/// its pieces; a panic becomes `VkrayError`, never pyo3's `PanicException`.
+/// Runs core work with the GIL released, interruptible between its pieces; a panic becomes
+/// `VkrayError`, never pyo3's `PanicException`.
 fn run<T: Send>(py: Python<'_>, work: impl FnOnce(&dyn Interrupt) -> Result<T> + Send) -> PyResult<T> {
     let signals = Signals::default();
-    let outcome = py.detach(|| parallel::install(|| std::panic::catch_unwind(AssertUnwindSafe(|| work(&signals)))));
+    // Runs on this thread, not in the thread pool: the work takes locks and waits, which a pool
+    // thread must never do (waiting for its own parallel work, it may pick up another call's
+    // job that needs a lock this thread holds). Parallel sections enter the pool themselves.
+    let outcome = py.detach(|| std::panic::catch_unwind(AssertUnwindSafe(|| work(&signals))));
     let result = outcome.unwrap_or_else(|panic| {
         let message = panic
             .downcast_ref::<String>()

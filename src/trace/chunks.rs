@@ -13,6 +13,7 @@ use super::staging::Slot;
 use super::tracer::Tracer;
 use super::variants::{push_constant_stages, Variant};
 use crate::error::Result;
+use crate::geometry::parallel;
 use crate::geometry::rays::{Advance, Frame, Masks, Rays, RAY_FLOATS};
 use crate::gpu::context::{Backend, Commands, Interrupt};
 use crate::gpu::memory::memory_barrier;
@@ -247,7 +248,9 @@ fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize) -> Result
     };
     if let Masks::Each(masks) = job.rays.mask {
         let words: &mut [u32] = bytemuck::cast_slice_mut(&mut masks_bytes[..4 * len]);
-        words.par_iter_mut().zip(&masks[start..start + len]).for_each(|(dst, m)| *dst = *m as u32);
+        parallel::install(|| {
+            words.par_iter_mut().zip(&masks[start..start + len]).for_each(|(dst, m)| *dst = *m as u32)
+        });
     }
     Ok(advances)
 }
@@ -281,9 +284,12 @@ fn unpack(slot: &Slot, done: &InFlight, outputs: u32, sink: &mut HitSink) {
         let width = field.bytes_per_ray(slot.exact);
         let from = slot.field_offset(field);
         let out = &mut out[start * width..(start + len) * width];
-        out.par_chunks_mut(PIECE_BYTES)
-            .zip(hits[from..from + len * width].par_chunks(PIECE_BYTES))
-            .for_each(|(dst, src)| dst.copy_from_slice(src));
+        let src = &hits[from..from + len * width];
+        parallel::install(|| {
+            out.par_chunks_mut(PIECE_BYTES)
+                .zip(src.par_chunks(PIECE_BYTES))
+                .for_each(|(dst, src)| dst.copy_from_slice(src))
+        });
         if field == Field::T && !slot.exact {
             let t: &mut [f32] = bytemuck::cast_slice_mut(out);
             for advance in advances {

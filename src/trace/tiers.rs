@@ -6,6 +6,7 @@ use rayon::prelude::*;
 
 use super::fields::{Field, HitSink};
 use crate::error::{try_vec, Result};
+use crate::geometry::parallel;
 use crate::geometry::precision::{plane_hit, world_normal, Cull};
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::ReferenceHit;
@@ -16,7 +17,9 @@ use crate::scene::{MeshKind, Scene};
 fn write_field(sink: &mut HitSink, field: Field, wide: bool, value: impl Fn(usize, &mut [u8]) + Sync) {
     if let Some(out) = sink.field_mut(field) {
         let width = field.bytes_per_ray(wide);
-        out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| value(i, dst));
+        parallel::install(|| {
+            out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| value(i, dst))
+        });
     }
 }
 
@@ -64,8 +67,9 @@ pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink, interr
     let mut again: Vec<bool> = try_vec(n, false, "refining hits")?;
     in_blocks(n, interrupt, |range| {
         let start = range.start;
-        hits[range.clone()].par_iter_mut().zip(&mut again[range]).enumerate().with_min_len(1024).for_each(
-            |(k, (hit, again))| {
+        let (hits, again) = (&mut hits[range.clone()], &mut again[range]);
+        parallel::install(|| {
+            hits.par_iter_mut().zip(again).enumerate().with_min_len(1024).for_each(|(k, (hit, again))| {
                 let i = start + k;
                 let (p, x) = (int_at(prim, i), int_at(instance, i));
                 if p < 0 {
@@ -81,8 +85,8 @@ pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink, interr
                     }
                     _ => *again = true,
                 }
-            },
-        );
+            })
+        });
     })?;
     let retrace: Vec<usize> = (0..n).filter(|&i| again[i]).collect();
     if !retrace.is_empty() {
@@ -185,26 +189,28 @@ impl HitTriangles<'_> {
 /// `hits.wide`, else 3 f32. NaN on a miss.
 pub fn positions(scene: &Scene, rays: &Rays, hits: &HitTriangles, out: &mut [u8]) {
     let width = if hits.wide { 24 } else { 12 };
-    out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| {
-        let p = int_at(hits.prim, i);
-        let placement = (p >= 0).then(|| &scene.placements[int_at(hits.instance, i) as usize]);
-        let point = match placement {
-            None => DVec3::NAN,
-            Some(placement) if placement.mesh.kind == MeshKind::Spheres => {
-                let ray = rays.ray64(i, DVec3::ZERO);
-                ray.origin + hits.t(i) * ray.direction
+    parallel::install(|| {
+        out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| {
+            let p = int_at(hits.prim, i);
+            let placement = (p >= 0).then(|| &scene.placements[int_at(hits.instance, i) as usize]);
+            let point = match placement {
+                None => DVec3::NAN,
+                Some(placement) if placement.mesh.kind == MeshKind::Spheres => {
+                    let ray = rays.ray64(i, DVec3::ZERO);
+                    ray.origin + hits.t(i) * ray.direction
+                }
+                Some(placement) => {
+                    let global = placement.triangles.global(int_at(hits.geometry, i) as usize, p as usize);
+                    let [a, b, c] = placement.triangles.triangle(global);
+                    let (u, v) = hits.uv(i);
+                    placement.to_scene.point(a + u * (b - a) + v * (c - a)) + scene.center
+                }
+            };
+            if hits.wide {
+                put_f64s(dst, &point.to_array());
+            } else {
+                put_f32s(dst, &point.as_vec3().to_array());
             }
-            Some(placement) => {
-                let global = placement.triangles.global(int_at(hits.geometry, i) as usize, p as usize);
-                let [a, b, c] = placement.triangles.triangle(global);
-                let (u, v) = hits.uv(i);
-                placement.to_scene.point(a + u * (b - a) + v * (c - a)) + scene.center
-            }
-        };
-        if hits.wide {
-            put_f64s(dst, &point.to_array());
-        } else {
-            put_f32s(dst, &point.as_vec3().to_array());
-        }
+        })
     });
 }
