@@ -96,14 +96,20 @@ impl Rays<'_> {
     }
 
     /// Ray `i` in f64, its origin shifted by `-shift` (into a scene's frame).
+    #[inline]
     pub fn ray64(&self, i: usize, shift: DVec3) -> Ray64 {
-        let row = |v: &Vec3s| DVec3::from_array(v.row_f64(if v.rows() == 1 { 0 } else { i }));
         Ray64 {
-            origin: row(&self.origins) - shift,
-            direction: row(&self.directions),
+            origin: self.origin64(i, shift),
+            direction: DVec3::from_array(self.directions.row_f64(if self.directions.rows() == 1 { 0 } else { i })),
             tmin: self.tmin.get(i),
             tmax: self.tmax.get(i),
         }
+    }
+
+    /// Ray `i`'s origin in f64, shifted by `-shift`.
+    #[inline]
+    fn origin64(&self, i: usize, shift: DVec3) -> DVec3 {
+        DVec3::from_array(self.origins.row_f64(if self.origins.rows() == 1 { 0 } else { i })) - shift
     }
 
     /// Array lengths must agree (one shared origin or direction row is allowed).
@@ -131,7 +137,7 @@ impl Rays<'_> {
 
     /// Whether ray `i` is valid for Vulkan once in f32: finite origin, finite non-zero direction,
     /// 0 <= tmin <= tmax, no NaN (tmax may be +inf).
-    #[inline]
+    #[inline(always)]
     fn is_valid(&self, i: usize) -> bool {
         let (o, d) = (self.origin(i), self.direction(i));
         let (tmin, tmax) = (self.tmin.get(i), self.tmax.get(i));
@@ -190,21 +196,35 @@ impl Rays<'_> {
     /// `out`, for `t` to be corrected after the trace. A far ray that cannot reach the scene
     /// within its interval is packed as one that misses.
     pub fn pack(&self, start: usize, out: &mut [f32], frame: &Frame) -> Result<Vec<Advance>> {
+        // One interval for every ray (the common case) is widened once.
+        let shared = match (self.tmin, self.tmax) {
+            (PerRay::All(lo), PerRay::All(hi)) => Some(widened(lo, hi)),
+            _ => None,
+        };
         self.pack_with(start, out, |i, ray| {
-            let r = self.ray64(i, frame.shift);
             let d = self.direction(i);
-            let (origin, tmin, tmax, advance) = match frame.advance(&r) {
-                Approach::Near => (r.origin, r.tmin, r.tmax, None),
-                Approach::Advanced { origin, t } => (origin, (r.tmin - t).max(0.0), r.tmax - t, Some(t)),
-                Approach::Never { origin } => (origin, 0.0, 0.0, None),
+            let near = self.origin64(i, frame.shift);
+            let (o, [tmin, tmax], advance) = if frame.is_far(near) {
+                let (origin, tmin, tmax, advance) = self.advanced(i, frame);
+                (origin, widened(tmin, tmax), advance)
+            } else {
+                (near, shared.unwrap_or_else(|| widened(self.tmin.get(i), self.tmax.get(i))), None)
             };
-            let o = origin.as_vec3().to_array();
-            let tmin = round_down_f32(tmin).next_down().max(0.0);
-            // Vulkan wants finite bounds; the largest float is as far as +inf for any f32 scene.
-            let tmax = if tmax == 0.0 { 0.0 } else { round_up_f32(tmax).next_up().min(f32::MAX) };
-            ray.copy_from_slice(&[o[0], o[1], o[2], tmin, d[0], d[1], d[2], tmax]);
+            let o = o.as_vec3();
+            ray.copy_from_slice(&[o.x, o.y, o.z, tmin, d[0], d[1], d[2], tmax]);
             advance
         })
+    }
+
+    /// A far ray's origin and interval after `Frame::advance`, and how far it moved.
+    #[cold]
+    fn advanced(&self, i: usize, frame: &Frame) -> (DVec3, f64, f64, Option<f64>) {
+        let r = self.ray64(i, frame.shift);
+        match frame.advance(&r) {
+            Approach::Near => (r.origin, r.tmin, r.tmax, None),
+            Approach::Advanced { origin, t } => (origin, (r.tmin - t).max(0.0), r.tmax - t, Some(t)),
+            Approach::Never { origin } => (origin, 0.0, 0.0, None),
+        }
     }
 
     /// As `pack`, in f64 for the exact tier (tmax stays +inf where it is; the exact shaders start
@@ -219,6 +239,7 @@ impl Rays<'_> {
         .map(|_| ())
     }
 
+    #[inline]
     fn pack_with<T: Send>(
         &self,
         start: usize,
@@ -270,6 +291,8 @@ pub struct Frame {
     pub shift: DVec3,
     pub bounds_center: DVec3,
     pub radius: f64,
+    /// The squared distance from `bounds_center` beyond which rays are advanced.
+    far_squared: f64,
 }
 
 enum Approach {
@@ -287,14 +310,24 @@ enum Approach {
 const ADVANCE_STEPS: usize = 24;
 
 impl Frame {
+    pub fn new(shift: DVec3, bounds_center: DVec3, radius: f64) -> Frame {
+        let far = FAR_RADII * radius.max(f64::MIN_POSITIVE);
+        Frame { shift, bounds_center, radius, far_squared: far * far }
+    }
+
     /// A frame whose rays are never advanced.
     pub fn at(shift: DVec3) -> Frame {
-        Frame { shift, bounds_center: DVec3::ZERO, radius: f64::INFINITY }
+        Frame::new(shift, DVec3::ZERO, f64::INFINITY)
+    }
+
+    /// Whether a ray from `origin` (in the frame) starts far enough out to be advanced.
+    #[inline]
+    fn is_far(&self, origin: DVec3) -> bool {
+        (origin - self.bounds_center).length_squared() > self.far_squared
     }
 
     fn advance(&self, ray: &Ray64) -> Approach {
-        let far = FAR_RADII * self.radius.max(f64::MIN_POSITIVE);
-        if (ray.origin - self.bounds_center).length_squared() <= far * far {
+        if !self.is_far(ray.origin) {
             return Approach::Near;
         }
         // Every point within `radius` of the centre lies at t >= tca - radius / |d|; aim twice
@@ -322,6 +355,15 @@ impl Frame {
         }
         Approach::Advanced { origin, t: advanced }
     }
+}
+
+/// `[tmin, tmax]` in f32, widened outward by one ulp at each end (an empty interval stays empty
+/// at 0); Vulkan wants finite bounds, and the largest float is as far as +inf for any f32 scene.
+#[inline]
+fn widened(tmin: f64, tmax: f64) -> [f32; 2] {
+    let lo = round_down_f32(tmin).next_down().max(0.0);
+    let hi = if tmax == 0.0 { 0.0 } else { round_up_f32(tmax).next_up().min(f32::MAX) };
+    [lo, hi]
 }
 
 /// The largest f32 not above `x` (x >= 0).
@@ -418,8 +460,7 @@ mod tests {
     #[test]
     fn far_rays_are_advanced_towards_the_scene_in_f64() {
         // A scene of radius 1 around (20, 0, 0) in its frame; a ray from 1e9 away along -x.
-        let frame =
-            Frame { shift: DVec3::new(-10.0, 0.0, 0.0), bounds_center: DVec3::new(20.0, 0.0, 0.0), radius: 1.0 };
+        let frame = Frame::new(DVec3::new(-10.0, 0.0, 0.0), DVec3::new(20.0, 0.0, 0.0), 1.0);
         let o = [1e9f64, 0.0, 0.0, 20.0, 0.0, 0.0, 1e9, 0.0, 0.0];
         let d = [-1.0f64, 0.0, 0.0, -1.0, 0.0, 0.0, 1.0, 0.0, 0.0];
         let tmax = [f64::INFINITY, f64::INFINITY, f64::INFINITY];
@@ -445,7 +486,7 @@ mod tests {
 
     #[test]
     fn rays_from_the_end_of_float_range_land_just_outside_the_scene() {
-        let frame = Frame { shift: DVec3::ZERO, bounds_center: DVec3::ZERO, radius: 1.0 };
+        let frame = Frame::new(DVec3::ZERO, DVec3::ZERO, 1.0);
         for far in [1e20, 1e38, 1e300] {
             let ray =
                 Ray64 { origin: DVec3::new(0.25, 0.5, far), direction: DVec3::NEG_Z, tmin: 0.0, tmax: f64::INFINITY };

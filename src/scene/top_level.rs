@@ -181,7 +181,7 @@ impl Scene {
     /// Where rays are packed: the scene's frame and the sphere bounding its instances.
     pub fn frame(&self) -> Frame {
         let radius = if self.placements.is_empty() { 0.0 } else { 0.5 * self.bounds.extent().length() };
-        Frame { shift: self.center, bounds_center: self.bounds.center(), radius }
+        Frame::new(self.center, self.bounds.center(), radius)
     }
 
     /// Holds this scene's meshes against `Mesh::update` until the guards drop (a query's time).
