@@ -20,7 +20,7 @@ impl Vec3s<'_> {
     }
 
     /// Row `i` as the f32 values the GPU will see.
-    #[inline]
+    #[inline(always)]
     pub fn row_f32(&self, i: usize) -> [f32; 3] {
         match self {
             Vec3s::F32(v) => [v[3 * i], v[3 * i + 1], v[3 * i + 2]],
@@ -28,6 +28,7 @@ impl Vec3s<'_> {
         }
     }
 
+    #[inline(always)]
     pub fn row_f64(&self, i: usize) -> [f64; 3] {
         match self {
             Vec3s::F32(v) => [v[3 * i] as f64, v[3 * i + 1] as f64, v[3 * i + 2] as f64],

@@ -17,7 +17,7 @@ pub enum PerRay<'a> {
 }
 
 impl PerRay<'_> {
-    #[inline]
+    #[inline(always)]
     pub fn get(&self, i: usize) -> f64 {
         match self {
             PerRay::All(v) => *v,
@@ -85,18 +85,18 @@ impl Rays<'_> {
         self.len() == 0
     }
 
-    #[inline]
+    #[inline(always)]
     fn origin(&self, i: usize) -> [f32; 3] {
         self.origins.row_f32(if self.origins.rows() == 1 { 0 } else { i })
     }
 
-    #[inline]
+    #[inline(always)]
     fn direction(&self, i: usize) -> [f32; 3] {
         self.directions.row_f32(if self.directions.rows() == 1 { 0 } else { i })
     }
 
     /// Ray `i` in f64, its origin shifted by `-shift` (into a scene's frame).
-    #[inline]
+    #[inline(always)]
     pub fn ray64(&self, i: usize, shift: DVec3) -> Ray64 {
         Ray64 {
             origin: self.origin64(i, shift),
@@ -107,7 +107,7 @@ impl Rays<'_> {
     }
 
     /// Ray `i`'s origin in f64, shifted by `-shift`.
-    #[inline]
+    #[inline(always)]
     fn origin64(&self, i: usize, shift: DVec3) -> DVec3 {
         DVec3::from_array(self.origins.row_f64(if self.origins.rows() == 1 { 0 } else { i })) - shift
     }
