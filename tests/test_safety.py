@@ -41,6 +41,8 @@ import vkray
 from conftest import BACKENDS, VALIDATION, make_device
 
 ForkedDeviceError = vkray.ForkedDeviceError
+# NVIDIA's driver is not usable in forked children at all (see the fork tests).
+NVIDIA = "nvidia" in vkray.devices()[0].driver.lower()
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -258,7 +260,7 @@ def test_forked_child_cpu_tier_raises_or_answers(forked, case, answer):
 def test_forked_child_that_leaves_vkray_alone_exits(forked):
     """A forked child ending normally (interpreter finalization drops the inherited objects) ends."""
     r = forked[0]["exit"]
-    if r.get("hung") and "nvidia" in vkray.devices()[0].driver.lower():
+    if r.get("hung") and NVIDIA:
         # Seen on the H100 (driver 580): a forked child of any process that opened a Vulkan device
         # hangs in the driver's own exit handlers, even one that never touches vkray (vkray's
         # destructors do nothing in a forked child). multiprocessing's fork children end with
@@ -268,10 +270,21 @@ def test_forked_child_that_leaves_vkray_alone_exits(forked):
     assert r["exit_status"] == 0
 
 
+def _refused_on_nvidia(r: Dict[str, Any]) -> bool:
+    """NVIDIA's driver hangs when a forked child opens a device again (seen on the H100): there
+    vkray refuses at once with ForkedDeviceError instead."""
+    if not NVIDIA:
+        return False
+    _forked_error(r)
+    return True
+
+
 def test_new_device_in_forked_child_works(forked):
     """The remedy: a new Device made in the forked child traces like the parent."""
     cases, expected = forked
     r = cases["new_device"]
+    if _refused_on_nvidia(r):
+        return
     assert not r.get("hung"), "a new Device in a forked child hung"
     assert r["outcome"] == "returned", f"{r.get('type')}: {r.get('message')}"
     assert w.same(w.unpack(r["answer"]), expected["fast"])
@@ -281,6 +294,8 @@ def test_new_device_in_forked_child_cpu_tier_works(forked):
     """The remedy for the CPU tier (its thread pool was the parent's)."""
     cases, expected = forked
     r = cases["new_device_reference"]
+    if _refused_on_nvidia(r):
+        return
     assert not r.get("hung"), "the reference tier of a new Device in a forked child hung"
     assert r["outcome"] == "returned", f"{r.get('type')}: {r.get('message')}"
     assert w.same(w.unpack(r["answer"]), expected["reference"])

@@ -121,6 +121,37 @@ impl Interrupt for NoInterrupt {
     }
 }
 
+/// The process that last opened a device with a driver that cannot be used again in a forked
+/// child (NVIDIA's: a new instance there hangs), shifted left by one, with bit 0 set for such a
+/// driver; 0 while none was opened.
+static OPENED_BY: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Remembers that this process opened a device with `info`'s driver.
+fn note_opened(info: &DeviceInfo) {
+    let pid = std::process::id() as u64;
+    let fork_unsafe = info.driver.to_ascii_lowercase().contains("nvidia");
+    // A lavapipe device opened after an NVIDIA one in the same process leaves the mark.
+    let _ = OPENED_BY.fetch_update(Ordering::AcqRel, Ordering::Acquire, |old| {
+        let marked = fork_unsafe || (old >> 1 == pid && old & 1 == 1);
+        Some(pid << 1 | marked as u64)
+    });
+}
+
+/// Refuses to touch Vulkan in a forked child of a process that opened a device with a driver
+/// that hangs there, rather than hang.
+fn refuse_fork_unsafe_driver() -> Result<()> {
+    let opened = OPENED_BY.load(Ordering::Acquire);
+    if opened & 1 == 1 && (opened >> 1) as u32 != std::process::id() {
+        return Err(Error::Forked(format!(
+            "this process is a fork of process {}, which opened a Vulkan device with NVIDIA's driver, \
+             and that driver hangs when a forked child opens one again: start worker processes with \
+             multiprocessing's 'spawn' or 'forkserver' start method",
+            opened >> 1
+        )));
+    }
+    Ok(())
+}
+
 /// How long one fence wait may take before the device is given up as hung (`VKRAY_GPU_TIMEOUT`
 /// seconds; 300 by default: far above any one chunk or build, which take milliseconds on a GPU
 /// and seconds on lavapipe).
@@ -182,6 +213,7 @@ struct InstanceHandle {
 
 impl InstanceHandle {
     fn new(validation: bool) -> Result<InstanceHandle> {
+        refuse_fork_unsafe_driver()?;
         // SAFETY: loads the system's Vulkan loader, which ash trusts to be a conforming one (its
         // initialisation runs no code of ours).
         let entry = unsafe { ash::Entry::load() }.map_err(|e| {
@@ -648,6 +680,7 @@ impl Context {
             lost: AtomicBool::new(false),
         };
         context.check_validation()?;
+        note_opened(&context.info);
         Ok(Arc::new(context))
     }
 
@@ -698,8 +731,8 @@ impl Context {
         if self.forked() {
             return Err(Error::Forked(format!(
                 "this vkray.Device ({}) was opened by process {} and cannot be used in its forked child \
-                 (process {}): open a new vkray.Device in the child, or start worker processes with \
-                 multiprocessing's 'spawn' or 'forkserver' start method",
+                 (process {}): start worker processes with multiprocessing's 'spawn' or 'forkserver' \
+                 start method, or open a new vkray.Device in the child (drivers other than NVIDIA's)",
                 self.info.name,
                 self.pid,
                 std::process::id()
