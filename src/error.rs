@@ -90,3 +90,16 @@ pub fn try_vec<T: Clone>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
 pub(crate) fn invalid_value(message: impl Into<String>) -> Error {
     Error::InvalidValue(message.into())
 }
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::{Error, Result};
+
+    /// The message of an `InvalidValue` error; panics on anything else.
+    pub(crate) fn invalid_message(r: Result<()>) -> String {
+        match r {
+            Err(Error::InvalidValue(m)) => m,
+            other => panic!("expected InvalidValue, got {other:?}"),
+        }
+    }
+}

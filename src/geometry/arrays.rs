@@ -189,14 +189,7 @@ pub fn instance_transform(values: &[f64], rows: usize) -> Result<[f64; 12]> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::error::Error;
-
-    fn message(r: Result<()>) -> String {
-        match r {
-            Err(Error::InvalidValue(m)) => m,
-            other => panic!("expected InvalidValue, got {other:?}"),
-        }
-    }
+    use crate::error::tests::invalid_message as message;
 
     #[test]
     fn vertices_name_first_bad_row() {

@@ -389,14 +389,7 @@ fn round_up_f32(x: f64) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::error::Error;
-
-    fn message(r: Result<()>) -> String {
-        match r {
-            Err(Error::InvalidValue(m)) => m,
-            other => panic!("expected InvalidValue, got {other:?}"),
-        }
-    }
+    use crate::error::tests::invalid_message as message;
 
     fn rays<'a>(o: &'a [f32], d: &'a [f32], tmin: PerRay<'a>, tmax: PerRay<'a>) -> Rays<'a> {
         Rays { origins: Vec3s::F32(o), directions: Vec3s::F32(d), tmin, tmax, mask: Masks::All(0xFF) }

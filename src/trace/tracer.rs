@@ -178,7 +178,10 @@ impl Tracer {
     ) -> Result<()> {
         let refine = request.precision == Precision::Refined && request.query == Query::Closest;
         match request.precision {
-            Precision::Exact => self.trace_gpu(scene, rays, request, true, work, interrupt, profile),
+            Precision::Exact => {
+                self.check_paths(scene, true)?;
+                self.run_gpu(scene, rays, request, true, work, interrupt, profile)
+            }
             Precision::Refined if refine => {
                 // The GPU finds which triangle; the host recomputes where, in f64.
                 let mut host_fields = HitSink::default();
@@ -187,7 +190,8 @@ impl Tracer {
                         host_fields.set(field, out);
                     }
                 }
-                self.trace_gpu(scene, rays, request, false, work, interrupt, profile)?;
+                self.check_paths(scene, false)?;
+                self.run_gpu(scene, rays, request, false, work, interrupt, profile)?;
                 for field in [Field::T, Field::Uv, Field::Normal] {
                     if let Some(out) = host_fields.take(field) {
                         work.set(field, out);
@@ -199,7 +203,8 @@ impl Tracer {
                 Ok(())
             }
             Precision::Fast | Precision::Refined => {
-                self.trace_gpu(scene, rays, request, false, work, interrupt, profile)
+                self.check_paths(scene, false)?;
+                self.run_gpu(scene, rays, request, false, work, interrupt, profile)
             }
             Precision::Reference => {
                 rays.check()?;
@@ -211,28 +216,20 @@ impl Tracer {
         }
     }
 
-    /// The GPU's part of a query: traversal in f32 (`exact`: through the scene's per-triangle
-    /// boxes, each candidate decided by the f64 test).
-    #[allow(clippy::too_many_arguments)]
-    fn trace_gpu(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        exact: bool,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()> {
+    /// Fails where this driver does not run the intersection shaders a GPU query on `scene`
+    /// needs (`exact`: the f64 test through per-triangle boxes; spheres).
+    fn check_paths(&self, scene: &Scene, exact: bool) -> Result<()> {
         if exact {
             self.check_intersection_shaders(super::probe::Probe::Exact)?;
         }
         if scene.has_spheres() {
             self.check_intersection_shaders(super::probe::Probe::Spheres)?;
         }
-        self.run_gpu(scene, rays, request, exact, sink, interrupt, profile)
+        Ok(())
     }
 
+    /// The GPU's part of a query: traversal in f32 (`exact`: through the scene's per-triangle
+    /// boxes, each candidate decided by the f64 test).
     #[allow(clippy::too_many_arguments)]
     pub(super) fn run_gpu(
         &self,
