@@ -101,13 +101,14 @@ pub const MAX_CUSTOM_INDEX: u32 = (1 << 24) - 1;
 /// The scene's centre (the middle of its instances' bounds, unless `center` keeps an earlier one)
 /// and each instance's placement relative to it, all in f64.
 pub(crate) fn place(instances: &[Instance], center: Option<DVec3>) -> Result<(DVec3, Vec<Placement>)> {
-    let triangles: Vec<Arc<TriangleSet>> = instances.iter().map(|x| x.mesh.triangles()).collect();
+    let (triangles, centers): (Vec<Arc<TriangleSet>>, Vec<DVec3>) = instances.iter().map(|x| x.mesh.placed()).unzip();
     // Object to world for the mesh's device frame: M (s v + c) + T = (s M) v + (M c + T).
     let to_world: Vec<Affine> = instances
         .iter()
-        .map(|x| {
+        .zip(&centers)
+        .map(|(x, c)| {
             let user = Affine::from_rows(&x.transform);
-            Affine { linear: user.linear * x.mesh.scale, offset: user.point(x.mesh.center) }
+            Affine { linear: user.linear * x.mesh.scale, offset: user.point(*c) }
         })
         .collect();
     let bounds = triangles.iter().zip(&to_world).fold(Aabb::EMPTY, |b, (t, m)| b.union(&t.bounds.transformed(m)));

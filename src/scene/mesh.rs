@@ -35,7 +35,8 @@ pub struct Mesh {
     /// Vertices of a triangle mesh; spheres of a sphere set.
     pub vertex_count: usize,
     pub triangle_count: usize,
-    pub center: DVec3,
+    /// Where the device's coordinates are centred (in f64): moved by `update` for float32 meshes.
+    center: RwLock<DVec3>,
     /// Device coordinates are `(v - center) / scale`: 1 in float32, the largest magnitude of
     /// `v - center` in the 16-bit formats (whose range is [-1, 1]).
     pub scale: f64,
@@ -280,6 +281,17 @@ impl Mesh {
         self.triangles.read().unwrap_or_else(|e| e.into_inner()).clone()
     }
 
+    /// The host's f64 triangles and the centre of their frame, taken together.
+    pub fn placed(&self) -> (Arc<TriangleSet>, DVec3) {
+        let triangles = self.triangles.read().unwrap_or_else(|e| e.into_inner());
+        (triangles.clone(), self.center())
+    }
+
+    /// The centre of the device's coordinates (`v - center`), as it is now.
+    pub fn center(&self) -> DVec3 {
+        *self.center.read().unwrap_or_else(|e| e.into_inner())
+    }
+
     /// Holds the mesh against `update` while the guard lives (see `Scene::hold_meshes`).
     pub fn hold(&self) -> RwLockReadGuard<'_, ()> {
         self.in_use.read().unwrap_or_else(|e| e.into_inner())
@@ -319,10 +331,18 @@ impl Mesh {
         // Waits for queries on scenes holding this mesh to finish; new ones wait for the update.
         let _exclusive = self.in_use.write().unwrap_or_else(|e| e.into_inner());
         let started = Instant::now();
-        // The same frame as at build: scenes' transforms and the exact tier's frames keep meaning.
+        // float32 meshes are re-centred on their new bounds (in f64), so that vertices moved far
+        // keep their precision; scenes pick the new centre up in their `update`. The 16-bit
+        // formats keep the range they were quantized for.
+        let center = match self.vertex_format {
+            VertexFormat::F32 => {
+                Aabb::of_points((0..vertices.rows()).map(|i| DVec3::from_array(vertices.row_f64(i)))).center()
+            }
+            _ => self.center(),
+        };
         let outside = (0..vertices.rows())
-            .any(|i| ((DVec3::from_array(vertices.row_f64(i)) - self.center) / self.scale).abs().max_element() > 1.0);
-        let local = device_coordinates(vertices, self.center, self.scale, self.vertex_format);
+            .any(|i| ((DVec3::from_array(vertices.row_f64(i)) - center) / self.scale).abs().max_element() > 1.0);
+        let local = device_coordinates(vertices, center, self.scale, self.vertex_format);
         if self.vertex_format != VertexFormat::F32 && outside {
             return Err(invalid_value(format!(
                 "update moves vertices beyond the range {} was built for: rebuild the mesh",
@@ -335,7 +355,11 @@ impl Mesh {
         let input = mesh_input(std::slice::from_ref(part), self.vertex_format);
         accel::update(ctx, &self.blas, &input, self.options, self.stats.update_scratch_size, &uploads)?;
         let moved = TriangleSet::new(local, old.faces.clone(), old.part_offsets.clone());
-        *self.triangles.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(moved);
+        // Both under the triangles' lock: `placed` sees the old pair or the new one.
+        let mut triangles = self.triangles.write().unwrap_or_else(|e| e.into_inner());
+        *triangles = Arc::new(moved);
+        *self.center.write().unwrap_or_else(|e| e.into_inner()) = center;
+        drop(triangles);
         self.generation.fetch_add(1, Ordering::AcqRel);
         *self.last_update_seconds.lock().unwrap_or_else(|e| e.into_inner()) = started.elapsed().as_secs_f64();
         Ok(())
@@ -401,7 +425,7 @@ impl PreparedMesh {
             kind: self.kind,
             vertex_count: self.vertex_count,
             triangle_count: self.triangle_count,
-            center: self.center,
+            center: RwLock::new(self.center),
             scale: self.scale,
             vertex_format: self.vertex_format,
             triangles: RwLock::new(Arc::new(self.host_triangles)),
