@@ -11,6 +11,7 @@ from ._api import (
     DEFAULT_FIELDS,
     HIT_FIELDS,
     PRECISIONS,
+    AllHits,
     Backend,
     Build,
     Cull,
@@ -35,6 +36,7 @@ from ._core import (
 from ._secondary import offset_origins
 
 __all__ = [
+    "AllHits",
     "DEFAULT_FIELDS",
     "HIT_FIELDS",
     "PRECISIONS",

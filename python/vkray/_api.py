@@ -309,6 +309,7 @@ class Mesh:
         self.vertices = vertices
         #: The triangles' corner indices; ``None`` for spheres.
         self.faces = faces
+        self._closed: Optional[bool] = None
 
     @property
     def vertex_count(self) -> int:
@@ -344,6 +345,16 @@ class Mesh:
         array = _arrays.points("vertices", vertices)
         self._core.update(array)
         self.vertices = array
+
+    @property
+    def is_closed(self) -> bool:
+        """Whether the triangles close a volume consistently: every edge is shared by exactly two
+        triangles that run along it in opposite directions (each directed edge ``(a, b)`` once,
+        and ``(b, a)`` once). Only then does the parity of crossings say inside or outside
+        (`Scene.contains`). Computed once (a mesh's topology never changes)."""
+        if self._closed is None:
+            self._closed = self.kind == "triangles" and _closed(np.asarray(self.faces))
+        return self._closed
 
     def __repr__(self) -> str:
         if self.kind == "spheres":
@@ -572,12 +583,143 @@ class Scene:
         arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"], precision, cull, _arrays.masks(mask, shape))
         return (arrays["prim_id"] >= 0).reshape(shape)
 
+    def intersect_all(
+        self,
+        origins: Any,
+        directions: Any,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        max_hits: Optional[int] = None,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "reference",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+    ) -> AllHits:
+        """Every hit of each ray within [tmin, tmax], nearest first (see `AllHits`).
+
+        Each crossing of a surface is reported exactly once: a ray through a shared edge or
+        vertex hits one of the triangles there (the exact watertight test and its tie-break),
+        while distinct triangles at the same t (coplanar copies, stacked layers, instances in one
+        place) are all reported, in increasing (instance_id, geometry_id, prim_id).
+        max_hits: keep only the nearest ``max_hits`` of each ray (None: all, however many).
+        precision: ``"reference"`` (f64 on all CPU cores) for now; the GPU tiers raise
+        `UnsupportedError` until they are built. Other arguments as in `intersect`.
+        """
+        fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
+        limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
+        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        arrays = self._core.trace_all(o, d, lo, hi, list(fields), precision, cull, _arrays.masks(mask, shape), limit)
+        return AllHits(shape, arrays, precision)
+
+    def count(
+        self,
+        origins: Any,
+        directions: Any,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "reference",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+    ) -> np.ndarray:
+        """int32 ``S``: the number of hits of each ray within [tmin, tmax], as `intersect_all`
+        counts them (``count(...) == intersect_all(...).counts``), without storing them."""
+        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        counts = self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape))
+        return counts.reshape(shape)
+
+    def contains(self, points: Any, *, precision: Precision = "reference", method: str = "parity") -> np.ndarray:
+        """bool ``S`` for points of shape ``S + (3,)``: whether each lies inside any instance.
+
+        method: ``"parity"`` (default) casts one ray per point and counts each instance's
+        crossings, each exactly once (the exact test decides rays through edges and vertices):
+        no jitter, no vote, the same answer every time. It needs closed meshes (`Mesh.is_closed`)
+        and raises ValueError otherwise. ``"winding"``: the generalized winding number of each
+        instance (Jacobson et al. 2013) is at least 1/2; meaningful for meshes with holes too.
+        A point exactly on a surface counts as inside (parity).
+        precision: ``"reference"`` (f64 on all CPU cores) for now.
+        """
+        if method not in ("parity", "winding"):
+            raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")
+        p = _arrays.real_coordinates("points", points)
+        if p.ndim == 0 or p.shape[-1] != 3:
+            raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+        if method == "parity":
+            open_meshes = sorted({i for i, x in enumerate(self.instances) if not x.mesh.is_closed})
+            if open_meshes:
+                raise ValueError(
+                    f"instances {open_meshes} are not closed meshes (Mesh.is_closed), so the parity of "
+                    "crossings says nothing: use method='winding'"
+                )
+        inside = self._core.contains(np.ascontiguousarray(p.reshape(-1, 3)), precision, method == "winding")
+        return inside.reshape(p.shape[:-1])
+
     def __repr__(self) -> str:
         return f"<vkray.Scene {len(self.instances)} instances on {self.device.name!r}>"
 
 
 # precision, cull, build, backend and vertex_format are checked by the core alone: its
 # ValueError names the argument, the choices and the value given.
+
+
+def _closed(faces: np.ndarray) -> bool:
+    """Every directed edge once, and its reverse once."""
+    f = faces.astype(np.int64)
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    if np.any(directed[:, 0] == directed[:, 1]):
+        return False
+    key = directed[:, 0] * (int(f.max()) + 1) + directed[:, 1]
+    reverse = directed[:, 1] * (int(f.max()) + 1) + directed[:, 0]
+    unique = np.unique(key)
+    return len(unique) == len(key) and bool(np.isin(reverse, unique, assume_unique=False).all())
+
+
+class AllHits:
+    """Every hit of every ray, from `Scene.intersect_all`, in CSR form.
+
+    offsets: int64 ``(N + 1,)``: ray i's hits are entries ``offsets[i]:offsets[i + 1]`` (rays in
+    the flattened order of the batch shape ``S``).
+    counts: int64 ``S``: hits per ray. ray_index: int64 ``(H,)``: the ray of each hit.
+    t, prim_id, instance_id, custom_index, geometry_id, uv, normal, position: one entry per hit,
+    as `Hits` has them per ray (float64 t, uv and position), for the fields asked; else None.
+    Each ray's hits are in increasing t; hits at the same t in increasing (instance_id,
+    geometry_id, prim_id). ``hits[i]`` is ray i's hits as `Hits` of shape ``(count,)``.
+    """
+
+    t: Optional[np.ndarray]
+    prim_id: Optional[np.ndarray]
+    instance_id: Optional[np.ndarray]
+    custom_index: Optional[np.ndarray]
+    uv: Optional[np.ndarray]
+    normal: Optional[np.ndarray]
+    geometry_id: Optional[np.ndarray]
+    position: Optional[np.ndarray]
+
+    def __init__(self, shape: Tuple[int, ...], arrays: Dict[str, np.ndarray], precision: Precision) -> None:
+        self.shape = shape
+        self.precision: Precision = precision
+        self.offsets: np.ndarray = arrays["offsets"]
+        self.ray_index: np.ndarray = arrays["ray_index"]
+        self.counts: np.ndarray = np.diff(self.offsets).reshape(shape)
+        for name in HIT_FIELDS:
+            setattr(self, name, arrays.get(name))
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def __getitem__(self, ray: int) -> Hits:
+        if not isinstance(ray, (int, np.integer)) or isinstance(ray, bool):
+            raise TypeError(f"AllHits is indexed by a ray's flat index, got {ray!r}")
+        n = len(self)
+        if not -n <= int(ray) < n:
+            raise IndexError(f"ray {ray} of {n}")
+        lo, hi = self.offsets[int(ray) % n], self.offsets[int(ray) % n + 1]
+        fields = {name: getattr(self, name)[lo:hi] for name in HIT_FIELDS if getattr(self, name) is not None}
+        return Hits((int(hi - lo),), fields, self.precision)
+
+    def __repr__(self) -> str:
+        return f"<vkray.AllHits rays={len(self)} hits={len(self.ray_index)} precision={self.precision!r}>"
 
 
 def _check_outputs(outputs: Iterable[str]) -> Tuple[str, ...]:

@@ -153,3 +153,28 @@ class Scene:
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
     ) -> Dict[str, NDArray[Any]]: ...
+    def trace_all(
+        self,
+        origins: _Vec3s,
+        directions: _Vec3s,
+        tmin: _PerItem,
+        tmax: _PerItem,
+        fields: List[str],
+        precision: Precision = "reference",
+        cull: Cull = None,
+        mask: Union[int, NDArray[np.uint8], None] = None,
+        max_hits: Optional[int] = None,
+    ) -> Dict[str, NDArray[Any]]: ...
+    def count(
+        self,
+        origins: _Vec3s,
+        directions: _Vec3s,
+        tmin: _PerItem,
+        tmax: _PerItem,
+        precision: Precision = "reference",
+        cull: Cull = None,
+        mask: Union[int, NDArray[np.uint8], None] = None,
+    ) -> NDArray[np.int32]: ...
+    def contains(
+        self, points: _Vec3s, precision: Precision = "reference", winding: bool = False
+    ) -> NDArray[np.bool_]: ...

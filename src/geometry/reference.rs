@@ -230,6 +230,35 @@ impl<'a> ReferenceTracer<'a> {
         best
     }
 
+    /// Every hit of `ray` within [tmin, tmax] among the sets its `mask` sees and the sides `cull`
+    /// keeps, appended to `hits` in the order `ReferenceHit::is_before` defines (by t, then by
+    /// instance and triangle). The watertight test reports each crossing of a surface once: a ray
+    /// through a shared edge or vertex hits exactly one of the triangles there, while distinct
+    /// triangles at the same t (coplanar copies, instances in one place) are all reported.
+    pub fn trace_every(&self, ray: &Ray64, mask: u8, cull: Cull, hits: &mut Vec<ReferenceHit>) {
+        let first = hits.len();
+        let mut tmax = ray.tmax;
+        self.top.traverse(ray, &mut tmax, |instance, tmax| {
+            let set = &self.sets[instance as usize];
+            if set.mask & mask == 0 {
+                return true;
+            }
+            let local = ShearedRay::new(Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) });
+            set.triangles.bvh().traverse(&local.ray, tmax, |prim, _| {
+                let [a, b, c] = set.triangles.triangle(prim as usize);
+                if let Some(hit) = watertight(&local, a, b, c) {
+                    if set.cull_disable || cull.keeps(hit.front != set.flip_facing) {
+                        hits.push(ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim });
+                    }
+                }
+                true
+            });
+            true
+        });
+        hits[first..]
+            .sort_unstable_by(|x, y| x.t.total_cmp(&y.t).then((x.instance, x.prim).cmp(&(y.instance, y.prim))));
+    }
+
     /// Traces every ray (and its mask) on all cores; `out[i]` gets ray i's hit.
     pub fn trace_all(
         &self,

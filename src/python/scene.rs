@@ -3,7 +3,10 @@
 
 use std::sync::RwLock;
 
-use numpy::{PyArrayDescrMethods, PyReadonlyArray1, PyReadonlyArray3, PyUntypedArray, PyUntypedArrayMethods};
+use numpy::{
+    PyArray1, PyArrayDescrMethods, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray3, PyUntypedArray,
+    PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyMemoryError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -12,6 +15,7 @@ use super::arrays::{Bound1, MaskArray, Vec3Array};
 use super::device::stats_dict;
 use super::mesh::PyMesh;
 use super::run;
+use crate::error::try_vec;
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::rays::Rays;
 use crate::gpu::memory::host_memory_available;
@@ -173,6 +177,178 @@ impl PyScene {
         }
         Ok(result)
     }
+
+    /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
+    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="reference", cull=None, mask=None, max_hits=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn trace_all<'py>(
+        &self,
+        py: Python<'py>,
+        origins: &Bound<'py, PyAny>,
+        directions: &Bound<'py, PyAny>,
+        tmin: &Bound<'py, PyAny>,
+        tmax: &Bound<'py, PyAny>,
+        fields: Vec<String>,
+        precision: &str,
+        cull: Option<&str>,
+        mask: Option<&Bound<'py, PyAny>>,
+        max_hits: Option<usize>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let request =
+            Request { query: Query::Closest, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
+        if max_hits == Some(0) {
+            return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
+        }
+        let named = fields_named(&fields)?;
+        let mask = mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF));
+        let origins = Vec3Array::extract("origins", origins)?;
+        let directions = Vec3Array::extract("directions", directions)?;
+        let (tmin, tmax) = (Bound1::extract("tmin", tmin)?, Bound1::extract("tmax", tmax)?);
+        let rays = Rays {
+            origins: origins.view()?,
+            directions: directions.view()?,
+            tmin: tmin.view()?,
+            tmax: tmax.view()?,
+            mask: mask.view()?,
+        };
+        let (offsets, ray_index, columns) = run(py, |interrupt| {
+            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+            let all = self.tracer.trace_all(&scene, &rays, request, max_hits.unwrap_or(usize::MAX), interrupt)?;
+            let h = all.hits.len();
+            let mut columns = named.iter().map(|(_, f)| Column::new(*f, h)).collect::<crate::Result<Vec<_>>>()?;
+            let mut sink = HitSink::default();
+            for ((_, field), column) in named.iter().zip(columns.iter_mut()) {
+                match field {
+                    Some(field) => sink.set(*field, column.bytes()),
+                    None => sink.position = Some(column.bytes()),
+                }
+            }
+            self.tracer.write_all(&scene, &all.hits, &mut sink);
+            let mut ray_index = try_vec(h, 0i64, "the hits' ray indices")?;
+            for (ray, pair) in all.offsets.windows(2).enumerate() {
+                ray_index[pair[0] as usize..pair[1] as usize].fill(ray as i64);
+            }
+            Ok((all.offsets, ray_index, columns))
+        })?;
+        let result = PyDict::new(py);
+        result.set_item("offsets", PyArray1::from_vec(py, offsets))?;
+        result.set_item("ray_index", PyArray1::from_vec(py, ray_index))?;
+        for ((name, _), column) in named.into_iter().zip(columns) {
+            result.set_item(name, column.into_array(py)?)?;
+        }
+        Ok(result)
+    }
+
+    /// The number of hits of each ray (int32, N).
+    #[pyo3(signature = (origins, directions, tmin, tmax, precision="reference", cull=None, mask=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn count<'py>(
+        &self,
+        py: Python<'py>,
+        origins: &Bound<'py, PyAny>,
+        directions: &Bound<'py, PyAny>,
+        tmin: &Bound<'py, PyAny>,
+        tmax: &Bound<'py, PyAny>,
+        precision: &str,
+        cull: Option<&str>,
+        mask: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyUntypedArray>> {
+        let request =
+            Request { query: Query::Closest, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
+        let mask = mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF));
+        let origins = Vec3Array::extract("origins", origins)?;
+        let directions = Vec3Array::extract("directions", directions)?;
+        let (tmin, tmax) = (Bound1::extract("tmin", tmin)?, Bound1::extract("tmax", tmax)?);
+        let rays = Rays {
+            origins: origins.view()?,
+            directions: directions.view()?,
+            tmin: tmin.view()?,
+            tmax: tmax.view()?,
+            mask: mask.view()?,
+        };
+        let counts = empty(py, &[rays.len()], "int32")?;
+        let out: &mut [i32] = bytemuck::cast_slice_mut(bytes_of(&counts));
+        run(py, |interrupt| {
+            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+            self.tracer.count(&scene, &rays, request, out, interrupt)
+        })?;
+        Ok(counts)
+    }
+
+    /// Whether each point ((N, 3)) is inside any instance: by parity or by winding number.
+    #[pyo3(signature = (points, precision="reference", winding=false))]
+    fn contains<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        precision: &str,
+        winding: bool,
+    ) -> PyResult<Bound<'py, PyUntypedArray>> {
+        let precision = Precision::parse(precision)?;
+        let points = Vec3Array::extract("points", points)?;
+        let points = points.view()?;
+        let inside = empty(py, &[points.rows()], "bool")?;
+        let out = bytes_of(&inside);
+        run(py, |interrupt| {
+            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+            self.tracer.contains(&scene, points, precision, winding, out, interrupt)
+        })?;
+        Ok(inside)
+    }
+}
+
+/// One field of all hits, as the core writes it: typed, so that it becomes a numpy array without
+/// a copy.
+enum Column {
+    F64(Vec<f64>, usize),
+    F32(Vec<f32>, usize),
+    I32(Vec<i32>),
+}
+
+impl Column {
+    /// A column of `hits` entries for `field` (None: `position`) in the f64 tier's widths.
+    fn new(field: Option<Field>, hits: usize) -> crate::Result<Column> {
+        Ok(match field {
+            None => Column::F64(try_vec(3 * hits, 0.0, "the hits' positions")?, 3),
+            Some(Field::T) => Column::F64(try_vec(hits, 0.0, "the hits' t")?, 1),
+            Some(Field::Uv) => Column::F64(try_vec(2 * hits, 0.0, "the hits' uv")?, 2),
+            Some(Field::Normal) => Column::F32(try_vec(3 * hits, 0.0, "the hits' normals")?, 3),
+            Some(_) => Column::I32(try_vec(hits, 0, "the hits' ids")?),
+        })
+    }
+
+    fn bytes(&mut self) -> &mut [u8] {
+        match self {
+            Column::F64(v, _) => bytemuck::cast_slice_mut(v),
+            Column::F32(v, _) => bytemuck::cast_slice_mut(v),
+            Column::I32(v) => bytemuck::cast_slice_mut(v),
+        }
+    }
+
+    fn into_array(self, py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+        fn shaped<'py, T: numpy::Element>(py: Python<'py>, v: Vec<T>, k: usize) -> PyResult<Bound<'py, PyAny>> {
+            let rows = v.len() / k;
+            let array = PyArray1::from_vec(py, v);
+            Ok(if k == 1 { array.into_any() } else { array.reshape([rows, k])?.into_any() })
+        }
+        match self {
+            Column::F64(v, k) => shaped(py, v, k),
+            Column::F32(v, k) => shaped(py, v, k),
+            Column::I32(v) => shaped(py, v, 1),
+        }
+    }
+}
+
+/// The fields named in `names` (None for `position`).
+fn fields_named(names: &[String]) -> PyResult<Vec<(String, Option<Field>)>> {
+    names
+        .iter()
+        .map(|name| match FIELDS.iter().copied().find(|f| f.name() == name) {
+            Some(field) => Ok((name.clone(), Some(field))),
+            None if name == "position" => Ok((name.clone(), None)),
+            None => Err(PyValueError::new_err(format!("unknown hit field {name:?}"))),
+        })
+        .collect()
 }
 
 /// Refuses a query whose outputs and working memory exceed the host memory available, before

@@ -5,9 +5,10 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::fields::{Field, HitSink};
-use crate::error::{try_vec, Result};
+use crate::error::{try_vec, Error, Result};
+use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
-use crate::geometry::precision::{plane_hit, world_normal, Cull};
+use crate::geometry::precision::{plane_hit, world_normal, Cull, Ray64};
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::Interrupt;
@@ -128,12 +129,16 @@ pub fn reference(
 /// Writes every field the sink asks for from f64 hits (whose `prim` counts among all parts of
 /// the mesh): `t` and `uv` as f64, normals from the f64 vertices, (geometry, triangle in it).
 fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) {
-    write_field(sink, Field::T, true, |i, dst| put_f64s(dst, &[hits[i].map_or(f64::INFINITY, |h| h.t)]));
-    write_field(sink, Field::Uv, true, |i, dst| put_f64s(dst, &hits[i].map_or([f64::NAN; 2], |h| [h.u, h.v])));
+    write_hit_fields(scene, sink, |i| hits[i]);
+}
+
+/// As `write_hits`, for the hit `hit(i)` of entry i (None: a miss).
+fn write_hit_fields(scene: &Scene, sink: &mut HitSink, hit: impl Fn(usize) -> Option<ReferenceHit> + Sync) {
+    let hit = &hit;
+    write_field(sink, Field::T, true, |i, dst| put_f64s(dst, &[hit(i).map_or(f64::INFINITY, |h| h.t)]));
+    write_field(sink, Field::Uv, true, |i, dst| put_f64s(dst, &hit(i).map_or([f64::NAN; 2], |h| [h.u, h.v])));
     let ids = |value: fn(&Scene, &ReferenceHit) -> i32| {
-        move |i: usize, dst: &mut [u8]| {
-            dst.copy_from_slice(&hits[i].as_ref().map_or(-1, |h| value(scene, h)).to_ne_bytes())
-        }
+        move |i: usize, dst: &mut [u8]| dst.copy_from_slice(&hit(i).map_or(-1, |h| value(scene, &h)).to_ne_bytes())
     };
     fn split(s: &Scene, h: &ReferenceHit) -> (usize, usize) {
         s.placements[h.instance as usize].triangles.split(h.prim as usize)
@@ -143,13 +148,154 @@ fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) 
     write_field(sink, Field::Custom, true, ids(|s, h| s.placements[h.instance as usize].custom_index as i32));
     write_field(sink, Field::Geometry, true, ids(|s, h| split(s, h).0 as i32));
     write_field(sink, Field::Normal, true, |i, dst| {
-        let n = hits[i].as_ref().map_or(DVec3::NAN, |h| {
+        let n = hit(i).map_or(DVec3::NAN, |h| {
             let placement = &scene.placements[h.instance as usize];
             let [a, b, c] = placement.triangles.triangle(h.prim as usize);
             world_normal(&placement.to_local, a, b, c)
         });
         put_f32s(dst, &n.as_vec3().to_array())
     });
+    if let Some(out) = sink.position.as_deref_mut() {
+        parallel::install(|| {
+            out.par_chunks_exact_mut(24).enumerate().with_min_len(1024).for_each(|(i, dst)| {
+                let point = hit(i).map_or(DVec3::NAN, |h| {
+                    let placement = &scene.placements[h.instance as usize];
+                    let [a, b, c] = placement.triangles.triangle(h.prim as usize);
+                    placement.to_scene.point(a + h.u * (b - a) + h.v * (c - a)) + scene.center
+                });
+                put_f64s(dst, &point.to_array())
+            })
+        });
+    }
+}
+
+/// Every hit of every ray, in f64 on the CPU: ray i's are `hits[offsets[i]..offsets[i + 1]]`, in
+/// the order `ReferenceTracer::trace_every` gives.
+pub struct AllHits {
+    pub offsets: Vec<i64>,
+    pub hits: Vec<ReferenceHit>,
+}
+
+/// Traces every ray for all of its hits (the nearest `max_hits` of each) on all cores.
+pub fn all_hits(scene: &Scene, rays: &Rays, cull: Cull, max_hits: usize, interrupt: &dyn Interrupt) -> Result<AllHits> {
+    let tracer = scene.reference_tracer();
+    let mut offsets = try_vec(rays.len() + 1, 0i64, "the offsets of all hits")?;
+    let mut hits: Vec<ReferenceHit> = Vec::new();
+    let mut failed = None;
+    in_blocks(rays.len(), interrupt, |range| {
+        if failed.is_some() {
+            return;
+        }
+        let start = range.start;
+        let per_ray: Vec<Vec<ReferenceHit>> = parallel::install(|| {
+            range
+                .into_par_iter()
+                .with_min_len(256)
+                .map(|i| {
+                    let mut found = Vec::new();
+                    tracer.trace_every(&rays.ray64(i, scene.center), rays.mask.get(i), cull, &mut found);
+                    found.truncate(max_hits);
+                    found
+                })
+                .collect()
+        });
+        let added: usize = per_ray.iter().map(Vec::len).sum();
+        if hits.try_reserve(added).is_err() {
+            failed = Some(Error::OutOfMemory(format!(
+                "{} hits found so far do not fit in host memory: trace fewer rays at a time, or set max_hits",
+                hits.len() + added
+            )));
+            return;
+        }
+        for (k, found) in per_ray.into_iter().enumerate() {
+            hits.extend(found);
+            offsets[start + k + 1] = hits.len() as i64;
+        }
+    })?;
+    match failed {
+        Some(error) => Err(error),
+        None => Ok(AllHits { offsets, hits }),
+    }
+}
+
+/// Writes every field the sink asks for, one entry per hit of `hits`, `position` included.
+pub fn write_all_hits(scene: &Scene, hits: &[ReferenceHit], sink: &mut HitSink) {
+    write_hit_fields(scene, sink, |i| Some(hits[i]));
+}
+
+/// The number of hits of each ray, in f64 on the CPU, into `out`.
+pub fn count_hits(scene: &Scene, rays: &Rays, cull: Cull, out: &mut [i32], interrupt: &dyn Interrupt) -> Result<()> {
+    let tracer = scene.reference_tracer();
+    in_blocks(rays.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            out[range].par_iter_mut().enumerate().with_min_len(256).for_each_init(Vec::new, |found, (k, count)| {
+                found.clear();
+                tracer.trace_every(&rays.ray64(start + k, scene.center), rays.mask.get(start + k), cull, found);
+                *count = found.len() as i32;
+            })
+        });
+    })
+}
+
+/// The direction of the one ray each point casts for `contains` by parity: fixed, unit, and
+/// along no axis or diagonal (the exact test decides rays through edges anyway).
+const PARITY_DIRECTION: DVec3 = DVec3::new(0.6, 0.48, 0.64);
+
+/// Whether each point lies inside any instance of the scene: by the parity of the crossings of
+/// one ray per point with each instance (exact: each crossing counted once), or by the
+/// generalized winding number (>= 1/2). A point on a surface counts as inside.
+pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], interrupt: &dyn Interrupt) -> Result<()> {
+    let tracer = scene.reference_tracer();
+    let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
+    in_blocks(out.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            out[range].par_iter_mut().enumerate().with_min_len(64).for_each_init(Vec::new, |found, (k, inside)| {
+                let p = point(start + k);
+                *inside = u8::from(if winding {
+                    scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5)
+                } else {
+                    found.clear();
+                    let ray = Ray64 { origin: p, direction: PARITY_DIRECTION, tmin: 0.0, tmax: f64::INFINITY };
+                    tracer.trace_every(&ray, 0xFF, Cull::None, found);
+                    on_surface_or_odd(found, scene.placements.len())
+                });
+            })
+        });
+    })
+}
+
+/// Whether any hit is at t = 0 (the point is on a surface), or any instance is crossed an odd
+/// number of times.
+fn on_surface_or_odd(hits: &[ReferenceHit], instances: usize) -> bool {
+    if hits.iter().any(|h| h.t == 0.0) {
+        return true;
+    }
+    let mut odd = vec![false; instances];
+    for h in hits {
+        odd[h.instance as usize] ^= true;
+    }
+    odd.into_iter().any(|o| o)
+}
+
+/// The generalized winding number of an instance's triangles about `p` (scene frame): the sum
+/// of their signed solid angles over 4π (Jacobson et al. 2013; each by Van Oosterom and
+/// Strackee's formula), 1 inside a closed surface, 0 outside, in between near holes; a mirroring
+/// placement turns its triangles inside out, so its sum is negated.
+fn winding_number(placement: &crate::scene::Placement, p: DVec3) -> f64 {
+    let triangles = &placement.triangles;
+    let total: f64 = (0..triangles.faces.len())
+        .map(|t| {
+            let [a, b, c] = triangles.triangle(t).map(|v| placement.to_scene.point(v) - p);
+            let (la, lb, lc) = (a.length(), b.length(), c.length());
+            let numerator = a.dot(b.cross(c));
+            let denominator = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
+            2.0 * numerator.atan2(denominator)
+        })
+        .sum();
+    let mirrored = placement.to_scene.linear.determinant() < 0.0;
+    total / (4.0 * std::f64::consts::PI) * if mirrored { -1.0 } else { 1.0 }
 }
 
 /// The hit triangles of a batch: caller's prim, instance and geometry (int32, -1 on a miss),

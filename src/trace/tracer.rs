@@ -257,6 +257,91 @@ impl Tracer {
     }
 }
 
+impl Tracer {
+    /// Every hit of every ray (the nearest `max_hits` of each), for `write_all`. Answered by the
+    /// f64 tier on the CPU (`precision="reference"`) for now.
+    pub fn trace_all(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        max_hits: usize,
+        interrupt: &dyn Interrupt,
+    ) -> Result<tiers::AllHits> {
+        self.check_host_query(scene, request.precision, "intersect_all")?;
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        rays.check()?;
+        tiers::all_hits(scene, rays, request.cull, max_hits, interrupt)
+    }
+
+    /// Writes the fields `sink` asks for, one entry per hit of `trace_all` (on the same scene).
+    pub fn write_all(&self, scene: &Scene, hits: &[crate::geometry::reference::ReferenceHit], sink: &mut HitSink) {
+        tiers::write_all_hits(scene, hits, sink);
+    }
+
+    /// The number of hits of each ray, into `out`.
+    pub fn count(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        out: &mut [i32],
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        self.check_host_query(scene, request.precision, "count")?;
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        rays.check()?;
+        if out.len() != rays.len() {
+            return Err(invalid_value(format!("count's output has {} entries for {} rays", out.len(), rays.len())));
+        }
+        tiers::count_hits(scene, rays, request.cull, out, interrupt)
+    }
+
+    /// Whether each point is inside any instance (1) or not (0), into `out`: by parity (the
+    /// caller checked that every mesh is closed) or by winding number.
+    pub fn contains(
+        &self,
+        scene: &Scene,
+        points: crate::geometry::arrays::Vec3s,
+        precision: Precision,
+        winding: bool,
+        out: &mut [u8],
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        self.check_host_query(scene, precision, "contains")?;
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        if out.len() != points.rows() {
+            return Err(invalid_value(format!(
+                "contains' output has {} entries for {} points",
+                out.len(),
+                points.rows()
+            )));
+        }
+        if let Some(i) = (0..points.rows()).find(|&i| !points.row_f64(i).iter().all(|c| c.is_finite())) {
+            return Err(invalid_value(format!("points row {i} is not finite: {:?}", points.row_f64(i))));
+        }
+        tiers::contains(scene, points, winding, out, interrupt)
+    }
+
+    /// The queries answered on the CPU alone for now: the f64 tier, triangle meshes.
+    fn check_host_query(&self, scene: &Scene, precision: Precision, query: &str) -> Result<()> {
+        self.ctx.check_usable()?;
+        if precision != Precision::Reference {
+            return Err(Error::Unsupported(format!(
+                "{query} runs at precision='reference' (f64 on all CPU cores, each crossing counted once) \
+                 for now; the GPU tiers of {query} are not built yet"
+            )));
+        }
+        if scene.has_spheres() {
+            return Err(Error::Unsupported(format!("{query} is for triangle meshes: this scene holds spheres")));
+        }
+        Ok(())
+    }
+}
+
 /// Checks what a query asks before any work: array sizes, fields the query can write, tiers the
 /// scene can be traced in.
 fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -> Result<()> {
