@@ -129,3 +129,159 @@ def rays_through(targets, seed: int, distance: float = 5.0):
     away *= distance / np.linalg.norm(away, axis=1, keepdims=True)
     origins = targets + away
     return origins, targets - origins
+
+
+# --- Added for tests/test_all_hits.py: pure-numpy oracles (every hit along a ray, generalized
+# --- winding numbers, distances to a surface, closedness) and closed test solids. No vkray here.
+
+
+def all_hits_brute(triangles, origins, directions, tmin=0.0, tmax=np.inf, rays_per_chunk=None):
+    """Every hit of every ray on every triangle (Möller–Trumbore in f64, closed triangles, no
+    tie-break), brute force. triangles: (F, 3, 3) world-space corners; origins, directions: (N, 3);
+    tmin, tmax: scalars or (N,). Returns a dict of flat arrays sorted by (ray, t, triangle):
+    ``ray``, ``tri``, ``t``, ``u``, ``v`` (weights of corners 1 and 2), ``front`` (the ray meets the
+    side ``cross(b - a, c - a)`` points to) and ``margin``: how near the hit is to being decided
+    otherwise by rounding (the smallest barycentric weight, and the sine of the angle between the
+    ray and the plane, whichever is smaller)."""
+    tri = np.asarray(triangles, dtype=np.float64)
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    n = len(o)
+    lo = np.broadcast_to(np.asarray(tmin, dtype=np.float64), (n,))
+    hi = np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,))
+    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    normal = np.cross(e1, e2)
+    area2 = np.linalg.norm(normal, axis=1)
+    step = rays_per_chunk or max(1, 1_000_000 // max(1, len(tri)))
+    out = {k: [] for k in ("ray", "tri", "t", "u", "v", "front", "margin")}
+    for start in range(0, n, step):
+        rd = d[start : start + step, None, :]
+        p = np.cross(rd, e2[None])
+        det = np.einsum("rfk,fk->rf", p, e1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / det
+            s = o[start : start + step, None, :] - a[None]
+            u = np.einsum("rfk,rfk->rf", s, p) * inv
+            q = np.cross(s, e1[None])
+            v = np.einsum("rfk,rfk->rf", np.broadcast_to(rd, q.shape), q) * inv
+            t = np.einsum("rfk,fk->rf", q, e2) * inv
+            r_lo, r_hi = lo[start : start + step, None], hi[start : start + step, None]
+            hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= r_lo) & (t <= r_hi)
+        r, f = np.nonzero(hit)
+        length = np.linalg.norm(d[start + r], axis=1)
+        sine = np.abs(det[r, f]) / (length * area2[f])
+        out["ray"].append(start + r)
+        out["tri"].append(f)
+        out["t"].append(t[r, f])
+        out["u"].append(u[r, f])
+        out["v"].append(v[r, f])
+        out["front"].append(det[r, f] > 0)
+        out["margin"].append(np.minimum.reduce([u[r, f], v[r, f], 1 - u[r, f] - v[r, f], sine]))
+    hits = {k: np.concatenate(x) if x else np.zeros(0) for k, x in out.items()}
+    order = np.lexsort((hits["tri"], hits["t"], hits["ray"]))
+    return {k: x[order] for k, x in hits.items()}
+
+
+def winding_numbers(vertices, faces, points, points_per_chunk=None):
+    """Generalized winding numbers (Jacobson, Kavan and Sorkine-Hornung 2013) of points with
+    respect to a triangle mesh: the sum of the triangles' signed solid angles over 4 pi, each by Van
+    Oosterom and Strackee's formula. 1 inside and 0 outside a closed outward-oriented mesh."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    step = points_per_chunk or max(1, 500_000 // max(1, len(tri)))
+    total = np.zeros(len(p))
+    for start in range(0, len(p), step):
+        rel = tri[None] - p[start : start + step, None, None, :]  # (P, F, 3 corners, 3)
+        a, b, c = rel[:, :, 0], rel[:, :, 1], rel[:, :, 2]
+        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+        numerator = np.einsum("pfk,pfk->pf", a, np.cross(b, c))
+        dot = lambda x, y: np.einsum("pfk,pfk->pf", x, y)  # noqa: E731
+        denominator = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
+        total[start : start + step] = 2.0 * np.arctan2(numerator, denominator).sum(axis=1)
+    return total / (4.0 * np.pi)
+
+
+def _segment_distance(p, a, b):
+    ab = b - a
+    w = np.clip(np.einsum("...k,...k->...", p - a, ab) / np.einsum("...k,...k->...", ab, ab), 0.0, 1.0)
+    return np.linalg.norm(p - (a + w[..., None] * ab), axis=-1)
+
+
+def surface_distance(vertices, faces, points, points_per_chunk=None):
+    """Each point's distance to the nearest point of the mesh's (closed) triangles, brute force."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    step = points_per_chunk or max(1, 300_000 // max(1, len(tri)))
+    out = np.empty(len(p))
+    for start in range(0, len(p), step):
+        q = p[start : start + step, None, :]
+        height = np.einsum("pfk,fk->pf", q - a, normal)
+        foot = q - height[..., None] * normal
+        inside = np.ones(height.shape, bool)
+        for x, y in ((a, b), (b, c), (c, a)):
+            inside &= np.einsum("pfk,fk->pf", np.cross(y - x, foot - x), normal) >= 0
+        edges = np.minimum.reduce([_segment_distance(q, a, b), _segment_distance(q, b, c), _segment_distance(q, c, a)])
+        out[start : start + step] = np.where(inside, np.abs(height), edges).min(axis=1)
+    return out
+
+
+def directed_edges_closed(faces) -> bool:
+    """Whether every directed edge (a, b) of the faces appears exactly once and (b, a) exactly once."""
+    f = np.asarray(faces, dtype=np.int64)
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    pairs = {tuple(e) for e in edges.tolist()}
+    return len(pairs) == len(edges) and all((b, a) in pairs for a, b in pairs)
+
+
+def voxel_surface(occupied, size=1.0, offset=0.0):
+    """The boundary of a union of unit voxels (a bool (X, Y, Z) array; voxel (i, j, k) spans
+    [i, i+1] x [j, j+1] x [k, k+1]), two outward triangles per exposed unit square, sharing the grid's
+    vertices: a closed mesh without T-junctions, scaled by `size` and moved by `offset`."""
+    occupied = np.asarray(occupied, dtype=bool)
+    index, vertices, faces = {}, [], []
+
+    def vertex(corner):
+        if corner not in index:
+            index[corner] = len(vertices)
+            vertices.append(corner)
+        return index[corner]
+
+    padded = np.pad(occupied, 1)
+    for i, j, k in zip(*np.nonzero(occupied)):
+        for axis in range(3):
+            for side in (0, 1):
+                step = [0, 0, 0]
+                step[axis] = 1 if side else -1
+                if padded[i + 1 + step[0], j + 1 + step[1], k + 1 + step[2]]:
+                    continue
+                b, c = (axis + 1) % 3, (axis + 2) % 3  # cyclic: cross(e_b, e_c) = e_axis
+                quad = []
+                for db, dc in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                    corner = [i, j, k]
+                    corner[axis] += side
+                    corner[b] += db
+                    corner[c] += dc
+                    quad.append(vertex(tuple(corner)))
+                if not side:  # outward is -axis: reverse the winding, keeping the diagonal q0-q2
+                    quad = [quad[0], quad[3], quad[2], quad[1]]
+                faces += [[quad[0], quad[1], quad[2]], [quad[0], quad[2], quad[3]]]
+    v = np.array(vertices, dtype=np.float64) * size + offset
+    return v, np.array(faces, dtype=np.int64)
+
+
+def box(lo=(0.0, 0.0, 0.0), hi=(1.0, 1.0, 1.0)):
+    """An axis-aligned box as 12 outward triangles over 8 vertices (closed)."""
+    v, f = voxel_surface(np.ones((1, 1, 1), bool))
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    return lo + v * (hi - lo), f
+
+
+def triangle_soup(n: int, seed: int):
+    """`n` random triangles of random sizes in the unit cube (they cross each other freely)."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0.0, 1.0, (n, 1, 3))
+    corners = centres + rng.normal(size=(n, 3, 3)) * rng.uniform(0.02, 0.3, (n, 1, 1))
+    return corners.reshape(-1, 3), np.arange(3 * n, dtype=np.int64).reshape(n, 3)

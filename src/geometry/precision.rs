@@ -250,6 +250,11 @@ impl Aabb {
     }
 
     /// This box grown by `pad` on every side.
+    /// Whether `p` lies in the box (its faces included).
+    pub fn contains(&self, p: DVec3) -> bool {
+        p.cmpge(self.min).all() && p.cmple(self.max).all()
+    }
+
     pub fn padded(&self, pad: f64) -> Aabb {
         Aabb { min: self.min - DVec3::splat(pad), max: self.max + DVec3::splat(pad) }
     }
@@ -284,6 +289,40 @@ impl Aabb {
         let exit = ray.tmax.min(far.x).min(far.y).min(far.z);
         (enter <= exit).then_some(enter)
     }
+}
+
+/// The point of triangle (a, b, c) closest to `p` (Ericson, "Real-Time Collision Detection",
+/// 5.1.5: by the Voronoi region of `p` among the triangle's vertices, edges and face).
+pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return a;
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return b;
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return a + ab * (d1 / (d1 - d3));
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return c;
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return a + ac * (d2 / (d2 - d6));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+    }
+    let denominator = 1.0 / (va + vb + vc);
+    a + ab * (vb * denominator) + ac * (vc * denominator)
 }
 
 /// The f32 nearest to `v` on the outside of a box: below it for a minimum, above for a maximum.

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use super::parallel;
 
-use crate::geometry::precision::{watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
+use crate::geometry::precision::{closest_point_on_triangle, watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
 
 /// Items one leaf holds at most.
 const LEAF_ITEMS: usize = 4;
@@ -257,6 +257,29 @@ impl<'a> ReferenceTracer<'a> {
         });
         hits[first..]
             .sort_unstable_by(|x, y| x.t.total_cmp(&y.t).then((x.instance, x.prim).cmp(&(y.instance, y.prim))));
+    }
+
+    /// Whether `p` (scene frame) lies on a triangle of any set, to within `ulps` units in the last
+    /// place of the coordinates involved: the on-surface test of `contains`, which a ray from
+    /// `p` cannot make (its t at the surface it starts on rounds to either side of 0).
+    pub fn on_surface(&self, p: DVec3, ulps: f64) -> bool {
+        self.sets.iter().any(|set| {
+            let tolerance = |scale: f64| ulps * f64::EPSILON * scale.max(f64::MIN_POSITIVE);
+            if !set.bounds.padded(tolerance(p.abs().max_element())).contains(p) {
+                return false;
+            }
+            let local = set.to_local.point(p);
+            // A zero-length probe enters exactly the (padded) boxes that hold the point.
+            let probe = Ray64 { origin: local, direction: DVec3::ONE, tmin: 0.0, tmax: 0.0 };
+            let mut found = false;
+            set.triangles.bvh().traverse(&probe, &mut 0.0, |prim, _| {
+                let [a, b, c] = set.triangles.triangle(prim as usize);
+                let scale = [local, a, b, c].iter().map(|v| v.abs().max_element()).fold(0.0, f64::max);
+                found = (closest_point_on_triangle(local, a, b, c) - local).length() <= tolerance(scale);
+                !found
+            });
+            found
+        })
     }
 
     /// Traces every ray (and its mask) on all cores; `out[i]` gets ray i's hit.

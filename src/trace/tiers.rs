@@ -244,7 +244,8 @@ const PARITY_DIRECTION: DVec3 = DVec3::new(0.6, 0.48, 0.64);
 
 /// Whether each point lies inside any instance of the scene: by the parity of the crossings of
 /// one ray per point with each instance (exact: each crossing counted once), or by the
-/// generalized winding number (>= 1/2). A point on a surface counts as inside.
+/// generalized winding number (>= 1/2). A point on a surface (to within `ON_SURFACE_ULPS`)
+/// counts as inside, by either method.
 pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], interrupt: &dyn Interrupt) -> Result<()> {
     let tracer = scene.reference_tracer();
     let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
@@ -253,25 +254,27 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
         parallel::install(|| {
             out[range].par_iter_mut().enumerate().with_min_len(64).for_each_init(Vec::new, |found, (k, inside)| {
                 let p = point(start + k);
-                *inside = u8::from(if winding {
+                *inside = u8::from(if tracer.on_surface(p, ON_SURFACE_ULPS) {
+                    true
+                } else if winding {
                     scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5)
                 } else {
                     found.clear();
                     let ray = Ray64 { origin: p, direction: PARITY_DIRECTION, tmin: 0.0, tmax: f64::INFINITY };
                     tracer.trace_every(&ray, 0xFF, Cull::None, found);
-                    on_surface_or_odd(found, scene.placements.len())
+                    odd_crossings(found, scene.placements.len())
                 });
             })
         });
     })
 }
 
-/// Whether any hit is at t = 0 (the point is on a surface), or any instance is crossed an odd
-/// number of times.
-fn on_surface_or_odd(hits: &[ReferenceHit], instances: usize) -> bool {
-    if hits.iter().any(|h| h.t == 0.0) {
-        return true;
-    }
+/// How close to a triangle a point counts as on it, in units in the last place of the
+/// coordinates: the rounding of re-centring a point and of the distance's own arithmetic.
+const ON_SURFACE_ULPS: f64 = 8.0;
+
+/// Whether any instance is crossed an odd number of times (the point is off every surface).
+fn odd_crossings(hits: &[ReferenceHit], instances: usize) -> bool {
     let mut odd = vec![false; instances];
     for h in hits {
         odd[h.instance as usize] ^= true;
