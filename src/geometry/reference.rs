@@ -203,29 +203,12 @@ impl<'a> ReferenceTracer<'a> {
     /// sides `cull` keeps; with `any`, the first one found.
     pub fn trace(&self, ray: &Ray64, mask: u8, cull: Cull, any: bool) -> Option<ReferenceHit> {
         let mut best: Option<ReferenceHit> = None;
-        let mut tmax = ray.tmax;
-        self.top.traverse(ray, &mut tmax, |instance, tmax| {
-            let set = &self.sets[instance as usize];
-            if set.mask & mask == 0 {
-                return true;
+        self.for_each_hit(ray, mask, cull, |candidate, tmax| {
+            if best.is_none_or(|b| candidate.is_before(&b)) {
+                best = Some(candidate);
+                *tmax = candidate.t;
             }
-            let local = ShearedRay::new(Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) });
-            let mut stop = false;
-            set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
-                let [a, b, c] = set.triangles.triangle(prim as usize);
-                let Some(hit) = watertight(&local, a, b, c) else { return true };
-                if hit.t > *tmax || !(set.cull_disable || cull.keeps(hit.front != set.flip_facing)) {
-                    return true;
-                }
-                let candidate = ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim };
-                if best.is_none_or(|b| candidate.is_before(&b)) {
-                    best = Some(candidate);
-                    *tmax = hit.t;
-                }
-                stop = any;
-                !any
-            });
-            !stop
+            !any
         });
         best
     }
@@ -237,6 +220,17 @@ impl<'a> ReferenceTracer<'a> {
     /// triangles at the same t (coplanar copies, instances in one place) are all reported.
     pub fn trace_every(&self, ray: &Ray64, mask: u8, cull: Cull, hits: &mut Vec<ReferenceHit>) {
         let first = hits.len();
+        self.for_each_hit(ray, mask, cull, |hit, _| {
+            hits.push(hit);
+            true
+        });
+        hits[first..]
+            .sort_unstable_by(|x, y| x.t.total_cmp(&y.t).then((x.instance, x.prim).cmp(&(y.instance, y.prim))));
+    }
+
+    /// Calls `found` with each hit of `ray` no farther than the `tmax` it keeps (which `found`
+    /// may lower), among the sets `mask` sees and the sides `cull` keeps, until it returns false.
+    fn for_each_hit(&self, ray: &Ray64, mask: u8, cull: Cull, mut found: impl FnMut(ReferenceHit, &mut f64) -> bool) {
         let mut tmax = ray.tmax;
         self.top.traverse(ray, &mut tmax, |instance, tmax| {
             let set = &self.sets[instance as usize];
@@ -244,19 +238,18 @@ impl<'a> ReferenceTracer<'a> {
                 return true;
             }
             let local = ShearedRay::new(Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) });
-            set.triangles.bvh().traverse(&local.ray, tmax, |prim, _| {
+            let mut go_on = true;
+            set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
                 let [a, b, c] = set.triangles.triangle(prim as usize);
-                if let Some(hit) = watertight(&local, a, b, c) {
-                    if set.cull_disable || cull.keeps(hit.front != set.flip_facing) {
-                        hits.push(ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim });
-                    }
+                let Some(hit) = watertight(&local, a, b, c) else { return true };
+                if hit.t > *tmax || !(set.cull_disable || cull.keeps(hit.front != set.flip_facing)) {
+                    return true;
                 }
-                true
+                go_on = found(ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim }, tmax);
+                go_on
             });
-            true
+            go_on
         });
-        hits[first..]
-            .sort_unstable_by(|x, y| x.t.total_cmp(&y.t).then((x.instance, x.prim).cmp(&(y.instance, y.prim))));
     }
 
     /// Whether `p` (scene frame) lies on a triangle of any set, to within `ulps` units in the last

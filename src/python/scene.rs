@@ -44,6 +44,44 @@ impl PyScene {
     }
 }
 
+/// The borrowed arrays of a batch of rays, as the Python layer passes them.
+struct RayArrays<'py> {
+    origins: Vec3Array<'py>,
+    directions: Vec3Array<'py>,
+    tmin: Bound1<'py>,
+    tmax: Bound1<'py>,
+    mask: MaskArray<'py>,
+}
+
+impl<'py> RayArrays<'py> {
+    fn extract(
+        origins: &Bound<'py, PyAny>,
+        directions: &Bound<'py, PyAny>,
+        tmin: &Bound<'py, PyAny>,
+        tmax: &Bound<'py, PyAny>,
+        mask: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Self> {
+        Ok(RayArrays {
+            origins: Vec3Array::extract("origins", origins)?,
+            directions: Vec3Array::extract("directions", directions)?,
+            tmin: Bound1::extract("tmin", tmin)?,
+            tmax: Bound1::extract("tmax", tmax)?,
+            mask: mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF)),
+        })
+    }
+
+    /// The core's view of the batch (no copies).
+    fn rays(&self) -> PyResult<Rays<'_>> {
+        Ok(Rays {
+            origins: self.origins.view()?,
+            directions: self.directions.view()?,
+            tmin: self.tmin.view()?,
+            tmax: self.tmax.view()?,
+            mask: self.mask.view()?,
+        })
+    }
+}
+
 /// A new uninitialized numpy array (numpy raises MemoryError where it cannot be had); the core
 /// writes every element before the caller sees it.
 fn empty<'py>(py: Python<'py>, shape: &[usize], dtype: &str) -> PyResult<Bound<'py, PyUntypedArray>> {
@@ -146,17 +184,8 @@ impl PyScene {
         let request =
             Request { query: Query::parse(query)?, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
         let wide = request.precision.is_f64();
-        let mask = mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF));
-        let origins = Vec3Array::extract("origins", origins)?;
-        let directions = Vec3Array::extract("directions", directions)?;
-        let (tmin, tmax) = (Bound1::extract("tmin", tmin)?, Bound1::extract("tmax", tmax)?);
-        let rays = Rays {
-            origins: origins.view()?,
-            directions: directions.view()?,
-            tmin: tmin.view()?,
-            tmax: tmax.view()?,
-            mask: mask.view()?,
-        };
+        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
+        let rays = batch.rays()?;
         let n = rays.len();
         check_fits(&self.tracer, request, &fields, n)?;
         let arrays = allocate(py, &fields, n, wide)?;
@@ -200,17 +229,8 @@ impl PyScene {
             return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
         }
         let named = fields_named(&fields)?;
-        let mask = mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF));
-        let origins = Vec3Array::extract("origins", origins)?;
-        let directions = Vec3Array::extract("directions", directions)?;
-        let (tmin, tmax) = (Bound1::extract("tmin", tmin)?, Bound1::extract("tmax", tmax)?);
-        let rays = Rays {
-            origins: origins.view()?,
-            directions: directions.view()?,
-            tmin: tmin.view()?,
-            tmax: tmax.view()?,
-            mask: mask.view()?,
-        };
+        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
+        let rays = batch.rays()?;
         let (offsets, ray_index, columns) = run(py, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
             let all = self.tracer.trace_all(&scene, &rays, request, max_hits.unwrap_or(usize::MAX), interrupt)?;
@@ -255,17 +275,8 @@ impl PyScene {
     ) -> PyResult<Bound<'py, PyUntypedArray>> {
         let request =
             Request { query: Query::Closest, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
-        let mask = mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF));
-        let origins = Vec3Array::extract("origins", origins)?;
-        let directions = Vec3Array::extract("directions", directions)?;
-        let (tmin, tmax) = (Bound1::extract("tmin", tmin)?, Bound1::extract("tmax", tmax)?);
-        let rays = Rays {
-            origins: origins.view()?,
-            directions: directions.view()?,
-            tmin: tmin.view()?,
-            tmax: tmax.view()?,
-            mask: mask.view()?,
-        };
+        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
+        let rays = batch.rays()?;
         let counts = empty(py, &[rays.len()], "int32")?;
         let out: &mut [i32] = bytemuck::cast_slice_mut(bytes_of(&counts));
         run(py, |interrupt| {
