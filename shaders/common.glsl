@@ -19,6 +19,11 @@ const uint OUT_GEOMETRY = 64u;
 // for what its scene holds and what its caller asked.
 layout(constant_id = 0) const uint OUTPUTS = 0x7Fu;
 layout(constant_id = 1) const uint RAY_FLAGS = 0u;
+// What each ray asks (trace::Query): the closest hit (or any, with TerminateOnFirstHit), or the
+// number of hits (COUNT: every crossing counted, none committed; written as out_prim).
+layout(constant_id = 3) const uint QUERY = 0u;
+const uint QUERY_CLOSEST = 0u;
+const uint QUERY_COUNT = 1u;
 
 // One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer RayBuffer { vec4 v[]; };

@@ -81,9 +81,9 @@ dvec3 exact_vertex(ExactInstance x, uint index) {
   return dvec3(d.v[3u * index], d.v[3u * index + 1u], d.v[3u * index + 2u]);
 }
 
-// Runs the watertight test of device triangle `prim` of `instance`; updates `best` and returns
-// true when it is hit and comes before `best`.
-bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, int custom, int geometry) {
+// Runs the watertight test of device triangle `prim` of `instance` within the ray's interval and
+// the query's culling; on a hit, its t and barycentrics (of vertices 1 and 2).
+bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u_hit, out double v_hit) {
   ExactInstance x = ExactInstances(params.instances).x[instance];
   precise dvec3 o;
   precise dvec3 d;
@@ -135,11 +135,24 @@ bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, in
   if (w == 0.0 && !owns_edge(sign * (p[1].xy - p[0].xy))) return false;
   precise double t = (u * p[0].z + v * p[1].z + w * p[2].z) / det;
   if (!(t >= ray.tmin && t <= ray.tmax)) return false;
+  t_hit = t;
+  u_hit = v / det;
+  v_hit = w / det;
+  return true;
+}
 
+// Runs the watertight test of device triangle `prim` of `instance`; updates `best` and returns
+// true when it is hit and comes before `best`.
+bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, int custom, int geometry) {
+  double t;
+  double bu;
+  double bv;
+  if (!exact_hit(ray, instance, prim, t, bu, bv)) return false;
+  ExactInstance x = ExactInstances(params.instances).x[instance];
   int caller = caller_index(x.primitive_order, prim);
   int best_caller = best.prim < 0 ? 0 : caller_index(ExactInstances(params.instances).x[best.instance].primitive_order, best.prim);
   if (best.prim >= 0 && !is_before(t, instance, caller, best, best_caller)) return false;
-  best = ExactBest(t, v / det, w / det, instance, prim, custom, geometry);
+  best = ExactBest(t, bu, bv, instance, prim, custom, geometry);
   return true;
 }
 

@@ -11,6 +11,30 @@ void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
   Ray64 ray = load_ray64(i);
+  if (QUERY == QUERY_COUNT) {
+    // Every box's triangle is tested once per instance and none is committed: each crossing
+    // the f64 test accepts is counted once.
+    int count = 0;
+    double entry = scene_entry(ray);
+    if (entry >= 0.0) {
+      TraversalRay r = traversal_ray(ray, entry);
+      rayQueryEXT query;
+      rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i), r.origin, r.tmin,
+                            r.direction, r.tmax);
+      while (rayQueryProceedEXT(query)) {
+        double t;
+        double u;
+        double v;
+        if (rayQueryGetIntersectionTypeEXT(query, false) == gl_RayQueryCandidateIntersectionAABBEXT &&
+            exact_hit(ray, rayQueryGetIntersectionInstanceIdEXT(query, false),
+                      rayQueryGetIntersectionPrimitiveIndexEXT(query, false), t, u, v)) {
+          ++count;
+        }
+      }
+    }
+    IntOut(params.out_prim).v[i] = count;
+    return;
+  }
   ExactBest best = exact_miss();
   double entry = scene_entry(ray);
   if (entry >= 0.0) {

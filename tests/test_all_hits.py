@@ -1039,8 +1039,9 @@ def test_other_tiers_are_not_supported_yet(any_device, tier):
     scene = _scene(any_device)
     with pytest.raises(vkray.UnsupportedError):
         scene.intersect_all([0.5, 0.5, -1], [0, 0, 1], precision=tier)
-    with pytest.raises(vkray.UnsupportedError):
-        scene.count([0.5, 0.5, -1], [0, 0, 1], precision=tier)
+    if tier != "exact":  # the GPU's exact count is built (tests above)
+        with pytest.raises(vkray.UnsupportedError):
+            scene.count([0.5, 0.5, -1], [0, 0, 1], precision=tier)
     with pytest.raises(vkray.UnsupportedError):
         scene.contains([0.5, 0.5, 0.5], precision=tier)
 
@@ -1102,3 +1103,58 @@ def test_threads_share_a_scene(any_device):
     assert not any(thread.is_alive() for thread in threads), "a query thread hung"
     assert not failures, failures
     assert sorted(done) == [0, 1, 2, 3]
+
+
+def _exact_on(device) -> bool:
+    """Whether this device answers the exact tier (shaderFloat64, and a pipeline driver that runs
+    intersection shaders: vkray probes it and raises UnsupportedError if not)."""
+    scene = device.scene(device.mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
+    try:
+        scene.count([0.2, 0.2, 1.0], [0, 0, -1], precision="exact")
+        return True
+    except vkray.UnsupportedError:
+        return False
+
+
+@pytest.mark.parametrize("name", ["spot", "fandisk", "stanford-bunny"])
+def test_exact_count_on_the_gpu_equals_the_reference(device, name):
+    """The GPU's exact count (f32 traversal of per-triangle boxes, every candidate decided by the
+    f64 watertight test, none committed) counts what the CPU's does, ray for ray, with a
+    mirrored instance, culling and per-ray intervals."""
+    if not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    v, f = load_obj(name)
+    mesh = device.mesh(v, f)
+    mirror = np.diag([1.0, 1.0, -1.0, 1.0])
+    scene = device.scene([vkray.Instance(mesh), vkray.Instance(mesh, mirror, custom_index=3)])
+    rng = np.random.default_rng(17)
+    size = np.ptp(v, axis=0).max()
+    origins = v.mean(axis=0) + rng.normal(size=(5000, 3)) * size
+    directions = rng.normal(size=(5000, 3))
+    tmax = rng.uniform(0.5, 4.0, 5000) * size
+    for cull in (None, "back"):
+        want = scene.count(origins, directions, tmax=tmax, cull=cull, precision="reference")
+        got = scene.count(origins, directions, tmax=tmax, cull=cull, precision="exact")
+        assert want.sum() > 100
+        np.testing.assert_array_equal(got, want, err_msg=str(cull))
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e3, 1e5, 1e7])
+def test_exact_count_through_shared_vertices_and_edges(device, offset):
+    """Rays through the vertices and edges a heightfield's triangles share cross it once: the
+    GPU's exact count says 1 for every one of them, at every offset."""
+    if not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    n = 10
+    v, f, _ = heightfield(n, seed=3, offset=offset)
+    origins, directions = rays_through(shared_targets(v, f, n), seed=4)
+    scene = device.scene(device.mesh(v, f))
+    counts = scene.count(origins, directions, precision="exact")
+    assert (counts == 1).all(), f"{np.sum(counts == 0)} misses, {np.sum(counts > 1)} double counts"
+
+
+def test_count_in_the_f32_tiers_is_refused_for_now(any_device):
+    scene = any_device.scene(any_device.mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
+    for tier in ("fast", "refined"):
+        with pytest.raises(vkray.UnsupportedError, match="exact"):
+            scene.count([0.2, 0.2, 1.0], [0, 0, -1], precision=tier)

@@ -624,7 +624,11 @@ class Scene:
         mask: Any = 0xFF,
     ) -> np.ndarray:
         """int32 ``S``: the number of hits of each ray within [tmin, tmax], as `intersect_all`
-        counts them (``count(...) == intersect_all(...).counts``), without storing them."""
+        counts them (``count(...) == intersect_all(...).counts``), without storing them.
+
+        precision: ``"reference"`` (f64 on all CPU cores) or ``"exact"`` (the same f64 test on the
+        GPU, through per-triangle boxes: every crossing counted once, none committed; needs the
+        device's shaderFloat64). The f32 tiers raise `UnsupportedError` for now."""
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
         counts = self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape))
         return counts.reshape(shape)

@@ -9,6 +9,8 @@ pub enum Query {
     Closest,
     /// Whether anything is hit in [tmin, tmax]; traversal stops at the first hit.
     Occluded,
+    /// How many hits lie in [tmin, tmax] (each crossing once in the exact tiers); none is stored.
+    Count,
 }
 
 impl Query {
@@ -16,7 +18,10 @@ impl Query {
         match name {
             "closest" => Ok(Query::Closest),
             "occluded" => Ok(Query::Occluded),
-            other => Err(crate::error::invalid_value(format!("query must be 'closest' or 'occluded', got {other:?}"))),
+            "count" => Ok(Query::Count),
+            other => Err(crate::error::invalid_value(format!(
+                "query must be 'closest', 'occluded' or 'count', got {other:?}"
+            ))),
         }
     }
 }

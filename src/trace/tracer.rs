@@ -246,7 +246,8 @@ impl Tracer {
         let exact_scene = if exact { Some(scene.exact()?) } else { None };
         let spheres = scene.has_spheres();
         let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres);
-        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres })?;
+        let count = request.query == Query::Count;
+        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, count })?;
         let capacity = self.chunk_capacity(rays.len());
         let mut slots = self.slots.take(capacity, exact)?;
         let job =
@@ -289,13 +290,23 @@ impl Tracer {
         out: &mut [i32],
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
+        if out.len() != rays.len() {
+            return Err(invalid_value(format!("count's output has {} entries for {} rays", out.len(), rays.len())));
+        }
+        if request.precision == Precision::Exact {
+            let mut sink = HitSink::default();
+            sink.set(Field::Prim, bytemuck::cast_slice_mut(out));
+            return self.trace(scene, rays, Request { query: Query::Count, ..request }, &mut sink, interrupt);
+        }
+        if request.precision != Precision::Reference {
+            return Err(Error::Unsupported(
+                "count runs at precision='exact' (the f64 test on the GPU) or 'reference' (on the CPU) for now".into(),
+            ));
+        }
         self.check_host_query(scene, request.precision, "count")?;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
         rays.check()?;
-        if out.len() != rays.len() {
-            return Err(invalid_value(format!("count's output has {} entries for {} rays", out.len(), rays.len())));
-        }
         tiers::count_hits(scene, rays, request.cull, out, interrupt)
     }
 
@@ -360,10 +371,17 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
             return Err(invalid_value(format!("output for position has {} bytes for {n} rays", out.len())));
         }
     }
-    // Occlusion stops at any hit, so it knows only whether there was one.
+    // Occlusion stops at any hit, so it knows only whether there was one; a count writes the
+    // number alone (in prim_id's place).
     let answerable = sink.outputs() & !Field::Prim.bit() == 0 && sink.position.is_none();
     if request.query == Query::Occluded && !answerable {
         return Err(invalid_value("an occlusion query writes prim_id alone (>= 0 where the ray is blocked)"));
+    }
+    if request.query == Query::Count && (!answerable || request.precision != Precision::Exact) {
+        return Err(Error::Unsupported(
+            "a count on the GPU is answered at precision='exact' (or 'reference' on the CPU), into one int32 a ray"
+                .into(),
+        ));
     }
     if scene.has_spheres() && request.precision != Precision::Fast {
         return Err(Error::Unsupported(

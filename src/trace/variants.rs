@@ -26,6 +26,8 @@ pub struct VariantKey {
     pub exact: bool,
     /// The scene holds sphere sets (boxes for the sphere shader).
     pub spheres: bool,
+    /// QUERY: closest (and occlusion) or count.
+    pub count: bool,
 }
 
 /// Ray flags resolved statically for a query on a scene: where every triangle is opaque the
@@ -181,7 +183,7 @@ impl Variants {
     }
 
     fn compute_variant(&self, key: VariantKey) -> Result<Variant> {
-        let values = [key.outputs, key.ray_flags, self.local_size];
+        let values = [key.outputs, key.ray_flags, self.local_size, key.count as u32];
         let entries = specialization_entries();
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let module = if key.exact { self.modules.query_exact } else { Some(self.modules.query) };
@@ -203,9 +205,11 @@ impl Variants {
     fn pipeline_variant(&self, key: VariantKey) -> Result<Variant> {
         let ctx = &self.ctx;
         let rt = ctx.pipeline_ext.as_ref().expect("pipeline backend loads its extension");
-        let values = [key.outputs, key.ray_flags, 0];
+        let values = [key.outputs, key.ray_flags, 0, key.count as u32];
+        // Every constant but the workgroup size (2), which ray-tracing stages do not have.
         let entries = specialization_entries();
-        let spec = vk::SpecializationInfo::default().map_entries(&entries[..2]).data(bytemuck::cast_slice(&values));
+        let entries = [entries[0], entries[1], entries[3]];
+        let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let stage = |flags, module| {
             vk::PipelineShaderStageCreateInfo::default()
                 .stage(flags)
@@ -348,9 +352,9 @@ fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'st
     groups
 }
 
-/// Constants 0 (OUTPUTS), 1 (RAY_FLAGS) and 2 (the workgroup size), one u32 each.
-fn specialization_entries() -> [vk::SpecializationMapEntry; 3] {
-    [0u32, 1, 2].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
+/// Constants 0 (OUTPUTS), 1 (RAY_FLAGS), 2 (the workgroup size) and 3 (QUERY), one u32 each.
+fn specialization_entries() -> [vk::SpecializationMapEntry; 4] {
+    [0u32, 1, 2, 3].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
 }
 
 /// A shader binding table's layout: the raygen, miss and hit regions (offset, stride, size), and
