@@ -1042,8 +1042,9 @@ def test_other_tiers_are_not_supported_yet(any_device, tier):
     if tier != "exact":  # the GPU's exact count is built (tests above)
         with pytest.raises(vkray.UnsupportedError):
             scene.count([0.5, 0.5, -1], [0, 0, 1], precision=tier)
-    with pytest.raises(vkray.UnsupportedError):
-        scene.contains([0.5, 0.5, 0.5], precision=tier)
+    if tier != "exact":  # exact: the GPU's count where the scene has one instance, else the CPU's
+        with pytest.raises(vkray.UnsupportedError):
+            scene.contains([0.5, 0.5, 0.5], precision=tier)
 
 
 def test_defaults_are_the_reference_tier(any_device):
@@ -1158,3 +1159,23 @@ def test_count_in_the_f32_tiers_is_refused_for_now(any_device):
     for tier in ("fast", "refined"):
         with pytest.raises(vkray.UnsupportedError, match="exact"):
             scene.count([0.2, 0.2, 1.0], [0, 0, -1], precision=tier)
+
+
+@pytest.mark.parametrize("name", ["fandisk", "spot", "cow"])
+def test_exact_contains_equals_the_reference(device, name):
+    """contains(precision="exact") counts each point's crossings on the GPU (one instance) or on
+    the CPU (several): the same answers as the reference tier, points on a lattice through the
+    mesh's own vertices and on its surface included."""
+    if not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    v, f = load_obj(name)
+    mesh = device.mesh(v, f)
+    rng = np.random.default_rng(23)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    points = np.vstack([rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (3000, 3)), v[::7]])
+    mirrored = vkray.Instance(mesh, np.diag([-1.0, 1, 1, 1]))
+    for scene in (device.scene(mesh), device.scene([vkray.Instance(mesh), mirrored])):
+        want = scene.contains(points, precision="reference")
+        got = scene.contains(points, precision="exact")
+        assert want[-len(v[::7]):].all()  # vertices are on the surface: inside
+        np.testing.assert_array_equal(got, want)

@@ -641,8 +641,9 @@ class Scene:
         no jitter, no vote, the same answer every time. It needs closed meshes (`Mesh.is_closed`)
         and raises ValueError otherwise. ``"winding"``: the generalized winding number of each
         instance (Jacobson et al. 2013) is at least 1/2; meaningful for meshes with holes too.
-        A point exactly on a surface counts as inside (parity).
-        precision: ``"reference"`` (f64 on all CPU cores) for now.
+        A point on a surface (within a few f64 ulps of a triangle) counts as inside, by either
+        method. precision: ``"reference"`` (f64 on all CPU cores), or ``"exact"``: the same
+        answers, the crossings counted on the GPU where the scene has one instance (parity).
         """
         if method not in ("parity", "winding"):
             raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")

@@ -240,7 +240,7 @@ pub fn count_hits(scene: &Scene, rays: &Rays, cull: Cull, out: &mut [i32], inter
 
 /// The direction of the one ray each point casts for `contains` by parity: fixed, unit, and
 /// along no axis or diagonal (the exact test decides rays through edges anyway).
-const PARITY_DIRECTION: DVec3 = DVec3::new(0.6, 0.48, 0.64);
+pub const PARITY_DIRECTION: DVec3 = DVec3::new(0.6, 0.48, 0.64);
 
 /// Whether each point lies inside any instance of the scene: by the parity of the crossings of
 /// one ray per point with each instance (exact: each crossing counted once), or by the
@@ -264,6 +264,27 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
                     tracer.trace_every(&ray, 0xFF, Cull::None, found);
                     odd_crossings(found, scene.placements.len())
                 });
+            })
+        });
+    })
+}
+
+/// `contains` from each point's count of crossings (of a scene's one instance): inside where
+/// the point is on the surface or the count is odd.
+pub fn inside_by_counts(
+    scene: &Scene,
+    points: Vec3s,
+    counts: &[i32],
+    out: &mut [u8],
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
+    let tracer = scene.reference_tracer();
+    in_blocks(out.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            out[range].par_iter_mut().enumerate().with_min_len(256).for_each(|(k, inside)| {
+                let p = DVec3::from_array(points.row_f64(start + k)) - scene.center;
+                *inside = u8::from(counts[start + k] % 2 == 1 || tracer.on_surface(p, ON_SURFACE_ULPS));
             })
         });
     })

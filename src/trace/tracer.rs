@@ -321,9 +321,6 @@ impl Tracer {
         out: &mut [u8],
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
-        self.check_host_query(scene, precision, "contains")?;
-        let _in_use = scene.hold_meshes();
-        scene.check_current()?;
         if out.len() != points.rows() {
             return Err(invalid_value(format!(
                 "contains' output has {} entries for {} points",
@@ -334,7 +331,43 @@ impl Tracer {
         if let Some(i) = (0..points.rows()).find(|&i| !points.row_f64(i).iter().all(|c| c.is_finite())) {
             return Err(invalid_value(format!("points row {i} is not finite: {:?}", points.row_f64(i))));
         }
+        if precision == Precision::Exact && !winding && scene.placements.len() == 1 {
+            return self.contains_by_gpu_count(scene, points, out, interrupt);
+        }
+        // The exact tier's answers are the reference tier's: where the GPU cannot give them
+        // (several instances need a parity each; the winding number), the CPU does.
+        let precision = if precision == Precision::Exact { Precision::Reference } else { precision };
+        self.check_host_query(scene, precision, "contains")?;
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
         tiers::contains(scene, points, winding, out, interrupt)
+    }
+
+    /// `contains` by parity for a scene of one instance: the GPU counts each point's ray's
+    /// crossings exactly; the CPU tells points on the surface (which a ray cannot: its t there
+    /// rounds to either side of 0).
+    fn contains_by_gpu_count(
+        &self,
+        scene: &Scene,
+        points: crate::geometry::arrays::Vec3s,
+        out: &mut [u8],
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        let direction = tiers::PARITY_DIRECTION.to_array();
+        let rays = Rays {
+            origins: points,
+            directions: crate::geometry::arrays::Vec3s::F64(&direction),
+            tmin: crate::geometry::rays::PerRay::All(0.0),
+            tmax: crate::geometry::rays::PerRay::All(f64::INFINITY),
+            mask: crate::geometry::rays::Masks::All(0xFF),
+        };
+        let mut counts = try_vec(points.rows(), 0i32, "the crossings of contains")?;
+        let mut sink = HitSink::default();
+        sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut counts));
+        let request = Request { query: Query::Count, precision: Precision::Exact, cull: crate::trace::Cull::None };
+        self.trace(scene, &rays, request, &mut sink, interrupt)?;
+        let _in_use = scene.hold_meshes();
+        tiers::inside_by_counts(scene, points, &counts, out, interrupt)
     }
 
     /// The queries answered on the CPU alone for now: the f64 tier, triangle meshes.
