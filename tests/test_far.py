@@ -43,10 +43,12 @@ def test_far_oblique_origins_agree_with_the_reference(device):
     np.testing.assert_allclose(got.t[hit], want.t[hit], rtol=1e-6)
 
 
-@pytest.mark.parametrize("offset, scale", [(1e12, 1.0), (3e37, 1e26)])
+@pytest.mark.parametrize("offset, scale", [(1e12, 1.0), (1e30, 1e17)])
 def test_refit_far_away_keeps_the_fast_tier_right(device, offset, scale):
     """Before, a refit kept the scene's frame: instances moved 1e12 away lost f32 precision in it,
-    and 3e37 away (a mesh scaled to 1e26, so that f64 still resolves it) left nothing of it."""
+    and 1e30 away (a mesh scaled to 1e17, so that f64 still resolves it) left nothing of it.
+    Sizes stay where their squares fit in float32: hardware triangle tests run in f32 (on the
+    H100 a square scaled to 1e26 reported only its first triangle)."""
     mesh = device.mesh(*SQUARE)
     scene = device.scene([vkray.Instance(mesh), vkray.Instance(mesh, np.eye(4))], allow_update=True)
     moved = np.stack([np.eye(4), np.eye(4)])
@@ -95,7 +97,7 @@ def test_spheres_seen_from_far_away(device, radii_away):
     np.testing.assert_allclose(hits.normal, np.column_stack([offsets, z]), atol=1e-3)
 
 
-@pytest.mark.parametrize("offset, size", [(1e12, 1.0), (3e37, 1e26)])
+@pytest.mark.parametrize("offset, size", [(1e12, 1.0), (1e30, 1e17)])
 def test_mesh_refit_far_away_keeps_the_fast_tier_right(device, offset, size):
     """Before, a refitted mesh kept the frame it was built in: vertices moved 1e12 away lost
     f32 precision in it (the sizes are chosen so that f64 still resolves the surface)."""
