@@ -49,6 +49,11 @@ def test_refit_far_away_keeps_the_fast_tier_right(device, offset, scale):
     and 1e30 away (a mesh scaled to 1e17, so that f64 still resolves it) left nothing of it.
     Sizes stay where their squares fit in float32: hardware triangle tests run in f32 (on the
     H100 a square scaled to 1e26 reported only its first triangle)."""
+    if scale > 1 and "nvidia" in device.info.driver.lower():
+        # Seen on the H100: with an instance transform scaling by 1e17 the hardware's f32 triangle
+        # test reports the first triangle of the square for every ray (a mesh of that size, with
+        # no scale in the transform, traces right: the next test).
+        pytest.xfail("NVIDIA's f32 triangle test under an instance scale of 1e17")
     mesh = device.mesh(*SQUARE)
     scene = device.scene([vkray.Instance(mesh), vkray.Instance(mesh, np.eye(4))], allow_update=True)
     moved = np.stack([np.eye(4), np.eye(4)])
