@@ -1,0 +1,896 @@
+"""vkray's all-hits queries (reference tier: f64 on the CPU) against trimesh (embreex and its numpy
+engine) and Open3D's RaycastingScene, on the same rays and points in one run; prints a Markdown report.
+
+    python benchmarks/bench_all_hits.py                               # everything, ~1 minute on 2 cores
+    python benchmarks/bench_all_hits.py --o3d-python /tmp/o3d-venv/bin/python --out /tmp/bench_all_hits.md
+
+Open3D lives in its own virtual environment (``python3 -m venv /tmp/o3d-venv &&
+/tmp/o3d-venv/bin/pip install open3d-cpu numpy``; its wheel needs ``libusb-1.0.so.0``): this script
+saves the rays and points to an .npz, runs itself with ``--o3d-worker`` under that interpreter, and
+reads Open3D's timings and answers back. Without it (or with ``--o3d-python ''``) Open3D is skipped.
+trimesh's numpy engine (``trimesh.ray.ray_triangle``) needs ``rtree``, which requirements-dev.txt
+does not list; it is skipped without it (``pip install --target /tmp/bench-extra rtree`` and
+``PYTHONPATH=/tmp/bench-extra`` keep it out of .venv).
+
+Speed: numpy in, numpy out (conversions included), best of ``--repeat`` after one warm-up call
+(scene builds are not timed). Correctness: hard cases with known answers (rays through shared
+vertices and edges; points whose rays run through a solid's vertices and edges, for the direction
+each engine casts), answers counted per engine, not assumed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+# ------------------------------------------------------------------------------------------------
+# The directions each engine casts for inside/outside tests (read from their sources):
+#   vkray: src/trace/tiers.rs PARITY_DIRECTION (0.6, 0.48, 0.64), one ray per point.
+#   trimesh: ray/ray_util.py contains_points, (0.4395064455, 0.617598629942, 0.652231566745), cast
+#     forwards and backwards; where the two parities disagree and neither ray is free it recasts
+#     along a random direction.
+#   Open3D 0.20: RaycastingScene.cpp VoteInsideOutside, nsamples directions (1 + U(-0.001, 0.001))
+#     per component from std::mt19937(42) and std::uniform_real_distribution<float>, filled column by
+#     column (direction j is draws 3j, 3j+1, 3j+2); the parity of count_intersections, majority vote.
+VKRAY_DIRECTION = np.array([0.6, 0.48, 0.64])
+TRIMESH_DIRECTION = np.array([0.4395064455, 0.617598629942, 0.652231566745])
+
+
+def open3d_directions(n):
+    """Open3D's vote directions, as libstdc++'s generate_canonical<float, 24> and
+    uniform_real_distribution<float> make them from mt19937(42) (numpy's legacy MT19937 seeding is
+    mt19937's init_genrand)."""
+    bits = np.random.MT19937(0)
+    bits._legacy_seeding(42)
+    raw = bits.random_raw(3 * n).astype(np.float32)
+    canonical = raw / np.float32(2.0**32)
+    canonical = np.where(canonical >= 1, np.nextafter(np.float32(1), np.float32(0)), canonical).astype(np.float32)
+    lo, hi = np.float32(-0.001), np.float32(0.001)
+    value = (canonical * (hi - lo) + lo).astype(np.float32)
+    return (np.float32(1) + value).astype(np.float32).reshape(n, 3)
+
+
+# ------------------------------------------------------------------------------------------------
+# The Open3D worker: runs under the Open3D venv's interpreter (no vkray, no trimesh there).
+
+
+def _best(repeat, fn):
+    times, cpu = [], []
+    result = None
+    for _ in range(repeat):
+        c0, t0 = time.process_time(), time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    k = int(np.argmin(times))
+    return times[k], cpu[k], result
+
+
+def o3d_worker(inp, outp):
+    import open3d as o3d
+
+    data = np.load(inp)
+    tasks = json.loads(str(data["tasks"]))
+    repeat = int(data["repeat"])
+    scenes = {}
+
+    def scene_of(key):
+        if key not in scenes:
+            s = o3d.t.geometry.RaycastingScene()
+            s.add_triangles(
+                o3d.core.Tensor.from_numpy(np.ascontiguousarray(data[f"mesh__{key}__v"], dtype=np.float32)),
+                o3d.core.Tensor.from_numpy(np.ascontiguousarray(data[f"mesh__{key}__f"], dtype=np.uint32)),
+            )
+            s.count_intersections(o3d.core.Tensor(np.array([[0, 0, 0, 1, 1, 1]], np.float32)))  # commit (build)
+            scenes[key] = s
+        return scenes[key]
+
+    def as_rays(o, d):
+        return o3d.core.Tensor.from_numpy(np.ascontiguousarray(np.hstack([o, d]), dtype=np.float32))
+
+    def as_points(p):
+        return o3d.core.Tensor.from_numpy(np.ascontiguousarray(p, dtype=np.float32))
+
+    out, timings = {}, {}
+    for task in tasks:
+        tid, scene = task["id"], scene_of(task["mesh"])
+        if task["kind"] == "rays":
+            o, d = data[task["rays"] + "__o"], data[task["rays"] + "__d"]
+
+            def list_numpy():
+                result = scene.list_intersections(as_rays(o, d))
+                return {k: v.numpy() for k, v in result.items()}
+
+            def count_numpy():
+                return scene.count_intersections(as_rays(o, d)).numpy()
+
+            if task.get("time"):
+                rays_t = as_rays(o, d).contiguous()
+                t, c, listed = _best(repeat, list_numpy)
+                timings[f"{tid}__list_numpy"] = (t, c)
+                t, c, _ = _best(repeat, lambda: scene.list_intersections(rays_t))
+                timings[f"{tid}__list_tensor"] = (t, c)
+                t, c, counted = _best(repeat, count_numpy)
+                timings[f"{tid}__count_numpy"] = (t, c)
+                t, c, _ = _best(repeat, lambda: scene.count_intersections(rays_t))
+                timings[f"{tid}__count_tensor"] = (t, c)
+                hits = len(listed["t_hit"])
+                timings[f"{tid}__list_bytes"] = (
+                    sum(v.nbytes for k, v in listed.items() if k != "ray_splits") / max(hits, 1),
+                    listed["ray_splits"].nbytes / len(o),
+                )
+            else:
+                listed, counted = list_numpy(), count_numpy()
+            out[f"{tid}__splits"] = listed["ray_splits"].astype(np.int64)
+            out[f"{tid}__t"] = listed["t_hit"]
+            out[f"{tid}__prim"] = listed["primitive_ids"].astype(np.int64)
+            out[f"{tid}__ray"] = listed["ray_ids"].astype(np.int64)
+            out[f"{tid}__count"] = counted.astype(np.int64)
+        elif task["kind"] == "points":
+            p = data[task["points"]]
+            variants = {"default": {}, "ns1": {"nsamples": 1}, "ns3": {"nsamples": 3}}
+            for label, kwargs in variants.items():
+                if task.get("time") and label != "default":
+                    pts_t = as_points(p).contiguous()
+                    t, c, answer = _best(repeat, lambda: scene.compute_occupancy(as_points(p), **kwargs).numpy())
+                    timings[f"{tid}__{label}_numpy"] = (t, c)
+                    t, c, _ = _best(repeat, lambda: scene.compute_occupancy(pts_t, **kwargs))
+                    timings[f"{tid}__{label}_tensor"] = (t, c)
+                else:
+                    answer = scene.compute_occupancy(as_points(p), **kwargs).numpy()
+                out[f"{tid}__{label}"] = answer > 0.5
+            if task.get("check_directions"):
+                # Whether Open3D casts the directions open3d_directions() computes: the parity of
+                # count_intersections along them must give compute_occupancy's answers.
+                dirs = open3d_directions(3)
+                votes = []
+                for j in range(3):
+                    rays = np.hstack([p.astype(np.float32), np.broadcast_to(dirs[j], p.shape)])
+                    votes.append(scene.count_intersections(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays))).numpy() % 2 == 1)
+                out[f"{tid}__dircheck1"] = votes[0]
+                out[f"{tid}__dircheck3"] = np.sum(votes, axis=0) >= 2
+    out["timings"] = np.array(json.dumps(timings))
+    out["version"] = np.array(o3d.__version__)
+    import multiprocessing
+
+    out["cpus"] = np.array(multiprocessing.cpu_count())
+    np.savez(outp, **out)
+
+
+# ------------------------------------------------------------------------------------------------
+# Test geometry (as tests/test_all_hits.py builds it).
+
+
+def fan(offset, seed=49, k=11):
+    """A closed fan: k triangles around a centre vertex, an irregular ring (tests/test_all_hits.py)."""
+    rng = np.random.default_rng(seed)
+    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.2, 0.2, k)
+    ring = np.column_stack([np.cos(angles), np.sin(angles), rng.uniform(-0.2, 0.2, k)])
+    v = np.vstack([[0.0, 0.0, 0.3], ring]) + offset
+    f = np.array([[0, 1 + i, 1 + (i + 1) % k] for i in range(k)])
+    return v, f
+
+
+def bipyramid(offset, seed=51, k=9):
+    """A closed convex solid: two fans on one irregular ring, apexes above and below."""
+    rng = np.random.default_rng(seed)
+    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.25, 0.25, k)
+    ring = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(k)])
+    v = np.vstack([[0.0, 0.0, 1.0], [0.0, 0.0, -0.8], ring]) + offset
+    top = [[0, 2 + i, 2 + (i + 1) % k] for i in range(k)]
+    bottom = [[1, 2 + (i + 1) % k, 2 + i] for i in range(k)]
+    return v, np.array(top + bottom)
+
+
+def edges_of(f):
+    return sorted({tuple(sorted(e)) for tri in f.tolist() for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))})
+
+
+# ------------------------------------------------------------------------------------------------
+# Helpers on the main side.
+
+
+def best_of(repeat, fn):
+    return _best(repeat, fn)
+
+
+def fmt_rate(n, seconds):
+    return f"{n / seconds / 1e6:.3f}"
+
+
+def crossings(ray, t_dist, n, tol):
+    """Per ray: hits, and crossings (hits within `tol` of distance along the ray merged)."""
+    ray = np.asarray(ray, np.int64)
+    t_dist = np.asarray(t_dist, np.float64)
+    order = np.lexsort((t_dist, ray))
+    ray, t_dist = ray[order], t_dist[order]
+    hits = np.bincount(ray, minlength=n)
+    new = np.ones(len(ray), bool)
+    if len(ray) > 1:
+        same = ray[1:] == ray[:-1]
+        new[1:] = ~same | (np.diff(t_dist) > tol)
+    clusters = np.bincount(ray[new], minlength=n)
+    return hits, clusters
+
+
+def plane_distance(tris, origins, directions):
+    """Distance along the unit direction from each origin to its triangle's plane (trimesh gives ids)."""
+    a, e1, e2 = tris[:, 0], tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
+    normal = np.cross(e1, e2)
+    unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    return np.einsum("ij,ij->i", a - origins, normal) / np.einsum("ij,ij->i", unit, normal)
+
+
+# Hits within this many bounding radii of the point a touching ray is aimed at count as hits there:
+# wide enough for the two crossings a float32-rounded ray (moved by up to ~0.004 at 1e5) makes of
+# a ridge it only touched in float64, which lie a few hundredths apart.
+TOUCH_WINDOW = 0.1
+
+
+def classify_rays(all_hits_brute, crossings, v, f, o, d, target_t, expected, radius, shifts=4, seed=5):
+    """The exact answer for rays aimed through a vertex or edge, from a brute-force f64 test of every
+    triangle (tests/oracle.py), independent of every engine: (keep, touch, why).
+
+    At the point aimed at (within 1% of a radius), parallel rays moved 1e-7 radii sideways (in
+    `shifts` random directions) miss every edge: if each crosses the surface there exactly once, the
+    ray crosses it (answer: one hit there); if each crosses it 0 or 2 times, the ray only touches it
+    (0 or 2 hits are both right).
+    Elsewhere along the ray: `keep` needs exactly `expected - 1` other crossings, none within 1e-9 of
+    an edge (a tilted ray may clip a non-flat surface again)."""
+    n = len(o)
+    length = np.linalg.norm(d, axis=1)
+    window = 1e-2 * radius / length
+    rng = np.random.default_rng(seed)
+    local = []
+    for _ in range(shifts):
+        e = rng.normal(size=(n, 3))
+        e -= (np.einsum("ij,ij->i", e, d) / length**2)[:, None] * d
+        e /= np.linalg.norm(e, axis=1, keepdims=True)
+        ref = all_hits_brute(v[f], o + 1e-7 * radius * e, d, target_t - window, target_t + window)
+        local.append(np.bincount(ref["ray"], minlength=n))
+    local = np.array(local)
+    crosses = (local == 1).all(axis=0)
+    touch = (local % 2 == 0).all(axis=0)
+    ref = all_hits_brute(v[f], o, d)
+    r = ref["ray"]
+    away = np.abs(ref["t"] - target_t[r]) > window[r]
+    _, others = crossings(r[away], ref["t"][away] * length[r[away]], n, 1e-7 * radius)
+    unclean = np.zeros(n, bool)
+    unclean[r[away & (ref["margin"] < 1e-9)]] = True
+    keep = crosses & (others == expected - 1) & ~unclean
+    why = (f"{int(np.sum(~crosses))} touch there or are undecided, "
+           f"{int(np.sum(crosses & ((others != expected - 1) | unclean)))} cross elsewhere too")
+    # Touching rays count only where no other crossing comes within TOUCH_WINDOW radii of the point.
+    close = np.zeros(n, bool)
+    close[r[away & (np.abs(ref["t"] - target_t[r]) * length[r] < TOUCH_WINDOW * radius)]] = True
+    return keep, touch & ~close, why
+
+
+
+class Table:
+    def __init__(self, *header):
+        self.rows = [list(header), ["---"] * len(header)]
+
+    def add(self, *cells):
+        self.rows.append([str(c) for c in cells])
+
+    def __str__(self):
+        return "\n".join("| " + " | ".join(r) + " |" for r in self.rows)
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rays", type=int, default=100_000, help="random rays per mesh for all hits and counts")
+    parser.add_argument("--points", type=int, default=100_000, help="random points per mesh for contains")
+    parser.add_argument("--native-rays", type=int, default=300, help="rays (and 3x points) for trimesh's numpy engine")
+    parser.add_argument("--winding-points", type=int, default=2000, help="points timed for vkray's winding method")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--o3d-python", default="/tmp/o3d-venv/bin/python", help="interpreter with open3d ('' to skip)")
+    parser.add_argument("--out", default=None, help="also write the report to this file")
+    args = parser.parse_args()
+    wall_start = time.perf_counter()
+    load_before = os.getloadavg()[0]
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
+    import trimesh
+    from trimesh.ray import ray_pyembree
+
+    import vkray
+    from oracle import (
+        all_hits_brute,
+        bounds,
+        box,
+        heightfield,
+        load_obj,
+        random_rays,
+        rays_through,
+        shared_targets,
+        surface_distance,
+        winding_numbers,
+    )
+
+    try:
+        import rtree  # noqa: F401
+        from trimesh.ray import ray_triangle
+
+        native_ok, native_why = True, ""
+    except ImportError as exc:
+        ray_triangle, native_ok, native_why = None, False, f"skipped: {exc}"
+
+    lines = []
+    say = lines.append
+    device = vkray.Device()
+    repeat = args.repeat
+
+    # ---- inputs -----------------------------------------------------------------------------
+    meshes = {name: load_obj(full) for name, full in (("bunny", "stanford-bunny"), ("fandisk", "fandisk"), ("spot", "spot"))}
+    npz = {"repeat": np.array(repeat)}
+    tasks = []
+
+    def add_mesh(key, v, f):
+        npz[f"mesh__{key}__v"] = v
+        npz[f"mesh__{key}__f"] = f
+
+    for key, (v, f) in meshes.items():
+        add_mesh(key, v, f)
+    speed_rays = {}
+    for key in ("bunny", "fandisk"):
+        v, _ = meshes[key]
+        o, d = random_rays(v, args.rays, seed=7)
+        speed_rays[key] = (o, d)
+        npz[f"speed_{key}__o"], npz[f"speed_{key}__d"] = o, d
+        tasks.append({"id": f"speed_{key}", "kind": "rays", "mesh": key, "rays": f"speed_{key}", "time": True})
+    speed_points = {}
+    for key in ("fandisk", "spot"):
+        v, _ = meshes[key]
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        pad = 0.1 * (hi - lo)
+        p = np.random.default_rng(8).uniform(lo - pad, hi + pad, (args.points, 3))
+        speed_points[key] = p
+        npz[f"pts_{key}"] = p
+        tasks.append({"id": f"pts_{key}", "kind": "points", "mesh": key, "points": f"pts_{key}", "time": True,
+                      "check_directions": True})
+
+    # (a) rays through shared vertices and edges, at offsets 0 and 1e5
+    hard_rays = []  # (label, offset, key, v, f, o, d, expected crossings, t of the crossing aimed at, radius)
+    for offset in (0.0, 1e5):
+        n = 16
+        v, f, _ = heightfield(n, seed=47, offset=offset)
+        key = f"hf_{offset:g}"
+        add_mesh(key, v, f)
+        targets = shared_targets(v, f, n)
+        radius = bounds(v)[1]
+        for sign, label in ((-1.0, "heightfield, vertical rays down"), (1.0, "heightfield, vertical rays up")):
+            o = targets.copy()
+            o[:, 2] = offset + 5.0 if sign < 0 else offset - 5.0
+            d = np.broadcast_to([0.0, 0.0, sign], o.shape).copy()
+            hard_rays.append((label, offset, key, v, f, o, d, 1, np.abs(o[:, 2] - targets[:, 2]), radius))
+        o, d = rays_through(targets, seed=48)
+        hard_rays.append(("heightfield, tilted rays", offset, key, v, f, o, d, 1, np.ones(len(o)), radius))
+        v, f = fan(offset)
+        key = f"fan_{offset:g}"
+        add_mesh(key, v, f)
+        targets = np.repeat(np.vstack([v[0], 0.5 * (v[0] + v[1:])]), 100, axis=0)
+        o, d = rays_through(targets, seed=50)
+        hard_rays.append(("closed fan (11 triangles), centre and spokes", offset, key, v, f, o, d, 1, np.ones(len(o)),
+                          bounds(v)[1]))
+        v, f = bipyramid(offset)
+        key = f"bip_{offset:g}"
+        add_mesh(key, v, f)
+        targets = np.vstack([v, [0.5 * (v[a] + v[b]) for a, b in edges_of(f)]])
+        targets = np.repeat(targets, 30, axis=0)
+        rng = np.random.default_rng(52)
+        inner = offset + np.column_stack([rng.uniform(-0.3, 0.3, (len(targets), 2)), rng.uniform(-0.2, 0.3, len(targets))])
+        d = inner - targets
+        d *= 2.0 / np.linalg.norm(d, axis=1, keepdims=True)
+        o = targets - d
+        hard_rays.append(("closed bipyramid, entered through vertices and edges", offset, key, v, f, o, d, 2,
+                          np.ones(len(o)), bounds(v)[1]))
+    for i, case in enumerate(hard_rays):
+        npz[f"hard{i}__o"], npz[f"hard{i}__d"] = case[5], case[6]
+        tasks.append({"id": f"hard{i}", "kind": "rays", "mesh": case[2], "rays": f"hard{i}"})
+
+    # (b) contains: points whose rays (for each engine's direction) run through vertices and edges
+    o3d_dirs = open3d_directions(3).astype(np.float64)
+    engine_dirs = [VKRAY_DIRECTION, TRIMESH_DIRECTION, *o3d_dirs]
+    steps = np.array([0.25, 0.5, 0.75, 1.0, 1.5])
+    steps = np.concatenate([steps, -steps])
+
+    def lattice(values):
+        return np.array(np.meshgrid(values, values, values, indexing="ij")).reshape(3, -1).T
+
+    cube_v, cube_f = box()
+    cube_targets = np.vstack(
+        [cube_v]
+        + [cube_v[a] + w * (cube_v[b] - cube_v[a]) for a, b in edges_of(cube_f)
+           if np.count_nonzero(cube_v[a] != cube_v[b]) == 1 for w in (0.25, 0.5)]
+        + [lattice([0.0, 0.5, 1.0])]  # face centres among them
+    )
+    cube_targets = np.unique(cube_targets, axis=0)
+    cube_local = np.vstack(
+        [lattice(np.arange(-1.0, 2.001, 0.25))]
+        + [cube_targets - s * dirn for dirn in engine_dirs for s in steps]
+    )
+    cube_local = np.unique(cube_local, axis=0)
+    # Points off the surface but within 0.01 of it (d ≈ (1, 1, 1) and a step equal to a coordinate)
+    # are left out: float32 rounding at 1e5 (ulp 0.0078) puts them on the surface.
+    gap = np.linalg.norm(np.maximum(0, np.maximum(-cube_local, cube_local - 1)), axis=1)
+    depth = np.minimum(cube_local, 1 - cube_local).min(axis=1)
+    distance = np.where(gap > 0, gap, np.maximum(depth, 0))
+    cube_local = cube_local[(distance == 0) | (distance >= 0.01)]
+    hard_points = []  # (label, key, v, f, points, expected or None, on_surface or None)
+    for offset in (0.0, 1e5):
+        key = f"cube_{offset:g}"
+        add_mesh(key, cube_v + offset, cube_f)
+        inside = ((cube_local >= 0) & (cube_local <= 1)).all(axis=1)
+        interior = ((cube_local > 1e-12) & (cube_local < 1 - 1e-12)).all(axis=1)
+        hard_points.append((f"unit cube at offset {offset:g}", key, cube_v + offset, cube_f, cube_local + offset,
+                            inside, inside & ~interior))
+    fv, ff = meshes["fandisk"]
+    f_radius = bounds(fv)[1]
+    rng = np.random.default_rng(9)
+    fedges = np.array(edges_of(ff))
+    ftargets = np.vstack([fv[rng.choice(len(fv), 150, replace=False)],
+                          fv[fedges[rng.choice(len(fedges), 150, replace=False)]].mean(axis=1)])
+    fsteps = f_radius * np.array([0.01, 0.05, 0.2, 0.5])
+    fsteps = np.concatenate([fsteps, -fsteps])
+    lo, hi = fv.min(axis=0), fv.max(axis=0)
+    fpoints = np.vstack(
+        [lattice(np.linspace(0, 1, 12)) * (1.2 * (hi - lo)) + lo - 0.1 * (hi - lo)]
+        + [ftargets - s * dirn for dirn in engine_dirs for s in fsteps]
+    )
+    hard_points.append(("fandisk", "fandisk", fv, ff, fpoints, None, None))
+    for i, case in enumerate(hard_points):
+        npz[f"hpts{i}"] = case[4]
+        tasks.append({"id": f"hpts{i}", "kind": "points", "mesh": case[1], "points": f"hpts{i}"})
+
+    # ---- Open3D, in its own interpreter -------------------------------------------------------
+    o3d = None
+    o3d_note = "skipped: no --o3d-python"
+    if args.o3d_python:
+        if not os.path.exists(args.o3d_python):
+            o3d_note = f"skipped: {args.o3d_python} does not exist"
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                inp, outp = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
+                np.savez(inp, tasks=np.array(json.dumps(tasks)), **npz)
+                start = time.perf_counter()
+                proc = subprocess.run([args.o3d_python, os.path.abspath(__file__), "--o3d-worker", inp, outp],
+                                      capture_output=True, text=True)
+                o3d_wall = time.perf_counter() - start
+                if proc.returncode != 0:
+                    o3d_note = f"skipped: the worker failed ({proc.stderr.strip().splitlines()[-1:]})"
+                else:
+                    with np.load(outp) as z:
+                        o3d = {k: z[k] for k in z.files}
+                    o3d_timings = json.loads(str(o3d["timings"]))
+                    o3d_note = (f"Open3D {o3d['version']} (own venv, {int(o3d['cpus'])} CPUs, nthreads=0: all), "
+                                f"worker ran {o3d_wall:.1f} s")
+
+    # ---- vkray and trimesh: speed ---------------------------------------------------------------
+    t_mesh = {k: trimesh.Trimesh(v, f, process=False) for k, (v, f) in meshes.items()}
+    env = f"PYTHONPATH={os.environ['PYTHONPATH']} " if os.environ.get("PYTHONPATH") else ""
+    say(f"Command: `{env}{' '.join([os.path.basename(sys.executable)] + sys.argv)}`\n")
+    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), platform.machine())
+    import embreex
+
+    say(f"Host: {cpu}, {os.cpu_count()} CPUs; Python {platform.python_version()}, numpy {np.__version__}. "
+        f"vkray {getattr(vkray, '__version__', '?')} `precision=\"reference\"` (f64 on all CPU cores; the Vulkan device, "
+        f"{device.name}, only holds the scene); trimesh {trimesh.__version__} with embreex "
+        f"{getattr(embreex, '__version__', '?')} (Embree 4, float32; one thread: embreex casts in a loop "
+        f"holding the GIL); trimesh numpy engine: {'rtree ' + __import__('rtree').__version__ if native_ok else native_why}; "
+        f"{o3d_note}.\n")
+    say(f"Times: best of {repeat}, after a warm-up call, numpy in (float64 arrays, as `oracle.random_rays` makes "
+        "them) and numpy out, every conversion included (Open3D: stacking into an (N, 6) float32 array, "
+        "`Tensor.from_numpy`, `.numpy()` of every output). \"Open3D tensors\" is the call alone on tensors "
+        "built beforehand, outputs left as tensors. CPU/wall is process CPU time over wall time (how many "
+        "cores the engine kept busy). vkray ÷ peer > 1: vkray is faster.\n")
+
+    say("## 1. Speed\n")
+    say(f"### All hits along {args.rays:,} random rays (`oracle.random_rays`: from a sphere of 2 bounding radii "
+        "towards random points of the bounding box, a quarter in random directions)\n")
+    table = Table("mesh (triangles)", "engine and call", "rays", "best s", "CPU/wall", "Mrays/s", "hits",
+                  "rays whose hit count ≠ vkray's", "vkray ÷ peer")
+    ctable = Table("mesh", "engine and call", "rays", "best s", "CPU/wall", "Mrays/s", "rays whose count ≠ vkray's",
+                   "vkray ÷ peer")
+    bytes_rows = []
+    disagreements = {}
+    for key in ("bunny", "fandisk"):
+        v, f = meshes[key]
+        o, d = speed_rays[key]
+        n = len(o)
+        scene = device.scene(device.mesh(v, f))
+        scene.intersect_all(o[:10], d[:10])
+        scene.count(o[:10], d[:10])
+        t_all, c_all, hits = best_of(repeat, lambda: scene.intersect_all(o, d))
+        t_lean, c_lean, lean = best_of(repeat, lambda: scene.intersect_all(o, d, outputs=["t", "prim_id"]))
+        t_cnt, c_cnt, counts = best_of(repeat, lambda: scene.count(o, d))
+        assert (counts == hits.counts).all()
+        vk_rate = n / t_all
+        vk_crate = n / t_cnt
+        name = f"{key} ({len(f):,})"
+        per_hit = [a for a in (hits.ray_index, hits.t, hits.prim_id, hits.instance_id, hits.custom_index,
+                                hits.geometry_id, hits.uv, hits.normal, hits.position) if a is not None]
+        h = int(hits.offsets[-1])
+        bytes_rows.append((key, "vkray `intersect_all` default outputs (ray_index, t, prim_id, instance_id, "
+                           "custom_index, uv, normal)", sum(a.nbytes for a in per_hit) / h,
+                           (hits.offsets.nbytes + hits.counts.nbytes) / n))
+        bytes_rows.append((key, "vkray `intersect_all(outputs=['t', 'prim_id'])` (ray_index, t, prim_id)",
+                           sum(a.nbytes for a in (lean.ray_index, lean.t, lean.prim_id)) / h,
+                           (lean.offsets.nbytes + lean.counts.nbytes) / n))
+        table.add(name, "vkray `intersect_all` (default outputs)", f"{n:,}", f"{t_all:.3f}", f"{c_all / t_all:.1f}",
+                  fmt_rate(n, t_all), f"{h:,}", "—", "—")
+        table.add(name, "vkray `intersect_all(outputs=['t', 'prim_id'])`", f"{n:,}", f"{t_lean:.3f}",
+                  f"{c_lean / t_lean:.1f}", fmt_rate(n, t_lean), f"{h:,}", "—", "—")
+        ctable.add(name, "vkray `count`", f"{n:,}", f"{t_cnt:.3f}", f"{c_cnt / t_cnt:.1f}", fmt_rate(n, t_cnt), "—", "—")
+        vk_counts = hits.counts
+
+        # trimesh + embreex
+        inter = ray_pyembree.RayMeshIntersector(t_mesh[key])
+        inter.intersects_id(o[:10], d[:10], multiple_hits=True)
+        t_e, c_e, (tri, ray) = best_of(repeat, lambda: inter.intersects_id(o, d, multiple_hits=True, return_locations=False))
+        e_counts = np.bincount(ray, minlength=n)
+        diff = np.nonzero(e_counts != vk_counts)[0]
+        disagreements[(key, "trimesh+embreex")] = diff
+        table.add(name, "trimesh+embreex `intersects_id(multiple_hits=True)`", f"{n:,}", f"{t_e:.3f}",
+                  f"{c_e / t_e:.1f}", fmt_rate(n, t_e), f"{len(tri):,}", f"{len(diff):,}", f"{vk_rate / (n / t_e):.2f}")
+        t_l, c_l, (loc, lray, ltri) = best_of(repeat, lambda: inter.intersects_location(o, d, multiple_hits=True))
+        table.add(name, "trimesh+embreex `intersects_location`", f"{n:,}", f"{t_l:.3f}", f"{c_l / t_l:.1f}",
+                  fmt_rate(n, t_l), f"{len(lray):,}", f"{int(np.sum(np.bincount(lray, minlength=n) != vk_counts)):,}",
+                  f"{vk_rate / (n / t_l):.2f}")
+        t_ec, c_ec, ec = best_of(repeat, lambda: np.bincount(
+            inter.intersects_id(o, d, multiple_hits=True, return_locations=False)[1], minlength=n))
+        ctable.add(name, "trimesh+embreex `intersects_id` + `np.bincount` (no count call)", f"{n:,}", f"{t_ec:.3f}",
+                   f"{c_ec / t_ec:.1f}", fmt_rate(n, t_ec), f"{int(np.sum(ec != vk_counts)):,}",
+                   f"{vk_crate / (n / t_ec):.2f}")
+        bytes_rows.append((key, "trimesh `intersects_id` (index_tri, index_ray: int64)",
+                           (tri.nbytes + ray.nbytes) / max(len(tri), 1), 0.0))
+        bytes_rows.append((key, "trimesh `intersects_location` (+ locations float64)",
+                           (loc.nbytes + lray.nbytes + ltri.nbytes) / max(len(lray), 1), 0.0))
+
+        # trimesh's numpy engine, on the first rays only
+        if native_ok:
+            k = min(args.native_rays, n)
+            nat = ray_triangle.RayMeshIntersector(t_mesh[key])
+            nat.intersects_id(o[:2], d[:2], multiple_hits=True)  # builds the r-tree
+            t_n, c_n, (ntri, nray) = best_of(repeat, lambda: nat.intersects_id(o[:k], d[:k], multiple_hits=True))
+            n_counts = np.bincount(nray, minlength=k)
+            ndiff = np.nonzero(n_counts != vk_counts[:k])[0]
+            disagreements[(key, "trimesh numpy")] = ndiff
+            table.add(name, f"trimesh numpy engine `intersects_id` (first {k} rays)", f"{k:,}", f"{t_n:.3f}",
+                      f"{c_n / t_n:.1f}", fmt_rate(k, t_n), f"{len(ntri):,}", f"{len(ndiff):,} of {k}",
+                      f"{vk_rate / (k / t_n):.0f}")
+            ctable.add(name, f"trimesh numpy engine, same call + bincount (first {k} rays)", f"{k:,}", f"{t_n:.3f}",
+                       f"{c_n / t_n:.1f}", fmt_rate(k, t_n), f"{len(ndiff):,} of {k}", f"{vk_crate / (k / t_n):.0f}")
+        else:
+            table.add(name, "trimesh numpy engine", "", "", "", "", "", native_why, "")
+
+        # Open3D
+        if o3d is not None:
+            tid = f"speed_{key}"
+            l_counts = np.diff(o3d[f"{tid}__splits"])
+            c_counts = o3d[f"{tid}__count"]
+            ldiff = np.nonzero(l_counts != vk_counts)[0]
+            disagreements[(key, "Open3D list")] = ldiff
+            for label, suffix in (("numpy in/out", "numpy"), ("tensors", "tensor")):
+                t, c = o3d_timings[f"{tid}__list_{suffix}"]
+                table.add(name, f"Open3D `list_intersections`, {label}", f"{n:,}", f"{t:.3f}", f"{c / t:.1f}",
+                          fmt_rate(n, t), f"{int(l_counts.sum()):,}", f"{len(ldiff):,}", f"{vk_rate / (n / t):.2f}")
+            for label, suffix in (("numpy in/out", "numpy"), ("tensors", "tensor")):
+                t, c = o3d_timings[f"{tid}__count_{suffix}"]
+                ctable.add(name, f"Open3D `count_intersections`, {label}", f"{n:,}", f"{t:.3f}", f"{c / t:.1f}",
+                           fmt_rate(n, t), f"{int(np.sum(c_counts != vk_counts)):,}", f"{vk_crate / (n / t):.2f}")
+            per_hit, per_ray = o3d_timings[f"{tid}__list_bytes"]
+            bytes_rows.append((key, "Open3D `list_intersections` (ray_ids, geometry_ids, primitive_ids: uint32; "
+                               "t_hit float32; primitive_uvs 2×float32)", per_hit, per_ray))
+
+        # Who is right where the engines disagree: the brute-force f64 oracle on those rays, hits
+        # at one point (t within 1e-9 radii: a shared edge or vertex) merged into one crossing.
+        radius = bounds(v)[1]
+        rays = np.unique(np.concatenate([x for (kk, _), x in disagreements.items() if kk == key] or [np.zeros(0, int)]))
+        rays = rays[:300]
+        if len(rays):
+            ref = all_hits_brute(v[f], o[rays], d[rays])
+            length = np.linalg.norm(d[rays], axis=1)
+            _, brute = crossings(ref["ray"], ref["t"] * length[ref["ray"]], len(rays), 1e-9 * radius)
+            ambiguous = np.zeros(len(rays), bool)
+            ambiguous[ref["ray"][ref["margin"] < 1e-6]] = True
+            disagreements[(key, "__brute")] = (rays, brute, ambiguous)
+    say(str(table) + "\n")
+    say(f"### Hit counts along the same rays\n\n{ctable}\n")
+
+    # Where engines disagree on random rays.
+    say("Rays whose hit counts differ between engines, checked against a brute-force f64 test of every ray "
+        "against every triangle (`oracle.all_hits_brute`, closed triangles; hits within 1e-9 radii along the ray "
+        "merged into one crossing; \"near an edge\" = some hit within 1e-6 of a triangle's edge in barycentric terms, "
+        "or a ray within 1e-6 of a triangle's plane):\n")
+    dt = Table("mesh", "engine", "rays ≠ vkray", "of which vkray = brute force", "peer = brute force",
+               "near an edge (either may be right)")
+    for key in ("bunny", "fandisk"):
+        if (key, "__brute") not in disagreements:
+            continue
+        rays, brute, ambiguous = disagreements[(key, "__brute")]
+        pos = {r: i for i, r in enumerate(rays.tolist())}
+        o, d = speed_rays[key]
+        vk = device.scene(device.mesh(*meshes[key])).count(o[rays], d[rays])
+        for engine in ("trimesh+embreex", "trimesh numpy", "Open3D list"):
+            if (key, engine) not in disagreements:
+                continue
+            diff = [r for r in disagreements[(key, engine)].tolist() if r in pos]
+            idx = np.array([pos[r] for r in diff], int)
+            if engine == "trimesh+embreex":
+                inter = ray_pyembree.RayMeshIntersector(t_mesh[key])
+                _, pr = inter.intersects_id(o[rays], d[rays], multiple_hits=True)
+                peer = np.bincount(pr, minlength=len(rays))
+            elif engine == "trimesh numpy":
+                _, pr = ray_triangle.RayMeshIntersector(t_mesh[key]).intersects_id(o[rays], d[rays], multiple_hits=True)
+                peer = np.bincount(pr, minlength=len(rays))
+            else:
+                peer = np.zeros(len(rays), int)
+                peer[:] = np.diff(o3d[f"speed_{key}__splits"])[rays]
+            dt.add(key, engine, len(disagreements[(key, engine)]),
+                   int(np.sum(vk[idx] == brute[idx])), int(np.sum(peer[idx] == brute[idx])), int(ambiguous[idx].sum()))
+    say((str(dt) if len(dt.rows) > 2 else "None: every engine's hit count equals vkray's on every ray.") + "\n")
+
+    # contains
+    say(f"### Inside or outside: {args.points:,} uniform random points in the bounding box grown by 10% per side\n")
+    table = Table("mesh (triangles)", "engine and call", "points", "best s", "CPU/wall", "Mpoints/s",
+                  "inside", "answers ≠ vkray parity", "vkray ÷ peer")
+    check_rows = []
+    for key in ("fandisk", "spot"):
+        v, f = meshes[key]
+        p = speed_points[key]
+        n = len(p)
+        name = f"{key} ({len(f):,})"
+        mesh = device.mesh(v, f)
+        scene = device.scene(mesh)
+        scene.contains(p[:10])
+        t_p, c_p, inside = best_of(repeat, lambda: scene.contains(p))
+        vk_rate = n / t_p
+        table.add(name, f"vkray `contains` (parity; `is_closed`={mesh.is_closed})", f"{n:,}", f"{t_p:.3f}",
+                  f"{c_p / t_p:.1f}", fmt_rate(n, t_p), f"{int(inside.sum()):,}", "—", "—")
+        w = min(args.winding_points, n)
+        t_w, c_w, wind = best_of(repeat, lambda: scene.contains(p[:w], method="winding"))
+        table.add(name, f"vkray `contains(method='winding')` (first {w:,})", f"{w:,}", f"{t_w:.3f}", f"{c_w / t_w:.1f}",
+                  fmt_rate(w, t_w), f"{int(wind.sum()):,}", f"{int(np.sum(wind != inside[:w]))} of {w}",
+                  f"{vk_rate / (w / t_w):.0f}")
+        answers = {}
+        tm = trimesh.Trimesh(v, f, process=False)
+        tm.contains(p[:10])
+        t_t, c_t, tin = best_of(repeat, lambda: tm.contains(p))
+        answers["trimesh+embreex"] = tin
+        table.add(name, "trimesh+embreex `mesh.contains`", f"{n:,}", f"{t_t:.3f}", f"{c_t / t_t:.1f}", fmt_rate(n, t_t),
+                  f"{int(tin.sum()):,}", f"{int(np.sum(tin != inside)):,}", f"{vk_rate / (n / t_t):.2f}")
+        if native_ok:
+            k = min(3 * args.native_rays, n)
+            nat = ray_triangle.RayMeshIntersector(tm)
+            nat.contains_points(p[:2])
+            t_n, c_n, nin = best_of(repeat, lambda: nat.contains_points(p[:k]))
+            table.add(name, f"trimesh numpy engine `contains_points` (first {k:,})", f"{k:,}", f"{t_n:.3f}",
+                      f"{c_n / t_n:.1f}", fmt_rate(k, t_n), f"{int(nin.sum()):,}", f"{int(np.sum(nin != inside[:k]))} of {k}",
+                      f"{vk_rate / (k / t_n):.0f}")
+        if o3d is not None:
+            tid = f"pts_{key}"
+            for label, ns in (("nsamples=1 (= the default in 0.20)", "ns1"), ("nsamples=3", "ns3")):
+                ans = o3d[f"{tid}__{ns}"]
+                answers[f"Open3D {ns}"] = ans
+                for io, suffix in (("numpy in/out", "numpy"), ("tensors", "tensor")):
+                    t, c = o3d_timings[f"{tid}__{ns}_{suffix}"]
+                    table.add(name, f"Open3D `compute_occupancy`, {label}, {io}", f"{n:,}", f"{t:.3f}", f"{c / t:.1f}",
+                              fmt_rate(n, t), f"{int(ans.sum()):,}", f"{int(np.sum(ans != inside)):,}",
+                              f"{vk_rate / (n / t):.2f}")
+            assert (o3d[f"{tid}__default"] == o3d[f"{tid}__ns1"]).all()
+            check_rows.append((key, int(np.sum(o3d[f"{tid}__dircheck1"] == o3d[f"{tid}__ns1"])),
+                               int(np.sum(o3d[f"{tid}__dircheck3"] == o3d[f"{tid}__ns3"])), n))
+        # Disagreements, judged by the generalized winding number in numpy (oracle.winding_numbers).
+        bad = np.unique(np.concatenate([np.nonzero(a != inside)[0] for a in answers.values()] or [np.zeros(0, int)]))
+        if len(bad):
+            wn = winding_numbers(v, f, p[bad])
+            truth = wn >= 0.5
+            notes = [f"vkray parity right on {int(np.sum(inside[bad] == truth))} of {len(bad)}"]
+            for label, a in answers.items():
+                notes.append(f"{label} right on {int(np.sum(a[bad] == truth))}")
+            say_line = (f"- {key}: {len(bad)} points where some engine differs from vkray; by the numpy winding number "
+                        f"(min |w − ½| {np.abs(wn - 0.5).min():.3f}): " + ", ".join(notes) + ".")
+            check_rows.append(("note", say_line))
+    say(str(table) + "\n")
+    for row in check_rows:
+        if row[0] == "note":
+            say(row[1])
+    for row in check_rows:
+        if row[0] != "note":
+            key, a1, a3, n = row
+            say(f"- Open3D's ray directions (computed here from mt19937(42), see the script): the parity of "
+                f"`count_intersections` along direction 0 equals `compute_occupancy(nsamples=1)` on {a1:,} of {n:,} "
+                f"{key} points, the majority over directions 0–2 equals `nsamples=3` on {a3:,} of {n:,}.")
+    say("")
+
+    # ---- 2. Correctness ----------------------------------------------------------------------
+    say("## 2. Correctness on hard cases\n")
+    say("### (a) Rays through shared vertices and edges: one hit per crossing\n")
+    say("Heightfield (`oracle.heightfield(16, seed=47)`, 450 triangles): vertical rays down and up, and tilted rays "
+        "(`oracle.rays_through`, up to 55° off vertical), through every interior vertex and the midpoint of every "
+        "interior edge (axis-aligned and diagonal): the surface is crossed exactly once. Closed fan (11 triangles "
+        "around a vertex, as in tests/test_all_hits.py): 100 random rays from above through the centre and through "
+        "each spoke's midpoint: once. Closed bipyramid (18 triangles): rays from outside through each vertex and edge "
+        "midpoint towards random points inside: twice (in and out). Offsets are added to every coordinate in float64 "
+        "(the engines in float32 get the rounded vertices and rays).\n")
+    say("The exact answer is decided without any engine, by a brute-force f64 test of every triangle "
+        "(`oracle.all_hits_brute`) on the offset-0 copy of the rays: at the point aimed at, 4 parallel rays moved "
+        "1e-7 radii sideways (which miss every edge) must each cross the surface exactly once within 1% of a radius "
+        "of it, and the ray must cross nowhere else (the bipyramid: exactly one exit, not within 1e-9 of an edge). "
+        "A tilted ray can instead only touch the non-flat fan along a ridge or valley edge, or clip it again "
+        "elsewhere: such rays are left out of this table (\"rays kept\"), and the touching ones get their own "
+        "table below.\n")
+    say("Each engine's hits on a ray are sorted along it and hits within 2% of the mesh's bounding radius of each "
+        "other merged into one crossing (distinct crossings here are ≥ 30% apart; float32 engines at 1e5 land within "
+        "~0.01 of the true point). **missing**: fewer crossings than the exact answer; **dup**: some crossing reported "
+        "by more than one hit; **extra**: more crossings than the answer. Cells: missing / dup / extra, in rays. "
+        "\"vkray on f32 input\": vkray given the float32-rounded vertices and rays that Open3D gets, to tell "
+        "rounding of the input from the engines' own misses. Open3D `count_intersections` gives counts only: "
+        "below the answer counts as missing, above as dup.\n")
+    cols = ["vkray", "vkray on f32 input", "trimesh+embreex", "trimesh numpy", "Open3D list", "Open3D count"]
+    table = Table("case", "offset", "rays kept", *cols)
+    totals = {c: np.zeros(3, int) for c in cols}
+    left_out = []
+    classes = {}
+    touch_table = Table("case", "offset", "touching rays", *cols)
+    touch_rows = 0
+    for i, (label, offset, _key, v, f, o, d, expected, target_t, radius) in enumerate(hard_rays):
+        built = len(o)
+        if label not in classes:
+            classes[label] = classify_rays(all_hits_brute, crossings, v, f, o, d, target_t, expected, radius)
+            assert offset == 0.0
+        keep, touch, why = classes[label]
+        length = np.linalg.norm(d, axis=1)
+        tol = 0.02 * radius
+        v32, o32, d32 = (x.astype(np.float32).astype(np.float64) for x in (v, o, d))
+        length32 = np.linalg.norm(d32, axis=1)
+        # Every engine's hits on every ray built: (ray, distance along it).
+        found = {}
+        ah = device.scene(device.mesh(v, f)).intersect_all(o, d, outputs=["t", "prim_id"])
+        found["vkray"] = (ah.ray_index, ah.t * length[ah.ray_index])
+        ah = device.scene(device.mesh(v32, f)).intersect_all(o32, d32, outputs=["t"])
+        found["vkray on f32 input"] = (ah.ray_index, ah.t * length32[ah.ray_index])
+        tm = trimesh.Trimesh(v, f, process=False)
+        tri, ray = ray_pyembree.RayMeshIntersector(tm).intersects_id(o, d, multiple_hits=True, return_locations=False)
+        found["trimesh+embreex"] = (ray, plane_distance(v[f[tri]], o[ray], d[ray]))
+        if native_ok:
+            tri, ray = ray_triangle.RayMeshIntersector(tm).intersects_id(o, d, multiple_hits=True)
+            found["trimesh numpy"] = (ray, plane_distance(v[f[tri]], o[ray], d[ray]))
+        if o3d is not None:
+            tid = f"hard{i}"
+            ray = o3d[f"{tid}__ray"]
+            found["Open3D list"] = (ray, o3d[f"{tid}__t"].astype(np.float64) * length32[ray])
+        cells, tcells = {}, {}
+        index = np.cumsum(keep) - 1  # kept rays, renumbered
+        aimed = target_t * length
+        for c, (ray, dist) in found.items():
+            sel = keep[ray]
+            hits, clusters = crossings(index[ray[sel]], dist[sel], int(keep.sum()), tol)
+            cells[c] = np.array([np.sum(clusters < expected), np.sum(hits > clusters), np.sum(clusters > expected)])
+            near = touch[ray] & (np.abs(dist - aimed[ray]) < TOUCH_WINDOW * radius)
+            tcells[c] = int(np.sum(np.bincount(ray[near], minlength=built)[touch] % 2 == 1))
+        if o3d is not None:
+            cnt = o3d[f"hard{i}__count"]
+            cells["Open3D count"] = np.array([np.sum(cnt[keep] < expected), np.sum(cnt[keep] > expected), 0])
+        row = []
+        for c in cols:
+            if c in cells:
+                totals[c] += cells[c]
+                row.append("{} / {} / {}".format(*cells[c]))
+            else:
+                row.append("n/a")
+        table.add(label, f"{offset:g}", f"{int(keep.sum()):,} of {built:,}", *row)
+        if touch.any():
+            touch_rows += 1
+            touch_table.add(label, f"{offset:g}", f"{int(touch.sum())}",
+                            *[str(tcells[c]) if c in tcells else "n/a" for c in cols])
+        if offset == 0.0:
+            left_out.append(f"{label}: {why}")
+    table.add("**total**", "", "", *["{} / {} / {}".format(*totals[c]) for c in cols])
+    say(str(table) + "\n")
+    say("Rays left out (the same at both offsets): " + "; ".join(left_out) + ".\n")
+    if touch_rows:
+        say("Rays that touch the surface at the point aimed at without crossing it (a tilted ray along a ridge or "
+            "valley edge of the fan or heightfield, found as above): there 0 or 2 hits are both consistent (what "
+            "matters for counting crossings and parity is that the number is even: a float32-rounded ray, moved "
+            "sideways by up to ~0.004 at 1e5, misses the ridge or crosses both of its faces a few hundredths apart); "
+            "cells: rays with an odd number of hits within 10% of a radius of that point.\n")
+        say(str(touch_table) + "\n")
+
+    say("### (b) Inside or outside where rays run through vertices and edges\n")
+    say("Points: a lattice, plus points placed on the lines through the solid's vertices and edge points along "
+        "each engine's own ray direction (vkray (0.6, 0.48, 0.64); trimesh (0.4395, 0.6176, 0.6522), which it also "
+        "casts backwards; Open3D's three vote directions, ≈ (1, 1, 1) ± 0.001 each, from mt19937(42)), at distances "
+        "before and after the vertex or edge, so that each engine's ray from such a point passes through a vertex or "
+        "an edge (to within the rounding of the point). Unit cube (12 triangles): a quarter-unit lattice from −1 to 2 "
+        "and such points through its 8 vertices, 24 edge points and the face centres (leaving out those within 0.01 of "
+        "the surface but not on it, which float32 rounding at 1e5 would put on it); the answer is analytic. "
+        "Fandisk: a 12³ lattice over its bounding box grown by 10%, and such points through 150 random vertices and "
+        "150 random edge midpoints; **the reference is vkray's `contains(method='winding')`** (generalized winding "
+        "number in f64), itself checked against the numpy winding number of `tests/oracle.py` where any engine "
+        "disagrees with it.\n")
+    say("Cells: wrong answers among points off the surface (of all off-surface points). Points exactly on the "
+        "surface (cube lattice points on a face, edge or vertex) have no single right answer: vkray counts them as "
+        "inside (documented); the last column gives, per engine, how many of them it called inside.\n")
+    engines = ["vkray parity", "vkray winding", "vkray parity, f32 points", "trimesh+embreex", "trimesh numpy",
+               "Open3D nsamples=1 (default)", "Open3D nsamples=3"]
+    table = Table("solid", "points", *engines, "on-surface points called inside")
+    fandisk_note = ""
+    for i, (label, _key, v, f, p, expected, on_surface) in enumerate(hard_points):
+        n = len(p)
+        scene = device.scene(device.mesh(v, f))
+        ans = {"vkray parity": scene.contains(p), "vkray winding": scene.contains(p, method="winding")}
+        s32 = device.scene(device.mesh(v.astype(np.float32).astype(np.float64), f))
+        ans["vkray parity, f32 points"] = s32.contains(p.astype(np.float32).astype(np.float64))
+        tm = trimesh.Trimesh(v, f, process=False)
+        ans["trimesh+embreex"] = tm.contains(p)
+        if native_ok:
+            ans["trimesh numpy"] = ray_triangle.RayMeshIntersector(tm).contains_points(p)
+        if o3d is not None:
+            ans["Open3D nsamples=1 (default)"] = o3d[f"hpts{i}__ns1"]
+            ans["Open3D nsamples=3"] = o3d[f"hpts{i}__ns3"]
+            assert (o3d[f"hpts{i}__default"] == o3d[f"hpts{i}__ns1"]).all()
+        if expected is None:  # fandisk: vkray's winding number is the reference
+            expected = ans["vkray winding"]
+            bad = np.unique(np.concatenate([np.nonzero(a != expected)[0] for a in ans.values()]))
+            dist = surface_distance(v, f, p[bad]) if len(bad) else np.zeros(0)
+            near = bad[dist < 1e-6 * f_radius]
+            on_surface = np.zeros(n, bool)
+            on_surface[near] = True
+            if len(bad):
+                wn = winding_numbers(v, f, p[bad])
+                agree = int(np.sum((wn >= 0.5) == expected[bad]))
+                fandisk_note = (f"Fandisk: {len(bad)} points where some engine differs from the reference; there the "
+                                f"numpy winding number agrees with vkray's on {agree} of {len(bad)} "
+                                f"(|w − round(w)| ≤ {np.abs(wn - np.round(wn)).max():.1e}); their distances to the "
+                                f"surface: min {dist.min():.2e}, median {np.median(dist):.2e} (radius {f_radius:.2f}); "
+                                f"{len(near)} within 1e-6 radii, treated as on the surface.")
+        off = ~on_surface
+        row = []
+        for e in engines:
+            if e in ans:
+                row.append(f"{int(np.sum((ans[e] != expected) & off))} of {int(off.sum()):,}")
+            else:
+                row.append("n/a")
+        onsurf = ", ".join(f"{e.split(' (')[0]} {int(np.sum(ans[e] & on_surface))}" for e in engines if e in ans)
+        table.add(label, f"{n:,}", *row, f"{int(on_surface.sum())} points: {onsurf}" if on_surface.any() else "none")
+    say(str(table) + "\n")
+    if fandisk_note:
+        say(fandisk_note + "\n")
+
+    say("### (c) Bytes per stored hit\n")
+    say("Measured from the returned numpy arrays on the 100k random rays above (per hit: arrays with one entry per "
+        "hit; per ray: offsets and counts, or Open3D's ray_splits).\n")
+    table = Table("mesh", "result", "bytes per hit", "bytes per ray")
+    for key, label, per_hit, per_ray in bytes_rows:
+        table.add(key, label, f"{per_hit:.1f}", f"{per_ray:.1f}")
+    say(str(table) + "\n")
+    say(f"Total wall time of this run: {time.perf_counter() - wall_start:.0f} s. 1-minute load average before the "
+        f"run {load_before:.2f}, after it {os.getloadavg()[0]:.2f} (other work on the machine skews the times: "
+        "the CPU/wall columns show whether an engine got the cores it asked for).")
+
+    report = "\n".join(lines) + "\n"
+    print(report)
+    if args.out:
+        pathlib.Path(args.out).write_text(report)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--o3d-worker":
+        o3d_worker(sys.argv[2], sys.argv[3])
+    else:
+        main()
