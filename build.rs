@@ -14,6 +14,7 @@ const SHADERS: &[&str] = &[
     "raygen_exact.rgen",
     "intersection_exact.rint",
     "sphere.rint",
+    "any_hit_all.rahit",
 ];
 
 fn main() {

@@ -19,11 +19,11 @@ const uint OUT_GEOMETRY = 64u;
 // for what its scene holds and what its caller asked.
 layout(constant_id = 0) const uint OUTPUTS = 0x7Fu;
 layout(constant_id = 1) const uint RAY_FLAGS = 0u;
-// What each ray asks (trace::Query): the closest hit (or any, with TerminateOnFirstHit), or the
-// number of hits (COUNT: every crossing counted, none committed; written as out_prim).
+// What each ray asks: the closest hit (or any, with TerminateOnFirstHit), or all of them (ALL:
+// every hit counted, none committed, the nearest kept in the ray's HitList; see hit_lists.glsl).
 layout(constant_id = 3) const uint QUERY = 0u;
 const uint QUERY_CLOSEST = 0u;
-const uint QUERY_COUNT = 1u;
+const uint QUERY_ALL = 1u;
 
 // One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer RayBuffer { vec4 v[]; };
@@ -178,6 +178,16 @@ void resolve_triangle(inout Hit hit, mat4x3 object_to_world) {
   GeometrySource src = geometry_source(hit.instance, hit.geometry);
   if ((OUTPUTS & OUT_NORMAL) != 0u) hit.normal = world_normal(src, hit.prim, object_to_world);
   hit.prim = caller_primitive(src, hit.prim);
+}
+
+// The order of all hits (QUERY_ALL) in the fast tier: nearer first, then lower ids.
+bool is_before(FastHit a, FastHit b) {
+  return a.t < b.t || (a.t == b.t && (a.instance < b.instance || (a.instance == b.instance &&
+                                      (a.geometry < b.geometry || (a.geometry == b.geometry && a.prim < b.prim)))));
+}
+
+bool is_same(FastHit a, FastHit b) {
+  return a.t == b.t && a.instance == b.instance && a.geometry == b.geometry && a.prim == b.prim;
 }
 
 void store_hit(uint i, Hit h) {

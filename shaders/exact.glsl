@@ -76,6 +76,15 @@ bool is_before(double t, int instance, int prim, ExactBest best, int best_prim) 
   return t < best.t || (t == best.t && (instance < best.instance || (instance == best.instance && prim < best_prim)));
 }
 
+// The order of all hits (QUERY_ALL) in the exact tier, as ReferenceHit::is_before.
+bool is_before(ExactHit a, ExactHit b) {
+  return a.t < b.t || (a.t == b.t && (a.instance < b.instance || (a.instance == b.instance && a.prim < b.prim)));
+}
+
+bool is_same(ExactHit a, ExactHit b) {
+  return a.t == b.t && a.instance == b.instance && a.prim == b.prim;
+}
+
 dvec3 exact_vertex(ExactInstance x, uint index) {
   Doubles d = Doubles(x.vertices);
   return dvec3(d.v[3u * index], d.v[3u * index + 1u], d.v[3u * index + 2u]);
@@ -138,6 +147,17 @@ bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u
   t_hit = t;
   u_hit = v / det;
   v_hit = w / det;
+  return true;
+}
+
+// Ray i's exact hit with device triangle `prim` of `instance`, if any, as a stored record.
+bool exact_record(Ray64 ray, int instance, int prim, out ExactHit h) {
+  double t;
+  double u;
+  double v;
+  if (!exact_hit(ray, instance, prim, t, u, v)) return false;
+  int caller = caller_index(ExactInstances(params.instances).x[instance].primitive_order, prim);
+  h = ExactHit(t, u, v, uint(instance), uint(caller));
   return true;
 }
 

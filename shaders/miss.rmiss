@@ -5,5 +5,7 @@
 layout(location = 0) rayPayloadInEXT Hit payload;
 
 void main() {
-  payload = miss_hit();
+  // All hits (QUERY_ALL) ignore every candidate, so traversal always ends here: the payload
+  // holds the count.
+  if (QUERY != QUERY_ALL) payload = miss_hit();
 }

@@ -20,7 +20,9 @@ const uint VERTEX_SNORM16 = 2u;
 const uint SPHERE_SOURCE = 3u;  // `vertices` holds spheres (vec4: centre, radius), no triangles
 
 // The push constants of every query (records.rs Params, whose `outputs` array holds out_t ..
-// out_geometry in trace::Field order).
+// out_geometry in trace::Field order). QUERY_ALL writes no hit fields: out_t points at the
+// chunk's FastHit or ExactHit records, out_prim at one int per ray (the hits it met), scratch at
+// one HitList per ray (0: none stored, only counted).
 layout(push_constant, std430) uniform Params {
   uint64_t rays;
   uint64_t instances;  // InstanceGeometries (fast tier) or ExactInstances (exact tier)
@@ -32,7 +34,7 @@ layout(push_constant, std430) uniform Params {
   uint64_t out_uv;
   uint64_t out_normal;
   uint64_t out_geometry;
-  uint64_t scratch;    // exact tier, pipeline backend: ExactBest per ray
+  uint64_t scratch;    // exact tier, pipeline backend: ExactBest per ray; QUERY_ALL: HitList per ray
   uint64_t masks;      // one uint cull mask per ray, or 0: every ray uses ray_mask
   uint count;
   float bounds[6];     // exact tier: the scene's bounds (min xyz, max xyz), rounded outward
@@ -65,6 +67,34 @@ struct ExactBest {
   int prim;
   int custom;
   int geometry;
+};
+
+// QUERY_ALL: where ray i keeps its nearest hits, sorted: `capacity` records from `first` among
+// the chunk's records (hit_lists.glsl).
+struct HitList {
+  uint first;
+  uint capacity;
+};
+
+// One stored hit of the fast tier: f32 t and barycentrics (of vertices 1 and 2), the caller's
+// triangle within its geometry. Ordered by (t, instance, geometry, prim).
+struct FastHit {
+  float t;
+  float u;
+  float v;
+  int instance;
+  int geometry;
+  int prim;
+};
+
+// One stored hit of the exact tier: f64 t and barycentrics, the caller's triangle among all parts
+// of the mesh (src/geometry/reference.rs ReferenceHit). Ordered by (t, instance, prim).
+struct ExactHit {
+  double t;
+  double u;
+  double v;
+  uint instance;
+  uint prim;
 };
 
 #endif

@@ -4,6 +4,8 @@
 #extension GL_EXT_ray_query : require
 #include "common.glsl"
 #include "exact.glsl"
+#define HIT_RECORD ExactHit
+#include "hit_lists.glsl"
 
 layout(local_size_x_id = 2) in;
 
@@ -11,31 +13,8 @@ void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
   Ray64 ray = load_ray64(i);
-  if (QUERY == QUERY_COUNT) {
-    // Every box's triangle is tested once per instance and none is committed: each crossing
-    // the f64 test accepts is counted once.
-    int count = 0;
-    double entry = scene_entry(ray);
-    if (entry >= 0.0) {
-      TraversalRay r = traversal_ray(ray, entry);
-      rayQueryEXT query;
-      rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i), r.origin, r.tmin,
-                            r.direction, r.tmax);
-      while (rayQueryProceedEXT(query)) {
-        double t;
-        double u;
-        double v;
-        if (rayQueryGetIntersectionTypeEXT(query, false) == gl_RayQueryCandidateIntersectionAABBEXT &&
-            exact_hit(ray, rayQueryGetIntersectionInstanceIdEXT(query, false),
-                      rayQueryGetIntersectionPrimitiveIndexEXT(query, false), t, u, v)) {
-          ++count;
-        }
-      }
-    }
-    IntOut(params.out_prim).v[i] = count;
-    return;
-  }
   ExactBest best = exact_miss();
+  int seen = 0;
   double entry = scene_entry(ray);
   if (entry >= 0.0) {
     TraversalRay r = traversal_ray(ray, entry);
@@ -45,10 +24,15 @@ void main() {
     float committed = r.tmax;
     while (rayQueryProceedEXT(query)) {
       if (rayQueryGetIntersectionTypeEXT(query, false) != gl_RayQueryCandidateIntersectionAABBEXT) continue;
-      if (exact_candidate(best, ray, rayQueryGetIntersectionInstanceIdEXT(query, false),
-                          rayQueryGetIntersectionPrimitiveIndexEXT(query, false),
-                          rayQueryGetIntersectionInstanceCustomIndexEXT(query, false),
-                          rayQueryGetIntersectionGeometryIndexEXT(query, false))) {
+      int instance = rayQueryGetIntersectionInstanceIdEXT(query, false);
+      int prim = rayQueryGetIntersectionPrimitiveIndexEXT(query, false);
+      if (QUERY == QUERY_ALL) {
+        // Every box's triangle is tested once per instance and none is committed: each crossing
+        // the f64 test accepts is met once.
+        ExactHit h;
+        if (exact_record(ray, instance, prim, h)) seen = keep_hit(i, seen, h);
+      } else if (exact_candidate(best, ray, instance, prim, rayQueryGetIntersectionInstanceCustomIndexEXT(query, false),
+                                 rayQueryGetIntersectionGeometryIndexEXT(query, false))) {
         // Commit in f32 too, so that traversal skips boxes beyond the best hit.
         committed = clamp(float(best.t - entry), r.tmin, committed);
         rayQueryGenerateIntersectionEXT(query, committed);
@@ -56,5 +40,9 @@ void main() {
       }
     }
   }
-  store_exact(i, best);
+  if (QUERY == QUERY_ALL) {
+    HitCounts(params.out_prim).v[i] = seen;
+  } else {
+    store_exact(i, best);
+  }
 }

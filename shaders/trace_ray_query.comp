@@ -3,13 +3,43 @@
 #extension GL_EXT_ray_query : require
 #extension GL_EXT_ray_flags_primitive_culling : require
 #include "common.glsl"
+#define HIT_RECORD FastHit
+#include "hit_lists.glsl"
 
 layout(local_size_x_id = 2) in;
+
+// Every hit (QUERY_ALL): RAY_FLAGS holds NoOpaque, so that each triangle comes here as a
+// candidate; each is kept in the ray's list and none is committed. Scenes with spheres do not
+// take this path.
+void trace_all(uint i, Ray ray) {
+  bool storing = hit_list(i).capacity > 0u;
+  int seen = 0;
+  rayQueryEXT query;
+  rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i),
+                        ray.origin, ray.tmin, ray.direction, ray.tmax);
+  while (rayQueryProceedEXT(query)) {
+    if (rayQueryGetIntersectionTypeEXT(query, false) != gl_RayQueryCandidateIntersectionTriangleEXT) continue;
+    if (!storing) {
+      ++seen;
+      continue;
+    }
+    int instance = rayQueryGetIntersectionInstanceIdEXT(query, false);
+    int geometry = rayQueryGetIntersectionGeometryIndexEXT(query, false);
+    int prim = caller_primitive(geometry_source(instance, geometry), rayQueryGetIntersectionPrimitiveIndexEXT(query, false));
+    vec2 uv = rayQueryGetIntersectionBarycentricsEXT(query, false);
+    seen = keep_hit(i, seen, FastHit(rayQueryGetIntersectionTEXT(query, false), uv.x, uv.y, instance, geometry, prim));
+  }
+  HitCounts(params.out_prim).v[i] = seen;
+}
 
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
   Ray ray = load_ray(i);
+  if (QUERY == QUERY_ALL) {
+    trace_all(i, ray);
+    return;
+  }
 
   rayQueryEXT query;
   rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i),

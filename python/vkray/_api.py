@@ -592,19 +592,32 @@ class Scene:
         tmax: Any = np.inf,
         max_hits: Optional[int] = None,
         outputs: Optional[Iterable[str]] = None,
-        precision: Precision = "reference",
+        precision: Precision = "fast",
         cull: Cull = None,
         mask: Any = 0xFF,
     ) -> AllHits:
         """Every hit of each ray within [tmin, tmax], nearest first (see `AllHits`).
 
-        Each crossing of a surface is reported exactly once: a ray through a shared edge or
-        vertex hits one of the triangles there (the exact watertight test and its tie-break),
-        while distinct triangles at the same t (coplanar copies, stacked layers, instances in one
-        place) are all reported, in increasing (instance_id, geometry_id, prim_id).
+        Hits at the same t come in increasing (instance_id, geometry_id, prim_id). No cap: a
+        counting pass sizes each ray's list before a storing pass fills it, chunk by chunk, and a
+        result that cannot fit in host memory raises MemoryError before it is stored.
         max_hits: keep only the nearest ``max_hits`` of each ray (None: all, however many).
-        precision: ``"reference"`` (f64 on all CPU cores) for now; the GPU tiers raise
-        `UnsupportedError` until they are built. Other arguments as in `intersect`.
+
+        precision:
+
+        - ``"exact"`` and ``"reference"``: each crossing of a surface is reported exactly once
+          (the f64 watertight test and its tie-break: a ray through a shared edge or vertex hits
+          one of the triangles there), while distinct triangles at the same t (coplanar copies,
+          stacked layers, instances in one place) are all reported. ``"exact"`` runs on the GPU
+          (needs shaderFloat64), ``"reference"`` on all CPU cores; their answers are the same.
+        - ``"fast"`` (default): the GPU's f32 traversal decides, each triangle it meets reported
+          once (t, uv in float32). At a shared edge or vertex it may report both triangles or
+          neither (docs/benchmarks.md counts how often).
+        - ``"refined"``: the fast tier's hits, each re-intersected with its triangle in f64 and
+          sorted again (float64); a ray with a hit whose f64 answer leaves [tmin, tmax] is traced
+          again on the CPU. Edges as in ``"fast"``.
+
+        Scenes with spheres raise `UnsupportedError`. Other arguments as in `intersect`.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
@@ -619,21 +632,23 @@ class Scene:
         *,
         tmin: Any = 0.0,
         tmax: Any = np.inf,
-        precision: Precision = "reference",
+        precision: Precision = "fast",
         cull: Cull = None,
         mask: Any = 0xFF,
     ) -> np.ndarray:
         """int32 ``S``: the number of hits of each ray within [tmin, tmax], as `intersect_all`
-        counts them (``count(...) == intersect_all(...).counts``), without storing them.
+        finds them at the same precision (``count(...) == intersect_all(...).counts``), without
+        storing them (but at ``"refined"``, whose hits are re-intersected on the host).
 
-        precision: ``"reference"`` (f64 on all CPU cores) or ``"exact"`` (the same f64 test on the
-        GPU, through per-triangle boxes: every crossing counted once, none committed; needs the
-        device's shaderFloat64). The f32 tiers raise `UnsupportedError` for now."""
+        precision: ``"fast"`` (default: f32 traversal on the GPU, each triangle it meets counted;
+        at shared edges it may count two or none), ``"exact"`` (the f64 test on the GPU through
+        per-triangle boxes: every crossing counted once; needs shaderFloat64), ``"reference"``
+        (the same f64 test on all CPU cores) or ``"refined"``."""
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
         counts = self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape))
         return counts.reshape(shape)
 
-    def contains(self, points: Any, *, precision: Precision = "reference", method: str = "parity") -> np.ndarray:
+    def contains(self, points: Any, *, precision: Precision = "exact", method: str = "parity") -> np.ndarray:
         """bool ``S`` for points of shape ``S + (3,)``: whether each lies inside any instance.
 
         method: ``"parity"`` (default) casts one ray per point and counts each instance's
@@ -642,8 +657,10 @@ class Scene:
         and raises ValueError otherwise. ``"winding"``: the generalized winding number of each
         instance (Jacobson et al. 2013) is at least 1/2; meaningful for meshes with holes too.
         A point on a surface (within a few f64 ulps of a triangle) counts as inside, by either
-        method. precision: ``"reference"`` (f64 on all CPU cores), or ``"exact"``: the same
-        answers, the crossings counted on the GPU where the scene has one instance (parity).
+        method. precision: ``"exact"`` (default: parity's crossings found on the GPU by the f64
+        test, the winding number on all CPU cores) or ``"reference"`` (everything on the CPU): the
+        same answers. The f32 tiers raise `UnsupportedError`: they may count a crossing at an edge
+        twice or not at all.
         """
         if method not in ("parity", "winding"):
             raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")

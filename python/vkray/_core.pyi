@@ -160,7 +160,7 @@ class Scene:
         tmin: _PerItem,
         tmax: _PerItem,
         fields: List[str],
-        precision: Precision = "reference",
+        precision: Precision = "fast",
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
         max_hits: Optional[int] = None,
@@ -171,10 +171,10 @@ class Scene:
         directions: _Vec3s,
         tmin: _PerItem,
         tmax: _PerItem,
-        precision: Precision = "reference",
+        precision: Precision = "fast",
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
     ) -> NDArray[np.int32]: ...
     def contains(
-        self, points: _Vec3s, precision: Precision = "reference", winding: bool = False
+        self, points: _Vec3s, precision: Precision = "exact", winding: bool = False
     ) -> NDArray[np.bool_]: ...

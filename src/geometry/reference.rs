@@ -163,8 +163,11 @@ pub struct PlacedSet<'a> {
     pub cull_disable: bool,
 }
 
-/// What the CPU tracer found for one ray.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// What the CPU tracer found for one ray: t and barycentrics (of vertices 1 and 2) in f64, the
+/// instance and the triangle among all parts of its mesh. The exact tier's GPU stores its all-hits
+/// records in this layout too (`gpu::records::ExactHit`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct ReferenceHit {
     pub t: f64,
     pub u: f64,

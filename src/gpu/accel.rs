@@ -547,6 +547,12 @@ pub fn instance_bytes(records: &[vk::AccelerationStructureInstanceKHR]) -> &[u8]
     unsafe { std::slice::from_raw_parts(records.as_ptr().cast::<u8>(), std::mem::size_of_val(records)) }
 }
 
+/// The flags of every geometry: opaque (no any-hit stage runs unless a query's ray flags ask for
+/// it), and each primitive met at most once per ray where they do (all hits, counts).
+pub const GEOMETRY_FLAGS: vk::GeometryFlagsKHR = vk::GeometryFlagsKHR::from_raw(
+    vk::GeometryFlagsKHR::OPAQUE.as_raw() | vk::GeometryFlagsKHR::NO_DUPLICATE_ANY_HIT_INVOCATION.as_raw(),
+);
+
 /// One opaque geometry of boxes at `address`: tightly packed `VkAabbPositionsKHR`, which hosts
 /// write as `[f32; 6]` (min xyz, max xyz: `Aabb::outward_f32`).
 pub fn aabbs_geometry(address: u64) -> vk::AccelerationStructureGeometryKHR<'static> {
@@ -556,7 +562,7 @@ pub fn aabbs_geometry(address: u64) -> vk::AccelerationStructureGeometryKHR<'sta
     vk::AccelerationStructureGeometryKHR::default()
         .geometry_type(vk::GeometryTypeKHR::AABBS)
         .geometry(vk::AccelerationStructureGeometryDataKHR { aabbs: data })
-        .flags(vk::GeometryFlagsKHR::OPAQUE)
+        .flags(GEOMETRY_FLAGS)
 }
 
 const _: () = assert!(std::mem::size_of::<vk::AabbPositionsKHR>() == std::mem::size_of::<[f32; 6]>());

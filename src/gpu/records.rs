@@ -85,6 +85,32 @@ pub const EXACT_CULL_DISABLE: u32 = 1;
 /// `ExactInstance::flags`: front is the side opposite the object-space normal.
 pub const EXACT_FLIP_FACING: u32 = 2;
 
+/// Where one ray keeps its nearest hits in an all-hits query (`HitList` in shaders/records.glsl):
+/// `capacity` records from `first` among its chunk's records.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct HitList {
+    pub first: u32,
+    pub capacity: u32,
+}
+
+/// One stored hit of the fast tier (`FastHit` in shaders/records.glsl): f32 t and barycentrics,
+/// the caller's triangle within its geometry.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct FastHit {
+    pub t: f32,
+    pub u: f32,
+    pub v: f32,
+    pub instance: i32,
+    pub geometry: i32,
+    pub prim: i32,
+}
+
+/// One stored hit of the exact tier (`ExactHit` in shaders/records.glsl): the CPU tracer's own
+/// record, so that both tiers' hits are written out by one function.
+pub type ExactHit = crate::geometry::reference::ReferenceHit;
+
 /// Checks a record's size and field offsets at compile time.
 macro_rules! layout {
     ($record:ty, size $size:expr, $($field:ident @ $offset:expr),* $(,)?) => {
@@ -98,6 +124,9 @@ layout!(Params, size 128, rays @ 0, instances @ 8, tlas @ 16, outputs @ 24, scra
 layout!(GeometrySource, size 32, vertices @ 0, indices @ 8, primitive_order @ 16, index_is_u16 @ 24, vertex_format @ 28);
 layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
     part_count @ 128, flags @ 132, _padding @ 136);
+layout!(HitList, size 8, first @ 0, capacity @ 4);
+layout!(FastHit, size 24, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20);
+layout!(ExactHit, size 32, t @ 0, u @ 8, v @ 16, instance @ 24, prim @ 28);
 layout!(ExactBest, size 40, t @ 0, u @ 8, v @ 16, instance @ 24, prim @ 28, custom @ 32, geometry @ 36);
 
 #[cfg(test)]
@@ -193,6 +222,9 @@ mod tests {
                 members!(ExactInstance: rows, vertices, indices, primitive_order, part_offsets, part_count, flags),
             ),
             ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),
+            ("HitList", size_of::<HitList>(), members!(HitList: first, capacity)),
+            ("FastHit", size_of::<FastHit>(), members!(FastHit: t, u, v, instance, geometry, prim)),
+            ("ExactHit", size_of::<ExactHit>(), members!(ExactHit: t, u, v, instance, prim)),
         ]
     }
 

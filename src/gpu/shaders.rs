@@ -14,6 +14,7 @@ pub const TRACE_EXACT_RAY_QUERY: &[u8] = spirv!("trace_exact_ray_query.comp");
 pub const RAYGEN_EXACT: &[u8] = spirv!("raygen_exact.rgen");
 pub const INTERSECTION_EXACT: &[u8] = spirv!("intersection_exact.rint");
 pub const SPHERE_INTERSECTION: &[u8] = spirv!("sphere.rint");
+pub const ANY_HIT_ALL: &[u8] = spirv!("any_hit_all.rahit");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -25,6 +26,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("raygen_exact.rgen", RAYGEN_EXACT),
     ("intersection_exact.rint", INTERSECTION_EXACT),
     ("sphere.rint", SPHERE_INTERSECTION),
+    ("any_hit_all.rahit", ANY_HIT_ALL),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

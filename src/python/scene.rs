@@ -208,7 +208,7 @@ impl PyScene {
     }
 
     /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
-    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="reference", cull=None, mask=None, max_hits=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace_all<'py>(
         &self,
@@ -229,13 +229,21 @@ impl PyScene {
             return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
         }
         let named = fields_named(&fields)?;
+        let wide = request.precision.is_f64();
+        // Each hit's fields, and its ray index.
+        let bytes_per_hit = 8 + named
+            .iter()
+            .map(|(_, field)| field.map_or(position_bytes_per_ray(wide), |f| f.bytes_per_ray(wide)))
+            .sum::<usize>();
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
         let rays = batch.rays()?;
         let (offsets, ray_index, columns) = run(py, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
-            let all = self.tracer.trace_all(&scene, &rays, request, max_hits.unwrap_or(usize::MAX), interrupt)?;
+            let limit = max_hits.unwrap_or(usize::MAX);
+            let all = self.tracer.trace_all(&scene, &rays, request, limit, bytes_per_hit, interrupt)?;
             let h = all.hits.len();
-            let mut columns = named.iter().map(|(_, f)| Column::new(*f, h)).collect::<crate::Result<Vec<_>>>()?;
+            let mut columns =
+                named.iter().map(|(_, f)| Column::new(*f, h, all.wide)).collect::<crate::Result<Vec<_>>>()?;
             let mut sink = HitSink::default();
             for ((_, field), column) in named.iter().zip(columns.iter_mut()) {
                 match field {
@@ -243,7 +251,7 @@ impl PyScene {
                     None => sink.position = Some(column.bytes()),
                 }
             }
-            self.tracer.write_all(&scene, &all.hits, &mut sink);
+            self.tracer.write_all(&scene, &all, &mut sink);
             let mut ray_index = try_vec(h, 0i64, "the hits' ray indices")?;
             for (ray, pair) in all.offsets.windows(2).enumerate() {
                 ray_index[pair[0] as usize..pair[1] as usize].fill(ray as i64);
@@ -260,7 +268,7 @@ impl PyScene {
     }
 
     /// The number of hits of each ray (int32, N).
-    #[pyo3(signature = (origins, directions, tmin, tmax, precision="reference", cull=None, mask=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, precision="fast", cull=None, mask=None))]
     #[allow(clippy::too_many_arguments)]
     fn count<'py>(
         &self,
@@ -287,7 +295,7 @@ impl PyScene {
     }
 
     /// Whether each point ((N, 3)) is inside any instance: by parity or by winding number.
-    #[pyo3(signature = (points, precision="reference", winding=false))]
+    #[pyo3(signature = (points, precision="exact", winding=false))]
     fn contains<'py>(
         &self,
         py: Python<'py>,
@@ -317,12 +325,20 @@ enum Column {
 }
 
 impl Column {
-    /// A column of `hits` entries for `field` (None: `position`) in the f64 tier's widths.
-    fn new(field: Option<Field>, hits: usize) -> crate::Result<Column> {
+    /// A column of `hits` entries for `field` (None: `position`): `t`, `uv` and `position` in
+    /// f64 where `wide` (the f64 tiers), else f32.
+    fn new(field: Option<Field>, hits: usize, wide: bool) -> crate::Result<Column> {
+        let floats = |k: usize, what: &str| -> crate::Result<Column> {
+            Ok(if wide {
+                Column::F64(try_vec(k * hits, 0.0, what)?, k)
+            } else {
+                Column::F32(try_vec(k * hits, 0.0, what)?, k)
+            })
+        };
         Ok(match field {
-            None => Column::F64(try_vec(3 * hits, 0.0, "the hits' positions")?, 3),
-            Some(Field::T) => Column::F64(try_vec(hits, 0.0, "the hits' t")?, 1),
-            Some(Field::Uv) => Column::F64(try_vec(2 * hits, 0.0, "the hits' uv")?, 2),
+            None => floats(3, "the hits' positions")?,
+            Some(Field::T) => floats(1, "the hits' t")?,
+            Some(Field::Uv) => floats(2, "the hits' uv")?,
             Some(Field::Normal) => Column::F32(try_vec(3 * hits, 0.0, "the hits' normals")?, 3),
             Some(_) => Column::I32(try_vec(hits, 0, "the hits' ids")?),
         })

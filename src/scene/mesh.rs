@@ -100,7 +100,7 @@ impl Part {
         vk::AccelerationStructureGeometryKHR::default()
             .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
             .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
-            .flags(vk::GeometryFlagsKHR::OPAQUE)
+            .flags(accel::GEOMETRY_FLAGS)
     }
 
     /// Uploads one part of a triangle mesh: `local` holds its vertices in the mesh's device frame

@@ -15,9 +15,12 @@ use super::variants::{push_constant_stages, Variant};
 use crate::error::Result;
 use crate::geometry::parallel;
 use crate::geometry::rays::{Advance, Frame, Masks, Rays, RAY_FLOATS};
-use crate::gpu::context::{Backend, Commands, Interrupt};
-use crate::gpu::memory::memory_barrier;
-use crate::gpu::records::Params;
+use std::mem::size_of;
+use std::sync::Arc;
+
+use crate::gpu::context::{Backend, Commands, Context, Interrupt};
+use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
+use crate::gpu::records::{HitList, Params};
 use crate::scene::{ExactScene, Scene};
 
 /// What every chunk of one query shares.
@@ -29,7 +32,66 @@ pub(super) struct GpuJob<'a> {
     pub variant: &'a Variant,
     pub outputs: u32,
     pub frame: Frame,
+    /// The variant meets every hit (QUERY_ALL: counts and all hits).
+    pub all_hits: bool,
 }
+
+/// The storing pass of all hits, per chunk in flight: each ray's `HitList` (uploaded with the
+/// rays) and the hit records the shaders keep in them (read back with the counts).
+pub(super) struct ListBuffers {
+    pub lists_host: Buffer,
+    pub records_host: Buffer,
+    /// Device copies (discrete GPUs): lists, records.
+    pub device: Option<(Buffer, Buffer)>,
+}
+
+impl ListBuffers {
+    /// Room for `rays` lists and `records` records of `record_bytes` each.
+    pub fn new(ctx: &Arc<Context>, rays: usize, records: usize, record_bytes: usize) -> Result<ListBuffers> {
+        use vk::BufferUsageFlags as U;
+        let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
+        let (list_bytes, record_bytes) = ((rays * size_of::<HitList>()) as u64, (records * record_bytes) as u64);
+        Ok(if ctx.unified_memory {
+            ListBuffers {
+                lists_host: Buffer::new(ctx, list_bytes, storage, MemoryLocation::CpuToGpu, "hit lists")?,
+                records_host: Buffer::new(ctx, record_bytes, storage, MemoryLocation::GpuToCpu, "hit records")?,
+                device: None,
+            }
+        } else {
+            ListBuffers {
+                lists_host: Buffer::new(
+                    ctx,
+                    list_bytes,
+                    U::TRANSFER_SRC,
+                    MemoryLocation::CpuToGpu,
+                    "hit lists staging",
+                )?,
+                records_host: Buffer::new(
+                    ctx,
+                    record_bytes,
+                    U::TRANSFER_DST,
+                    MemoryLocation::GpuToCpu,
+                    "hit records readback",
+                )?,
+                device: Some((
+                    Buffer::new(ctx, list_bytes, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "hit lists")?,
+                    Buffer::new(ctx, record_bytes, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hit records")?,
+                )),
+            }
+        })
+    }
+
+    fn lists_address(&self) -> u64 {
+        self.device.as_ref().map_or(self.lists_host.address(), |(lists, _)| lists.address())
+    }
+
+    fn records_address(&self) -> u64 {
+        self.device.as_ref().map_or(self.records_host.address(), |(_, records)| records.address())
+    }
+}
+
+/// A chunk's lists for the storing pass: the buffers, and the bytes of records its rays keep.
+pub(super) type ChunkLists<'a> = Option<(&'a ListBuffers, usize)>;
 
 /// A chunk submitted and not yet unpacked: its first ray, its length, and how far its far rays
 /// were advanced.
@@ -76,7 +138,7 @@ impl Tracer {
             lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_chunk(commands[s].buffer, job, &slots[s], len);
+            self.record_chunk(commands[s].buffer, job, &slots[s], len, None);
             commands[s].submit()?;
             in_flight[s] = Some(InFlight { start, len, advances });
         }
@@ -92,8 +154,16 @@ impl Tracer {
         Ok(())
     }
 
-    /// Records one chunk: its upload (discrete GPUs), the trace, and its readback.
-    fn record_chunk(&self, cmd: vk::CommandBuffer, job: &GpuJob, slot: &Slot, len: usize) {
+    /// Records one chunk: its upload (discrete GPUs), the trace, and its readback (with the
+    /// storing pass's lists and records, where given).
+    pub(super) fn record_chunk(
+        &self,
+        cmd: vk::CommandBuffer,
+        job: &GpuJob,
+        slot: &Slot,
+        len: usize,
+        lists: ChunkLists,
+    ) {
         let ctx = &self.ctx;
         let device = &ctx.device;
         let stamp = |k| {
@@ -121,6 +191,11 @@ impl Tracer {
             };
             // SAFETY: `cmd` is recording; both buffers hold `capacity` rays and masks.
             unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &regions) };
+            if let Some((ListBuffers { lists_host, device: Some((lists_device, _)), .. }, _)) = lists {
+                let region = [vk::BufferCopy::default().size((len * size_of::<HitList>()) as u64)];
+                // SAFETY: `cmd` is recording; both buffers hold at least `len` lists.
+                unsafe { device.cmd_copy_buffer(cmd, lists_host.raw(), lists_device.raw(), &region) };
+            }
             memory_barrier(
                 ctx,
                 cmd,
@@ -131,7 +206,14 @@ impl Tracer {
             );
         }
         stamp(Stamp::Uploaded);
-        let params = chunk_params(job, slot, len);
+        let mut params = chunk_params(job, slot, len);
+        if job.all_hits {
+            // QUERY_ALL reads `scratch` as the rays' lists: none in the counting pass.
+            params.scratch = lists.map_or(0, |(buffers, _)| buffers.lists_address());
+            if let Some((buffers, _)) = lists {
+                params.outputs[Field::T as usize] = buffers.records_address();
+            }
+        }
         // SAFETY: `cmd` is recording; the pipeline and its layout are live, and the push
         // constants cover exactly the range the layout declares.
         unsafe {
@@ -155,7 +237,7 @@ impl Tracer {
             _ => unsafe { device.cmd_dispatch(cmd, (len as u32).div_ceil(self.variants.local_size), 1, 1) },
         }
         stamp(Stamp::Traced);
-        record_readback(ctx, cmd, slot, job.outputs, len, shader_stage);
+        record_readback(ctx, cmd, slot, job.outputs, len, lists, shader_stage);
         stamp(Stamp::ReadBack);
     }
 }
@@ -187,13 +269,15 @@ fn chunk_params(job: &GpuJob, slot: &Slot, len: usize) -> Params {
     params
 }
 
-/// Makes the hits visible to the host: copied to readback memory on discrete GPUs.
+/// Makes the hits (and the storing pass's records) visible to the host: copied to readback
+/// memory on discrete GPUs.
 fn record_readback(
-    ctx: &crate::gpu::context::Context,
+    ctx: &Context,
     cmd: vk::CommandBuffer,
     slot: &Slot,
     outputs: u32,
     len: usize,
+    lists: ChunkLists,
     shader_stage: vk::PipelineStageFlags,
 ) {
     let Some((_, hits_device)) = &slot.device else {
@@ -222,6 +306,13 @@ fn record_readback(
         .collect();
     // SAFETY: `cmd` is recording; each region lies within both buffers (same layout).
     unsafe { ctx.device.cmd_copy_buffer(cmd, hits_device.raw(), slot.hits_host.raw(), &regions) };
+    if let Some((ListBuffers { records_host, device: Some((_, records_device)), .. }, bytes)) = lists {
+        if bytes > 0 {
+            let region = [vk::BufferCopy::default().size(bytes as u64)];
+            // SAFETY: `cmd` is recording; both buffers hold at least `bytes` of records.
+            unsafe { ctx.device.cmd_copy_buffer(cmd, records_device.raw(), records_host.raw(), &region) };
+        }
+    }
     memory_barrier(
         ctx,
         cmd,
@@ -233,7 +324,7 @@ fn record_readback(
 }
 
 /// Checks and packs rays `start..start + len` (and their masks) into the slot's staging.
-fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize) -> Result<Vec<Advance>> {
+pub(super) fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize) -> Result<Vec<Advance>> {
     let masks_at = slot.masks_offset();
     let exact = slot.exact;
     let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");

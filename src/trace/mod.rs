@@ -3,6 +3,7 @@
 //! (`chunks`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
 //! tiers (`tiers`), and the tracer that dispatches between them (`tracer`).
 
+mod all_hits;
 mod chunks;
 pub mod fields;
 mod probe;

@@ -11,6 +11,15 @@ pub enum Query {
     Occluded,
     /// How many hits lie in [tmin, tmax] (each crossing once in the exact tiers); none is stored.
     Count,
+    /// Every hit in [tmin, tmax] (the nearest `max_hits`), in order.
+    All,
+}
+
+impl Query {
+    /// Whether traversal must meet every hit (QUERY_ALL in the shaders): counts and all hits.
+    pub fn meets_every_hit(self) -> bool {
+        matches!(self, Query::Count | Query::All)
+    }
 }
 
 impl Query {

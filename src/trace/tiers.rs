@@ -129,14 +129,26 @@ pub fn reference(
 /// Writes every field the sink asks for from f64 hits (whose `prim` counts among all parts of
 /// the mesh): `t` and `uv` as f64, normals from the f64 vertices, (geometry, triangle in it).
 fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) {
-    write_hit_fields(scene, sink, |i| hits[i]);
+    write_hit_fields(scene, sink, true, |i| hits[i]);
 }
 
-/// As `write_hits`, for the hit `hit(i)` of entry i (None: a miss).
-fn write_hit_fields(scene: &Scene, sink: &mut HitSink, hit: impl Fn(usize) -> Option<ReferenceHit> + Sync) {
+/// Writes `values` as f64 (`wide`) or f32.
+fn put_floats(dst: &mut [u8], values: &[f64], wide: bool) {
+    if wide {
+        put_f64s(dst, values)
+    } else {
+        for (d, v) in dst.chunks_exact_mut(4).zip(values) {
+            d.copy_from_slice(&(*v as f32).to_ne_bytes());
+        }
+    }
+}
+
+/// As `write_hits`, for the hit `hit(i)` of entry i (None: a miss); `t`, `uv` and `position` as
+/// f64 where `wide`, else f32.
+fn write_hit_fields(scene: &Scene, sink: &mut HitSink, wide: bool, hit: impl Fn(usize) -> Option<ReferenceHit> + Sync) {
     let hit = &hit;
-    write_field(sink, Field::T, true, |i, dst| put_f64s(dst, &[hit(i).map_or(f64::INFINITY, |h| h.t)]));
-    write_field(sink, Field::Uv, true, |i, dst| put_f64s(dst, &hit(i).map_or([f64::NAN; 2], |h| [h.u, h.v])));
+    write_field(sink, Field::T, wide, |i, dst| put_floats(dst, &[hit(i).map_or(f64::INFINITY, |h| h.t)], wide));
+    write_field(sink, Field::Uv, wide, |i, dst| put_floats(dst, &hit(i).map_or([f64::NAN; 2], |h| [h.u, h.v]), wide));
     let ids = |value: fn(&Scene, &ReferenceHit) -> i32| {
         move |i: usize, dst: &mut [u8]| dst.copy_from_slice(&hit(i).map_or(-1, |h| value(scene, &h)).to_ne_bytes())
     };
@@ -157,23 +169,25 @@ fn write_hit_fields(scene: &Scene, sink: &mut HitSink, hit: impl Fn(usize) -> Op
     });
     if let Some(out) = sink.position.as_deref_mut() {
         parallel::install(|| {
-            out.par_chunks_exact_mut(24).enumerate().with_min_len(1024).for_each(|(i, dst)| {
+            out.par_chunks_exact_mut(if wide { 24 } else { 12 }).enumerate().with_min_len(1024).for_each(|(i, dst)| {
                 let point = hit(i).map_or(DVec3::NAN, |h| {
                     let placement = &scene.placements[h.instance as usize];
                     let [a, b, c] = placement.triangles.triangle(h.prim as usize);
                     placement.to_scene.point(a + h.u * (b - a) + h.v * (c - a)) + scene.center
                 });
-                put_f64s(dst, &point.to_array())
+                put_floats(dst, &point.to_array(), wide)
             })
         });
     }
 }
 
-/// Every hit of every ray, in f64 on the CPU: ray i's are `hits[offsets[i]..offsets[i + 1]]`, in
-/// the order `ReferenceTracer::trace_every` gives.
+/// Every hit of every ray: ray i's are `hits[offsets[i]..offsets[i + 1]]`, in the order
+/// `ReferenceTracer::trace_every` gives; `t` and barycentrics are f64 values where `wide`, else
+/// f32 values (the fast tier's).
 pub struct AllHits {
     pub offsets: Vec<i64>,
     pub hits: Vec<ReferenceHit>,
+    pub wide: bool,
 }
 
 /// Traces every ray for all of its hits (the nearest `max_hits` of each) on all cores.
@@ -214,13 +228,71 @@ pub fn all_hits(scene: &Scene, rays: &Rays, cull: Cull, max_hits: usize, interru
     })?;
     match failed {
         Some(error) => Err(error),
-        None => Ok(AllHits { offsets, hits }),
+        None => Ok(AllHits { offsets, hits, wide: true }),
     }
 }
 
-/// Writes every field the sink asks for, one entry per hit of `hits`, `position` included.
-pub fn write_all_hits(scene: &Scene, hits: &[ReferenceHit], sink: &mut HitSink) {
-    write_hit_fields(scene, sink, |i| Some(hits[i]));
+/// Writes every field the sink asks for, one entry per hit of `all`, `position` included.
+pub fn write_all_hits(scene: &Scene, all: &AllHits, sink: &mut HitSink) {
+    write_hit_fields(scene, sink, all.wide, |i| Some(all.hits[i]));
+}
+
+/// The refined tier's all hits from the fast tier's: each hit re-intersected with its triangle in
+/// f64 and the ray's hits sorted again; a ray with a hit whose f64 answer leaves its interval
+/// (f32 traversal accepted a graze, or a triangle just behind an origin on it) is traced again by
+/// the CPU tracer.
+pub fn refine_all(
+    scene: &Scene,
+    rays: &Rays,
+    cull: Cull,
+    max_hits: usize,
+    fast: &AllHits,
+    interrupt: &dyn Interrupt,
+) -> Result<AllHits> {
+    let tracer = scene.reference_tracer();
+    let mut per_ray: Vec<Vec<ReferenceHit>> = try_vec(rays.len(), Vec::new(), "refining hits")?;
+    in_blocks(rays.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            per_ray[range].par_iter_mut().enumerate().with_min_len(256).for_each(|(k, refined)| {
+                let i = start + k;
+                let ray = rays.ray64(i, scene.center);
+                let found = &fast.hits[fast.offsets[i] as usize..fast.offsets[i + 1] as usize];
+                let again = found.iter().any(|h| {
+                    let placement = &scene.placements[h.instance as usize];
+                    let local = ray.transformed(&placement.to_local);
+                    let [a, b, c] = placement.triangles.triangle(h.prim as usize);
+                    match plane_hit(&local, a, b, c) {
+                        Some(p) if p.t >= local.tmin && p.t <= local.tmax => {
+                            refined.push(ReferenceHit { t: p.t, u: p.u, v: p.v, ..*h });
+                            false
+                        }
+                        _ => true,
+                    }
+                });
+                if again {
+                    refined.clear();
+                    tracer.trace_every(&ray, rays.mask.get(i), cull, refined);
+                    refined.truncate(max_hits);
+                } else {
+                    refined.sort_unstable_by(|x, y| {
+                        x.t.total_cmp(&y.t).then((x.instance, x.prim).cmp(&(y.instance, y.prim)))
+                    });
+                }
+            })
+        });
+    })?;
+    let mut offsets = try_vec(rays.len() + 1, 0i64, "the offsets of all hits")?;
+    for (i, refined) in per_ray.iter().enumerate() {
+        offsets[i + 1] = offsets[i] + refined.len() as i64;
+    }
+    let mut hits = Vec::new();
+    hits.try_reserve_exact(offsets[rays.len()] as usize)
+        .map_err(|_| Error::OutOfMemory("the refined hits do not fit in host memory".into()))?;
+    for refined in per_ray {
+        hits.extend(refined);
+    }
+    Ok(AllHits { offsets, hits, wide: true })
 }
 
 /// The number of hits of each ray, in f64 on the CPU, into `out`.
@@ -295,7 +367,7 @@ pub fn inside_by_counts(
 const ON_SURFACE_ULPS: f64 = 8.0;
 
 /// Whether any instance is crossed an odd number of times (the point is off every surface).
-fn odd_crossings(hits: &[ReferenceHit], instances: usize) -> bool {
+pub fn odd_crossings(hits: &[ReferenceHit], instances: usize) -> bool {
     let mut odd = vec![false; instances];
     for h in hits {
         odd[h.instance as usize] ^= true;

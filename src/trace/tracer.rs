@@ -15,6 +15,7 @@ use super::variants::{ray_flags, VariantKey, Variants};
 use crate::error::{invalid_value, try_vec, Error, Result};
 use crate::geometry::rays::Rays;
 use crate::gpu::context::{Backend, Context, Interrupt};
+use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::Scene;
 
 /// Traces rays on one device; owns the pipeline variants and reusable staging. Any number of
@@ -23,7 +24,7 @@ use crate::scene::Scene;
 pub struct Tracer {
     pub(super) ctx: Arc<Context>,
     pub(super) variants: Variants,
-    slots: SlotPool,
+    pub(super) slots: SlotPool,
     /// Whether this driver runs the intersection shaders of each `Probe` path, once known.
     pub(super) probes: [OnceLock<bool>; 2],
     last_profile: Mutex<TraceProfile>,
@@ -119,6 +120,19 @@ impl Tracer {
         check_request(scene, rays, request, sink)?;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
+        self.trace_held(scene, rays, request, sink, interrupt, started)
+    }
+
+    /// `trace` once its request is checked and the scene's meshes are held.
+    pub(super) fn trace_held(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        sink: &mut HitSink,
+        interrupt: &dyn Interrupt,
+        started: Instant,
+    ) -> Result<()> {
         let mut profile = TraceProfile { rays: rays.len(), ..Default::default() };
         let position = sink.position.take();
         if rays.is_empty() || (sink.outputs() == 0 && position.is_none()) {
@@ -246,12 +260,12 @@ impl Tracer {
         let exact_scene = if exact { Some(scene.exact()?) } else { None };
         let spheres = scene.has_spheres();
         let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres);
-        let count = request.query == Query::Count;
-        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, count })?;
+        let all_hits = request.query.meets_every_hit();
+        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, all_hits })?;
         let capacity = self.chunk_capacity(rays.len());
         let mut slots = self.slots.take(capacity, exact)?;
-        let job =
-            GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame: scene.frame() };
+        let frame = scene.frame();
+        let job = GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
         self.slots.give_back(slots);
         result
@@ -259,29 +273,54 @@ impl Tracer {
 }
 
 impl Tracer {
-    /// Every hit of every ray (the nearest `max_hits` of each), for `write_all`. Answered by the
-    /// f64 tier on the CPU (`precision="reference"`) for now.
+    /// Every hit of every ray (the nearest `max_hits` of each), for `write_all`: on the GPU in the
+    /// fast and exact tiers (the refined tier re-intersects the fast tier's hits in f64), on the
+    /// CPU in the reference tier. `host_bytes_per_hit`: what the caller will need per hit, for
+    /// refusing a result that cannot fit before it is stored.
     pub fn trace_all(
         &self,
         scene: &Scene,
         rays: &Rays,
         request: Request,
         max_hits: usize,
+        host_bytes_per_hit: usize,
         interrupt: &dyn Interrupt,
     ) -> Result<tiers::AllHits> {
-        self.check_host_query(scene, request.precision, "intersect_all")?;
-        let _in_use = scene.hold_meshes();
-        scene.check_current()?;
-        rays.check()?;
-        tiers::all_hits(scene, rays, request.cull, max_hits, interrupt)
+        self.check_every_hit_query(scene, "intersect_all")?;
+        match request.precision {
+            Precision::Exact => {
+                self.check_paths(scene, true)?;
+                let stored =
+                    self.gpu_all_hits::<ExactHit>(scene, rays, request, max_hits, host_bytes_per_hit, interrupt)?;
+                Ok(stored.into_all_hits())
+            }
+            Precision::Fast | Precision::Refined => {
+                let stored =
+                    self.gpu_all_hits::<FastHit>(scene, rays, request, max_hits, host_bytes_per_hit, interrupt)?;
+                let fast = stored.into_all_hits(scene)?;
+                if request.precision == Precision::Fast {
+                    return Ok(fast);
+                }
+                let _in_use = scene.hold_meshes();
+                scene.check_current()?;
+                tiers::refine_all(scene, rays, request.cull, max_hits, &fast, interrupt)
+            }
+            Precision::Reference => {
+                let _in_use = scene.hold_meshes();
+                scene.check_current()?;
+                rays.check()?;
+                tiers::all_hits(scene, rays, request.cull, max_hits, interrupt)
+            }
+        }
     }
 
     /// Writes the fields `sink` asks for, one entry per hit of `trace_all` (on the same scene).
-    pub fn write_all(&self, scene: &Scene, hits: &[crate::geometry::reference::ReferenceHit], sink: &mut HitSink) {
-        tiers::write_all_hits(scene, hits, sink);
+    pub fn write_all(&self, scene: &Scene, all: &tiers::AllHits, sink: &mut HitSink) {
+        tiers::write_all_hits(scene, all, sink);
     }
 
-    /// The number of hits of each ray, into `out`.
+    /// The number of hits of each ray, into `out`: as `trace_all` finds them, without storing
+    /// them (but in the refined tier, whose hits must be re-intersected on the host).
     pub fn count(
         &self,
         scene: &Scene,
@@ -293,21 +332,27 @@ impl Tracer {
         if out.len() != rays.len() {
             return Err(invalid_value(format!("count's output has {} entries for {} rays", out.len(), rays.len())));
         }
-        if request.precision == Precision::Exact {
-            let mut sink = HitSink::default();
-            sink.set(Field::Prim, bytemuck::cast_slice_mut(out));
-            return self.trace(scene, rays, Request { query: Query::Count, ..request }, &mut sink, interrupt);
+        self.check_every_hit_query(scene, "count")?;
+        match request.precision {
+            Precision::Fast | Precision::Exact => {
+                let mut sink = HitSink::default();
+                sink.set(Field::Prim, bytemuck::cast_slice_mut(out));
+                self.trace(scene, rays, Request { query: Query::Count, ..request }, &mut sink, interrupt)
+            }
+            Precision::Refined => {
+                let all = self.trace_all(scene, rays, request, usize::MAX, 0, interrupt)?;
+                for (count, pair) in out.iter_mut().zip(all.offsets.windows(2)) {
+                    *count = (pair[1] - pair[0]) as i32;
+                }
+                Ok(())
+            }
+            Precision::Reference => {
+                let _in_use = scene.hold_meshes();
+                scene.check_current()?;
+                rays.check()?;
+                tiers::count_hits(scene, rays, request.cull, out, interrupt)
+            }
         }
-        if request.precision != Precision::Reference {
-            return Err(Error::Unsupported(
-                "count runs at precision='exact' (the f64 test on the GPU) or 'reference' (on the CPU) for now".into(),
-            ));
-        }
-        self.check_host_query(scene, request.precision, "count")?;
-        let _in_use = scene.hold_meshes();
-        scene.check_current()?;
-        rays.check()?;
-        tiers::count_hits(scene, rays, request.cull, out, interrupt)
     }
 
     /// Whether each point is inside any instance (1) or not (0), into `out`: by parity (the
@@ -331,22 +376,30 @@ impl Tracer {
         if let Some(i) = (0..points.rows()).find(|&i| !points.row_f64(i).iter().all(|c| c.is_finite())) {
             return Err(invalid_value(format!("points row {i} is not finite: {:?}", points.row_f64(i))));
         }
-        if precision == Precision::Exact && !winding && scene.placements.len() == 1 {
-            return self.contains_by_gpu_count(scene, points, out, interrupt);
+        self.check_every_hit_query(scene, "contains")?;
+        if out.is_empty() {
+            return Ok(());
         }
-        // The exact tier's answers are the reference tier's: where the GPU cannot give them
-        // (several instances need a parity each; the winding number), the CPU does.
-        let precision = if precision == Precision::Exact { Precision::Reference } else { precision };
-        self.check_host_query(scene, precision, "contains")?;
-        let _in_use = scene.hold_meshes();
-        scene.check_current()?;
-        tiers::contains(scene, points, winding, out, interrupt)
+        match precision {
+            Precision::Exact if !winding => self.contains_by_gpu_parity(scene, points, out, interrupt),
+            Precision::Exact | Precision::Reference => {
+                // The exact tier's winding numbers are the reference tier's, on all CPU cores.
+                let _in_use = scene.hold_meshes();
+                scene.check_current()?;
+                tiers::contains(scene, points, winding, out, interrupt)
+            }
+            Precision::Fast | Precision::Refined => Err(Error::Unsupported(
+                "contains answers at precision='exact' (the f64 test on the GPU: each crossing counted once) or \
+                 'reference' (on the CPU); the f32 tiers could count a crossing at an edge twice or not at all"
+                    .into(),
+            )),
+        }
     }
 
-    /// `contains` by parity for a scene of one instance: the GPU counts each point's ray's
-    /// crossings exactly; the CPU tells points on the surface (which a ray cannot: its t there
-    /// rounds to either side of 0).
-    fn contains_by_gpu_count(
+    /// `contains` by parity on the GPU: each point's ray's crossings are counted exactly (one
+    /// instance), or found with their instances (several: a parity each); the CPU tells points on
+    /// the surface (which a ray cannot: its t there rounds to either side of 0).
+    fn contains_by_gpu_parity(
         &self,
         scene: &Scene,
         points: crate::geometry::arrays::Vec3s,
@@ -361,24 +414,29 @@ impl Tracer {
             tmax: crate::geometry::rays::PerRay::All(f64::INFINITY),
             mask: crate::geometry::rays::Masks::All(0xFF),
         };
-        let mut counts = try_vec(points.rows(), 0i32, "the crossings of contains")?;
-        let mut sink = HitSink::default();
-        sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut counts));
         let request = Request { query: Query::Count, precision: Precision::Exact, cull: crate::trace::Cull::None };
-        self.trace(scene, &rays, request, &mut sink, interrupt)?;
+        self.check_paths(scene, true)?;
+        let mut odd = try_vec(points.rows(), 0i32, "the crossings of contains")?;
+        if scene.placements.len() == 1 {
+            let mut sink = HitSink::default();
+            sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut odd));
+            self.trace(scene, &rays, request, &mut sink, interrupt)?;
+        } else {
+            let all = self.gpu_all_hits::<ExactHit>(scene, &rays, request, usize::MAX, 0, interrupt)?.into_all_hits();
+            for (odd, pair) in odd.iter_mut().zip(all.offsets.windows(2)) {
+                *odd = i32::from(tiers::odd_crossings(
+                    &all.hits[pair[0] as usize..pair[1] as usize],
+                    scene.placements.len(),
+                ));
+            }
+        }
         let _in_use = scene.hold_meshes();
-        tiers::inside_by_counts(scene, points, &counts, out, interrupt)
+        tiers::inside_by_counts(scene, points, &odd, out, interrupt)
     }
 
-    /// The queries answered on the CPU alone for now: the f64 tier, triangle meshes.
-    fn check_host_query(&self, scene: &Scene, precision: Precision, query: &str) -> Result<()> {
+    /// The queries that meet every hit (all hits, counts, contains) are for triangle meshes.
+    fn check_every_hit_query(&self, scene: &Scene, query: &str) -> Result<()> {
         self.ctx.check_usable()?;
-        if precision != Precision::Reference {
-            return Err(Error::Unsupported(format!(
-                "{query} runs at precision='reference' (f64 on all CPU cores, each crossing counted once) \
-                 for now; the GPU tiers of {query} are not built yet"
-            )));
-        }
         if scene.has_spheres() {
             return Err(Error::Unsupported(format!("{query} is for triangle meshes: this scene holds spheres")));
         }
@@ -410,11 +468,14 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
     if request.query == Query::Occluded && !answerable {
         return Err(invalid_value("an occlusion query writes prim_id alone (>= 0 where the ray is blocked)"));
     }
-    if request.query == Query::Count && (!answerable || request.precision != Precision::Exact) {
+    let gpu_tier = matches!(request.precision, Precision::Fast | Precision::Exact);
+    if request.query == Query::Count && (!answerable || !gpu_tier) {
         return Err(Error::Unsupported(
-            "a count on the GPU is answered at precision='exact' (or 'reference' on the CPU), into one int32 a ray"
-                .into(),
+            "a count on the GPU is answered at precision='fast' or 'exact', into one int32 a ray".into(),
         ));
+    }
+    if request.query == Query::All {
+        return Err(invalid_value("all hits are traced by Tracer::trace_all"));
     }
     if scene.has_spheres() && request.precision != Precision::Fast {
         return Err(Error::Unsupported(

@@ -26,16 +26,23 @@ pub struct VariantKey {
     pub exact: bool,
     /// The scene holds sphere sets (boxes for the sphere shader).
     pub spheres: bool,
-    /// QUERY: closest (and occlusion) or count.
-    pub count: bool,
+    /// QUERY: closest (and occlusion), or every hit (counts and all hits: QUERY_ALL).
+    pub all_hits: bool,
 }
 
 /// Ray flags resolved statically for a query on a scene: where every triangle is opaque the
 /// non-opaque path is culled at compile time; AABBs are the exact tier's boxes and sphere sets',
 /// so procedural paths are culled too where no AABB can be met; culling is the query's. The exact
-/// tier's shader reads the culling bits itself (they do not apply to boxes).
+/// tier's shader reads the culling bits itself (they do not apply to boxes). Queries that meet every
+/// hit make triangles non-opaque, so that each comes to the any-hit stage (or the ray query's
+/// candidate loop), which keeps it and goes on.
 pub fn ray_flags(query: Query, cull: Cull, backend: Backend, exact: bool, all_opaque: bool, spheres: bool) -> u32 {
-    let mut flags = if all_opaque { RAY_FLAG_CULL_NO_OPAQUE } else { 0 };
+    let every_triangle = query.meets_every_hit() && !exact;
+    let mut flags = match (every_triangle, all_opaque) {
+        (true, _) => RAY_FLAG_NO_OPAQUE,
+        (false, true) => RAY_FLAG_CULL_NO_OPAQUE,
+        (false, false) => 0,
+    };
     flags |= match cull {
         Cull::None => 0,
         Cull::Back => RAY_FLAG_CULL_BACK_FACING_TRIANGLES,
@@ -47,14 +54,15 @@ pub fn ray_flags(query: Query, cull: Cull, backend: Backend, exact: bool, all_op
     }
     if query == Query::Occluded {
         flags |= RAY_FLAG_TERMINATE_ON_FIRST_HIT;
-        if backend == Backend::Pipeline {
-            flags |= RAY_FLAG_SKIP_CLOSEST_HIT_SHADER;
-        }
+    }
+    if backend == Backend::Pipeline && (query == Query::Occluded || every_triangle) {
+        flags |= RAY_FLAG_SKIP_CLOSEST_HIT_SHADER;
     }
     flags
 }
 
 // Ray flags (SPIR-V RayFlags; GLSL's gl_RayFlags*EXT).
+pub const RAY_FLAG_NO_OPAQUE: u32 = 0x2;
 pub const RAY_FLAG_TERMINATE_ON_FIRST_HIT: u32 = 0x4;
 pub const RAY_FLAG_SKIP_CLOSEST_HIT_SHADER: u32 = 0x8;
 pub const RAY_FLAG_CULL_BACK_FACING_TRIANGLES: u32 = 0x10;
@@ -92,7 +100,7 @@ pub fn push_constant_stages(backend: Backend) -> vk::ShaderStageFlags {
     use vk::ShaderStageFlags as S;
     match backend {
         Backend::RayQuery => S::COMPUTE,
-        Backend::Pipeline => S::RAYGEN_KHR | S::CLOSEST_HIT_KHR | S::MISS_KHR | S::INTERSECTION_KHR,
+        Backend::Pipeline => S::RAYGEN_KHR | S::CLOSEST_HIT_KHR | S::MISS_KHR | S::INTERSECTION_KHR | S::ANY_HIT_KHR,
     }
 }
 
@@ -104,6 +112,7 @@ struct Modules {
     miss: vk::ShaderModule,
     closest_hit: vk::ShaderModule,
     sphere: vk::ShaderModule,
+    any_hit_all: vk::ShaderModule,
     raygen_exact: Option<vk::ShaderModule>,
     intersection_exact: Option<vk::ShaderModule>,
 }
@@ -147,6 +156,7 @@ impl Variants {
                 miss: null,
                 closest_hit: null,
                 sphere: null,
+                any_hit_all: null,
                 raygen_exact: None,
                 intersection_exact: None,
             },
@@ -157,6 +167,7 @@ impl Variants {
                 miss: load(shaders::MISS)?,
                 closest_hit: load(shaders::CLOSEST_HIT)?,
                 sphere: load(shaders::SPHERE_INTERSECTION)?,
+                any_hit_all: load(shaders::ANY_HIT_ALL)?,
                 raygen_exact: f64s.then(|| load(shaders::RAYGEN_EXACT)).transpose()?,
                 intersection_exact: f64s.then(|| load(shaders::INTERSECTION_EXACT)).transpose()?,
             },
@@ -183,7 +194,7 @@ impl Variants {
     }
 
     fn compute_variant(&self, key: VariantKey) -> Result<Variant> {
-        let values = [key.outputs, key.ray_flags, self.local_size, key.count as u32];
+        let values = [key.outputs, key.ray_flags, self.local_size, key.all_hits as u32];
         let entries = specialization_entries();
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let module = if key.exact { self.modules.query_exact } else { Some(self.modules.query) };
@@ -205,7 +216,7 @@ impl Variants {
     fn pipeline_variant(&self, key: VariantKey) -> Result<Variant> {
         let ctx = &self.ctx;
         let rt = ctx.pipeline_ext.as_ref().expect("pipeline backend loads its extension");
-        let values = [key.outputs, key.ray_flags, 0, key.count as u32];
+        let values = [key.outputs, key.ray_flags, 0, key.all_hits as u32];
         // Every constant but the workgroup size (2), which ray-tracing stages do not have.
         let entries = specialization_entries();
         let entries = [entries[0], entries[1], entries[3]];
@@ -228,6 +239,8 @@ impl Variants {
             stages.push(stage(S::CLOSEST_HIT_KHR, m.closest_hit));
             if key.spheres {
                 stages.push(stage(S::INTERSECTION_KHR, m.sphere));
+            } else if key.all_hits {
+                stages.push(stage(S::ANY_HIT_KHR, m.any_hit_all));
             }
         }
         let groups = hit_groups(key);
@@ -310,7 +323,7 @@ impl Drop for Variants {
         }
         self.cache.get_mut().unwrap_or_else(|e| e.into_inner()).clear();
         let m = &self.modules;
-        let modules = [m.query, m.raygen, m.miss, m.closest_hit, m.sphere]
+        let modules = [m.query, m.raygen, m.miss, m.closest_hit, m.sphere, m.any_hit_all]
             .into_iter()
             .chain([m.query_exact, m.raygen_exact, m.intersection_exact].into_iter().flatten());
         // SAFETY: the tracer owning these is dropped only when no query runs (queries borrow it);
@@ -338,6 +351,11 @@ fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'st
     use vk::RayTracingShaderGroupTypeKHR as G;
     const NONE: u32 = vk::SHADER_UNUSED_KHR;
     let mut groups = vec![group(G::GENERAL, 0, NONE, NONE), group(G::GENERAL, 1, NONE, NONE)];
+    if key.all_hits && !key.exact {
+        // Every triangle goes to the any-hit stage (3), which keeps it (scenes without spheres).
+        groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, 2, NONE).any_hit_shader(3));
+        return groups;
+    }
     if key.exact {
         // Boxes whose intersection shader runs the f64 test and keeps the best hit itself.
         groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, NONE, 2));

@@ -1,0 +1,39 @@
+// QUERY_ALL: every hit of a ray is counted, and its nearest `capacity` are kept in its HitList,
+// sorted as they arrive (insertion: a list is as long as its ray's hits, which a counting pass
+// found, or max_hits). A hit equal to one kept (the same triangle at the same t: traversal may
+// report a primitive twice) is dropped, so that the count and the list hold it once.
+// Include after common.glsl, with HIT_RECORD defined as the stored record (FastHit, or ExactHit
+// after exact.glsl) and `is_before` and `is_same` defined for it.
+#ifndef VKRAY_HIT_LISTS_GLSL
+#define VKRAY_HIT_LISTS_GLSL
+
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer HitLists { HitList l[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) buffer HitRecords { HIT_RECORD h[]; };
+// volatile: see ExactScratch in exact.glsl (the pipeline backend counts here across stages).
+layout(buffer_reference, std430, buffer_reference_align = 4) volatile buffer HitCounts { int v[]; };
+
+HitList hit_list(uint i) {
+  if (params.scratch == 0ul) return HitList(0u, 0u);
+  return HitLists(params.scratch).l[i];
+}
+
+// Ray i met hit h after `seen` others: keeps it if it is among the nearest, and returns the new
+// number seen.
+int keep_hit(uint i, int seen, HIT_RECORD h) {
+  HitList list = hit_list(i);
+  HitRecords hits = HitRecords(params.out_t);
+  uint n = min(uint(seen), list.capacity);
+  uint at = n;
+  while (at > 0u && is_before(h, hits.h[list.first + at - 1u])) --at;
+  if (at > 0u && is_same(h, hits.h[list.first + at - 1u])) return seen;
+  if (at < list.capacity) {
+    for (uint k = min(n, list.capacity - 1u); k > at; --k) {
+      HIT_RECORD moved = hits.h[list.first + k - 1u];
+      hits.h[list.first + k] = moved;
+    }
+    hits.h[list.first + at] = h;
+  }
+  return seen + 1;
+}
+
+#endif

@@ -1,0 +1,317 @@
+//! All hits of each ray on the GPU (fast and exact tiers). A counting pass (the all-hits shaders
+//! with lists of no room) finds how many hits each ray meets; their prefix sums place each ray's
+//! hits in one array; a storing pass then keeps each ray's hits (its nearest `max_hits`), sorted,
+//! in a list of exactly that length, chunk by chunk, straight into their final place. Memory is
+//! bounded by the chunks and nothing is truncated.
+
+use std::mem::size_of;
+use std::time::Instant;
+
+use bytemuck::{Pod, Zeroable};
+use rayon::prelude::*;
+
+use super::chunks::{pack_chunk, GpuJob, ListBuffers};
+use super::fields::{Field, HitSink};
+use super::profile::TraceProfile;
+use super::request::{Precision, Query, Request};
+use super::staging::Slot;
+use super::tiers::AllHits;
+use super::tracer::Tracer;
+use super::variants::{ray_flags, VariantKey};
+use crate::error::{try_vec, Error, Result};
+use crate::geometry::parallel;
+use crate::geometry::rays::Rays;
+use crate::geometry::reference::ReferenceHit;
+use crate::gpu::context::{Commands, Interrupt};
+use crate::gpu::memory::host_memory_available;
+use crate::gpu::records::{ExactHit, FastHit, HitList};
+use crate::scene::Scene;
+
+/// What the storing pass found: ray i's hits are `records[offsets[i]..offsets[i + 1]]`, of which
+/// the first `seen[i]` are written where `seen[i]` is smaller (a primitive traversal reported
+/// twice, kept once); `advances` holds (ray, t) for far rays packed from nearer origins (fast
+/// tier), whose records' `t` is short by `t`.
+pub(super) struct StoredHits<R> {
+    pub offsets: Vec<i64>,
+    pub records: Vec<R>,
+    pub seen: Vec<i32>,
+    pub advances: Vec<(usize, f64)>,
+}
+
+/// Bytes of hit records one chunk in flight may hold: CPU devices share the host's memory.
+fn record_budget(unified_memory: bool) -> usize {
+    if unified_memory {
+        64 << 20
+    } else {
+        256 << 20
+    }
+}
+
+impl Tracer {
+    /// Every hit of every ray (the nearest `max_hits` of each) as the GPU tier `request` names
+    /// (fast: `R` = `FastHit`; exact: `ExactHit`). `host_bytes_per_hit`: what the caller will
+    /// need per hit besides the records, for checking that the result fits before storing it.
+    pub(super) fn gpu_all_hits<R: Pod + Send + Sync>(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        max_hits: usize,
+        host_bytes_per_hit: usize,
+        interrupt: &dyn Interrupt,
+    ) -> Result<StoredHits<R>> {
+        let started = Instant::now();
+        self.ctx.check_usable()?;
+        rays.check_shapes()?;
+        let n = rays.len();
+        // Held across both passes, so that the lists the first sizes are the second's.
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        let mut seen = try_vec(n, 0i32, "the hits' counts")?;
+        {
+            let mut sink = HitSink::default();
+            sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut seen));
+            let count = Request { query: Query::Count, ..request };
+            self.trace_held(scene, rays, count, &mut sink, interrupt, started)?;
+        }
+        let mut offsets = try_vec(n + 1, 0i64, "the hits' offsets")?;
+        for i in 0..n {
+            offsets[i + 1] = offsets[i] + (seen[i].max(0) as usize).min(max_hits) as i64;
+        }
+        let total = offsets[n] as usize;
+        check_hits_fit(total, size_of::<R>() + host_bytes_per_hit)?;
+        let records = try_vec(total, R::zeroed(), "the hit records")?;
+        let mut stored = StoredHits { offsets, records, seen, advances: Vec::new() };
+        if total > 0 {
+            let mut profile = TraceProfile { rays: n, ..Default::default() };
+            self.store_pass(scene, rays, request, &mut stored, interrupt, &mut profile)?;
+        }
+        for i in 0..n {
+            let capacity = stored.offsets[i + 1] - stored.offsets[i];
+            if stored.seen[i] as i64 > capacity && capacity < max_hits as i64 {
+                return Err(Error::Internal(format!(
+                    "ray {i} met {} hits in the storing pass, {capacity} in the counting pass",
+                    stored.seen[i]
+                )));
+            }
+        }
+        self.ctx.check_validation()?;
+        Ok(stored)
+    }
+
+    /// The storing pass: each chunk's rays with their lists, two chunks in flight.
+    fn store_pass<R: Pod + Send + Sync>(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        stored: &mut StoredHits<R>,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let exact = request.precision == Precision::Exact;
+        let exact_scene = if exact { Some(scene.exact()?) } else { None };
+        let flags = ray_flags(Query::All, request.cull, self.ctx.backend, exact, scene.all_opaque(), false);
+        let outputs = Field::Prim.bit();
+        let variant =
+            self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres: false, all_hits: true })?;
+        let offsets = &stored.offsets;
+        let widest = offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0);
+        let total = *offsets.last().unwrap_or(&0) as usize;
+        let record_capacity = (record_budget(self.ctx.unified_memory) / size_of::<R>()).max(widest).min(total).max(1);
+        let ray_capacity = self.chunk_capacity(rays.len());
+        let plan = plan_chunks(offsets, ray_capacity, record_capacity);
+        let mut slots = self.slots.take(ray_capacity, exact)?;
+        let new_lists = || ListBuffers::new(&self.ctx, ray_capacity, record_capacity, size_of::<R>());
+        let mut lists = [new_lists()?, new_lists()?];
+        let frame = scene.frame();
+        let job =
+            GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits: true };
+        let result = self.store_chunks(&job, &plan, &mut slots, &mut lists, stored, interrupt, profile);
+        self.slots.give_back(slots);
+        result
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn store_chunks<R: Pod + Send + Sync>(
+        &self,
+        job: &GpuJob,
+        plan: &[(usize, usize)],
+        slots: &mut [Slot; 2],
+        lists: &mut [ListBuffers; 2],
+        stored: &mut StoredHits<R>,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        // Dropping these on an error waits for the chunks in flight before their memory goes.
+        let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
+        let mut in_flight: [Option<(usize, usize, Vec<crate::geometry::rays::Advance>)>; 2] = [None, None];
+        for (chunk, &(start, end)) in plan.iter().enumerate() {
+            interrupt.check()?;
+            let s = chunk % 2;
+            commands[s].wait()?;
+            if let Some(done) = in_flight[s].take() {
+                finish_stored(&slots[s], &lists[s], done, stored, profile)?;
+            }
+            let advances = pack_chunk(job, &mut slots[s], start, end - start)?;
+            write_lists(&mut lists[s], &stored.offsets, start, end);
+            let bytes = (stored.offsets[end] - stored.offsets[start]) as usize * size_of::<R>();
+            profile.chunks += 1;
+            commands[s].begin()?;
+            self.record_chunk(commands[s].buffer, job, &slots[s], end - start, Some((&lists[s], bytes)));
+            commands[s].submit()?;
+            in_flight[s] = Some((start, end, advances));
+        }
+        for s in 0..2 {
+            commands[s].wait()?;
+            if let Some(done) = in_flight[s].take() {
+                finish_stored(&slots[s], &lists[s], done, stored, profile)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Refuses a result of `hits` hits that would not fit in the host's memory, before storing any.
+fn check_hits_fit(hits: usize, bytes_per_hit: usize) -> Result<()> {
+    let needed = hits as u128 * bytes_per_hit as u128;
+    match host_memory_available() {
+        Some(available) if needed > available as u128 => Err(Error::OutOfMemory(format!(
+            "the {hits} hits of this query need about {:.2} GB of host memory, more than the {:.2} GB \
+             available: trace fewer rays at a time, set max_hits, or ask fewer outputs",
+            needed as f64 / 1e9,
+            available as f64 / 1e9
+        ))),
+        _ => Ok(()),
+    }
+}
+
+/// Consecutive rays per chunk: at most `max_rays`, whose lists hold at most `max_records` hits
+/// together (or one ray, however many it holds).
+fn plan_chunks(offsets: &[i64], max_rays: usize, max_records: usize) -> Vec<(usize, usize)> {
+    let n = offsets.len() - 1;
+    let mut plan = Vec::new();
+    let mut start = 0;
+    while start < n {
+        let limit = offsets[start] + max_records as i64;
+        let last = (start + max_rays).min(n);
+        let end = start + offsets[start + 1..=last].partition_point(|&o| o <= limit);
+        let end = end.max(start + 1);
+        plan.push((start, end));
+        start = end;
+    }
+    plan
+}
+
+/// Each ray's list within its chunk's records.
+fn write_lists(buffers: &mut ListBuffers, offsets: &[i64], start: usize, end: usize) {
+    let bytes = buffers.lists_host.mapped_mut().expect("hit lists are host-visible");
+    let lists: &mut [HitList] = bytemuck::cast_slice_mut(&mut bytes[..(end - start) * size_of::<HitList>()]);
+    let base = offsets[start];
+    parallel::install(|| {
+        lists.par_iter_mut().enumerate().with_min_len(4096).for_each(|(k, list)| {
+            let i = start + k;
+            *list = HitList { first: (offsets[i] - base) as u32, capacity: (offsets[i + 1] - offsets[i]) as u32 };
+        })
+    });
+}
+
+/// A finished chunk: its counts and records into place, its far rays' advances noted.
+fn finish_stored<R: Pod + Send + Sync>(
+    slot: &Slot,
+    buffers: &ListBuffers,
+    (start, end, advances): (usize, usize, Vec<crate::geometry::rays::Advance>),
+    stored: &mut StoredHits<R>,
+    profile: &mut TraceProfile,
+) -> Result<()> {
+    if let Some(stamps) = &slot.stamps {
+        stamps.add_to(profile)?;
+    }
+    let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
+    let at = slot.field_offset(Field::Prim);
+    stored.seen[start..end].copy_from_slice(bytemuck::cast_slice(&hits[at..at + 4 * (end - start)]));
+    let (first, last) = (stored.offsets[start] as usize, stored.offsets[end] as usize);
+    let records = buffers.records_host.mapped().expect("hit records are host-visible");
+    let src: &[R] = bytemuck::cast_slice(&records[..(last - first) * size_of::<R>()]);
+    let dst = &mut stored.records[first..last];
+    parallel::install(|| {
+        dst.par_chunks_mut(1 << 16).zip(src.par_chunks(1 << 16)).for_each(|(d, s)| d.copy_from_slice(s))
+    });
+    stored.advances.extend(advances.into_iter().map(|a| (start + a.ray, a.t)));
+    Ok(())
+}
+
+impl<R: Pod> StoredHits<R> {
+    /// Drops the unwritten ends of lists whose ray met fewer hits than counted (a primitive
+    /// reported twice by traversal and kept once), so that each ray's hits are contiguous.
+    fn compact(&mut self) {
+        let n = self.seen.len();
+        let short = (0..n).any(|i| (self.seen[i] as i64) < self.offsets[i + 1] - self.offsets[i]);
+        if !short {
+            return;
+        }
+        let mut to = 0;
+        for i in 0..n {
+            let (from, capacity) = (self.offsets[i] as usize, (self.offsets[i + 1] - self.offsets[i]) as usize);
+            let kept = capacity.min(self.seen[i].max(0) as usize);
+            self.records.copy_within(from..from + kept, to);
+            self.offsets[i] = to as i64;
+            to += kept;
+        }
+        self.offsets[n] = to as i64;
+        self.records.truncate(to);
+    }
+}
+
+impl StoredHits<ExactHit> {
+    /// The exact tier's hits as the CPU tracer's (the same record).
+    pub(super) fn into_all_hits(mut self) -> AllHits {
+        self.compact();
+        AllHits { offsets: self.offsets, hits: self.records, wide: true }
+    }
+}
+
+impl StoredHits<FastHit> {
+    /// The fast tier's hits with their triangles counted among all parts of their mesh and far
+    /// rays' `t` measured from their own origin.
+    pub(super) fn into_all_hits(mut self, scene: &Scene) -> Result<AllHits> {
+        self.compact();
+        let mut hits = try_vec(self.records.len(), ReferenceHit::zeroed(), "the hits")?;
+        let records = &self.records;
+        parallel::install(|| {
+            hits.par_iter_mut().zip(records).with_min_len(4096).for_each(|(hit, r)| {
+                let triangles = &scene.placements[r.instance as usize].triangles;
+                *hit = ReferenceHit {
+                    t: r.t as f64,
+                    u: r.u as f64,
+                    v: r.v as f64,
+                    instance: r.instance as u32,
+                    prim: triangles.global(r.geometry as usize, r.prim as usize) as u32,
+                };
+            })
+        });
+        for &(ray, t) in &self.advances {
+            let range = self.offsets[ray] as usize..self.offsets[ray + 1] as usize;
+            for hit in &mut hits[range] {
+                hit.t = (hit.t + t) as f32 as f64;
+            }
+        }
+        Ok(AllHits { offsets: self.offsets, hits, wide: false })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::plan_chunks;
+
+    #[test]
+    fn chunks_respect_rays_and_records() {
+        // Rays holding 3, 0, 5, 1, 9 and 2 hits.
+        let offsets = [0, 3, 3, 8, 9, 18, 20];
+        assert_eq!(plan_chunks(&offsets, 100, 100), [(0, 6)]);
+        assert_eq!(plan_chunks(&offsets, 2, 100), [(0, 2), (2, 4), (4, 6)]);
+        // A ray holding more than a chunk's records gets a chunk of its own.
+        assert_eq!(plan_chunks(&offsets, 100, 8), [(0, 3), (3, 4), (4, 5), (5, 6)]);
+        assert_eq!(plan_chunks(&[0, 0, 0], 1, 1), [(0, 1), (1, 2)]);
+    }
+}
