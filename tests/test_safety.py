@@ -486,6 +486,15 @@ def test_outputs_beyond_memory_raise_before_allocating(memory):
     assert r["rss_growth"] < 0.5e9, f"{r['rss_growth'] / 1e9:.2f} GB touched before the MemoryError"
 
 
+def test_all_hits_beyond_memory_raise_before_storing(memory):
+    """30M hits (about 2 GB with their records) with 0.5 GB of headroom: the counting pass finds
+    them, and MemoryError comes before any is stored."""
+    r = _memory_case(memory, "all_hits_30M")
+    _memory_error(r)
+    assert "hits" in r["message"], r["message"]
+    assert r["rss_growth"] < 0.3e9, f"{r['rss_growth'] / 1e9:.2f} GB touched before the MemoryError"
+
+
 def test_mesh_beyond_memory_raises_memory_error(memory):
     r = _memory_case(memory, "mesh_4M")
     _memory_error(r)
