@@ -1,7 +1,8 @@
 // QUERY_ALL: every hit of a ray is counted, and its nearest `capacity` are kept in its HitList,
 // sorted as they arrive (insertion: a list is as long as its ray's hits, which a counting pass
 // found, or max_hits). A hit equal to one kept (the same triangle at the same t: traversal may
-// report a primitive twice) is dropped, so that the count and the list hold it once.
+// report a primitive twice) is dropped, so that the count and the list hold it once. Long lists
+// (HIT_LIST_APPEND) are filled in the order met instead, and sorted by the host.
 // Include after common.glsl, with HIT_RECORD defined as the stored record (FastHit, or ExactHit
 // after exact.glsl) and `is_before` and `is_same` defined for it.
 #ifndef VKRAY_HIT_LISTS_GLSL
@@ -22,6 +23,11 @@ HitList hit_list(uint i) {
 int keep_hit(uint i, int seen, HIT_RECORD h) {
   HitList list = hit_list(i);
   HitRecords hits = HitRecords(params.out_t);
+  if ((list.capacity & HIT_LIST_APPEND) != 0u) {
+    // Insertion would cost the square of the list's length: kept as met, sorted by the host.
+    if (uint(seen) < (list.capacity & ~HIT_LIST_APPEND)) hits.h[list.first + uint(seen)] = h;
+    return seen + 1;
+  }
   uint n = min(uint(seen), list.capacity);
   uint at = n;
   while (at > 0u && is_before(h, hits.h[list.first + at - 1u])) --at;

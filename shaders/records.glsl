@@ -70,11 +70,13 @@ struct ExactBest {
 };
 
 // QUERY_ALL: where ray i keeps its nearest hits, sorted: `capacity` records from `first` among
-// the chunk's records (hit_lists.glsl).
+// the chunk's records (hit_lists.glsl). HIT_LIST_APPEND in `capacity`: the list is long (and as
+// long as the ray's hits): they are appended as they come, and the host sorts them.
 struct HitList {
   uint first;
   uint capacity;
 };
+const uint HIT_LIST_APPEND = 0x80000000u;
 
 // One stored hit of the fast tier: f32 t and barycentrics (of vertices 1 and 2), the caller's
 // triangle within its geometry. Ordered by (t, instance, geometry, prim).

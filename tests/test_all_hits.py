@@ -1300,3 +1300,26 @@ def test_gpu_count_does_not_depend_on_chunks(device, tier):
     np.testing.assert_array_equal(whole.counts, counts)
     for name in ("offsets", "t", "prim_id"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
+
+
+@pytest.mark.parametrize("tier", ["fast", "exact"])
+def test_long_lists(device, tier):
+    """Rays through 40 boxes in a row (80 hits each, in lists long enough that the GPU appends
+    them and the host sorts them), some with max_hits=50 (kept sorted on the GPU): the reference
+    tier's hits, in its order."""
+    if tier == "exact" and not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    mesh = device.mesh(*box())
+    scene = device.scene([vkray.Instance(mesh, _affine(np.eye(3), [0.0, 0.0, 1.5 * k])) for k in range(40)[::-1]])
+    rng = np.random.default_rng(50)
+    origins = np.column_stack([rng.uniform(0.2, 0.8, (64, 2)), np.full(64, -1.0)])
+    directions = np.column_stack([rng.uniform(-0.002, 0.002, (64, 2)), np.ones(64)])
+    fields = ["t", "prim_id", "instance_id"]
+    for max_hits in (None, 50):
+        got = scene.intersect_all(origins, directions, precision=tier, max_hits=max_hits, outputs=fields)
+        want = scene.intersect_all(origins, directions, precision="reference", max_hits=max_hits, outputs=fields)
+        check_structure(got, (64,))
+        np.testing.assert_array_equal(got.counts, np.full(64, 80 if max_hits is None else 50))
+        np.testing.assert_array_equal(got.instance_id, want.instance_id)
+        np.testing.assert_array_equal(got.prim_id, want.prim_id)
+        np.testing.assert_allclose(got.t, want.t, rtol=0, atol=2e-6 * 60 if tier == "fast" else 0)

@@ -86,13 +86,17 @@ pub const EXACT_CULL_DISABLE: u32 = 1;
 pub const EXACT_FLIP_FACING: u32 = 2;
 
 /// Where one ray keeps its nearest hits in an all-hits query (`HitList` in shaders/records.glsl):
-/// `capacity` records from `first` among its chunk's records.
+/// `capacity` records from `first` among its chunk's records (`HIT_LIST_APPEND` set: appended as
+/// met, for the host to sort).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct HitList {
     pub first: u32,
     pub capacity: u32,
 }
+
+/// `HitList::capacity` flag: the list holds every hit of its ray, in the order traversal met them.
+pub const HIT_LIST_APPEND: u32 = 0x8000_0000;
 
 /// One stored hit of the fast tier (`FastHit` in shaders/records.glsl): f32 t and barycentrics,
 /// the caller's triangle within its geometry.

@@ -4,6 +4,7 @@
 //! in a list of exactly that length, chunk by chunk, straight into their final place. Memory is
 //! bounded by the chunks and nothing is truncated.
 
+use std::cmp::Ordering;
 use std::mem::size_of;
 use std::time::Instant;
 
@@ -24,7 +25,7 @@ use crate::geometry::rays::Rays;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::{Commands, Interrupt};
 use crate::gpu::memory::host_memory_available;
-use crate::gpu::records::{ExactHit, FastHit, HitList};
+use crate::gpu::records::{ExactHit, FastHit, HitList, HIT_LIST_APPEND};
 use crate::scene::Scene;
 
 /// What the storing pass found: ray i's hits are `records[offsets[i]..offsets[i + 1]]`, of which
@@ -51,7 +52,7 @@ impl Tracer {
     /// Every hit of every ray (the nearest `max_hits` of each) as the GPU tier `request` names
     /// (fast: `R` = `FastHit`; exact: `ExactHit`). `host_bytes_per_hit`: what the caller will
     /// need per hit besides the records, for checking that the result fits before storing it.
-    pub(super) fn gpu_all_hits<R: Pod + Send + Sync>(
+    pub(super) fn gpu_all_hits<R: HitRecord>(
         &self,
         scene: &Scene,
         rays: &Rays,
@@ -84,7 +85,7 @@ impl Tracer {
         let mut stored = StoredHits { offsets, records, seen, advances: Vec::new() };
         if total > 0 {
             let mut profile = TraceProfile { rays: n, ..Default::default() };
-            self.store_pass(scene, rays, request, &mut stored, interrupt, &mut profile)?;
+            self.store_pass(scene, rays, request, max_hits, &mut stored, interrupt, &mut profile)?;
         }
         for i in 0..n {
             let capacity = stored.offsets[i + 1] - stored.offsets[i];
@@ -95,16 +96,19 @@ impl Tracer {
                 )));
             }
         }
+        stored.settle(max_hits);
         self.ctx.check_validation()?;
         Ok(stored)
     }
 
     /// The storing pass: each chunk's rays with their lists, two chunks in flight.
-    fn store_pass<R: Pod + Send + Sync>(
+    #[allow(clippy::too_many_arguments)]
+    fn store_pass<R: HitRecord>(
         &self,
         scene: &Scene,
         rays: &Rays,
         request: Request,
+        max_hits: usize,
         stored: &mut StoredHits<R>,
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
@@ -127,16 +131,17 @@ impl Tracer {
         let frame = scene.frame();
         let job =
             GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits: true };
-        let result = self.store_chunks(&job, &plan, &mut slots, &mut lists, stored, interrupt, profile);
+        let result = self.store_chunks(&job, &plan, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
         self.slots.give_back(slots);
         result
     }
 
     #[allow(clippy::too_many_arguments)]
-    fn store_chunks<R: Pod + Send + Sync>(
+    fn store_chunks<R: HitRecord>(
         &self,
         job: &GpuJob,
         plan: &[(usize, usize)],
+        max_hits: usize,
         slots: &mut [Slot; 2],
         lists: &mut [ListBuffers; 2],
         stored: &mut StoredHits<R>,
@@ -154,7 +159,7 @@ impl Tracer {
                 finish_stored(&slots[s], &lists[s], done, stored, profile)?;
             }
             let advances = pack_chunk(job, &mut slots[s], start, end - start)?;
-            write_lists(&mut lists[s], &stored.offsets, start, end);
+            write_lists(&mut lists[s], &stored.offsets, max_hits, start, end);
             let bytes = (stored.offsets[end] - stored.offsets[start]) as usize * size_of::<R>();
             profile.chunks += 1;
             commands[s].begin()?;
@@ -204,20 +209,22 @@ fn plan_chunks(offsets: &[i64], max_rays: usize, max_records: usize) -> Vec<(usi
 }
 
 /// Each ray's list within its chunk's records.
-fn write_lists(buffers: &mut ListBuffers, offsets: &[i64], start: usize, end: usize) {
+fn write_lists(buffers: &mut ListBuffers, offsets: &[i64], max_hits: usize, start: usize, end: usize) {
     let bytes = buffers.lists_host.mapped_mut().expect("hit lists are host-visible");
     let lists: &mut [HitList] = bytemuck::cast_slice_mut(&mut bytes[..(end - start) * size_of::<HitList>()]);
     let base = offsets[start];
     parallel::install(|| {
         lists.par_iter_mut().enumerate().with_min_len(4096).for_each(|(k, list)| {
             let i = start + k;
-            *list = HitList { first: (offsets[i] - base) as u32, capacity: (offsets[i + 1] - offsets[i]) as u32 };
+            let capacity = offsets[i + 1] - offsets[i];
+            let append = if appends(capacity, max_hits) { HIT_LIST_APPEND } else { 0 };
+            *list = HitList { first: (offsets[i] - base) as u32, capacity: capacity as u32 | append };
         })
     });
 }
 
 /// A finished chunk: its counts and records into place, its far rays' advances noted.
-fn finish_stored<R: Pod + Send + Sync>(
+fn finish_stored<R: HitRecord>(
     slot: &Slot,
     buffers: &ListBuffers,
     (start, end, advances): (usize, usize, Vec<crate::geometry::rays::Advance>),
@@ -241,19 +248,72 @@ fn finish_stored<R: Pod + Send + Sync>(
     Ok(())
 }
 
-impl<R: Pod> StoredHits<R> {
-    /// Drops the unwritten ends of lists whose ray met fewer hits than counted (a primitive
-    /// reported twice by traversal and kept once), so that each ray's hits are contiguous.
-    fn compact(&mut self) {
+/// A stored hit record: the order of a ray's hits (the shaders' `is_before`; `Equal`: the same
+/// hit, met twice).
+pub(super) trait HitRecord: Pod + Send + Sync {
+    fn order(&self, other: &Self) -> Ordering;
+}
+
+impl HitRecord for FastHit {
+    fn order(&self, other: &Self) -> Ordering {
+        let key = |h: &FastHit| (h.instance, h.geometry, h.prim);
+        self.t.total_cmp(&other.t).then(key(self).cmp(&key(other)))
+    }
+}
+
+impl HitRecord for ExactHit {
+    fn order(&self, other: &Self) -> Ordering {
+        self.t.total_cmp(&other.t).then((self.instance, self.prim).cmp(&(other.instance, other.prim)))
+    }
+}
+
+/// Lists longer than this are filled in the order traversal meets their hits and sorted by the
+/// host (`HIT_LIST_APPEND`): insertion costs the square of a list's length.
+const INSERTION_LIMIT: i64 = 32;
+
+/// Whether a list of `capacity` hits (as many as its ray met, unless `max_hits` cut it) is
+/// appended to: long, and holding every hit of its ray.
+fn appends(capacity: i64, max_hits: usize) -> bool {
+    capacity > INSERTION_LIMIT && (capacity as u64) < max_hits as u64
+}
+
+impl<R: HitRecord> StoredHits<R> {
+    /// Sorts the appended lists (dropping hits met twice), then drops the unwritten ends of lists
+    /// whose ray met fewer hits than counted (a primitive reported twice by traversal and kept
+    /// once), so that each ray's hits are contiguous.
+    fn settle(&mut self, max_hits: usize) {
         let n = self.seen.len();
-        let short = (0..n).any(|i| (self.seen[i] as i64) < self.offsets[i + 1] - self.offsets[i]);
-        if !short {
+        let mut kept: Vec<usize> =
+            (0..n).map(|i| (self.offsets[i + 1] - self.offsets[i]).min(self.seen[i].max(0) as i64) as usize).collect();
+        let mut appended: Vec<(&mut [R], &mut usize)> = Vec::new();
+        let mut rest = self.records.as_mut_slice();
+        for (i, kept) in kept.iter_mut().enumerate() {
+            let (list, tail) = rest.split_at_mut((self.offsets[i + 1] - self.offsets[i]) as usize);
+            rest = tail;
+            if appends(self.offsets[i + 1] - self.offsets[i], max_hits) {
+                appended.push((list, kept));
+            }
+        }
+        parallel::install(|| {
+            appended.into_par_iter().for_each(|(list, kept)| {
+                let list = &mut list[..*kept];
+                list.sort_unstable_by(R::order);
+                let mut unique = 0;
+                for k in 0..list.len() {
+                    if unique == 0 || list[unique - 1].order(&list[k]) != Ordering::Equal {
+                        list[unique] = list[k];
+                        unique += 1;
+                    }
+                }
+                *kept = unique;
+            })
+        });
+        if (0..n).all(|i| kept[i] as i64 == self.offsets[i + 1] - self.offsets[i]) {
             return;
         }
         let mut to = 0;
-        for i in 0..n {
-            let (from, capacity) = (self.offsets[i] as usize, (self.offsets[i + 1] - self.offsets[i]) as usize);
-            let kept = capacity.min(self.seen[i].max(0) as usize);
+        for (i, &kept) in kept.iter().enumerate() {
+            let from = self.offsets[i] as usize;
             self.records.copy_within(from..from + kept, to);
             self.offsets[i] = to as i64;
             to += kept;
@@ -265,8 +325,7 @@ impl<R: Pod> StoredHits<R> {
 
 impl StoredHits<ExactHit> {
     /// The exact tier's hits as the CPU tracer's (the same record).
-    pub(super) fn into_all_hits(mut self) -> AllHits {
-        self.compact();
+    pub(super) fn into_all_hits(self) -> AllHits {
         AllHits { offsets: self.offsets, hits: self.records, wide: true }
     }
 }
@@ -274,8 +333,7 @@ impl StoredHits<ExactHit> {
 impl StoredHits<FastHit> {
     /// The fast tier's hits with their triangles counted among all parts of their mesh and far
     /// rays' `t` measured from their own origin.
-    pub(super) fn into_all_hits(mut self, scene: &Scene) -> Result<AllHits> {
-        self.compact();
+    pub(super) fn into_all_hits(self, scene: &Scene) -> Result<AllHits> {
         let mut hits = try_vec(self.records.len(), ReferenceHit::zeroed(), "the hits")?;
         let records = &self.records;
         parallel::install(|| {
