@@ -510,6 +510,24 @@ def test_rays_in_a_faces_plane(any_device, tier):
     np.testing.assert_array_equal(hits.t[first], closest.t[closest.hit])
 
 
+def test_rays_along_the_faces_of_the_bounding_box(any_device, tier):
+    """Rays with a zero direction component whose origin lies on a face of the scene's bounding
+    box (after re-centring): the crossing they make is reported, in every exact tier alike (the
+    CPU's boxes once lost it: 0 * inf is NaN)."""
+    scene = any_device.scene(any_device.mesh([[0.0, 0, 1], [1, 0, 1], [1, 1, 1]], [[0, 1, 2]]))
+    o = [[0.5, 0.0, 2.0], [0.5, 1e-17, 2.0], [0.5, -1.0, 2.0]]
+    d = [[0.0, 0, -1], [0.0, 0, -1], [0.0, 1, -1]]
+    np.testing.assert_array_equal(scene.count(o, d, precision=tier), [1, 1, 1])
+    cube = any_device.scene(any_device.mesh(*box()))
+    xs = np.linspace(0.1, 0.9, 9)
+    for plane in ([xs, np.zeros(9)], [np.zeros(9), xs], [xs, np.ones(9)], [np.ones(9), xs]):
+        origins = np.column_stack(plane + [np.full(9, 2.0)])
+        counts = cube.count(origins, [0.0, 0.0, -1.0], precision=tier)
+        np.testing.assert_array_equal(counts, cube.count(origins, [0.0, 0.0, -1.0], precision="exact"
+                                                         if _exact_on(any_device) else tier))
+        assert set(counts.tolist()) <= {0, 2}, counts
+
+
 def test_coplanar_copies_are_all_reported(any_device, tier):
     """The same triangle four times (copied, its corners rotated, its winding reversed): four hits
     at one t, by prim_id. Two copies of a split square (the second with reversed winding), a ray

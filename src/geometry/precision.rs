@@ -278,15 +278,20 @@ impl Aabb {
         }))
     }
 
-    /// Entry distance of the ray into the box within [tmin, tmax], or None. NaN slabs (an origin
-    /// on a face of a flat box with a direction along it) count as inside: conservative.
+    /// Entry distance of the ray into the box within [tmin, tmax], or None. A NaN slab (0 * inf:
+    /// an origin on one of the box's faces with a direction along it) counts as inside that
+    /// slab: conservative (`f64::min` would drop the NaN and take the other side's infinity).
     pub fn entry(&self, ray: &Ray64, inverse_direction: DVec3) -> Option<f64> {
         let t0 = (self.min - ray.origin) * inverse_direction;
         let t1 = (self.max - ray.origin) * inverse_direction;
-        let near = t0.min(t1);
-        let far = t0.max(t1);
-        let enter = ray.tmin.max(near.x).max(near.y).max(near.z);
-        let exit = ray.tmax.min(far.x).min(far.y).min(far.z);
+        let (mut enter, mut exit) = (ray.tmin, ray.tmax);
+        for axis in 0..3 {
+            let (a, b) = (t0[axis], t1[axis]);
+            if !(a.is_nan() || b.is_nan()) {
+                enter = enter.max(a.min(b));
+                exit = exit.min(a.max(b));
+            }
+        }
         (enter <= exit).then_some(enter)
     }
 }
