@@ -1,7 +1,9 @@
-"""vkray's all-hits queries (reference tier: f64 on the CPU) against trimesh (embreex and its numpy
-engine) and Open3D's RaycastingScene, on the same rays and points in one run; prints a Markdown report.
+"""vkray's all-hits queries (`intersect_all`, `count`, `contains`) in every precision tier (fast,
+refined, exact: the GPU, on each backend the device has; reference: f64 on the CPU) against trimesh
+(embreex and its numpy engine) and Open3D's RaycastingScene, on the same rays and points in one run;
+prints a Markdown report.
 
-    python benchmarks/bench_all_hits.py                               # everything, ~1 minute on 2 cores
+    python benchmarks/bench_all_hits.py                               # everything, ~2 minutes on lavapipe's 2 cores
     python benchmarks/bench_all_hits.py --o3d-python /tmp/o3d-venv/bin/python --out /tmp/bench_all_hits.md
 
 Open3D lives in its own virtual environment (``python3 -m venv /tmp/o3d-venv &&
@@ -14,8 +16,10 @@ does not list; it is skipped without it (``pip install --target /tmp/bench-extra
 
 Speed: numpy in, numpy out (conversions included), best of ``--repeat`` after one warm-up call
 (scene builds are not timed). Correctness: hard cases with known answers (rays through shared
-vertices and edges; points whose rays run through a solid's vertices and edges, for the direction
-each engine casts), answers counted per engine, not assumed.
+vertices and edges at offsets 0, 1e3, 1e5 and 1e7; points whose rays run through a solid's vertices
+and edges, for the direction each engine casts), answers counted per engine and per vkray tier and
+backend, not assumed. ``--backends`` picks vkray's Vulkan backends (default: ray_query and pipeline,
+those the device supports).
 """
 
 from __future__ import annotations
@@ -43,6 +47,13 @@ import numpy as np
 #     column (direction j is draws 3j, 3j+1, 3j+2); the parity of count_intersections, majority vote.
 VKRAY_DIRECTION = np.array([0.6, 0.48, 0.64])
 TRIMESH_DIRECTION = np.array([0.4395064455, 0.617598629942, 0.652231566745])
+
+# vkray's precision tiers: the f64 ones (each crossing exactly once; exact on the GPU, reference on
+# the CPU) and the f32 ones (the GPU's f32 traversal decides which triangles are hit; refined then
+# re-intersects them in f64).
+TIERS = ("reference", "exact", "fast", "refined")
+GPU_TIERS = ("fast", "refined", "exact")
+HARD_OFFSETS = (0.0, 1e3, 1e5, 1e7)
 
 
 def open3d_directions(n):
@@ -297,6 +308,7 @@ def main():
     parser.add_argument("--native-rays", type=int, default=300, help="rays (and 3x points) for trimesh's numpy engine")
     parser.add_argument("--winding-points", type=int, default=2000, help="points timed for vkray's winding method")
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--backends", default="ray_query,pipeline", help="vkray backends for the GPU tiers")
     parser.add_argument("--o3d-python", default="/tmp/o3d-venv/bin/python", help="interpreter with open3d ('' to skip)")
     parser.add_argument("--out", default=None, help="also write the report to this file")
     args = parser.parse_args()
@@ -331,7 +343,13 @@ def main():
 
     lines = []
     say = lines.append
-    device = vkray.Device()
+    backends = []
+    for b in args.backends.split(","):
+        info = vkray.devices()[0]
+        if (b == "ray_query" and info.ray_query) or (b == "pipeline" and info.ray_tracing_pipeline):
+            backends.append(b)
+    devices = {b: vkray.Device(backend=b) for b in backends}
+    device = devices[backends[0]]  # holds the scenes of the reference tier
     repeat = args.repeat
 
     # ---- inputs -----------------------------------------------------------------------------
@@ -363,33 +381,45 @@ def main():
         tasks.append({"id": f"pts_{key}", "kind": "points", "mesh": key, "points": f"pts_{key}", "time": True,
                       "check_directions": True})
 
-    # (a) rays through shared vertices and edges, at offsets 0 and 1e5
-    hard_rays = []  # (label, offset, key, v, f, o, d, expected crossings, t of the crossing aimed at, radius)
-    for offset in (0.0, 1e5):
+    # (a) rays through shared vertices and edges, at every offset of HARD_OFFSETS
+    hard_rays = []  # (label, offset, key, v, f, o, d, expected crossings, t of the crossing aimed at, radius, kinds)
+    cube_v, cube_f = box()
+    # The cube's face diagonals: the edges its coplanar triangle pairs share.
+    face_normals = np.cross(cube_v[cube_f[:, 1]] - cube_v[cube_f[:, 0]], cube_v[cube_f[:, 2]] - cube_v[cube_f[:, 0]])
+    diagonals = []
+    for a, b in edges_of(cube_f):
+        tris = [t for t in range(len(cube_f)) if a in cube_f[t] and b in cube_f[t]]
+        if len(tris) == 2 and np.allclose(np.cross(face_normals[tris[0]], face_normals[tris[1]]), 0):
+            diagonals.append((a, b, face_normals[tris[0]] / np.linalg.norm(face_normals[tris[0]])))
+    for offset in HARD_OFFSETS:
         n = 16
         v, f, _ = heightfield(n, seed=47, offset=offset)
         key = f"hf_{offset:g}"
         add_mesh(key, v, f)
         targets = shared_targets(v, f, n)
+        kinds = np.array(["vertex (6 triangles)"] * (n - 2) ** 2 + ["axis-aligned edge"] * (2 * (n - 2) * (n - 3))
+                         + ["diagonal edge"] * (n - 3) ** 2)
         radius = bounds(v)[1]
         for sign, label in ((-1.0, "heightfield, vertical rays down"), (1.0, "heightfield, vertical rays up")):
             o = targets.copy()
             o[:, 2] = offset + 5.0 if sign < 0 else offset - 5.0
             d = np.broadcast_to([0.0, 0.0, sign], o.shape).copy()
-            hard_rays.append((label, offset, key, v, f, o, d, 1, np.abs(o[:, 2] - targets[:, 2]), radius))
+            hard_rays.append((label, offset, key, v, f, o, d, 1, np.abs(o[:, 2] - targets[:, 2]), radius, kinds))
         o, d = rays_through(targets, seed=48)
-        hard_rays.append(("heightfield, tilted rays", offset, key, v, f, o, d, 1, np.ones(len(o)), radius))
+        hard_rays.append(("heightfield, tilted rays", offset, key, v, f, o, d, 1, np.ones(len(o)), radius, kinds))
         v, f = fan(offset)
         key = f"fan_{offset:g}"
         add_mesh(key, v, f)
         targets = np.repeat(np.vstack([v[0], 0.5 * (v[0] + v[1:])]), 100, axis=0)
+        kinds = np.array(["centre vertex (11 triangles)"] * 100 + ["spoke (edge)"] * (len(targets) - 100))
         o, d = rays_through(targets, seed=50)
         hard_rays.append(("closed fan (11 triangles), centre and spokes", offset, key, v, f, o, d, 1, np.ones(len(o)),
-                          bounds(v)[1]))
+                          bounds(v)[1], kinds))
         v, f = bipyramid(offset)
         key = f"bip_{offset:g}"
         add_mesh(key, v, f)
         targets = np.vstack([v, [0.5 * (v[a] + v[b]) for a, b in edges_of(f)]])
+        kinds = np.repeat(np.array(["vertex"] * len(v) + ["edge"] * (len(targets) - len(v))), 30)
         targets = np.repeat(targets, 30, axis=0)
         rng = np.random.default_rng(52)
         inner = offset + np.column_stack([rng.uniform(-0.3, 0.3, (len(targets), 2)), rng.uniform(-0.2, 0.3, len(targets))])
@@ -397,7 +427,26 @@ def main():
         d *= 2.0 / np.linalg.norm(d, axis=1, keepdims=True)
         o = targets - d
         hard_rays.append(("closed bipyramid, entered through vertices and edges", offset, key, v, f, o, d, 2,
-                          np.ones(len(o)), bounds(v)[1]))
+                          np.ones(len(o)), bounds(v)[1], kinds))
+        # The unit cube entered through its faces' diagonals (the edge each face's two triangles
+        # share): rays perpendicular to the face, and tilted towards random points inside. A convex
+        # solid: every ray through its interior crosses it twice.
+        v = cube_v + offset
+        key = f"cubeh_{offset:g}"
+        add_mesh(key, v, cube_f)
+        w = np.array([0.1, 0.25, 0.5, 0.75, 0.9])
+        targets = np.vstack([cube_v[a] + w[:, None] * (cube_v[b] - cube_v[a]) for a, b, _ in diagonals])
+        normals = np.repeat(np.array([nrm for _, _, nrm in diagonals]), len(w), axis=0)
+        rng = np.random.default_rng(53)
+        inner = rng.uniform(0.2, 0.8, (len(targets), 10, 3))
+        tilted = inner - targets[:, None, :]
+        dirs = np.concatenate([-normals[:, None, :], tilted / np.linalg.norm(tilted, axis=2, keepdims=True)], axis=1)
+        kinds = np.tile(np.array(["perpendicular to the face"] + ["tilted"] * 10), len(targets))
+        targets = np.repeat(targets, 11, axis=0) + offset
+        d = 2.0 * dirs.reshape(-1, 3)
+        o = targets - d
+        hard_rays.append(("unit cube (12 triangles), entered through its faces' diagonals", offset, key, v, cube_f, o, d,
+                          2, np.ones(len(o)), bounds(v)[1], kinds))
     for i, case in enumerate(hard_rays):
         npz[f"hard{i}__o"], npz[f"hard{i}__d"] = case[5], case[6]
         tasks.append({"id": f"hard{i}", "kind": "rays", "mesh": case[2], "rays": f"hard{i}"})
@@ -487,8 +536,9 @@ def main():
     import embreex
 
     say(f"Host: {cpu}, {os.cpu_count()} CPUs; Python {platform.python_version()}, numpy {np.__version__}. "
-        f"vkray {getattr(vkray, '__version__', '?')} `precision=\"reference\"` (f64 on all CPU cores; the Vulkan device, "
-        f"{device.name}, only holds the scene); trimesh {trimesh.__version__} with embreex "
+        f"vkray {getattr(vkray, '__version__', '?')}: `precision=\"reference\"` f64 on all CPU cores, `\"fast\"`, "
+        f"`\"refined\"` and `\"exact\"` on the Vulkan device {device.name} ({vkray.devices()[0].driver}), backends "
+        f"{', '.join(backends)} (on lavapipe the \"GPU\" is the same CPU cores); trimesh {trimesh.__version__} with embreex "
         f"{getattr(embreex, '__version__', '?')} (Embree 4, float32; one thread: embreex casts in a loop "
         f"holding the GIL); trimesh numpy engine: {'rtree ' + __import__('rtree').__version__ if native_ok else native_why}; "
         f"{o3d_note}.\n")
@@ -496,27 +546,31 @@ def main():
         "them) and numpy out, every conversion included (Open3D: stacking into an (N, 6) float32 array, "
         "`Tensor.from_numpy`, `.numpy()` of every output). \"Open3D tensors\" is the call alone on tensors "
         "built beforehand, outputs left as tensors. CPU/wall is process CPU time over wall time (how many "
-        "cores the engine kept busy). vkray ÷ peer > 1: vkray is faster.\n")
+        "cores the engine kept busy). vkray ÷ peer > 1: vkray (the reference tier, where not said otherwise) is "
+        "faster.\n")
 
     say("## 1. Speed\n")
     say(f"### All hits along {args.rays:,} random rays (`oracle.random_rays`: from a sphere of 2 bounding radii "
         "towards random points of the bounding box, a quarter in random directions)\n")
     table = Table("mesh (triangles)", "engine and call", "rays", "best s", "CPU/wall", "Mrays/s", "hits",
-                  "rays whose hit count ≠ vkray's", "vkray ÷ peer")
-    ctable = Table("mesh", "engine and call", "rays", "best s", "CPU/wall", "Mrays/s", "rays whose count ≠ vkray's",
-                   "vkray ÷ peer")
+                  "rays whose hit count ≠ vkray reference's", "vkray reference ÷ row")
+    ctable = Table("mesh", "engine and call", "rays", "best s", "CPU/wall", "Mrays/s",
+                   "rays whose count ≠ vkray reference's", "vkray reference ÷ row")
     bytes_rows = []
     disagreements = {}
+    peer_counts = {}  # (mesh, engine) -> hit counts per ray (trimesh numpy: the first rays only)
+    rates = {}
     for key in ("bunny", "fandisk"):
         v, f = meshes[key]
         o, d = speed_rays[key]
         n = len(o)
         scene = device.scene(device.mesh(v, f))
-        scene.intersect_all(o[:10], d[:10])
-        scene.count(o[:10], d[:10])
-        t_all, c_all, hits = best_of(repeat, lambda: scene.intersect_all(o, d))
-        t_lean, c_lean, lean = best_of(repeat, lambda: scene.intersect_all(o, d, outputs=["t", "prim_id"]))
-        t_cnt, c_cnt, counts = best_of(repeat, lambda: scene.count(o, d))
+        scene.intersect_all(o[:10], d[:10], precision="reference")
+        scene.count(o[:10], d[:10], precision="reference")
+        t_all, c_all, hits = best_of(repeat, lambda: scene.intersect_all(o, d, precision="reference"))
+        t_lean, c_lean, lean = best_of(repeat, lambda: scene.intersect_all(o, d, outputs=["t", "prim_id"],
+                                                                           precision="reference"))
+        t_cnt, c_cnt, counts = best_of(repeat, lambda: scene.count(o, d, precision="reference"))
         assert (counts == hits.counts).all()
         vk_rate = n / t_all
         vk_crate = n / t_cnt
@@ -530,12 +584,39 @@ def main():
         bytes_rows.append((key, "vkray `intersect_all(outputs=['t', 'prim_id'])` (ray_index, t, prim_id)",
                            sum(a.nbytes for a in (lean.ray_index, lean.t, lean.prim_id)) / h,
                            (lean.offsets.nbytes + lean.counts.nbytes) / n))
-        table.add(name, "vkray `intersect_all` (default outputs)", f"{n:,}", f"{t_all:.3f}", f"{c_all / t_all:.1f}",
-                  fmt_rate(n, t_all), f"{h:,}", "—", "—")
-        table.add(name, "vkray `intersect_all(outputs=['t', 'prim_id'])`", f"{n:,}", f"{t_lean:.3f}",
+        table.add(name, "vkray reference `intersect_all` (default outputs)", f"{n:,}", f"{t_all:.3f}",
+                  f"{c_all / t_all:.1f}", fmt_rate(n, t_all), f"{h:,}", "—", "—")
+        table.add(name, "vkray reference `intersect_all(outputs=['t', 'prim_id'])`", f"{n:,}", f"{t_lean:.3f}",
                   f"{c_lean / t_lean:.1f}", fmt_rate(n, t_lean), f"{h:,}", "—", "—")
-        ctable.add(name, "vkray `count`", f"{n:,}", f"{t_cnt:.3f}", f"{c_cnt / t_cnt:.1f}", fmt_rate(n, t_cnt), "—", "—")
+        ctable.add(name, "vkray reference `count`", f"{n:,}", f"{t_cnt:.3f}", f"{c_cnt / t_cnt:.1f}",
+                   fmt_rate(n, t_cnt), "—", "—")
         vk_counts = hits.counts
+        # Rates for the ratio table: (mesh, call) -> {engine: rays per second}.
+        rates[(name, "all")] = {"vkray reference": n / t_lean}
+        rates[(name, "count")] = {"vkray reference": n / t_cnt}
+
+        # vkray's GPU tiers, on each backend: the hit lists lean (t and prim_id, as the peers' ids).
+        for backend in backends:
+            gdev = devices[backend]
+            gscene = gdev.scene(gdev.mesh(v, f))
+            for tier in GPU_TIERS:
+                gscene.intersect_all(o[:10], d[:10], outputs=["t", "prim_id"], precision=tier)
+                gscene.count(o[:10], d[:10], precision=tier)
+                t_g, c_g, gh = best_of(repeat, lambda: gscene.intersect_all(o, d, outputs=["t", "prim_id"],
+                                                                           precision=tier))
+                t_gc, c_gc, gc = best_of(repeat, lambda: gscene.count(o, d, precision=tier))
+                gdiff = np.nonzero(gh.counts != vk_counts)[0]
+                disagreements[(key, f"vkray {tier}, {backend}")] = gdiff
+                peer_counts[(key, f"vkray {tier}, {backend}")] = gh.counts
+                same = "" if (gc == gh.counts).all() else f" (`count` ≠ `intersect_all`'s counts on {int(np.sum(gc != gh.counts))} rays)"
+                label = f"vkray {tier}, {backend}"
+                table.add(name, f"{label} `intersect_all(outputs=['t', 'prim_id'])`", f"{n:,}", f"{t_g:.3f}",
+                          f"{c_g / t_g:.1f}", fmt_rate(n, t_g), f"{int(gh.offsets[-1]):,}", f"{len(gdiff):,}",
+                          f"{vk_rate / (n / t_g):.2f}")
+                ctable.add(name, f"{label} `count`{same}", f"{n:,}", f"{t_gc:.3f}", f"{c_gc / t_gc:.1f}",
+                           fmt_rate(n, t_gc), f"{int(np.sum(gc != vk_counts)):,}", f"{vk_crate / (n / t_gc):.2f}")
+                rates[(name, "all")][label] = n / t_g
+                rates[(name, "count")][label] = n / t_gc
 
         # trimesh + embreex
         inter = ray_pyembree.RayMeshIntersector(t_mesh[key])
@@ -544,6 +625,8 @@ def main():
         e_counts = np.bincount(ray, minlength=n)
         diff = np.nonzero(e_counts != vk_counts)[0]
         disagreements[(key, "trimesh+embreex")] = diff
+        peer_counts[(key, "trimesh+embreex")] = e_counts
+        rates[(name, "all")]["trimesh+embreex"] = n / t_e
         table.add(name, "trimesh+embreex `intersects_id(multiple_hits=True)`", f"{n:,}", f"{t_e:.3f}",
                   f"{c_e / t_e:.1f}", fmt_rate(n, t_e), f"{len(tri):,}", f"{len(diff):,}", f"{vk_rate / (n / t_e):.2f}")
         t_l, c_l, (loc, lray, ltri) = best_of(repeat, lambda: inter.intersects_location(o, d, multiple_hits=True))
@@ -555,6 +638,7 @@ def main():
         ctable.add(name, "trimesh+embreex `intersects_id` + `np.bincount` (no count call)", f"{n:,}", f"{t_ec:.3f}",
                    f"{c_ec / t_ec:.1f}", fmt_rate(n, t_ec), f"{int(np.sum(ec != vk_counts)):,}",
                    f"{vk_crate / (n / t_ec):.2f}")
+        rates[(name, "count")]["trimesh+embreex"] = n / t_ec
         bytes_rows.append((key, "trimesh `intersects_id` (index_tri, index_ray: int64)",
                            (tri.nbytes + ray.nbytes) / max(len(tri), 1), 0.0))
         bytes_rows.append((key, "trimesh `intersects_location` (+ locations float64)",
@@ -569,6 +653,7 @@ def main():
             n_counts = np.bincount(nray, minlength=k)
             ndiff = np.nonzero(n_counts != vk_counts[:k])[0]
             disagreements[(key, "trimesh numpy")] = ndiff
+            peer_counts[(key, "trimesh numpy")] = n_counts
             table.add(name, f"trimesh numpy engine `intersects_id` (first {k} rays)", f"{k:,}", f"{t_n:.3f}",
                       f"{c_n / t_n:.1f}", fmt_rate(k, t_n), f"{len(ntri):,}", f"{len(ndiff):,} of {k}",
                       f"{vk_rate / (k / t_n):.0f}")
@@ -584,8 +669,11 @@ def main():
             c_counts = o3d[f"{tid}__count"]
             ldiff = np.nonzero(l_counts != vk_counts)[0]
             disagreements[(key, "Open3D list")] = ldiff
+            peer_counts[(key, "Open3D list")] = l_counts
             for label, suffix in (("numpy in/out", "numpy"), ("tensors", "tensor")):
                 t, c = o3d_timings[f"{tid}__list_{suffix}"]
+                rates[(name, "all")][f"Open3D, {label}"] = n / t
+                rates[(name, "count")][f"Open3D, {label}"] = n / o3d_timings[f"{tid}__count_{suffix}"][0]
                 table.add(name, f"Open3D `list_intersections`, {label}", f"{n:,}", f"{t:.3f}", f"{c / t:.1f}",
                           fmt_rate(n, t), f"{int(l_counts.sum()):,}", f"{len(ldiff):,}", f"{vk_rate / (n / t):.2f}")
             for label, suffix in (("numpy in/out", "numpy"), ("tensors", "tensor")):
@@ -611,43 +699,50 @@ def main():
     say(str(table) + "\n")
     say(f"### Hit counts along the same rays\n\n{ctable}\n")
 
+    # vkray's tiers against the peers: speed ratios.
+    say("### vkray's tiers against the peers: speed ratios in this run\n")
+    say("Rays per second of each vkray tier and backend over those of each peer, on the same rays in the same run "
+        "(> 1: vkray faster). All hits: vkray `intersect_all(outputs=['t', 'prim_id'])` against trimesh+embreex "
+        "`intersects_id(multiple_hits=True)` and Open3D `list_intersections`; counts: vkray `count` against "
+        "`intersects_id` + `np.bincount` and Open3D `count_intersections`.\n")
+    peers = ["vkray reference", "trimesh+embreex", "Open3D, numpy in/out", "Open3D, tensors"]
+    rtable = Table("mesh", "query", "vkray tier, backend", "Mrays/s", *[f"÷ {p}" for p in peers])
+    for (name, call), r in rates.items():
+        for engine, rate in r.items():
+            if not engine.startswith("vkray"):
+                continue
+            rtable.add(name, "all hits" if call == "all" else "count", engine, f"{rate / 1e6:.3f}",
+                       *[f"{rate / r[p]:.2f}" if p in r else "n/a" for p in peers])
+    say(str(rtable) + "\n")
+
     # Where engines disagree on random rays.
-    say("Rays whose hit counts differ between engines, checked against a brute-force f64 test of every ray "
-        "against every triangle (`oracle.all_hits_brute`, closed triangles; hits within 1e-9 radii along the ray "
+    say("Rays whose hit counts differ from vkray's reference tier, checked against a brute-force f64 test of every "
+        "ray against every triangle (`oracle.all_hits_brute`, closed triangles; hits within 1e-9 radii along the ray "
         "merged into one crossing; \"near an edge\" = some hit within 1e-6 of a triangle's edge in barycentric terms, "
-        "or a ray within 1e-6 of a triangle's plane):\n")
-    dt = Table("mesh", "engine", "rays ≠ vkray", "of which vkray = brute force", "peer = brute force",
-               "near an edge (either may be right)")
+        "or a ray within 1e-6 of a triangle's plane; at most 300 rays per mesh checked):\n")
+    dt = Table("mesh", "engine", "rays ≠ vkray reference", "of which vkray reference = brute force",
+               "engine = brute force", "near an edge (either may be right)")
     for key in ("bunny", "fandisk"):
         if (key, "__brute") not in disagreements:
             continue
         rays, brute, ambiguous = disagreements[(key, "__brute")]
         pos = {r: i for i, r in enumerate(rays.tolist())}
         o, d = speed_rays[key]
-        vk = device.scene(device.mesh(*meshes[key])).count(o[rays], d[rays])
-        for engine in ("trimesh+embreex", "trimesh numpy", "Open3D list"):
-            if (key, engine) not in disagreements:
+        vk = device.scene(device.mesh(*meshes[key])).count(o[rays], d[rays], precision="reference")
+        for (kk, engine), diffs in disagreements.items():
+            if kk != key or engine.startswith("__") or not len(diffs):
                 continue
-            diff = [r for r in disagreements[(key, engine)].tolist() if r in pos]
+            diff = [r for r in diffs.tolist() if r in pos]
             idx = np.array([pos[r] for r in diff], int)
-            if engine == "trimesh+embreex":
-                inter = ray_pyembree.RayMeshIntersector(t_mesh[key])
-                _, pr = inter.intersects_id(o[rays], d[rays], multiple_hits=True)
-                peer = np.bincount(pr, minlength=len(rays))
-            elif engine == "trimesh numpy":
-                _, pr = ray_triangle.RayMeshIntersector(t_mesh[key]).intersects_id(o[rays], d[rays], multiple_hits=True)
-                peer = np.bincount(pr, minlength=len(rays))
-            else:
-                peer = np.zeros(len(rays), int)
-                peer[:] = np.diff(o3d[f"speed_{key}__splits"])[rays]
-            dt.add(key, engine, len(disagreements[(key, engine)]),
-                   int(np.sum(vk[idx] == brute[idx])), int(np.sum(peer[idx] == brute[idx])), int(ambiguous[idx].sum()))
+            peer = peer_counts[(key, engine)][rays[idx]]
+            dt.add(key, engine, f"{len(diffs)} (checked {len(idx)})", int(np.sum(vk[idx] == brute[idx])),
+                   int(np.sum(peer == brute[idx])), int(ambiguous[idx].sum()))
     say((str(dt) if len(dt.rows) > 2 else "None: every engine's hit count equals vkray's on every ray.") + "\n")
 
     # contains
     say(f"### Inside or outside: {args.points:,} uniform random points in the bounding box grown by 10% per side\n")
     table = Table("mesh (triangles)", "engine and call", "points", "best s", "CPU/wall", "Mpoints/s",
-                  "inside", "answers ≠ vkray parity", "vkray ÷ peer")
+                  "inside", "answers ≠ vkray reference parity", "vkray reference ÷ row")
     check_rows = []
     for key in ("fandisk", "spot"):
         v, f = meshes[key]
@@ -656,11 +751,19 @@ def main():
         name = f"{key} ({len(f):,})"
         mesh = device.mesh(v, f)
         scene = device.scene(mesh)
-        scene.contains(p[:10])
-        t_p, c_p, inside = best_of(repeat, lambda: scene.contains(p))
+        scene.contains(p[:10], precision="reference")
+        t_p, c_p, inside = best_of(repeat, lambda: scene.contains(p, precision="reference"))
         vk_rate = n / t_p
-        table.add(name, f"vkray `contains` (parity; `is_closed`={mesh.is_closed})", f"{n:,}", f"{t_p:.3f}",
-                  f"{c_p / t_p:.1f}", fmt_rate(n, t_p), f"{int(inside.sum()):,}", "—", "—")
+        table.add(name, f"vkray reference `contains(precision='reference')` (parity; `is_closed`={mesh.is_closed})",
+                  f"{n:,}", f"{t_p:.3f}", f"{c_p / t_p:.1f}", fmt_rate(n, t_p), f"{int(inside.sum()):,}", "—", "—")
+        for backend in backends:
+            gdev = devices[backend]
+            gscene = gdev.scene(gdev.mesh(v, f))
+            gscene.contains(p[:10])
+            t_g, c_g, gin = best_of(repeat, lambda: gscene.contains(p))
+            table.add(name, f"vkray exact, {backend} `contains` (the default: parity, exact)", f"{n:,}", f"{t_g:.3f}",
+                      f"{c_g / t_g:.1f}", fmt_rate(n, t_g), f"{int(gin.sum()):,}", f"{int(np.sum(gin != inside)):,}",
+                      f"{vk_rate / (n / t_g):.2f}")
         w = min(args.winding_points, n)
         t_w, c_w, wind = best_of(repeat, lambda: scene.contains(p[:w], method="winding"))
         table.add(name, f"vkray `contains(method='winding')` (first {w:,})", f"{w:,}", f"{t_w:.3f}", f"{c_w / t_w:.1f}",
@@ -725,45 +828,108 @@ def main():
         "interior edge (axis-aligned and diagonal): the surface is crossed exactly once. Closed fan (11 triangles "
         "around a vertex, as in tests/test_all_hits.py): 100 random rays from above through the centre and through "
         "each spoke's midpoint: once. Closed bipyramid (18 triangles): rays from outside through each vertex and edge "
-        "midpoint towards random points inside: twice (in and out). Offsets are added to every coordinate in float64 "
-        "(the engines in float32 get the rounded vertices and rays).\n")
+        "midpoint towards random points inside: twice (in and out). Unit cube (`oracle.box`, 12 triangles): rays "
+        "through 5 points of each face's diagonal (the edge the face's two triangles share), one perpendicular to the "
+        "face and 10 tilted towards random points inside: twice. Offsets (0, 1e3, 1e5, 1e7) are added to every "
+        "coordinate in float64 (the engines in float32 get the rounded vertices and rays).\n")
     say("The exact answer is decided without any engine, by a brute-force f64 test of every triangle "
         "(`oracle.all_hits_brute`) on the offset-0 copy of the rays: at the point aimed at, 4 parallel rays moved "
         "1e-7 radii sideways (which miss every edge) must each cross the surface exactly once within 1% of a radius "
         "of it, and the ray must cross nowhere else (the bipyramid: exactly one exit, not within 1e-9 of an edge). "
         "A tilted ray can instead only touch the non-flat fan along a ridge or valley edge, or clip it again "
         "elsewhere: such rays are left out of this table (\"rays kept\"), and the touching ones get their own "
-        "table below.\n")
+        "table below. The cube needs no such test: it is convex, so a ray through its inside crosses it twice.\n")
     say("Each engine's hits on a ray are sorted along it and hits within 2% of the mesh's bounding radius of each "
         "other merged into one crossing (distinct crossings here are ≥ 30% apart; float32 engines at 1e5 land within "
         "~0.01 of the true point). **missing**: fewer crossings than the exact answer; **dup**: some crossing reported "
         "by more than one hit; **extra**: more crossings than the answer. Cells: missing / dup / extra, in rays. "
-        "\"vkray on f32 input\": vkray given the float32-rounded vertices and rays that Open3D gets, to tell "
-        "rounding of the input from the engines' own misses. Open3D `count_intersections` gives counts only: "
-        "below the answer counts as missing, above as dup.\n")
-    cols = ["vkray", "vkray on f32 input", "trimesh+embreex", "trimesh numpy", "Open3D list", "Open3D count"]
-    table = Table("case", "offset", "rays kept", *cols)
-    totals = {c: np.zeros(3, int) for c in cols}
+        "vkray columns: `intersect_all(outputs=['t', 'prim_id'], precision=...)` on a scene of each backend's device; "
+        "\"reference\" and \"exact\" ran on every backend and show one cell where all backends gave the same one "
+        "(otherwise each backend's). \"vkray reference on f32 input\": vkray given the float32-rounded vertices and "
+        "rays that Open3D gets, to tell rounding of the input from the engines' own misses (at 1e7 float32's spacing "
+        "is 1, as large as the meshes themselves: the float32 engines get other meshes and rays there). Open3D's "
+        "`count_intersections` is in the counts table below.\n")
+    f64_tiers = ("reference", "exact")
+    f32_tiers = ("fast", "refined")
+    # Display columns: (title, engine keys whose cells it shows).
+    vk_cols = [(f"vkray {t}", [f"vkray {t}, {b}" for b in backends]) for t in f64_tiers]
+    vk_cols += [(f"vkray {t}, {b}", [f"vkray {t}, {b}"]) for t in f32_tiers for b in backends]
+    peer_cols = [(c, [c]) for c in ("vkray reference on f32 input", "trimesh+embreex", "trimesh numpy", "Open3D list")]
+    cols = vk_cols + peer_cols
+    count_cols = vk_cols + [("Open3D count", ["Open3D count"])]
+    consistency_cols = ["reference: backends differ", "exact: backends differ", "exact ≠ reference"]
+    consistency_cols += [f"{t}: backends differ" for t in f32_tiers if len(backends) > 1]
+    consistency_cols += [f"refined ≠ fast, {b}" for b in backends]
+    consistency_cols += ["`count` ≠ `intersect_all(...).counts`"]
+
+    def merged(keys, cells, fmt):
+        shown = [fmt(cells[k]) for k in keys if k in cells]
+        if not shown:
+            return "n/a"
+        if len(set(shown)) == 1:
+            return shown[0]
+        return "; ".join(f"{k.rsplit(', ', 1)[-1]}: {fmt(cells[k])}" for k in keys if k in cells)
+
+    def triple(c):
+        return "{} / {} / {}".format(*c)
+
+    def pair(c):
+        return "{} / {}".format(*c)
+
+    def differing(a, b, t_rtol=None, as_sets=False):
+        """Rays whose hit lists differ: other counts, other triangles (as_sets: in any order), or
+        (t_rtol given) t apart."""
+        bad = a.counts != b.counts
+        ia, ib = np.repeat(~bad, a.counts), np.repeat(~bad, b.counts)
+        if as_sets:
+            pa = a.prim_id[ia][np.lexsort((a.prim_id[ia], a.ray_index[ia]))]
+            pb = b.prim_id[ib][np.lexsort((b.prim_id[ib], b.ray_index[ib]))]
+            bad = bad.copy()
+            bad[np.sort(a.ray_index[ia])[pa != pb]] = True
+            return bad
+        diff = a.prim_id[ia] != b.prim_id[ib]
+        if t_rtol is not None:
+            ta, tb = a.t[ia].astype(np.float64), b.t[ib].astype(np.float64)
+            diff |= np.abs(ta - tb) > t_rtol * np.maximum(1.0, np.abs(ta))
+        bad = bad.copy()
+        bad[a.ray_index[ia][diff]] = True
+        return bad
+
+    table = Table("case", "offset", "rays kept", *[c for c, _ in cols])
+    ctable = Table("case", "offset", "rays kept", *[c for c, _ in count_cols])
+    xtable = Table("case", "offset", "rays", *consistency_cols)
+    totals = {}
+    ctotals = {}
     left_out = []
     classes = {}
-    touch_table = Table("case", "offset", "touching rays", *cols)
+    touch_table = Table("case", "offset", "touching rays", *[c for c, _ in cols])
     touch_rows = 0
-    for i, (label, offset, _key, v, f, o, d, expected, target_t, radius) in enumerate(hard_rays):
+    f32_detail = []  # (label, offset, backend, tier, histogram of hits on the kept rays)
+    for i, (label, offset, _key, v, f, o, d, expected, target_t, radius, kinds) in enumerate(hard_rays):
         built = len(o)
         if label not in classes:
-            classes[label] = classify_rays(all_hits_brute, crossings, v, f, o, d, target_t, expected, radius)
             assert offset == 0.0
+            if label.startswith("unit cube"):  # convex: two crossings for every ray through the interior
+                classes[label] = (np.ones(built, bool), np.zeros(built, bool), "none (convex solid)")
+            else:
+                classes[label] = classify_rays(all_hits_brute, crossings, v, f, o, d, target_t, expected, radius)
         keep, touch, why = classes[label]
         length = np.linalg.norm(d, axis=1)
         tol = 0.02 * radius
         v32, o32, d32 = (x.astype(np.float32).astype(np.float64) for x in (v, o, d))
         length32 = np.linalg.norm(d32, axis=1)
-        # Every engine's hits on every ray built: (ray, distance along it).
-        found = {}
-        ah = device.scene(device.mesh(v, f)).intersect_all(o, d, outputs=["t", "prim_id"])
-        found["vkray"] = (ah.ray_index, ah.t * length[ah.ray_index])
-        ah = device.scene(device.mesh(v32, f)).intersect_all(o32, d32, outputs=["t"])
-        found["vkray on f32 input"] = (ah.ray_index, ah.t * length32[ah.ray_index])
+        # Every engine's hits on every ray built: (ray, distance along it); counts where only counts.
+        found, counted, runs = {}, {}, {}
+        for backend in backends:
+            dev = devices[backend]
+            sc = dev.scene(dev.mesh(v, f))
+            for tier in TIERS:
+                ah = sc.intersect_all(o, d, outputs=["t", "prim_id"], precision=tier)
+                runs[(tier, backend)] = (ah, sc.count(o, d, precision=tier))
+                found[f"vkray {tier}, {backend}"] = (ah.ray_index, ah.t.astype(np.float64) * length[ah.ray_index])
+                counted[f"vkray {tier}, {backend}"] = runs[(tier, backend)][1]
+        ah = device.scene(device.mesh(v32, f)).intersect_all(o32, d32, outputs=["t"], precision="reference")
+        found["vkray reference on f32 input"] = (ah.ray_index, ah.t * length32[ah.ray_index])
         tm = trimesh.Trimesh(v, f, process=False)
         tri, ray = ray_pyembree.RayMeshIntersector(tm).intersects_id(o, d, multiple_hits=True, return_locations=False)
         found["trimesh+embreex"] = (ray, plane_distance(v[f[tri]], o[ray], d[ray]))
@@ -774,7 +940,8 @@ def main():
             tid = f"hard{i}"
             ray = o3d[f"{tid}__ray"]
             found["Open3D list"] = (ray, o3d[f"{tid}__t"].astype(np.float64) * length32[ray])
-        cells, tcells = {}, {}
+            counted["Open3D count"] = o3d[f"{tid}__count"]
+        cells, tcells, ccells = {}, {}, {}
         index = np.cumsum(keep) - 1  # kept rays, renumbered
         aimed = target_t * length
         for c, (ray, dist) in found.items():
@@ -783,26 +950,42 @@ def main():
             cells[c] = np.array([np.sum(clusters < expected), np.sum(hits > clusters), np.sum(clusters > expected)])
             near = touch[ray] & (np.abs(dist - aimed[ray]) < TOUCH_WINDOW * radius)
             tcells[c] = int(np.sum(np.bincount(ray[near], minlength=built)[touch] % 2 == 1))
-        if o3d is not None:
-            cnt = o3d[f"hard{i}__count"]
-            cells["Open3D count"] = np.array([np.sum(cnt[keep] < expected), np.sum(cnt[keep] > expected), 0])
-        row = []
-        for c in cols:
-            if c in cells:
-                totals[c] += cells[c]
-                row.append("{} / {} / {}".format(*cells[c]))
-            else:
-                row.append("n/a")
-        table.add(label, f"{offset:g}", f"{int(keep.sum()):,} of {built:,}", *row)
+            if c.startswith("vkray ") and c.split(", ")[0].split()[1] in f32_tiers:
+                for kind in dict.fromkeys(kinds):
+                    f32_detail.append((label, kind, offset, c, np.bincount(hits[kinds[keep] == kind], minlength=8)))
+        for c, cnt in counted.items():
+            ccells[c] = np.array([np.sum(cnt[keep] < expected), np.sum(cnt[keep] > expected)])
+        for c, cell in cells.items():
+            totals[c] = totals.get(c, 0) + cell
+        for c, cell in ccells.items():
+            ctotals[c] = ctotals.get(c, 0) + cell
+        table.add(label, f"{offset:g}", f"{int(keep.sum()):,} of {built:,}", *[merged(k, cells, triple) for _, k in cols])
+        ctable.add(label, f"{offset:g}", f"{int(keep.sum()):,} of {built:,}",
+                   *[merged(k, ccells, pair) for _, k in count_cols])
         if touch.any():
             touch_rows += 1
-            touch_table.add(label, f"{offset:g}", f"{int(touch.sum())}",
-                            *[str(tcells[c]) if c in tcells else "n/a" for c in cols])
+            touch_table.add(label, f"{offset:g}", f"{int(touch.sum())}", *[merged(k, tcells, str) for _, k in cols])
+        # Consistency on every ray built (kept or not): backends, tiers, count against intersect_all.
+        b0 = backends[0]
+        xrow = []
+        for tier in f64_tiers:
+            xrow.append(sum(int(differing(runs[(tier, b0)][0], runs[(tier, b)][0], 0.0).sum()) for b in backends[1:]))
+        xrow.append(", ".join(str(int(differing(runs[("exact", b)][0], runs[("reference", b0)][0], 0.0).sum()))
+                              for b in backends))
+        if len(backends) > 1:
+            for tier in f32_tiers:
+                xrow.append(sum(int(differing(runs[(tier, b0)][0], runs[(tier, b)][0]).sum()) for b in backends[1:]))
+        for b in backends:
+            xrow.append(int(differing(runs[("refined", b)][0], runs[("fast", b)][0], as_sets=True).sum()))
+        mismatch = {f"{t}, {b}": int(np.sum(runs[(t, b)][1] != runs[(t, b)][0].counts)) for t in TIERS for b in backends}
+        xrow.append(", ".join(f"{k} {n}" for k, n in mismatch.items() if n) or "0")
+        xtable.add(label, f"{offset:g}", f"{built:,}", *xrow)
         if offset == 0.0:
             left_out.append(f"{label}: {why}")
-    table.add("**total**", "", "", *["{} / {} / {}".format(*totals[c]) for c in cols])
+    table.add("**total**", "", "", *[merged(k, totals, triple) for _, k in cols])
+    ctable.add("**total**", "", "", *[merged(k, ctotals, pair) for _, k in count_cols])
     say(str(table) + "\n")
-    say("Rays left out (the same at both offsets): " + "; ".join(left_out) + ".\n")
+    say("Rays left out (the same at every offset): " + "; ".join(left_out) + ".\n")
     if touch_rows:
         say("Rays that touch the surface at the point aimed at without crossing it (a tilted ray along a ridge or "
             "valley edge of the fan or heightfield, found as above): there 0 or 2 hits are both consistent (what "
@@ -810,6 +993,43 @@ def main():
             "sideways by up to ~0.004 at 1e5, misses the ridge or crosses both of its faces a few hundredths apart); "
             "cells: rays with an odd number of hits within 10% of a radius of that point.\n")
         say(str(touch_table) + "\n")
+
+    say("#### Counts: `count` against the analytic number of crossings\n")
+    say("The same kept rays; vkray `count(precision=...)` per tier and backend, Open3D `count_intersections`. Cells: "
+        "rays counted below / above the answer.\n")
+    say(str(ctable) + "\n")
+
+    say("#### Consistency between backends and tiers, on every ray built\n")
+    say("Rays whose hit lists (`intersect_all(outputs=['t', 'prim_id'])`) differ: other counts or other triangles "
+        "or any t not bit-equal (exact against reference: one number per backend). The f64 tiers must agree everywhere; fast and "
+        "refined may differ between backends (each driver's f32 traversal decides), and refined must report fast's "
+        "triangles. Last column: rays where `count` differs from `intersect_all(...).counts` at the same tier and "
+        "backend.\n")
+    say(str(xtable) + "\n")
+
+    say("#### What the f32 tiers report where rays meet shared edges and vertices\n")
+    say("Hits per kept ray (before merging), `intersect_all` in the fast and refined tiers, by what the ray is aimed "
+        "through: how many rays got 0, 1, 2, … hits, and the most on one ray. The answer is 1 hit per ray (the "
+        "bipyramid and the cube: 2; the bipyramid's exit and a tilted ray's exit from the cube lie away from any edge, "
+        "while a ray perpendicular to a cube face leaves through the opposite face's diagonal, which runs the same "
+        "way). Rows with the same counts at several offsets or for several tiers and backends are merged.\n")
+    dtable = Table("case", "rays through", "offsets", "tiers, backends", "0 hits", "1", "2", "3", "4", "5", "6+",
+                   "most")
+    groups = {}  # (label, kind, offset, histogram) -> engines with that histogram
+    order = {}
+    for label, kind, offset, c, hist in f32_detail:
+        row = (*[int(x) for x in hist[:6]], int(hist[6:].sum()), int(np.nonzero(hist)[0].max()))
+        order.setdefault((label, kind), len(order))
+        groups.setdefault((label, kind, offset, row), []).append(c.replace("vkray ", ""))
+    by_offsets = {}  # (label, kind, engines, histogram) -> offsets
+    for (label, kind, offset, row), names in groups.items():
+        every = [f"{t}, {b}" for t in f32_tiers for b in backends]
+        shown = "all: " + " and ".join(f32_tiers) + ", " + " and ".join(backends) if sorted(names) == sorted(every) \
+            else "; ".join(names)
+        by_offsets.setdefault((label, kind, shown, row), []).append(f"{offset:g}")
+    for (label, kind, names, row), offsets in sorted(by_offsets.items(), key=lambda x: order[x[0][:2]]):
+        dtable.add(label, kind, ", ".join(offsets), names, *[str(x) for x in row])
+    say(str(dtable) + "\n")
 
     say("### (b) Inside or outside where rays run through vertices and edges\n")
     say("Points: a lattice, plus points placed on the lines through the solid's vertices and edge points along "
@@ -825,15 +1045,24 @@ def main():
         "disagrees with it.\n")
     say("Cells: wrong answers among points off the surface (of all off-surface points). Points exactly on the "
         "surface (cube lattice points on a face, edge or vertex) have no single right answer: vkray counts them as "
-        "inside (documented); the last column gives, per engine, how many of them it called inside.\n")
-    engines = ["vkray parity", "vkray winding", "vkray parity, f32 points", "trimesh+embreex", "trimesh numpy",
-               "Open3D nsamples=1 (default)", "Open3D nsamples=3"]
+        "inside (documented); the last column gives, per engine, how many of them it called inside. vkray: "
+        "`contains(p)` (parity in the exact tier, the default) on each backend, `contains(p, precision='reference')`, "
+        "`contains(p, method='winding')`; \"f32 points\": the default call on float32-rounded vertices and points. "
+        "The f32 tiers have no `contains` (they raise `UnsupportedError`).\n")
+    engines = [*[f"vkray parity exact, {b}" for b in backends], "vkray parity reference", "vkray winding",
+               "vkray parity, f32 points", "trimesh+embreex", "trimesh numpy", "Open3D nsamples=1 (default)",
+               "Open3D nsamples=3"]
     table = Table("solid", "points", *engines, "on-surface points called inside")
     fandisk_note = ""
     for i, (label, _key, v, f, p, expected, on_surface) in enumerate(hard_points):
         n = len(p)
+        ans = {}
+        for backend in backends:
+            dev = devices[backend]
+            ans[f"vkray parity exact, {backend}"] = dev.scene(dev.mesh(v, f)).contains(p)  # the default tier
         scene = device.scene(device.mesh(v, f))
-        ans = {"vkray parity": scene.contains(p), "vkray winding": scene.contains(p, method="winding")}
+        ans["vkray parity reference"] = scene.contains(p, precision="reference")
+        ans["vkray winding"] = scene.contains(p, method="winding")
         s32 = device.scene(device.mesh(v.astype(np.float32).astype(np.float64), f))
         ans["vkray parity, f32 points"] = s32.contains(p.astype(np.float32).astype(np.float64))
         tm = trimesh.Trimesh(v, f, process=False)
