@@ -79,7 +79,8 @@ struct HitList {
 const uint HIT_LIST_APPEND = 0x80000000u;
 
 // One stored hit of the fast tier: f32 t and barycentrics (of vertices 1 and 2), the caller's
-// triangle within its geometry. Ordered by (t, instance, geometry, prim).
+// triangle within its geometry. Ordered by (t, instance, geometry, prim). 32 bytes, as ExactHit:
+// the host turns each into the CPU tracer's record in place.
 struct FastHit {
   float t;
   float u;
@@ -87,6 +88,7 @@ struct FastHit {
   int instance;
   int geometry;
   int prim;
+  uint unused[2];
 };
 
 // One stored hit of the exact tier: f64 t and barycentrics, the caller's triangle among all parts

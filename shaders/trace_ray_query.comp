@@ -27,7 +27,7 @@ void trace_all(uint i, Ray ray) {
     int geometry = rayQueryGetIntersectionGeometryIndexEXT(query, false);
     int prim = caller_primitive(geometry_source(instance, geometry), rayQueryGetIntersectionPrimitiveIndexEXT(query, false));
     vec2 uv = rayQueryGetIntersectionBarycentricsEXT(query, false);
-    seen = keep_hit(i, seen, FastHit(rayQueryGetIntersectionTEXT(query, false), uv.x, uv.y, instance, geometry, prim));
+    seen = keep_hit(i, seen, FastHit(rayQueryGetIntersectionTEXT(query, false), uv.x, uv.y, instance, geometry, prim, uint[2](0u, 0u)));
   }
   HitCounts(params.out_prim).v[i] = seen;
 }

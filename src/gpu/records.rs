@@ -99,8 +99,9 @@ pub struct HitList {
 pub const HIT_LIST_APPEND: u32 = 0x8000_0000;
 
 /// One stored hit of the fast tier (`FastHit` in shaders/records.glsl): f32 t and barycentrics,
-/// the caller's triangle within its geometry.
-#[repr(C)]
+/// the caller's triangle within its geometry. As large and as aligned as `ExactHit`, so that the
+/// host can turn a vector of them into the CPU tracer's records in place.
+#[repr(C, align(8))]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct FastHit {
     pub t: f32,
@@ -109,6 +110,7 @@ pub struct FastHit {
     pub instance: i32,
     pub geometry: i32,
     pub prim: i32,
+    pub unused: [u32; 2],
 }
 
 /// One stored hit of the exact tier (`ExactHit` in shaders/records.glsl): the CPU tracer's own
@@ -129,7 +131,8 @@ layout!(GeometrySource, size 32, vertices @ 0, indices @ 8, primitive_order @ 16
 layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
     part_count @ 128, flags @ 132, _padding @ 136);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
-layout!(FastHit, size 24, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20);
+layout!(FastHit, size 32, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20, unused @ 24);
+const _: () = assert!(std::mem::align_of::<FastHit>() == std::mem::align_of::<ExactHit>());
 layout!(ExactHit, size 32, t @ 0, u @ 8, v @ 16, instance @ 24, prim @ 28);
 layout!(ExactBest, size 40, t @ 0, u @ 8, v @ 16, instance @ 24, prim @ 28, custom @ 32, geometry @ 36);
 
@@ -227,7 +230,7 @@ mod tests {
             ),
             ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),
             ("HitList", size_of::<HitList>(), members!(HitList: first, capacity)),
-            ("FastHit", size_of::<FastHit>(), members!(FastHit: t, u, v, instance, geometry, prim)),
+            ("FastHit", size_of::<FastHit>(), members!(FastHit: t, u, v, instance, geometry, prim, unused)),
             ("ExactHit", size_of::<ExactHit>(), members!(ExactHit: t, u, v, instance, prim)),
         ]
     }

@@ -252,10 +252,7 @@ impl PyScene {
                 }
             }
             self.tracer.write_all(&scene, &all, &mut sink);
-            let mut ray_index = try_vec(h, 0i64, "the hits' ray indices")?;
-            for (ray, pair) in all.offsets.windows(2).enumerate() {
-                ray_index[pair[0] as usize..pair[1] as usize].fill(ray as i64);
-            }
+            let ray_index = crate::trace::tiers::ray_indices(&all.offsets)?;
             Ok((all.offsets, ray_index, columns))
         })?;
         let result = PyDict::new(py);

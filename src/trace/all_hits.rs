@@ -8,7 +8,7 @@ use std::cmp::Ordering;
 use std::mem::size_of;
 use std::time::Instant;
 
-use bytemuck::{Pod, Zeroable};
+use bytemuck::Pod;
 use rayon::prelude::*;
 
 use super::chunks::{pack_chunk, GpuJob, ListBuffers};
@@ -126,13 +126,17 @@ impl Tracer {
         let ray_capacity = self.chunk_capacity(rays.len());
         let plan = plan_chunks(offsets, ray_capacity, record_capacity);
         let mut slots = self.slots.take(ray_capacity, exact)?;
-        let new_lists = || ListBuffers::new(&self.ctx, ray_capacity, record_capacity, size_of::<R>());
-        let mut lists = [new_lists()?, new_lists()?];
+        // One set of lists per chunk in flight: two, or one for a query of one chunk.
+        let mut lists = Vec::new();
+        for _ in 0..plan.len().min(2) {
+            lists.push(self.take_lists(ray_capacity, record_capacity * size_of::<R>())?);
+        }
         let frame = scene.frame();
         let job =
             GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits: true };
         let result = self.store_chunks(&job, &plan, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
         self.slots.give_back(slots);
+        self.give_back_lists(lists);
         result
     }
 
@@ -143,7 +147,7 @@ impl Tracer {
         plan: &[(usize, usize)],
         max_hits: usize,
         slots: &mut [Slot; 2],
-        lists: &mut [ListBuffers; 2],
+        lists: &mut [ListBuffers],
         stored: &mut StoredHits<R>,
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
@@ -174,6 +178,33 @@ impl Tracer {
             }
         }
         Ok(())
+    }
+}
+
+/// Idle lists kept between queries: at most two, of at most `IDLE_RECORD_BYTES` of records each.
+const IDLE_LISTS: usize = 2;
+const IDLE_RECORD_BYTES: usize = 64 << 20;
+
+impl Tracer {
+    /// Lists for `rays` rays and `record_bytes` of records: idle ones where they fit, new ones
+    /// (allocated outside the lock) otherwise.
+    fn take_lists(&self, rays: usize, record_bytes: usize) -> Result<ListBuffers> {
+        let found = {
+            let mut idle = self.idle_lists.lock().unwrap_or_else(|e| e.into_inner());
+            let fits = idle.iter().position(|l| l.rays >= rays && l.record_bytes >= record_bytes);
+            fits.map(|k| idle.swap_remove(k))
+        };
+        match found {
+            Some(lists) => Ok(lists),
+            None => ListBuffers::new(&self.ctx, rays, record_bytes),
+        }
+    }
+
+    fn give_back_lists(&self, lists: Vec<ListBuffers>) {
+        let mut idle = self.idle_lists.lock().unwrap_or_else(|e| e.into_inner());
+        idle.extend(lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
+        let surplus = idle.len().saturating_sub(IDLE_LISTS);
+        idle.drain(..surplus);
     }
 }
 
@@ -333,13 +364,12 @@ impl StoredHits<ExactHit> {
 impl StoredHits<FastHit> {
     /// The fast tier's hits with their triangles counted among all parts of their mesh and far
     /// rays' `t` measured from their own origin.
-    pub(super) fn into_all_hits(self, scene: &Scene) -> Result<AllHits> {
-        let mut hits = try_vec(self.records.len(), ReferenceHit::zeroed(), "the hits")?;
-        let records = &self.records;
+    pub(super) fn into_all_hits(mut self, scene: &Scene) -> Result<AllHits> {
         parallel::install(|| {
-            hits.par_iter_mut().zip(records).with_min_len(4096).for_each(|(hit, r)| {
+            self.records.par_iter_mut().with_min_len(4096).for_each(|record| {
+                let r = *record;
                 let triangles = &scene.placements[r.instance as usize].triangles;
-                *hit = ReferenceHit {
+                *bytemuck::cast_mut::<FastHit, ReferenceHit>(record) = ReferenceHit {
                     t: r.t as f64,
                     u: r.u as f64,
                     v: r.v as f64,
@@ -348,6 +378,8 @@ impl StoredHits<FastHit> {
                 };
             })
         });
+        // Same size and alignment (records.rs): the vector is reinterpreted, not copied.
+        let mut hits: Vec<ReferenceHit> = bytemuck::allocation::cast_vec(self.records);
         for &(ray, t) in &self.advances {
             let range = self.offsets[ray] as usize..self.offsets[ray + 1] as usize;
             for hit in &mut hits[range] {

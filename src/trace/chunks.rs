@@ -43,42 +43,34 @@ pub(super) struct ListBuffers {
     pub records_host: Buffer,
     /// Device copies (discrete GPUs): lists, records.
     pub device: Option<(Buffer, Buffer)>,
+    /// Lists, and bytes of records, they have room for.
+    pub rays: usize,
+    pub record_bytes: usize,
 }
 
 impl ListBuffers {
-    /// Room for `rays` lists and `records` records of `record_bytes` each.
-    pub fn new(ctx: &Arc<Context>, rays: usize, records: usize, record_bytes: usize) -> Result<ListBuffers> {
+    /// Room for `rays` lists and `record_bytes` bytes of records.
+    pub fn new(ctx: &Arc<Context>, rays: usize, record_bytes: usize) -> Result<ListBuffers> {
         use vk::BufferUsageFlags as U;
         let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
-        let (list_bytes, record_bytes) = ((rays * size_of::<HitList>()) as u64, (records * record_bytes) as u64);
-        Ok(if ctx.unified_memory {
-            ListBuffers {
-                lists_host: Buffer::new(ctx, list_bytes, storage, MemoryLocation::CpuToGpu, "hit lists")?,
-                records_host: Buffer::new(ctx, record_bytes, storage, MemoryLocation::GpuToCpu, "hit records")?,
-                device: None,
-            }
+        let (lists, records) = ((rays * size_of::<HitList>()) as u64, record_bytes as u64);
+        let (lists_host, records_host, device) = if ctx.unified_memory {
+            (
+                Buffer::new(ctx, lists, storage, MemoryLocation::CpuToGpu, "hit lists")?,
+                Buffer::new(ctx, records, storage, MemoryLocation::GpuToCpu, "hit records")?,
+                None,
+            )
         } else {
-            ListBuffers {
-                lists_host: Buffer::new(
-                    ctx,
-                    list_bytes,
-                    U::TRANSFER_SRC,
-                    MemoryLocation::CpuToGpu,
-                    "hit lists staging",
-                )?,
-                records_host: Buffer::new(
-                    ctx,
-                    record_bytes,
-                    U::TRANSFER_DST,
-                    MemoryLocation::GpuToCpu,
-                    "hit records readback",
-                )?,
-                device: Some((
-                    Buffer::new(ctx, list_bytes, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "hit lists")?,
-                    Buffer::new(ctx, record_bytes, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hit records")?,
+            (
+                Buffer::new(ctx, lists, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "hit lists staging")?,
+                Buffer::new(ctx, records, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hit records readback")?,
+                Some((
+                    Buffer::new(ctx, lists, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "hit lists")?,
+                    Buffer::new(ctx, records, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hit records")?,
                 )),
-            }
-        })
+            )
+        };
+        Ok(ListBuffers { lists_host, records_host, device, rays, record_bytes })
     }
 
     fn lists_address(&self) -> u64 {

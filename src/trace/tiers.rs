@@ -232,6 +232,31 @@ pub fn all_hits(scene: &Scene, rays: &Rays, cull: Cull, max_hits: usize, interru
     }
 }
 
+/// The ray of each hit of a CSR list (`offsets`: ray i's hits are `offsets[i]..offsets[i + 1]`),
+/// filled on all cores.
+pub fn ray_indices(offsets: &[i64]) -> Result<Vec<i64>> {
+    const BLOCK: usize = 4096;
+    let rays = offsets.len() - 1;
+    let mut out = try_vec(offsets[rays] as usize, 0i64, "the hits' ray indices")?;
+    let mut blocks = Vec::with_capacity(rays.div_ceil(BLOCK));
+    let mut rest = out.as_mut_slice();
+    for start in (0..rays).step_by(BLOCK) {
+        let end = (start + BLOCK).min(rays);
+        let (block, tail) = rest.split_at_mut((offsets[end] - offsets[start]) as usize);
+        blocks.push((start, end, block));
+        rest = tail;
+    }
+    parallel::install(|| {
+        blocks.into_par_iter().for_each(|(start, end, block)| {
+            let base = offsets[start];
+            for ray in start..end {
+                block[(offsets[ray] - base) as usize..(offsets[ray + 1] - base) as usize].fill(ray as i64);
+            }
+        })
+    });
+    Ok(out)
+}
+
 /// Writes every field the sink asks for, one entry per hit of `all`, `position` included.
 pub fn write_all_hits(scene: &Scene, all: &AllHits, sink: &mut HitSink) {
     write_hit_fields(scene, sink, all.wide, |i| Some(all.hits[i]));

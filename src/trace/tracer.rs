@@ -25,6 +25,8 @@ pub struct Tracer {
     pub(super) ctx: Arc<Context>,
     pub(super) variants: Variants,
     pub(super) slots: SlotPool,
+    /// Idle lists and records of the all-hits storing pass (see `all_hits`).
+    pub(super) idle_lists: Mutex<Vec<super::chunks::ListBuffers>>,
     /// Whether this driver runs the intersection shaders of each `Probe` path, once known.
     pub(super) probes: [OnceLock<bool>; 2],
     last_profile: Mutex<TraceProfile>,
@@ -48,6 +50,7 @@ impl Tracer {
             ctx: ctx.clone(),
             variants: Variants::new(ctx)?,
             slots: SlotPool::new(ctx),
+            idle_lists: Mutex::new(Vec::new()),
             probes: [OnceLock::new(), OnceLock::new()],
             last_profile: Mutex::new(TraceProfile::default()),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
