@@ -146,6 +146,13 @@ def test_profile_splits_host_and_gpu_time(device):
         assert p["gpu_upload"] + p["gpu_trace"] + p["gpu_readback"] <= p["total"]
     else:
         assert p["gpu_trace"] is None
+    assert p["store"] == 0.0
+    # All hits: a counting pass, then a storing pass, both counted.
+    scene.intersect_all(origins, directions)
+    p = device.last_trace_profile
+    assert p["chunks"] == 2 and 0 < p["store"] < p["total"]
+    if device.limits["timestamp_valid_bits"]:
+        assert p["gpu_upload"] + p["gpu_trace"] + p["gpu_readback"] <= p["total"]
 
 
 def test_ten_million_rays(device):

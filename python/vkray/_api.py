@@ -135,7 +135,9 @@ class Device:
         ``wait`` (GPU time not hidden behind packing), ``unpack`` (copying hits out), ``total``.
         GPU timestamps, summed over chunks (``None`` where the queue has no timestamps):
         ``gpu_upload`` (staging → device copy), ``gpu_trace`` (the trace alone), ``gpu_readback``.
-        Plus ``rays`` and ``chunks``."""
+        ``host_f64``: the host's f64 work (refined and reference tiers). ``store``: all hits on
+        the GPU, the storing pass (the host clock's phases are the counting pass's; ``gpu_*``,
+        ``chunks`` and ``total`` cover both). Plus ``rays`` and ``chunks``."""
         return dict(self._core.last_trace_profile)
 
     @property

@@ -129,6 +129,7 @@ impl PyDevice {
         d.set_item("gpu_trace", p.gpu_trace)?;
         d.set_item("gpu_readback", p.gpu_readback)?;
         d.set_item("host_f64", p.host_f64)?;
+        d.set_item("store", p.store)?;
         Ok(d)
     }
 

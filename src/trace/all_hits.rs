@@ -81,10 +81,11 @@ impl Tracer {
         }
         let total = offsets[n] as usize;
         check_hits_fit(total, size_of::<R>() + host_bytes_per_hit)?;
+        let storing = Instant::now();
         let records = try_vec(total, R::zeroed(), "the hit records")?;
         let mut stored = StoredHits { offsets, records, seen, advances: Vec::new() };
+        let mut profile = TraceProfile { rays: n, ..Default::default() };
         if total > 0 {
-            let mut profile = TraceProfile { rays: n, ..Default::default() };
             self.store_pass(scene, rays, request, max_hits, &mut stored, interrupt, &mut profile)?;
         }
         for i in 0..n {
@@ -97,6 +98,15 @@ impl Tracer {
             }
         }
         stored.settle(max_hits);
+        let mut last = self.last_profile.lock().unwrap_or_else(|e| e.into_inner());
+        last.store = storing.elapsed().as_secs_f64();
+        last.total = started.elapsed().as_secs_f64();
+        last.chunks += profile.chunks;
+        let add = |a: Option<f64>, b: Option<f64>| Some(a? + b.unwrap_or(0.0));
+        last.gpu_upload = add(last.gpu_upload, profile.gpu_upload);
+        last.gpu_trace = add(last.gpu_trace, profile.gpu_trace);
+        last.gpu_readback = add(last.gpu_readback, profile.gpu_readback);
+        drop(last);
         self.ctx.check_validation()?;
         Ok(stored)
     }

@@ -31,6 +31,9 @@ pub struct TraceProfile {
     pub gpu_readback: Option<f64>,
     /// Host time in f64 work: refining hits (`"refined"`) or the CPU tracer (`"reference"`).
     pub host_f64: f64,
+    /// All hits on the GPU: the storing pass (wall time; the fields above are the counting
+    /// pass's, but `gpu_*`, `chunks` and `total` cover both).
+    pub store: f64,
 }
 
 /// The phases of one chunk that timestamps separate: start, after upload, after trace, after

@@ -29,7 +29,7 @@ pub struct Tracer {
     pub(super) idle_lists: Mutex<Vec<super::chunks::ListBuffers>>,
     /// Whether this driver runs the intersection shaders of each `Probe` path, once known.
     pub(super) probes: [OnceLock<bool>; 2],
-    last_profile: Mutex<TraceProfile>,
+    pub(super) last_profile: Mutex<TraceProfile>,
     /// Rays per chunk: bounds staging memory (two chunks in flight).
     chunk_rays: AtomicUsize,
 }
