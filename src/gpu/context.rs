@@ -630,7 +630,17 @@ pub struct Context {
     pid: u32,
     /// Set when a wait timed out or the device was lost: later work fails at once.
     lost: AtomicBool,
+    /// Idle command pools (each with its buffer and fence) for the next `Commands`: creating and
+    /// destroying them costs NVIDIA's driver about a millisecond a query. The lock is held only
+    /// to take or return one.
+    idle_commands: Mutex<Vec<CommandSet>>,
 }
+
+/// A command pool, its one primary buffer, and a fence.
+type CommandSet = (vk::CommandPool, vk::CommandBuffer, vk::Fence);
+
+/// Idle command sets a device keeps: two per query in flight, for a few threads.
+const IDLE_COMMANDS: usize = 8;
 
 impl Context {
     pub fn new(request: &DeviceRequest) -> Result<Arc<Context>> {
@@ -678,6 +688,7 @@ impl Context {
             instance: ManuallyDrop::new(instance),
             pid: std::process::id(),
             lost: AtomicBool::new(false),
+            idle_commands: Mutex::new(Vec::new()),
         };
         context.check_validation()?;
         note_opened(&context.info);
@@ -801,6 +812,10 @@ impl Drop for Context {
         // dropped once, here.
         unsafe {
             let _ = self.device.device_wait_idle();
+            for (pool, _, fence) in self.idle_commands.get_mut().unwrap_or_else(|e| e.into_inner()).drain(..) {
+                self.device.destroy_fence(fence, None);
+                self.device.destroy_command_pool(pool, None);
+            }
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);
             ManuallyDrop::drop(&mut self.instance);
@@ -822,6 +837,10 @@ pub(crate) struct Commands<'a> {
 
 impl<'a> Commands<'a> {
     pub fn new(ctx: &'a Context) -> Result<Commands<'a>> {
+        let idle = ctx.idle_commands.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        if let Some((pool, buffer, fence)) = idle {
+            return Ok(Commands { ctx, pool, buffer, fence, recording: false, pending: false });
+        }
         let pool_info = vk::CommandPoolCreateInfo::default()
             .queue_family_index(ctx.queue_family)
             .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER | vk::CommandPoolCreateFlags::TRANSIENT);
@@ -891,6 +910,14 @@ impl Drop for Commands<'_> {
         // Where it never does (a hung device), the pool and fence are leaked, never freed in use.
         if self.pending && self.ctx.wait_fence(self.fence).is_err() {
             return;
+        }
+        // A set whose recording was abandoned (an error between begin and submit) is not reused.
+        if !self.recording && self.fence != vk::Fence::null() && self.buffer != vk::CommandBuffer::null() {
+            let mut idle = self.ctx.idle_commands.lock().unwrap_or_else(|e| e.into_inner());
+            if idle.len() < IDLE_COMMANDS {
+                idle.push((self.pool, self.buffer, self.fence));
+                return;
+            }
         }
         // SAFETY: nothing submitted from the pool is pending (waited for above, or never
         // submitted); the buffer goes with its pool, and each object is destroyed once.

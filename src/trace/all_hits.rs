@@ -82,20 +82,28 @@ impl Tracer {
         let total = offsets[n] as usize;
         check_hits_fit(total, size_of::<R>() + host_bytes_per_hit)?;
         let storing = Instant::now();
-        let records = try_vec(total, R::zeroed(), "the hit records")?;
+        let mut records = Vec::new();
+        records
+            .try_reserve_exact(total)
+            .map_err(|_| Error::OutOfMemory(format!("the {total} hits' records do not fit in host memory")))?;
         let mut stored = StoredHits { offsets, records, seen, advances: Vec::new() };
         let mut profile = TraceProfile { rays: n, ..Default::default() };
         if total > 0 {
             self.store_pass(scene, rays, request, max_hits, &mut stored, interrupt, &mut profile)?;
         }
-        for i in 0..n {
-            let capacity = stored.offsets[i + 1] - stored.offsets[i];
-            if stored.seen[i] as i64 > capacity && capacity < max_hits as i64 {
-                return Err(Error::Internal(format!(
-                    "ray {i} met {} hits in the storing pass, {capacity} in the counting pass",
-                    stored.seen[i]
-                )));
-            }
+        let (offsets, seen) = (&stored.offsets, &stored.seen);
+        let overflowed = parallel::install(|| {
+            (0..n).into_par_iter().find_first(|&i| {
+                let capacity = offsets[i + 1] - offsets[i];
+                seen[i] as i64 > capacity && capacity < max_hits as i64
+            })
+        });
+        if let Some(i) = overflowed {
+            return Err(Error::Internal(format!(
+                "ray {i} met {} hits in the storing pass, {} in the counting pass",
+                seen[i],
+                offsets[i + 1] - offsets[i]
+            )));
         }
         stored.settle(max_hits);
         let mut last = self.last_profile.lock().unwrap_or_else(|e| e.into_inner());
@@ -181,7 +189,9 @@ impl Tracer {
             commands[s].submit()?;
             in_flight[s] = Some((start, end, advances));
         }
-        for s in 0..2 {
+        // In chunk order: the records are appended.
+        for k in 0..2 {
+            let s = (plan.len() + k) % 2;
             commands[s].wait()?;
             if let Some(done) = in_flight[s].take() {
                 finish_stored(&slots[s], &lists[s], done, stored, profile)?;
@@ -279,12 +289,11 @@ fn finish_stored<R: HitRecord>(
     let at = slot.field_offset(Field::Prim);
     stored.seen[start..end].copy_from_slice(bytemuck::cast_slice(&hits[at..at + 4 * (end - start)]));
     let (first, last) = (stored.offsets[start] as usize, stored.offsets[end] as usize);
+    assert_eq!(stored.records.len(), first, "chunks finish in order");
     let records = buffers.records_host.mapped().expect("hit records are host-visible");
     let src: &[R] = bytemuck::cast_slice(&records[..(last - first) * size_of::<R>()]);
-    let dst = &mut stored.records[first..last];
-    parallel::install(|| {
-        dst.par_chunks_mut(1 << 16).zip(src.par_chunks(1 << 16)).for_each(|(d, s)| d.copy_from_slice(s))
-    });
+    // Appended on all cores (room was reserved): the pages' first touch is spread too.
+    parallel::install(|| stored.records.par_extend(src.par_iter().copied()));
     stored.advances.extend(advances.into_iter().map(|a| (start + a.ray, a.t)));
     Ok(())
 }
@@ -324,6 +333,14 @@ impl<R: HitRecord> StoredHits<R> {
     /// once), so that each ray's hits are contiguous.
     fn settle(&mut self, max_hits: usize) {
         let n = self.seen.len();
+        let (offsets, seen) = (&self.offsets, &self.seen);
+        let capacity = |i: usize| offsets[i + 1] - offsets[i];
+        let unsettled = parallel::install(|| {
+            (0..n).into_par_iter().any(|i| appends(capacity(i), max_hits) || (seen[i] as i64) < capacity(i))
+        });
+        if !unsettled {
+            return;
+        }
         let mut kept: Vec<usize> =
             (0..n).map(|i| (self.offsets[i + 1] - self.offsets[i]).min(self.seen[i].max(0) as i64) as usize).collect();
         let mut appended: Vec<(&mut [R], &mut usize)> = Vec::new();
