@@ -20,10 +20,14 @@ const uint OUT_GEOMETRY = 64u;
 layout(constant_id = 0) const uint OUTPUTS = 0x7Fu;
 layout(constant_id = 1) const uint RAY_FLAGS = 0u;
 // What each ray asks: the closest hit (or any, with TerminateOnFirstHit), or all of them (ALL:
-// every hit counted, none committed, the nearest kept in the ray's HitList; see hit_lists.glsl).
+// every hit counted, none committed, the nearest kept in the ray's HitList; see hit_lists.glsl),
+// or (PARITY, exact tier, for contains) their count and whether the ray's origin lies on a
+// surface (ON_SURFACE in the count).
 layout(constant_id = 3) const uint QUERY = 0u;
 const uint QUERY_CLOSEST = 0u;
 const uint QUERY_ALL = 1u;
+const uint QUERY_PARITY = 2u;
+const int ON_SURFACE = 1 << 30;
 
 // One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer RayBuffer { vec4 v[]; };

@@ -161,6 +161,61 @@ bool exact_record(Ray64 ray, int instance, int prim, out ExactHit h) {
   return true;
 }
 
+// The point of triangle (a, b, c) closest to p: geometry/precision.rs closest_point_on_triangle
+// (Ericson 5.1.5), the same operations in the same order.
+dvec3 closest_point_on_triangle(dvec3 p, dvec3 a, dvec3 b, dvec3 c) {
+  precise dvec3 ab = b - a;
+  precise dvec3 ac = c - a;
+  precise dvec3 ap = p - a;
+  precise double d1 = dot(ab, ap);
+  precise double d2 = dot(ac, ap);
+  if (d1 <= 0.0 && d2 <= 0.0) return a;
+  precise dvec3 bp = p - b;
+  precise double d3 = dot(ab, bp);
+  precise double d4 = dot(ac, bp);
+  if (d3 >= 0.0 && d4 <= d3) return b;
+  precise double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0) return a + ab * (d1 / (d1 - d3));
+  precise dvec3 cp = p - c;
+  precise double d5 = dot(ab, cp);
+  precise double d6 = dot(ac, cp);
+  if (d6 >= 0.0 && d5 <= d6) return c;
+  precise double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0) return a + ac * (d2 / (d2 - d6));
+  precise double va = d3 * d6 - d5 * d4;
+  if (va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0) return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+  precise double denominator = 1.0 / (va + vb + vc);
+  return a + ab * (vb * denominator) + ac * (vc * denominator);
+}
+
+double max_abs(dvec3 v) {
+  dvec3 a = abs(v);
+  return max(a.x, max(a.y, a.z));
+}
+
+// Whether the ray's origin lies on device triangle `prim` of `instance`, to within 8 ulps of the
+// coordinates involved: ReferenceTracer::on_surface's test (contains calls such points inside).
+// Every triangle whose box holds the origin comes to the shaders as a candidate: traversal of a
+// point inside the scene's bounds starts at the point.
+bool origin_on_triangle(Ray64 ray, int instance, int prim) {
+  const double ON_SURFACE_ULPS = 8.0;
+  const double EPSILON = 2.220446049250313e-16lf;
+  const double MIN_POSITIVE = 2.2250738585072014e-308lf;
+  ExactInstance x = ExactInstances(params.instances).x[instance];
+  precise dvec3 p;
+  for (int r = 0; r < 3; ++r) {
+    precise double coordinate = x.rows[r].x * ray.origin.x + x.rows[r].y * ray.origin.y + x.rows[r].z * ray.origin.z + x.rows[r].w;
+    p[r] = coordinate;
+  }
+  uvec3 idx = triangle_indices_at(x.indices, 0u, uint(prim));
+  dvec3 a = exact_vertex(x, idx.x);
+  dvec3 b = exact_vertex(x, idx.y);
+  dvec3 c = exact_vertex(x, idx.z);
+  precise dvec3 gap = closest_point_on_triangle(p, a, b, c) - p;
+  double scale = max(max(max_abs(p), max_abs(a)), max(max_abs(b), max_abs(c)));
+  return sqrt(dot(gap, gap)) <= ON_SURFACE_ULPS * EPSILON * max(scale, MIN_POSITIVE);
+}
+
 // Runs the watertight test of device triangle `prim` of `instance`; updates `best` and returns
 // true when it is hit and comes before `best`.
 bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, int custom, int geometry) {

@@ -7,5 +7,5 @@ layout(location = 0) rayPayloadInEXT Hit payload;
 void main() {
   // All hits (QUERY_ALL) ignore every candidate, so traversal always ends here: the payload
   // holds the count.
-  if (QUERY != QUERY_ALL) payload = miss_hit();
+  if (QUERY == QUERY_CLOSEST) payload = miss_hit();
 }

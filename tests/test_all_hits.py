@@ -1341,3 +1341,31 @@ def test_long_lists(device, tier):
         np.testing.assert_array_equal(got.instance_id, want.instance_id)
         np.testing.assert_array_equal(got.prim_id, want.prim_id)
         np.testing.assert_allclose(got.t, want.t, rtol=0, atol=2e-6 * 60 if tier == "fast" else 0)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e5])
+def test_gpu_tells_points_on_the_surface(device, offset):
+    """contains(precision="exact") on one instance tests on the GPU whether each point lies on the
+    surface (the CPU's 8-ulp test, same operations): the fandisk's vertices are inside, and on
+    edge midpoints and points inside faces (computed in f64, so a few ulps off the surface, some
+    beyond the 8 the test allows) and 1e-6 off the surface on either side, the reference tier
+    agrees point for point."""
+    if not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    v, f = load_obj("fandisk")
+    v = v + offset
+    scene = device.scene(device.mesh(v, f))
+    rng = np.random.default_rng(57)
+    tri = v[f[rng.integers(0, len(f), 400)]]
+    w = rng.dirichlet([1.0, 1.0, 1.0], 400)
+    on = np.vstack([v[::5], (tri[:, 0] + tri[:, 1]) / 2, np.einsum("nk,nkd->nd", w, tri)])
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    centres = tri.mean(axis=1)
+    near = np.vstack([centres + 1e-6 * normal, centres - 1e-6 * normal])
+    inside = scene.contains(on)
+    assert inside[: len(v[::5])].all(), "a vertex called outside"
+    assert inside.mean() > (0.95 if offset == 0 else 0.5)
+    np.testing.assert_array_equal(inside, scene.contains(on, precision="reference"))
+    np.testing.assert_array_equal(scene.contains(near), scene.contains(near, precision="reference"))
+    assert scene.contains(near).sum() == len(centres)  # one side of each face is inside

@@ -135,8 +135,8 @@ impl Tracer {
         let exact_scene = if exact { Some(scene.exact()?) } else { None };
         let flags = ray_flags(Query::All, request.cull, self.ctx.backend, exact, scene.all_opaque(), false);
         let outputs = Field::Prim.bit();
-        let variant =
-            self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres: false, all_hits: true })?;
+        let query = Query::All.shader_query();
+        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres: false, query })?;
         let offsets = &stored.offsets;
         let widest = offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0);
         let total = *offsets.last().unwrap_or(&0) as usize;

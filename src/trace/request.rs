@@ -13,12 +13,27 @@ pub enum Query {
     Count,
     /// Every hit in [tmin, tmax] (the nearest `max_hits`), in order.
     All,
+    /// For `contains`, exact tier: the number of hits, and whether the ray's origin lies on a
+    /// surface (`ON_SURFACE` added to the count).
+    Parity,
 }
 
+/// `Query::Parity`'s flag in a count: the ray's origin lies on a surface.
+pub const ON_SURFACE: i32 = 1 << 30;
+
 impl Query {
-    /// Whether traversal must meet every hit (QUERY_ALL in the shaders): counts and all hits.
+    /// Whether traversal must meet every hit: counts, all hits, parities.
     pub fn meets_every_hit(self) -> bool {
-        matches!(self, Query::Count | Query::All)
+        matches!(self, Query::Count | Query::All | Query::Parity)
+    }
+
+    /// The shaders' QUERY constant: QUERY_CLOSEST (0), QUERY_ALL (1) or QUERY_PARITY (2).
+    pub fn shader_query(self) -> u32 {
+        match self {
+            Query::Closest | Query::Occluded => 0,
+            Query::Count | Query::All => 1,
+            Query::Parity => 2,
+        }
     }
 }
 

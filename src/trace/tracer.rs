@@ -8,15 +8,17 @@ use std::time::Instant;
 use super::chunks::GpuJob;
 use super::fields::{position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::profile::TraceProfile;
-use super::request::{Precision, Query, Request};
+use super::request::{Precision, Query, Request, ON_SURFACE};
 use super::staging::SlotPool;
 use super::tiers;
 use super::variants::{ray_flags, VariantKey, Variants};
 use crate::error::{invalid_value, try_vec, Error, Result};
+use crate::geometry::parallel;
 use crate::geometry::rays::Rays;
 use crate::gpu::context::{Backend, Context, Interrupt};
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::Scene;
+use rayon::prelude::*;
 
 /// Traces rays on one device; owns the pipeline variants and reusable staging. Any number of
 /// threads may trace at once: no lock is held across a wait (each query owns its staging slots
@@ -264,7 +266,8 @@ impl Tracer {
         let spheres = scene.has_spheres();
         let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres);
         let all_hits = request.query.meets_every_hit();
-        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, all_hits })?;
+        let query = request.query.shader_query();
+        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, query })?;
         let capacity = self.chunk_capacity(rays.len());
         let mut slots = self.slots.take(capacity, exact)?;
         let frame = scene.frame();
@@ -399,9 +402,10 @@ impl Tracer {
         }
     }
 
-    /// `contains` by parity on the GPU: each point's ray's crossings are counted exactly (one
-    /// instance), or found with their instances (several: a parity each); the CPU tells points on
-    /// the surface (which a ray cannot: its t there rounds to either side of 0).
+    /// `contains` by parity on the GPU: each point's ray's crossings are counted exactly, and
+    /// whether the point lies on a surface tested on the GPU too (one instance: a ray cannot tell,
+    /// its t there rounds to either side of 0); or, with several instances, the crossings are
+    /// found with their instances (a parity each) and the CPU tells points on a surface.
     fn contains_by_gpu_parity(
         &self,
         scene: &Scene,
@@ -423,7 +427,13 @@ impl Tracer {
         if scene.placements.len() == 1 {
             let mut sink = HitSink::default();
             sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut odd));
-            self.trace(scene, &rays, request, &mut sink, interrupt)?;
+            self.trace(scene, &rays, Request { query: Query::Parity, ..request }, &mut sink, interrupt)?;
+            parallel::install(|| {
+                out.par_iter_mut().zip(&odd).with_min_len(4096).for_each(|(inside, &count)| {
+                    *inside = u8::from(count & ON_SURFACE != 0 || count % 2 == 1);
+                })
+            });
+            return Ok(());
         } else {
             let all = self.gpu_all_hits::<ExactHit>(scene, &rays, request, usize::MAX, 0, interrupt)?.into_all_hits();
             for (odd, pair) in odd.iter_mut().zip(all.offsets.windows(2)) {
@@ -479,6 +489,9 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
     }
     if request.query == Query::All {
         return Err(invalid_value("all hits are traced by Tracer::trace_all"));
+    }
+    if request.query == Query::Parity && (!answerable || request.precision != Precision::Exact) {
+        return Err(invalid_value("a parity query is answered at precision='exact', into one int32 a ray"));
     }
     if scene.has_spheres() && request.precision != Precision::Fast {
         return Err(Error::Unsupported(

@@ -26,8 +26,8 @@ pub struct VariantKey {
     pub exact: bool,
     /// The scene holds sphere sets (boxes for the sphere shader).
     pub spheres: bool,
-    /// QUERY: closest (and occlusion), or every hit (counts and all hits: QUERY_ALL).
-    pub all_hits: bool,
+    /// QUERY: `Query::shader_query`.
+    pub query: u32,
 }
 
 /// Ray flags resolved statically for a query on a scene: where every triangle is opaque the
@@ -194,7 +194,7 @@ impl Variants {
     }
 
     fn compute_variant(&self, key: VariantKey) -> Result<Variant> {
-        let values = [key.outputs, key.ray_flags, self.local_size, key.all_hits as u32];
+        let values = [key.outputs, key.ray_flags, self.local_size, key.query];
         let entries = specialization_entries();
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let module = if key.exact { self.modules.query_exact } else { Some(self.modules.query) };
@@ -216,7 +216,7 @@ impl Variants {
     fn pipeline_variant(&self, key: VariantKey) -> Result<Variant> {
         let ctx = &self.ctx;
         let rt = ctx.pipeline_ext.as_ref().expect("pipeline backend loads its extension");
-        let values = [key.outputs, key.ray_flags, 0, key.all_hits as u32];
+        let values = [key.outputs, key.ray_flags, 0, key.query];
         // Every constant but the workgroup size (2), which ray-tracing stages do not have.
         let entries = specialization_entries();
         let entries = [entries[0], entries[1], entries[3]];
@@ -239,7 +239,7 @@ impl Variants {
             stages.push(stage(S::CLOSEST_HIT_KHR, m.closest_hit));
             if key.spheres {
                 stages.push(stage(S::INTERSECTION_KHR, m.sphere));
-            } else if key.all_hits {
+            } else if key.query == Query::All.shader_query() {
                 stages.push(stage(S::ANY_HIT_KHR, m.any_hit_all));
             }
         }
@@ -351,7 +351,7 @@ fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'st
     use vk::RayTracingShaderGroupTypeKHR as G;
     const NONE: u32 = vk::SHADER_UNUSED_KHR;
     let mut groups = vec![group(G::GENERAL, 0, NONE, NONE), group(G::GENERAL, 1, NONE, NONE)];
-    if key.all_hits && !key.exact {
+    if key.query == Query::All.shader_query() && !key.exact {
         // Every triangle goes to the any-hit stage (3), which keeps it (scenes without spheres).
         groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, 2, NONE).any_hit_shader(3));
         return groups;
