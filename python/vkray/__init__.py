@@ -33,6 +33,7 @@ from ._core import (
     VkrayError,
     VulkanError,
 )
+from ._pictures import Picture, preview
 from ._secondary import offset_origins
 
 __all__ = [
@@ -46,6 +47,8 @@ __all__ = [
     "Precision",
     "VertexFormat",
     "offset_origins",
+    "preview",
+    "Picture",
     "Device",
     "DeviceInfo",
     "Hits",

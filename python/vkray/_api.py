@@ -7,7 +7,7 @@ from typing import Any, Dict, Iterable, List, Literal, Optional, Tuple, Union, c
 
 import numpy as np
 
-from . import _arrays, _core
+from . import _arrays, _core, _pictures
 
 # The option strings, as types (the core checks their values and names the choices when wrong).
 # Spelled as unions of one-value Literals, which type checkers read as Literal["a", "b"]: that is
@@ -152,7 +152,7 @@ class Device:
     def mesh(
         self,
         vertices: Any,
-        faces: Any,
+        faces: Any = None,
         *,
         build: Build = "fast_trace",
         allow_update: bool = False,
@@ -162,6 +162,7 @@ class Device:
         """Uploads a triangle mesh and builds its bottom-level acceleration structure.
 
         vertices: (V, 3) float32/float64 (other real dtypes become float64); any memory layout.
+        Or a mesh object with ``.vertices`` and ``.faces`` (a `trimesh.Trimesh`), faces omitted.
         faces: (F, 3) int32/int64/uint32/uint16 corner indices into vertices (uint16 and uint32
         reach the device without widening).
         build: ``"fast_trace"`` (default), ``"fast_build"`` or ``"low_memory"``.
@@ -172,6 +173,10 @@ class Device:
         traces the quantized surface; docs/benchmarks.md measures the memory saved and the
         accuracy lost. ``Device.limits["vertex_formats"]`` lists what the device accepts.
         """
+        if faces is None:
+            if not (hasattr(vertices, "vertices") and hasattr(vertices, "faces")):
+                raise TypeError("mesh() needs faces, or a mesh object with .vertices and .faces")
+            vertices, faces = vertices.vertices, vertices.faces
         _arrays.check_mesh_size(vertices, faces, int(self._core.limits["max_primitive_count"]))
         v = _arrays.points("vertices", vertices)
         f = _arrays.faces(faces)
@@ -194,7 +199,9 @@ class Device:
             raise ValueError(f"radii must be one value or {len(c)} values, got shape {r.shape}")
         radius = float(r) if r.ndim == 0 else np.ascontiguousarray(r, dtype=np.float64)
         core = self._core.spheres(c, radius, build, bool(compact))
-        return Mesh(self, core, c, None)
+        mesh = Mesh(self, core, c, None)
+        mesh._radii = np.asarray(radius, dtype=np.float64)  # for bounds (pictures)
+        return mesh
 
     def mesh_from_parts(
         self,
@@ -298,6 +305,10 @@ class Device:
     def __repr__(self) -> str:
         return f"<vkray.Device {self.name!r} backend={self.backend!r} type={self.info.device_type!r}>"
 
+    def _repr_html_(self) -> str:
+        """A table for notebooks: the device, its backend, features and limits."""
+        return _pictures.device_html(self)
+
 
 class Mesh:
     """Triangles on a device with their bottom-level acceleration structure (BLAS).
@@ -312,6 +323,7 @@ class Mesh:
         #: The triangles' corner indices; ``None`` for spheres.
         self.faces = faces
         self._closed: Optional[bool] = None
+        self._radii: Optional[np.ndarray] = None  # spheres: one radius, or one a sphere
 
     @property
     def vertex_count(self) -> int:
@@ -362,6 +374,10 @@ class Mesh:
         if self.kind == "spheres":
             return f"<vkray.Mesh of {self.vertex_count} spheres>"
         return f"<vkray.Mesh {self.vertex_count} vertices, {self.triangle_count} triangles>"
+
+    def _repr_html_(self) -> str:
+        """A table for notebooks: counts, bounds, bytes, build flags and device."""
+        return _pictures.mesh_html(self)
 
 
 _MAX_CUSTOM_INDEX = (1 << 24) - 1
@@ -473,6 +489,26 @@ class Hits:
         fields = [name for name in HIT_FIELDS if getattr(self, name) is not None]
         hits = int(self.hit.sum())
         return f"<vkray.Hits shape={self.shape} hits={hits} precision={self.precision!r} fields={fields}>"
+
+    def image(self, field: str = "t", *, background: Any = None) -> np.ndarray:
+        """uint8 ``(H, W, 3)``: hits of a 2-D batch shape ``(H, W)`` as an RGB image, row 0 on top.
+
+        field: ``"t"`` (default: depth through a viridis-like colormap, the nearest hit yellow,
+        the farthest dark purple, scaled to this image's range of t), ``"normal"`` (``n / 2 + 0.5``
+        as RGB), ``"uv"`` (the three barycentric weights as RGB), or an id field: ``"prim_id"``,
+        ``"instance_id"``, ``"custom_index"``, ``"geometry_id"`` (a colour for each id).
+        Misses get ``background`` (RGB, 0-255; default dark grey, (38, 38, 46)).
+        ValueError for other batch shapes, and for a field these hits do not hold.
+        """
+        return _pictures.hits_image(self, field, background)
+
+    def show(self, field: str = "t") -> None:
+        """Displays `image` (``field``) in a notebook; RuntimeError where IPython is missing."""
+        _pictures.show(self.image(field))
+
+    def _repr_png_(self) -> Optional[bytes]:
+        """Notebooks show 2-D hits as their depth image (`image`); None for other shapes."""
+        return _pictures.hits_png(self)
 
 
 class Scene:
@@ -681,6 +717,10 @@ class Scene:
 
     def __repr__(self) -> str:
         return f"<vkray.Scene {len(self.instances)} instances on {self.device.name!r}>"
+
+    def _repr_html_(self) -> str:
+        """A table for notebooks: instance, mesh and triangle counts, bounds, bytes, build flags."""
+        return _pictures.scene_html(self)
 
 
 # precision, cull, build, backend and vertex_format are checked by the core alone: its
