@@ -1,0 +1,209 @@
+"""vkray as trimesh's ray engine (`vkray.trimesh`): trimesh's interface, answered exactly.
+
+Each behaviour is checked against an independent answer: the analytic one of a box or sphere,
+trimesh's own geometry (face normals, bounds), or trimesh's embree engine where both must agree.
+"""
+
+import copy
+import pickle
+import threading
+
+import numpy as np
+import pytest
+
+trimesh = pytest.importorskip("trimesh")
+import vkray  # noqa: E402
+import vkray.trimesh as vt  # noqa: E402
+
+
+@pytest.fixture
+def box(any_device):
+    mesh = trimesh.creation.box(extents=[2.0, 2.0, 2.0])
+    return mesh, vt.RayMeshIntersector(mesh, device=any_device)
+
+
+def test_interface_types_and_shapes(box):
+    mesh, ray = box
+    o = np.array([[0.3, 0.2, -5.0], [5.0, 5.0, 5.0], [0.1, -0.4, 5.0]])
+    d = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, -3.0]])  # raw lengths are fine
+    tri, ray_index = ray.intersects_id(o, d)
+    assert tri.dtype == np.int64 and ray_index.dtype == np.int64
+    assert sorted(ray_index.tolist()) == [0, 0, 2, 2]
+    tri, ray_index, loc = ray.intersects_id(o, d, return_locations=True)
+    assert loc.dtype == np.float64 and loc.shape == (4, 3)
+    # Hit points lie on the box's faces, under the rays' origins.
+    np.testing.assert_allclose(np.abs(loc[:, 2]), 1.0, atol=1e-12)
+    np.testing.assert_allclose(loc[:, :2], o[ray_index, :2], atol=1e-12)
+    # ... on the faces whose normal says so.
+    np.testing.assert_allclose(np.abs(mesh.face_normals[tri, 2]), 1.0)
+    loc2, ray2, tri2 = ray.intersects_location(o, d)
+    np.testing.assert_array_equal(ray2, ray_index)
+    np.testing.assert_array_equal(tri2, tri)
+    np.testing.assert_array_equal(loc2, loc)
+    first = ray.intersects_first(o, d)
+    assert first.dtype == np.int64 and first[1] == -1 and (first[[0, 2]] >= 0).all()
+    any_hit = ray.intersects_any(o, d)
+    assert any_hit.dtype == bool and any_hit.tolist() == [True, False, True]
+    assert ray.mesh is mesh
+
+
+def test_first_hit_and_max_hits(box):
+    _, ray = box
+    o, d = [[0.3, 0.2, -5.0]], [[0.0, 0.0, 1.0]]
+    tri, idx, loc = ray.intersects_id(o, d, multiple_hits=False, return_locations=True)
+    assert len(tri) == 1 and loc[0, 2] == pytest.approx(-1.0)
+    tri, idx, loc = ray.intersects_id(o, d, max_hits=1, return_locations=True)
+    assert len(tri) == 1 and loc[0, 2] == pytest.approx(-1.0)
+    assert len(ray.intersects_id(o, d)[0]) == 2
+
+
+def test_zero_and_non_finite_directions_hit_nothing(box):
+    _, ray = box
+    o = np.array([[0.0, 0.0, -5.0]] * 3)
+    d = np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    tri, idx = ray.intersects_id(o, d)
+    assert set(idx.tolist()) == {2}
+    assert ray.intersects_first(o, d).tolist()[:2] == [-1, -1]
+    assert ray.intersects_any(o, d).tolist() == [False, False, True]
+    with pytest.raises(ValueError, match="differ"):
+        ray.intersects_id(o, d[:2])
+
+
+def test_rays_through_vertices_and_edges_hit_once(any_device):
+    """From the box's centre through each vertex and each edge midpoint: exactly one hit each
+    (trimesh's engines may report two or none there)."""
+    mesh = trimesh.creation.box()
+    ray = vt.RayMeshIntersector(mesh, device=any_device)
+    edges = mesh.vertices[mesh.edges_unique].mean(axis=1)
+    targets = np.vstack([mesh.vertices, edges])
+    _, idx = ray.intersects_id(np.zeros_like(targets), targets)
+    np.testing.assert_array_equal(np.bincount(idx, minlength=len(targets)), 1)
+    # From outside through two opposite edges: two crossings, once each.
+    o = -3 * targets
+    _, idx = ray.intersects_id(o, targets - o)
+    np.testing.assert_array_equal(np.bincount(idx, minlength=len(targets)), 2)
+
+
+def test_rays_in_a_faces_plane_hit_nothing_there(any_device):
+    mesh = trimesh.creation.box()  # faces at +-0.5
+    ray = vt.RayMeshIntersector(mesh, device=any_device)
+    o = np.array([[-2.0, 0.1, 0.5], [-2.0, 0.5, 0.5]])  # in the top face's plane; along an edge
+    tri, idx = ray.intersects_id(o, [[1.0, 0.0, 0.0]] * 2)
+    assert not np.isin(tri, np.nonzero(mesh.face_normals[:, 2] > 0.5)[0]).any()
+
+
+def test_contains_points(any_device):
+    """Closed: parity, exact (vertices and surface points inside); open: the winding number."""
+    mesh = trimesh.creation.box()
+    ray = vt.RayMeshIntersector(mesh, device=any_device)
+    assert ray.contains_points(mesh.vertices).all()
+    assert ray.contains_points(mesh.vertices / 1.5).all()
+    assert not ray.contains_points(mesh.vertices * 1.5).any()
+    assert ray.contains_points(np.zeros((0, 3))).shape == (0,)
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1, 1, (2000, 3))
+    np.testing.assert_array_equal(ray.contains_points(points), (np.abs(points) <= 0.5).all(axis=1))
+    # A box without its top: not closed, so the winding number decides (1/2 at the centre).
+    open_box = trimesh.Trimesh(mesh.vertices, mesh.faces[mesh.face_normals[:, 2] < 0.5], process=False)
+    inside = vt.RayMeshIntersector(open_box, device=any_device).contains_points([[0, 0, -0.3], [0, 0, 3.0]])
+    assert inside.tolist() == [True, False]
+
+
+def test_the_scene_follows_the_mesh(any_device):
+    mesh = trimesh.creation.box()
+    ray = vt.RayMeshIntersector(mesh, device=any_device)
+    o, d = [[0.0, 0.0, -5.0]], [[0.0, 0.0, 1.0]]
+    assert ray.intersects_location(o, d)[0][0, 2] == pytest.approx(-0.5)
+    mesh.apply_scale(4.0)
+    assert ray.intersects_location(o, d)[0][0, 2] == pytest.approx(-2.0)
+    mesh.vertices = mesh.vertices + [0.0, 0.0, 1.0]
+    assert ray.intersects_location(o, d)[0][0, 2] == pytest.approx(-1.0)
+
+
+def test_pickle_and_copy(any_device):
+    mesh = trimesh.creation.icosphere()
+    ray = vt.RayMeshIntersector(mesh, device=any_device, precision="exact")
+    o, d = [[0.0, 0.0, -5.0]], [[0.0, 0.0, 1.0]]
+    want = ray.intersects_location(o, d)[0]
+    for other in (pickle.loads(pickle.dumps(ray)), copy.copy(ray), copy.deepcopy(ray)):
+        assert other.precision == "exact"
+        np.testing.assert_allclose(other.intersects_location(o, d)[0], want)
+
+
+def test_enable_disable_and_use(any_device):
+    embree_or_triangle = type(trimesh.creation.box().ray)
+    vt.enable(device=any_device)
+    try:
+        mesh = trimesh.creation.icosphere(subdivisions=3)
+        assert isinstance(mesh.ray, vt.RayMeshIntersector)
+        # trimesh's own helpers now run on vkray.
+        assert mesh.contains([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]).tolist() == [True, False]
+        sd = trimesh.proximity.signed_distance(mesh, [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+        assert sd[0] > 0.9 and sd[1] < -0.9
+        longest = trimesh.proximity.longest_ray(mesh, [[0.0, 0.0, 0.0]], [[1.0, 0.0, 0.0]])
+        assert longest[0] == pytest.approx(1.0, abs=0.01)
+    finally:
+        vt.disable()
+    assert type(trimesh.creation.box().ray) is embree_or_triangle
+    mesh = vt.use(trimesh.creation.box(), device=any_device)
+    assert isinstance(mesh.ray, vt.RayMeshIntersector)
+
+
+def test_agrees_with_embree_away_from_edges(any_device):
+    """Random rays at a subdivided sphere: the same triangles as trimesh's embree engine where no
+    hit is near an edge (embree runs in float32)."""
+    pytest.importorskip("embreex")
+    from trimesh.ray import ray_pyembree
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    ours = vt.RayMeshIntersector(mesh, device=any_device)
+    theirs = ray_pyembree.RayMeshIntersector(mesh)
+    rng = np.random.default_rng(9)
+    o = rng.normal(size=(500, 3))
+    o = 3 * o / np.linalg.norm(o, axis=1, keepdims=True)
+    d = rng.uniform(-0.6, 0.6, (500, 3)) - o
+    np.testing.assert_array_equal(ours.intersects_first(o, d), theirs.intersects_first(o, d))
+    a_tri, a_ray = ours.intersects_id(o, d)
+    b_tri, b_ray = theirs.intersects_id(o, d)
+    assert sorted(zip(a_ray.tolist(), a_tri.tolist())) == sorted(zip(b_ray.tolist(), b_tri.tolist()))
+
+
+def test_device_mesh_takes_a_trimesh(any_device):
+    mesh = trimesh.creation.box()
+    scene = any_device.scene(any_device.mesh(mesh))
+    assert scene.intersect([0.0, 0.0, -5.0], [0.0, 0.0, 1.0]).t == pytest.approx(4.5)
+    with pytest.raises(TypeError, match="faces"):
+        any_device.mesh(np.eye(3))
+
+
+def test_threads_share_an_intersector(any_device):
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    ray = vt.RayMeshIntersector(mesh, device=any_device)
+    rng = np.random.default_rng(4)
+    o = rng.uniform(-2, 2, (300, 3))
+    d = -o
+    want = ray.intersects_id(o, d)
+    failures = []
+
+    def work():
+        for _ in range(10):
+            got = ray.intersects_id(o, d)
+            if not all(np.array_equal(a, b) for a, b in zip(got, want)):
+                failures.append("differs")
+
+    threads = [threading.Thread(target=work, daemon=True) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert not any(t.is_alive() for t in threads) and not failures
+
+
+def test_bad_precision():
+    with pytest.raises(ValueError, match="precision"):
+        vt.RayMeshIntersector(trimesh.creation.box(), precision="double")
+
+
+def test_default_device_is_shared():
+    assert vt.default_device() is vt.default_device()
+    assert isinstance(vt.default_device(), vkray.Device)
