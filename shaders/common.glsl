@@ -27,6 +27,10 @@ layout(constant_id = 3) const uint QUERY = 0u;
 const uint QUERY_CLOSEST = 0u;
 const uint QUERY_ALL = 1u;
 const uint QUERY_PARITY = 2u;
+// The exact tier's edges (trace::Request::contacts): 0, crossings (an edge or vertex that several
+// triangles share belongs to exactly one of them: the tie-break); 1, contacts (closed triangles:
+// each triangle has its edges and vertices, so a ray that only touches a boundary hits it).
+layout(constant_id = 4) const uint CLOSED_EDGES = 0u;
 const int ON_SURFACE = 1 << 30;
 
 // One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).

@@ -139,9 +139,11 @@ bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u
     return false;
   }
   double sign = det > 0.0 ? 1.0 : -1.0;
-  if (u == 0.0 && !owns_edge(sign * (p[2].xy - p[1].xy))) return false;
-  if (v == 0.0 && !owns_edge(sign * (p[0].xy - p[2].xy))) return false;
-  if (w == 0.0 && !owns_edge(sign * (p[1].xy - p[0].xy))) return false;
+  if (CLOSED_EDGES == 0u) {
+    if (u == 0.0 && !owns_edge(sign * (p[2].xy - p[1].xy))) return false;
+    if (v == 0.0 && !owns_edge(sign * (p[0].xy - p[2].xy))) return false;
+    if (w == 0.0 && !owns_edge(sign * (p[1].xy - p[0].xy))) return false;
+  }
   precise double t = (u * p[0].z + v * p[1].z + w * p[2].z) / det;
   if (!(t >= ray.tmin && t <= ray.tmax)) return false;
   t_hit = t;

@@ -1369,3 +1369,24 @@ def test_gpu_tells_points_on_the_surface(device, offset):
     np.testing.assert_array_equal(inside, scene.contains(on, precision="reference"))
     np.testing.assert_array_equal(scene.contains(near), scene.contains(near, precision="reference"))
     assert scene.contains(near).sum() == len(centres)  # one side of each face is inside
+
+
+def test_contacts_close_the_triangles(device):
+    """The exact tier's contacts (the trimesh drop-in's second look at rays that cross nothing):
+    a ray through a shared edge meets both triangles there, one down a face's boundary plane
+    meets its edge; crossings give one and none. Other tiers refuse contacts."""
+    if not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    scene = device.scene(device.mesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]]))
+    o = np.array([[0.5, 0.5, 1.0], [1.0, 0.5, 1.0], [2.0, 0.5, 1.0]])  # the diagonal; the x=1 border; outside
+    d = np.array([[0.0, 0.0, -1.0]] * 3)
+    core = scene._core
+    crossings = core.trace_all(o, d, 0.0, np.inf, ["prim_id"], "exact")
+    contacts = core.trace_all(o, d, 0.0, np.inf, ["prim_id"], "exact", None, None, None, True)
+    assert np.diff(crossings["offsets"]).tolist()[0] == 1
+    assert np.diff(contacts["offsets"]).tolist() == [2, 1, 0]
+    first = core.trace(o, d, 0.0, np.inf, "closest", ["prim_id"], "exact", None, None, True)["prim_id"]
+    assert (first[:2] >= 0).all() and first[2] == -1
+    for tier in ("fast", "refined", "reference"):
+        with pytest.raises(vkray.UnsupportedError, match="contacts"):
+            core.trace(o, d, 0.0, np.inf, "closest", ["prim_id"], tier, None, None, True)

@@ -92,6 +92,25 @@ def test_rays_in_a_faces_plane_hit_nothing_there(any_device):
     assert not np.isin(tri, np.nonzero(mesh.face_normals[:, 2] > 0.5)[0]).any()
 
 
+def test_grazing_rays_touch_once_per_point(box):
+    """Rays down the box's side faces (through a top edge, or down a vertical edge through a
+    corner) cross nothing but touch it: they hit where they touch, once per point (the triangles
+    sharing that edge or corner meet the ray there together), at the top and at the bottom."""
+    _, ray = box
+    o = np.array([[1, 0, 5], [-1, 0, 5], [0, 1, 5], [0, -1, 5], [1, 1, 5], [-1, -1, 5], [1, -1, 5], [-1, 1, 5]], float)
+    d = np.tile([[0.0, 0.0, -1.0]], (len(o), 1))
+    assert ray.intersects_any(o, d).all()
+    first = ray.intersects_id(o, d, multiple_hits=False, return_locations=True)
+    np.testing.assert_allclose(first[2][:, 2], 1.0)
+    tri, idx, loc = ray.intersects_id(o, d, return_locations=True)
+    np.testing.assert_array_equal(np.bincount(idx, minlength=len(o)), 2)
+    np.testing.assert_allclose(np.sort(loc[:, 2].reshape(-1, 2), axis=1), [[-1.0, 1.0]] * len(o))
+    np.testing.assert_allclose(loc[:, :2], o[idx, :2])
+    # One ray grazing, one crossing: the crossing ray reports its crossings only.
+    tri, idx = ray.intersects_id([[1.0, 0.0, 5.0], [0.0, 0.0, 5.0]], [[0, 0, -1.0]] * 2)
+    assert np.bincount(idx).tolist() == [2, 2]
+
+
 def test_contains_points(any_device):
     """Closed: parity, exact (vertices and surface points inside); open: the winding number."""
     mesh = trimesh.creation.box()

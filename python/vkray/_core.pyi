@@ -152,6 +152,7 @@ class Scene:
         precision: Precision = "fast",
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
+        contacts: bool = False,
     ) -> Dict[str, NDArray[Any]]: ...
     def trace_all(
         self,
@@ -164,6 +165,7 @@ class Scene:
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
         max_hits: Optional[int] = None,
+        contacts: bool = False,
     ) -> Dict[str, NDArray[Any]]: ...
     def count(
         self,

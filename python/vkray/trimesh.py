@@ -16,8 +16,12 @@ Choices where trimesh's two engines differ (tests/test_trimesh.py checks each):
   (never both, never neither), distinct triangles at one point are all reported, and nothing is
   lost or repeated by re-casting from each hit (trimesh's embree engine re-casts with an offset,
   up to ``max_hits``). ``max_hits`` keeps the nearest per ray; None (the default) keeps all.
-- A ray in the plane of a face hits it nowhere (the watertight test has no area to hit); a ray
-  starting on a surface hits it at t = 0 or not at all (README: precision tiers).
+- A ray that crosses nothing but touches the mesh (down a side face's plane, through a silhouette
+  edge or vertex) hits it where it touches, once per point, as trimesh's tests expect: such rays
+  are asked again with closed triangles (the exact tier's contacts). A ray that crosses the
+  surface somewhere reports its crossings only. Otherwise a ray in the plane of a face hits it
+  nowhere (the watertight test has no area to hit); a ray starting on a surface hits it at t = 0
+  or not at all (README: precision tiers).
 - ``contains_points``: the parity of one ray's crossings on closed meshes (``Mesh.is_closed``),
   exact; the generalized winding number (>= 1/2) on meshes with holes, which trimesh's ray
   parity cannot answer reliably. Points on the surface are inside.
@@ -30,7 +34,7 @@ fast tier's speed for all hits on an H100), or any of vkray's tiers; a device th
 from __future__ import annotations
 
 import threading
-from typing import Any, Callable, Optional, Tuple, TypeVar, Union
+from typing import Any, Callable, Dict, List, Optional, Tuple, TypeVar, Union
 
 import numpy as np
 import trimesh as _trimesh
@@ -114,26 +118,62 @@ class RayMeshIntersector:
         along it (``multiple_hits``; the nearest ``max_hits``), or the first."""
         origins, directions, live = _rays(ray_origins, ray_directions)
         fields = ["prim_id", "position"] if return_locations else ["prim_id"]
-        loc: Any = None
+        loc: Any = np.zeros((0, 3))
         if len(live) == 0:
-            tri, ray, loc = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+            tri, ray = np.zeros(0, np.int64), np.zeros(0, np.int64)
         elif multiple_hits:
-            scene, _ = self._scene()
-            o, d = origins[live], directions[live]
-            hits = self._run(lambda tier: scene.intersect_all(o, d, max_hits=max_hits, outputs=fields, precision=tier))
-            tri, ray = np.asarray(hits.prim_id).astype(np.int64), live[hits.ray_index]
-            loc = hits.position
+            tri, ray, loc = self._every_hit(origins[live], directions[live], fields, max_hits)
+            ray = live[ray]
         else:
-            scene, _ = self._scene()
-            o, d = origins[live], directions[live]
-            first = self._run(lambda tier: scene.intersect(o, d, outputs=fields, precision=tier))
-            hit = np.asarray(first.prim_id) >= 0
-            tri, ray = np.asarray(first.prim_id)[hit].astype(np.int64), live[hit]
-            loc = first.position
-            loc = None if loc is None else loc[hit]
+            first = self._first_hits(origins[live], directions[live], fields)
+            hit = first["prim_id"] >= 0
+            tri, ray = first["prim_id"][hit].astype(np.int64), live[hit]
+            loc = first["position"][hit] if return_locations else loc
         if return_locations:
             return tri, ray, np.asarray(loc, dtype=np.float64).reshape(-1, 3)
         return tri, ray
+
+    def _grazes(self) -> bool:
+        """Whether rays that cross nothing are asked again for contacts (the exact tier alone)."""
+        return self.precision == "exact" and not self._exact_refused
+
+    def _first_hits(self, o: NDArray[np.float64], d: NDArray[np.float64], fields: List[str]) -> Dict[str, Any]:
+        """Each ray's first crossing, or where it crosses nothing, its first contact (a graze
+        along a silhouette edge or through a silhouette vertex)."""
+        scene, _ = self._scene()
+        first = self._run(lambda tier: scene.intersect(o, d, outputs=fields, precision=tier))
+        out = {name: np.array(getattr(first, name)) for name in fields}
+        missed = np.nonzero(out["prim_id"] < 0)[0]
+        if len(missed) and self._grazes():
+            grazes = scene._core.trace(o[missed], d[missed], 0.0, np.inf, "closest", fields, "exact", None, None, True)
+            for name in fields:
+                out[name][missed] = grazes[name]
+        return out
+
+    def _every_hit(
+        self, o: NDArray[np.float64], d: NDArray[np.float64], fields: List[str], max_hits: Optional[int]
+    ) -> Tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+        """Every crossing of each ray, in order along it; where a ray crosses nothing, its contacts
+        (one per point: the triangles that share a grazed edge or vertex meet it there at once)."""
+        scene, _ = self._scene()
+        hits = self._run(lambda tier: scene.intersect_all(o, d, max_hits=max_hits, outputs=fields, precision=tier))
+        tri, ray = np.asarray(hits.prim_id).astype(np.int64), np.asarray(hits.ray_index)
+        loc = hits.position if hits.position is not None else np.zeros((len(tri), 3))
+        missed = np.nonzero(np.asarray(hits.counts).reshape(-1) == 0)[0]
+        if len(missed) == 0 or not self._grazes():
+            return tri, ray, loc
+        grazes = scene._core.trace_all(
+            o[missed], d[missed], 0.0, np.inf, [*fields, "t"], "exact", None, None, max_hits, True
+        )
+        g_ray, g_t = grazes["ray_index"], grazes["t"]
+        first_at_t = np.ones(len(g_ray), dtype=bool)
+        first_at_t[1:] = (g_ray[1:] != g_ray[:-1]) | (g_t[1:] != g_t[:-1])
+        g_loc = grazes["position"] if "position" in grazes else np.zeros((len(g_ray), 3))
+        tri = np.concatenate([tri, grazes["prim_id"][first_at_t].astype(np.int64)])
+        ray = np.concatenate([ray, missed[g_ray[first_at_t]]])
+        loc = np.concatenate([loc, g_loc[first_at_t]])
+        order = np.argsort(ray, kind="stable")
+        return tri[order], ray[order], loc[order]
 
     def intersects_location(
         self, ray_origins: Any, ray_directions: Any, multiple_hits: bool = True
@@ -147,21 +187,12 @@ class RayMeshIntersector:
         origins, directions, live = _rays(ray_origins, ray_directions)
         out = np.full(len(origins), -1, dtype=np.int64)
         if len(live):
-            scene, _ = self._scene()
-            o, d = origins[live], directions[live]
-            first = self._run(lambda tier: scene.intersect(o, d, outputs=["prim_id"], precision=tier))
-            out[live] = np.asarray(first.prim_id)
+            out[live] = self._first_hits(origins[live], directions[live], ["prim_id"])["prim_id"]
         return out
 
     def intersects_any(self, ray_origins: Any, ray_directions: Any) -> NDArray[np.bool_]:
         """Whether each ray hits the mesh."""
-        origins, directions, live = _rays(ray_origins, ray_directions)
-        out = np.zeros(len(origins), dtype=bool)
-        if len(live):
-            scene, _ = self._scene()
-            o, d = origins[live], directions[live]
-            out[live] = self._run(lambda tier: scene.occluded(o, d, precision=tier))
-        return out
+        return self.intersects_first(ray_origins, ray_directions) >= 0
 
     def contains_points(self, points: Any) -> NDArray[np.bool_]:
         """Whether each point lies inside the mesh (on its surface: inside). Closed meshes: the

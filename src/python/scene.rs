@@ -165,8 +165,9 @@ impl PyScene {
     }
 
     /// Traces rays; returns {field name: array} for the fields asked for.
-    /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`.
-    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None))]
+    /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`;
+    /// `contacts` (exact tier): closed triangles (see `Request::contacts`).
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None, contacts=false))]
     #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
@@ -180,9 +181,14 @@ impl PyScene {
         precision: &str,
         cull: Option<&str>,
         mask: Option<&Bound<'py, PyAny>>,
+        contacts: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let request =
-            Request { query: Query::parse(query)?, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
+        let request = Request {
+            query: Query::parse(query)?,
+            precision: Precision::parse(precision)?,
+            cull: Cull::parse(cull)?,
+            contacts,
+        };
         let wide = request.precision.is_f64();
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
         let rays = batch.rays()?;
@@ -208,7 +214,7 @@ impl PyScene {
     }
 
     /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
-    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None, contacts=false))]
     #[allow(clippy::too_many_arguments)]
     fn trace_all<'py>(
         &self,
@@ -222,9 +228,14 @@ impl PyScene {
         cull: Option<&str>,
         mask: Option<&Bound<'py, PyAny>>,
         max_hits: Option<usize>,
+        contacts: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let request =
-            Request { query: Query::Closest, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
+        let request = Request {
+            query: Query::Closest,
+            precision: Precision::parse(precision)?,
+            cull: Cull::parse(cull)?,
+            contacts,
+        };
         if max_hits == Some(0) {
             return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
         }
@@ -278,8 +289,12 @@ impl PyScene {
         cull: Option<&str>,
         mask: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyUntypedArray>> {
-        let request =
-            Request { query: Query::Closest, precision: Precision::parse(precision)?, cull: Cull::parse(cull)? };
+        let request = Request {
+            query: Query::Closest,
+            precision: Precision::parse(precision)?,
+            cull: Cull::parse(cull)?,
+            contacts: false,
+        };
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
         let rays = batch.rays()?;
         let counts = empty(py, &[rays.len()], "int32")?;

@@ -136,7 +136,14 @@ impl Tracer {
         let flags = ray_flags(Query::All, request.cull, self.ctx.backend, exact, scene.all_opaque(), false);
         let outputs = Field::Prim.bit();
         let query = Query::All.shader_query();
-        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres: false, query })?;
+        let variant = self.variants.get(VariantKey {
+            outputs,
+            ray_flags: flags,
+            exact,
+            spheres: false,
+            query,
+            closed_edges: request.contacts,
+        })?;
         let offsets = &stored.offsets;
         let widest = offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0);
         let total = *offsets.last().unwrap_or(&0) as usize;

@@ -81,7 +81,7 @@ impl Tracer {
         sink.set(Field::Prim, &mut prim);
         let exact = probe == Probe::Exact;
         let precision = if exact { Precision::Exact } else { Precision::Fast };
-        let request = Request { query: Query::Closest, precision, cull: Cull::None };
+        let request = Request { query: Query::Closest, precision, cull: Cull::None, contacts: false };
         self.run_gpu(&scene, &rays, request, exact, &mut sink, &NoInterrupt, &mut TraceProfile::default())?;
         Ok(i32::from_ne_bytes(prim) == 0)
     }

@@ -56,6 +56,11 @@ pub struct Request {
     pub query: Query,
     pub precision: Precision,
     pub cull: Cull,
+    /// Exact tier only: report contacts (a ray touching an edge or vertex hits every triangle
+    /// that has it: closed triangles) rather than crossings (each shared edge or vertex belongs
+    /// to one triangle). For the trimesh drop-in, whose users expect a ray grazing a silhouette
+    /// to hit.
+    pub contacts: bool,
 }
 
 /// Which of several precision tiers answers a query.

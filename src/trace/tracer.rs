@@ -267,7 +267,9 @@ impl Tracer {
         let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres);
         let all_hits = request.query.meets_every_hit();
         let query = request.query.shader_query();
-        let variant = self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, query })?;
+        let closed_edges = request.contacts;
+        let variant =
+            self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, query, closed_edges })?;
         let capacity = self.chunk_capacity(rays.len());
         let mut slots = self.slots.take(capacity, exact)?;
         let frame = scene.frame();
@@ -293,6 +295,7 @@ impl Tracer {
         interrupt: &dyn Interrupt,
     ) -> Result<tiers::AllHits> {
         self.check_every_hit_query(scene, "intersect_all")?;
+        check_contacts(request)?;
         match request.precision {
             Precision::Exact => {
                 self.check_paths(scene, true)?;
@@ -421,7 +424,12 @@ impl Tracer {
             tmax: crate::geometry::rays::PerRay::All(f64::INFINITY),
             mask: crate::geometry::rays::Masks::All(0xFF),
         };
-        let request = Request { query: Query::Count, precision: Precision::Exact, cull: crate::trace::Cull::None };
+        let request = Request {
+            query: Query::Count,
+            precision: Precision::Exact,
+            cull: crate::trace::Cull::None,
+            contacts: false,
+        };
         self.check_paths(scene, true)?;
         let mut odd = try_vec(points.rows(), 0i32, "the crossings of contains")?;
         if scene.placements.len() == 1 {
@@ -457,10 +465,19 @@ impl Tracer {
     }
 }
 
+/// Contacts (closed triangles) are the exact tier's alone.
+fn check_contacts(request: Request) -> Result<()> {
+    if request.contacts && request.precision != Precision::Exact {
+        return Err(Error::Unsupported("contacts are answered at precision='exact'".into()));
+    }
+    Ok(())
+}
+
 /// Checks what a query asks before any work: array sizes, fields the query can write, tiers the
 /// scene can be traced in.
 fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -> Result<()> {
     rays.check_shapes()?;
+    check_contacts(request)?;
     let n = rays.len();
     let wide = request.precision.is_f64();
     for field in FIELDS {

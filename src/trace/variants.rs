@@ -28,6 +28,8 @@ pub struct VariantKey {
     pub spheres: bool,
     /// QUERY: `Query::shader_query`.
     pub query: u32,
+    /// CLOSED_EDGES (exact tier): contacts rather than crossings (`Request::contacts`).
+    pub closed_edges: bool,
 }
 
 /// Ray flags resolved statically for a query on a scene: where every triangle is opaque the
@@ -194,7 +196,7 @@ impl Variants {
     }
 
     fn compute_variant(&self, key: VariantKey) -> Result<Variant> {
-        let values = [key.outputs, key.ray_flags, self.local_size, key.query];
+        let values = [key.outputs, key.ray_flags, self.local_size, key.query, key.closed_edges as u32];
         let entries = specialization_entries();
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let module = if key.exact { self.modules.query_exact } else { Some(self.modules.query) };
@@ -216,10 +218,10 @@ impl Variants {
     fn pipeline_variant(&self, key: VariantKey) -> Result<Variant> {
         let ctx = &self.ctx;
         let rt = ctx.pipeline_ext.as_ref().expect("pipeline backend loads its extension");
-        let values = [key.outputs, key.ray_flags, 0, key.query];
+        let values = [key.outputs, key.ray_flags, 0, key.query, key.closed_edges as u32];
         // Every constant but the workgroup size (2), which ray-tracing stages do not have.
         let entries = specialization_entries();
-        let entries = [entries[0], entries[1], entries[3]];
+        let entries = [entries[0], entries[1], entries[3], entries[4]];
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let stage = |flags, module| {
             vk::PipelineShaderStageCreateInfo::default()
@@ -370,9 +372,10 @@ fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'st
     groups
 }
 
-/// Constants 0 (OUTPUTS), 1 (RAY_FLAGS), 2 (the workgroup size) and 3 (QUERY), one u32 each.
-fn specialization_entries() -> [vk::SpecializationMapEntry; 4] {
-    [0u32, 1, 2, 3].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
+/// Constants 0 (OUTPUTS), 1 (RAY_FLAGS), 2 (the workgroup size), 3 (QUERY) and 4 (CLOSED_EDGES),
+/// one u32 each.
+fn specialization_entries() -> [vk::SpecializationMapEntry; 5] {
+    [0u32, 1, 2, 3, 4].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
 }
 
 /// A shader binding table's layout: the raygen, miss and hit regions (offset, stride, size), and
