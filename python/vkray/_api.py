@@ -7,7 +7,7 @@ from typing import Any, Dict, Iterable, List, Literal, Optional, Tuple, Union, c
 
 import numpy as np
 
-from . import _arrays, _core, _pictures
+from . import _arrays, _core, _pictures, _progress
 
 # The option strings, as types (the core checks their values and names the choices when wrong).
 # Spelled as unions of one-value Literals, which type checkers read as Literal["a", "b"]: that is
@@ -561,6 +561,7 @@ class Scene:
         precision: Precision = "fast",
         cull: Cull = None,
         mask: Any = 0xFF,
+        progress: bool = False,
     ) -> Hits:
         """The closest hit of each ray within [tmin, tmax].
 
@@ -594,10 +595,18 @@ class Scene:
         with ``cull_disable=True`` are never culled; ``flip_facing=True`` swaps their sides.
         mask: 8-bit ray mask, one for all rays or an integer array of shape ``S``: a ray sees an
         instance when ``instance.mask & mask != 0``.
+        progress: show a progress bar as chunks finish (tqdm's when installed, else a line on
+        stderr); the same on `occluded`, `intersect_all`, `count` and `contains`.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        arrays = self._core.trace(o, d, lo, hi, "closest", list(fields), precision, cull, _arrays.masks(mask, shape))
+        bar = _progress.bar(progress, "intersect")
+        try:
+            arrays = self._core.trace(
+                o, d, lo, hi, "closest", list(fields), precision, cull, _arrays.masks(mask, shape), progress=bar
+            )
+        finally:
+            _progress.close(bar)
         return Hits(shape, arrays, precision)
 
     def occluded(
@@ -610,6 +619,7 @@ class Scene:
         precision: Precision = "fast",
         cull: Cull = None,
         mask: Any = 0xFF,
+        progress: bool = False,
     ) -> np.ndarray:
         """bool ``S``: whether anything lies along each ray within [tmin, tmax].
 
@@ -618,7 +628,13 @@ class Scene:
         (``"refined"`` decides hits as ``"fast"`` does). ``cull`` and ``mask`` as in `intersect`.
         """
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        arrays = self._core.trace(o, d, lo, hi, "occluded", ["prim_id"], precision, cull, _arrays.masks(mask, shape))
+        bar = _progress.bar(progress, "occluded")
+        try:
+            arrays = self._core.trace(
+                o, d, lo, hi, "occluded", ["prim_id"], precision, cull, _arrays.masks(mask, shape), progress=bar
+            )
+        finally:
+            _progress.close(bar)
         return (arrays["prim_id"] >= 0).reshape(shape)
 
     def intersect_all(
@@ -633,6 +649,7 @@ class Scene:
         precision: Precision = "fast",
         cull: Cull = None,
         mask: Any = 0xFF,
+        progress: bool = False,
     ) -> AllHits:
         """Every hit of each ray within [tmin, tmax], nearest first (see `AllHits`).
 
@@ -660,7 +677,13 @@ class Scene:
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        arrays = self._core.trace_all(o, d, lo, hi, list(fields), precision, cull, _arrays.masks(mask, shape), limit)
+        bar = _progress.bar(progress, "intersect_all")
+        try:
+            arrays = self._core.trace_all(
+                o, d, lo, hi, list(fields), precision, cull, _arrays.masks(mask, shape), limit, progress=bar
+            )
+        finally:
+            _progress.close(bar)
         return AllHits(shape, arrays, precision)
 
     def count(
@@ -673,6 +696,7 @@ class Scene:
         precision: Precision = "fast",
         cull: Cull = None,
         mask: Any = 0xFF,
+        progress: bool = False,
     ) -> np.ndarray:
         """int32 ``S``: the number of hits of each ray within [tmin, tmax], as `intersect_all`
         finds them at the same precision (``count(...) == intersect_all(...).counts``), without
@@ -683,10 +707,16 @@ class Scene:
         per-triangle boxes: every crossing counted once; needs shaderFloat64), ``"reference"``
         (the same f64 test on all CPU cores) or ``"refined"``."""
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        counts = self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape))
+        bar = _progress.bar(progress, "count")
+        try:
+            counts = self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape), progress=bar)
+        finally:
+            _progress.close(bar)
         return counts.reshape(shape)
 
-    def contains(self, points: Any, *, precision: Precision = "exact", method: str = "parity") -> np.ndarray:
+    def contains(
+        self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
+    ) -> np.ndarray:
         """bool ``S`` for points of shape ``S + (3,)``: whether each lies inside any instance.
 
         method: ``"parity"`` (default) casts one ray per point and counts each instance's
@@ -712,7 +742,11 @@ class Scene:
                     f"instances {open_meshes} are not closed meshes (Mesh.is_closed), so the parity of "
                     "crossings says nothing: use method='winding'"
                 )
-        inside = self._core.contains(np.ascontiguousarray(p.reshape(-1, 3)), precision, method == "winding")
+        bar = _progress.bar(progress, "contains")
+        try:
+            inside = self._core.contains(np.ascontiguousarray(p.reshape(-1, 3)), precision, method == "winding", bar)
+        finally:
+            _progress.close(bar)
         return inside.reshape(p.shape[:-1])
 
     def __repr__(self) -> str:

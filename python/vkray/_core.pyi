@@ -4,7 +4,7 @@ Arrays arrive C-contiguous, in native byte order and of the dtypes below (vkray.
 that); option strings are checked here, with a ValueError naming the argument and the choices.
 """
 
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union, final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -153,6 +153,7 @@ class Scene:
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
         contacts: bool = False,
+        progress: Optional[Callable[[int, int], object]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
     def trace_all(
         self,
@@ -166,6 +167,7 @@ class Scene:
         mask: Union[int, NDArray[np.uint8], None] = None,
         max_hits: Optional[int] = None,
         contacts: bool = False,
+        progress: Optional[Callable[[int, int], object]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
     def count(
         self,
@@ -176,7 +178,12 @@ class Scene:
         precision: Precision = "fast",
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
+        progress: Optional[Callable[[int, int], object]] = None,
     ) -> NDArray[np.int32]: ...
     def contains(
-        self, points: _Vec3s, precision: Precision = "exact", winding: bool = False
+        self,
+        points: _Vec3s,
+        precision: Precision = "exact",
+        winding: bool = False,
+        progress: Optional[Callable[[int, int], object]] = None,
     ) -> NDArray[np.bool_]: ...

@@ -110,6 +110,10 @@ impl DeviceRequest {
 /// a chunk's time. An error it returns ends the work; the device stays usable.
 pub trait Interrupt: Sync {
     fn check(&self) -> Result<()>;
+
+    /// Hears how far the work got: `done` of `total` items (rays, points). Called between the
+    /// same pieces as `check`; by default nobody listens.
+    fn progress(&self, _done: usize, _total: usize) {}
 }
 
 /// Work that nobody interrupts.

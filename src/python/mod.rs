@@ -53,24 +53,52 @@ impl From<Error> for PyErr {
 
 /// Checks for signals (Ctrl-C) with the GIL taken back for a moment; keeps what the handler
 /// raised, for `run` to raise.
-#[derive(Default)]
 struct Signals {
     raised: Mutex<Option<PyErr>>,
+    /// Called with (done, total) as the work goes (a progress bar's update).
+    progress: Option<Py<PyAny>>,
+}
+
+impl Signals {
+    fn raise(&self, error: PyErr) {
+        self.raised.lock().unwrap_or_else(|e| e.into_inner()).get_or_insert(error);
+    }
 }
 
 impl Interrupt for Signals {
     fn check(&self) -> Result<()> {
+        // An exception from the progress callback stops the work as a signal's does.
+        if self.raised.lock().unwrap_or_else(|e| e.into_inner()).is_some() {
+            return Err(Error::Interrupted);
+        }
         Python::attach(|py| py.check_signals()).map_err(|raised| {
-            *self.raised.lock().unwrap_or_else(|e| e.into_inner()) = Some(raised);
+            self.raise(raised);
             Error::Interrupted
         })
+    }
+
+    fn progress(&self, done: usize, total: usize) {
+        if let Some(callback) = &self.progress {
+            if let Err(error) = Python::attach(|py| callback.call1(py, (done, total)).map(drop)) {
+                self.raise(error);
+            }
+        }
     }
 }
 
 /// Runs core work with the GIL released, interruptible between its pieces; a panic becomes
 /// `VkrayError`, never pyo3's `PanicException`.
 fn run<T: Send>(py: Python<'_>, work: impl FnOnce(&dyn Interrupt) -> Result<T> + Send) -> PyResult<T> {
-    let signals = Signals::default();
+    run_reporting(py, None, work)
+}
+
+/// `run`, telling `progress` (a callable, if any) how far the work got: (done, total).
+fn run_reporting<T: Send>(
+    py: Python<'_>,
+    progress: Option<Py<PyAny>>,
+    work: impl FnOnce(&dyn Interrupt) -> Result<T> + Send,
+) -> PyResult<T> {
+    let signals = Signals { raised: Mutex::new(None), progress };
     // Runs on this thread, not in the thread pool: the work takes locks and waits, which a pool
     // thread must never do (waiting for its own parallel work, it may pick up another call's
     // job that needs a lock this thread holds). Parallel sections enter the pool themselves.

@@ -14,7 +14,7 @@ use pyo3::types::PyDict;
 use super::arrays::{Bound1, MaskArray, Vec3Array};
 use super::device::stats_dict;
 use super::mesh::PyMesh;
-use super::run;
+use super::{run, run_reporting};
 use crate::error::try_vec;
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::rays::Rays;
@@ -167,7 +167,7 @@ impl PyScene {
     /// Traces rays; returns {field name: array} for the fields asked for.
     /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`;
     /// `contacts` (exact tier): closed triangles (see `Request::contacts`).
-    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None, contacts=false))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None, contacts=false, progress=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
@@ -182,6 +182,7 @@ impl PyScene {
         cull: Option<&str>,
         mask: Option<&Bound<'py, PyAny>>,
         contacts: bool,
+        progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let request = Request {
             query: Query::parse(query)?,
@@ -202,7 +203,7 @@ impl PyScene {
                 None => sink.position = Some(bytes_of(array)),
             }
         }
-        run(py, |interrupt| {
+        run_reporting(py, progress, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
             self.tracer.trace(&scene, &rays, request, &mut sink, interrupt)
         })?;
@@ -214,7 +215,7 @@ impl PyScene {
     }
 
     /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
-    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None, contacts=false))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None, contacts=false, progress=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace_all<'py>(
         &self,
@@ -229,6 +230,7 @@ impl PyScene {
         mask: Option<&Bound<'py, PyAny>>,
         max_hits: Option<usize>,
         contacts: bool,
+        progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let request = Request {
             query: Query::Closest,
@@ -248,7 +250,7 @@ impl PyScene {
             .sum::<usize>();
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
         let rays = batch.rays()?;
-        let (offsets, ray_index, columns) = run(py, |interrupt| {
+        let (offsets, ray_index, columns) = run_reporting(py, progress, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
             let limit = max_hits.unwrap_or(usize::MAX);
             let all = self.tracer.trace_all(&scene, &rays, request, limit, bytes_per_hit, interrupt)?;
@@ -276,7 +278,7 @@ impl PyScene {
     }
 
     /// The number of hits of each ray (int32, N).
-    #[pyo3(signature = (origins, directions, tmin, tmax, precision="fast", cull=None, mask=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, precision="fast", cull=None, mask=None, progress=None))]
     #[allow(clippy::too_many_arguments)]
     fn count<'py>(
         &self,
@@ -288,6 +290,7 @@ impl PyScene {
         precision: &str,
         cull: Option<&str>,
         mask: Option<&Bound<'py, PyAny>>,
+        progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyUntypedArray>> {
         let request = Request {
             query: Query::Closest,
@@ -299,7 +302,7 @@ impl PyScene {
         let rays = batch.rays()?;
         let counts = empty(py, &[rays.len()], "int32")?;
         let out: &mut [i32] = bytemuck::cast_slice_mut(bytes_of(&counts));
-        run(py, |interrupt| {
+        run_reporting(py, progress, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
             self.tracer.count(&scene, &rays, request, out, interrupt)
         })?;
@@ -307,20 +310,21 @@ impl PyScene {
     }
 
     /// Whether each point ((N, 3)) is inside any instance: by parity or by winding number.
-    #[pyo3(signature = (points, precision="exact", winding=false))]
+    #[pyo3(signature = (points, precision="exact", winding=false, progress=None))]
     fn contains<'py>(
         &self,
         py: Python<'py>,
         points: &Bound<'py, PyAny>,
         precision: &str,
         winding: bool,
+        progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyUntypedArray>> {
         let precision = Precision::parse(precision)?;
         let points = Vec3Array::extract("points", points)?;
         let points = points.view()?;
         let inside = empty(py, &[points.rows()], "bool")?;
         let out = bytes_of(&inside);
-        run(py, |interrupt| {
+        run_reporting(py, progress, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
             self.tracer.contains(&scene, points, precision, winding, out, interrupt)
         })?;

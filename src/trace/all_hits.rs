@@ -180,12 +180,15 @@ impl Tracer {
         // Dropping these on an error waits for the chunks in flight before their memory goes.
         let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
         let mut in_flight: [Option<(usize, usize, Vec<crate::geometry::rays::Advance>)>; 2] = [None, None];
+        let mut finished = 0;
         for (chunk, &(start, end)) in plan.iter().enumerate() {
             interrupt.check()?;
             let s = chunk % 2;
             commands[s].wait()?;
             if let Some(done) = in_flight[s].take() {
+                finished += done.1 - done.0;
                 finish_stored(&slots[s], &lists[s], done, stored, profile)?;
+                interrupt.progress(finished, stored.seen.len());
             }
             let advances = pack_chunk(job, &mut slots[s], start, end - start)?;
             write_lists(&mut lists[s], &stored.offsets, max_hits, start, end);
@@ -201,7 +204,9 @@ impl Tracer {
             let s = (plan.len() + k) % 2;
             commands[s].wait()?;
             if let Some(done) = in_flight[s].take() {
+                finished += done.1 - done.0;
                 finish_stored(&slots[s], &lists[s], done, stored, profile)?;
+                interrupt.progress(finished, stored.seen.len());
             }
         }
         Ok(())

@@ -115,6 +115,8 @@ impl Tracer {
         // Dropping these on an error waits for the chunks in flight before their memory goes.
         let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
         let mut in_flight: [Option<InFlight>; 2] = [None, None];
+        // Rays whose chunk finished, for `Interrupt::progress` (chunks finish out of order at the end).
+        let mut finished = 0;
         for (chunk, start) in (0..n).step_by(capacity).enumerate() {
             interrupt.check()?;
             let s = chunk % 2;
@@ -124,6 +126,8 @@ impl Tracer {
             lap(&mut profile.wait);
             if let Some(done) = in_flight[s].take() {
                 finish_chunk(&slots[s], &done, job.outputs, sink, profile)?;
+                finished += done.len;
+                interrupt.progress(finished, n);
             }
             lap(&mut profile.unpack);
             let advances = pack_chunk(job, &mut slots[s], start, len)?;
@@ -140,6 +144,8 @@ impl Tracer {
             lap(&mut profile.wait);
             if let Some(done) = in_flight[s].take() {
                 finish_chunk(&slots[s], &done, job.outputs, sink, profile)?;
+                finished += done.len;
+                interrupt.progress(finished, n);
             }
             lap(&mut profile.unpack);
         }

@@ -47,7 +47,9 @@ const HOST_BLOCK: usize = 1 << 18;
 fn in_blocks(n: usize, interrupt: &dyn Interrupt, mut work: impl FnMut(std::ops::Range<usize>)) -> Result<()> {
     for start in (0..n).step_by(HOST_BLOCK) {
         interrupt.check()?;
-        work(start..(start + HOST_BLOCK).min(n));
+        let end = (start + HOST_BLOCK).min(n);
+        work(start..end);
+        interrupt.progress(end, n);
     }
     Ok(())
 }

@@ -1,0 +1,51 @@
+"""Progress bars for long queries (``progress=True``): tqdm's when it is installed, else a line
+on stderr at most twice a second."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import time
+from typing import Any, Optional
+
+
+class Progress:
+    """A callable the core calls with (done, total) between chunks; `close` ends the bar."""
+
+    def __init__(self, what: str) -> None:
+        self._what = what
+        self._bar: Any = None
+        self._last = 0.0
+        self._tqdm: Optional[Any] = None
+        try:
+            self._tqdm = importlib.import_module("tqdm.auto").tqdm
+        except ImportError:
+            pass
+
+    def __call__(self, done: int, total: int) -> None:
+        if self._tqdm is not None:
+            if self._bar is None:
+                self._bar = self._tqdm(total=total, desc=f"vkray {self._what}", unit="ray", unit_scale=True)
+            elif self._bar.total != total:
+                self._bar.reset(total=total)
+            self._bar.n = done
+            self._bar.refresh()
+            return
+        now = time.monotonic()
+        if now - self._last >= 0.5 or done == total:
+            self._last = now
+            print(f"\rvkray {self._what}: {done}/{total}", end="\n" if done == total else "", file=sys.stderr)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
+def bar(progress: bool, what: str) -> Optional[Progress]:
+    """A progress bar for a query when the caller asked for one."""
+    return Progress(what) if progress else None
+
+
+def close(progress: Optional[Progress]) -> None:
+    if progress is not None:
+        progress.close()
