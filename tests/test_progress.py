@@ -101,6 +101,20 @@ def test_progress_true_uses_tqdm(small_chunks, monkeypatch):
     assert "intersect_all" in bars[0].kwargs["desc"]
 
 
+def test_meshes_report_each_batch(any_device):
+    """Device.meshes: (built, total) after each batch of the scratch budget."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    items = [(v + k, np.array([[0, 1, 2]])) for k in range(6)]
+    calls = []
+    budget = 2 * int(any_device.meshes(items[:1])[0].stats["scratch_bytes"])  # two meshes a batch
+    cores = any_device._core.meshes([(m[0], m[1].astype(np.int32)) for m in items], "fast_trace", False, False,
+                                    budget, "float32", lambda done, total: calls.append((done, total)))
+    assert len(cores) == 6
+    assert calls[-1] == (6, 6) and len(calls) >= 3
+    assert [d for d, _ in calls] == sorted(d for d, _ in calls)
+    assert len(any_device.meshes(items, progress=True)) == 6
+
+
 def _no_module(name):
     raise ImportError(name)
 

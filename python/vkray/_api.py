@@ -248,6 +248,7 @@ class Device:
         compact: bool = False,
         budget_bytes: Optional[int] = None,
         vertex_format: VertexFormat = "float32",
+        progress: bool = False,
     ) -> List[Mesh]:
         """Builds many meshes at once: ``items`` are (vertices, faces) pairs as `mesh` takes them.
 
@@ -256,7 +257,8 @@ class Device:
         default: one submission). With ``compact=True`` each batch is compacted before the next is
         built, so the uncompacted structures never all exist at once. ``Mesh.stats["batch"]`` tells
         which submission built a mesh, ``build_seconds`` that batch's time. A mesh whose own build
-        needs more scratch than the budget raises ValueError naming it.
+        needs more scratch than the budget raises ValueError naming it. ``progress=True`` shows a
+        bar of the meshes built, batch by batch (Ctrl-C stops between batches).
         """
         budget = None if budget_bytes is None else _arrays.integer("budget_bytes", budget_bytes, 1, _arrays.U64_MAX)
         arrays = []
@@ -267,7 +269,11 @@ class Device:
                 raise TypeError(f"meshes item {k} must be a (vertices, faces) pair") from None
             _arrays.check_mesh_size(vertices, faces, int(self._core.limits["max_primitive_count"]))
             arrays.append((_arrays.points("vertices", vertices), _arrays.faces(faces)))
-        cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact), budget, vertex_format)
+        bar = _progress.bar(progress, "meshes", unit="mesh")
+        try:
+            cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact), budget, vertex_format, bar)
+        finally:
+            _progress.close(bar)
         return [Mesh(self, core, v, f) for core, (v, f) in zip(cores, arrays)]
 
     def scene(

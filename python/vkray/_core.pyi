@@ -105,6 +105,7 @@ class Device:
         compact: bool = False,
         budget_bytes: Optional[int] = None,
         vertex_format: VertexFormat = "float32",
+        progress: Optional[Callable[[int, int], object]] = None,
     ) -> List[Mesh]: ...
     def scene(
         self,

@@ -12,8 +12,9 @@ from typing import Any, Optional
 class Progress:
     """A callable the core calls with (done, total) between chunks; `close` ends the bar."""
 
-    def __init__(self, what: str) -> None:
+    def __init__(self, what: str, unit: str = "ray") -> None:
         self._what = what
+        self._unit = unit
         self._bar: Any = None
         self._last = 0.0
         self._tqdm: Optional[Any] = None
@@ -25,7 +26,7 @@ class Progress:
     def __call__(self, done: int, total: int) -> None:
         if self._tqdm is not None:
             if self._bar is None:
-                self._bar = self._tqdm(total=total, desc=f"vkray {self._what}", unit="ray", unit_scale=True)
+                self._bar = self._tqdm(total=total, desc=f"vkray {self._what}", unit=self._unit, unit_scale=True)
             elif self._bar.total != total:
                 self._bar.reset(total=total)
             self._bar.n = done
@@ -41,9 +42,9 @@ class Progress:
             self._bar.close()
 
 
-def bar(progress: bool, what: str) -> Optional[Progress]:
-    """A progress bar for a query when the caller asked for one."""
-    return Progress(what) if progress else None
+def bar(progress: bool, what: str, unit: str = "ray") -> Optional[Progress]:
+    """A progress bar for a query (of `unit`s) when the caller asked for one."""
+    return Progress(what, unit) if progress else None
 
 
 def close(progress: Optional[Progress]) -> None:

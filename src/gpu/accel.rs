@@ -9,7 +9,7 @@ use crate::geometry::vertex_format::VertexFormat;
 use ash::vk;
 
 use crate::error::{invalid_value, Result, VkResultExt};
-use crate::gpu::context::Context;
+use crate::gpu::context::{Context, Interrupt, NoInterrupt};
 use crate::gpu::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
 
 /// What a build optimizes for (the `VK_BUILD_ACCELERATION_STRUCTURE_PREFER_*` flags).
@@ -173,7 +173,7 @@ pub fn build(
     options: BuildOptions,
     uploads: &Uploads,
 ) -> Result<(AccelerationStructure, BuildStats)> {
-    let mut built = build_many(ctx, std::slice::from_ref(input), options, uploads, u64::MAX)?;
+    let mut built = build_many(ctx, std::slice::from_ref(input), options, uploads, u64::MAX, &NoInterrupt)?;
     Ok(built.pop().expect("one structure per input"))
 }
 
@@ -181,13 +181,15 @@ pub fn build(
 /// Vulkan guides' build-until-the-budget-is-spent loop): each batch's builds share one scratch
 /// buffer at aligned offsets, and where compaction is asked each batch is compacted before the
 /// next starts, so the uncompacted copies never all exist at once. `uploads` are recorded before
-/// the first batch. Stats carry their batch's wall time and number.
+/// the first batch. Stats carry their batch's wall time and number. `interrupt` hears how many
+/// structures are built after each batch, and may stop the work between batches.
 pub fn build_many(
     ctx: &Arc<Context>,
     inputs: &[BuildInput],
     options: BuildOptions,
     uploads: &Uploads,
     scratch_budget: u64,
+    interrupt: &dyn Interrupt,
 ) -> Result<Vec<(AccelerationStructure, BuildStats)>> {
     let plan = BuildPlan::new(ctx, inputs, options);
     if let Some((k, scratch)) = plan.scratch.iter().enumerate().find(|(_, &scratch)| scratch > scratch_budget) {
@@ -200,8 +202,10 @@ pub fn build_many(
     let scratch = Scratch::new(ctx, scratch_size)?;
     let mut built = Vec::with_capacity(inputs.len());
     for (number, batch) in batches.into_iter().enumerate() {
+        interrupt.check()?;
         let uploads = (number == 0).then_some(uploads);
         built.extend(plan.build_batch(ctx, batch, scratch.address, uploads, number as u32)?);
+        interrupt.progress(built.len(), inputs.len());
     }
     Ok(built)
 }

@@ -9,8 +9,8 @@ use pyo3::types::PyDict;
 
 use super::arrays::{Bound1, IndexArray, Vec3Array};
 use super::mesh::PyMesh;
-use super::run;
 use super::scene::{InstanceItem, PyScene};
+use super::{run, run_reporting};
 use crate::error::{Error, Result};
 use crate::geometry::arrays::{instance_transform, Indices, Vec3s};
 use crate::geometry::vertex_format::VertexFormat;
@@ -205,7 +205,7 @@ impl PyDevice {
     }
 
     /// Many meshes in as few submissions as `budget_bytes` of build scratch allow.
-    #[pyo3(signature = (items, build="fast_trace", allow_update=false, compact=false, budget_bytes=None, vertex_format="float32"))]
+    #[pyo3(signature = (items, build="fast_trace", allow_update=false, compact=false, budget_bytes=None, vertex_format="float32", progress=None))]
     #[allow(clippy::too_many_arguments)]
     fn meshes(
         &self,
@@ -216,6 +216,7 @@ impl PyDevice {
         compact: bool,
         budget_bytes: Option<u64>,
         vertex_format: &str,
+        progress: Option<Py<PyAny>>,
     ) -> PyResult<Vec<PyMesh>> {
         let options = build_options(build, allow_update, compact)?;
         let format = VertexFormat::parse(vertex_format)?;
@@ -226,7 +227,9 @@ impl PyDevice {
         let views = arrays.iter().map(|(v, f)| Ok([(v.view()?, f.view()?)])).collect::<PyResult<Vec<_>>>()?;
         let items: Vec<&[(Vec3s, Indices)]> = views.iter().map(|v| v.as_slice()).collect();
         let budget = budget_bytes.unwrap_or(u64::MAX);
-        let meshes = run(py, |_| Mesh::build_many(&self.ctx, &items, options, format, budget))?;
+        let meshes = run_reporting(py, progress, |interrupt| {
+            Mesh::build_many(&self.ctx, &items, options, format, budget, interrupt)
+        })?;
         Ok(meshes.into_iter().map(PyMesh::new).collect())
     }
 

@@ -16,7 +16,7 @@ use crate::geometry::rays::PerRay;
 use crate::geometry::reference::TriangleSet;
 use crate::geometry::vertex_format::VertexFormat;
 use crate::gpu::accel::{self, vulkan_vertex_format, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
-use crate::gpu::context::Context;
+use crate::gpu::context::{Context, Interrupt, NoInterrupt};
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 use crate::gpu::records::{GeometrySource, SPHERE_SOURCE};
 
@@ -242,7 +242,7 @@ impl Mesh {
         options: BuildOptions,
         format: VertexFormat,
     ) -> Result<Mesh> {
-        let mut meshes = Mesh::build_many(ctx, &[parts], options, format, u64::MAX)?;
+        let mut meshes = Mesh::build_many(ctx, &[parts], options, format, u64::MAX, &NoInterrupt)?;
         Ok(meshes.pop().expect("one mesh per input"))
     }
 
@@ -255,6 +255,7 @@ impl Mesh {
         options: BuildOptions,
         format: VertexFormat,
         scratch_budget: u64,
+        interrupt: &dyn Interrupt,
     ) -> Result<Vec<Mesh>> {
         let mut uploads = Uploads::default();
         let prepared = items
@@ -268,7 +269,7 @@ impl Mesh {
             })
             .collect::<Result<Vec<_>>>()?;
         let inputs: Vec<BuildInput> = prepared.iter().map(PreparedMesh::input).collect();
-        let built = accel::build_many(ctx, &inputs, options, &uploads, scratch_budget)?;
+        let built = accel::build_many(ctx, &inputs, options, &uploads, scratch_budget, interrupt)?;
         Ok(prepared.into_iter().zip(built).map(|(p, (blas, stats))| p.finish(options, blas, stats)).collect())
     }
 
