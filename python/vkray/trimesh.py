@@ -9,7 +9,7 @@ go through ``mesh.ray`` (``mesh.contains``, ``proximity.signed_distance``,
 
 Choices where trimesh's two engines differ (tests/test_trimesh.py checks each):
 
-- Directions may have any length; they are unit-normalized as trimesh does (t is never returned).
+- Directions may have any length (trimesh normalizes them; vkray needs not, as no t is returned).
   A zero or non-finite direction hits nothing (trimesh's triangle engine), rather than raising.
 - ``multiple_hits=True`` returns every crossing once, in order along each ray, at the ``"exact"``
   precision by default: a ray through a shared edge or vertex hits one of the triangles there
@@ -116,18 +116,18 @@ class RayMeshIntersector:
         """The triangles the rays hit: ``(index_tri, index_ray)`` (int64), and the hit points
         ``locations`` ((m, 3) float64) when ``return_locations``. Every hit of each ray in order
         along it (``multiple_hits``; the nearest ``max_hits``), or the first."""
-        origins, directions, live = _rays(ray_origins, ray_directions)
+        rays = _Rays(ray_origins, ray_directions)
         fields = ["prim_id", "position"] if return_locations else ["prim_id"]
         loc: Any = np.zeros((0, 3))
-        if len(live) == 0:
+        if len(rays) == 0:
             tri, ray = np.zeros(0, np.int64), np.zeros(0, np.int64)
         elif multiple_hits:
-            tri, ray, loc = self._every_hit(origins[live], directions[live], fields, max_hits)
-            ray = live[ray]
+            tri, ray, loc = self._every_hit(rays.origins, rays.directions, fields, max_hits)
+            ray = rays.index(ray)
         else:
-            first = self._first_hits(origins[live], directions[live], fields)
+            first = self._first_hits(rays.origins, rays.directions, fields)
             hit = first["prim_id"] >= 0
-            tri, ray = first["prim_id"][hit].astype(np.int64), live[hit]
+            tri, ray = first["prim_id"][hit].astype(np.int64), rays.index(np.nonzero(hit)[0])
             loc = first["position"][hit] if return_locations else loc
         if return_locations:
             return tri, ray, np.asarray(loc, dtype=np.float64).reshape(-1, 3)
@@ -184,10 +184,16 @@ class RayMeshIntersector:
 
     def intersects_first(self, ray_origins: Any, ray_directions: Any) -> NDArray[np.int64]:
         """The first triangle each ray hits (int64), -1 where it hits none."""
-        origins, directions, live = _rays(ray_origins, ray_directions)
-        out = np.full(len(origins), -1, dtype=np.int64)
-        if len(live):
-            out[live] = self._first_hits(origins[live], directions[live], ["prim_id"])["prim_id"]
+        rays = _Rays(ray_origins, ray_directions)
+        if len(rays) == 0:
+            return np.full(rays.count, -1, dtype=np.int64)
+        first: NDArray[np.int64] = self._first_hits(rays.origins, rays.directions, ["prim_id"])["prim_id"].astype(
+            np.int64
+        )
+        if rays.live is None:
+            return first
+        out = np.full(rays.count, -1, dtype=np.int64)
+        out[rays.live] = first
         return out
 
     def intersects_any(self, ray_origins: Any, ray_directions: Any) -> NDArray[np.bool_]:
@@ -233,17 +239,29 @@ class RayMeshIntersector:
         return f"<vkray.trimesh.RayMeshIntersector precision={self.precision!r} faces={len(self.mesh.faces)}>"
 
 
-def _rays(origins: Any, directions: Any) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-    """Rays as trimesh takes them: (n, 3) origins and directions of one shape; directions
-    unit-normalized; the indices of rays that can hit anything (a finite, non-zero direction)."""
-    o = np.array(origins, dtype=np.float64).reshape(-1, 3)
-    d = np.array(directions, dtype=np.float64).reshape(-1, 3)
-    if o.shape != d.shape:
-        raise ValueError(f"ray origins {o.shape} and directions {d.shape} differ")
-    norm = np.linalg.norm(d, axis=1)
-    live = np.nonzero(np.isfinite(norm) & (norm > 0) & np.isfinite(o).all(axis=1))[0]
-    d[live] /= norm[live, None]
-    return o, d, live.astype(np.int64)
+class _Rays:
+    """Rays as trimesh takes them: (n, 3) origins and directions of one shape. vkray takes
+    directions of any length (no t is returned here), so they are not normalized; rays that can
+    hit nothing (a zero or non-finite direction, a non-finite origin) are left out: `live` holds
+    the others' indices, or is None when every ray is live (no copies then)."""
+
+    def __init__(self, origins: Any, directions: Any) -> None:
+        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        if o.shape != d.shape:
+            raise ValueError(f"ray origins {o.shape} and directions {d.shape} differ")
+        self.count = len(o)
+        ok = np.isfinite(d).all(axis=1) & (np.abs(d).max(axis=1, initial=0.0) > 0) & np.isfinite(o).all(axis=1)
+        self.live: Optional[NDArray[np.int64]] = None if ok.all() else np.nonzero(ok)[0]
+        self.origins, self.directions = (o, d) if self.live is None else (o[self.live], d[self.live])
+
+    def __len__(self) -> int:
+        return len(self.origins)
+
+    def index(self, rays: NDArray[Any]) -> NDArray[np.int64]:
+        """The caller's indices of rays given by their position among the live ones."""
+        rays = np.asarray(rays, dtype=np.int64)
+        return rays if self.live is None else self.live[rays]
 
 
 # --- switching trimesh's engine ----------------------------------------------------------------
