@@ -269,11 +269,12 @@ class Device:
                 raise TypeError(f"meshes item {k} must be a (vertices, faces) pair") from None
             _arrays.check_mesh_size(vertices, faces, int(self._core.limits["max_primitive_count"]))
             arrays.append((_arrays.points("vertices", vertices), _arrays.faces(faces)))
-        bar = _progress.bar(progress, "meshes", unit="mesh")
-        try:
-            cores = self._core.meshes(arrays, build, bool(allow_update), bool(compact), budget, vertex_format, bar)
-        finally:
-            _progress.close(bar)
+        cores = _progress.call(
+            progress,
+            "meshes",
+            lambda bar: self._core.meshes(arrays, build, bool(allow_update), bool(compact), budget, vertex_format, bar),
+            unit="mesh",
+        )
         return [Mesh(self, core, v, f) for core, (v, f) in zip(cores, arrays)]
 
     def scene(
@@ -606,13 +607,13 @@ class Scene:
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        bar = _progress.bar(progress, "intersect")
-        try:
-            arrays = self._core.trace(
+        arrays = _progress.call(
+            progress,
+            "intersect",
+            lambda bar: self._core.trace(
                 o, d, lo, hi, "closest", list(fields), precision, cull, _arrays.masks(mask, shape), progress=bar
-            )
-        finally:
-            _progress.close(bar)
+            ),
+        )
         return Hits(shape, arrays, precision)
 
     def occluded(
@@ -634,13 +635,13 @@ class Scene:
         (``"refined"`` decides hits as ``"fast"`` does). ``cull`` and ``mask`` as in `intersect`.
         """
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        bar = _progress.bar(progress, "occluded")
-        try:
-            arrays = self._core.trace(
+        arrays = _progress.call(
+            progress,
+            "occluded",
+            lambda bar: self._core.trace(
                 o, d, lo, hi, "occluded", ["prim_id"], precision, cull, _arrays.masks(mask, shape), progress=bar
-            )
-        finally:
-            _progress.close(bar)
+            ),
+        )
         return (arrays["prim_id"] >= 0).reshape(shape)
 
     def intersect_all(
@@ -683,13 +684,13 @@ class Scene:
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        bar = _progress.bar(progress, "intersect_all")
-        try:
-            arrays = self._core.trace_all(
+        arrays = _progress.call(
+            progress,
+            "intersect_all",
+            lambda bar: self._core.trace_all(
                 o, d, lo, hi, list(fields), precision, cull, _arrays.masks(mask, shape), limit, progress=bar
-            )
-        finally:
-            _progress.close(bar)
+            ),
+        )
         return AllHits(shape, arrays, precision)
 
     def count(
@@ -713,11 +714,11 @@ class Scene:
         per-triangle boxes: every crossing counted once; needs shaderFloat64), ``"reference"``
         (the same f64 test on all CPU cores) or ``"refined"``."""
         shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
-        bar = _progress.bar(progress, "count")
-        try:
-            counts = self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape), progress=bar)
-        finally:
-            _progress.close(bar)
+        counts = _progress.call(
+            progress,
+            "count",
+            lambda bar: self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape), progress=bar),
+        )
         return counts.reshape(shape)
 
     def contains(
@@ -748,11 +749,13 @@ class Scene:
                     f"instances {open_meshes} are not closed meshes (Mesh.is_closed), so the parity of "
                     "crossings says nothing: use method='winding'"
                 )
-        bar = _progress.bar(progress, "contains")
-        try:
-            inside = self._core.contains(np.ascontiguousarray(p.reshape(-1, 3)), precision, method == "winding", bar)
-        finally:
-            _progress.close(bar)
+        inside = _progress.call(
+            progress,
+            "contains",
+            lambda bar: self._core.contains(
+                np.ascontiguousarray(p.reshape(-1, 3)), precision, method == "winding", bar
+            ),
+        )
         return inside.reshape(p.shape[:-1])
 
     def __repr__(self) -> str:

@@ -6,7 +6,9 @@ from __future__ import annotations
 import importlib
 import sys
 import time
-from typing import Any, Optional
+from typing import Any, Callable, Optional, TypeVar
+
+T = TypeVar("T")
 
 
 class Progress:
@@ -42,11 +44,12 @@ class Progress:
             self._bar.close()
 
 
-def bar(progress: bool, what: str, unit: str = "ray") -> Optional[Progress]:
-    """A progress bar for a query (of `unit`s) when the caller asked for one."""
-    return Progress(what, unit) if progress else None
-
-
-def close(progress: Optional[Progress]) -> None:
-    if progress is not None:
-        progress.close()
+def call(progress: bool, what: str, work: Callable[[Optional[Progress]], T], unit: str = "ray") -> T:
+    """Runs `work` with a progress bar (of `unit`s) when the caller asked for one, else None;
+    closes the bar however `work` ends."""
+    bar = Progress(what, unit) if progress else None
+    try:
+        return work(bar)
+    finally:
+        if bar is not None:
+            bar.close()

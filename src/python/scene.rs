@@ -184,12 +184,7 @@ impl PyScene {
         contacts: bool,
         progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let request = Request {
-            query: Query::parse(query)?,
-            precision: Precision::parse(precision)?,
-            cull: Cull::parse(cull)?,
-            contacts,
-        };
+        let request = request(Query::parse(query)?, precision, cull, contacts)?;
         let wide = request.precision.is_f64();
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
         let rays = batch.rays()?;
@@ -232,12 +227,7 @@ impl PyScene {
         contacts: bool,
         progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let request = Request {
-            query: Query::Closest,
-            precision: Precision::parse(precision)?,
-            cull: Cull::parse(cull)?,
-            contacts,
-        };
+        let request = request(Query::Closest, precision, cull, contacts)?;
         if max_hits == Some(0) {
             return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
         }
@@ -292,12 +282,7 @@ impl PyScene {
         mask: Option<&Bound<'py, PyAny>>,
         progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyUntypedArray>> {
-        let request = Request {
-            query: Query::Closest,
-            precision: Precision::parse(precision)?,
-            cull: Cull::parse(cull)?,
-            contacts: false,
-        };
+        let request = request(Query::Closest, precision, cull, false)?;
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
         let rays = batch.rays()?;
         let counts = empty(py, &[rays.len()], "int32")?;
@@ -330,6 +315,11 @@ impl PyScene {
         })?;
         Ok(inside)
     }
+}
+
+/// A query's request from the option strings it was called with.
+fn request(query: Query, precision: &str, cull: Option<&str>, contacts: bool) -> PyResult<Request> {
+    Ok(Request { query, precision: Precision::parse(precision)?, cull: Cull::parse(cull)?, contacts })
 }
 
 /// One field of all hits, as the core writes it: typed, so that it becomes a numpy array without
