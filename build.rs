@@ -15,6 +15,7 @@ const SHADERS: &[&str] = &[
     "intersection_exact.rint",
     "sphere.rint",
     "any_hit_all.rahit",
+    "any_hit_opacity.rahit",
 ];
 
 fn main() {

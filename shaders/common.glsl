@@ -27,11 +27,20 @@ layout(constant_id = 3) const uint QUERY = 0u;
 const uint QUERY_CLOSEST = 0u;
 const uint QUERY_ALL = 1u;
 const uint QUERY_PARITY = 2u;
+// The product of (1 - opacity) over every crossing in [tmin, tmax], written to out_t.
+const uint QUERY_TRANSMIT = 3u;
 // The exact tier's edges (trace::Request::contacts): 0, crossings (an edge or vertex that several
 // triangles share belongs to exactly one of them: the tie-break); 1, contacts (closed triangles:
 // each triangle has its edges and vertices, so a ray that only touches a boundary hits it).
 layout(constant_id = 4) const uint CLOSED_EDGES = 0u;
 const int ON_SURFACE = 1 << 30;
+// Where rays come from: the rays buffer, or a Sensor record the shaders generate them from.
+layout(constant_id = 5) const uint RAY_SOURCE = 0u;
+const uint RAYS_FROM_BUFFER = 0u;
+const uint RAYS_FROM_SENSOR = 1u;
+// Triangles whose opacity is below this let rays through in every query but transmittance (which
+// multiplies 1 - opacity over them all); cut-outs (0) always do. Only scenes with opacity read it.
+layout(constant_id = 6) const float OPACITY_THRESHOLD = 0.5;
 
 // One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer RayBuffer { vec4 v[]; };
@@ -57,10 +66,43 @@ struct Ray {
 };
 
 uint ray_cull_mask(uint i) {
+  if (RAY_SOURCE == RAYS_FROM_SENSOR) return params.ray_mask;
   return params.masks == 0ul ? params.ray_mask : Words(params.masks).v[i];
 }
 
+layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer SensorRecord { Sensor s; };
+
+// Ray i of the chunk a Sensor record describes; see records.glsl for the order of operations
+// (`precise`: no fused multiply-adds, so that Sensor.rays() on the host is the same bit for bit).
+Ray sensor_ray(uint i) {
+  Sensor s = SensorRecord(params.rays).s;
+  uint index = uint(params.masks) + i;
+  uint column = index % s.columns;
+  uint row = index / s.columns;
+  precise float px = float(column) + s.pixel_offset;
+  precise float py = float(row) + s.pixel_offset;
+  if (s.kind == SENSOR_PINHOLE) {
+    precise vec3 d = (s.axes[0].xyz * px + s.axes[1].xyz * py) + s.axes[2].xyz;
+    return Ray(s.origin.xyz, s.origin.w, d, s.axes[0].w);
+  }
+  if (s.kind == SENSOR_ORTHOGRAPHIC) {
+    precise vec3 o = (s.origin.xyz + s.axes[0].xyz * px) + s.axes[1].xyz * py;
+    return Ray(o, s.origin.w, s.axes[2].xyz, s.axes[0].w);
+  }
+  Floats table = Floats(s.table);
+  uint channel = 2u * (s.columns + row);
+  precise float lx = table.v[channel] * table.v[2u * column];
+  precise float ly = table.v[channel] * table.v[2u * column + 1u];
+  float lz = table.v[channel + 1u];
+  vec3 c0 = vec3(s.axes[0].x, s.axes[1].x, s.axes[2].x);
+  vec3 c1 = vec3(s.axes[0].y, s.axes[1].y, s.axes[2].y);
+  vec3 c2 = vec3(s.axes[0].z, s.axes[1].z, s.axes[2].z);
+  precise vec3 d = (c0 * lx + c1 * ly) + c2 * lz;
+  return Ray(s.origin.xyz, s.origin.w, d, s.axes[0].w);
+}
+
 Ray load_ray(uint i) {
+  if (RAY_SOURCE == RAYS_FROM_SENSOR) return sensor_ray(i);
   RayBuffer rays = RayBuffer(params.rays);
   vec4 a = rays.v[2u * i];
   vec4 b = rays.v[2u * i + 1u];
@@ -178,6 +220,16 @@ float sphere_hit(vec3 origin, vec3 direction, vec4 sphere, float tmin, float tma
 vec3 sphere_normal(vec4 sphere, vec3 object_origin, vec3 object_direction, float t, mat4x3 world_to_object) {
   vec3 n = (object_origin + t * object_direction - sphere.xyz) / sphere.w;
   return normalize(transpose(mat3(world_to_object)) * n);
+}
+
+// The opacity of device triangle `prim` of a geometry (1 where the geometry has none).
+float triangle_opacity(GeometrySource src, int prim) {
+  return src.opacity == 0ul ? 1.0 : Floats(src.opacity).v[prim];
+}
+
+// Whether a triangle of this opacity stops rays (closest, occluded, all hits and counts).
+bool is_solid(float opacity) {
+  return opacity >= OPACITY_THRESHOLD;
 }
 
 // Fills the fields that need the triangle's source: its caller index and its normal.

@@ -19,11 +19,22 @@ struct Ray64 {
 };
 
 Ray64 load_ray64(uint i) {
+  if (RAY_SOURCE == RAYS_FROM_SENSOR) {
+    // The sensor's f32 ray in the world, moved to the scene's frame in f64 (as the host moves the
+    // rays Sensor.rays() returns).
+    Sensor s = SensorRecord(params.rays).s;
+    Ray r = sensor_ray(i);
+    dvec3 shift = dvec3(packDouble2x32(s.shift[0]), packDouble2x32(s.shift[1]), packDouble2x32(s.shift[2]));
+    return Ray64(dvec3(r.origin) - shift, packDouble2x32(s.tmin64), dvec3(r.direction), packDouble2x32(s.tmax64));
+  }
   Ray64Buffer rays = Ray64Buffer(params.rays);
   dvec4 a = rays.v[2u * i];
   dvec4 b = rays.v[2u * i + 1u];
   return Ray64(a.xyz, a.w, b.xyz, b.w);
 }
+
+// Transmittance, pipeline backend: the light left per ray, multiplied by the intersection shader.
+layout(buffer_reference, std430, buffer_reference_align = 8) volatile buffer TransmitScratch { double v[]; };
 
 // volatile: the intersection shader's stores must reach the ray generation shader's loads after
 // traceRayEXT. A driver that inlines the stages into one function (lavapipe) may otherwise
@@ -152,13 +163,20 @@ bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u
   return true;
 }
 
-// Ray i's exact hit with device triangle `prim` of `instance`, if any, as a stored record.
+// The opacity of the caller's triangle `caller` (among all parts) of an instance.
+float exact_opacity(ExactInstance x, int caller) {
+  return x.opacity == 0ul ? 1.0 : Floats(x.opacity).v[caller];
+}
+
+// Ray i's exact hit with device triangle `prim` of `instance`, if any and solid, as a stored record.
 bool exact_record(Ray64 ray, int instance, int prim, out ExactHit h) {
   double t;
   double u;
   double v;
   if (!exact_hit(ray, instance, prim, t, u, v)) return false;
-  int caller = caller_index(ExactInstances(params.instances).x[instance].primitive_order, prim);
+  ExactInstance x = ExactInstances(params.instances).x[instance];
+  int caller = caller_index(x.primitive_order, prim);
+  if (!is_solid(exact_opacity(x, caller))) return false;
   h = ExactHit(t, u, v, uint(instance), uint(caller));
   return true;
 }
@@ -218,8 +236,19 @@ bool origin_on_triangle(Ray64 ray, int instance, int prim) {
   return sqrt(dot(gap, gap)) <= ON_SURFACE_ULPS * EPSILON * max(scale, MIN_POSITIVE);
 }
 
+// Transmittance: 1 - the opacity of device triangle `prim` of `instance` where the ray crosses
+// it, else 1.
+double exact_transmit(Ray64 ray, int instance, int prim) {
+  double t;
+  double u;
+  double v;
+  if (!exact_hit(ray, instance, prim, t, u, v)) return 1.0;
+  ExactInstance x = ExactInstances(params.instances).x[instance];
+  return 1.0 - double(exact_opacity(x, caller_index(x.primitive_order, prim)));
+}
+
 // Runs the watertight test of device triangle `prim` of `instance`; updates `best` and returns
-// true when it is hit and comes before `best`.
+// true when it is hit (and solid) and comes before `best`.
 bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, int custom, int geometry) {
   double t;
   double bu;
@@ -227,6 +256,7 @@ bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, in
   if (!exact_hit(ray, instance, prim, t, bu, bv)) return false;
   ExactInstance x = ExactInstances(params.instances).x[instance];
   int caller = caller_index(x.primitive_order, prim);
+  if (!is_solid(exact_opacity(x, caller))) return false;
   int best_caller = best.prim < 0 ? 0 : caller_index(ExactInstances(params.instances).x[best.instance].primitive_order, best.prim);
   if (best.prim >= 0 && !is_before(t, instance, caller, best, best_caller)) return false;
   best = ExactBest(t, bu, bv, instance, prim, custom, geometry);

@@ -11,6 +11,7 @@ struct GeometrySource {
   uint64_t vertices;         // float xyz tightly packed; or 4 halves / 4 snorm16 (VERTEX_*)
   uint64_t indices;          // uint32 triples, or uint16 triples packed into words
   uint64_t primitive_order;  // device triangle -> caller's triangle (int32), or 0 if the same
+  uint64_t opacity;          // float per device triangle in [0, 1], or 0: every triangle opaque
   uint index_is_u16;
   uint vertex_format;        // VERTEX_F32, VERTEX_F16 or VERTEX_SNORM16 (VertexFormat), or SPHERE_SOURCE
 };
@@ -35,7 +36,8 @@ layout(push_constant, std430) uniform Params {
   uint64_t out_normal;
   uint64_t out_geometry;
   uint64_t scratch;    // exact tier, pipeline backend: ExactBest per ray; QUERY_ALL: HitList per ray
-  uint64_t masks;      // one uint cull mask per ray, or 0: every ray uses ray_mask
+  uint64_t masks;      // one uint cull mask per ray, or 0: every ray uses ray_mask (sensors: the
+                       // chunk's first ray; every ray uses ray_mask)
   uint count;
   float bounds[6];     // exact tier: the scene's bounds (min xyz, max xyz), rounded outward
   uint ray_mask;
@@ -44,7 +46,7 @@ layout(push_constant, std430) uniform Params {
 // The exact tier, per instance: the f64 map from the scene's frame to the mesh's (rows: xyz
 // linear, w offset), and where the mesh's f64 vertices and boxed triangles live. Triangles are
 // counted among all parts of the mesh; `part_offsets` splits them back into (geometry, triangle
-// within it). 136 bytes, 160 apart in arrays (the dvec4's 32-byte alignment).
+// within it). 144 bytes, 160 apart in arrays (the dvec4's 32-byte alignment).
 struct ExactInstance {
   dvec4 rows[3];
   uint64_t vertices;         // f64 xyz per vertex, all parts
@@ -53,6 +55,7 @@ struct ExactInstance {
   uint64_t part_offsets;     // uint32: first triangle of each part, then the total
   uint part_count;
   uint flags;                // EXACT_CULL_DISABLE | EXACT_FLIP_FACING
+  uint64_t opacity;          // float per caller's triangle among all parts, or 0: all opaque
 };
 const uint EXACT_CULL_DISABLE = 1u;  // query culling does not apply to this instance
 const uint EXACT_FLIP_FACING = 2u;   // front is the side opposite the object-space normal
@@ -100,5 +103,30 @@ struct ExactHit {
   uint instance;
   uint prim;
 };
+
+// A sensor whose rays the shaders generate (RAY_SOURCE = RAYS_FROM_SENSOR): `params.rays` points
+// at it, and `params.masks` holds the chunk's first ray (such rays share one mask). Every value is the host's f64
+// rounded once to f32, and the shaders combine them in f32 without fused multiply-adds in the
+// order python/vkray/sensors.py documents, so that `Sensor.rays()` holds the same rays bit for
+// bit. Pinhole: direction (a px + b py) + c with a, b, c = axes; orthographic: origin
+// (origin + U px) + V py with U, V = axes[0], axes[1], direction axes[2]; lidar: direction R l,
+// l from the cos/sin table of channel (row) and step (column), R's rows in axes. Pixel (px, py)
+// is (column, row) + pixel_offset. In the fast tier the origin is in the scene's frame already;
+// in the exact tier it is in the world's, and `shift` (f64 bits) moves it to the scene's frame.
+struct Sensor {
+  vec4 origin;      // xyz; w: the fast tier's tmin (rounded down to f32, as uploaded rays are)
+  vec4 axes[3];     // xyz each; axes[0].w: the fast tier's tmax (rounded up)
+  uint kind;        // SENSOR_PINHOLE, SENSOR_ORTHOGRAPHIC or SENSOR_LIDAR
+  uint columns;     // image width, or lidar steps
+  uint rows;        // image height, or lidar channels (rays run row by row)
+  float pixel_offset;
+  uint64_t table;   // lidar: (cos, sin) of each step's azimuth, then of each channel's elevation
+  uvec2 tmin64;     // the exact tier's interval, f64 bits
+  uvec2 tmax64;
+  uvec2 shift[3];   // the exact tier: the scene frame's offset, f64 bits
+};
+const uint SENSOR_PINHOLE = 1u;
+const uint SENSOR_ORTHOGRAPHIC = 2u;
+const uint SENSOR_LIDAR = 3u;
 
 #endif

@@ -16,6 +16,7 @@ void main() {
   ExactBest best = exact_miss();
   int seen = 0;
   int on_surface = 0;
+  double left = 1.0;
   double entry = scene_entry(ray);
   if (entry >= 0.0) {
     TraversalRay r = traversal_ray(ray, entry);
@@ -27,7 +28,10 @@ void main() {
       if (rayQueryGetIntersectionTypeEXT(query, false) != gl_RayQueryCandidateIntersectionAABBEXT) continue;
       int instance = rayQueryGetIntersectionInstanceIdEXT(query, false);
       int prim = rayQueryGetIntersectionPrimitiveIndexEXT(query, false);
-      if (QUERY == QUERY_ALL) {
+      if (QUERY == QUERY_TRANSMIT) {
+        left *= exact_transmit(ray, instance, prim);
+        if (left == 0.0) rayQueryTerminateEXT(query);
+      } else if (QUERY == QUERY_ALL) {
         // Every box's triangle is tested once per instance and none is committed: each crossing
         // the f64 test accepts is met once.
         ExactHit h;
@@ -49,6 +53,8 @@ void main() {
   }
   if (QUERY == QUERY_ALL || QUERY == QUERY_PARITY) {
     HitCounts(params.out_prim).v[i] = seen | on_surface;
+  } else if (QUERY == QUERY_TRANSMIT) {
+    DoubleOut(params.out_t).v[i] = left;
   } else {
     store_exact(i, best);
   }

@@ -8,6 +8,13 @@
 
 layout(local_size_x_id = 2) in;
 
+// The opacity of the query's candidate triangle.
+float candidate_opacity(rayQueryEXT query) {
+  GeometrySource src = geometry_source(rayQueryGetIntersectionInstanceIdEXT(query, false),
+                                       rayQueryGetIntersectionGeometryIndexEXT(query, false));
+  return triangle_opacity(src, rayQueryGetIntersectionPrimitiveIndexEXT(query, false));
+}
+
 // Every hit (QUERY_ALL): RAY_FLAGS holds NoOpaque, so that each triangle comes here as a
 // candidate; each is kept in the ray's list and none is committed. Scenes with spheres do not
 // take this path.
@@ -19,6 +26,7 @@ void trace_all(uint i, Ray ray) {
                         ray.origin, ray.tmin, ray.direction, ray.tmax);
   while (rayQueryProceedEXT(query)) {
     if (rayQueryGetIntersectionTypeEXT(query, false) != gl_RayQueryCandidateIntersectionTriangleEXT) continue;
+    if (!is_solid(candidate_opacity(query))) continue;
     if (!storing) {
       ++seen;
       continue;
@@ -32,6 +40,21 @@ void trace_all(uint i, Ray ray) {
   HitCounts(params.out_prim).v[i] = seen;
 }
 
+// Transmittance (QUERY_TRANSMIT): RAY_FLAGS holds NoOpaque, so that each triangle comes here; the
+// light left is multiplied by 1 - opacity at each, and traversal stops once none is left.
+void trace_transmit(uint i, Ray ray) {
+  float left = 1.0;
+  rayQueryEXT query;
+  rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i),
+                        ray.origin, ray.tmin, ray.direction, ray.tmax);
+  while (rayQueryProceedEXT(query)) {
+    if (rayQueryGetIntersectionTypeEXT(query, false) != gl_RayQueryCandidateIntersectionTriangleEXT) continue;
+    left *= 1.0 - candidate_opacity(query);
+    if (left == 0.0) rayQueryTerminateEXT(query);
+  }
+  FloatOut(params.out_t).v[i] = left;
+}
+
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
@@ -40,18 +63,24 @@ void main() {
     trace_all(i, ray);
     return;
   }
+  if (QUERY == QUERY_TRANSMIT) {
+    trace_transmit(i, ray);
+    return;
+  }
 
   rayQueryEXT query;
   rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i),
                         ray.origin, ray.tmin, ray.direction, ray.tmax);
-  // Opaque triangles are committed by traversal itself. Where a scene has non-opaque instances
-  // (RAY_FLAGS then lacks CULL_NO_OPAQUE), their candidates come here and are accepted: vkray has
-  // no any-hit programs. For all-opaque scenes this branch is compiled out.
+  // Opaque triangles are committed by traversal itself. Where a scene has triangles that are not
+  // opaque (opacity, or non-opaque instances: RAY_FLAGS then lacks CULL_NO_OPAQUE), they come here
+  // and are committed where their opacity reaches the threshold. For all-opaque scenes this branch
+  // is compiled out.
   // Boxes are spheres' (scenes without spheres skip them, gl_RayFlagsSkipAABBEXT): each candidate
   // is tested here and committed at its distance if nearer than the committed hit.
   while (rayQueryProceedEXT(query)) {
     uint candidate = rayQueryGetIntersectionTypeEXT(query, false);
-    if ((RAY_FLAGS & gl_RayFlagsCullNoOpaqueEXT) == 0u && candidate == gl_RayQueryCandidateIntersectionTriangleEXT) {
+    if ((RAY_FLAGS & gl_RayFlagsCullNoOpaqueEXT) == 0u && candidate == gl_RayQueryCandidateIntersectionTriangleEXT &&
+        is_solid(candidate_opacity(query))) {
       rayQueryConfirmIntersectionEXT(query);
     }
     if ((RAY_FLAGS & gl_RayFlagsSkipAABBEXT) == 0u && candidate == gl_RayQueryCandidateIntersectionAABBEXT) {

@@ -158,6 +158,7 @@ class Device:
         allow_update: bool = False,
         compact: bool = False,
         vertex_format: VertexFormat = "float32",
+        opacity: Any = None,
     ) -> Mesh:
         """Uploads a triangle mesh and builds its bottom-level acceleration structure.
 
@@ -172,6 +173,12 @@ class Device:
         (8 bytes: the vertices re-centred and scaled into [-1, 1], then quantized). Every tier then
         traces the quantized surface; docs/benchmarks.md measures the memory saved and the
         accuracy lost. ``Device.limits["vertex_formats"]`` lists what the device accepts.
+        opacity: ``None`` (default: opaque), one float, or one float per triangle, each in [0, 1]:
+        1 blocks rays, 0 cuts the triangle out; in between, `Scene.intersect` and the other
+        queries let a ray through where the opacity is below their ``opacity_threshold`` (0.5 by
+        default), and `Scene.transmittance` multiplies ``1 - opacity`` over every crossing. A mesh
+        whose triangles are all opaque keeps Vulkan's OPAQUE flag and never runs an any-hit stage;
+        translucent meshes make their scenes run one (see `Scene.explain`).
         """
         if faces is None:
             if not (hasattr(vertices, "vertices") and hasattr(vertices, "faces")):
@@ -180,8 +187,9 @@ class Device:
         _arrays.check_mesh_size(vertices, faces, int(self._core.limits["max_primitive_count"]))
         v = _arrays.points("vertices", vertices)
         f = _arrays.faces(faces)
-        core = self._core.mesh(v, f, build, bool(allow_update), bool(compact), vertex_format)
-        return Mesh(self, core, v, f)
+        alpha = _opacity(opacity, len(f))
+        core = self._core.mesh(v, f, build, bool(allow_update), bool(compact), vertex_format, alpha)
+        return Mesh(self, core, v, f, alpha)
 
     def spheres(self, centers: Any, radii: Any, *, build: Build = "fast_trace", compact: bool = False) -> Mesh:
         """A set of spheres as one BLAS of boxes, whose spheres a shader intersects (a numerically
@@ -211,6 +219,7 @@ class Device:
         allow_update: bool = False,
         compact: bool = False,
         vertex_format: VertexFormat = "float32",
+        opacity: Optional[Iterable[Any]] = None,
     ) -> Mesh:
         """One mesh of several parts, each a geometry of one BLAS: ``parts`` are ``(vertices,
         faces)`` or ``(vertices, faces, transform)`` (a 3×4 or 4×4 affine matrix as `Instance`
@@ -218,7 +227,8 @@ class Device:
 
         ``Hits.geometry_id`` says which part was hit and ``Hits.prim_id`` counts triangles within
         that part. The mesh's ``vertices`` and ``faces`` are all parts' (transformed) in order.
-        Refitting (`Mesh.update`) is for single-part meshes.
+        Refitting (`Mesh.update`) is for single-part meshes. opacity: ``None`` or one entry per
+        part, each as `Device.mesh` takes it (``None``, a float, or one float per triangle).
         """
         arrays = []
         for k, part in enumerate(parts):
@@ -233,11 +243,21 @@ class Device:
             arrays.append((v, _arrays.faces(part[1])))
         if not arrays:
             raise ValueError("a mesh needs at least one part")
-        core = self._core.mesh_parts(arrays, build, bool(allow_update), bool(compact), vertex_format)
+        alpha = None
+        if opacity is not None:
+            per_part = list(opacity)
+            if len(per_part) != len(arrays):
+                raise ValueError(f"opacity has {len(per_part)} entries for {len(arrays)} parts")
+            alphas = [_opacity(a, len(f), f"opacity[{k}]") for k, (a, (_, f)) in enumerate(zip(per_part, arrays))]
+            if any(a is not None for a in alphas):
+                alpha = np.concatenate(
+                    [np.ones(len(f), np.float32) if a is None else a for a, (_, f) in zip(alphas, arrays)]
+                )
+        core = self._core.mesh_parts(arrays, build, bool(allow_update), bool(compact), vertex_format, alpha)
         first = np.cumsum([0] + [len(v) for v, _ in arrays[:-1]])
         vertices = np.concatenate([v.astype(np.float64) for v, _ in arrays])
         faces = np.concatenate([f.astype(np.int64) + o for (_, f), o in zip(arrays, first)])
-        return Mesh(self, core, vertices, faces)
+        return Mesh(self, core, vertices, faces, alpha)
 
     def meshes(
         self,
@@ -323,12 +343,21 @@ class Mesh:
     Made by `Device.mesh`. Keeps its device buffers alive as long as any scene uses it.
     """
 
-    def __init__(self, device: Device, core: _core.Mesh, vertices: np.ndarray, faces: Optional[np.ndarray]) -> None:
+    def __init__(
+        self,
+        device: Device,
+        core: _core.Mesh,
+        vertices: np.ndarray,
+        faces: Optional[np.ndarray],
+        opacity: Optional[np.ndarray] = None,
+    ) -> None:
         self.device = device
         self._core = core
         self.vertices = vertices
         #: The triangles' corner indices; ``None`` for spheres.
         self.faces = faces
+        #: float32 opacity per triangle, or ``None`` where every triangle is opaque.
+        self.opacity = None if opacity is None or bool((opacity >= 1).all()) else opacity
         self._closed: Optional[bool] = None
         self._radii: Optional[np.ndarray] = None  # spheres: one radius, or one a sphere
 
@@ -560,7 +589,7 @@ class Scene:
     def intersect(
         self,
         origins: Any,
-        directions: Any,
+        directions: Any = None,
         *,
         tmin: Any = 0.0,
         tmax: Any = np.inf,
@@ -569,12 +598,18 @@ class Scene:
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        opacity_threshold: float = 0.5,
     ) -> Hits:
         """The closest hit of each ray within [tmin, tmax].
 
         origins, directions: arrays of shape ``S + (3,)`` that broadcast together (one origin for
         many directions is fine); float32 or float64. Directions need not be unit length: ``t`` is
-        measured in units of the direction's length.
+        measured in units of the direction's length. Or a sensor (`vkray.PinholeCamera`,
+        `vkray.OrthographicCamera`, `vkray.Lidar`) alone: the GPU generates its rays (nothing is
+        uploaded; ``sensor.rays()`` are the same rays as arrays), ``S`` is ``sensor.shape`` and the
+        sensor's range is the interval (tmin and tmax are not given). A lidar with ``echoes=k > 1``
+        gives its first k returns along each beam: fields of shape ``S + (k,)``, misses after the
+        last return.
         tmin, tmax: scalars or arrays of shape ``S``; ``0 <= tmin <= tmax``. Hits exactly at the
         bounds follow Vulkan's rules (the interval is closed up to f32 rounding of traversal).
         outputs: which `Hits` fields to compute (default: all but ``geometry_id``). Unasked fields
@@ -604,22 +639,112 @@ class Scene:
         instance when ``instance.mask & mask != 0``.
         progress: show a progress bar as chunks finish (tqdm's when installed, else a line on
         stderr); the same on `occluded`, `intersect_all`, `count` and `contains`.
+        opacity_threshold: in (0, 1]; a triangle whose opacity (`Device.mesh`) is below it lets
+        rays through; 1 lets through all but fully opaque triangles. Instances made with
+        ``opaque=True`` block everywhere. The same in `occluded`, `intersect_all` and `count`.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
-        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        batch = _RayBatch(origins, directions, tmin, tmax, mask)
+        if batch.echoes > 1:
+            return self._echoes(batch, fields, precision, cull, progress, opacity_threshold)
         arrays = _progress.call(
             progress,
             "intersect",
             lambda bar: self._core.trace(
-                o, d, lo, hi, "closest", list(fields), precision, cull, _arrays.masks(mask, shape), progress=bar
+                *batch.arrays,
+                "closest",
+                list(fields),
+                precision,
+                cull,
+                batch.mask,
+                progress=bar,
+                opacity_threshold=opacity_threshold,
+                sensor=batch.sensor,
             ),
         )
-        return Hits(shape, arrays, precision)
+        return Hits(batch.shape, arrays, precision)
+
+    def _echoes(
+        self,
+        batch: _RayBatch,
+        fields: Tuple[str, ...],
+        precision: Precision,
+        cull: Cull,
+        progress: bool,
+        opacity_threshold: float,
+    ) -> Hits:
+        """The first ``batch.echoes`` hits of each ray, as Hits of shape ``S + (echoes,)``."""
+        k = batch.echoes
+        arrays = _progress.call(
+            progress,
+            "intersect",
+            lambda bar: self._core.trace_all(
+                *batch.arrays,
+                list(fields),
+                precision,
+                cull,
+                batch.mask,
+                k,
+                progress=bar,
+                opacity_threshold=opacity_threshold,
+                sensor=batch.sensor,
+            ),
+        )
+        offsets = arrays["offsets"]
+        n = len(offsets) - 1
+        rank = np.arange(len(arrays["ray_index"])) - offsets[arrays["ray_index"]]
+        slot = arrays["ray_index"] * k + rank
+        padded: Dict[str, np.ndarray] = {}
+        for name in fields:
+            values = arrays[name]
+            miss = np.inf if name == "t" else (np.nan if values.dtype.kind == "f" else -1)
+            out = np.full((n * k,) + values.shape[1:], miss, dtype=values.dtype)
+            out[slot] = values
+            padded[name] = out
+        return Hits(batch.shape + (k,), padded, precision)
 
     def occluded(
         self,
         origins: Any,
-        directions: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> np.ndarray:
+        """bool ``S``: whether anything lies along each ray within [tmin, tmax].
+
+        Traversal stops at the first hit found (TerminateOnFirstHit), so this is cheaper than
+        `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray, in every tier
+        (``"refined"`` decides hits as ``"fast"`` does). Rays or a sensor, ``cull``, ``mask`` and
+        ``opacity_threshold`` as in `intersect`.
+        """
+        batch = _RayBatch(origins, directions, tmin, tmax, mask)
+        arrays = _progress.call(
+            progress,
+            "occluded",
+            lambda bar: self._core.trace(
+                *batch.arrays,
+                "occluded",
+                ["prim_id"],
+                precision,
+                cull,
+                batch.mask,
+                progress=bar,
+                opacity_threshold=opacity_threshold,
+                sensor=batch.sensor,
+            ),
+        )
+        return (arrays["prim_id"] >= 0).reshape(batch.shape)
+
+    def transmittance(
+        self,
+        origins: Any,
+        directions: Any = None,
         *,
         tmin: Any = 0.0,
         tmax: Any = np.inf,
@@ -628,26 +753,38 @@ class Scene:
         mask: Any = 0xFF,
         progress: bool = False,
     ) -> np.ndarray:
-        """bool ``S``: whether anything lies along each ray within [tmin, tmax].
+        """The light each ray keeps within [tmin, tmax]: the product of ``1 - opacity`` over every
+        triangle it crosses (`Device.mesh`'s opacity; opaque triangles give 0, cut-outs 1):
+        attenuation through foliage, glass or shielding. Computed during traversal without storing
+        the hits (the GPU tiers stop a ray once nothing is left).
 
-        Traversal stops at the first hit found (TerminateOnFirstHit), so this is cheaper than
-        `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray, in every tier
-        (``"refined"`` decides hits as ``"fast"`` does). ``cull`` and ``mask`` as in `intersect`.
+        precision: ``"fast"`` (float32; at a shared edge a ray may cross both triangles or
+        neither, as in `count`), ``"exact"`` (float64; each crossing once, by the f64 test on the
+        GPU), ``"refined"`` (the fast tier's crossings re-intersected in f64) or ``"reference"``
+        (the f64 test on the CPU: the oracle). Rays or a sensor, ``cull`` and ``mask`` as in
+        `intersect`; scenes with spheres raise `UnsupportedError`.
         """
-        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        batch = _RayBatch(origins, directions, tmin, tmax, mask)
         arrays = _progress.call(
             progress,
-            "occluded",
+            "transmittance",
             lambda bar: self._core.trace(
-                o, d, lo, hi, "occluded", ["prim_id"], precision, cull, _arrays.masks(mask, shape), progress=bar
+                *batch.arrays,
+                "transmittance",
+                ["t"],
+                precision,
+                cull,
+                batch.mask,
+                progress=bar,
+                sensor=batch.sensor,
             ),
         )
-        return (arrays["prim_id"] >= 0).reshape(shape)
+        return arrays["t"].reshape(batch.shape)
 
     def intersect_all(
         self,
         origins: Any,
-        directions: Any,
+        directions: Any = None,
         *,
         tmin: Any = 0.0,
         tmax: Any = np.inf,
@@ -657,6 +794,7 @@ class Scene:
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        opacity_threshold: float = 0.5,
     ) -> AllHits:
         """Every hit of each ray within [tmin, tmax], nearest first (see `AllHits`).
 
@@ -679,24 +817,33 @@ class Scene:
           sorted again (float64); a ray with a hit whose f64 answer leaves [tmin, tmax] is traced
           again on the CPU. Edges as in ``"fast"``.
 
-        Scenes with spheres raise `UnsupportedError`. Other arguments as in `intersect`.
+        Scenes with spheres raise `UnsupportedError`. Triangles below ``opacity_threshold`` are
+        not hits. Other arguments (rays or a sensor) as in `intersect`.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
-        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        batch = _RayBatch(origins, directions, tmin, tmax, mask)
         arrays = _progress.call(
             progress,
             "intersect_all",
             lambda bar: self._core.trace_all(
-                o, d, lo, hi, list(fields), precision, cull, _arrays.masks(mask, shape), limit, progress=bar
+                *batch.arrays,
+                list(fields),
+                precision,
+                cull,
+                batch.mask,
+                limit,
+                progress=bar,
+                opacity_threshold=opacity_threshold,
+                sensor=batch.sensor,
             ),
         )
-        return AllHits(shape, arrays, precision)
+        return AllHits(batch.shape, arrays, precision)
 
     def count(
         self,
         origins: Any,
-        directions: Any,
+        directions: Any = None,
         *,
         tmin: Any = 0.0,
         tmax: Any = np.inf,
@@ -704,6 +851,7 @@ class Scene:
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        opacity_threshold: float = 0.5,
     ) -> np.ndarray:
         """int32 ``S``: the number of hits of each ray within [tmin, tmax], as `intersect_all`
         finds them at the same precision (``count(...) == intersect_all(...).counts``), without
@@ -712,14 +860,23 @@ class Scene:
         precision: ``"fast"`` (default: f32 traversal on the GPU, each triangle it meets counted;
         at shared edges it may count two or none), ``"exact"`` (the f64 test on the GPU through
         per-triangle boxes: every crossing counted once; needs shaderFloat64), ``"reference"``
-        (the same f64 test on all CPU cores) or ``"refined"``."""
-        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        (the same f64 test on all CPU cores) or ``"refined"``. Rays or a sensor, and the other
+        arguments, as in `intersect`."""
+        batch = _RayBatch(origins, directions, tmin, tmax, mask)
         counts = _progress.call(
             progress,
             "count",
-            lambda bar: self._core.count(o, d, lo, hi, precision, cull, _arrays.masks(mask, shape), progress=bar),
+            lambda bar: self._core.count(
+                *batch.arrays,
+                precision,
+                cull,
+                batch.mask,
+                progress=bar,
+                opacity_threshold=opacity_threshold,
+                sensor=batch.sensor,
+            ),
         )
-        return counts.reshape(shape)
+        return counts.reshape(batch.shape)
 
     def contains(
         self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
@@ -768,6 +925,71 @@ class Scene:
 
 # precision, cull, build, backend and vertex_format are checked by the core alone: its
 # ValueError names the argument, the choices and the value given.
+
+
+class _RayBatch:
+    """A query's rays as the core takes them: arrays (flattened, bounds), or a sensor's record."""
+
+    def __init__(self, origins: Any, directions: Any, tmin: Any, tmax: Any, mask: Any) -> None:
+        from .sensors import Sensor
+
+        self.sensor: Optional[Dict[str, Any]] = None
+        self.echoes = 1
+        if isinstance(origins, Sensor):
+            if directions is not None:
+                raise TypeError("a sensor generates its own rays: pass it alone, without directions")
+            if not (np.isscalar(tmin) and float(tmin) == 0.0 and np.isscalar(tmax) and float(tmax) == np.inf):
+                raise TypeError("a sensor's range is its own (its tmin and tmax): do not pass tmin or tmax")
+            self.shape: Tuple[int, ...] = tuple(origins.shape)
+            self.sensor = _sensor_record(origins)
+            self.echoes = int(origins.echoes)
+            empty = np.empty((0, 3), np.float32)
+            self.arrays: Tuple[Any, ...] = (empty, empty, float(origins.tmin), float(origins.tmax))
+            self.mask = _arrays.masks(mask, ())
+            return
+        if directions is None:
+            raise TypeError("directions are needed, unless origins is a sensor (vkray.PinholeCamera ...)")
+        shape, o, d, lo, hi = _arrays.rays(origins, directions, tmin, tmax)
+        self.shape = shape
+        self.arrays = (o, d, lo, hi)
+        self.mask = _arrays.masks(mask, shape)
+
+
+def _sensor_record(sensor: Any) -> Dict[str, Any]:
+    """The core's record of a sensor (src/geometry/sensor.rs SensorRays) from its parameters."""
+    g = sensor._generator()
+    table = np.asarray(g["table"], dtype=np.float32)
+    if g["kind"] == 3:
+        # sensors.py lists channels' (cos, sin) first; the shaders read the steps' first.
+        channels = 2 * int(g["rows"])
+        table = np.concatenate([table[channels:], table[:channels]])
+    return {
+        "kind": int(g["kind"]),
+        "origin": [float(x) for x in np.asarray(g["origin"], np.float32).reshape(3)],
+        "axes": [float(x) for x in np.asarray(g["axes"], np.float32).reshape(9)],
+        "columns": int(g["columns"]),
+        "rows": int(g["rows"]),
+        "pixel_offset": float(g.get("pixel_offset", 0.5)),
+        "tmin": float(g["tmin"]),
+        "tmax": float(g["tmax"]),
+        "table": [float(x) for x in table],
+    }
+
+
+def _opacity(value: Any, triangles: int, name: str = "opacity") -> Optional[np.ndarray]:
+    """float32 ``(triangles,)`` opacity in [0, 1] from None, one number or one per triangle."""
+    if value is None:
+        return None
+    a = _arrays.real_coordinates(name, value)
+    if a.ndim == 0:
+        a = np.full(triangles, float(a))
+    if a.shape != (triangles,):
+        raise ValueError(f"{name} must be one float or {triangles} (one per triangle), got shape {a.shape}")
+    bad = ~((a >= 0) & (a <= 1))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"{name}[{i}] must be in [0, 1] (1 blocks, 0 cuts the triangle out), got {a[i]}")
+    return np.ascontiguousarray(a, dtype=np.float32)
 
 
 def _closed(faces: np.ndarray) -> bool:

@@ -7,6 +7,7 @@ pub mod parallel;
 pub mod precision;
 pub mod rays;
 pub mod reference;
+pub mod sensor;
 pub mod vertex_format;
 
 /// Rounds `value` up to a multiple of `alignment` (a power of two, or 0/1 for none).

@@ -7,6 +7,7 @@ use rayon::prelude::*;
 use super::arrays::{fmt_row, Vec3s};
 use super::parallel;
 use super::precision::Ray64;
+use super::sensor::SensorRays;
 use crate::error::{invalid_value, Result};
 
 /// A per-ray interval bound: one value for every ray, or one per ray.
@@ -53,6 +54,8 @@ pub struct Rays<'a> {
     pub tmin: PerRay<'a>,
     pub tmax: PerRay<'a>,
     pub mask: Masks<'a>,
+    /// Rays a sensor generates instead of `origins` and `directions` (which are then empty).
+    pub sensor: Option<&'a SensorRays>,
 }
 
 /// Floats one packed ray takes: origin, tmin, direction, tmax.
@@ -65,6 +68,9 @@ const PACK_PIECE: usize = 1 << 14;
 impl Rays<'_> {
     /// The batch size: the longest of the four arrays (the others have one row or value).
     pub fn len(&self) -> usize {
+        if let Some(sensor) = self.sensor {
+            return sensor.len();
+        }
         let bound_len = |b: PerRay| match b {
             PerRay::All(_) => 0,
             PerRay::Each(v) => v.len(),
@@ -87,29 +93,52 @@ impl Rays<'_> {
 
     #[inline(always)]
     fn origin(&self, i: usize) -> [f32; 3] {
+        if let Some(sensor) = self.sensor {
+            return sensor.ray(i).0;
+        }
         self.origins.row_f32(if self.origins.rows() == 1 { 0 } else { i })
     }
 
     #[inline(always)]
     fn direction(&self, i: usize) -> [f32; 3] {
+        if let Some(sensor) = self.sensor {
+            return sensor.ray(i).1;
+        }
         self.directions.row_f32(if self.directions.rows() == 1 { 0 } else { i })
     }
 
     /// Ray `i` in f64, its origin shifted by `-shift` (into a scene's frame).
     #[inline(always)]
     pub fn ray64(&self, i: usize, shift: DVec3) -> Ray64 {
-        Ray64 {
-            origin: self.origin64(i, shift),
-            direction: DVec3::from_array(self.directions.row_f64(if self.directions.rows() == 1 { 0 } else { i })),
-            tmin: self.tmin.get(i),
-            tmax: self.tmax.get(i),
-        }
+        Ray64 { origin: self.origin64(i, shift), direction: self.direction64(i), tmin: self.tmin.get(i), tmax: self.tmax.get(i) }
     }
 
     /// Ray `i`'s origin in f64, shifted by `-shift`.
     #[inline(always)]
     fn origin64(&self, i: usize, shift: DVec3) -> DVec3 {
+        if self.sensor.is_some() {
+            return DVec3::from_array(self.origin(i).map(f64::from)) - shift;
+        }
         DVec3::from_array(self.origins.row_f64(if self.origins.rows() == 1 { 0 } else { i })) - shift
+    }
+
+    #[inline(always)]
+    fn direction64(&self, i: usize) -> DVec3 {
+        if self.sensor.is_some() {
+            return DVec3::from_array(self.direction(i).map(f64::from));
+        }
+        DVec3::from_array(self.directions.row_f64(if self.directions.rows() == 1 { 0 } else { i }))
+    }
+
+    /// The sensor whose rays the GPU may generate itself: these rays' sensor, if none of its rays
+    /// is far enough from the scene for the host to advance it (the shaders do not advance rays).
+    pub fn generated_on_gpu(&self, frame: &Frame) -> Option<&SensorRays> {
+        let sensor = self.sensor?;
+        let near = sensor
+            .extreme_origins()
+            .iter()
+            .all(|o| !frame.is_far(DVec3::from_array(o.map(f64::from)) - frame.shift));
+        near.then_some(sensor)
     }
 
     /// Array lengths must agree (one shared origin or direction row is allowed).
@@ -360,7 +389,7 @@ impl Frame {
 /// `[tmin, tmax]` in f32, widened outward by one ulp at each end (an empty interval stays empty
 /// at 0); Vulkan wants finite bounds, and the largest float is as far as +inf for any f32 scene.
 #[inline]
-fn widened(tmin: f64, tmax: f64) -> [f32; 2] {
+pub fn widened(tmin: f64, tmax: f64) -> [f32; 2] {
     let lo = round_down_f32(tmin).next_down().max(0.0);
     let hi = if tmax == 0.0 { 0.0 } else { round_up_f32(tmax).next_up().min(f32::MAX) };
     [lo, hi]
@@ -392,7 +421,7 @@ mod tests {
     use crate::error::tests::invalid_message as message;
 
     fn rays<'a>(o: &'a [f32], d: &'a [f32], tmin: PerRay<'a>, tmax: PerRay<'a>) -> Rays<'a> {
-        Rays { origins: Vec3s::F32(o), directions: Vec3s::F32(d), tmin, tmax, mask: Masks::All(0xFF) }
+        Rays { origins: Vec3s::F32(o), directions: Vec3s::F32(d), tmin, tmax, mask: Masks::All(0xFF), sensor: None }
     }
 
     #[test]
@@ -444,6 +473,7 @@ mod tests {
             tmin: PerRay::All(0.5),
             tmax: PerRay::All(f64::INFINITY),
             mask: Masks::All(0xFF),
+            sensor: None,
         };
         let mut out = [0f32; RAY_FLOATS];
         r.pack(0, &mut out, &Frame::at(DVec3::ZERO)).unwrap();
@@ -463,6 +493,7 @@ mod tests {
             tmin: PerRay::All(0.0),
             tmax: PerRay::Each(&tmax),
             mask: Masks::All(0xFF),
+            sensor: None,
         };
         let mut out = [0f32; 3 * RAY_FLOATS];
         let advances = r.pack(0, &mut out, &frame).unwrap();

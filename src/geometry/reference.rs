@@ -161,6 +161,23 @@ pub struct PlacedSet<'a> {
     pub flip_facing: bool,
     /// Query culling does not apply to this set.
     pub cull_disable: bool,
+    /// Opacity per triangle (among all parts), where the set has translucent triangles.
+    pub opacity: Option<&'a [f32]>,
+}
+
+/// Which triangles a ray may hit: the sides `cull` keeps, whose opacity reaches `threshold`
+/// (0: every triangle).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Filter {
+    pub cull: Cull,
+    pub threshold: f32,
+}
+
+impl Filter {
+    /// Every triangle on the sides `cull` keeps, whatever its opacity.
+    pub fn sides(cull: Cull) -> Filter {
+        Filter { cull, threshold: 0.0 }
+    }
 }
 
 /// What the CPU tracer found for one ray: t and barycentrics (of vertices 1 and 2) in f64, the
@@ -204,9 +221,9 @@ impl<'a> ReferenceTracer<'a> {
 
     /// The first hit of `ray` by the tie-break order among the sets its `mask` sees and the
     /// sides `cull` keeps; with `any`, the first one found.
-    pub fn trace(&self, ray: &Ray64, mask: u8, cull: Cull, any: bool) -> Option<ReferenceHit> {
+    pub fn trace(&self, ray: &Ray64, mask: u8, filter: Filter, any: bool) -> Option<ReferenceHit> {
         let mut best: Option<ReferenceHit> = None;
-        self.for_each_hit(ray, mask, cull, |candidate, tmax| {
+        self.for_each_hit(ray, mask, filter, |candidate, tmax| {
             if best.is_none_or(|b| candidate.is_before(&b)) {
                 best = Some(candidate);
                 *tmax = candidate.t;
@@ -221,9 +238,9 @@ impl<'a> ReferenceTracer<'a> {
     /// instance and triangle). The watertight test reports each crossing of a surface once: a ray
     /// through a shared edge or vertex hits exactly one of the triangles there, while distinct
     /// triangles at the same t (coplanar copies, instances in one place) are all reported.
-    pub fn trace_every(&self, ray: &Ray64, mask: u8, cull: Cull, hits: &mut Vec<ReferenceHit>) {
+    pub fn trace_every(&self, ray: &Ray64, mask: u8, filter: Filter, hits: &mut Vec<ReferenceHit>) {
         let first = hits.len();
-        self.for_each_hit(ray, mask, cull, |hit, _| {
+        self.for_each_hit(ray, mask, filter, |hit, _| {
             hits.push(hit);
             true
         });
@@ -233,7 +250,7 @@ impl<'a> ReferenceTracer<'a> {
 
     /// Calls `found` with each hit of `ray` no farther than the `tmax` it keeps (which `found`
     /// may lower), among the sets `mask` sees and the sides `cull` keeps, until it returns false.
-    fn for_each_hit(&self, ray: &Ray64, mask: u8, cull: Cull, mut found: impl FnMut(ReferenceHit, &mut f64) -> bool) {
+    fn for_each_hit(&self, ray: &Ray64, mask: u8, filter: Filter, mut found: impl FnMut(ReferenceHit, &mut f64) -> bool) {
         let mut tmax = ray.tmax;
         self.top.traverse(ray, &mut tmax, |instance, tmax| {
             let set = &self.sets[instance as usize];
@@ -245,7 +262,10 @@ impl<'a> ReferenceTracer<'a> {
             set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
                 let [a, b, c] = set.triangles.triangle(prim as usize);
                 let Some(hit) = watertight(&local, a, b, c) else { return true };
-                if hit.t > *tmax || !(set.cull_disable || cull.keeps(hit.front != set.flip_facing)) {
+                if hit.t > *tmax || !(set.cull_disable || filter.cull.keeps(hit.front != set.flip_facing)) {
+                    return true;
+                }
+                if set.opacity.is_some_and(|o| o[prim as usize] < filter.threshold) {
                     return true;
                 }
                 go_on = found(ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim }, tmax);
@@ -282,14 +302,14 @@ impl<'a> ReferenceTracer<'a> {
     pub fn trace_all(
         &self,
         rays: impl Fn(usize) -> (Ray64, u8) + Sync,
-        cull: Cull,
+        filter: Filter,
         any: bool,
         out: &mut [Option<ReferenceHit>],
     ) {
         parallel::install(|| {
             out.par_iter_mut().enumerate().with_min_len(256).for_each(|(i, slot)| {
                 let (ray, mask) = rays(i);
-                *slot = self.trace(&ray, mask, cull, any)
+                *slot = self.trace(&ray, mask, filter, any)
             })
         });
     }

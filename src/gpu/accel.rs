@@ -557,6 +557,11 @@ pub const GEOMETRY_FLAGS: vk::GeometryFlagsKHR = vk::GeometryFlagsKHR::from_raw(
     vk::GeometryFlagsKHR::OPAQUE.as_raw() | vk::GeometryFlagsKHR::NO_DUPLICATE_ANY_HIT_INVOCATION.as_raw(),
 );
 
+/// The flags of a geometry some of whose triangles let light through (`Device.mesh(opacity=)`):
+/// not opaque, so that traversal hands its triangles to the any-hit stage (or the ray query's
+/// candidate loop), which reads their opacity; each at most once per ray.
+pub const TRANSLUCENT_GEOMETRY_FLAGS: vk::GeometryFlagsKHR = vk::GeometryFlagsKHR::NO_DUPLICATE_ANY_HIT_INVOCATION;
+
 /// One opaque geometry of boxes at `address`: tightly packed `VkAabbPositionsKHR`, which hosts
 /// write as `[f32; 6]` (min xyz, max xyz: `Aabb::outward_f32`).
 pub fn aabbs_geometry(address: u64) -> vk::AccelerationStructureGeometryKHR<'static> {

@@ -17,7 +17,8 @@ pub struct Params {
     pub outputs: [u64; 7],
     /// Exact tier, pipeline backend: the per-ray `ExactBest` records its intersection shader keeps.
     pub scratch: u64,
-    /// Per-ray masks (one u32 each), or 0 when every ray uses `ray_mask`.
+    /// Per-ray masks (one u32 each), or 0 when every ray uses `ray_mask`. Rays a sensor
+    /// generates (which share `ray_mask`): the chunk's first ray.
     pub masks: u64,
     pub count: u32,
     /// Exact tier: the scene's bounds (min xyz, max xyz) in its frame, rounded outward to f32.
@@ -49,6 +50,8 @@ pub struct GeometrySource {
     pub indices: u64,
     /// Device triangle -> caller's triangle (u32 each), or 0 where they agree.
     pub primitive_order: u64,
+    /// f32 opacity in [0, 1] per device triangle, or 0 where every triangle is opaque.
+    pub opacity: u64,
     pub index_is_u16: u32,
     /// A `VertexFormat` (as u32), or `SPHERE_SOURCE`.
     pub vertex_format: u32,
@@ -58,7 +61,7 @@ pub struct GeometrySource {
 pub const SPHERE_SOURCE: u32 = 3;
 
 /// The exact tier's record of one instance (`ExactInstance` in shaders/records.glsl): the f64 map
-/// from the scene's frame to the mesh's and where the mesh's exact-tier buffers live. 136 bytes
+/// from the scene's frame to the mesh's and where the mesh's exact-tier buffers live. 144 bytes
 /// of data, 160 apart in arrays (std430 aligns the record to its dvec4s' 32 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -76,8 +79,10 @@ pub struct ExactInstance {
     pub part_count: u32,
     /// `EXACT_CULL_DISABLE` | `EXACT_FLIP_FACING`.
     pub flags: u32,
+    /// f32 opacity per caller's triangle among all parts, or 0 where all are opaque.
+    pub opacity: u64,
     /// Up to the array stride (no data).
-    pub _padding: [u64; 3],
+    pub _padding: [u64; 2],
 }
 
 /// `ExactInstance::flags`: query culling does not apply to the instance.
@@ -117,6 +122,34 @@ pub struct FastHit {
 /// record, so that both tiers' hits are written out by one function.
 pub type ExactHit = crate::geometry::reference::ReferenceHit;
 
+/// A sensor whose rays the shaders generate (`Sensor` in shaders/records.glsl), one per chunk.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct Sensor {
+    /// xyz; w: the fast tier's tmin.
+    pub origin: [f32; 4],
+    /// Three vectors (xyz); `axes[0][3]`: the fast tier's tmax.
+    pub axes: [[f32; 4]; 3],
+    /// `SENSOR_PINHOLE`, `SENSOR_ORTHOGRAPHIC` or `SENSOR_LIDAR`.
+    pub kind: u32,
+    /// Image width, or lidar steps.
+    pub columns: u32,
+    /// Image height, or lidar channels.
+    pub rows: u32,
+    pub pixel_offset: f32,
+    /// Lidar: (cos, sin) per channel, then per step (f32 each).
+    pub table: u64,
+    /// The exact tier's interval, f64.
+    pub tmin64: f64,
+    pub tmax64: f64,
+    /// The exact tier: the scene frame's offset, f64.
+    pub shift: [f64; 3],
+}
+
+pub const SENSOR_PINHOLE: u32 = 1;
+pub const SENSOR_ORTHOGRAPHIC: u32 = 2;
+pub const SENSOR_LIDAR: u32 = 3;
+
 /// Checks a record's size and field offsets at compile time.
 macro_rules! layout {
     ($record:ty, size $size:expr, $($field:ident @ $offset:expr),* $(,)?) => {
@@ -127,9 +160,12 @@ macro_rules! layout {
 
 layout!(Params, size 128, rays @ 0, instances @ 8, tlas @ 16, outputs @ 24, scratch @ 80, masks @ 88, count @ 96,
     bounds @ 100, ray_mask @ 124);
-layout!(GeometrySource, size 32, vertices @ 0, indices @ 8, primitive_order @ 16, index_is_u16 @ 24, vertex_format @ 28);
+layout!(GeometrySource, size 40, vertices @ 0, indices @ 8, primitive_order @ 16, opacity @ 24, index_is_u16 @ 32,
+    vertex_format @ 36);
 layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
-    part_count @ 128, flags @ 132, _padding @ 136);
+    part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144);
+layout!(Sensor, size 128, origin @ 0, axes @ 16, kind @ 64, columns @ 68, rows @ 72, pixel_offset @ 76, table @ 80,
+    tmin64 @ 88, tmax64 @ 96, shift @ 104);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
 layout!(FastHit, size 32, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20, unused @ 24);
 const _: () = assert!(std::mem::align_of::<FastHit>() == std::mem::align_of::<ExactHit>());
@@ -221,12 +257,26 @@ mod tests {
             (
                 "GeometrySource",
                 size_of::<GeometrySource>(),
-                members!(GeometrySource: vertices, indices, primitive_order, index_is_u16, vertex_format),
+                members!(GeometrySource: vertices, indices, primitive_order, opacity, index_is_u16, vertex_format),
             ),
             (
                 "ExactInstance",
                 size_of::<ExactInstance>(),
-                members!(ExactInstance: rows, vertices, indices, primitive_order, part_offsets, part_count, flags),
+                members!(
+                    ExactInstance: rows,
+                    vertices,
+                    indices,
+                    primitive_order,
+                    part_offsets,
+                    part_count,
+                    flags,
+                    opacity
+                ),
+            ),
+            (
+                "Sensor",
+                size_of::<Sensor>(),
+                members!(Sensor: origin, axes, kind, columns, rows, pixel_offset, table, tmin64, tmax64, shift),
             ),
             ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),
             ("HitList", size_of::<HitList>(), members!(HitList: first, capacity)),

@@ -15,6 +15,7 @@ pub const RAYGEN_EXACT: &[u8] = spirv!("raygen_exact.rgen");
 pub const INTERSECTION_EXACT: &[u8] = spirv!("intersection_exact.rint");
 pub const SPHERE_INTERSECTION: &[u8] = spirv!("sphere.rint");
 pub const ANY_HIT_ALL: &[u8] = spirv!("any_hit_all.rahit");
+pub const ANY_HIT_OPACITY: &[u8] = spirv!("any_hit_opacity.rahit");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -27,6 +28,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("intersection_exact.rint", INTERSECTION_EXACT),
     ("sphere.rint", SPHERE_INTERSECTION),
     ("any_hit_all.rahit", ANY_HIT_ALL),
+    ("any_hit_opacity.rahit", ANY_HIT_OPACITY),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

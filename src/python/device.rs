@@ -2,7 +2,7 @@
 
 use std::sync::{Arc, RwLock};
 
-use numpy::{PyArray2, PyArrayMethods, PyUntypedArrayMethods};
+use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -12,11 +12,11 @@ use super::mesh::PyMesh;
 use super::scene::{InstanceItem, PyScene};
 use super::{run, run_reporting};
 use crate::error::{Error, Result};
-use crate::geometry::arrays::{instance_transform, Indices, Vec3s};
+use crate::geometry::arrays::instance_transform;
 use crate::geometry::vertex_format::VertexFormat;
 use crate::gpu::accel::{BuildOptions, BuildPreference, BuildStats};
 use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest};
-use crate::scene::{Instance, InstanceFlags, Mesh, Scene, IDENTITY};
+use crate::scene::{Instance, InstanceFlags, Mesh, MeshInput, Scene, IDENTITY};
 use crate::trace::Tracer;
 
 pub(super) fn info_dict<'py>(py: Python<'py>, info: &DeviceInfo) -> PyResult<Bound<'py, PyDict>> {
@@ -143,7 +143,7 @@ impl PyDevice {
         Ok(self.tracer.set_chunk_rays(rays)?)
     }
 
-    #[pyo3(signature = (vertices, faces, build="fast_trace", allow_update=false, compact=false, vertex_format="float32"))]
+    #[pyo3(signature = (vertices, faces, build="fast_trace", allow_update=false, compact=false, vertex_format="float32", opacity=None))]
     #[allow(clippy::too_many_arguments)]
     fn mesh(
         &self,
@@ -154,13 +154,15 @@ impl PyDevice {
         allow_update: bool,
         compact: bool,
         vertex_format: &str,
+        opacity: Option<PyReadonlyArray1<'_, f32>>,
     ) -> PyResult<PyMesh> {
         let options = build_options(build, allow_update, compact)?;
         let format = VertexFormat::parse(vertex_format)?;
         let vertices = Vec3Array::extract("vertices", vertices)?;
         let faces = IndexArray::extract(faces)?;
         let (vertices, faces) = (vertices.view()?, faces.view()?);
-        let mesh = run(py, |_| Mesh::build(&self.ctx, vertices, faces, options, format))?;
+        let opacity = opacity.map(|o| o.as_array().to_vec());
+        let mesh = run(py, |_| Mesh::build_parts(&self.ctx, &[(vertices, faces)], opacity, options, format))?;
         Ok(PyMesh::new(mesh))
     }
 
@@ -183,7 +185,7 @@ impl PyDevice {
     }
 
     /// One mesh of several parts (geometries), each (vertices, faces) with transforms baked in.
-    #[pyo3(signature = (parts, build="fast_trace", allow_update=false, compact=false, vertex_format="float32"))]
+    #[pyo3(signature = (parts, build="fast_trace", allow_update=false, compact=false, vertex_format="float32", opacity=None))]
     fn mesh_parts(
         &self,
         py: Python<'_>,
@@ -192,15 +194,17 @@ impl PyDevice {
         allow_update: bool,
         compact: bool,
         vertex_format: &str,
+        opacity: Option<PyReadonlyArray1<'_, f32>>,
     ) -> PyResult<PyMesh> {
         let options = build_options(build, allow_update, compact)?;
         let format = VertexFormat::parse(vertex_format)?;
+        let opacity = opacity.map(|o| o.as_array().to_vec());
         let arrays = parts
             .iter()
             .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
             .collect::<PyResult<Vec<_>>>()?;
         let views = arrays.iter().map(|(v, f)| Ok((v.view()?, f.view()?))).collect::<PyResult<Vec<_>>>()?;
-        let mesh = run(py, |_| Mesh::build_parts(&self.ctx, &views, options, format))?;
+        let mesh = run(py, |_| Mesh::build_parts(&self.ctx, &views, opacity, options, format))?;
         Ok(PyMesh::new(mesh))
     }
 
@@ -225,7 +229,7 @@ impl PyDevice {
             .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
             .collect::<PyResult<Vec<_>>>()?;
         let views = arrays.iter().map(|(v, f)| Ok([(v.view()?, f.view()?)])).collect::<PyResult<Vec<_>>>()?;
-        let items: Vec<&[(Vec3s, Indices)]> = views.iter().map(|v| v.as_slice()).collect();
+        let items: Vec<MeshInput> = views.iter().map(|v| MeshInput { parts: v.as_slice(), opacity: None }).collect();
         let budget = budget_bytes.unwrap_or(u64::MAX);
         let meshes = run_reporting(py, progress, |interrupt| {
             Mesh::build_many(&self.ctx, &items, options, format, budget, interrupt)

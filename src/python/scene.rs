@@ -18,6 +18,7 @@ use super::{run, run_reporting};
 use crate::error::try_vec;
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::rays::Rays;
+use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
 use crate::trace::fields::{position_bytes_per_ray, FIELDS};
@@ -51,6 +52,8 @@ struct RayArrays<'py> {
     tmin: Bound1<'py>,
     tmax: Bound1<'py>,
     mask: MaskArray<'py>,
+    /// A sensor's rays instead of the arrays (then empty).
+    sensor: Option<SensorRays>,
 }
 
 impl<'py> RayArrays<'py> {
@@ -60,6 +63,7 @@ impl<'py> RayArrays<'py> {
         tmin: &Bound<'py, PyAny>,
         tmax: &Bound<'py, PyAny>,
         mask: Option<&Bound<'py, PyAny>>,
+        sensor: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Self> {
         Ok(RayArrays {
             origins: Vec3Array::extract("origins", origins)?,
@@ -67,6 +71,7 @@ impl<'py> RayArrays<'py> {
             tmin: Bound1::extract("tmin", tmin)?,
             tmax: Bound1::extract("tmax", tmax)?,
             mask: mask.map(MaskArray::extract).transpose()?.unwrap_or(MaskArray::All(0xFF)),
+            sensor: sensor.map(sensor_rays).transpose()?,
         })
     }
 
@@ -78,8 +83,41 @@ impl<'py> RayArrays<'py> {
             tmin: self.tmin.view()?,
             tmax: self.tmax.view()?,
             mask: self.mask.view()?,
+            sensor: self.sensor.as_ref(),
         })
     }
+}
+
+/// A sensor's rays from the parameters python/vkray/sensors.py derives (`Sensor._generator`, in
+/// the layout `_api._sensor_record` gives them).
+fn sensor_rays(d: &Bound<'_, PyDict>) -> PyResult<SensorRays> {
+    let item = |key: &str| -> PyResult<Bound<'_, PyAny>> {
+        d.get_item(key)?.ok_or_else(|| PyValueError::new_err(format!("sensor record lacks {key:?}")))
+    };
+    let kind = match item("kind")?.extract::<u32>()? {
+        1 => SensorKind::Pinhole,
+        2 => SensorKind::Orthographic,
+        3 => SensorKind::Lidar,
+        other => return Err(PyValueError::new_err(format!("unknown sensor kind {other}"))),
+    };
+    let axes: Vec<f32> = item("axes")?.extract()?;
+    let origin: Vec<f32> = item("origin")?.extract()?;
+    if axes.len() != 9 || origin.len() != 3 {
+        return Err(PyValueError::new_err("a sensor record needs 3 origin and 9 axis values"));
+    }
+    let sensor = SensorRays {
+        kind,
+        origin: [origin[0], origin[1], origin[2]],
+        axes: [0, 1, 2].map(|r| [axes[3 * r], axes[3 * r + 1], axes[3 * r + 2]]),
+        columns: item("columns")?.extract()?,
+        rows: item("rows")?.extract()?,
+        pixel_offset: item("pixel_offset")?.extract()?,
+        tmin: item("tmin")?.extract()?,
+        tmax: item("tmax")?.extract()?,
+        table: item("table")?.extract()?,
+    };
+    sensor.check()?;
+    Ok(sensor)
 }
 
 /// A new uninitialized numpy array (numpy raises MemoryError where it cannot be had); the core
@@ -167,7 +205,7 @@ impl PyScene {
     /// Traces rays; returns {field name: array} for the fields asked for.
     /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`;
     /// `contacts` (exact tier): closed triangles (see `Request::contacts`).
-    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None, contacts=false, progress=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None, contacts=false, progress=None, opacity_threshold=0.5, sensor=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
@@ -183,10 +221,12 @@ impl PyScene {
         mask: Option<&Bound<'py, PyAny>>,
         contacts: bool,
         progress: Option<Py<PyAny>>,
+        opacity_threshold: f32,
+        sensor: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let request = request(Query::parse(query)?, precision, cull, contacts)?;
+        let request = request(Query::parse(query)?, precision, cull, contacts, opacity_threshold)?;
         let wide = request.precision.is_f64();
-        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
+        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask, sensor)?;
         let rays = batch.rays()?;
         let n = rays.len();
         check_fits(&self.tracer, request, &fields, n)?;
@@ -210,7 +250,7 @@ impl PyScene {
     }
 
     /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
-    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None, contacts=false, progress=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None, contacts=false, progress=None, opacity_threshold=0.5, sensor=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace_all<'py>(
         &self,
@@ -226,8 +266,10 @@ impl PyScene {
         max_hits: Option<usize>,
         contacts: bool,
         progress: Option<Py<PyAny>>,
+        opacity_threshold: f32,
+        sensor: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let request = request(Query::Closest, precision, cull, contacts)?;
+        let request = request(Query::Closest, precision, cull, contacts, opacity_threshold)?;
         if max_hits == Some(0) {
             return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
         }
@@ -238,7 +280,7 @@ impl PyScene {
             .iter()
             .map(|(_, field)| field.map_or(position_bytes_per_ray(wide), |f| f.bytes_per_ray(wide)))
             .sum::<usize>();
-        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
+        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask, sensor)?;
         let rays = batch.rays()?;
         let (offsets, ray_index, columns) = run_reporting(py, progress, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
@@ -268,7 +310,7 @@ impl PyScene {
     }
 
     /// The number of hits of each ray (int32, N).
-    #[pyo3(signature = (origins, directions, tmin, tmax, precision="fast", cull=None, mask=None, progress=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, precision="fast", cull=None, mask=None, progress=None, opacity_threshold=0.5, sensor=None))]
     #[allow(clippy::too_many_arguments)]
     fn count<'py>(
         &self,
@@ -281,9 +323,11 @@ impl PyScene {
         cull: Option<&str>,
         mask: Option<&Bound<'py, PyAny>>,
         progress: Option<Py<PyAny>>,
+        opacity_threshold: f32,
+        sensor: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyUntypedArray>> {
-        let request = request(Query::Closest, precision, cull, false)?;
-        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask)?;
+        let request = request(Query::Closest, precision, cull, false, opacity_threshold)?;
+        let batch = RayArrays::extract(origins, directions, tmin, tmax, mask, sensor)?;
         let rays = batch.rays()?;
         let counts = empty(py, &[rays.len()], "int32")?;
         let out: &mut [i32] = bytemuck::cast_slice_mut(bytes_of(&counts));
@@ -318,8 +362,20 @@ impl PyScene {
 }
 
 /// A query's request from the option strings it was called with.
-fn request(query: Query, precision: &str, cull: Option<&str>, contacts: bool) -> PyResult<Request> {
-    Ok(Request { query, precision: Precision::parse(precision)?, cull: Cull::parse(cull)?, contacts })
+fn request(
+    query: Query,
+    precision: &str,
+    cull: Option<&str>,
+    contacts: bool,
+    opacity_threshold: f32,
+) -> PyResult<Request> {
+    let request = Request {
+        contacts,
+        opacity_threshold,
+        ..Request::new(query, Precision::parse(precision)?, Cull::parse(cull)?)
+    };
+    request.check()?;
+    Ok(request)
 }
 
 /// One field of all hits, as the core writes it: typed, so that it becomes a numpy array without

@@ -44,6 +44,8 @@ struct ExactMesh {
     primitive_order: Option<Buffer>,
     /// The first triangle of each part among all, then the total (u32 each).
     part_offsets: Buffer,
+    /// f32 opacity per caller's triangle among all parts, for meshes with translucent triangles.
+    opacity: Option<Buffer>,
 }
 
 impl ExactScene {
@@ -67,7 +69,7 @@ impl ExactScene {
             .placements
             .iter()
             .map(|p| {
-                // Boxes only: facing and culling are the exact shader's, opacity does not apply.
+                // Boxes only: facing, culling and opacity are the exact shader's.
                 let bits = InstanceBits { flags: 0, sbt_offset: 0, ..p.bits() };
                 accel::instance_record(&p.to_scene.to_rows_f32(), bits, mesh_of(p).blas.address())
             })
@@ -127,6 +129,10 @@ impl ExactMesh {
         let primitive_order =
             if identity { None } else { Some(uploads.records(ctx, &order, GEOMETRY_INPUT, "exact order")?) };
         let part_offsets = uploads.records(ctx, &triangles.part_offsets, GEOMETRY_INPUT, "exact part offsets")?;
+        let opacity = match &mesh.opacity {
+            Some(opacity) => Some(uploads.records(ctx, opacity, GEOMETRY_INPUT, "exact opacity")?),
+            None => None,
+        };
         let input = BuildInput {
             ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
             geometries: vec![accel::aabbs_geometry(boxes.address())],
@@ -135,7 +141,7 @@ impl ExactMesh {
         };
         let options = BuildOptions { preference: BuildPreference::FastTrace, allow_update: false, compact: false };
         let (blas, _) = accel::build(ctx, &input, options, &uploads)?;
-        Ok(ExactMesh { blas, _boxes: boxes, vertices, faces, primitive_order, part_offsets })
+        Ok(ExactMesh { blas, _boxes: boxes, vertices, faces, primitive_order, part_offsets, opacity })
     }
 
     /// The record of an instance of this mesh placed at `p`.
@@ -160,7 +166,12 @@ impl ExactMesh {
             part_offsets: self.part_offsets.address(),
             part_count: p.triangles.part_offsets.len() as u32 - 1,
             flags,
-            _padding: [0; 3],
+            // Instances forced opaque block wherever they are hit.
+            opacity: match (&self.opacity, p.flags.force_opaque) {
+                (Some(opacity), false) => opacity.address(),
+                _ => 0,
+            },
+            _padding: [0; 2],
         }
     }
 }

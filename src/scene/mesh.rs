@@ -57,6 +57,10 @@ pub struct Mesh {
     pub(super) parts: Vec<Part>,
     /// A `GeometrySource` per part, read by shaders (normals, caller's triangle indices).
     pub(super) sources: Buffer,
+    /// The same records without opacity, for instances forced opaque (meshes with opacity only).
+    pub(super) opaque_sources: Option<Buffer>,
+    /// Opacity in [0, 1] per caller's triangle among all parts; `None`: every triangle is opaque.
+    pub opacity: Option<Arc<Vec<f32>>>,
 }
 
 /// What a mesh's BLAS holds.
@@ -82,6 +86,8 @@ pub(super) struct Part {
     /// Device triangle -> caller's triangle, where the device holds them in another order.
     device_order: Option<Vec<u32>>,
     primitive_order: Option<Buffer>,
+    /// f32 opacity per device triangle, for parts with a triangle that is not opaque.
+    opacity: Option<Buffer>,
 }
 
 impl Part {
@@ -97,20 +103,22 @@ impl Part {
             .max_vertex(self.vertex_count as u32 - 1)
             .index_type(if self.index_is_u16 { vk::IndexType::UINT16 } else { vk::IndexType::UINT32 })
             .index_data(vk::DeviceOrHostAddressConstKHR { device_address: indices.address() });
+        let flags = if self.opacity.is_some() { accel::TRANSLUCENT_GEOMETRY_FLAGS } else { accel::GEOMETRY_FLAGS };
         vk::AccelerationStructureGeometryKHR::default()
             .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
             .geometry(vk::AccelerationStructureGeometryDataKHR { triangles })
-            .flags(accel::GEOMETRY_FLAGS)
+            .flags(flags)
     }
 
     /// Uploads one part of a triangle mesh: `local` holds its vertices in the mesh's device frame
-    /// (f64 xyz, already quantized to `format`).
+    /// (f64 xyz, already quantized to `format`); `opacity` its triangles' (caller's order).
     fn triangles(
         ctx: &Arc<Context>,
         uploads: &mut Uploads,
         (vertices, faces): (Vec3s, Indices),
         local: &[f64],
         format: VertexFormat,
+        opacity: Option<&[f32]>,
     ) -> Result<Part> {
         let vertex_bytes = (format.stride() * vertices.rows()) as u64;
         let vertex_buffer =
@@ -122,6 +130,17 @@ impl Part {
         // Shaders map the device's triangle order back to the caller's.
         let primitive_order =
             order.as_ref().map(|order| uploads.records(ctx, order, GEOMETRY_INPUT, "primitive order")).transpose()?;
+        // Shaders read opacity by the device's triangle index: kept in the device's order.
+        let opacity = match opacity.filter(|o| o.iter().any(|&x| x < 1.0)) {
+            Some(opacity) => {
+                let device: Vec<f32> = match &order {
+                    Some(order) => order.iter().map(|&caller| opacity[caller as usize]).collect(),
+                    None => opacity.to_vec(),
+                };
+                Some(uploads.records(ctx, &device, GEOMETRY_INPUT, "opacity")?)
+            }
+            None => None,
+        };
         Ok(Part {
             vertex_count: vertices.rows(),
             triangle_count: faces.triangles(),
@@ -131,6 +150,7 @@ impl Part {
             boxes: None,
             device_order: order,
             primitive_order,
+            opacity,
         })
     }
 
@@ -169,16 +189,18 @@ impl Part {
             boxes: Some(boxes),
             device_order: None,
             primitive_order: None,
+            opacity: None,
         })
     }
 
     /// This part's `GeometrySource` record; `kind` is its `vertex_format` field (a `VertexFormat`,
-    /// or `SPHERE_SOURCE`).
-    fn source(&self, kind: u32) -> GeometrySource {
+    /// or `SPHERE_SOURCE`); `opaque`: without its opacity (for instances forced opaque).
+    fn source(&self, kind: u32, opaque: bool) -> GeometrySource {
         GeometrySource {
             vertices: self.vertices.address(),
             indices: self.indices.as_ref().map_or(0, |b| b.address()),
             primitive_order: self.primitive_order.as_ref().map_or(0, |b| b.address()),
+            opacity: if opaque { 0 } else { self.opacity.as_ref().map_or(0, |b| b.address()) },
             index_is_u16: self.index_is_u16 as u32,
             vertex_format: kind,
         }
@@ -199,7 +221,7 @@ impl Mesh {
         options: BuildOptions,
         format: VertexFormat,
     ) -> Result<Mesh> {
-        Mesh::build_parts(ctx, &[(vertices, faces)], options, format)
+        Mesh::build_parts(ctx, &[(vertices, faces)], None, options, format)
     }
 
     /// A set of spheres (`centers` (N, 3), `radii` one per sphere or one for all): a BLAS of one
@@ -210,7 +232,7 @@ impl Mesh {
         let sphere = |i: usize| (DVec3::from_array(centers.row_f64(i)), radii.get(i));
         let mut uploads = Uploads::default();
         let part = Part::spheres(ctx, &mut uploads, n, sphere, center)?;
-        let sources = uploads.records(ctx, &[part.source(SPHERE_SOURCE)], GEOMETRY_INPUT, "geometry sources")?;
+        let sources = uploads.records(ctx, &[part.source(SPHERE_SOURCE, true)], GEOMETRY_INPUT, "geometry sources")?;
         // The host keeps the spheres' bounds (two corners each) for scenes' frames; the f64 tiers
         // do not trace spheres.
         let corners = (0..n)
@@ -229,20 +251,24 @@ impl Mesh {
             host_triangles: TriangleSet::new(corners, Vec::new(), vec![0, 0]),
             parts: vec![part],
             sources,
+            opaque_sources: None,
+            opacity: None,
         };
         let (blas, stats) = accel::build(ctx, &prepared.input(), options, &uploads)?;
         Ok(prepared.finish(options, blas, stats))
     }
 
     /// One mesh from several parts, each a geometry of one BLAS (`Hits.geometry_id` tells them
-    /// apart; triangle ids count within each part).
+    /// apart; triangle ids count within each part); `opacity`: per triangle among all parts.
     pub fn build_parts(
         ctx: &Arc<Context>,
         parts: &[(Vec3s, Indices)],
+        opacity: Option<Vec<f32>>,
         options: BuildOptions,
         format: VertexFormat,
     ) -> Result<Mesh> {
-        let mut meshes = Mesh::build_many(ctx, &[parts], options, format, u64::MAX, &NoInterrupt)?;
+        let item = MeshInput { parts, opacity };
+        let mut meshes = Mesh::build_many(ctx, &[item], options, format, u64::MAX, &NoInterrupt)?;
         Ok(meshes.pop().expect("one mesh per input"))
     }
 
@@ -251,7 +277,7 @@ impl Mesh {
     /// position.
     pub fn build_many(
         ctx: &Arc<Context>,
-        items: &[&[(Vec3s, Indices)]],
+        items: &[MeshInput],
         options: BuildOptions,
         format: VertexFormat,
         scratch_budget: u64,
@@ -261,8 +287,8 @@ impl Mesh {
         let prepared = items
             .iter()
             .enumerate()
-            .map(|(k, parts)| {
-                PreparedMesh::new(ctx, parts, format, &mut uploads).map_err(|e| match (e, items.len()) {
+            .map(|(k, item)| {
+                PreparedMesh::new(ctx, item, format, &mut uploads).map_err(|e| match (e, items.len()) {
                     (Error::InvalidValue(m), n) if n > 1 => invalid_value(format!("mesh {k}: {m}")),
                     (e, _) => e,
                 })
@@ -369,6 +395,26 @@ impl Mesh {
     pub fn part_count(&self) -> usize {
         self.parts.len()
     }
+
+    /// Whether some triangle lets light through (opacity below 1).
+    pub fn is_translucent(&self) -> bool {
+        self.opacity.is_some()
+    }
+
+    /// The `GeometrySource` records an instance reads: without opacity where it is forced opaque.
+    pub(super) fn sources_address(&self, force_opaque: bool) -> u64 {
+        match (&self.opaque_sources, force_opaque) {
+            (Some(opaque), true) => opaque.address(),
+            _ => self.sources.address(),
+        }
+    }
+}
+
+/// What one mesh is built from: its parts, and optionally each triangle's opacity in [0, 1]
+/// (among all parts, in the caller's order; 1 blocks light, 0 cuts the triangle out).
+pub struct MeshInput<'a> {
+    pub parts: &'a [(Vec3s<'a>, Indices<'a>)],
+    pub opacity: Option<Vec<f32>>,
 }
 
 /// A mesh's device buffers and host copy, uploaded (or recorded for upload) and ready for its
@@ -383,27 +429,36 @@ struct PreparedMesh {
     host_triangles: TriangleSet,
     pub(super) parts: Vec<Part>,
     pub(super) sources: Buffer,
+    opaque_sources: Option<Buffer>,
+    opacity: Option<Arc<Vec<f32>>>,
 }
 
 impl PreparedMesh {
-    fn new(
-        ctx: &Arc<Context>,
-        parts: &[(Vec3s, Indices)],
-        format: VertexFormat,
-        uploads: &mut Uploads,
-    ) -> Result<PreparedMesh> {
+    fn new(ctx: &Arc<Context>, item: &MeshInput, format: VertexFormat, uploads: &mut Uploads) -> Result<PreparedMesh> {
+        let parts = item.parts;
         let triangle_count = check_parts(ctx, parts, format)?;
+        let opacity = item.opacity.as_deref().map(|o| check_opacity(o, triangle_count)).transpose()?;
+        // Opacity 1 everywhere is no opacity: the mesh stays opaque.
+        let opacity = opacity.filter(|o| o.iter().any(|&x| x < 1.0));
         let (host_triangles, center, scale) = device_triangles(parts, format);
         let local: &[f64] = bytemuck::cast_slice(&host_triangles.vertices);
         let mut first_vertex = 0;
         let mut prepared = Vec::with_capacity(parts.len());
-        for &(vertices, faces) in parts {
+        for (k, &(vertices, faces)) in parts.iter().enumerate() {
             let own = &local[3 * first_vertex..3 * (first_vertex + vertices.rows())];
             first_vertex += vertices.rows();
-            prepared.push(Part::triangles(ctx, uploads, (vertices, faces), own, format)?);
+            let range = host_triangles.part_offsets[k] as usize..host_triangles.part_offsets[k + 1] as usize;
+            let own_opacity = opacity.map(|o| &o[range]);
+            prepared.push(Part::triangles(ctx, uploads, (vertices, faces), own, format, own_opacity)?);
         }
-        let sources: Vec<GeometrySource> = prepared.iter().map(|part| part.source(format as u32)).collect();
-        let sources = uploads.records(ctx, &sources, GEOMETRY_INPUT, "geometry sources")?;
+        let records = |opaque: bool| -> Vec<GeometrySource> {
+            prepared.iter().map(|part| part.source(format as u32, opaque)).collect()
+        };
+        let sources = uploads.records(ctx, &records(false), GEOMETRY_INPUT, "geometry sources")?;
+        let opaque_sources = match opacity {
+            Some(_) => Some(uploads.records(ctx, &records(true), GEOMETRY_INPUT, "opaque geometry sources")?),
+            None => None,
+        };
         Ok(PreparedMesh {
             kind: MeshKind::Triangles,
             vertex_count: first_vertex,
@@ -414,6 +469,8 @@ impl PreparedMesh {
             host_triangles,
             parts: prepared,
             sources,
+            opaque_sources,
+            opacity: opacity.map(|o| Arc::new(o.to_vec())),
         })
     }
 
@@ -438,6 +495,8 @@ impl PreparedMesh {
             blas,
             parts: self.parts,
             sources: self.sources,
+            opaque_sources: self.opaque_sources,
+            opacity: self.opacity,
         }
     }
 }
@@ -517,7 +576,22 @@ fn check_parts(ctx: &Context, parts: &[(Vec3s, Indices)], format: VertexFormat) 
     Ok(triangle_count)
 }
 
-/// The build input of a mesh's BLAS: one opaque triangle geometry per part.
+/// Checks one opacity per triangle, each in [0, 1].
+fn check_opacity(opacity: &[f32], triangles: usize) -> Result<&[f32]> {
+    if opacity.len() != triangles {
+        return Err(invalid_value(format!("opacity has {} values for {triangles} triangles", opacity.len())));
+    }
+    if let Some(i) = opacity.iter().position(|x| !(0.0..=1.0).contains(x)) {
+        return Err(invalid_value(format!(
+            "opacity[{i}] must be in [0, 1] (1 blocks, 0 cuts the triangle out), got {}",
+            opacity[i]
+        )));
+    }
+    Ok(opacity)
+}
+
+/// The build input of a mesh's BLAS: one triangle geometry per part (opaque unless some of its
+/// triangles let light through).
 fn mesh_input(parts: &[Part], format: VertexFormat) -> BuildInput<'static> {
     BuildInput {
         ty: vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,

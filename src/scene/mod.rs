@@ -8,5 +8,5 @@ pub mod top_level;
 
 pub use exact::ExactScene;
 pub use instance::{Instance, InstanceFlags, Placement, IDENTITY, MAX_CUSTOM_INDEX};
-pub use mesh::{Mesh, MeshKind};
+pub use mesh::{Mesh, MeshInput, MeshKind};
 pub use top_level::Scene;

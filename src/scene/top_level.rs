@@ -62,7 +62,7 @@ impl Scene {
         let (center, placements) = place(instances, None)?;
         let mut uploads = Uploads::default();
         let records = upload_instances(ctx, &mut uploads, &instance_records(&placements), "instances")?;
-        let sources: Vec<u64> = instances.iter().map(|x| x.mesh.sources.address()).collect();
+        let sources: Vec<u64> = instances.iter().map(|x| x.mesh.sources_address(x.flags.force_opaque)).collect();
         let instance_geometries = uploads.records(ctx, &sources, GEOMETRY_INPUT, "instance geometries")?;
         let input = instances_input(records.address(), instances.len());
         let (tlas, stats) = accel::build(ctx, &input, options, &uploads)?;
@@ -159,9 +159,15 @@ impl Scene {
         self.meshes.iter().any(|m| m.kind == MeshKind::Spheres)
     }
 
-    /// Whether every instance's triangles are opaque (no `force_no_opaque`).
+    /// Whether every instance's triangles are opaque: none forced non-opaque, and every mesh
+    /// with translucent triangles forced opaque.
     pub fn all_opaque(&self) -> bool {
-        self.placements.iter().all(|p| !p.flags.force_no_opaque)
+        self.placements.iter().all(|p| !p.flags.force_no_opaque && (p.flags.force_opaque || !p.mesh.is_translucent()))
+    }
+
+    /// Whether some instance's triangles have an opacity below 1 that traversal reads.
+    pub fn has_opacity(&self) -> bool {
+        self.placements.iter().any(|p| !p.flags.force_opaque && p.mesh.is_translucent())
     }
 
     pub fn instance_geometries_address(&self) -> u64 {
@@ -206,6 +212,7 @@ impl Scene {
                     bounds: p.bounds,
                     flip_facing: p.flip_facing,
                     cull_disable: p.flags.cull_disable,
+                    opacity: if p.flags.force_opaque { None } else { p.mesh.opacity.as_deref().map(Vec::as_slice) },
                 })
                 .collect(),
         )

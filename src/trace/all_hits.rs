@@ -18,7 +18,6 @@ use super::request::{Precision, Query, Request};
 use super::staging::Slot;
 use super::tiers::AllHits;
 use super::tracer::Tracer;
-use super::variants::{ray_flags, VariantKey};
 use crate::error::{try_vec, Error, Result};
 use crate::geometry::parallel;
 use crate::geometry::rays::Rays;
@@ -133,17 +132,9 @@ impl Tracer {
     ) -> Result<()> {
         let exact = request.precision == Precision::Exact;
         let exact_scene = if exact { Some(scene.exact()?) } else { None };
-        let flags = ray_flags(Query::All, request.cull, self.ctx.backend, exact, scene.all_opaque(), false);
         let outputs = Field::Prim.bit();
-        let query = Query::All.shader_query();
-        let variant = self.variants.get(VariantKey {
-            outputs,
-            ray_flags: flags,
-            exact,
-            spheres: false,
-            query,
-            closed_edges: request.contacts,
-        })?;
+        let all = Request { query: Query::All, ..request };
+        let (variant, sensor) = self.gpu_variant(scene, rays, all, exact, outputs)?;
         let offsets = &stored.offsets;
         let widest = offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0);
         let total = *offsets.last().unwrap_or(&0) as usize;
@@ -157,8 +148,17 @@ impl Tracer {
             lists.push(self.take_lists(ray_capacity, record_capacity * size_of::<R>())?);
         }
         let frame = scene.frame();
-        let job =
-            GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits: true };
+        let sensor = sensor.as_ref();
+        let job = GpuJob {
+            scene,
+            exact: exact_scene.as_deref(),
+            rays,
+            variant: &variant,
+            outputs,
+            frame,
+            all_hits: true,
+            sensor,
+        };
         let result = self.store_chunks(&job, &plan, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
         self.slots.give_back(slots);
         self.give_back_lists(lists);
@@ -195,7 +195,7 @@ impl Tracer {
             let bytes = (stored.offsets[end] - stored.offsets[start]) as usize * size_of::<R>();
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_chunk(commands[s].buffer, job, &slots[s], end - start, Some((&lists[s], bytes)));
+            self.record_chunk(commands[s].buffer, job, &slots[s], start, end - start, Some((&lists[s], bytes)));
             commands[s].submit()?;
             in_flight[s] = Some((start, end, advances));
         }

@@ -34,6 +34,8 @@ pub(super) struct GpuJob<'a> {
     pub frame: Frame,
     /// The variant meets every hit (QUERY_ALL: counts and all hits).
     pub all_hits: bool,
+    /// The sensor record the shaders generate the rays from, when they do (nothing uploaded).
+    pub sensor: Option<&'a Buffer>,
 }
 
 /// The storing pass of all hits, per chunk in flight: each ray's `HitList` (uploaded with the
@@ -134,7 +136,7 @@ impl Tracer {
             lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_chunk(commands[s].buffer, job, &slots[s], len, None);
+            self.record_chunk(commands[s].buffer, job, &slots[s], start, len, None);
             commands[s].submit()?;
             in_flight[s] = Some(InFlight { start, len, advances });
         }
@@ -152,13 +154,14 @@ impl Tracer {
         Ok(())
     }
 
-    /// Records one chunk: its upload (discrete GPUs), the trace, and its readback (with the
-    /// storing pass's lists and records, where given).
+    /// Records one chunk (`len` rays from `start`): its upload (discrete GPUs), the trace, and its
+    /// readback (with the storing pass's lists and records, where given).
     pub(super) fn record_chunk(
         &self,
         cmd: vk::CommandBuffer,
         job: &GpuJob,
         slot: &Slot,
+        start: usize,
         len: usize,
         lists: ChunkLists,
     ) {
@@ -179,7 +182,7 @@ impl Tracer {
                 (vk::PipelineBindPoint::RAY_TRACING_KHR, vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR)
             }
         };
-        if let Some((rays_device, _)) = &slot.device {
+        if let (Some((rays_device, _)), None) = (&slot.device, job.sensor) {
             let masks_at = slot.masks_offset() as u64;
             let rays_region = vk::BufferCopy::default().size((len * Slot::ray_bytes(slot.exact)) as u64);
             let masks_region = vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
@@ -204,7 +207,7 @@ impl Tracer {
             );
         }
         stamp(Stamp::Uploaded);
-        let mut params = chunk_params(job, slot, len);
+        let mut params = chunk_params(job, slot, start, len);
         if job.all_hits {
             // QUERY_ALL reads `scratch` as the rays' lists: none in the counting pass.
             params.scratch = lists.map_or(0, |(buffers, _)| buffers.lists_address());
@@ -240,12 +243,16 @@ impl Tracer {
     }
 }
 
-/// The push constants of one chunk.
-fn chunk_params(job: &GpuJob, slot: &Slot, len: usize) -> Params {
+/// The push constants of the chunk of `len` rays from `start`.
+fn chunk_params(job: &GpuJob, slot: &Slot, start: usize, len: usize) -> Params {
     let mut params = Params { rays: slot.rays_address(), count: len as u32, ..Default::default() };
     match job.rays.mask {
         Masks::All(m) => params.ray_mask = m as u32,
         Masks::Each(_) => params.masks = slot.rays_address() + slot.masks_offset() as u64,
+    }
+    if let Some(sensor) = job.sensor {
+        params.rays = sensor.address();
+        params.masks = start as u64;
     }
     match job.exact {
         Some(exact) => {
@@ -321,8 +328,12 @@ fn record_readback(
     );
 }
 
-/// Checks and packs rays `start..start + len` (and their masks) into the slot's staging.
+/// Checks and packs rays `start..start + len` (and their masks) into the slot's staging; rays the
+/// shaders generate need nothing.
 pub(super) fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize) -> Result<Vec<Advance>> {
+    if job.sensor.is_some() {
+        return Ok(Vec::new());
+    }
     let masks_at = slot.masks_offset();
     let exact = slot.exact;
     let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");

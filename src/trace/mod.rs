@@ -9,6 +9,7 @@ pub mod fields;
 mod probe;
 pub mod profile;
 pub mod request;
+mod sensor;
 mod staging;
 pub mod tiers;
 pub mod tracer;

@@ -75,13 +75,14 @@ impl Tracer {
             tmin: PerRay::All(0.0),
             tmax: PerRay::All(f64::INFINITY),
             mask: Masks::All(0xFF),
+            sensor: None,
         };
         let mut prim = [0xFFu8; 4];
         let mut sink = HitSink::default();
         sink.set(Field::Prim, &mut prim);
         let exact = probe == Probe::Exact;
         let precision = if exact { Precision::Exact } else { Precision::Fast };
-        let request = Request { query: Query::Closest, precision, cull: Cull::None, contacts: false };
+        let request = Request::new(Query::Closest, precision, Cull::None);
         self.run_gpu(&scene, &rays, request, exact, &mut sink, &NoInterrupt, &mut TraceProfile::default())?;
         Ok(i32::from_ne_bytes(prim) == 0)
     }

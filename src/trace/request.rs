@@ -16,23 +16,44 @@ pub enum Query {
     /// For `contains`, exact tier: the number of hits, and whether the ray's origin lies on a
     /// surface (`ON_SURFACE` added to the count).
     Parity,
+    /// The product of (1 - opacity) over every crossing in [tmin, tmax]: the light a ray keeps.
+    Transmit,
 }
 
 /// `Query::Parity`'s flag in a count: the ray's origin lies on a surface.
 pub const ON_SURFACE: i32 = 1 << 30;
 
 impl Query {
-    /// Whether traversal must meet every hit: counts, all hits, parities.
+    /// Whether traversal must meet every hit: counts, all hits, parities, transmittance.
     pub fn meets_every_hit(self) -> bool {
+        matches!(self, Query::Count | Query::All | Query::Parity | Query::Transmit)
+    }
+
+    /// Whether the shaders write per-ray counts (and lists) rather than hit fields.
+    pub fn counts_hits(self) -> bool {
         matches!(self, Query::Count | Query::All | Query::Parity)
     }
 
-    /// The shaders' QUERY constant: QUERY_CLOSEST (0), QUERY_ALL (1) or QUERY_PARITY (2).
+    /// The shaders' QUERY constant: QUERY_CLOSEST (0), QUERY_ALL (1), QUERY_PARITY (2) or
+    /// QUERY_TRANSMIT (3).
     pub fn shader_query(self) -> u32 {
         match self {
             Query::Closest | Query::Occluded => 0,
             Query::Count | Query::All => 1,
             Query::Parity => 2,
+            Query::Transmit => 3,
+        }
+    }
+
+    /// The name `Scene.explain` and errors use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Query::Closest => "closest",
+            Query::Occluded => "occluded",
+            Query::Count => "count",
+            Query::All => "all",
+            Query::Parity => "contains",
+            Query::Transmit => "transmittance",
         }
     }
 }
@@ -43,15 +64,18 @@ impl Query {
             "closest" => Ok(Query::Closest),
             "occluded" => Ok(Query::Occluded),
             "count" => Ok(Query::Count),
+            "all" => Ok(Query::All),
+            "contains" => Ok(Query::Parity),
+            "transmittance" => Ok(Query::Transmit),
             other => Err(crate::error::invalid_value(format!(
-                "query must be 'closest', 'occluded' or 'count', got {other:?}"
+                "query must be 'closest', 'occluded', 'count', 'all', 'contains' or 'transmittance', got {other:?}"
             ))),
         }
     }
 }
 
 /// Everything a trace asks besides its rays: which query, at which precision, culling which side.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Request {
     pub query: Query,
     pub precision: Precision,
@@ -61,6 +85,33 @@ pub struct Request {
     /// to one triangle). For the trimesh drop-in, whose users expect a ray grazing a silhouette
     /// to hit.
     pub contacts: bool,
+    /// Triangles whose opacity is below this let rays through (in (0, 1]; see `DEFAULT_THRESHOLD`).
+    pub opacity_threshold: f32,
+}
+
+/// The opacity from which a triangle stops rays, unless a query says otherwise.
+pub const DEFAULT_THRESHOLD: f32 = 0.5;
+
+impl Request {
+    pub fn new(query: Query, precision: Precision, cull: Cull) -> Request {
+        Request { query, precision, cull, contacts: false, opacity_threshold: DEFAULT_THRESHOLD }
+    }
+
+    /// Which triangles the host's tracer may hit for this request.
+    pub fn filter(&self) -> crate::geometry::reference::Filter {
+        crate::geometry::reference::Filter { cull: self.cull, threshold: self.opacity_threshold }
+    }
+
+    /// Checks the opacity threshold: in (0, 1].
+    pub fn check(&self) -> crate::error::Result<()> {
+        let t = self.opacity_threshold;
+        if !(t > 0.0 && t <= 1.0) {
+            return Err(crate::error::invalid_value(format!(
+                "opacity_threshold must be in (0, 1] (a triangle stops rays where its opacity reaches it), got {t}"
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// Which of several precision tiers answers a query.

@@ -10,7 +10,7 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::geometry::precision::{plane_hit, world_normal, Cull, Ray64};
 use crate::geometry::rays::Rays;
-use crate::geometry::reference::ReferenceHit;
+use crate::geometry::reference::{Filter, ReferenceHit};
 use crate::gpu::context::Interrupt;
 use crate::scene::{MeshKind, Scene};
 
@@ -59,7 +59,7 @@ fn in_blocks(n: usize, interrupt: &dyn Interrupt, mut work: impl FnMut(std::ops:
 /// `uv` as f64, the normal from f64 vertices). Where the f64 answer leaves the ray's interval
 /// (f32 traversal accepted a triangle the ray only grazes, or one just behind an origin that
 /// sits on it, as secondary rays do), that ray is traced again by the CPU tracer.
-pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink, interrupt: &dyn Interrupt) -> Result<()> {
+pub fn refine(scene: &Scene, rays: &Rays, filter: Filter, sink: &mut HitSink, interrupt: &dyn Interrupt) -> Result<()> {
     let n = rays.len();
     let (prim, instance, geometry) = (
         sink.field(Field::Prim).unwrap_or_default(),
@@ -96,7 +96,7 @@ pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink, interr
         let tracer = scene.reference_tracer();
         in_blocks(retrace.len(), interrupt, |range| {
             for &i in &retrace[range] {
-                hits[i] = tracer.trace(&rays.ray64(i, scene.center), rays.mask.get(i), cull, false);
+                hits[i] = tracer.trace(&rays.ray64(i, scene.center), rays.mask.get(i), filter, false);
             }
         })?;
     }
@@ -108,7 +108,7 @@ pub fn refine(scene: &Scene, rays: &Rays, cull: Cull, sink: &mut HitSink, interr
 pub fn reference(
     scene: &Scene,
     rays: &Rays,
-    cull: Cull,
+    filter: Filter,
     any: bool,
     sink: &mut HitSink,
     interrupt: &dyn Interrupt,
@@ -119,7 +119,7 @@ pub fn reference(
         let start = range.start;
         tracer.trace_all(
             |k| (rays.ray64(start + k, scene.center), rays.mask.get(start + k)),
-            cull,
+            filter,
             any,
             &mut hits[range],
         );
@@ -193,7 +193,7 @@ pub struct AllHits {
 }
 
 /// Traces every ray for all of its hits (the nearest `max_hits` of each) on all cores.
-pub fn all_hits(scene: &Scene, rays: &Rays, cull: Cull, max_hits: usize, interrupt: &dyn Interrupt) -> Result<AllHits> {
+pub fn all_hits(scene: &Scene, rays: &Rays, filter: Filter, max_hits: usize, interrupt: &dyn Interrupt) -> Result<AllHits> {
     let tracer = scene.reference_tracer();
     let mut offsets = try_vec(rays.len() + 1, 0i64, "the offsets of all hits")?;
     let mut hits: Vec<ReferenceHit> = Vec::new();
@@ -209,7 +209,7 @@ pub fn all_hits(scene: &Scene, rays: &Rays, cull: Cull, max_hits: usize, interru
                 .with_min_len(256)
                 .map(|i| {
                     let mut found = Vec::new();
-                    tracer.trace_every(&rays.ray64(i, scene.center), rays.mask.get(i), cull, &mut found);
+                    tracer.trace_every(&rays.ray64(i, scene.center), rays.mask.get(i), filter, &mut found);
                     found.truncate(max_hits);
                     found
                 })
@@ -232,6 +232,27 @@ pub fn all_hits(scene: &Scene, rays: &Rays, cull: Cull, max_hits: usize, interru
         Some(error) => Err(error),
         None => Ok(AllHits { offsets, hits, wide: true }),
     }
+}
+
+/// The light each ray keeps: the product of (1 - opacity) over its hits (every crossing, taken
+/// with threshold 0), in f64.
+pub fn transmittance(scene: &Scene, all: &AllHits, out: &mut [f64]) {
+    parallel::install(|| {
+        out.par_iter_mut().enumerate().with_min_len(1024).for_each(|(i, left)| {
+            let hits = &all.hits[all.offsets[i] as usize..all.offsets[i + 1] as usize];
+            *left = hits
+                .iter()
+                .map(|h| {
+                    let placement = &scene.placements[h.instance as usize];
+                    let opacity = match (&placement.mesh.opacity, placement.flags.force_opaque) {
+                        (Some(opacity), false) => opacity[h.prim as usize] as f64,
+                        _ => 1.0,
+                    };
+                    1.0 - opacity
+                })
+                .product();
+        })
+    });
 }
 
 /// The ray of each hit of a CSR list (`offsets`: ray i's hits are `offsets[i]..offsets[i + 1]`),
@@ -271,7 +292,7 @@ pub fn write_all_hits(scene: &Scene, all: &AllHits, sink: &mut HitSink) {
 pub fn refine_all(
     scene: &Scene,
     rays: &Rays,
-    cull: Cull,
+    filter: Filter,
     max_hits: usize,
     fast: &AllHits,
     interrupt: &dyn Interrupt,
@@ -299,7 +320,7 @@ pub fn refine_all(
                 });
                 if again {
                     refined.clear();
-                    tracer.trace_every(&ray, rays.mask.get(i), cull, refined);
+                    tracer.trace_every(&ray, rays.mask.get(i), filter, refined);
                     refined.truncate(max_hits);
                 } else {
                     refined.sort_unstable_by(|x, y| {
@@ -323,14 +344,14 @@ pub fn refine_all(
 }
 
 /// The number of hits of each ray, in f64 on the CPU, into `out`.
-pub fn count_hits(scene: &Scene, rays: &Rays, cull: Cull, out: &mut [i32], interrupt: &dyn Interrupt) -> Result<()> {
+pub fn count_hits(scene: &Scene, rays: &Rays, filter: Filter, out: &mut [i32], interrupt: &dyn Interrupt) -> Result<()> {
     let tracer = scene.reference_tracer();
     in_blocks(rays.len(), interrupt, |range| {
         let start = range.start;
         parallel::install(|| {
             out[range].par_iter_mut().enumerate().with_min_len(256).for_each_init(Vec::new, |found, (k, count)| {
                 found.clear();
-                tracer.trace_every(&rays.ray64(start + k, scene.center), rays.mask.get(start + k), cull, found);
+                tracer.trace_every(&rays.ray64(start + k, scene.center), rays.mask.get(start + k), filter, found);
                 *count = found.len() as i32;
             })
         });
@@ -360,7 +381,7 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
                 } else {
                     found.clear();
                     let ray = Ray64 { origin: p, direction: PARITY_DIRECTION, tmin: 0.0, tmax: f64::INFINITY };
-                    tracer.trace_every(&ray, 0xFF, Cull::None, found);
+                    tracer.trace_every(&ray, 0xFF, Filter::sides(Cull::None), found);
                     odd_crossings(found, scene.placements.len())
                 });
             })

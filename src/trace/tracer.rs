@@ -8,10 +8,11 @@ use std::time::Instant;
 use super::chunks::GpuJob;
 use super::fields::{position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::profile::TraceProfile;
-use super::request::{Precision, Query, Request, ON_SURFACE};
+use super::request::{Precision, Query, Request, DEFAULT_THRESHOLD, ON_SURFACE};
 use super::staging::SlotPool;
 use super::tiers;
-use super::variants::{ray_flags, VariantKey, Variants};
+use super::variants::{ray_flags, Variant, VariantKey, Variants};
+use crate::gpu::memory::Buffer;
 use crate::error::{invalid_value, try_vec, Error, Result};
 use crate::geometry::parallel;
 use crate::geometry::rays::Rays;
@@ -196,6 +197,14 @@ impl Tracer {
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let refine = request.precision == Precision::Refined && request.query == Query::Closest;
+        if request.query == Query::Transmit && !matches!(request.precision, Precision::Fast | Precision::Exact) {
+            // The host's tiers multiply over the f64 hits of every crossing.
+            let every = Request { query: Query::All, opacity_threshold: 0.0, ..request };
+            let all = self.trace_all(scene, rays, every, usize::MAX, 0, interrupt)?;
+            let out: &mut [f64] = bytemuck::cast_slice_mut(work.field_mut(Field::T).expect("transmittance writes t"));
+            tiers::transmittance(scene, &all, out);
+            return Ok(());
+        }
         match request.precision {
             Precision::Exact => {
                 self.check_paths(scene, true)?;
@@ -217,7 +226,7 @@ impl Tracer {
                     }
                 }
                 let host = Instant::now();
-                tiers::refine(scene, rays, request.cull, work, interrupt)?;
+                tiers::refine(scene, rays, request.filter(), work, interrupt)?;
                 profile.host_f64 = host.elapsed().as_secs_f64();
                 Ok(())
             }
@@ -228,7 +237,7 @@ impl Tracer {
             Precision::Reference => {
                 rays.check()?;
                 let host = Instant::now();
-                tiers::reference(scene, rays, request.cull, request.query == Query::Occluded, work, interrupt)?;
+                tiers::reference(scene, rays, request.filter(), request.query == Query::Occluded, work, interrupt)?;
                 profile.host_f64 = host.elapsed().as_secs_f64();
                 Ok(())
             }
@@ -263,17 +272,14 @@ impl Tracer {
         let outputs = sink.outputs();
         // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
         let exact_scene = if exact { Some(scene.exact()?) } else { None };
-        let spheres = scene.has_spheres();
-        let flags = ray_flags(request.query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres);
-        let all_hits = request.query.meets_every_hit();
-        let query = request.query.shader_query();
-        let closed_edges = request.contacts;
-        let variant =
-            self.variants.get(VariantKey { outputs, ray_flags: flags, exact, spheres, query, closed_edges })?;
+        let all_hits = request.query.counts_hits();
+        let (variant, sensor) = self.gpu_variant(scene, rays, request, exact, outputs)?;
         let capacity = self.chunk_capacity(rays.len());
         let mut slots = self.slots.take(capacity, exact)?;
         let frame = scene.frame();
-        let job = GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits };
+        let sensor = sensor.as_ref();
+        let job =
+            GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits, sensor };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
         self.slots.give_back(slots);
         result
@@ -281,6 +287,37 @@ impl Tracer {
 }
 
 impl Tracer {
+    /// The variant a GPU query runs (see `VariantKey`), and the sensor record its shaders
+    /// generate the rays from where they can (rays of a sensor none of whose rays the host would
+    /// advance).
+    pub(super) fn gpu_variant(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        exact: bool,
+        outputs: u32,
+    ) -> Result<(Arc<Variant>, Option<Buffer>)> {
+        let spheres = scene.has_spheres();
+        let query = request.query;
+        let frame = scene.frame();
+        let sensor = rays.generated_on_gpu(&frame);
+        let key = VariantKey {
+            outputs,
+            ray_flags: ray_flags(query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres),
+            exact,
+            spheres,
+            query: query.shader_query(),
+            closed_edges: request.contacts,
+            opacity: scene.has_opacity() && !exact,
+            threshold_bits: if scene.has_opacity() { request.opacity_threshold } else { DEFAULT_THRESHOLD }.to_bits(),
+            ray_source: sensor.is_some() as u32,
+        };
+        let variant = self.variants.get(key)?;
+        let sensor = sensor.map(|s| super::sensor::upload(&self.ctx, s, &frame, exact)).transpose()?;
+        Ok((variant, sensor))
+    }
+
     /// Every hit of every ray (the nearest `max_hits` of each), for `write_all`: on the GPU in the
     /// fast and exact tiers (the refined tier re-intersects the fast tier's hits in f64), on the
     /// CPU in the reference tier. `host_bytes_per_hit`: what the caller will need per hit, for
@@ -312,13 +349,13 @@ impl Tracer {
                 }
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
-                tiers::refine_all(scene, rays, request.cull, max_hits, &fast, interrupt)
+                tiers::refine_all(scene, rays, request.filter(), max_hits, &fast, interrupt)
             }
             Precision::Reference => {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
                 rays.check()?;
-                tiers::all_hits(scene, rays, request.cull, max_hits, interrupt)
+                tiers::all_hits(scene, rays, request.filter(), max_hits, interrupt)
             }
         }
     }
@@ -359,7 +396,7 @@ impl Tracer {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
                 rays.check()?;
-                tiers::count_hits(scene, rays, request.cull, out, interrupt)
+                tiers::count_hits(scene, rays, request.filter(), out, interrupt)
             }
         }
     }
@@ -423,12 +460,12 @@ impl Tracer {
             tmin: crate::geometry::rays::PerRay::All(0.0),
             tmax: crate::geometry::rays::PerRay::All(f64::INFINITY),
             mask: crate::geometry::rays::Masks::All(0xFF),
+            sensor: None,
         };
+        // Every triangle counts, whatever its opacity: inside is a question of the surface.
         let request = Request {
-            query: Query::Count,
-            precision: Precision::Exact,
-            cull: crate::trace::Cull::None,
-            contacts: false,
+            opacity_threshold: 0.0,
+            ..Request::new(Query::Count, Precision::Exact, crate::trace::Cull::None)
         };
         self.check_paths(scene, true)?;
         let mut odd = try_vec(points.rows(), 0i32, "the crossings of contains")?;
@@ -506,6 +543,14 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
     }
     if request.query == Query::All {
         return Err(invalid_value("all hits are traced by Tracer::trace_all"));
+    }
+    if request.query == Query::Transmit {
+        if sink.outputs() != Field::T.bit() || sink.position.is_some() {
+            return Err(invalid_value("a transmittance query writes t alone (the light each ray keeps)"));
+        }
+        if scene.has_spheres() {
+            return Err(Error::Unsupported("transmittance is for triangle meshes: this scene holds spheres".into()));
+        }
     }
     if request.query == Query::Parity && (!answerable || request.precision != Precision::Exact) {
         return Err(invalid_value("a parity query is answered at precision='exact', into one int32 a ray"));

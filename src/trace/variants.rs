@@ -30,6 +30,40 @@ pub struct VariantKey {
     pub query: u32,
     /// CLOSED_EDGES (exact tier): contacts rather than crossings (`Request::contacts`).
     pub closed_edges: bool,
+    /// The scene holds triangles whose opacity traversal reads: the pipeline's triangles get the
+    /// any-hit stage that reads it.
+    pub opacity: bool,
+    /// OPACITY_THRESHOLD's bits (f32); the default where the scene has no opacity, so that
+    /// opaque scenes share one variant whatever the threshold asked.
+    pub threshold_bits: u32,
+    /// RAY_SOURCE: rays from the rays buffer (0) or generated from a sensor (1).
+    pub ray_source: u32,
+}
+
+impl VariantKey {
+    /// Whether the pipeline backend's triangles go through an any-hit stage, and which: every
+    /// hit (QUERY_ALL) or opacity (scenes with opacity, transmittance).
+    fn any_hit(&self) -> Option<AnyHit> {
+        if self.exact {
+            return None;
+        }
+        if self.query == Query::All.shader_query() {
+            Some(AnyHit::All)
+        } else if self.opacity || self.query == Query::Transmit.shader_query() {
+            Some(AnyHit::Opacity)
+        } else {
+            None
+        }
+    }
+}
+
+/// The pipeline backend's any-hit shaders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AnyHit {
+    /// any_hit_all.rahit: counts and keeps every hit.
+    All,
+    /// any_hit_opacity.rahit: lets rays through translucent triangles; multiplies transmittance.
+    Opacity,
 }
 
 /// Ray flags resolved statically for a query on a scene: where every triangle is opaque the
@@ -115,6 +149,7 @@ struct Modules {
     closest_hit: vk::ShaderModule,
     sphere: vk::ShaderModule,
     any_hit_all: vk::ShaderModule,
+    any_hit_opacity: vk::ShaderModule,
     raygen_exact: Option<vk::ShaderModule>,
     intersection_exact: Option<vk::ShaderModule>,
 }
@@ -159,6 +194,7 @@ impl Variants {
                 closest_hit: null,
                 sphere: null,
                 any_hit_all: null,
+                any_hit_opacity: null,
                 raygen_exact: None,
                 intersection_exact: None,
             },
@@ -170,6 +206,7 @@ impl Variants {
                 closest_hit: load(shaders::CLOSEST_HIT)?,
                 sphere: load(shaders::SPHERE_INTERSECTION)?,
                 any_hit_all: load(shaders::ANY_HIT_ALL)?,
+                any_hit_opacity: load(shaders::ANY_HIT_OPACITY)?,
                 raygen_exact: f64s.then(|| load(shaders::RAYGEN_EXACT)).transpose()?,
                 intersection_exact: f64s.then(|| load(shaders::INTERSECTION_EXACT)).transpose()?,
             },
@@ -196,7 +233,7 @@ impl Variants {
     }
 
     fn compute_variant(&self, key: VariantKey) -> Result<Variant> {
-        let values = [key.outputs, key.ray_flags, self.local_size, key.query, key.closed_edges as u32];
+        let values = key.constants(self.local_size);
         let entries = specialization_entries();
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let module = if key.exact { self.modules.query_exact } else { Some(self.modules.query) };
@@ -218,10 +255,10 @@ impl Variants {
     fn pipeline_variant(&self, key: VariantKey) -> Result<Variant> {
         let ctx = &self.ctx;
         let rt = ctx.pipeline_ext.as_ref().expect("pipeline backend loads its extension");
-        let values = [key.outputs, key.ray_flags, 0, key.query, key.closed_edges as u32];
+        let values = key.constants(0);
         // Every constant but the workgroup size (2), which ray-tracing stages do not have.
         let entries = specialization_entries();
-        let entries = [entries[0], entries[1], entries[3], entries[4]];
+        let entries = [entries[0], entries[1], entries[3], entries[4], entries[5], entries[6]];
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let stage = |flags, module| {
             vk::PipelineShaderStageCreateInfo::default()
@@ -234,15 +271,20 @@ impl Variants {
         let m = &self.modules;
         let exact_only = "exact variants are asked for only on devices with shaderFloat64";
         let raygen = if key.exact { m.raygen_exact.expect(exact_only) } else { m.raygen };
+        // Stages 0 raygen, 1 miss, 2 closest-hit or the exact intersection, then any-hit and the
+        // sphere intersection where the variant has them (`hit_groups` numbers them alike).
         let mut stages = vec![stage(S::RAYGEN_KHR, raygen), stage(S::MISS_KHR, m.miss)];
         if key.exact {
             stages.push(stage(S::INTERSECTION_KHR, m.intersection_exact.expect(exact_only)));
         } else {
             stages.push(stage(S::CLOSEST_HIT_KHR, m.closest_hit));
+            match key.any_hit() {
+                Some(AnyHit::All) => stages.push(stage(S::ANY_HIT_KHR, m.any_hit_all)),
+                Some(AnyHit::Opacity) => stages.push(stage(S::ANY_HIT_KHR, m.any_hit_opacity)),
+                None => {}
+            }
             if key.spheres {
                 stages.push(stage(S::INTERSECTION_KHR, m.sphere));
-            } else if key.query == Query::All.shader_query() {
-                stages.push(stage(S::ANY_HIT_KHR, m.any_hit_all));
             }
         }
         let groups = hit_groups(key);
@@ -325,7 +367,7 @@ impl Drop for Variants {
         }
         self.cache.get_mut().unwrap_or_else(|e| e.into_inner()).clear();
         let m = &self.modules;
-        let modules = [m.query, m.raygen, m.miss, m.closest_hit, m.sphere, m.any_hit_all]
+        let modules = [m.query, m.raygen, m.miss, m.closest_hit, m.sphere, m.any_hit_all, m.any_hit_opacity]
             .into_iter()
             .chain([m.query_exact, m.raygen_exact, m.intersection_exact].into_iter().flatten());
         // SAFETY: the tracer owning these is dropped only when no query runs (queries borrow it);
@@ -353,29 +395,42 @@ fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'st
     use vk::RayTracingShaderGroupTypeKHR as G;
     const NONE: u32 = vk::SHADER_UNUSED_KHR;
     let mut groups = vec![group(G::GENERAL, 0, NONE, NONE), group(G::GENERAL, 1, NONE, NONE)];
-    if key.query == Query::All.shader_query() && !key.exact {
-        // Every triangle goes to the any-hit stage (3), which keeps it (scenes without spheres).
-        groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, 2, NONE).any_hit_shader(3));
-        return groups;
-    }
     if key.exact {
         // Boxes whose intersection shader runs the f64 test and keeps the best hit itself.
         groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, NONE, 2));
-    } else {
-        // Triangles first (instances' hit-group offset 0); spheres second (offset 1), sharing the
-        // closest-hit shader, which tells them apart by hit kind.
-        groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, 2, NONE));
-        if key.spheres {
-            groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, 2, 3));
-        }
+        return groups;
+    }
+    // Triangles first (instances' hit-group offset 0), with the any-hit stage (3) where the variant
+    // has one; spheres second (offset 1), sharing the closest-hit shader, which tells them apart
+    // by hit kind.
+    let any_hit = key.any_hit().map_or(NONE, |_| 3);
+    groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, 2, NONE).any_hit_shader(any_hit));
+    if key.spheres {
+        let sphere_stage = if any_hit == NONE { 3 } else { 4 };
+        groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, 2, sphere_stage));
     }
     groups
 }
 
-/// Constants 0 (OUTPUTS), 1 (RAY_FLAGS), 2 (the workgroup size), 3 (QUERY) and 4 (CLOSED_EDGES),
-/// one u32 each.
-fn specialization_entries() -> [vk::SpecializationMapEntry; 5] {
-    [0u32, 1, 2, 3, 4].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
+/// Constants 0 (OUTPUTS), 1 (RAY_FLAGS), 2 (the workgroup size), 3 (QUERY), 4 (CLOSED_EDGES),
+/// 5 (RAY_SOURCE) and 6 (OPACITY_THRESHOLD, f32 bits), four bytes each.
+fn specialization_entries() -> [vk::SpecializationMapEntry; 7] {
+    [0u32, 1, 2, 3, 4, 5, 6].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
+}
+
+impl VariantKey {
+    /// The specialization constants' values, in `specialization_entries` order.
+    fn constants(&self, local_size: u32) -> [u32; 7] {
+        [
+            self.outputs,
+            self.ray_flags,
+            local_size,
+            self.query,
+            self.closed_edges as u32,
+            self.ray_source,
+            self.threshold_bits,
+        ]
+    }
 }
 
 /// A shader binding table's layout: the raygen, miss and hit regions (offset, stride, size), and
