@@ -82,7 +82,7 @@ Ray sensor_ray(uint i) {
   precise float px = float(column) + s.pixel_offset;
   precise float py = float(row) + s.pixel_offset;
   if (s.kind == SENSOR_PINHOLE) {
-    precise vec3 d = (s.axes[0].xyz * px + s.axes[1].xyz * py) + s.axes[2].xyz;
+    precise vec3 d = s.axes[0].xyz * px + (s.axes[1].xyz * py + s.axes[2].xyz);
     return Ray(s.origin.xyz, s.origin.w, d, s.axes[0].w);
   }
   if (s.kind == SENSOR_ORTHOGRAPHIC) {

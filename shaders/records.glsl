@@ -108,7 +108,7 @@ struct ExactHit {
 // at it, and `params.masks` holds the chunk's first ray (such rays share one mask). Every value is the host's f64
 // rounded once to f32, and the shaders combine them in f32 without fused multiply-adds in the
 // order python/vkray/sensors.py documents, so that `Sensor.rays()` holds the same rays bit for
-// bit. Pinhole: direction (a px + b py) + c with a, b, c = axes; orthographic: origin
+// bit. Pinhole: direction a px + (b py + c) with a, b, c = axes (Open3D's order); orthographic: origin
 // (origin + U px) + V py with U, V = axes[0], axes[1], direction axes[2]; lidar: direction R l,
 // l from the cos/sin table of channel (row) and step (column), R's rows in axes. Pixel (px, py)
 // is (column, row) + pixel_offset. In the fast tier the origin is in the scene's frame already;

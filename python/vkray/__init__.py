@@ -35,6 +35,7 @@ from ._core import (
 )
 from ._pictures import Picture, preview
 from ._secondary import offset_origins
+from .sensors import Lidar, OrthographicCamera, PinholeCamera, Sensor
 
 __all__ = [
     "AllHits",
@@ -47,6 +48,10 @@ __all__ = [
     "Precision",
     "VertexFormat",
     "offset_origins",
+    "Lidar",
+    "OrthographicCamera",
+    "PinholeCamera",
+    "Sensor",
     "preview",
     "Picture",
     "Device",

@@ -741,6 +741,54 @@ class Scene:
         )
         return (arrays["prim_id"] >= 0).reshape(batch.shape)
 
+    def explain(
+        self,
+        kind: str = "closest",
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        *,
+        opacity_threshold: float = 0.5,
+        sensor: bool = False,
+    ) -> Dict[str, Any]:
+        """The shader variant a query would run on this scene, and why (nothing is traced).
+
+        A variant is a pure function of what the scene holds (opacity, spheres, non-opaque
+        instances) and what the query asks (kind, outputs, culling, tier, rays from arrays or a
+        sensor), compiled once per device and cached. kind: ``"closest"`` (`intersect`),
+        ``"occluded"``, ``"all"`` (`intersect_all`'s storing pass), ``"count"``, ``"contains"``
+        (with one instance) or ``"transmittance"``. outputs: `intersect`'s fields (default as
+        there; other kinds write what they need).
+
+        Returns a dict: ``stages`` (the shader stages by role: ray generation, miss, closest-hit,
+        any-hit, intersection; or the ray-query backend's compute shader), ``ray_query_branches``
+        (the candidate loop's branches that are compiled in), ``ray_flags`` (the static ray flags
+        by name), ``pipeline_flags`` (primitives the whole pipeline skips), ``outputs`` (the hit
+        fields the GPU writes), ``specialization`` (the constants' values), ``device``,
+        ``backend``, ``kind`` and ``precision``. The ``"reference"`` tier runs on the CPU: its
+        stages are empty.
+        """
+        kinds = {"closest": "closest", "occluded": "occluded", "all": "all", "count": "count"}
+        kinds.update({"contains": "contains", "transmittance": "transmittance"})
+        if kind not in kinds:
+            raise ValueError(f"kind must be one of {tuple(kinds)}, got {kind!r}")
+        if kind == "closest":
+            fields: Tuple[str, ...] = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
+        else:
+            if outputs is not None:
+                raise ValueError(f"a {kind!r} query writes what it needs: outputs are for 'closest'")
+            fields = ("t",) if kind == "transmittance" else ("prim_id",)
+        if kind == "contains":
+            precision = "exact" if precision == "fast" else precision
+        core = self._core.explain(kind, list(fields), precision, cull, opacity_threshold, bool(sensor))
+        base = {"device": self.device.name, "backend": self.device.backend, "kind": kind, "precision": precision}
+        if core is None:
+            empty: Dict[str, Any] = {"stages": ["host: f64 watertight test on all CPU cores"]}
+            empty.update(ray_query_branches=[], ray_flags=[], pipeline_flags=[], outputs=list(fields))
+            empty["specialization"] = {}
+            return {**base, **empty}
+        return {**base, **core}
+
     def transmittance(
         self,
         origins: Any,

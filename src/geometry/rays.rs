@@ -143,6 +143,14 @@ impl Rays<'_> {
 
     /// Array lengths must agree (one shared origin or direction row is allowed).
     pub fn check_shapes(&self) -> Result<()> {
+        if let Some(sensor) = self.sensor {
+            // A sensor's rays share its interval and one mask.
+            sensor.check()?;
+            return match (self.mask, self.tmin, self.tmax) {
+                (Masks::All(_), PerRay::All(_), PerRay::All(_)) => Ok(()),
+                _ => Err(invalid_value("a sensor's rays share one mask and the sensor's range")),
+            };
+        }
         let n = self.len();
         for (name, rows) in [("origins", self.origins.rows()), ("directions", self.directions.rows())] {
             if rows != n && rows != 1 {

@@ -20,7 +20,7 @@ pub struct SensorRays {
     pub kind: SensorKind,
     /// Pinhole and lidar: every ray's origin; orthographic: the corner the pixel grid starts at.
     pub origin: [f32; 3],
-    /// Pinhole: a, b, c with direction (a px + b py) + c; orthographic: U, V, D with origin
+    /// Pinhole: a, b, c with direction a px + (b py + c) (Open3D's order); orthographic: U, V, D with origin
     /// (origin + U px) + V py and direction D; lidar: the rows of the sensor-to-world rotation.
     pub axes: [[f32; 3]; 3],
     pub columns: u32,
@@ -75,7 +75,7 @@ impl SensorRays {
         let py = row as f32 + self.pixel_offset;
         let [a, b, c] = self.axes;
         match self.kind {
-            SensorKind::Pinhole => (self.origin, [0, 1, 2].map(|j| (a[j] * px + b[j] * py) + c[j])),
+            SensorKind::Pinhole => (self.origin, [0, 1, 2].map(|j| a[j] * px + (b[j] * py + c[j]))),
             SensorKind::Orthographic => ([0, 1, 2].map(|j| (self.origin[j] + a[j] * px) + b[j] * py), c),
             SensorKind::Lidar => {
                 let channel = 2 * (self.columns as usize + row);
@@ -124,7 +124,7 @@ mod tests {
         s.check().unwrap();
         let (o, d) = s.ray(64 + 2);
         assert_eq!(o, [1.0, 2.0, 3.0]);
-        assert_eq!(d, [0.01f32 * 2.5 + 0.0 * 1.5 - 0.32, 0.0 * 2.5 + 0.01f32 * 1.5 - 0.24, 1.0]);
+        assert_eq!(d, [0.01f32 * 2.5 + (0.0 * 1.5 - 0.32), 0.0 * 2.5 + (0.01f32 * 1.5 - 0.24), 1.0]);
     }
 
     #[test]

@@ -338,6 +338,50 @@ impl PyScene {
         Ok(counts)
     }
 
+    /// The variant a query runs on this device: {"stages", "ray_query_branches", "ray_flags",
+    /// "pipeline_flags", "outputs", "specialization"}; None for the host's reference tier.
+    #[pyo3(signature = (kind, fields, precision="fast", cull=None, opacity_threshold=0.5, sensor=false))]
+    #[allow(clippy::too_many_arguments)]
+    fn explain<'py>(
+        &self,
+        py: Python<'py>,
+        kind: &str,
+        fields: Vec<String>,
+        precision: &str,
+        cull: Option<&str>,
+        opacity_threshold: f32,
+        sensor: bool,
+    ) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let query = Query::parse(kind)?;
+        let request = request(query, precision, cull, false, opacity_threshold)?;
+        let mut outputs = 0;
+        for (_, field) in fields_named(&fields)? {
+            outputs |= match field {
+                Some(field) => field.bit(),
+                // Positions come from the hit triangle and its barycentrics, on the host.
+                None => Field::Prim.bit() | Field::Instance.bit() | Field::Geometry.bit() | Field::Uv.bit(),
+            };
+        }
+        let explained = self.with_scene(py, |scene| self.tracer.explain(scene, request, outputs, sensor))?;
+        let Some(e) = explained else { return Ok(None) };
+        let d = PyDict::new(py);
+        d.set_item("stages", e.stages)?;
+        d.set_item("ray_query_branches", e.branches)?;
+        d.set_item("ray_flags", e.ray_flags)?;
+        d.set_item("pipeline_flags", e.pipeline_skips)?;
+        let written: Vec<&str> = FIELDS.iter().filter(|f| e.key.outputs & f.bit() != 0).map(|f| f.name()).collect();
+        d.set_item("outputs", written)?;
+        let constants = PyDict::new(py);
+        constants.set_item("OUTPUTS", e.key.outputs)?;
+        constants.set_item("RAY_FLAGS", e.key.ray_flags)?;
+        constants.set_item("QUERY", e.key.query)?;
+        constants.set_item("CLOSED_EDGES", e.key.closed_edges as u32)?;
+        constants.set_item("RAY_SOURCE", e.key.ray_source)?;
+        constants.set_item("OPACITY_THRESHOLD", f32::from_bits(e.key.threshold_bits))?;
+        d.set_item("specialization", constants)?;
+        Ok(Some(d))
+    }
+
     /// Whether each point ((N, 3)) is inside any instance: by parity or by winding number.
     #[pyo3(signature = (points, precision="exact", winding=false, progress=None))]
     fn contains<'py>(

@@ -11,7 +11,7 @@ use super::profile::TraceProfile;
 use super::request::{Precision, Query, Request, DEFAULT_THRESHOLD, ON_SURFACE};
 use super::staging::SlotPool;
 use super::tiers;
-use super::variants::{ray_flags, Variant, VariantKey, Variants};
+use super::variants::{ray_flag_names, ray_flags, Stage, Variant, VariantKey, Variants};
 use crate::gpu::memory::Buffer;
 use crate::error::{invalid_value, try_vec, Error, Result};
 use crate::geometry::parallel;
@@ -35,6 +35,19 @@ pub struct Tracer {
     pub(super) last_profile: Mutex<TraceProfile>,
     /// Rays per chunk: bounds staging memory (two chunks in flight).
     chunk_rays: AtomicUsize,
+}
+
+/// What `Tracer::explain` tells of a variant.
+pub struct Explanation {
+    pub key: VariantKey,
+    /// The shader stages, by role.
+    pub stages: Vec<&'static str>,
+    /// Ray-query backend: the candidate loop's branches the variant keeps.
+    pub branches: Vec<&'static str>,
+    /// The static ray flags, by name.
+    pub ray_flags: Vec<&'static str>,
+    /// Pipeline flags that skip a kind of primitive for the whole pipeline.
+    pub pipeline_skips: Vec<&'static str>,
 }
 
 /// Default rays per chunk: CPU devices gain nothing from big chunks (and a chunk is what Ctrl-C
@@ -298,11 +311,19 @@ impl Tracer {
         exact: bool,
         outputs: u32,
     ) -> Result<(Arc<Variant>, Option<Buffer>)> {
-        let spheres = scene.has_spheres();
-        let query = request.query;
         let frame = scene.frame();
         let sensor = rays.generated_on_gpu(&frame);
-        let key = VariantKey {
+        let variant = self.variants.get(self.variant_key(scene, request, exact, outputs, sensor.is_some()))?;
+        let sensor = sensor.map(|s| super::sensor::upload(&self.ctx, s, &frame, exact)).transpose()?;
+        Ok((variant, sensor))
+    }
+
+    /// What the variant of a GPU query on `scene` is specialized to: a function of what the
+    /// scene holds (opacity, spheres, non-opaque instances) and what the query asks.
+    pub fn variant_key(&self, scene: &Scene, request: Request, exact: bool, outputs: u32, sensor: bool) -> VariantKey {
+        let spheres = scene.has_spheres();
+        let query = request.query;
+        VariantKey {
             outputs,
             ray_flags: ray_flags(query, request.cull, self.ctx.backend, exact, scene.all_opaque(), spheres),
             exact,
@@ -311,11 +332,33 @@ impl Tracer {
             closed_edges: request.contacts,
             opacity: scene.has_opacity() && !exact,
             threshold_bits: if scene.has_opacity() { request.opacity_threshold } else { DEFAULT_THRESHOLD }.to_bits(),
-            ray_source: sensor.is_some() as u32,
+            ray_source: sensor as u32,
+        }
+    }
+
+    /// The variant a query of `request` on `scene` runs (writing `outputs`), as `Scene.explain`
+    /// shows it: its stages (or ray-query branches), static ray flags and specialization. The
+    /// host's tiers run none: `None` for the reference tier.
+    pub fn explain(&self, scene: &Scene, request: Request, outputs: u32, sensor: bool) -> Option<Explanation> {
+        let exact = match request.precision {
+            Precision::Reference => return None,
+            Precision::Exact => true,
+            // Refined transmittance and all hits re-intersect the fast tier's hits on the host.
+            Precision::Fast | Precision::Refined => false,
         };
-        let variant = self.variants.get(key)?;
-        let sensor = sensor.map(|s| super::sensor::upload(&self.ctx, s, &frame, exact)).transpose()?;
-        Ok((variant, sensor))
+        let key = self.variant_key(scene, request, exact, outputs, sensor);
+        let backend = self.ctx.backend;
+        Some(Explanation {
+            stages: key.stages(backend).into_iter().map(Stage::name).collect(),
+            branches: if backend == Backend::RayQuery { key.candidate_branches() } else { Vec::new() },
+            ray_flags: ray_flag_names(key.ray_flags),
+            pipeline_skips: match (backend, self.ctx.limits.ray_traversal_primitive_culling, exact, key.spheres) {
+                (Backend::Pipeline, true, false, false) => vec!["SkipAABBs"],
+                (Backend::Pipeline, true, true, _) => vec!["SkipTriangles"],
+                _ => Vec::new(),
+            },
+            key,
+        })
     }
 
     /// Every hit of every ray (the nearest `max_hits` of each), for `write_all`: on the GPU in the

@@ -57,6 +57,98 @@ impl VariantKey {
     }
 }
 
+/// The shader stages a variant has, by role.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stage {
+    /// Ray-query backend: one compute shader traces each ray in a loop over its candidates.
+    Compute,
+    RayGeneration,
+    Miss,
+    ClosestHit,
+    AnyHit(AnyHit),
+    /// The exact tier's f64 test, for its per-triangle boxes.
+    ExactIntersection,
+    /// The sphere sets' intersection shader.
+    SphereIntersection,
+}
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Compute => "compute (ray query)",
+            Stage::RayGeneration => "ray generation",
+            Stage::Miss => "miss",
+            Stage::ClosestHit => "closest-hit",
+            Stage::AnyHit(AnyHit::All) => "any-hit (every hit)",
+            Stage::AnyHit(AnyHit::Opacity) => "any-hit (opacity)",
+            Stage::ExactIntersection => "intersection (exact f64 test)",
+            Stage::SphereIntersection => "intersection (spheres)",
+        }
+    }
+}
+
+impl VariantKey {
+    /// The stages of this variant on `backend`, in the pipeline's stage order.
+    pub fn stages(&self, backend: Backend) -> Vec<Stage> {
+        if backend == Backend::RayQuery {
+            return vec![Stage::Compute];
+        }
+        let mut stages = vec![Stage::RayGeneration, Stage::Miss];
+        if self.exact {
+            stages.push(Stage::ExactIntersection);
+            return stages;
+        }
+        // Queries that skip the closest-hit shader (occlusion, every hit, transmittance) have none.
+        if self.ray_flags & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER == 0 {
+            stages.push(Stage::ClosestHit);
+        }
+        stages.extend(self.any_hit().map(Stage::AnyHit));
+        if self.spheres {
+            stages.push(Stage::SphereIntersection);
+        }
+        stages
+    }
+
+    /// The branches the ray-query backend's candidate loop keeps for this variant (the others
+    /// are compiled out by the specialization constants).
+    pub fn candidate_branches(&self) -> Vec<&'static str> {
+        let mut branches = Vec::new();
+        let query = self.query;
+        if self.exact {
+            branches.push("boxes: the f64 test of each box's triangle");
+            return branches;
+        }
+        if query == Query::All.shader_query() {
+            branches.push("triangles: every candidate kept (all hits, counts)");
+        } else if query == Query::Transmit.shader_query() {
+            branches.push("triangles: every candidate multiplies the light left");
+        } else if self.ray_flags & RAY_FLAG_CULL_NO_OPAQUE == 0 {
+            branches.push("triangles: non-opaque candidates confirmed where their opacity reaches the threshold");
+        }
+        if self.ray_flags & RAY_FLAG_SKIP_AABBS == 0 {
+            branches.push("boxes: spheres intersected and committed");
+        }
+        branches
+    }
+}
+
+/// The names of the ray flags set in `flags`.
+pub fn ray_flag_names(flags: u32) -> Vec<&'static str> {
+    [
+        (RAY_FLAG_NO_OPAQUE, "NoOpaque"),
+        (RAY_FLAG_TERMINATE_ON_FIRST_HIT, "TerminateOnFirstHit"),
+        (RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, "SkipClosestHitShader"),
+        (RAY_FLAG_CULL_BACK_FACING_TRIANGLES, "CullBackFacingTriangles"),
+        (RAY_FLAG_CULL_FRONT_FACING_TRIANGLES, "CullFrontFacingTriangles"),
+        (RAY_FLAG_CULL_NO_OPAQUE, "CullNoOpaque"),
+        (RAY_FLAG_SKIP_AABBS, "SkipAABBs"),
+    ]
+    .into_iter()
+    .filter(|(bit, _)| flags & bit != 0)
+    .map(|(_, name)| name)
+    .collect()
+}
+
 /// The pipeline backend's any-hit shaders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum AnyHit {
@@ -273,20 +365,20 @@ impl Variants {
         let raygen = if key.exact { m.raygen_exact.expect(exact_only) } else { m.raygen };
         // Stages 0 raygen, 1 miss, 2 closest-hit or the exact intersection, then any-hit and the
         // sphere intersection where the variant has them (`hit_groups` numbers them alike).
-        let mut stages = vec![stage(S::RAYGEN_KHR, raygen), stage(S::MISS_KHR, m.miss)];
-        if key.exact {
-            stages.push(stage(S::INTERSECTION_KHR, m.intersection_exact.expect(exact_only)));
-        } else {
-            stages.push(stage(S::CLOSEST_HIT_KHR, m.closest_hit));
-            match key.any_hit() {
-                Some(AnyHit::All) => stages.push(stage(S::ANY_HIT_KHR, m.any_hit_all)),
-                Some(AnyHit::Opacity) => stages.push(stage(S::ANY_HIT_KHR, m.any_hit_opacity)),
-                None => {}
-            }
-            if key.spheres {
-                stages.push(stage(S::INTERSECTION_KHR, m.sphere));
-            }
-        }
+        let stages: Vec<_> = key
+            .stages(Backend::Pipeline)
+            .into_iter()
+            .map(|role| match role {
+                Stage::RayGeneration => stage(S::RAYGEN_KHR, raygen),
+                Stage::Miss => stage(S::MISS_KHR, m.miss),
+                Stage::ClosestHit => stage(S::CLOSEST_HIT_KHR, m.closest_hit),
+                Stage::AnyHit(AnyHit::All) => stage(S::ANY_HIT_KHR, m.any_hit_all),
+                Stage::AnyHit(AnyHit::Opacity) => stage(S::ANY_HIT_KHR, m.any_hit_opacity),
+                Stage::ExactIntersection => stage(S::INTERSECTION_KHR, m.intersection_exact.expect(exact_only)),
+                Stage::SphereIntersection => stage(S::INTERSECTION_KHR, m.sphere),
+                Stage::Compute => unreachable!("pipeline variants have no compute stage"),
+            })
+            .collect();
         let groups = hit_groups(key);
         // Traversal skips the primitives the structures cannot hold, for the whole pipeline (a
         // flag Vulkan allows only with the primitive-culling feature).
@@ -382,7 +474,8 @@ impl Drop for Variants {
     }
 }
 
-/// The groups of a pipeline variant: raygen (stage 0), miss (stage 1), then its hit groups.
+/// The groups of a pipeline variant: raygen (stage 0), miss (stage 1), then its hit groups, whose
+/// shaders are the variant's other stages (numbered as `VariantKey::stages` orders them).
 fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'static>> {
     let group = |ty, general, closest_hit, intersection| {
         vk::RayTracingShaderGroupCreateInfoKHR::default()
@@ -394,20 +487,22 @@ fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'st
     };
     use vk::RayTracingShaderGroupTypeKHR as G;
     const NONE: u32 = vk::SHADER_UNUSED_KHR;
+    let stages = key.stages(Backend::Pipeline);
+    let index = |wanted: fn(&Stage) -> bool| stages.iter().position(wanted).map_or(NONE, |k| k as u32);
+    let closest_hit = index(|s| *s == Stage::ClosestHit);
+    let any_hit = index(|s| matches!(s, Stage::AnyHit(_)));
     let mut groups = vec![group(G::GENERAL, 0, NONE, NONE), group(G::GENERAL, 1, NONE, NONE)];
     if key.exact {
         // Boxes whose intersection shader runs the f64 test and keeps the best hit itself.
-        groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, NONE, 2));
+        groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, NONE, index(|s| *s == Stage::ExactIntersection)));
         return groups;
     }
-    // Triangles first (instances' hit-group offset 0), with the any-hit stage (3) where the variant
+    // Triangles first (instances' hit-group offset 0), with the any-hit stage where the variant
     // has one; spheres second (offset 1), sharing the closest-hit shader, which tells them apart
     // by hit kind.
-    let any_hit = key.any_hit().map_or(NONE, |_| 3);
-    groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, 2, NONE).any_hit_shader(any_hit));
+    groups.push(group(G::TRIANGLES_HIT_GROUP, NONE, closest_hit, NONE).any_hit_shader(any_hit));
     if key.spheres {
-        let sphere_stage = if any_hit == NONE { 3 } else { 4 };
-        groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, 2, sphere_stage));
+        groups.push(group(G::PROCEDURAL_HIT_GROUP, NONE, closest_hit, index(|s| *s == Stage::SphereIntersection)));
     }
     groups
 }
