@@ -986,13 +986,19 @@ class _RayBatch:
         if isinstance(origins, Sensor):
             if directions is not None:
                 raise TypeError("a sensor generates its own rays: pass it alone, without directions")
-            if not (np.isscalar(tmin) and float(tmin) == 0.0 and np.isscalar(tmax) and float(tmax) == np.inf):
+            numbers = (int, float, np.integer, np.floating)
+            if not (isinstance(tmin, numbers) and tmin == 0 and isinstance(tmax, numbers) and tmax == np.inf):
                 raise TypeError("a sensor's range is its own (its tmin and tmax): do not pass tmin or tmax")
             self.shape: Tuple[int, ...] = tuple(origins.shape)
             self.sensor = _sensor_record(origins)
             self.echoes = int(origins.echoes)
             empty = np.empty((0, 3), np.float32)
-            self.arrays: Tuple[Any, ...] = (empty, empty, float(origins.tmin), float(origins.tmax))
+            self.arrays: Tuple[np.ndarray, np.ndarray, Union[float, np.ndarray], Union[float, np.ndarray]] = (
+                empty,
+                empty,
+                float(origins.tmin),
+                float(origins.tmax),
+            )
             self.mask = _arrays.masks(mask, ())
             return
         if directions is None:

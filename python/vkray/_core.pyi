@@ -87,6 +87,7 @@ class Device:
         allow_update: bool = False,
         compact: bool = False,
         vertex_format: VertexFormat = "float32",
+        opacity: Optional[NDArray[np.float32]] = None,
     ) -> Mesh: ...
     def spheres(self, centers: _Vec3s, radii: _PerItem, build: Build = "fast_trace", compact: bool = False) -> Mesh: ...
     def mesh_parts(
@@ -96,6 +97,7 @@ class Device:
         allow_update: bool = False,
         compact: bool = False,
         vertex_format: VertexFormat = "float32",
+        opacity: Optional[NDArray[np.float32]] = None,
     ) -> Mesh: ...
     def meshes(
         self,
@@ -155,6 +157,8 @@ class Scene:
         mask: Union[int, NDArray[np.uint8], None] = None,
         contacts: bool = False,
         progress: Optional[Callable[[int, int], object]] = None,
+        opacity_threshold: float = 0.5,
+        sensor: Optional[Dict[str, Any]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
     def trace_all(
         self,
@@ -169,6 +173,8 @@ class Scene:
         max_hits: Optional[int] = None,
         contacts: bool = False,
         progress: Optional[Callable[[int, int], object]] = None,
+        opacity_threshold: float = 0.5,
+        sensor: Optional[Dict[str, Any]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
     def count(
         self,
@@ -180,7 +186,18 @@ class Scene:
         cull: Cull = None,
         mask: Union[int, NDArray[np.uint8], None] = None,
         progress: Optional[Callable[[int, int], object]] = None,
+        opacity_threshold: float = 0.5,
+        sensor: Optional[Dict[str, Any]] = None,
     ) -> NDArray[np.int32]: ...
+    def explain(
+        self,
+        kind: str,
+        fields: List[str],
+        precision: Precision = "fast",
+        cull: Cull = None,
+        opacity_threshold: float = 0.5,
+        sensor: bool = False,
+    ) -> Optional[Dict[str, Any]]: ...
     def contains(
         self,
         points: _Vec3s,

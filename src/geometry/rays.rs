@@ -110,7 +110,12 @@ impl Rays<'_> {
     /// Ray `i` in f64, its origin shifted by `-shift` (into a scene's frame).
     #[inline(always)]
     pub fn ray64(&self, i: usize, shift: DVec3) -> Ray64 {
-        Ray64 { origin: self.origin64(i, shift), direction: self.direction64(i), tmin: self.tmin.get(i), tmax: self.tmax.get(i) }
+        Ray64 {
+            origin: self.origin64(i, shift),
+            direction: self.direction64(i),
+            tmin: self.tmin.get(i),
+            tmax: self.tmax.get(i),
+        }
     }
 
     /// Ray `i`'s origin in f64, shifted by `-shift`.
@@ -134,10 +139,8 @@ impl Rays<'_> {
     /// is far enough from the scene for the host to advance it (the shaders do not advance rays).
     pub fn generated_on_gpu(&self, frame: &Frame) -> Option<&SensorRays> {
         let sensor = self.sensor?;
-        let near = sensor
-            .extreme_origins()
-            .iter()
-            .all(|o| !frame.is_far(DVec3::from_array(o.map(f64::from)) - frame.shift));
+        let near =
+            sensor.extreme_origins().iter().all(|o| !frame.is_far(DVec3::from_array(o.map(f64::from)) - frame.shift));
         near.then_some(sensor)
     }
 

@@ -250,7 +250,13 @@ impl<'a> ReferenceTracer<'a> {
 
     /// Calls `found` with each hit of `ray` no farther than the `tmax` it keeps (which `found`
     /// may lower), among the sets `mask` sees and the sides `cull` keeps, until it returns false.
-    fn for_each_hit(&self, ray: &Ray64, mask: u8, filter: Filter, mut found: impl FnMut(ReferenceHit, &mut f64) -> bool) {
+    fn for_each_hit(
+        &self,
+        ray: &Ray64,
+        mask: u8,
+        filter: Filter,
+        mut found: impl FnMut(ReferenceHit, &mut f64) -> bool,
+    ) {
         let mut tmax = ray.tmax;
         self.top.traverse(ray, &mut tmax, |instance, tmax| {
             let set = &self.sets[instance as usize];
@@ -355,6 +361,7 @@ mod tests {
             bounds,
             flip_facing: false,
             cull_disable: false,
+            opacity: None,
         }]);
         let brute = |ray: &Ray64| -> Vec<usize> {
             let sheared = ShearedRay::new(*ray);
@@ -376,7 +383,7 @@ mod tests {
                 if interior {
                     assert_eq!(count, 1, "target {target}");
                 }
-                let hit = tracer.trace(&ray, 0xFF, Cull::None, false);
+                let hit = tracer.trace(&ray, 0xFF, Filter::sides(Cull::None), false);
                 assert_eq!(hit.is_some(), count == 1);
                 if let Some(hit) = hit {
                     assert_eq!(vec![hit.prim as usize], brute(&ray));
@@ -408,6 +415,7 @@ mod tests {
             bounds: Aabb::of_points(set.vertices.iter().copied()).transformed(&to_local.inverse().unwrap()),
             flip_facing: false,
             cull_disable: false,
+            opacity: None,
         };
         let tracer = ReferenceTracer::new(vec![place(Affine::IDENTITY), place(lifted)]);
         let ray = Ray64 {
@@ -416,11 +424,11 @@ mod tests {
             tmin: 0.0,
             tmax: f64::INFINITY,
         };
-        let hit = tracer.trace(&ray, 0xFF, Cull::None, false).unwrap();
+        let hit = tracer.trace(&ray, 0xFF, Filter::sides(Cull::None), false).unwrap();
         assert_eq!((hit.instance, hit.t), (1, 4.0));
-        assert!(tracer.trace(&Ray64 { tmax: 3.5, ..ray }, 0xFF, Cull::None, true).is_none());
+        assert!(tracer.trace(&Ray64 { tmax: 3.5, ..ray }, 0xFF, Filter::sides(Cull::None), true).is_none());
         // The grid faces +z and the ray comes from above: culling front faces leaves nothing.
-        assert!(tracer.trace(&ray, 0xFF, Cull::Front, false).is_none());
-        assert_eq!(tracer.trace(&ray, 0xFF, Cull::Back, false).unwrap().instance, 1);
+        assert!(tracer.trace(&ray, 0xFF, Filter::sides(Cull::Front), false).is_none());
+        assert_eq!(tracer.trace(&ray, 0xFF, Filter::sides(Cull::Back), false).unwrap().instance, 1);
     }
 }

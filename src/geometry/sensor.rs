@@ -37,7 +37,10 @@ impl SensorRays {
     /// Checks what the shaders rely on: a kind's table, sizes, finite parameters, an interval.
     pub fn check(&self) -> Result<()> {
         if self.columns == 0 || self.rows == 0 {
-            return Err(invalid_value(format!("a sensor needs at least one ray, got {} × {}", self.rows, self.columns)));
+            return Err(invalid_value(format!(
+                "a sensor needs at least one ray, got {} × {}",
+                self.rows, self.columns
+            )));
         }
         if (self.columns as u64) * (self.rows as u64) > u32::MAX as u64 {
             return Err(invalid_value("a sensor's rays must number below 2**32"));

@@ -107,6 +107,7 @@ impl PyDevice {
         d.set_item("shader_group_handle_alignment", l.shader_group_handle_alignment)?;
         d.set_item("shader_group_base_alignment", l.shader_group_base_alignment)?;
         d.set_item("max_ray_dispatch_invocation_count", l.max_ray_dispatch_invocation_count)?;
+        d.set_item("ray_traversal_primitive_culling", l.ray_traversal_primitive_culling)?;
         d.set_item("timestamp_period_ns", l.timestamp_period)?;
         d.set_item("timestamp_valid_bits", l.timestamp_valid_bits)?;
         d.set_item("vertex_formats", l.vertex_formats.iter().map(|f| f.name()).collect::<Vec<_>>())?;
@@ -186,6 +187,7 @@ impl PyDevice {
 
     /// One mesh of several parts (geometries), each (vertices, faces) with transforms baked in.
     #[pyo3(signature = (parts, build="fast_trace", allow_update=false, compact=false, vertex_format="float32", opacity=None))]
+    #[allow(clippy::too_many_arguments)]
     fn mesh_parts(
         &self,
         py: Python<'_>,

@@ -193,7 +193,13 @@ pub struct AllHits {
 }
 
 /// Traces every ray for all of its hits (the nearest `max_hits` of each) on all cores.
-pub fn all_hits(scene: &Scene, rays: &Rays, filter: Filter, max_hits: usize, interrupt: &dyn Interrupt) -> Result<AllHits> {
+pub fn all_hits(
+    scene: &Scene,
+    rays: &Rays,
+    filter: Filter,
+    max_hits: usize,
+    interrupt: &dyn Interrupt,
+) -> Result<AllHits> {
     let tracer = scene.reference_tracer();
     let mut offsets = try_vec(rays.len() + 1, 0i64, "the offsets of all hits")?;
     let mut hits: Vec<ReferenceHit> = Vec::new();
@@ -344,7 +350,13 @@ pub fn refine_all(
 }
 
 /// The number of hits of each ray, in f64 on the CPU, into `out`.
-pub fn count_hits(scene: &Scene, rays: &Rays, filter: Filter, out: &mut [i32], interrupt: &dyn Interrupt) -> Result<()> {
+pub fn count_hits(
+    scene: &Scene,
+    rays: &Rays,
+    filter: Filter,
+    out: &mut [i32],
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
     let tracer = scene.reference_tracer();
     in_blocks(rays.len(), interrupt, |range| {
         let start = range.start;
