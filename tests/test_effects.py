@@ -233,6 +233,8 @@ def test_explain_follows_the_ray_tracing_guidance(device, bunny):
     assert (pipeline and "any-hit (every hit)" in every["stages"]) or not pipeline
     transmit = translucent.explain("transmittance")
     assert transmit["outputs"] == ["t"] and "NoOpaque" in transmit["ray_flags"]
+    # Through opaque triangles only, light is kept or not: the occlusion variant answers.
+    assert opaque.explain("transmittance")["ray_flags"] == occluded["ray_flags"]
     culled = opaque.explain("closest", cull="back")
     assert "CullBackFacingTriangles" in culled["ray_flags"]
     exact = opaque.explain("closest", precision="exact")

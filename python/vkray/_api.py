@@ -804,7 +804,8 @@ class Scene:
         """The light each ray keeps within [tmin, tmax]: the product of ``1 - opacity`` over every
         triangle it crosses (`Device.mesh`'s opacity; opaque triangles give 0, cut-outs 1):
         attenuation through foliage, glass or shielding. Computed during traversal without storing
-        the hits (the GPU tiers stop a ray once nothing is left).
+        the hits (the GPU tiers stop a ray once nothing is left). In a scene without opacity (or
+        whose translucent instances are forced opaque) it is 1 or 0, and `occluded` answers it.
 
         precision: ``"fast"`` (float32; at a shared edge a ray may cross both triangles or
         neither, as in `count`), ``"exact"`` (float64; each crossing once, by the f64 test on the

@@ -182,16 +182,20 @@ impl Tracer {
                 (vk::PipelineBindPoint::RAY_TRACING_KHR, vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR)
             }
         };
-        if let (Some((rays_device, _)), None) = (&slot.device, job.sensor) {
-            let masks_at = slot.masks_offset() as u64;
-            let rays_region = vk::BufferCopy::default().size((len * Slot::ray_bytes(slot.exact)) as u64);
-            let masks_region = vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
-            let regions = match job.rays.mask {
-                Masks::Each(_) => vec![rays_region, masks_region],
-                Masks::All(_) => vec![rays_region],
-            };
-            // SAFETY: `cmd` is recording; both buffers hold `capacity` rays and masks.
-            unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &regions) };
+        if let Some((rays_device, _)) = &slot.device {
+            // Rays a sensor generates need no upload; the storing pass's lists always do.
+            if job.sensor.is_none() {
+                let masks_at = slot.masks_offset() as u64;
+                let rays_region = vk::BufferCopy::default().size((len * Slot::ray_bytes(slot.exact)) as u64);
+                let masks_region =
+                    vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
+                let regions = match job.rays.mask {
+                    Masks::Each(_) => vec![rays_region, masks_region],
+                    Masks::All(_) => vec![rays_region],
+                };
+                // SAFETY: `cmd` is recording; both buffers hold `capacity` rays and masks.
+                unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &regions) };
+            }
             if let Some((ListBuffers { lists_host, device: Some((lists_device, _)), .. }, _)) = lists {
                 let region = [vk::BufferCopy::default().size((len * size_of::<HitList>()) as u64)];
                 // SAFETY: `cmd` is recording; both buffers hold at least `len` lists.

@@ -210,6 +210,10 @@ impl Tracer {
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let refine = request.precision == Precision::Refined && request.query == Query::Closest;
+        if request.query == Query::Transmit && !scene.has_opacity() {
+            // Where every triangle is opaque, light is kept (1) or not (0): an occlusion query.
+            return self.transmit_by_occlusion(scene, rays, request, work, interrupt, profile);
+        }
         if request.query == Query::Transmit && !matches!(request.precision, Precision::Fast | Precision::Exact) {
             // The host's tiers multiply over the f64 hits of every crossing.
             let every = Request { query: Query::All, opacity_threshold: 0.0, ..request };
@@ -255,6 +259,34 @@ impl Tracer {
                 Ok(())
             }
         }
+    }
+
+    /// Transmittance in a scene without opacity: 1 where a ray is not occluded, else 0.
+    fn transmit_by_occlusion(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        work: &mut HitSink,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let mut blocked = try_vec(rays.len(), 0i32, "the rays' occlusion")?;
+        let mut sink = HitSink::default();
+        sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut blocked));
+        self.run_tier(scene, rays, Request { query: Query::Occluded, ..request }, &mut sink, interrupt, profile)?;
+        let out = work.field_mut(Field::T).expect("transmittance writes t");
+        let left = |b: &i32| if *b >= 0 { 0.0 } else { 1.0 };
+        parallel::install(|| {
+            if request.precision.is_f64() {
+                let out: &mut [f64] = bytemuck::cast_slice_mut(out);
+                out.par_iter_mut().zip(&blocked).with_min_len(4096).for_each(|(t, b)| *t = left(b));
+            } else {
+                let out: &mut [f32] = bytemuck::cast_slice_mut(out);
+                out.par_iter_mut().zip(&blocked).with_min_len(4096).for_each(|(t, b)| *t = left(b) as f32);
+            }
+        });
+        Ok(())
     }
 
     /// Fails where this driver does not run the intersection shaders a GPU query on `scene`
@@ -345,6 +377,13 @@ impl Tracer {
             Precision::Exact => true,
             // Refined transmittance and all hits re-intersect the fast tier's hits on the host.
             Precision::Fast | Precision::Refined => false,
+        };
+        // Transmittance through opaque triangles only is an occlusion query (see `run_tier`).
+        let (request, outputs) = match request.query {
+            Query::Transmit if !scene.has_opacity() => {
+                (Request { query: Query::Occluded, ..request }, Field::Prim.bit())
+            }
+            _ => (request, outputs),
         };
         let key = self.variant_key(scene, request, exact, outputs, sensor);
         let backend = self.ctx.backend;

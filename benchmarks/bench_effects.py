@@ -1,0 +1,458 @@
+"""What each effect costs: one row per effect a scene or a query can call for, measured in one run
+on the same rays, on every backend the device offers. Prints Markdown; `--json` keeps every figure.
+
+    python benchmarks/bench_effects.py                                   # lavapipe: 200k rays, both backends
+    python benchmarks/bench_effects.py --rays 1000000 --backend pipeline --big --json out.json   # the GPU run
+
+Rays (the same for every row but the camera rows): half from a pinhole camera 2.5 bounding radii
+from the mesh's centre looking at it (as tests/oracle.py's camera_rays), half from a sphere of 2
+bounding radii towards random points of its bounding box, a quarter of those in random directions
+(oracle.random_rays, seed 11); float32, uploaded each call. Default 200,000 rays: lavapipe traces
+about 1M rays/s on 2 cores, and the whole run stays within a few minutes there; on a GPU use 1M or
+more.
+
+Rows (each names the row it is compared with, "vs"):
+
+- baseline: `intersect(outputs=["t"])` on the opaque mesh.
+- all fields: `intersect()` with its default outputs (t, prim_id, instance_id, custom_index, uv, normal).
+- cull back: `cull="back"` (hits change: back faces are skipped).
+- per-ray masks: `mask=` a uint8 array of 0xFF, one per ray (the hits cannot change).
+- spheres present: the scene plus 8 small spheres 100 bounding radii away at the corners of a cube
+  centred on the mesh (no ray comes near them).
+- opacity present: the same mesh with opacity 1 on every triangle but triangle 0 (0.5: not below the
+  threshold, so it still blocks and every hit is the baseline's), against the opaque mesh: the
+  any-hit stage (pipeline) or the candidate confirmation (ray query) runs on every candidate.
+- occluded, intersect_all (outputs ["t"]), count: against the closest hit.
+- transmittance on the opacity scene, and on the opaque scene (which has no opacity to multiply).
+- camera, uploaded rays: `intersect(*camera.rays(), outputs=["t"])` with a camera of about --rays
+  pixels (the arrays are made once, outside the timing); camera, GPU rays: `intersect(camera,
+  outputs=["t"])`, nothing uploaded, against the uploaded rays (the same rays bit for bit).
+
+Each row: one warm-up call (it compiles the variant), then --repeat rounds; a round calls every row
+once, in order, so drift of the machine spreads over all rows. Reported: the median wall time of a
+call (numpy in, numpy out), its rate, and the median GPU trace time (`Device.last_trace_profile`
+["gpu_trace"]: timestamps around the trace alone, summed over chunks; for intersect_all both
+passes). "x wall" and "x GPU" are the row's time over its "vs" row's: the cost of the effect. "≠"
+counts rays whose answer (t where both rows have it, else hit or miss) differs from the vs row's.
+The stages, branches and flags come from `Scene.explain` for the row's query.
+
+--big adds the 4096 x 4096 depth image (outputs ["t"]) of a GPU-generated camera: rays per second
+end to end (the call's wall clock, the answer as numpy) and of the trace alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+import vkray
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DEFAULT_MESH = ROOT.parent / "shared" / "meshes" / "stanford-bunny.obj"
+
+# Short names for Scene.explain's stages and ray-query branches (anything else is printed whole).
+STAGES = {
+    "ray generation": "rgen",
+    "miss": "miss",
+    "closest-hit": "chit",
+    "any-hit (opacity)": "ahit(opacity)",
+    "any-hit (every hit)": "ahit(every hit)",
+    "intersection (spheres)": "isect(spheres)",
+    "compute (ray query)": "compute",
+}
+BRANCHES = {
+    "boxes: spheres intersected and committed": "spheres",
+    "triangles: non-opaque candidates confirmed where their opacity reaches the threshold": "opacity confirm",
+    "triangles: every candidate kept (all hits, counts)": "keep every candidate",
+    "triangles: every candidate multiplies the light left": "multiply light",
+}
+
+
+def load_obj(path):
+    """(vertices float64 (V, 3), faces int64 (F, 3)) of an OBJ's v and f lines (polygons fanned)."""
+    vertices, faces = [], []
+    with open(path) as f:
+        for line in f:
+            if line.startswith("v "):
+                vertices.append([float(x) for x in line.split()[1:4]])
+            elif line.startswith("f "):
+                ids = [int(c.split("/")[0]) for c in line.split()[1:]]
+                ids = [i - 1 if i > 0 else len(vertices) + i for i in ids]
+                faces += [[ids[0], ids[k], ids[k + 1]] for k in range(1, len(ids) - 1)]
+    return np.array(vertices, dtype=np.float64), np.array(faces, dtype=np.int64)
+
+
+def bounds(vertices):
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    return (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+
+
+FORWARD = np.array([0.3, -0.4, -1.0]) / np.linalg.norm([0.3, -0.4, -1.0])
+
+
+def camera_rays(vertices, width, height):
+    """tests/oracle.py's camera_rays: (origin (3,), directions (H*W, 3)), 2.5 radii away."""
+    centre, radius = bounds(vertices)
+    origin = centre - 2.5 * radius * FORWARD
+    right = np.cross(FORWARD, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, FORWARD)
+    ys, xs = np.meshgrid(np.linspace(0.5, -0.5, height), np.linspace(-0.5, 0.5, width), indexing="ij")
+    dirs = FORWARD + xs[..., None] * right + ys[..., None] * up
+    return origin, dirs.reshape(-1, 3)
+
+
+def random_rays(vertices, n, seed):
+    """tests/oracle.py's random_rays: from a sphere of 2 radii towards the bounding box, a quarter wild."""
+    rng = np.random.default_rng(seed)
+    centre, radius = bounds(vertices)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    u = rng.normal(size=(n, 3))
+    origins = centre + 2.0 * radius * u / np.linalg.norm(u, axis=1, keepdims=True)
+    directions = rng.uniform(lo, hi, size=(n, 3)) - origins
+    wild = rng.random(n) < 0.25
+    directions[wild] = rng.normal(size=(int(wild.sum()), 3))
+    return origins, directions
+
+
+def pinhole(vertices, width, height):
+    """A vkray.PinholeCamera with camera_rays' view: 2.5 radii away, 53.13 degrees across."""
+    centre, radius = bounds(vertices)
+    return vkray.PinholeCamera(
+        width,
+        height,
+        fov_deg=math.degrees(2 * math.atan(0.5)),
+        eye=centre - 2.5 * radius * FORWARD,
+        target=centre,
+        up=[0.0, -1.0, 0.0],  # Open3D's camera y points down the image: world down for upright images
+    )
+
+
+def shorten(explained):
+    """(stages, flags) of a Scene.explain answer, as short strings for the table."""
+    stages = [STAGES.get(s, s) for s in explained["stages"]]
+    branches = [BRANCHES.get(b, b) for b in explained["ray_query_branches"]]
+    if branches:
+        stages.append("[" + ", ".join(branches) + "]")
+    flags = " ".join(explained["ray_flags"]) or "none"
+    if explained["pipeline_flags"]:
+        flags += "; pipeline: " + " ".join(explained["pipeline_flags"])
+    return " ".join(stages), flags
+
+
+def answer(result):
+    """(t or None, hit mask) of any query's result, flattened."""
+    if isinstance(result, vkray.Hits):
+        t = None if result.t is None else result.t.reshape(-1)
+        return t, result.hit.reshape(-1)
+    if isinstance(result, vkray.AllHits):
+        return None, result.counts.reshape(-1) > 0
+    result = np.asarray(result).reshape(-1)
+    if result.dtype == np.bool_:  # occluded
+        return None, result
+    if result.dtype.kind == "f":  # transmittance: 0 where an opaque surface blocks the ray
+        return None, result < 1
+    return None, result > 0  # count
+
+
+def differ(a, b):
+    """How many rays answer differently (t where both hold it, else hit or miss)."""
+    (ta, ha), (tb, hb) = a, b
+    if len(ha) != len(hb):
+        return None
+    if ta is not None and tb is not None:
+        return int(np.count_nonzero(~((ta == tb) | (np.isnan(ta) & np.isnan(tb)))))
+    return int(np.count_nonzero(ha != hb))
+
+
+def bench_backend(backend, args, vertices, faces, o32, d32):
+    device = vkray.Device(args.device, backend=backend)
+    n = len(o32)
+    centre, radius = bounds(vertices)
+    mesh = device.mesh(vertices, faces)
+    opacity = np.ones(len(faces), np.float32)
+    opacity[0] = 0.5
+    translucent = device.mesh(vertices, faces, opacity=opacity)
+    # 8 spheres at the corners of a cube 100 radii across, centred on the mesh: the scene's bounds
+    # keep their centre, which the TLAS is re-centred on (spheres on one side would move that frame
+    # and change the f32 rounding of every t; see docs/effects.md).
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    spheres = device.spheres(centre + 100 * radius / math.sqrt(3) * corners, 0.01 * radius)
+    scene = device.scene(mesh)
+    scene_spheres = device.scene([mesh, spheres])
+    scene_opacity = device.scene(translucent)
+    masks = np.full(n, 0xFF, np.uint8)
+    side = max(1, int(round(math.sqrt(n))))
+    camera = pinhole(vertices, side, side)
+    cam_o, cam_d = camera.rays()
+
+    t = ["t"]
+    # (name, query, scene, call, explain kwargs, vs)
+    rows = [
+        ("baseline", "intersect t", scene, lambda: scene.intersect(o32, d32, outputs=t), dict(outputs=t), None),
+        ("all fields", "intersect (6 fields)", scene, lambda: scene.intersect(o32, d32), {}, "baseline"),
+        (
+            "cull back",
+            "intersect t, cull=back",
+            scene,
+            lambda: scene.intersect(o32, d32, outputs=t, cull="back"),
+            dict(outputs=t, cull="back"),
+            "baseline",
+        ),
+        (
+            "per-ray masks",
+            "intersect t, mask=uint8[N]",
+            scene,
+            lambda: scene.intersect(o32, d32, outputs=t, mask=masks),
+            dict(outputs=t),
+            "baseline",
+        ),
+        (
+            "spheres present",
+            "intersect t",
+            scene_spheres,
+            lambda: scene_spheres.intersect(o32, d32, outputs=t),
+            dict(outputs=t),
+            "baseline",
+        ),
+        (
+            "opacity present",
+            "intersect t",
+            scene_opacity,
+            lambda: scene_opacity.intersect(o32, d32, outputs=t),
+            dict(outputs=t),
+            "baseline",
+        ),
+        ("occluded", "occluded", scene, lambda: scene.occluded(o32, d32), dict(kind="occluded"), "baseline"),
+        (
+            "all hits",
+            "intersect_all t",
+            scene,
+            lambda: scene.intersect_all(o32, d32, outputs=t),
+            dict(kind="all"),
+            "baseline",
+        ),
+        ("count", "count", scene, lambda: scene.count(o32, d32), dict(kind="count"), "baseline"),
+        (
+            "transmittance (opacity)",
+            "transmittance",
+            scene_opacity,
+            lambda: scene_opacity.transmittance(o32, d32),
+            dict(kind="transmittance"),
+            "baseline",
+        ),
+        (
+            "transmittance (opaque)",
+            "transmittance",
+            scene,
+            lambda: scene.transmittance(o32, d32),
+            dict(kind="transmittance"),
+            "baseline",
+        ),
+        (
+            "camera, uploaded rays",
+            f"intersect t, camera.rays() {side}x{side}",
+            scene,
+            lambda: scene.intersect(cam_o, cam_d, outputs=t),
+            dict(outputs=t),
+            "baseline",
+        ),
+        (
+            "camera, GPU rays",
+            f"intersect t, camera {side}x{side}",
+            scene,
+            lambda: scene.intersect(camera, outputs=t),
+            dict(outputs=t, sensor=True),
+            "camera, uploaded rays",
+        ),
+    ]
+    results = []
+    for name, query, sc, call, explain_kwargs, vs in rows:
+        kind = explain_kwargs.pop("kind", "closest")
+        explained = sc.explain(kind, **explain_kwargs)
+        first = call()  # warm-up: compiles the variant
+        count = camera.width * camera.height if name.startswith("camera") else n
+        results.append(
+            {
+                "name": name,
+                "query": query,
+                "vs": vs,
+                "rays": count,
+                "explain": explained,
+                "answer": answer(first),
+                "call": call,
+                "seconds": [],
+                "profiles": [],
+            }
+        )
+        print(f"  {backend}: {name} warmed up", file=sys.stderr, flush=True)
+    for round_ in range(args.repeat):
+        for row in results:
+            start = time.perf_counter()
+            row["call"]()
+            row["seconds"].append(time.perf_counter() - start)
+            row["profiles"].append(device.last_trace_profile)
+        print(f"  {backend}: round {round_ + 1}/{args.repeat} done", file=sys.stderr, flush=True)
+
+    by_name = {row["name"]: row for row in results}
+    for row in results:
+        row["median_s"] = statistics.median(row["seconds"])
+        traces = [p.get("gpu_trace") for p in row["profiles"]]
+        row["gpu_trace_s"] = None if any(x is None for x in traces) else statistics.median(traces)
+        row["hit_fraction"] = float(row["answer"][1].mean())
+    for row in results:
+        ref = by_name.get(row["vs"])
+        row["x_wall"] = row["x_gpu"] = row["differ"] = None
+        if ref is not None:
+            # Cost per ray, so that rows of different ray counts (the camera) compare too.
+            row["x_wall"] = (row["median_s"] / row["rays"]) / (ref["median_s"] / ref["rays"])
+            if row["gpu_trace_s"] and ref["gpu_trace_s"]:
+                row["x_gpu"] = (row["gpu_trace_s"] / row["rays"]) / (ref["gpu_trace_s"] / ref["rays"])
+            row["differ"] = differ(row["answer"], ref["answer"])
+
+    big = bench_big(device, scene, vertices, args) if args.big else None
+    report = {
+        "backend": backend,
+        "device": device.name,
+        "device_type": device.info.device_type,
+        "driver": device.info.driver,
+        "rows": [{k: v for k, v in row.items() if k not in ("call", "answer")} for row in results],
+        "big": big,
+    }
+    return report
+
+
+def bench_big(device, scene, vertices, args):
+    size = args.big_size
+    camera = pinhole(vertices, size, size)
+    scene.intersect(camera, outputs=["t"])  # warm-up
+    seconds, profiles, hits = [], [], None
+    for _ in range(args.big_repeat):
+        start = time.perf_counter()
+        hits = scene.intersect(camera, outputs=["t"])
+        seconds.append(time.perf_counter() - start)
+        profiles.append(device.last_trace_profile)
+        print(f"  {device.backend}: big {size}x{size}: {seconds[-1]:.3f} s", file=sys.stderr, flush=True)
+    traces = [p.get("gpu_trace") for p in profiles]
+    trace = None if any(x is None for x in traces) else statistics.median(traces)
+    return {
+        "size": size,
+        "rays": size * size,
+        "seconds": seconds,
+        "median_s": statistics.median(seconds),
+        "gpu_trace_s": trace,
+        "profiles": profiles,
+        "hit_fraction": float(np.isfinite(hits.t).mean()),
+        "explain": scene.explain("closest", ["t"], sensor=True),
+    }
+
+
+def load_average():
+    """The 1-minute load average, or None where the platform has none."""
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+
+
+def fmt(x, spec):
+    return "-" if x is None else format(x, spec)
+
+
+def print_backend(report):
+    print(
+        f"### {report['device']} ({report['device_type']}), backend `{report['backend']}`, driver {report['driver']}\n"
+    )
+    print(
+        "| effect | query | stages [ray-query branches] | ray flags | rays | hit | median s | Mrays/s | GPU trace s "
+        "| × wall | × GPU | vs | ≠ |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for row in report["rows"]:
+        stages, flags = shorten(row["explain"])
+        print(
+            f"| {row['name']} | {row['query']} | {stages} | {flags} | {row['rays']:,} | {row['hit_fraction']:.1%} | "
+            f"{row['median_s']:.4f} | {row['rays'] / row['median_s'] / 1e6:.2f} | {fmt(row['gpu_trace_s'], '.4f')} | "
+            f"{fmt(row['x_wall'], '.2f')} | {fmt(row['x_gpu'], '.2f')} | {row['vs'] or '-'} | "
+            f"{fmt(row['differ'], ',')} |"
+        )
+    big = report["big"]
+    if big:
+        stages, flags = shorten(big["explain"])
+        trace = big["gpu_trace_s"]
+        print(
+            f"\nDepth image {big['size']}x{big['size']} (outputs t) from a GPU-generated camera ({stages}; {flags}), "
+            f"median of {len(big['seconds'])}, hit {big['hit_fraction']:.1%}:\n"
+        )
+        print("| rays | wall s | Grays/s end to end | GPU trace s | Grays/s trace alone |")
+        print("|---|---|---|---|---|")
+        print(
+            f"| {big['rays']:,} | {big['median_s']:.4f} | {big['rays'] / big['median_s'] / 1e9:.3f} | "
+            f"{fmt(trace, '.4f')} | {fmt(None if not trace else big['rays'] / trace / 1e9, '.3f')} |"
+        )
+    print()
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rays", type=float, default=200_000, help="rays per row (default 200,000)")
+    parser.add_argument("--repeat", type=int, default=5, help="timed rounds after the warm-up (median; use at least 5)")
+    parser.add_argument("--backend", choices=("ray_query", "pipeline"), help="default: every backend the device has")
+    parser.add_argument("--device", default=None, help="index or name substring (default: vkray's choice)")
+    parser.add_argument("--mesh", type=pathlib.Path, default=DEFAULT_MESH, help="an OBJ file (default: the bunny)")
+    parser.add_argument("--big", action="store_true", help="add the 4096x4096 depth image from a GPU camera")
+    parser.add_argument("--big-size", type=int, default=4096, help="side of --big's image")
+    parser.add_argument("--big-repeat", type=int, default=5)
+    parser.add_argument("--json", type=pathlib.Path)
+    args = parser.parse_args()
+    if args.repeat < 1 or args.big_repeat < 1:
+        parser.error("--repeat and --big-repeat must be at least 1")
+
+    vertices, faces = load_obj(args.mesh)
+    n = int(args.rays)
+    side = max(1, int(round(math.sqrt(n / 2))))
+    origin, cam = camera_rays(vertices, side, side)
+    ro, rd = random_rays(vertices, n - side * side, seed=11)
+    o32 = np.ascontiguousarray(np.concatenate([np.broadcast_to(origin, cam.shape), ro]), dtype=np.float32)
+    d32 = np.ascontiguousarray(np.concatenate([cam, rd]), dtype=np.float32)
+
+    info = vkray.Device(args.device).info
+    if args.backend:
+        backends = [args.backend]
+    else:
+        backends = [b for b, has in (("ray_query", info.ray_query), ("pipeline", info.ray_tracing_pipeline)) if has]
+
+    host = f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}"
+    load_before = load_average()
+    reports = []
+    for backend in backends:
+        reports.append(bench_backend(backend, args, vertices, faces, o32, d32))
+    load_after = load_average()
+
+    print(f"Command: `python {' '.join(sys.argv)}`\n")
+    print(
+        f"Mesh {args.mesh.name}: {len(faces):,} triangles. Rays: {len(o32):,} ({side * side:,} camera, "
+        f"{len(o32) - side * side:,} random), float32, uploaded each call (but the GPU camera row). "
+        f"Host: {host}; vkray {vkray.__version__}, numpy {np.__version__}. Median of {args.repeat} rounds after "
+        "one warm-up call; × = time per ray over the vs row's (wall clock; GPU trace alone); "
+        "≠ = rays answering differently from the vs row. "
+        f"Load average (1 min) before the run {fmt(load_before, '.2f')}, after {fmt(load_after, '.2f')} (this run's "
+        "own included): on a CPU device, other processes' load shows in every time.\n"
+    )
+    for report in reports:
+        print_backend(report)
+    if args.json:
+        payload = {"argv": sys.argv, "host": host, "mesh": str(args.mesh), "triangles": len(faces), "rays": len(o32)}
+        payload["load_average"] = {"before": load_before, "after": load_after}
+        payload["backends"] = reports
+        args.json.write_text(json.dumps(payload, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()
