@@ -30,11 +30,14 @@ def test_tour_runs_and_shows_its_pictures(monkeypatch):
     outputs = [output for cell in notebook.cells if cell.cell_type == "code" for output in cell.outputs]
     assert not [output for output in outputs if output.output_type == "error"]
     pngs = [base64.b64decode(output.data["image/png"]) for output in outputs if "image/png" in output.get("data", {})]
-    # hits (their _repr_png_), hits.show("normal"), hits.show("instance_id"), two previews.
-    assert len(pngs) == 5 and all(png.startswith(b"\x89PNG\r\n\x1a\n") for png in pngs)
+    # hits (their _repr_png_), hits.show("normal"), hits.show("instance_id"), a GPU camera's depth,
+    # two previews.
+    assert len(pngs) == 6 and all(png.startswith(b"\x89PNG\r\n\x1a\n") for png in pngs)
     html = [output.data["text/html"] for output in outputs if "text/html" in output.get("data", {})]
     assert len(html) == 3  # the device, the mesh, the scene
     assert "vkray.Device" in html[0] and "5,856" in html[1] and "11,712" in html[2]
     text = "".join(output.get("text", "") for output in outputs if output.output_type == "stream")
     for tier in ("fast", "refined", "reference"):
         assert f"{tier:>9}  " in text
+    # The veil's translucent triangles get the any-hit stage or branch; the opaque scene does not.
+    assert "lidar points:" in text and "light kept: mean" in text
