@@ -38,6 +38,22 @@ The stages, branches and flags come from `Scene.explain` for the row's query.
 
 --big adds the 4096 x 4096 depth image (outputs ["t"]) of a GPU-generated camera: rays per second
 end to end (the call's wall clock, the answer as numpy) and of the trace alone.
+
+--tiers adds a table per backend of the precision tiers (fast, refined, exact, reference) of the
+newer queries, in a scene of its own: the translucent bunny (opacity uniform in [0, 1) per triangle,
+a fifth of them cut-outs at 0; seed 7). `transmittance(o, d, precision=p)` on --tier-rays rays made
+as the main rows' are (half camera, half random, seed 11; the very same rays where --tier-rays equals
+--rays), and `intersect(camera, outputs=["t", "prim_id"], precision=p)` with a GPU-generated pinhole
+camera of about --tier-rays pixels. Each tier: one warm-up call, then max(3, --repeat) rounds of
+every tier in order (a reference call slower than --slow-reference seconds is timed once, by its
+warm-up); the median wall time, Mrays/s, the GPU trace time, the host's f64 time, "× fast" (wall
+time over the fast tier's), and the answer against the reference tier's: max |Δ| of the
+transmittance (or of t, where both name the same triangle), rays with |Δ| > 1e-6, and rays whose
+answer differs at all (f64 tiers: the transmittance bit for bit; intersect: prim_id). --tiers-only
+runs the tier table alone.
+
+    python benchmarks/bench_effects.py --tiers-only                                    # lavapipe: 100k rays, both backends
+    python benchmarks/bench_effects.py --tiers-only --tier-rays 1000000 --backend pipeline --json tiers.json   # the GPU run
 """
 
 from __future__ import annotations
@@ -68,13 +84,17 @@ STAGES = {
     "any-hit (every hit)": "ahit(every hit)",
     "intersection (spheres)": "isect(spheres)",
     "compute (ray query)": "compute",
+    "intersection (exact f64 test)": "isect(f64 test)",
+    "host: f64 watertight test on all CPU cores": "host f64 (CPU)",
 }
 BRANCHES = {
     "boxes: spheres intersected and committed": "spheres",
     "triangles: non-opaque candidates confirmed where their opacity reaches the threshold": "opacity confirm",
     "triangles: every candidate kept (all hits, counts)": "keep every candidate",
     "triangles: every candidate multiplies the light left": "multiply light",
+    "boxes: the f64 test of each box's triangle": "f64 test per box",
 }
+TIERS = ("fast", "refined", "exact", "reference")
 
 
 def load_obj(path):
@@ -174,8 +194,27 @@ def differ(a, b):
     return int(np.count_nonzero(ha != hb))
 
 
-def bench_backend(backend, args, vertices, faces, o32, d32):
+def bench_backend(backend, args, vertices, faces, rays, tier_rays):
     device = vkray.Device(args.device, backend=backend)
+    report = {
+        "backend": backend,
+        "device": device.name,
+        "device_type": device.info.device_type,
+        "driver": device.info.driver,
+        "rows": [],
+        "big": None,
+        "tiers": None,
+    }
+    if rays is not None:
+        report.update(bench_rows(device, args, vertices, faces, *rays))
+    if tier_rays is not None:
+        report["tiers"] = bench_tiers(device, args, vertices, faces, *tier_rays)
+    return report
+
+
+def bench_rows(device, args, vertices, faces, o32, d32):
+    """The main rows (and --big): {"rows": [...], "big": ...}."""
+    backend = device.backend
     n = len(o32)
     centre, radius = bounds(vertices)
     mesh = device.mesh(vertices, faces)
@@ -320,15 +359,113 @@ def bench_backend(backend, args, vertices, faces, o32, d32):
             row["differ"] = differ(row["answer"], ref["answer"])
 
     big = bench_big(device, scene, vertices, args) if args.big else None
-    report = {
-        "backend": backend,
-        "device": device.name,
-        "device_type": device.info.device_type,
-        "driver": device.info.driver,
-        "rows": [{k: v for k, v in row.items() if k not in ("call", "answer")} for row in results],
-        "big": big,
+    return {"rows": [{k: v for k, v in row.items() if k not in ("call", "answer")} for row in results], "big": big}
+
+
+def tier_opacity(count):
+    """The translucent bunny's opacity: uniform in [0, 1) per triangle, a fifth cut out (0); seed 7."""
+    rng = np.random.default_rng(7)
+    opacity = rng.random(count).astype(np.float32)
+    opacity[rng.random(count) < 0.2] = 0.0
+    return opacity
+
+
+def bench_tiers(device, args, vertices, faces, o32, d32):
+    """Every tier of transmittance (rays from arrays) and of intersect (rays from a GPU camera)."""
+    backend = device.backend
+    opacity = tier_opacity(len(faces))
+    scene = device.scene(device.mesh(vertices, faces, opacity=opacity))
+    side = max(1, int(round(math.sqrt(len(o32)))))
+    camera = pinhole(vertices, side, side)
+    fields = ["t", "prim_id"]
+    tiers = [p for p in TIERS if p != "exact" or device.info.shader_float64]
+    rows = []
+    for query in ("transmittance", "intersect camera"):
+        for tier in tiers:
+            if query == "transmittance":
+                call = lambda p=tier: scene.transmittance(o32, d32, precision=p)  # noqa: E731
+                explained = scene.explain("transmittance", precision=tier)
+                rays = len(o32)
+            else:
+                call = lambda p=tier: scene.intersect(camera, outputs=fields, precision=p)  # noqa: E731
+                explained = scene.explain("closest", fields, precision=tier, sensor=True)
+                rays = camera.width * camera.height
+            start = time.perf_counter()
+            first = call()  # warm-up: compiles the variant (and the answer compared with the reference's)
+            warm_s = time.perf_counter() - start
+            once = tier == "reference" and warm_s > args.slow_reference
+            rows.append(
+                {
+                    "query": query,
+                    "tier": tier,
+                    "rays": rays,
+                    "explain": explained,
+                    "first": first,
+                    "call": call,
+                    "once": once,
+                    "seconds": [warm_s] if once else [],
+                    "profiles": [device.last_trace_profile] if once else [],
+                }
+            )
+            print(f"  {backend}: tiers: {query} {tier} warmed up ({warm_s:.2f} s)", file=sys.stderr, flush=True)
+    rounds = max(3, args.repeat)
+    for round_ in range(rounds):
+        for row in rows:
+            if row["once"]:
+                continue
+            start = time.perf_counter()
+            row["call"]()
+            row["seconds"].append(time.perf_counter() - start)
+            row["profiles"].append(device.last_trace_profile)
+        print(f"  {backend}: tiers: round {round_ + 1}/{rounds} done", file=sys.stderr, flush=True)
+
+    def median_of(row, key):
+        values = [p.get(key) for p in row["profiles"]]
+        return None if any(x is None for x in values) else statistics.median(values)
+
+    by_key = {(row["query"], row["tier"]): row for row in rows}
+    for row in rows:
+        row["median_s"] = statistics.median(row["seconds"])
+        row["gpu_trace_s"] = median_of(row, "gpu_trace")
+        row["host_f64_s"] = median_of(row, "host_f64")
+        # A profile that names neither a GPU chunk nor host time, though the call took time.
+        row["profile_empty"] = all(not p.get("chunks") and not p.get("host_f64") for p in row["profiles"])
+        fast, ref = by_key[(row["query"], "fast")], by_key[(row["query"], "reference")]
+        row["x_fast"] = (row["median_s"] / row["rays"]) / (fast["median_s"] / fast["rays"])
+        row.update(accuracy(row["first"], ref["first"]))
+        row["dtype"] = str(np.asarray(row["first"] if row["query"] == "transmittance" else row["first"].t).dtype)
+    return {
+        "rays": len(o32),
+        "camera": [camera.width, camera.height],
+        "rounds": rounds,
+        "opacity": {"cut_outs": int(np.count_nonzero(opacity == 0)), "mean": float(opacity.mean()), "seed": 7},
+        "skipped": [p for p in TIERS if p not in tiers],
+        "rows": [{k: v for k, v in row.items() if k not in ("call", "first")} for row in rows],
     }
-    return report
+
+
+def accuracy(result, reference):
+    """A tier's answer against the reference tier's: max |Δ|, rays over 1e-6, rays that differ.
+
+    Transmittance: Δ of the light kept; "differ" bit for bit (None for float32, which always
+    rounds). Hits: Δ of t where both name the same triangle; "differ": prim_id."""
+    if isinstance(result, vkray.Hits):
+        prim, ref_prim = result.prim_id.reshape(-1), reference.prim_id.reshape(-1)
+        same = (prim == ref_prim) & (prim >= 0)
+        delta = np.abs(result.t.reshape(-1)[same].astype(np.float64) - reference.t.reshape(-1)[same])
+        differ = int(np.count_nonzero(prim != ref_prim))
+        kept = float((prim >= 0).mean())
+    else:
+        value, ref_value = np.asarray(result).reshape(-1), np.asarray(reference).reshape(-1)
+        delta = np.abs(value.astype(np.float64) - ref_value)
+        differ = None if value.dtype != np.float64 else int(np.count_nonzero(value != ref_value))
+        kept = float(value.mean())
+    return {
+        "max_delta": float(delta.max()) if len(delta) else 0.0,
+        "over_1e6": int(np.count_nonzero(delta > 1e-6)),
+        "differ": differ,
+        "mean": kept,  # transmittance: the mean light kept; hits: the fraction of rays that hit
+    }
 
 
 def bench_big(device, scene, vertices, args):
@@ -366,6 +503,49 @@ def fmt(x, spec):
 
 
 def print_backend(report):
+    if report["rows"]:
+        print_rows(report)
+    if report["tiers"]:
+        print_tiers(report)
+
+
+def print_tiers(report):
+    tiers = report["tiers"]
+    width, height = tiers["camera"]
+    print(f"### Tiers: transmittance and sensor rays, {report['device']}, backend {report['backend']}\n")
+    print(
+        f"Translucent bunny ({tiers['opacity']['cut_outs']:,} cut-outs, mean opacity {tiers['opacity']['mean']:.3f}). "
+        f"transmittance: {tiers['rays']:,} rays from arrays (Δ: the light kept); intersect: outputs t, prim_id, "
+        f"a {width}x{height} pinhole camera generated on the GPU (Δ: t where both name the same triangle; "
+        f"≠: prim_id). Median of {tiers['rounds']} rounds after a warm-up call; × fast: wall time per ray over "
+        "the fast tier's; accuracy against the reference tier."
+        + (f" Skipped (no shaderFloat64): {', '.join(tiers['skipped'])}." if tiers["skipped"] else "")
+        + "\n"
+    )
+    print(
+        "| query | tier | stages [ray-query branches] | result | rays | mean | median s | Mrays/s | GPU trace s "
+        "| host f64 s | × fast | max \\|Δ\\| | \\|Δ\\| > 1e-6 | ≠ reference |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for row in tiers["rows"]:
+        stages, _ = shorten(row["explain"])
+        median = f"{row['median_s']:.4f}" + (" (1 call)" if row["once"] else "")
+        gpu, host = fmt(row["gpu_trace_s"], ".4f"), fmt(row["host_f64_s"], ".4f")
+        if row["profile_empty"]:
+            gpu = host = "n/r"
+        print(
+            f"| {row['query']} | {row['tier']} | {stages} | {row['dtype']} | {row['rays']:,} | {row['mean']:.4f} | "
+            f"{median} | {row['rays'] / row['median_s'] / 1e6:.2f} | {gpu} | {host} | {row['x_fast']:.2f} | {row['max_delta']:.1e} | {row['over_1e6']:,} | "
+            f"{fmt(row['differ'], ',')} |"
+        )
+    print(
+        "\n(mean: the mean light kept (transmittance) or the fraction of pixels that hit (intersect). "
+        "≠ of a float32 transmittance is left out: it differs from the f64 reference in every rounded bit. "
+        "n/r: not reported: `Device.last_trace_profile` after the call names no GPU chunk and no host time.)\n"
+    )
+
+
+def print_rows(report):
     print(
         f"### {report['device']} ({report['device_type']}), backend `{report['backend']}`, driver {report['driver']}\n"
     )
@@ -409,18 +589,28 @@ def main():
     parser.add_argument("--big", action="store_true", help="add the 4096x4096 depth image from a GPU camera")
     parser.add_argument("--big-size", type=int, default=4096, help="side of --big's image")
     parser.add_argument("--big-repeat", type=int, default=5)
+    parser.add_argument("--tiers", action="store_true", help="add the precision tiers of transmittance and sensor rays")
+    parser.add_argument("--tiers-only", action="store_true", help="the tier table alone (implies --tiers)")
+    parser.add_argument("--tier-rays", type=float, default=100_000, help="rays for --tiers (default 100,000)")
+    parser.add_argument(
+        "--slow-reference",
+        type=float,
+        default=20.0,
+        help="a reference call slower than this (seconds) is timed once, by its warm-up (default 20)",
+    )
     parser.add_argument("--json", type=pathlib.Path)
     args = parser.parse_args()
     if args.repeat < 1 or args.big_repeat < 1:
         parser.error("--repeat and --big-repeat must be at least 1")
+    if args.tiers_only and args.big:
+        parser.error("--big belongs to the main rows, which --tiers-only leaves out")
+    tiers = args.tiers or args.tiers_only
 
     vertices, faces = load_obj(args.mesh)
     n = int(args.rays)
-    side = max(1, int(round(math.sqrt(n / 2))))
-    origin, cam = camera_rays(vertices, side, side)
-    ro, rd = random_rays(vertices, n - side * side, seed=11)
-    o32 = np.ascontiguousarray(np.concatenate([np.broadcast_to(origin, cam.shape), ro]), dtype=np.float32)
-    d32 = np.ascontiguousarray(np.concatenate([cam, rd]), dtype=np.float32)
+    side, o32, d32 = make_rays(vertices, n)
+    rays = None if args.tiers_only else (o32, d32)
+    tier_rays = make_rays(vertices, int(args.tier_rays))[1:] if tiers else None
 
     info = vkray.Device(args.device).info
     if args.backend:
@@ -432,10 +622,40 @@ def main():
     load_before = load_average()
     reports = []
     for backend in backends:
-        reports.append(bench_backend(backend, args, vertices, faces, o32, d32))
+        reports.append(bench_backend(backend, args, vertices, faces, rays, tier_rays))
     load_after = load_average()
 
     print(f"Command: `python {' '.join(sys.argv)}`\n")
+    if args.tiers_only:
+        print(
+            f"Mesh {args.mesh.name}: {len(faces):,} triangles. Host: {host}; vkray {vkray.__version__}, "
+            f"numpy {np.__version__}. Load average (1 min) before the run {fmt(load_before, '.2f')}, after "
+            f"{fmt(load_after, '.2f')} (this run's own included).\n"
+        )
+    else:
+        print_header(args, faces, o32, side, host, load_before, load_after)
+    for report in reports:
+        print_backend(report)
+    if args.json:
+        payload = {"argv": sys.argv, "host": host, "mesh": str(args.mesh), "triangles": len(faces)}
+        payload["rays"] = None if args.tiers_only else len(o32)
+        payload["tier_rays"] = len(tier_rays[0]) if tiers else None
+        payload["load_average"] = {"before": load_before, "after": load_after}
+        payload["backends"] = reports
+        args.json.write_text(json.dumps(payload, indent=1, default=str))
+
+
+def make_rays(vertices, n):
+    """(camera side, origins, directions) float32: half camera_rays, half random_rays (seed 11)."""
+    side = max(1, int(round(math.sqrt(n / 2))))
+    origin, cam = camera_rays(vertices, side, side)
+    ro, rd = random_rays(vertices, n - side * side, seed=11)
+    o32 = np.ascontiguousarray(np.concatenate([np.broadcast_to(origin, cam.shape), ro]), dtype=np.float32)
+    d32 = np.ascontiguousarray(np.concatenate([cam, rd]), dtype=np.float32)
+    return side, o32, d32
+
+
+def print_header(args, faces, o32, side, host, load_before, load_after):
     print(
         f"Mesh {args.mesh.name}: {len(faces):,} triangles. Rays: {len(o32):,} ({side * side:,} camera, "
         f"{len(o32) - side * side:,} random), float32, uploaded each call (but the GPU camera row). "
@@ -445,13 +665,6 @@ def main():
         f"Load average (1 min) before the run {fmt(load_before, '.2f')}, after {fmt(load_after, '.2f')} (this run's "
         "own included): on a CPU device, other processes' load shows in every time.\n"
     )
-    for report in reports:
-        print_backend(report)
-    if args.json:
-        payload = {"argv": sys.argv, "host": host, "mesh": str(args.mesh), "triangles": len(faces), "rays": len(o32)}
-        payload["load_average"] = {"before": load_before, "after": load_after}
-        payload["backends"] = reports
-        args.json.write_text(json.dumps(payload, indent=1, default=str))
 
 
 if __name__ == "__main__":

@@ -11,7 +11,9 @@ from ._api import (
     DEFAULT_FIELDS,
     HIT_FIELDS,
     PRECISIONS,
+    CLOSEST_FIELDS,
     AllHits,
+    Closest,
     Backend,
     Build,
     Cull,
@@ -39,6 +41,8 @@ from .sensors import Lidar, OrthographicCamera, PinholeCamera, Sensor
 
 __all__ = [
     "AllHits",
+    "CLOSEST_FIELDS",
+    "Closest",
     "DEFAULT_FIELDS",
     "HIT_FIELDS",
     "PRECISIONS",

@@ -927,6 +927,80 @@ class Scene:
         )
         return counts.reshape(batch.shape)
 
+    def closest_points(
+        self,
+        points: Any,
+        *,
+        max_distance: float = np.inf,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "reference",
+        progress: bool = False,
+    ) -> "Closest":
+        """The surface point nearest to each point, for points of shape ``S + (3,)``.
+
+        Per point (see `Closest`): the ``distance`` to the surface, the nearest surface
+        ``position``, and its triangle (``prim_id``, ``instance_id``, ``custom_index``,
+        ``geometry_id``), ``uv`` (the barycentrics of the point on it) and ``normal``. Points
+        farther than ``max_distance`` from every surface get a miss: distance inf, ids -1, NaN.
+        Distances are the scene's (world) distances whatever an instance's transform (rotation,
+        non-uniform scale, mirroring). A point equally near several triangles (an edge, a vertex)
+        gets the one with the lower (instance_id, prim_id).
+
+        precision: ``"reference"``: f64 on all CPU cores over the scene's hierarchies, exact to
+        f64 rounding (the GPU tiers are not there yet and raise `UnsupportedError`). Scenes with
+        spheres raise `UnsupportedError`.
+        """
+        fields = _closest_outputs(outputs)
+        p = _arrays.real_coordinates("points", points)
+        if p.ndim == 0 or p.shape[-1] != 3:
+            raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+        limit = float(max_distance)
+        if not limit >= 0:
+            raise ValueError(f"max_distance must be >= 0 (or inf), got {max_distance}")
+        core_fields = ["t" if name == "distance" else name for name in fields]
+        flat = np.ascontiguousarray(p.reshape(-1, 3))
+        arrays = _progress.call(
+            progress,
+            "closest_points",
+            lambda bar: self._core.closest_points(flat, core_fields, limit, precision, bar),
+        )
+        if "t" in arrays:
+            arrays["distance"] = arrays.pop("t")
+        return Closest(p.shape[:-1], arrays, precision)
+
+    def distance(
+        self, points: Any, *, max_distance: float = np.inf, precision: Precision = "reference", progress: bool = False
+    ) -> np.ndarray:
+        """float64 ``S``: the distance from each point to the nearest surface (inf beyond
+        ``max_distance``), as `closest_points` finds it."""
+        found = self.closest_points(
+            points, max_distance=max_distance, outputs=["distance"], precision=precision, progress=progress
+        )
+        assert found.distance is not None
+        return found.distance
+
+    def signed_distance(
+        self,
+        points: Any,
+        *,
+        max_distance: float = np.inf,
+        precision: Precision = "reference",
+        method: Optional[str] = None,
+        progress: bool = False,
+    ) -> np.ndarray:
+        """float64 ``S``: `distance`, negative inside (as Open3D and Warp sign it). The sign is
+        `contains`' answer, not a vote of jittered rays: ``method="parity"`` (closed meshes: the
+        exact crossing count of one ray per point) or ``"winding"`` (the generalized winding
+        number, for meshes with holes); ``None`` (default) takes parity where every mesh is closed
+        (`Mesh.is_closed`), else the winding number. A point on the surface is at distance 0."""
+        distance = self.distance(points, max_distance=max_distance, precision=precision, progress=progress)
+        if method is None:
+            method = "parity" if all(x.mesh.is_closed for x in self.instances) else "winding"
+        tier: Precision = "reference" if precision == "reference" or not self.device.info.shader_float64 else "exact"
+        inside = self.contains(points, precision=tier, method=method)
+        signed: np.ndarray = np.where(inside, -distance, distance)
+        return signed
+
     def contains(
         self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
     ) -> np.ndarray:
@@ -1029,6 +1103,71 @@ def _sensor_record(sensor: Any) -> Dict[str, Any]:
         "tmax": float(g["tmax"]),
         "table": [float(x) for x in table],
     }
+
+
+#: Every field `Scene.closest_points` can return, and those it returns unless asked otherwise.
+CLOSEST_FIELDS: Tuple[str, ...] = (
+    "distance",
+    "position",
+    "prim_id",
+    "instance_id",
+    "custom_index",
+    "geometry_id",
+    "uv",
+    "normal",
+)
+DEFAULT_CLOSEST_FIELDS: Tuple[str, ...] = ("distance", "position", "prim_id", "instance_id", "uv", "normal")
+
+
+def _closest_outputs(outputs: Optional[Iterable[str]]) -> Tuple[str, ...]:
+    if outputs is None:
+        return DEFAULT_CLOSEST_FIELDS
+    names = (outputs,) if isinstance(outputs, str) else tuple(outputs)
+    unknown = [name for name in names if name not in CLOSEST_FIELDS]
+    if unknown:
+        raise ValueError(f"unknown fields {unknown}; choose from {CLOSEST_FIELDS}")
+    fields = tuple(dict.fromkeys(names))
+    if not fields:
+        raise ValueError("outputs must name at least one field")
+    return fields if "distance" in fields else fields + ("distance",)
+
+
+class Closest:
+    """The surface point nearest to each query point, from `Scene.closest_points`.
+
+    Each field has the points' batch shape ``S`` (plus a last axis for position, uv and normal):
+    ``distance`` (float64, inf where nothing lies within max_distance), ``position`` (float64, the
+    nearest surface point, NaN on a miss), ``prim_id``, ``instance_id``, ``custom_index``,
+    ``geometry_id`` (int32, -1 on a miss), ``uv`` (float64 barycentrics of vertices 1 and 2),
+    ``normal`` (float32, the triangle's unit normal in the world). Fields not asked are None.
+    """
+
+    distance: Optional[np.ndarray]
+    position: Optional[np.ndarray]
+    prim_id: Optional[np.ndarray]
+    instance_id: Optional[np.ndarray]
+    custom_index: Optional[np.ndarray]
+    geometry_id: Optional[np.ndarray]
+    uv: Optional[np.ndarray]
+    normal: Optional[np.ndarray]
+
+    def __init__(self, shape: Tuple[int, ...], arrays: Dict[str, np.ndarray], precision: Precision) -> None:
+        self.shape = shape
+        self.precision: Precision = precision
+        for name in CLOSEST_FIELDS:
+            array = arrays.get(name)
+            setattr(self, name, None if array is None else array.reshape(shape + array.shape[1:]))
+
+    @property
+    def hit(self) -> np.ndarray:
+        """bool ``S``: whether a surface lies within max_distance of the point."""
+        assert self.distance is not None
+        found: np.ndarray = np.isfinite(self.distance)
+        return found
+
+    def __repr__(self) -> str:
+        asked = [name for name in CLOSEST_FIELDS if getattr(self, name) is not None]
+        return f"<vkray.Closest shape={self.shape} found={int(self.hit.sum())} precision={self.precision!r} fields={asked}>"
 
 
 def _opacity(value: Any, triangles: int, name: str = "opacity") -> Optional[np.ndarray]:

@@ -198,6 +198,14 @@ class Scene:
         opacity_threshold: float = 0.5,
         sensor: bool = False,
     ) -> Optional[Dict[str, Any]]: ...
+    def closest_points(
+        self,
+        points: _Vec3s,
+        fields: List[str],
+        max_distance: float = ...,
+        precision: Precision = "reference",
+        progress: Optional[Callable[[int, int], object]] = None,
+    ) -> Dict[str, NDArray[Any]]: ...
     def contains(
         self,
         points: _Vec3s,

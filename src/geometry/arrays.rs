@@ -131,6 +131,14 @@ pub fn check_vertices(name: &str, vertices: Vec3s) -> Result<()> {
     Ok(())
 }
 
+/// Query points must be finite in f64 (none is fine).
+pub fn check_points(name: &str, points: Vec3s) -> Result<()> {
+    match (0..points.rows()).find(|&i| !points.row_f64(i).iter().all(|c| c.is_finite())) {
+        Some(i) => Err(invalid_value(format!("{name} row {i} is not finite: {}", fmt_row(points.row_f64(i))))),
+        None => Ok(()),
+    }
+}
+
 /// Faces must be non-empty and index existing vertices.
 pub fn check_faces(name: &str, faces: Indices, vertex_count: usize) -> Result<()> {
     if faces.triangles() == 0 {

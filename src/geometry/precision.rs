@@ -251,6 +251,11 @@ impl Aabb {
 
     /// This box grown by `pad` on every side.
     /// Whether `p` lies in the box (its faces included).
+    /// The distance from `p` to the box (0 inside it).
+    pub fn distance_to(&self, p: DVec3) -> f64 {
+        (self.min - p).max(p - self.max).max(DVec3::ZERO).length()
+    }
+
     pub fn contains(&self, p: DVec3) -> bool {
         p.cmpge(self.min).all() && p.cmple(self.max).all()
     }

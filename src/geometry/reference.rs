@@ -72,6 +72,39 @@ impl Bvh {
         bvh
     }
 
+    /// Calls `visit` with every item whose box may hold something nearer than `*best`, by
+    /// `lower_bound` of its box (a distance no item in the box can beat), nearer boxes first;
+    /// `visit` may lower `*best`.
+    pub fn nearest(&self, lower_bound: impl Fn(&Aabb) -> f64, best: &mut f64, mut visit: impl FnMut(u32, &mut f64)) {
+        if self.nodes.is_empty() {
+            return;
+        }
+        let mut stack = Vec::with_capacity(64);
+        stack.push((0u32, lower_bound(&self.nodes[0].bounds)));
+        while let Some((index, bound)) = stack.pop() {
+            if bound > *best {
+                continue;
+            }
+            let node = &self.nodes[index as usize];
+            if node.count > 0 {
+                for &item in &self.items[node.first as usize..(node.first + node.count) as usize] {
+                    visit(item, best);
+                }
+                continue;
+            }
+            let (left, right) = (node.first, node.first + 1);
+            let (lb, rb) = (lower_bound(&self.nodes[left as usize].bounds), lower_bound(&self.nodes[right as usize].bounds));
+            // The nearer child is popped first.
+            if lb <= rb {
+                stack.push((right, rb));
+                stack.push((left, lb));
+            } else {
+                stack.push((left, lb));
+                stack.push((right, rb));
+            }
+        }
+    }
+
     /// Calls `visit` with every item whose box the ray enters before `*tmax`; `visit` may lower
     /// `*tmax` (a closer hit) or return false to stop (an occlusion query's first hit).
     pub fn traverse(&self, ray: &Ray64, tmax: &mut f64, mut visit: impl FnMut(u32, &mut f64) -> bool) {
@@ -163,6 +196,43 @@ pub struct PlacedSet<'a> {
     pub cull_disable: bool,
     /// Opacity per triangle (among all parts), where the set has translucent triangles.
     pub opacity: Option<&'a [f32]>,
+    /// From the set's frame to the scene's (the inverse of `to_local`).
+    pub to_scene: Affine,
+}
+
+/// The surface point nearest to a query point: the distance and the point in the scene's frame,
+/// the barycentrics (of vertices 1 and 2) of the point on its triangle, the instance and the
+/// triangle among all parts of its mesh.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClosestHit {
+    pub distance: f64,
+    pub point: DVec3,
+    pub u: f64,
+    pub v: f64,
+    pub instance: u32,
+    pub prim: u32,
+}
+
+impl ClosestHit {
+    /// The order that decides between surface points: nearer first, then the lower (instance,
+    /// prim), so that a point equally near several triangles (an edge, a vertex) gets the same
+    /// one in every tier.
+    pub fn is_before(&self, other: &ClosestHit) -> bool {
+        self.distance < other.distance
+            || (self.distance == other.distance && (self.instance, self.prim) < (other.instance, other.prim))
+    }
+}
+
+/// The barycentrics (of b and c) of a point `q` of triangle (a, b, c), in f64.
+pub fn barycentrics(q: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (f64, f64) {
+    let (e1, e2, w) = (b - a, c - a, q - a);
+    let (d11, d12, d22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+    let (dw1, dw2) = (w.dot(e1), w.dot(e2));
+    let det = d11 * d22 - d12 * d12;
+    if det == 0.0 {
+        return (0.0, 0.0);
+    }
+    ((d22 * dw1 - d12 * dw2) / det, (d11 * dw2 - d12 * dw1) / det)
 }
 
 /// Which triangles a ray may hit: the sides `cull` keeps, whose opacity reaches `threshold`
@@ -199,6 +269,12 @@ impl ReferenceHit {
     pub fn is_before(&self, other: &ReferenceHit) -> bool {
         self.t < other.t || (self.t == other.t && (self.instance, self.prim) < (other.instance, other.prim))
     }
+}
+
+/// The Frobenius norm of an affine map's linear part: at least its largest stretch.
+fn frobenius(map: &Affine) -> f64 {
+    let m = map.linear;
+    (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared()).sqrt()
 }
 
 /// Two-level CPU tracer over placed triangle sets.
@@ -279,6 +355,45 @@ impl<'a> ReferenceTracer<'a> {
             });
             go_on
         });
+    }
+
+    /// The surface point nearest to `p` (scene frame) within `max_distance`, among the sets
+    /// `mask` sees: every triangle is measured in the scene's frame in f64 (so that rotation,
+    /// non-uniform scale and mirroring of an instance keep distances exact); the hierarchies
+    /// prune with bounds that hold under each placement's stretch.
+    pub fn closest_point(&self, p: DVec3, mask: u8, max_distance: f64) -> Option<ClosestHit> {
+        let mut best: Option<ClosestHit> = None;
+        let mut reach = max_distance;
+        self.top.nearest(
+            |b| b.distance_to(p),
+            &mut reach,
+            |instance, reach| {
+                let set = &self.sets[instance as usize];
+                if set.mask & mask == 0 {
+                    return;
+                }
+                let local = set.to_local.point(p);
+                // A world distance d is at least d_local / |to_local| (its largest stretch, at
+                // most its Frobenius norm): local box distances bound world ones from below.
+                let shrink = 1.0 / frobenius(&set.to_local).max(f64::MIN_POSITIVE);
+                set.triangles.bvh().nearest(
+                    |b| b.distance_to(local) * shrink * (1.0 - 1e-12),
+                    reach,
+                    |prim, reach| {
+                        let [a, b, c] = set.triangles.triangle(prim as usize).map(|v| set.to_scene.point(v));
+                        let q = closest_point_on_triangle(p, a, b, c);
+                        let distance = (q - p).length();
+                        let (u, v) = barycentrics(q, a, b, c);
+                        let hit = ClosestHit { distance, point: q, u, v, instance, prim };
+                        if distance <= *reach && best.is_none_or(|b| hit.is_before(&b)) {
+                            best = Some(hit);
+                            *reach = distance;
+                        }
+                    },
+                );
+            },
+        );
+        best
     }
 
     /// Whether `p` (scene frame) lies on a triangle of any set, to within `ulps` units in the last
@@ -362,6 +477,7 @@ mod tests {
             flip_facing: false,
             cull_disable: false,
             opacity: None,
+            to_scene: Affine::IDENTITY,
         }]);
         let brute = |ray: &Ray64| -> Vec<usize> {
             let sheared = ShearedRay::new(*ray);
@@ -416,6 +532,7 @@ mod tests {
             flip_facing: false,
             cull_disable: false,
             opacity: None,
+            to_scene: to_local.inverse().unwrap(),
         };
         let tracer = ReferenceTracer::new(vec![place(Affine::IDENTITY), place(lifted)]);
         let ray = Ray64 {
@@ -430,5 +547,48 @@ mod tests {
         // The grid faces +z and the ray comes from above: culling front faces leaves nothing.
         assert!(tracer.trace(&ray, 0xFF, Filter::sides(Cull::Front), false).is_none());
         assert_eq!(tracer.trace(&ray, 0xFF, Filter::sides(Cull::Back), false).unwrap().instance, 1);
+    }
+
+    #[test]
+    fn closest_points_match_brute_force_under_stretching_placements() {
+        let set = grid(6);
+        // Stretched along x, turned about z, mirrored in y, moved: distances are the world's.
+        let to_scene = Affine {
+            linear: glam::DMat3::from_cols(
+                DVec3::new(0.0, 3.0, 0.0),
+                DVec3::new(0.5, 0.0, 0.0),
+                DVec3::new(0.0, 0.0, -1.0),
+            ),
+            offset: DVec3::new(1.0, -2.0, 0.5),
+        };
+        let to_local = to_scene.inverse().unwrap();
+        let tracer = ReferenceTracer::new(vec![PlacedSet {
+            triangles: &set,
+            to_local,
+            custom_index: 0,
+            mask: 0xFF,
+            bounds: set.bounds.transformed(&to_scene),
+            flip_facing: false,
+            cull_disable: false,
+            opacity: None,
+            to_scene,
+        }]);
+        let mut seed = 7u64;
+        let mut next = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 * 12.0 - 4.0
+        };
+        for _ in 0..200 {
+            let p = DVec3::new(next(), next(), next());
+            let brute = (0..set.faces.len())
+                .map(|t| {
+                    let [a, b, c] = set.triangle(t).map(|v| to_scene.point(v));
+                    (closest_point_on_triangle(p, a, b, c) - p).length()
+                })
+                .fold(f64::INFINITY, f64::min);
+            let hit = tracer.closest_point(p, 0xFF, f64::INFINITY).unwrap();
+            assert_eq!(hit.distance, brute, "at {p}");
+            assert!(tracer.closest_point(p, 0xFF, 0.5 * brute).is_none() || brute == 0.0);
+        }
     }
 }

@@ -382,6 +382,41 @@ impl PyScene {
         Ok(Some(d))
     }
 
+    /// The surface point nearest to each point ((N, 3)) within max_distance: {field: array}, with
+    /// "t" the distance.
+    #[pyo3(signature = (points, fields, max_distance=f64::INFINITY, precision="reference", progress=None))]
+    fn closest_points<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        fields: Vec<String>,
+        max_distance: f64,
+        precision: &str,
+        progress: Option<Py<PyAny>>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let precision = Precision::parse(precision)?;
+        let points = Vec3Array::extract("points", points)?;
+        let points = points.view()?;
+        let n = points.rows();
+        let arrays = allocate(py, &fields, n, true)?;
+        let mut sink = HitSink::default();
+        for (_, (field, array)) in &arrays {
+            match field {
+                Some(field) => sink.set(*field, bytes_of(array)),
+                None => sink.position = Some(bytes_of(array)),
+            }
+        }
+        run_reporting(py, progress, |interrupt| {
+            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+            self.tracer.closest_points(&scene, points, max_distance, precision, &mut sink, interrupt)
+        })?;
+        let result = PyDict::new(py);
+        for (name, (_, array)) in arrays {
+            result.set_item(name, array)?;
+        }
+        Ok(result)
+    }
+
     /// Whether each point ((N, 3)) is inside any instance: by parity or by winding number.
     #[pyo3(signature = (points, precision="exact", winding=false, progress=None))]
     fn contains<'py>(

@@ -213,6 +213,7 @@ impl Scene {
                     flip_facing: p.flip_facing,
                     cull_disable: p.flags.cull_disable,
                     opacity: if p.flags.force_opaque { None } else { p.mesh.opacity.as_deref().map(Vec::as_slice) },
+                    to_scene: p.to_scene,
                 })
                 .collect(),
         )

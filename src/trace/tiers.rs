@@ -10,7 +10,7 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::geometry::precision::{plane_hit, world_normal, Cull, Ray64};
 use crate::geometry::rays::Rays;
-use crate::geometry::reference::{Filter, ReferenceHit};
+use crate::geometry::reference::{ClosestHit, Filter, ReferenceHit};
 use crate::gpu::context::Interrupt;
 use crate::scene::{MeshKind, Scene};
 
@@ -399,6 +399,43 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
             })
         });
     })
+}
+
+/// The surface point nearest to each point within `max_distance`, on the CPU in f64 (all cores):
+/// the reference tier of `closest_points`, and the others' oracle.
+pub fn closest_points(
+    scene: &Scene,
+    points: Vec3s,
+    max_distance: f64,
+    interrupt: &dyn Interrupt,
+) -> Result<Vec<Option<ClosestHit>>> {
+    let tracer = scene.reference_tracer();
+    let mut hits: Vec<Option<ClosestHit>> = try_vec(points.rows(), None, "the closest points")?;
+    in_blocks(points.rows(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            hits[range].par_iter_mut().enumerate().with_min_len(64).for_each(|(k, hit)| {
+                let p = DVec3::from_array(points.row_f64(start + k)) - scene.center;
+                *hit = tracer.closest_point(p, 0xFF, max_distance);
+            })
+        });
+    })?;
+    Ok(hits)
+}
+
+/// Writes the fields `sink` asks for of each point's closest surface point: `t` is the
+/// distance, `position` the point (f64, world), the others as a hit's.
+pub fn write_closest(scene: &Scene, hits: &[Option<ClosestHit>], sink: &mut HitSink) {
+    let as_hit = |h: &ClosestHit| ReferenceHit { t: h.distance, u: h.u, v: h.v, instance: h.instance, prim: h.prim };
+    write_hit_fields(scene, sink, true, |i| hits[i].as_ref().map(as_hit));
+    if let Some(out) = sink.position.as_deref_mut() {
+        parallel::install(|| {
+            out.par_chunks_exact_mut(24).enumerate().with_min_len(1024).for_each(|(i, dst)| {
+                let point = hits[i].map_or(DVec3::NAN, |h| h.point + scene.center);
+                put_f64s(dst, &point.to_array());
+            })
+        });
+    }
 }
 
 /// `contains` from each point's count of crossings (of a scene's one instance): inside where

@@ -217,9 +217,16 @@ impl Tracer {
         if request.query == Query::Transmit && !matches!(request.precision, Precision::Fast | Precision::Exact) {
             // The host's tiers multiply over the f64 hits of every crossing.
             let every = Request { query: Query::All, opacity_threshold: 0.0, ..request };
+            let started = Instant::now();
             let all = self.trace_all(scene, rays, every, usize::MAX, 0, interrupt)?;
             let out: &mut [f64] = bytemuck::cast_slice_mut(work.field_mut(Field::T).expect("transmittance writes t"));
             tiers::transmittance(scene, &all, out);
+            if request.precision == Precision::Refined {
+                // The GPU's all-hits passes left their times in the last profile.
+                *profile = TraceProfile { rays: rays.len(), ..self.last_profile() };
+            }
+            let gpu = profile.gpu_upload.unwrap_or(0.0) + profile.gpu_trace.unwrap_or(0.0);
+            profile.host_f64 = (started.elapsed().as_secs_f64() - gpu).max(0.0);
             return Ok(());
         }
         match request.precision {
@@ -481,6 +488,36 @@ impl Tracer {
                 tiers::count_hits(scene, rays, request.filter(), out, interrupt)
             }
         }
+    }
+
+    /// The surface point nearest to each of `points` within `max_distance`, its fields written
+    /// into `sink` (`t`: the distance; f64 in the f64 tiers). Tiers: `reference` (the CPU, f64).
+    pub fn closest_points(
+        &self,
+        scene: &Scene,
+        points: crate::geometry::arrays::Vec3s,
+        max_distance: f64,
+        precision: Precision,
+        sink: &mut HitSink,
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        self.check_every_hit_query(scene, "closest_points")?;
+        if !(max_distance >= 0.0) {
+            return Err(invalid_value(format!("max_distance must be >= 0 (or inf), got {max_distance}")));
+        }
+        crate::geometry::arrays::check_points("points", points)?;
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        let hits = match precision {
+            Precision::Reference => tiers::closest_points(scene, points, max_distance, interrupt)?,
+            other => {
+                return Err(Error::Unsupported(format!(
+                    "closest points are answered at precision='reference' (f64 on all CPU cores) so far, not {other:?}"
+                )))
+            }
+        };
+        tiers::write_closest(scene, &hits, sink);
+        Ok(())
     }
 
     /// Whether each point is inside any instance (1) or not (0), into `out`: by parity (the
