@@ -8,14 +8,14 @@
 """
 
 from ._api import (
+    CLOSEST_FIELDS,
     DEFAULT_FIELDS,
     HIT_FIELDS,
     PRECISIONS,
-    CLOSEST_FIELDS,
     AllHits,
-    Closest,
     Backend,
     Build,
+    Closest,
     Cull,
     Device,
     DeviceInfo,

@@ -935,7 +935,7 @@ class Scene:
         outputs: Optional[Iterable[str]] = None,
         precision: Precision = "reference",
         progress: bool = False,
-    ) -> "Closest":
+    ) -> Closest:
         """The surface point nearest to each point, for points of shape ``S + (3,)``.
 
         Per point (see `Closest`): the ``distance`` to the surface, the nearest surface

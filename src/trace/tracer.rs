@@ -502,7 +502,7 @@ impl Tracer {
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
         self.check_every_hit_query(scene, "closest_points")?;
-        if !(max_distance >= 0.0) {
+        if max_distance.is_nan() || max_distance < 0.0 {
             return Err(invalid_value(format!("max_distance must be >= 0 (or inf), got {max_distance}")));
         }
         crate::geometry::arrays::check_points("points", points)?;
