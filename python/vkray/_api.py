@@ -1167,7 +1167,8 @@ class Closest:
 
     def __repr__(self) -> str:
         asked = [name for name in CLOSEST_FIELDS if getattr(self, name) is not None]
-        return f"<vkray.Closest shape={self.shape} found={int(self.hit.sum())} precision={self.precision!r} fields={asked}>"
+        found = int(self.hit.sum())
+        return f"<vkray.Closest shape={self.shape} found={found} precision={self.precision!r} fields={asked}>"
 
 
 def _opacity(value: Any, triangles: int, name: str = "opacity") -> Optional[np.ndarray]:
