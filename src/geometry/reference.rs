@@ -93,7 +93,8 @@ impl Bvh {
                 continue;
             }
             let (left, right) = (node.first, node.first + 1);
-            let (lb, rb) = (lower_bound(&self.nodes[left as usize].bounds), lower_bound(&self.nodes[right as usize].bounds));
+            let (lb, rb) =
+                (lower_bound(&self.nodes[left as usize].bounds), lower_bound(&self.nodes[right as usize].bounds));
             // The nearer child is popped first.
             if lb <= rb {
                 stack.push((right, rb));

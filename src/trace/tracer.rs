@@ -385,10 +385,14 @@ impl Tracer {
             // Refined transmittance and all hits re-intersect the fast tier's hits on the host.
             Precision::Fast | Precision::Refined => false,
         };
-        // Transmittance through opaque triangles only is an occlusion query (see `run_tier`).
-        let (request, outputs) = match request.query {
-            Query::Transmit if !scene.has_opacity() => {
+        // Transmittance through opaque triangles only is an occlusion query; in the refined tier
+        // the product is the host's, over the fast tier's hits (see `run_tier`).
+        let (request, outputs) = match (request.query, request.precision) {
+            (Query::Transmit, _) if !scene.has_opacity() => {
                 (Request { query: Query::Occluded, ..request }, Field::Prim.bit())
+            }
+            (Query::Transmit, Precision::Refined) => {
+                (Request { query: Query::All, opacity_threshold: 0.0, ..request }, Field::Prim.bit())
             }
             _ => (request, outputs),
         };
