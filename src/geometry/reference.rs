@@ -217,7 +217,7 @@ pub struct ClosestHit {
 impl ClosestHit {
     /// The order that decides between surface points: nearer first, then the lower (instance,
     /// prim), so that a point equally near several triangles (an edge, a vertex) gets the same
-    /// one in every tier.
+    /// one in every tier. (While searching, `distance` holds squared distances.)
     pub fn is_before(&self, other: &ClosestHit) -> bool {
         self.distance < other.distance
             || (self.distance == other.distance && (self.instance, self.prim) < (other.instance, other.prim))
@@ -383,18 +383,23 @@ impl<'a> ReferenceTracer<'a> {
                     |prim, reach| {
                         let [a, b, c] = set.triangles.triangle(prim as usize).map(|v| set.to_scene.point(v));
                         let q = closest_point_on_triangle(p, a, b, c);
-                        let distance = (q - p).length();
-                        let (u, v) = barycentrics(q, a, b, c);
-                        let hit = ClosestHit { distance, point: q, u, v, instance, prim };
-                        if distance <= *reach && best.is_none_or(|b| hit.is_before(&b)) {
+                        // Compared squared (exactly as computed), so that ties are ties in every tier.
+                        let squared = (q - p).length_squared();
+                        let hit = ClosestHit { distance: squared, point: q, u: 0.0, v: 0.0, instance, prim };
+                        if squared <= *reach * *reach && best.is_none_or(|b| hit.is_before(&b)) {
                             best = Some(hit);
-                            *reach = distance;
+                            *reach = squared.sqrt();
                         }
                     },
                 );
             },
         );
-        best
+        best.map(|hit| {
+            let set = &self.sets[hit.instance as usize];
+            let [a, b, c] = set.triangles.triangle(hit.prim as usize).map(|v| set.to_scene.point(v));
+            let (u, v) = barycentrics(hit.point, a, b, c);
+            ClosestHit { distance: hit.distance.sqrt(), u, v, ..hit }
+        })
     }
 
     /// Whether `p` (scene frame) lies on a triangle of any set, to within `ulps` units in the last

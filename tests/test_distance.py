@@ -1,0 +1,182 @@
+"""How far to the surface: `Scene.closest_points`, `distance` and `signed_distance`, against a
+brute-force numpy oracle (every point against every triangle) and numpy's own geometry."""
+
+import threading
+
+import numpy as np
+import pytest
+
+import oracle
+import vkray
+
+
+@pytest.fixture(scope="module")
+def bunny():
+    return oracle.load_obj("stanford-bunny")
+
+
+def points_around(vertices, n, seed, spread=0.3):
+    """Points in the mesh's bounding box grown by `spread` of its size, a few far away."""
+    rng = np.random.default_rng(seed)
+    lo, hi = vertices.min(0), vertices.max(0)
+    pad = spread * (hi - lo)
+    points = rng.uniform(lo - pad, hi + pad, (n, 3))
+    points[: n // 20] *= 40.0
+    return points
+
+
+def world_triangles(vertices, faces, transform=None):
+    tri = vertices[faces]
+    return tri if transform is None else tri @ transform[:3, :3].T + transform[:3, 3]
+
+
+def check_against_brute_force(found, points, tri):
+    """distance equals the brute-force minimum; position lies on the reported triangle at that
+    distance, at the reported barycentrics."""
+    v = tri.reshape(-1, 3)
+    f = np.arange(len(v)).reshape(-1, 3)
+    expected = oracle.surface_distance(v, f, points)
+    scale = np.abs(tri).max()
+    np.testing.assert_allclose(found.distance, expected, rtol=1e-12, atol=1e-14 * scale)
+    np.testing.assert_allclose(
+        np.linalg.norm(found.position - points, axis=1), found.distance, rtol=1e-12, atol=1e-14 * scale
+    )
+    a, b, c = (tri[found.prim_id, k] for k in range(3))
+    u, w = found.uv[:, :1], found.uv[:, 1:]
+    np.testing.assert_allclose((1 - u - w) * a + u * b + w * c, found.position, atol=1e-12 * scale)
+    assert ((found.uv >= -1e-12) & (found.uv.sum(axis=1, keepdims=True) <= 1 + 1e-12)).all()
+
+
+def test_closest_points_match_brute_force_on_the_bunny(any_device, bunny):
+    v, f = bunny
+    scene = any_device.scene([any_device.mesh(v, f)])
+    points = points_around(v, 400, seed=0)
+    found = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS)
+    assert found.distance.dtype == np.float64 and found.position.shape == (400, 3)
+    check_against_brute_force(found, points, v[f])
+    assert (found.instance_id == 0).all() and (found.geometry_id == 0).all()
+    normals = oracle.triangle_normals(v, f, found.prim_id)
+    np.testing.assert_allclose(found.normal, normals, atol=1e-6)
+    np.testing.assert_array_equal(scene.distance(points), found.distance)
+
+
+def test_points_on_the_surface_are_at_distance_zero_with_one_triangle_chosen(any_device):
+    """Vertices and edge midpoints of a heightfield lie on several triangles: distance 0 (to f64
+    rounding of an edge's midpoint) on one of them; at a vertex, every triangle that has it is at
+    exactly 0, and the lowest-numbered wins (the tie-break every tier shares)."""
+    vertices, faces, _ = oracle.heightfield(8, seed=1)
+    scene = any_device.scene([any_device.mesh(vertices, faces)])
+    targets = oracle.shared_targets(vertices, faces, 8)
+    found = scene.closest_points(targets)
+    assert (found.distance <= 1e-15).all()
+    per_triangle = np.stack([oracle.surface_distance(vertices, faces[k : k + 1], targets) for k in range(len(faces))])
+    holders = per_triangle <= 1e-15
+    assert (holders.sum(axis=0) >= 2).all()  # every target is shared
+    assert holders[found.prim_id, np.arange(len(targets))].all()
+    vertex = np.arange(len(targets)) < 36  # shared_targets lists the 6x6 inner vertices first
+    np.testing.assert_array_equal(found.prim_id[vertex], holders.argmax(axis=0)[vertex])
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e6])
+def test_instances_rotated_stretched_and_mirrored_keep_world_distances(any_device, offset):
+    v, f = oracle.load_obj("spot")
+    v = 0.1 * (v - v.mean(0))
+    mesh = any_device.mesh(v, f)
+    angle = 0.7
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1.0]])
+    transforms = [
+        np.eye(4),
+        np.block([[rotation @ np.diag([3.0, 0.5, 1.0]), np.array([[0.4], [0.0], [0.1]])], [np.zeros((1, 3)), 1.0]]),
+        np.block([[np.diag([1.0, -1.0, 2.0]), np.array([[-0.4], [0.2], [0.0]])], [np.zeros((1, 3)), 1.0]]),
+    ]
+    for t in transforms:
+        t[:3, 3] += offset
+    scene = any_device.scene([vkray.Instance(mesh, t) for t in transforms])
+    points = points_around(np.vstack([world_triangles(v, f, t).reshape(-1, 3) for t in transforms]), 500, seed=2)
+    found = scene.closest_points(points)
+    tri = np.concatenate([world_triangles(v, f, t) for t in transforms])
+    v_all = tri.reshape(-1, 3)
+    expected = oracle.surface_distance(v_all, np.arange(len(v_all)).reshape(-1, 3), points)
+    scale = np.abs(tri).max()
+    np.testing.assert_allclose(found.distance, expected, rtol=1e-11, atol=1e-13 * scale)
+    instance_tri = np.stack([world_triangles(v, f, t) for t in transforms])
+    a, b, c = (instance_tri[found.instance_id, found.prim_id, k] for k in range(3))
+    u, w = found.uv[:, :1], found.uv[:, 1:]
+    np.testing.assert_allclose((1 - u - w) * a + u * b + w * c, found.position, atol=1e-11 * scale)
+
+
+def test_max_distance_cuts_off_with_misses(any_device, bunny):
+    v, f = bunny
+    scene = any_device.scene([any_device.mesh(v, f)])
+    points = points_around(v, 500, seed=3)
+    full = scene.closest_points(points)
+    limit = float(np.median(full.distance))
+    cut = scene.closest_points(points, max_distance=limit, outputs=vkray.CLOSEST_FIELDS)
+    near = full.distance <= limit
+    np.testing.assert_array_equal(cut.distance[near], full.distance[near])
+    assert np.isinf(cut.distance[~near]).all() and (cut.prim_id[~near] == -1).all()
+    assert (cut.instance_id[~near] == -1).all() and np.isnan(cut.position[~near]).all()
+    assert np.isnan(cut.uv[~near]).all() and np.isnan(cut.normal[~near]).all()
+    np.testing.assert_array_equal(cut.hit, near)
+    assert scene.closest_points(points, max_distance=0.0).hit.sum() == 0
+
+
+def test_signed_distance_is_negative_inside(any_device, bunny):
+    """Closed meshes take their sign from the exact parity; open ones from the winding number."""
+    box_v, box_f = oracle.box((0, 0, 0), (1, 2, 3))
+    closed = any_device.scene([any_device.mesh(box_v, box_f)])
+    points = np.random.default_rng(4).uniform(-1, 4, (2000, 3))
+    inside = (points >= 0).all(1) & (points <= [1, 2, 3]).all(1)
+    outside_gap = np.linalg.norm(np.maximum(0, np.maximum(-points, points - [1, 2, 3])), axis=1)
+    inside_gap = np.min(np.concatenate([points, [1, 2, 3] - points], axis=1), axis=1)
+    expected = np.where(inside, -inside_gap, outside_gap)
+    np.testing.assert_allclose(closed.signed_distance(points), expected, atol=1e-14)
+    v, f = bunny
+    open_scene = any_device.scene([any_device.mesh(v, f)])
+    probe = points_around(v, 300, seed=5, spread=0.05)
+    winding = oracle.winding_numbers(v, f, probe)
+    signed = open_scene.signed_distance(probe)
+    clear = np.abs(winding - 0.5) > 0.1
+    np.testing.assert_array_equal(signed[clear] < 0, winding[clear] > 0.5)
+    with pytest.raises(ValueError, match="winding"):
+        open_scene.signed_distance(probe, method="parity")
+
+
+def test_shapes_threads_and_bad_input(any_device, bunny):
+    v, f = bunny
+    scene = any_device.scene([any_device.mesh(v, f)])
+    grid = points_around(v, 24, seed=6).reshape(2, 3, 4, 3)
+    found = scene.closest_points(grid, outputs=["distance", "uv"])
+    assert found.distance.shape == (2, 3, 4) and found.uv.shape == (2, 3, 4, 2) and found.position is None
+    assert scene.closest_points(np.zeros((0, 3))).distance.shape == (0,)
+    points = points_around(v, 3000, seed=7)
+    want = scene.distance(points)
+    results, errors = [], []
+
+    def work():
+        try:
+            results.append(scene.distance(points))
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(results) == 4
+    for got in results:
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="not finite"):
+        scene.closest_points([[0.0, np.nan, 0.0]])
+    with pytest.raises(ValueError, match="max_distance"):
+        scene.closest_points([[0.0, 0.0, 0.0]], max_distance=-1.0)
+    with pytest.raises(ValueError, match="max_distance"):
+        scene.closest_points([[0.0, 0.0, 0.0]], max_distance=np.nan)
+    with pytest.raises(ValueError, match="unknown fields"):
+        scene.closest_points([[0.0, 0.0, 0.0]], outputs=["t"])
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        scene.closest_points(np.zeros((4, 2)))
+    spheres = any_device.scene([any_device.spheres([[0, 0, 0]], 1.0)])
+    with pytest.raises(vkray.UnsupportedError, match="spheres"):
+        spheres.closest_points([[0.0, 0.0, 5.0]])
