@@ -29,6 +29,9 @@ const uint QUERY_ALL = 1u;
 const uint QUERY_PARITY = 2u;
 // The product of (1 - opacity) over every crossing in [tmin, tmax], written to out_t.
 const uint QUERY_TRANSMIT = 3u;
+// Exact tier: the surface point nearest to each ray's origin within tmax (the search radius), its
+// distance written to out_t (+inf where nothing lies within the radius) and its triangle's fields.
+const uint QUERY_DISTANCE = 4u;
 // The exact tier's edges (trace::Request::contacts): 0, crossings (an edge or vertex that several
 // triangles share belongs to exactly one of them: the tie-break); 1, contacts (closed triangles:
 // each triangle has its edges and vertices, so a ray that only touches a boundary hits it).

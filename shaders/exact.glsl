@@ -247,6 +247,84 @@ double exact_transmit(Ray64 ray, int instance, int prim) {
   return 1.0 - double(exact_opacity(x, caller_index(x.primitive_order, prim)));
 }
 
+// Closest points (QUERY_DISTANCE). A point of the mesh's frame in the scene's: ReferenceTracer's
+// `to_scene.point` (glam: the columns times the coordinates, summed in order, then the offset).
+dvec3 to_scene_point(ExactInstance x, dvec3 v) {
+  precise dvec3 r;
+  for (int k = 0; k < 3; ++k) {
+    precise double c = ((x.to_scene[k].x * v.x + x.to_scene[k].y * v.y) + x.to_scene[k].z * v.z) + x.to_scene[k].w;
+    r[k] = c;
+  }
+  return r;
+}
+
+void scene_triangle(ExactInstance x, int prim, out dvec3 a, out dvec3 b, out dvec3 c) {
+  uvec3 idx = triangle_indices_at(x.indices, 0u, uint(prim));
+  a = to_scene_point(x, exact_vertex(x, idx.x));
+  b = to_scene_point(x, exact_vertex(x, idx.y));
+  c = to_scene_point(x, exact_vertex(x, idx.z));
+}
+
+double squared_length(dvec3 v) {
+  precise double s = (v.x * v.x + v.y * v.y) + v.z * v.z;
+  return s;
+}
+
+// Keeps device triangle `prim` of `instance` in `best` (whose t holds a squared distance while
+// searching) where its nearest point to `p` is nearer, ties to the lower (instance, caller's
+// triangle): ReferenceTracer::closest_point's order.
+bool distance_candidate(inout ExactBest best, dvec3 p, int instance, int prim, int custom) {
+  ExactInstance x = ExactInstances(params.instances).x[instance];
+  dvec3 a;
+  dvec3 b;
+  dvec3 c;
+  scene_triangle(x, prim, a, b, c);
+  double d2 = squared_length(closest_point_on_triangle(p, a, b, c) - p);
+  if (d2 > best.t) return false;
+  if (best.prim >= 0 && d2 == best.t) {
+    int caller = caller_index(x.primitive_order, prim);
+    int best_caller = caller_index(ExactInstances(params.instances).x[best.instance].primitive_order, best.prim);
+    if (!(instance < best.instance || (instance == best.instance && caller < best_caller))) return false;
+  }
+  best = ExactBest(d2, 0.0, 0.0, instance, prim, custom, 0);
+  return true;
+}
+
+// The barycentrics (of b and c) of a point q of triangle (a, b, c): geometry/reference.rs
+// `barycentrics`, the same operations in the same order.
+dvec2 barycentrics_of(dvec3 q, dvec3 a, dvec3 b, dvec3 c) {
+  precise dvec3 e1 = b - a;
+  precise dvec3 e2 = c - a;
+  precise dvec3 w = q - a;
+  precise double d11 = (e1.x * e1.x + e1.y * e1.y) + e1.z * e1.z;
+  precise double d12 = (e1.x * e2.x + e1.y * e2.y) + e1.z * e2.z;
+  precise double d22 = (e2.x * e2.x + e2.y * e2.y) + e2.z * e2.z;
+  precise double dw1 = (w.x * e1.x + w.y * e1.y) + w.z * e1.z;
+  precise double dw2 = (w.x * e2.x + w.y * e2.y) + w.z * e2.z;
+  precise double det = d11 * d22 - d12 * d12;
+  if (det == 0.0) return dvec2(0.0);
+  precise double u = (d22 * dw1 - d12 * dw2) / det;
+  precise double v = (d11 * dw2 - d12 * dw1) / det;
+  return dvec2(u, v);
+}
+
+// The search's best as a hit: its distance and the barycentrics of its nearest point.
+ExactBest finish_distance(dvec3 p, ExactBest best) {
+  if (best.prim < 0) return exact_miss();
+  ExactInstance x = ExactInstances(params.instances).x[best.instance];
+  dvec3 a;
+  dvec3 b;
+  dvec3 c;
+  scene_triangle(x, best.prim, a, b, c);
+  dvec2 uv = barycentrics_of(closest_point_on_triangle(p, a, b, c), a, b, c);
+  return ExactBest(sqrt(best.t), uv.x, uv.y, best.instance, best.prim, best.custom, best.geometry);
+}
+
+// The traversal ray of a point query: a zero-length ray at the point, meeting the boxes that hold
+// it (every triangle's box is grown by the search radius).
+const vec3 PROBE_DIRECTION = vec3(1.0, 0.0, 0.0);
+const float PROBE_LENGTH = 1e-30;
+
 // Runs the watertight test of device triangle `prim` of `instance`; updates `best` and returns
 // true when it is hit (and solid) and comes before `best`.
 bool exact_candidate(inout ExactBest best, Ray64 ray, int instance, int prim, int custom, int geometry) {

@@ -46,7 +46,7 @@ layout(push_constant, std430) uniform Params {
 // The exact tier, per instance: the f64 map from the scene's frame to the mesh's (rows: xyz
 // linear, w offset), and where the mesh's f64 vertices and boxed triangles live. Triangles are
 // counted among all parts of the mesh; `part_offsets` splits them back into (geometry, triangle
-// within it). 144 bytes, 160 apart in arrays (the dvec4's 32-byte alignment).
+// within it). 256 bytes (the dvec4s' 32-byte alignment).
 struct ExactInstance {
   dvec4 rows[3];
   uint64_t vertices;         // f64 xyz per vertex, all parts
@@ -56,6 +56,7 @@ struct ExactInstance {
   uint part_count;
   uint flags;                // EXACT_CULL_DISABLE | EXACT_FLIP_FACING
   uint64_t opacity;          // float per caller's triangle among all parts, or 0: all opaque
+  dvec4 to_scene[3];         // the inverse map, mesh to scene (distances are the scene's)
 };
 const uint EXACT_CULL_DISABLE = 1u;  // query culling does not apply to this instance
 const uint EXACT_FLIP_FACING = 2u;   // front is the side opposite the object-space normal

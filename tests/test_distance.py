@@ -47,27 +47,38 @@ def check_against_brute_force(found, points, tri):
     assert ((found.uv >= -1e-12) & (found.uv.sum(axis=1, keepdims=True) <= 1 + 1e-12)).all()
 
 
-def test_closest_points_match_brute_force_on_the_bunny(any_device, bunny):
+TIERS = ("exact", "reference")
+
+
+@pytest.mark.parametrize("precision", TIERS)
+def test_closest_points_match_brute_force_on_the_bunny(device, bunny, precision):
     v, f = bunny
-    scene = any_device.scene([any_device.mesh(v, f)])
-    points = points_around(v, 400, seed=0)
-    found = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS)
-    assert found.distance.dtype == np.float64 and found.position.shape == (400, 3)
+    scene = device.scene([device.mesh(v, f)])
+    near = v[::350][:50] + 1e-3 * np.random.default_rng(9).normal(size=(50, 3))
+    points = np.vstack([points_around(v, 150, seed=0), near])
+    found = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS, precision=precision)
+    assert found.distance.dtype == np.float64 and found.position.shape == (len(points), 3)
     check_against_brute_force(found, points, v[f])
     assert (found.instance_id == 0).all() and (found.geometry_id == 0).all()
     normals = oracle.triangle_normals(v, f, found.prim_id)
     np.testing.assert_allclose(found.normal, normals, atol=1e-6)
-    np.testing.assert_array_equal(scene.distance(points), found.distance)
+    np.testing.assert_array_equal(scene.distance(points, precision=precision), found.distance)
+    if precision == "exact":
+        # The GPU's f64 search and the CPU's compute the same operations: the same answers.
+        reference = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS, precision="reference")
+        for name in ("distance", "prim_id", "uv"):
+            np.testing.assert_array_equal(getattr(found, name), getattr(reference, name))
 
 
-def test_points_on_the_surface_are_at_distance_zero_with_one_triangle_chosen(any_device):
+@pytest.mark.parametrize("precision", TIERS)
+def test_points_on_the_surface_are_at_distance_zero_with_one_triangle_chosen(device, precision):
     """Vertices and edge midpoints of a heightfield lie on several triangles: distance 0 (to f64
     rounding of an edge's midpoint) on one of them; at a vertex, every triangle that has it is at
     exactly 0, and the lowest-numbered wins (the tie-break every tier shares)."""
     vertices, faces, _ = oracle.heightfield(8, seed=1)
-    scene = any_device.scene([any_device.mesh(vertices, faces)])
+    scene = device.scene([device.mesh(vertices, faces)])
     targets = oracle.shared_targets(vertices, faces, 8)
-    found = scene.closest_points(targets)
+    found = scene.closest_points(targets, precision=precision)
     assert (found.distance <= 1e-15).all()
     per_triangle = np.stack([oracle.surface_distance(vertices, faces[k : k + 1], targets) for k in range(len(faces))])
     holders = per_triangle <= 1e-15
@@ -77,11 +88,12 @@ def test_points_on_the_surface_are_at_distance_zero_with_one_triangle_chosen(any
     np.testing.assert_array_equal(found.prim_id[vertex], holders.argmax(axis=0)[vertex])
 
 
+@pytest.mark.parametrize("precision", TIERS)
 @pytest.mark.parametrize("offset", [0.0, 1e6])
-def test_instances_rotated_stretched_and_mirrored_keep_world_distances(any_device, offset):
+def test_instances_rotated_stretched_and_mirrored_keep_world_distances(device, offset, precision):
     v, f = oracle.load_obj("spot")
     v = 0.1 * (v - v.mean(0))
-    mesh = any_device.mesh(v, f)
+    mesh = device.mesh(v, f)
     angle = 0.7
     rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1.0]])
     transforms = [
@@ -91,9 +103,9 @@ def test_instances_rotated_stretched_and_mirrored_keep_world_distances(any_devic
     ]
     for t in transforms:
         t[:3, 3] += offset
-    scene = any_device.scene([vkray.Instance(mesh, t) for t in transforms])
+    scene = device.scene([vkray.Instance(mesh, t) for t in transforms])
     points = points_around(np.vstack([world_triangles(v, f, t).reshape(-1, 3) for t in transforms]), 500, seed=2)
-    found = scene.closest_points(points)
+    found = scene.closest_points(points, precision=precision)
     tri = np.concatenate([world_triangles(v, f, t) for t in transforms])
     v_all = tri.reshape(-1, 3)
     expected = oracle.surface_distance(v_all, np.arange(len(v_all)).reshape(-1, 3), points)
@@ -105,20 +117,21 @@ def test_instances_rotated_stretched_and_mirrored_keep_world_distances(any_devic
     np.testing.assert_allclose((1 - u - w) * a + u * b + w * c, found.position, atol=1e-11 * scale)
 
 
-def test_max_distance_cuts_off_with_misses(any_device, bunny):
+@pytest.mark.parametrize("precision", TIERS)
+def test_max_distance_cuts_off_with_misses(device, bunny, precision):
     v, f = bunny
-    scene = any_device.scene([any_device.mesh(v, f)])
+    scene = device.scene([device.mesh(v, f)])
     points = points_around(v, 500, seed=3)
-    full = scene.closest_points(points)
+    full = scene.closest_points(points, precision=precision)
     limit = float(np.median(full.distance))
-    cut = scene.closest_points(points, max_distance=limit, outputs=vkray.CLOSEST_FIELDS)
+    cut = scene.closest_points(points, max_distance=limit, outputs=vkray.CLOSEST_FIELDS, precision=precision)
     near = full.distance <= limit
     np.testing.assert_array_equal(cut.distance[near], full.distance[near])
     assert np.isinf(cut.distance[~near]).all() and (cut.prim_id[~near] == -1).all()
     assert (cut.instance_id[~near] == -1).all() and np.isnan(cut.position[~near]).all()
     assert np.isnan(cut.uv[~near]).all() and np.isnan(cut.normal[~near]).all()
     np.testing.assert_array_equal(cut.hit, near)
-    assert scene.closest_points(points, max_distance=0.0).hit.sum() == 0
+    assert scene.closest_points(points, max_distance=0.0, precision=precision).hit.sum() == 0
 
 
 def test_signed_distance_is_negative_inside(any_device, bunny):
@@ -156,6 +169,7 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
     def work():
         try:
             results.append(scene.distance(points))
+            results.append(scene.distance(points, precision="exact"))
         except Exception as e:  # noqa: BLE001 - reported below
             errors.append(e)
 
@@ -164,7 +178,7 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
         t.start()
     for t in threads:
         t.join()
-    assert not errors and len(results) == 4
+    assert not errors and len(results) == 8
     for got in results:
         np.testing.assert_array_equal(got, want)
     with pytest.raises(ValueError, match="not finite"):
@@ -180,3 +194,5 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
     spheres = any_device.scene([any_device.spheres([[0, 0, 0]], 1.0)])
     with pytest.raises(vkray.UnsupportedError, match="spheres"):
         spheres.closest_points([[0.0, 0.0, 5.0]])
+    with pytest.raises(vkray.UnsupportedError, match="precision='exact'"):
+        scene.closest_points([[0.0, 0.0, 0.0]], precision="fast")

@@ -272,10 +272,25 @@ impl ReferenceHit {
     }
 }
 
-/// The Frobenius norm of an affine map's linear part: at least its largest stretch.
-fn frobenius(map: &Affine) -> f64 {
+/// An affine map's largest stretch (the spectral norm of its linear part), from above: the square
+/// root of the largest eigenvalue of MᵀM (Smith's closed form for symmetric 3×3 matrices), with a
+/// margin for its rounding; never above the Frobenius norm, which bounds it too.
+fn largest_stretch(map: &Affine) -> f64 {
     let m = map.linear;
-    (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared()).sqrt()
+    let frobenius = (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared()).sqrt();
+    let a = m.transpose() * m;
+    let q = (a.x_axis.x + a.y_axis.y + a.z_axis.z) / 3.0;
+    let p1 = a.y_axis.x.powi(2) + a.z_axis.x.powi(2) + a.z_axis.y.powi(2);
+    let p2 = (a.x_axis.x - q).powi(2) + (a.y_axis.y - q).powi(2) + (a.z_axis.z - q).powi(2) + 2.0 * p1;
+    let p = (p2 / 6.0).sqrt();
+    let largest = if p == 0.0 {
+        q
+    } else {
+        let b = (a - glam::DMat3::from_diagonal(DVec3::splat(q))) * (1.0 / p);
+        let r = (b.determinant() / 2.0).clamp(-1.0, 1.0);
+        q + 2.0 * p * (r.acos() / 3.0).cos()
+    };
+    (largest.max(0.0).sqrt() * (1.0 + 1e-9)).min(frobenius)
 }
 
 /// Two-level CPU tracer over placed triangle sets.
@@ -365,6 +380,7 @@ impl<'a> ReferenceTracer<'a> {
     pub fn closest_point(&self, p: DVec3, mask: u8, max_distance: f64) -> Option<ClosestHit> {
         let mut best: Option<ClosestHit> = None;
         let mut reach = max_distance;
+        let limit = max_distance * max_distance;
         self.top.nearest(
             |b| b.distance_to(p),
             &mut reach,
@@ -374,9 +390,9 @@ impl<'a> ReferenceTracer<'a> {
                     return;
                 }
                 let local = set.to_local.point(p);
-                // A world distance d is at least d_local / |to_local| (its largest stretch, at
-                // most its Frobenius norm): local box distances bound world ones from below.
-                let shrink = 1.0 / frobenius(&set.to_local).max(f64::MIN_POSITIVE);
+                // A world distance d is at least d_local / |to_local| (its largest stretch): local
+                // box distances bound world ones from below.
+                let shrink = 1.0 / largest_stretch(&set.to_local).max(f64::MIN_POSITIVE);
                 set.triangles.bvh().nearest(
                     |b| b.distance_to(local) * shrink * (1.0 - 1e-12),
                     reach,
@@ -386,7 +402,7 @@ impl<'a> ReferenceTracer<'a> {
                         // Compared squared (exactly as computed), so that ties are ties in every tier.
                         let squared = (q - p).length_squared();
                         let hit = ClosestHit { distance: squared, point: q, u: 0.0, v: 0.0, instance, prim };
-                        if squared <= *reach * *reach && best.is_none_or(|b| hit.is_before(&b)) {
+                        if squared <= limit && best.is_none_or(|b| hit.is_before(&b)) {
                             best = Some(hit);
                             *reach = squared.sqrt();
                         }

@@ -61,8 +61,8 @@ pub struct GeometrySource {
 pub const SPHERE_SOURCE: u32 = 3;
 
 /// The exact tier's record of one instance (`ExactInstance` in shaders/records.glsl): the f64 map
-/// from the scene's frame to the mesh's and where the mesh's exact-tier buffers live. 144 bytes
-/// of data, 160 apart in arrays (std430 aligns the record to its dvec4s' 32 bytes).
+/// from the scene's frame to the mesh's (and back) and where the mesh's exact-tier buffers live:
+/// 256 bytes (std430 aligns the record to its dvec4s' 32 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct ExactInstance {
@@ -81,8 +81,10 @@ pub struct ExactInstance {
     pub flags: u32,
     /// f32 opacity per caller's triangle among all parts, or 0 where all are opaque.
     pub opacity: u64,
-    /// Up to the array stride (no data).
+    /// Up to `to_scene`'s alignment (no data).
     pub _padding: [u64; 2],
+    /// Rows of the inverse map, mesh to scene: distances are measured in the scene's frame.
+    pub to_scene: [[f64; 4]; 3],
 }
 
 /// `ExactInstance::flags`: query culling does not apply to the instance.
@@ -162,8 +164,8 @@ layout!(Params, size 128, rays @ 0, instances @ 8, tlas @ 16, outputs @ 24, scra
     bounds @ 100, ray_mask @ 124);
 layout!(GeometrySource, size 40, vertices @ 0, indices @ 8, primitive_order @ 16, opacity @ 24, index_is_u16 @ 32,
     vertex_format @ 36);
-layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
-    part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144);
+layout!(ExactInstance, size 256, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
+    part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144, to_scene @ 160);
 layout!(Sensor, size 128, origin @ 0, axes @ 16, kind @ 64, columns @ 68, rows @ 72, pixel_offset @ 76, table @ 80,
     tmin64 @ 88, tmax64 @ 96, shift @ 104);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
@@ -270,7 +272,8 @@ mod tests {
                     part_offsets,
                     part_count,
                     flags,
-                    opacity
+                    opacity,
+                    to_scene
                 ),
             ),
             (

@@ -5,6 +5,7 @@
 
 mod all_hits;
 mod chunks;
+mod distance;
 pub mod fields;
 mod probe;
 pub mod profile;

@@ -514,9 +514,13 @@ impl Tracer {
         scene.check_current()?;
         let hits = match precision {
             Precision::Reference => tiers::closest_points(scene, points, max_distance, interrupt)?,
+            Precision::Exact => {
+                self.check_paths(scene, true)?;
+                self.gpu_closest_points(scene, points, max_distance, interrupt)?
+            }
             other => {
                 return Err(Error::Unsupported(format!(
-                    "closest points are answered at precision='reference' (f64 on all CPU cores) so far, not {other:?}"
+                    "closest points are answered at precision='exact' (the GPU) or 'reference' (the CPU), both f64, not {other:?}"
                 )))
             }
         };
