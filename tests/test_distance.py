@@ -71,6 +71,17 @@ def test_closest_points_match_brute_force_on_the_bunny(device, bunny, precision)
 
 
 @pytest.mark.parametrize("precision", TIERS)
+def test_random_triangle_soups_match_brute_force(device, precision):
+    """Random triangles of random sizes crossing each other freely, points inside and around."""
+    for seed in (11, 12):
+        v, f = oracle.triangle_soup(300, seed)
+        scene = device.scene([device.mesh(v, f)])
+        points = np.random.default_rng(seed).uniform(-0.5, 1.5, (400, 3))
+        found = scene.closest_points(points, precision=precision)
+        check_against_brute_force(found, points, v[f])
+
+
+@pytest.mark.parametrize("precision", TIERS)
 def test_points_on_the_surface_are_at_distance_zero_with_one_triangle_chosen(device, precision):
     """Vertices and edge midpoints of a heightfield lie on several triangles: distance 0 (to f64
     rounding of an edge's midpoint) on one of them; at a vertex, every triangle that has it is at
