@@ -44,6 +44,8 @@ const uint RAYS_FROM_SENSOR = 1u;
 // Triangles whose opacity is below this let rays through in every query but transmittance (which
 // multiplies 1 - opacity over them all); cut-outs (0) always do. Only scenes with opacity read it.
 layout(constant_id = 6) const float OPACITY_THRESHOLD = 0.5;
+// Closest points (QUERY_DISTANCE): measure each candidate in f32 (the fast tier) rather than f64.
+layout(constant_id = 7) const uint DISTANCE_F32 = 0u;
 
 // One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer RayBuffer { vec4 v[]; };

@@ -166,6 +166,21 @@ def test_signed_distance_is_negative_inside(any_device, bunny):
         open_scene.signed_distance(probe, method="parity")
 
 
+def test_the_fast_tier_is_the_nearest_to_float32_rounding(device, bunny):
+    v, f = bunny
+    scene = device.scene([device.mesh(v, f)])
+    near = v[::200] + 1e-3 * np.random.default_rng(13).normal(size=(len(v[::200]), 3))
+    points = np.vstack([points_around(v, 300, seed=14), near])
+    fast = scene.closest_points(points, precision="fast", outputs=vkray.CLOSEST_FIELDS)
+    exact = scene.closest_points(points, precision="exact", outputs=vkray.CLOSEST_FIELDS)
+    assert fast.distance.dtype == np.float32 and fast.uv.dtype == np.float32
+    scale = float(np.abs(v).max())
+    np.testing.assert_allclose(fast.distance, exact.distance, rtol=1e-5, atol=1e-6 * scale)
+    same = fast.prim_id == exact.prim_id
+    assert same.mean() > 0.98
+    np.testing.assert_allclose(fast.position, exact.position, atol=1e-5 * scale)
+
+
 def test_shapes_threads_and_bad_input(any_device, bunny):
     v, f = bunny
     scene = any_device.scene([any_device.mesh(v, f)])
@@ -205,5 +220,5 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
     spheres = any_device.scene([any_device.spheres([[0, 0, 0]], 1.0)])
     with pytest.raises(vkray.UnsupportedError, match="spheres"):
         spheres.closest_points([[0.0, 0.0, 5.0]])
-    with pytest.raises(vkray.UnsupportedError, match="precision='exact'"):
-        scene.closest_points([[0.0, 0.0, 0.0]], precision="fast")
+    with pytest.raises(vkray.UnsupportedError, match="'refined' would be 'exact'"):
+        scene.closest_points([[0.0, 0.0, 0.0]], precision="refined")

@@ -946,9 +946,19 @@ class Scene:
         non-uniform scale, mirroring). A point equally near several triangles (an edge, a vertex)
         gets the one with the lower (instance_id, prim_id).
 
-        precision: ``"reference"``: f64 on all CPU cores over the scene's hierarchies, exact to
-        f64 rounding (the GPU tiers are not there yet and raise `UnsupportedError`). Scenes with
-        spheres raise `UnsupportedError`.
+        precision:
+
+        - ``"fast"``: the GPU (ray-tracing hardware), each candidate triangle measured in f32 in
+          the scene's frame: the nearest to within f32 rounding (float32 distance, uv, position).
+        - ``"exact"``: the same search measuring in f64: the reference tier's answers bit for bit.
+        - ``"reference"`` (default): f64 best-first search over the scene's hierarchies on all CPU
+          cores: the oracle.
+
+        On the GPU a zero-length ray at each point meets the per-triangle boxes of the exact tier
+        grown by a search radius (the median distance of a sample, at most a few triangles
+        across), doubled over three rounds for the points that found nothing within it; points
+        still unsettled then, far from every surface, are finished by the CPU's search (f64). Both
+        GPU tiers need the device's shaderFloat64. Scenes with spheres raise `UnsupportedError`.
         """
         fields = _closest_outputs(outputs)
         p = _arrays.real_coordinates("points", points)
@@ -966,6 +976,10 @@ class Scene:
         )
         if "t" in arrays:
             arrays["distance"] = arrays.pop("t")
+        if precision == "fast":
+            for name in ("distance", "uv", "position"):
+                if name in arrays:
+                    arrays[name] = arrays[name].astype(np.float32)
         return Closest(p.shape[:-1], arrays, precision)
 
     def distance(

@@ -30,12 +30,15 @@ const GPU_ROUNDS: usize = 3;
 const SAMPLE: usize = 64;
 
 impl Tracer {
-    /// The surface point nearest to each point within `max_distance`, found on the GPU in f64.
+    /// The surface point nearest to each point within `max_distance`, found on the GPU: in f64
+    /// (`Precision::Exact`) or f32 (`Fast`: each candidate measured in f32 in the scene's frame;
+    /// the nearest to within f32 rounding). Points far from every surface: the CPU, in f64.
     pub(super) fn gpu_closest_points(
         &self,
         scene: &Scene,
         points: Vec3s,
         max_distance: f64,
+        precision: Precision,
         interrupt: &dyn Interrupt,
     ) -> Result<Vec<Option<ClosestHit>>> {
         let n = points.rows();
@@ -48,7 +51,7 @@ impl Tracer {
             }
             interrupt.check()?;
             let reach = radius.min(max_distance);
-            let settled = self.distance_round(scene, points, &pending, reach, interrupt)?;
+            let settled = self.distance_round(scene, points, &pending, reach, precision, interrupt)?;
             let last = reach >= max_distance;
             let mut still = Vec::new();
             for (&i, hit) in pending.iter().zip(settled) {
@@ -87,6 +90,7 @@ impl Tracer {
         points: Vec3s,
         pending: &[usize],
         reach: f64,
+        precision: Precision,
         interrupt: &dyn Interrupt,
     ) -> Result<Vec<Option<ClosestHit>>> {
         let m = pending.len();
@@ -104,7 +108,7 @@ impl Tracer {
             sensor: None,
         };
         let structures = scene.reach(reach)?;
-        let request = Request::new(Query::Distance, Precision::Exact, Cull::None);
+        let request = Request::new(Query::Distance, precision, Cull::None);
         let outputs =
             Field::T.bit() | Field::Prim.bit() | Field::Instance.bit() | Field::Geometry.bit() | Field::Uv.bit();
         let (variant, _) = self.gpu_variant(scene, &rays, request, true, outputs)?;

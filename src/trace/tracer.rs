@@ -372,6 +372,7 @@ impl Tracer {
             opacity: scene.has_opacity() && !exact,
             threshold_bits: if scene.has_opacity() { request.opacity_threshold } else { DEFAULT_THRESHOLD }.to_bits(),
             ray_source: sensor as u32,
+            distance_f32: query == Query::Distance && request.precision == Precision::Fast,
         }
     }
 
@@ -512,18 +513,19 @@ impl Tracer {
         crate::geometry::arrays::check_points("points", points)?;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
-        let hits = match precision {
-            Precision::Reference => tiers::closest_points(scene, points, max_distance, interrupt)?,
-            Precision::Exact => {
-                self.check_paths(scene, true)?;
-                self.gpu_closest_points(scene, points, max_distance, interrupt)?
-            }
-            other => {
-                return Err(Error::Unsupported(format!(
-                    "closest points are answered at precision='exact' (the GPU) or 'reference' (the CPU), both f64, not {other:?}"
-                )))
-            }
-        };
+        let hits =
+            match precision {
+                Precision::Reference => tiers::closest_points(scene, points, max_distance, interrupt)?,
+                Precision::Exact | Precision::Fast => {
+                    self.check_paths(scene, true)?;
+                    self.gpu_closest_points(scene, points, max_distance, precision, interrupt)?
+                }
+                Precision::Refined => return Err(Error::Unsupported(
+                    "closest points are answered at precision='fast' (f32 on the GPU), 'exact' (f64 on the GPU) or \
+                     'reference' (f64 on the CPU): 'refined' would be 'exact'"
+                        .into(),
+                )),
+            };
         tiers::write_closest(scene, &hits, sink);
         Ok(())
     }
