@@ -181,24 +181,30 @@ bool exact_record(Ray64 ray, int instance, int prim, out ExactHit h) {
   return true;
 }
 
+// glam's DVec3::dot: (x x' + y y') + z z', each product rounded (GLSL's dot may fuse them).
+double dot3(dvec3 a, dvec3 b) {
+  precise double s = (a.x * b.x + a.y * b.y) + a.z * b.z;
+  return s;
+}
+
 // The point of triangle (a, b, c) closest to p: geometry/precision.rs closest_point_on_triangle
 // (Ericson 5.1.5), the same operations in the same order.
 dvec3 closest_point_on_triangle(dvec3 p, dvec3 a, dvec3 b, dvec3 c) {
   precise dvec3 ab = b - a;
   precise dvec3 ac = c - a;
   precise dvec3 ap = p - a;
-  precise double d1 = dot(ab, ap);
-  precise double d2 = dot(ac, ap);
+  precise double d1 = dot3(ab, ap);
+  precise double d2 = dot3(ac, ap);
   if (d1 <= 0.0 && d2 <= 0.0) return a;
   precise dvec3 bp = p - b;
-  precise double d3 = dot(ab, bp);
-  precise double d4 = dot(ac, bp);
+  precise double d3 = dot3(ab, bp);
+  precise double d4 = dot3(ac, bp);
   if (d3 >= 0.0 && d4 <= d3) return b;
   precise double vc = d1 * d4 - d3 * d2;
   if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0) return a + ab * (d1 / (d1 - d3));
   precise dvec3 cp = p - c;
-  precise double d5 = dot(ab, cp);
-  precise double d6 = dot(ac, cp);
+  precise double d5 = dot3(ab, cp);
+  precise double d6 = dot3(ac, cp);
   if (d6 >= 0.0 && d5 <= d6) return c;
   precise double vb = d5 * d2 - d1 * d6;
   if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0) return a + ac * (d2 / (d2 - d6));

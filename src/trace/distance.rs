@@ -143,19 +143,23 @@ impl Tracer {
             self.slots.give_back(slots);
             result?;
         }
-        Ok((0..m)
-            .map(|k| {
-                if !t[k].is_finite() {
-                    return None;
-                }
-                let placement = &scene.placements[instance[k] as usize];
-                let global = placement.triangles.global(geometry[k] as usize, prim[k] as usize);
-                let [a, b, c] = placement.triangles.triangle(global).map(|v| placement.to_scene.point(v));
-                let (u, v) = (uv[2 * k], uv[2 * k + 1]);
-                let point = a * (1.0 - u - v) + b * u + c * v;
-                Some(ClosestHit { distance: t[k], point, u, v, instance: instance[k] as u32, prim: global as u32 })
-            })
-            .collect())
+        Ok(crate::geometry::parallel::install(|| {
+            (0..m)
+                .into_par_iter()
+                .with_min_len(4096)
+                .map(|k| {
+                    if !t[k].is_finite() {
+                        return None;
+                    }
+                    let placement = &scene.placements[instance[k] as usize];
+                    let global = placement.triangles.global(geometry[k] as usize, prim[k] as usize);
+                    let [a, b, c] = placement.triangles.triangle(global).map(|v| placement.to_scene.point(v));
+                    let (u, v) = (uv[2 * k], uv[2 * k + 1]);
+                    let point = a * (1.0 - u - v) + b * u + c * v;
+                    Some(ClosestHit { distance: t[k], point, u, v, instance: instance[k] as u32, prim: global as u32 })
+                })
+                .collect()
+        }))
     }
 }
 
