@@ -950,7 +950,9 @@ class Scene:
 
         - ``"fast"``: the GPU (ray-tracing hardware), each candidate triangle measured in f32 in
           the scene's frame: the nearest to within f32 rounding (float32 distance, uv, position).
-        - ``"exact"``: the same search measuring in f64: the reference tier's answers bit for bit.
+        - ``"exact"``: the same search measuring in f64 with the reference tier's operations in
+          its order: its answers to f64 rounding (bit for bit on lavapipe; a GPU's f64 division and
+          square root may round otherwise, and a near-tie then go to the other triangle).
         - ``"reference"`` (default): f64 best-first search over the scene's hierarchies on all CPU
           cores: the oracle.
 
