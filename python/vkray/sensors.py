@@ -258,7 +258,30 @@ class Sensor(abc.ABC):
         """
 
 
-class PinholeCamera(Sensor):
+class _Camera(Sensor):
+    """What both cameras share: an image of ``height`` rows of ``width`` pixels, ray i at row
+    i // width and column i % width."""
+
+    _width: int
+    _height: int
+
+    @property
+    def shape(self) -> Tuple[int, int]:
+        """``(height, width)``."""
+        return (self._height, self._width)
+
+    @property
+    def width(self) -> int:
+        """Image width in pixels."""
+        return self._width
+
+    @property
+    def height(self) -> int:
+        """Image height in pixels."""
+        return self._height
+
+
+class PinholeCamera(_Camera):
     """A pinhole camera with the conventions of Open3D's ``RaycastingScene.create_rays_pinhole``.
 
     Give either form 1 (``K`` and ``extrinsic``) or form 2 (``fov_deg``, ``eye``, ``target`` and
@@ -383,21 +406,6 @@ class PinholeCamera(Sensor):
         self._origin = _float32("the camera centre -R^T t", -rotation.T @ translation)
 
     @property
-    def shape(self) -> Tuple[int, int]:
-        """``(height, width)``."""
-        return (self._height, self._width)
-
-    @property
-    def width(self) -> int:
-        """Image width in pixels."""
-        return self._width
-
-    @property
-    def height(self) -> int:
-        """Image height in pixels."""
-        return self._height
-
-    @property
     def K(self) -> F64:
         """The 3x3 intrinsic matrix (given, or built from fov_deg), float64."""
         return self._K.copy()
@@ -465,7 +473,7 @@ class PinholeCamera(Sensor):
         return f"PinholeCamera({self._width}, {self._height}, {form}, tmin={self._tmin!r}, tmax={self._tmax!r})"
 
 
-class OrthographicCamera(Sensor):
+class OrthographicCamera(_Camera):
     """An orthographic camera: parallel rays from a rectangle of origins.
 
     Parameters
@@ -533,21 +541,6 @@ class OrthographicCamera(Sensor):
         self._axes = np.stack([u, v, direction])
         if not np.all(bound < _FLOAT32_LIMIT):
             raise ValueError("eye and extent give ray origins too large for float32")
-
-    @property
-    def shape(self) -> Tuple[int, int]:
-        """``(height, width)``."""
-        return (self._height, self._width)
-
-    @property
-    def width(self) -> int:
-        """Image width in pixels."""
-        return self._width
-
-    @property
-    def height(self) -> int:
-        """Image height in pixels."""
-        return self._height
 
     @property
     def eye(self) -> F64:
