@@ -260,10 +260,25 @@ class Sensor(abc.ABC):
 
 class _Camera(Sensor):
     """What both cameras share: an image of ``height`` rows of ``width`` pixels, ray i at row
-    i // width and column i % width."""
+    i // width and column i % width, and the form of their GPU record."""
 
     _width: int
     _height: int
+    _axes: F32
+
+    def _camera_record(self, kind: int, origin: F32) -> Dict[str, Any]:
+        """`Sensor._generator` of a camera whose rays start from `origin` (see the subclasses)."""
+        return {
+            "kind": kind,
+            "origin": origin.copy(),
+            "axes": self._axes.copy(),
+            "columns": self._width,
+            "rows": self._height,
+            "tmin": self._tmin,
+            "tmax": self._tmax,
+            "table": np.zeros(0, np.float32),
+            "echoes": 1,
+        }
 
     @property
     def shape(self) -> Tuple[int, int]:
@@ -449,17 +464,7 @@ class PinholeCamera(_Camera):
         return origins, directions
 
     def _generator(self) -> Dict[str, Any]:
-        return {
-            "kind": _KIND_PINHOLE,
-            "origin": self._origin.copy(),
-            "axes": self._axes.copy(),
-            "columns": self._width,
-            "rows": self._height,
-            "tmin": self._tmin,
-            "tmax": self._tmax,
-            "table": np.zeros(0, np.float32),
-            "echoes": 1,
-        }
+        return self._camera_record(_KIND_PINHOLE, self._origin)
 
     def __repr__(self) -> str:
         if self._fov_deg is not None:
@@ -576,17 +581,7 @@ class OrthographicCamera(_Camera):
         return origins, directions
 
     def _generator(self) -> Dict[str, Any]:
-        return {
-            "kind": _KIND_ORTHOGRAPHIC,
-            "origin": self._corner.copy(),
-            "axes": self._axes.copy(),
-            "columns": self._width,
-            "rows": self._height,
-            "tmin": self._tmin,
-            "tmax": self._tmax,
-            "table": np.zeros(0, np.float32),
-            "echoes": 1,
-        }
+        return self._camera_record(_KIND_ORTHOGRAPHIC, self._corner)
 
     def __repr__(self) -> str:
         return (
