@@ -16,6 +16,7 @@ const SHADERS: &[&str] = &[
     "sphere.rint",
     "any_hit_all.rahit",
     "any_hit_opacity.rahit",
+    "closest_point.comp",
 ];
 
 fn main() {

@@ -20,6 +20,7 @@ const uint VERTEX_F16 = 1u;
 const uint VERTEX_SNORM16 = 2u;
 const uint SPHERE_SOURCE = 3u;  // `vertices` holds spheres (vec4: centre, radius), no triangles
 
+#ifndef VKRAY_POINT_QUERY
 // The push constants of every query (records.rs Params, whose `outputs` array holds out_t ..
 // out_geometry in trace::Field order). QUERY_ALL writes no hit fields: out_t points at the
 // chunk's FastHit or ExactHit records, out_prim at one int per ray (the hits it met), scratch at
@@ -42,6 +43,70 @@ layout(push_constant, std430) uniform Params {
   float bounds[6];     // exact tier: the scene's bounds (min xyz, max xyz), rounded outward
   uint ray_mask;
 } params;
+#else
+// The push constants of closest_point.comp (records.rs PointParams): the chunk's points (f64 xyz,
+// world), its outputs, the scene's hierarchies (records below), its frame's offset and the search's
+// limit.
+layout(push_constant, std430) uniform PointParams {
+  uint64_t points;        // f64 xyz per point, tightly packed
+  uint64_t distances;     // f64 per point: the distance, +inf where nothing is within max_distance
+  uint64_t hits;          // PointHit per point, or 0: only distances asked
+  uint64_t nodes;         // BvhNode: every mesh's hierarchy, one after another
+  uint64_t triangles;     // BvhTriangle: every mesh's triangles in its leaves' order
+  uint64_t instances;     // BvhInstance per instance
+  uint64_t top_nodes;     // BvhNode: the hierarchy over the instances' bounds (scene frame)
+  uint64_t top_items;     // uint per instance: its index, in the top hierarchy's leaf order
+  double center[3];       // world = scene frame + center
+  double max_distance;
+  uint count;
+  uint instance_count;
+} point_params;
+#endif
+
+// Closest points: one node of a bounding-volume hierarchy (geometry/reference.rs Bvh): f64
+// bounds, and a leaf's first item and count, or an inner node's left child (the right follows)
+// and 0. Indices count from the node's own hierarchy (BvhInstance.nodes). 56 bytes.
+struct BvhNode {
+  double lo[3];
+  double hi[3];
+  uint first;
+  uint count;
+};
+
+// Closest points: one triangle of a mesh in its frame (f64 corners), in its hierarchy's leaf
+// order, and its index among all parts of the mesh. 80 bytes.
+struct BvhTriangle {
+  double a[3];
+  double b[3];
+  double c[3];
+  uint prim;
+  uint unused;
+};
+
+// Closest points, per instance: the f64 maps between the scene's frame and the mesh's (rows of
+// 3x4: xyz linear, w offset), the factor that turns the mesh's box distances into lower bounds of
+// scene distances (1 / the largest stretch of to_local, less a hair), where its mesh's nodes and
+// triangles start, its mask, and whether to_scene's linear part is the identity. 216 bytes.
+struct BvhInstance {
+  double to_local[12];
+  double to_scene[12];
+  double shrink;
+  uint nodes;
+  uint triangles;
+  uint mask;
+  uint identity;
+};
+
+// Closest points: the nearest surface point of one point (world, f64), the barycentrics (of
+// vertices 1 and 2) of that point on its triangle, the instance and the triangle among all parts
+// of its mesh (instance -1: none within max_distance). 48 bytes.
+struct PointHit {
+  double position[3];
+  double u;
+  double v;
+  int instance;
+  uint prim;
+};
 
 // The exact tier, per instance: the f64 map from the scene's frame to the mesh's (rows: xyz
 // linear, w offset), and where the mesh's f64 vertices and boxed triangles live. Triangles are

@@ -180,7 +180,10 @@ def test_the_fast_tier_is_the_nearest_to_float32_rounding(device, bunny):
     np.testing.assert_allclose(fast.distance, exact.distance, rtol=1e-5, atol=1e-6 * scale)
     same = fast.prim_id == exact.prim_id
     assert same.mean() > 0.98
-    np.testing.assert_allclose(fast.position, exact.position, atol=1e-5 * scale)
+    # Where f32 picks another triangle (a point nearly equidistant from two), its point is as near.
+    np.testing.assert_allclose(fast.position[same], exact.position[same], atol=1e-5 * scale)
+    reached = np.linalg.norm(fast.position.astype(np.float64) - points, axis=1)
+    np.testing.assert_allclose(reached, exact.distance, rtol=1e-5, atol=1e-6 * scale)
 
 
 def test_shapes_threads_and_bad_input(any_device, bunny):

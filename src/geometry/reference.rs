@@ -14,12 +14,12 @@ use crate::geometry::precision::{closest_point_on_triangle, watertight, Aabb, Af
 /// Items one leaf holds at most.
 const LEAF_ITEMS: usize = 4;
 
-struct Node {
-    bounds: Aabb,
+pub struct Node {
+    pub bounds: Aabb,
     /// Leaf: first item in `Bvh::items`; inner node: index of the left child (the right follows).
-    first: u32,
+    pub first: u32,
     /// Items of a leaf; 0 for an inner node.
-    count: u32,
+    pub count: u32,
 }
 
 /// A binary BVH over boxes, split at the median centroid along the widest axis.
@@ -106,6 +106,16 @@ impl Bvh {
         }
     }
 
+    /// The nodes, the root first (none for no boxes).
+    pub fn nodes(&self) -> &[Node] {
+        &self.nodes
+    }
+
+    /// The boxes' indices in leaf order: a leaf holds `items[first..first + count]`.
+    pub fn items(&self) -> &[u32] {
+        &self.items
+    }
+
     /// Calls `visit` with every item whose box the ray enters before `*tmax`; `visit` may lower
     /// `*tmax` (a closer hit) or return false to stop (an occlusion query's first hit).
     pub fn traverse(&self, ray: &Ray64, tmax: &mut f64, mut visit: impl FnMut(u32, &mut f64) -> bool) {
@@ -165,7 +175,7 @@ impl TriangleSet {
         (part, global - self.part_offsets[part] as usize)
     }
 
-    fn bvh(&self) -> &Bvh {
+    pub fn bvh(&self) -> &Bvh {
         self.bvh.get_or_init(|| {
             // Boxes grow by a hair of the mesh's size so that f64 rounding in the slab test cannot
             // reject a triangle that lies on its own box's face.
@@ -275,7 +285,7 @@ impl ReferenceHit {
 /// An affine map's largest stretch (the spectral norm of its linear part), from above: the square
 /// root of the largest eigenvalue of MᵀM (Smith's closed form for symmetric 3×3 matrices), with a
 /// margin for its rounding; never above the Frobenius norm, which bounds it too.
-fn largest_stretch(map: &Affine) -> f64 {
+pub fn largest_stretch(map: &Affine) -> f64 {
     let m = map.linear;
     let frobenius = (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared()).sqrt();
     let a = m.transpose() * m;

@@ -152,6 +152,90 @@ pub const SENSOR_PINHOLE: u32 = 1;
 pub const SENSOR_ORTHOGRAPHIC: u32 = 2;
 pub const SENSOR_LIDAR: u32 = 3;
 
+/// The push constants of closest points (`PointParams` in shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct PointParams {
+    /// f64 xyz per point, world.
+    pub points: u64,
+    /// f64 distance per point.
+    pub distances: u64,
+    /// `PointHit` per point, or 0 when only distances are asked.
+    pub hits: u64,
+    /// `BvhNode`s of every mesh, one after another.
+    pub nodes: u64,
+    /// `BvhTriangle`s of every mesh, in its leaves' order.
+    pub triangles: u64,
+    /// `BvhInstance` per instance.
+    pub instances: u64,
+    /// `BvhNode`s over the instances' bounds (the scene's frame).
+    pub top_nodes: u64,
+    /// u32 instance indices in the top hierarchy's leaf order.
+    pub top_items: u64,
+    /// The scene frame's offset: world = scene + center.
+    pub center: [f64; 3],
+    pub max_distance: f64,
+    pub count: u32,
+    pub instance_count: u32,
+}
+
+/// One node of a bounding-volume hierarchy for closest points (`BvhNode` in shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct BvhNode {
+    pub lo: [f64; 3],
+    pub hi: [f64; 3],
+    /// Leaf: first item; inner node: the left child (the right follows).
+    pub first: u32,
+    /// Items of a leaf; 0 for an inner node.
+    pub count: u32,
+}
+
+/// One triangle of a mesh in its frame, in its hierarchy's leaf order (`BvhTriangle` in
+/// shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct BvhTriangle {
+    pub a: [f64; 3],
+    pub b: [f64; 3],
+    pub c: [f64; 3],
+    /// Its index among all parts of the mesh.
+    pub prim: u32,
+    pub unused: u32,
+}
+
+/// One instance for closest points (`BvhInstance` in shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct BvhInstance {
+    /// Rows (3×4) of the map from the scene's frame to the mesh's.
+    pub to_local: [f64; 12],
+    /// Rows (3×4) of the map from the mesh's frame to the scene's.
+    pub to_scene: [f64; 12],
+    /// Turns the mesh's box distances into lower bounds of the scene's.
+    pub shrink: f64,
+    /// The mesh's first node and first triangle among all meshes'.
+    pub nodes: u32,
+    pub triangles: u32,
+    pub mask: u32,
+    /// 1 where `to_scene`'s linear part is the identity.
+    pub identity: u32,
+}
+
+/// The nearest surface point of one point (`PointHit` in shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct PointHit {
+    /// World, f64.
+    pub position: [f64; 3],
+    pub u: f64,
+    pub v: f64,
+    /// -1: nothing within the search's limit.
+    pub instance: i32,
+    /// Among all parts of the instance's mesh.
+    pub prim: u32,
+}
+
 /// Checks a record's size and field offsets at compile time.
 macro_rules! layout {
     ($record:ty, size $size:expr, $($field:ident @ $offset:expr),* $(,)?) => {
@@ -168,6 +252,13 @@ layout!(ExactInstance, size 256, rows @ 0, vertices @ 96, indices @ 104, primiti
     part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144, to_scene @ 160);
 layout!(Sensor, size 128, origin @ 0, axes @ 16, kind @ 64, columns @ 68, rows @ 72, pixel_offset @ 76, table @ 80,
     tmin64 @ 88, tmax64 @ 96, shift @ 104);
+layout!(PointParams, size 104, points @ 0, distances @ 8, hits @ 16, nodes @ 24, triangles @ 32, instances @ 40,
+    top_nodes @ 48, top_items @ 56, center @ 64, max_distance @ 88, count @ 96, instance_count @ 100);
+layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
+layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
+layout!(BvhInstance, size 216, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
+    identity @ 212);
+layout!(PointHit, size 48, position @ 0, u @ 24, v @ 32, instance @ 40, prim @ 44);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
 layout!(FastHit, size 32, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20, unused @ 24);
 const _: () = assert!(std::mem::align_of::<FastHit>() == std::mem::align_of::<ExactHit>());
@@ -281,6 +372,32 @@ mod tests {
                 size_of::<Sensor>(),
                 members!(Sensor: origin, axes, kind, columns, rows, pixel_offset, table, tmin64, tmax64, shift),
             ),
+            (
+                "PointParams",
+                size_of::<PointParams>(),
+                members!(
+                    PointParams: points,
+                    distances,
+                    hits,
+                    nodes,
+                    triangles,
+                    instances,
+                    top_nodes,
+                    top_items,
+                    center,
+                    max_distance,
+                    count,
+                    instance_count
+                ),
+            ),
+            ("BvhNode", size_of::<BvhNode>(), members!(BvhNode: lo, hi, first, count)),
+            ("BvhTriangle", size_of::<BvhTriangle>(), members!(BvhTriangle: a, b, c, prim, unused)),
+            (
+                "BvhInstance",
+                size_of::<BvhInstance>(),
+                members!(BvhInstance: to_local, to_scene, shrink, nodes, triangles, mask, identity),
+            ),
+            ("PointHit", size_of::<PointHit>(), members!(PointHit: position, u, v, instance, prim)),
             ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),
             ("HitList", size_of::<HitList>(), members!(HitList: first, capacity)),
             ("FastHit", size_of::<FastHit>(), members!(FastHit: t, u, v, instance, geometry, prim, unused)),

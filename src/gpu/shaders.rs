@@ -16,6 +16,7 @@ pub const INTERSECTION_EXACT: &[u8] = spirv!("intersection_exact.rint");
 pub const SPHERE_INTERSECTION: &[u8] = spirv!("sphere.rint");
 pub const ANY_HIT_ALL: &[u8] = spirv!("any_hit_all.rahit");
 pub const ANY_HIT_OPACITY: &[u8] = spirv!("any_hit_opacity.rahit");
+pub const CLOSEST_POINT: &[u8] = spirv!("closest_point.comp");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -29,6 +30,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("sphere.rint", SPHERE_INTERSECTION),
     ("any_hit_all.rahit", ANY_HIT_ALL),
     ("any_hit_opacity.rahit", ANY_HIT_OPACITY),
+    ("closest_point.comp", CLOSEST_POINT),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

@@ -1,11 +1,13 @@
 //! What users build: meshes (BLAS), instances and scenes (TLAS), and the exact tier's view of a
 //! scene.
 
+pub mod closest;
 pub mod exact;
 pub mod instance;
 pub mod mesh;
 pub mod top_level;
 
+pub use closest::ClosestScene;
 pub use exact::ExactScene;
 pub use instance::{Instance, InstanceFlags, Placement, IDENTITY, MAX_CUSTOM_INDEX};
 pub use mesh::{Mesh, MeshInput, MeshKind};

@@ -6,6 +6,7 @@ use std::time::Instant;
 use ash::vk;
 use glam::DVec3;
 
+use super::closest::ClosestScene;
 use super::exact::ExactScene;
 use super::instance::{place, Instance, Placement, MAX_CUSTOM_INDEX};
 use super::mesh::{Mesh, MeshKind};
@@ -40,6 +41,8 @@ pub struct Scene {
     last_update_seconds: f64,
     /// The exact tier's structures, built on its first query.
     exact: OnceLock<Arc<ExactScene>>,
+    /// Closest points' hierarchies on the device, built on their first query.
+    closest: OnceLock<Arc<ClosestScene>>,
     /// The instances' bounds in the scene's frame.
     bounds: Aabb,
 }
@@ -87,6 +90,7 @@ impl Scene {
             meshes,
             last_update_seconds: 0.0,
             exact: OnceLock::new(),
+            closest: OnceLock::new(),
         })
     }
 
@@ -132,6 +136,7 @@ impl Scene {
         self.placements = placements;
         self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
         self.exact = OnceLock::new();
+        self.closest = OnceLock::new();
         self.last_update_seconds = started.elapsed().as_secs_f64();
         Ok(())
     }
@@ -182,6 +187,16 @@ impl Scene {
         }
         let built = Arc::new(ExactScene::build(self, 0.0)?);
         Ok(self.exact.get_or_init(|| built).clone())
+    }
+
+    /// Closest points' hierarchies on the device, built on first use (outside any lock, as
+    /// `exact`).
+    pub fn closest(&self) -> Result<Arc<ClosestScene>> {
+        if let Some(closest) = self.closest.get() {
+            return Ok(closest.clone());
+        }
+        let built = Arc::new(ClosestScene::build(self)?);
+        Ok(self.closest.get_or_init(|| built).clone())
     }
 
     /// The exact tier's structures with every box grown by `radius`: a point query (a

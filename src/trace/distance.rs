@@ -33,7 +33,7 @@ impl Tracer {
     /// The surface point nearest to each point within `max_distance`, found on the GPU: in f64
     /// (`Precision::Exact`) or f32 (`Fast`: each candidate measured in f32 in the scene's frame;
     /// the nearest to within f32 rounding). Points far from every surface: the CPU, in f64.
-    pub(super) fn gpu_closest_points(
+    pub(super) fn rt_closest_points(
         &self,
         scene: &Scene,
         points: Vec3s,

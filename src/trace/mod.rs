@@ -1,10 +1,11 @@
 //! Queries: what they ask (`request`), the hit fields they write (`fields`), pipeline variants
 //! and their shader binding tables (`variants`), staging slots (`staging`), the chunk loop
-//! (`chunks`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
+//! (`chunks`), closest points on the GPU (`closest`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
 //! tiers (`tiers`), and the tracer that dispatches between them (`tracer`).
 
 mod all_hits;
 mod chunks;
+mod closest;
 mod distance;
 pub mod fields;
 mod probe;

@@ -423,19 +423,25 @@ pub fn closest_points(
     Ok(hits)
 }
 
-/// Writes the fields `sink` asks for of each point's closest surface point: `t` is the
-/// distance, `position` the point (f64, world), the others as a hit's.
-pub fn write_closest(scene: &Scene, hits: &[Option<ClosestHit>], sink: &mut HitSink) {
-    let as_hit = |h: &ClosestHit| ReferenceHit { t: h.distance, u: h.u, v: h.v, instance: h.instance, prim: h.prim };
-    write_hit_fields(scene, sink, true, |i| hits[i].as_ref().map(as_hit));
-    if let Some(out) = sink.position.as_deref_mut() {
+/// Writes the fields `sink` asks for of each point's closest surface point `hit(i)` (None: none
+/// within reach): `t` is the distance, `position` the point (f64, world), the others as a hit's.
+pub fn write_closest(scene: &Scene, sink: &mut HitSink, hit: impl Fn(usize) -> Option<(ReferenceHit, DVec3)> + Sync) {
+    let position = sink.position.take();
+    write_hit_fields(scene, sink, true, |i| hit(i).map(|(h, _)| h));
+    if let Some(out) = position {
         parallel::install(|| {
             out.par_chunks_exact_mut(24).enumerate().with_min_len(1024).for_each(|(i, dst)| {
-                let point = hits[i].map_or(DVec3::NAN, |h| h.point + scene.center);
-                put_f64s(dst, &point.to_array());
+                put_f64s(dst, &hit(i).map_or(DVec3::NAN, |(_, point)| point).to_array());
             })
         });
     }
+}
+
+/// The reference tier's closest points as `write_closest` takes them.
+pub fn closest_hit_record(scene: &Scene, hit: &Option<ClosestHit>) -> Option<(ReferenceHit, DVec3)> {
+    hit.map(|h| {
+        (ReferenceHit { t: h.distance, u: h.u, v: h.v, instance: h.instance, prim: h.prim }, h.point + scene.center)
+    })
 }
 
 /// `contains` from each point's count of crossings (of a scene's one instance): inside where

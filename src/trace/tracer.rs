@@ -28,6 +28,8 @@ pub struct Tracer {
     pub(super) ctx: Arc<Context>,
     pub(super) variants: Variants,
     pub(super) slots: SlotPool,
+    /// Closest points' pipelines and staging.
+    pub(super) points: super::closest::PointPipelines,
     /// Idle lists and records of the all-hits storing pass (see `all_hits`).
     pub(super) idle_lists: Mutex<Vec<super::chunks::ListBuffers>>,
     /// Whether this driver runs the intersection shaders of each `Probe` path, once known.
@@ -66,6 +68,7 @@ impl Tracer {
             ctx: ctx.clone(),
             variants: Variants::new(ctx)?,
             slots: SlotPool::new(ctx),
+            points: super::closest::PointPipelines::new(ctx)?,
             idle_lists: Mutex::new(Vec::new()),
             probes: [OnceLock::new(), OnceLock::new()],
             last_profile: Mutex::new(TraceProfile::default()),
@@ -516,9 +519,12 @@ impl Tracer {
         let hits =
             match precision {
                 Precision::Reference => tiers::closest_points(scene, points, max_distance, interrupt)?,
-                Precision::Exact | Precision::Fast => {
+                Precision::Exact | Precision::Fast if std::env::var("VKRAY_DISTANCE_SEARCH").as_deref() == Ok("rt") => {
                     self.check_paths(scene, true)?;
-                    self.gpu_closest_points(scene, points, max_distance, precision, interrupt)?
+                    self.rt_closest_points(scene, points, max_distance, precision, interrupt)?
+                }
+                Precision::Exact | Precision::Fast => {
+                    return self.gpu_closest_points(scene, points, max_distance, precision, sink, interrupt);
                 }
                 Precision::Refined => return Err(Error::Unsupported(
                     "closest points are answered at precision='fast' (f32 on the GPU), 'exact' (f64 on the GPU) or \
@@ -526,7 +532,7 @@ impl Tracer {
                         .into(),
                 )),
             };
-        tiers::write_closest(scene, &hits, sink);
+        tiers::write_closest(scene, sink, |i| tiers::closest_hit_record(scene, &hits[i]));
         Ok(())
     }
 

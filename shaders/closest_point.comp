@@ -1,0 +1,208 @@
+#version 460
+// Closest points on the GPU: one invocation per point searches the reference tier's own
+// hierarchies (src/scene/closest.rs uploads them) best first, as ReferenceTracer::closest_point
+// does on the CPU: the instances' hierarchy by box distance, each instance's mesh hierarchy by
+// box distance in the mesh's frame times its bound factor, the nearer child first, boxes farther
+// than the best distance so far skipped. Every triangle is measured in the scene's frame with
+// the CPU's operations in the CPU's order (point_triangle.glsl), squared distances compared as
+// computed, ties to the lower (instance, triangle): the same answer as the CPU's, whatever order
+// the search meets the triangles in. The fast tier measures each triangle in f32.
+#extension GL_EXT_buffer_reference : require
+#extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
+#define VKRAY_POINT_QUERY
+#include "records.glsl"
+#include "point_triangle.glsl"
+
+layout(local_size_x_id = 0) in;
+// 1: measure each triangle in f32 (the fast tier); 0: in f64.
+layout(constant_id = 1) const uint DISTANCE_F32 = 0u;
+
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer DoubleOut { double v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Words { uint v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer BvhNodes { BvhNode n[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer BvhTriangles { BvhTriangle t[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer BvhInstances { BvhInstance x[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer PointHits { PointHit h[]; };
+
+// A median-split hierarchy of n items is about log2(n) deep; the stack holds one pending sibling
+// per level: 40 covers 2^32 triangles, 32 the 2^24 instances a scene may hold.
+const int MESH_STACK = 40;
+const int TOP_STACK = 32;
+// The instances' boxes are in the scene's frame: only rounding to allow for.
+const double TOP_FACTOR2 = 1.0 - 4e-12;
+
+// The squared length of the gap from the box to p (0 inside): Aabb::distance_to squared. The
+// search compares squared bounds with squared distances (no square roots), each bound scaled by
+// a factor a hair below 1 (squared): rounding can then never skip a box holding a triangle as
+// near as the best.
+double box_distance2(BvhNode node, dvec3 p) {
+  dvec3 lo = dvec3(node.lo[0], node.lo[1], node.lo[2]);
+  dvec3 hi = dvec3(node.hi[0], node.hi[1], node.hi[2]);
+  dvec3 gap = max(max(lo - p, p - hi), dvec3(0.0));
+  return dot(gap, gap);
+}
+
+// Affine::point with a map's rows: (the columns times the coordinates, summed in order) plus the
+// offset, each operation rounded (glam's).
+dvec3 map_point(double m[12], dvec3 v) {
+  precise dvec3 r;
+  for (int k = 0; k < 3; ++k) {
+    precise double c = ((m[4 * k] * v.x + m[4 * k + 1] * v.y) + m[4 * k + 2] * v.z) + m[4 * k + 3];
+    r[k] = c;
+  }
+  return r;
+}
+
+// A corner of the mesh's frame in the scene's. Where the map's linear part is the identity the
+// products and sums with zero change nothing but the sign of a zero, which no distance sees.
+dvec3 corner_in_scene(BvhInstance x, double v[3]) {
+  if (x.identity != 0u) {
+    precise dvec3 r = dvec3(v[0], v[1], v[2]) + dvec3(x.to_scene[3], x.to_scene[7], x.to_scene[11]);
+    return r;
+  }
+  return map_point(x.to_scene, dvec3(v[0], v[1], v[2]));
+}
+
+// The search's state: the best squared distance, its triangle (index among all meshes'
+// triangles) and instance (-1: none yet), its nearest point, and the reach (the best squared
+// distance, or max_distance squared before any: boxes beyond it are skipped).
+struct Search {
+  double d2;
+  double reach2;
+  double limit;
+  int instance;
+  uint prim;
+  uint triangle;
+  dvec3 q;
+};
+
+// Measures one triangle and keeps it where it comes before the best (ClosestHit::is_before).
+void measure(inout Search s, dvec3 p, BvhInstance x, int instance, uint triangle) {
+  BvhTriangle t = BvhTriangles(point_params.triangles).t[triangle];
+  dvec3 a = corner_in_scene(x, t.a);
+  dvec3 b = corner_in_scene(x, t.b);
+  dvec3 c = corner_in_scene(x, t.c);
+  double d2;
+  dvec3 q;
+  if (DISTANCE_F32 != 0u) {
+    vec3 qf = closest_point_on_triangle_f32(vec3(p), vec3(a), vec3(b), vec3(c));
+    vec3 gap = qf - vec3(p);
+    d2 = double(dot(gap, gap));
+    q = dvec3(qf);
+  } else {
+    q = closest_point_on_triangle(p, a, b, c);
+    d2 = squared_length(q - p);
+  }
+  // NaN (a degenerate triangle's) is never kept, as on the CPU.
+  if (!(d2 <= s.limit)) return;
+  if (s.instance >= 0 &&
+      !(d2 < s.d2 || (d2 == s.d2 && (instance < s.instance || (instance == s.instance && t.prim < s.prim)))))
+    return;
+  s.d2 = d2;
+  s.instance = instance;
+  s.prim = t.prim;
+  s.triangle = triangle;
+  s.q = q;
+  s.reach2 = d2;
+}
+
+// Searches one instance's mesh.
+void search_instance(inout Search s, dvec3 p, int instance) {
+  BvhInstance x = BvhInstances(point_params.instances).x[instance];
+  if ((x.mask & 0xFFu) == 0u) return;
+  dvec3 local = map_point(x.to_local, p);
+  // A world distance d is at least d_local / |to_local|: local box distances bound world ones.
+  double factor = x.shrink * (1.0 - 1e-12);
+  factor *= factor;
+  BvhNodes nodes = BvhNodes(point_params.nodes);
+  uint stack[MESH_STACK];
+  double bounds[MESH_STACK];
+  int n = 0;
+  stack[0] = 0u;
+  bounds[0] = box_distance2(nodes.n[x.nodes], local) * factor;
+  n = 1;
+  while (n > 0) {
+    --n;
+    if (bounds[n] > s.reach2) continue;
+    BvhNode node = nodes.n[x.nodes + stack[n]];
+    if (node.count > 0u) {
+      for (uint k = 0u; k < node.count; ++k) measure(s, p, x, instance, x.triangles + node.first + k);
+      continue;
+    }
+    double left = box_distance2(nodes.n[x.nodes + node.first], local) * factor;
+    double right = box_distance2(nodes.n[x.nodes + node.first + 1u], local) * factor;
+    // The nearer child is popped first.
+    bool left_first = left <= right;
+    stack[n] = left_first ? node.first + 1u : node.first;
+    bounds[n] = left_first ? right : left;
+    stack[n + 1] = left_first ? node.first : node.first + 1u;
+    bounds[n + 1] = left_first ? left : right;
+    n += 2;
+  }
+}
+
+void main() {
+  uint i = gl_GlobalInvocationID.x;
+  if (i >= point_params.count) return;
+  Doubles points = Doubles(point_params.points);
+  dvec3 center = dvec3(point_params.center[0], point_params.center[1], point_params.center[2]);
+  precise dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]) - center;
+  Search s;
+  precise double limit = point_params.max_distance * point_params.max_distance;
+  s.limit = limit;
+  s.reach2 = limit;
+  s.d2 = 0.0;
+  s.instance = -1;
+  s.prim = 0u;
+  s.triangle = 0u;
+  s.q = dvec3(0.0);
+  if (point_params.instance_count > 0u) {
+    BvhNodes top = BvhNodes(point_params.top_nodes);
+    Words items = Words(point_params.top_items);
+    uint stack[TOP_STACK];
+    double bounds[TOP_STACK];
+    stack[0] = 0u;
+    bounds[0] = box_distance2(top.n[0], p) * TOP_FACTOR2;
+    int n = 1;
+    while (n > 0) {
+      --n;
+      if (bounds[n] > s.reach2) continue;
+      BvhNode node = top.n[stack[n]];
+      if (node.count > 0u) {
+        for (uint k = 0u; k < node.count; ++k) search_instance(s, p, int(items.v[node.first + k]));
+        continue;
+      }
+      double left = box_distance2(top.n[node.first], p) * TOP_FACTOR2;
+      double right = box_distance2(top.n[node.first + 1u], p) * TOP_FACTOR2;
+      bool left_first = left <= right;
+      stack[n] = left_first ? node.first + 1u : node.first;
+      bounds[n] = left_first ? right : left;
+      stack[n + 1] = left_first ? node.first : node.first + 1u;
+      bounds[n + 1] = left_first ? left : right;
+      n += 2;
+    }
+  }
+  bool found = s.instance >= 0;
+  double distance = DISTANCE_F32 != 0u ? double(sqrt(float(s.d2))) : sqrt(s.d2);
+  DoubleOut(point_params.distances).v[i] = found ? distance : 1.0 / 0.0;
+  if (point_params.hits == 0ul) return;
+  double nan = 0.0 / 0.0;
+  PointHit hit = PointHit(double[3](nan, nan, nan), nan, nan, -1, 0u);
+  if (found) {
+    BvhInstance x = BvhInstances(point_params.instances).x[s.instance];
+    BvhTriangle t = BvhTriangles(point_params.triangles).t[s.triangle];
+    dvec3 a = corner_in_scene(x, t.a);
+    dvec3 b = corner_in_scene(x, t.b);
+    dvec3 c = corner_in_scene(x, t.c);
+    dvec2 uv;
+    if (DISTANCE_F32 != 0u) {
+      uv = dvec2(barycentrics_f32(vec3(s.q), vec3(a), vec3(b), vec3(c)));
+    } else {
+      uv = barycentrics_of(s.q, a, b, c);
+    }
+    precise dvec3 world = s.q + center;
+    hit = PointHit(double[3](world.x, world.y, world.z), uv.x, uv.y, s.instance, s.prim);
+  }
+  PointHits(point_params.hits).h[i] = hit;
+}

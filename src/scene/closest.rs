@@ -1,0 +1,135 @@
+//! Closest points' view of a scene on the device: the reference tier's own hierarchies (each
+//! mesh's, and the one over the instances' bounds), flattened into f64 records that a compute
+//! shader searches best first, as `ReferenceTracer::closest_point` does on the CPU.
+
+use std::sync::Arc;
+
+use super::instance::Placement;
+use super::top_level::Scene;
+use crate::error::{Error, Result};
+use crate::geometry::precision::{Aabb, Affine};
+use crate::geometry::reference::{largest_stretch, Bvh, TriangleSet};
+use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
+use crate::gpu::records::{BvhInstance, BvhNode, BvhTriangle};
+
+/// The device's copy of every hierarchy closest points search.
+pub struct ClosestScene {
+    nodes: Buffer,
+    triangles: Buffer,
+    instances: Buffer,
+    top_nodes: Buffer,
+    top_items: Buffer,
+    pub instance_count: u32,
+}
+
+impl ClosestScene {
+    pub(super) fn build(scene: &Scene) -> Result<ClosestScene> {
+        let ctx = scene.tlas.context();
+        if !ctx.info.shader_float64 {
+            return Err(Error::Unsupported(format!(
+                "{} has no shaderFloat64, which closest points on the GPU need; precision='reference' gives the same \
+                 answers on the CPU",
+                ctx.info.name
+            )));
+        }
+        let mut sets: Vec<&Arc<TriangleSet>> = Vec::new();
+        let (mut nodes, mut triangles) = (Vec::new(), Vec::new());
+        // Where each set's nodes and triangles start.
+        let mut starts: Vec<(u32, u32)> = Vec::new();
+        for placement in &scene.placements {
+            if sets.iter().any(|s| Arc::ptr_eq(s, &placement.triangles)) {
+                continue;
+            }
+            sets.push(&placement.triangles);
+            starts.push((count_u32(nodes.len(), "nodes")?, count_u32(triangles.len(), "triangles")?));
+            flatten(&placement.triangles, &mut nodes, &mut triangles);
+        }
+        let instances: Vec<BvhInstance> = scene
+            .placements
+            .iter()
+            .map(|p| {
+                let set = sets.iter().position(|s| Arc::ptr_eq(s, &p.triangles)).expect("placed set");
+                instance_record(p, starts[set])
+            })
+            .collect();
+        let boxes: Vec<Aabb> = scene.placements.iter().map(|p| p.bounds).collect();
+        let top = Bvh::build(&boxes);
+        let top_nodes: Vec<BvhNode> = top.nodes().iter().map(node_record).collect();
+        let mut uploads = Uploads::default();
+        // Shaders read one record at least: empty scenes get one zeroed.
+        let built = ClosestScene {
+            nodes: uploads.records(ctx, &at_least_one(nodes), GEOMETRY_INPUT, "closest-point nodes")?,
+            triangles: uploads.records(ctx, &at_least_one(triangles), GEOMETRY_INPUT, "closest-point triangles")?,
+            instances: uploads.records(ctx, &at_least_one(instances), GEOMETRY_INPUT, "closest-point instances")?,
+            top_nodes: uploads.records(ctx, &at_least_one(top_nodes), GEOMETRY_INPUT, "closest-point top nodes")?,
+            top_items: uploads.records(
+                ctx,
+                &at_least_one(top.items().to_vec()),
+                GEOMETRY_INPUT,
+                "closest-point top",
+            )?,
+            instance_count: scene.placements.len() as u32,
+        };
+        ctx.run_commands(|cmd| {
+            uploads.record(ctx, cmd);
+            Ok(())
+        })?;
+        Ok(built)
+    }
+
+    /// Device addresses: nodes, triangles, instances, top nodes, top items.
+    pub fn addresses(&self) -> [u64; 5] {
+        [&self.nodes, &self.triangles, &self.instances, &self.top_nodes, &self.top_items].map(Buffer::address)
+    }
+}
+
+/// Appends a set's hierarchy (child and leaf indices from its first node) and its triangles in
+/// its leaves' order.
+fn flatten(set: &TriangleSet, nodes: &mut Vec<BvhNode>, triangles: &mut Vec<BvhTriangle>) {
+    let bvh = set.bvh();
+    nodes.extend(bvh.nodes().iter().map(node_record));
+    triangles.extend(bvh.items().iter().map(|&prim| {
+        let [a, b, c] = set.triangle(prim as usize).map(|v| v.to_array());
+        BvhTriangle { a, b, c, prim, unused: 0 }
+    }));
+}
+
+fn node_record(node: &crate::geometry::reference::Node) -> BvhNode {
+    BvhNode { lo: node.bounds.min.to_array(), hi: node.bounds.max.to_array(), first: node.first, count: node.count }
+}
+
+/// An instance's record: its maps, its bound factor (ReferenceTracer::closest_point's), and
+/// where its set's nodes and triangles start.
+fn instance_record(p: &Placement, (nodes, triangles): (u32, u32)) -> BvhInstance {
+    let shrink = 1.0 / largest_stretch(&p.to_local).max(f64::MIN_POSITIVE);
+    BvhInstance {
+        to_local: rows(&p.to_local),
+        to_scene: rows(&p.to_scene),
+        shrink,
+        nodes,
+        triangles,
+        mask: p.mask as u32,
+        identity: (p.to_scene.linear == glam::DMat3::IDENTITY) as u32,
+    }
+}
+
+/// Row-major 3×4 (xyz linear, then the offset) in f64.
+fn rows(map: &Affine) -> [f64; 12] {
+    let mut out = [0.0; 12];
+    for r in 0..3 {
+        let row = map.linear.row(r);
+        out[4 * r..4 * r + 4].copy_from_slice(&[row.x, row.y, row.z, map.offset[r]]);
+    }
+    out
+}
+
+fn at_least_one<T: bytemuck::Pod + Default>(mut records: Vec<T>) -> Vec<T> {
+    if records.is_empty() {
+        records.push(T::default());
+    }
+    records
+}
+
+fn count_u32(n: usize, what: &str) -> Result<u32> {
+    u32::try_from(n).map_err(|_| Error::Unsupported(format!("closest points on the GPU hold at most 2^32 {what}")))
+}

@@ -1,0 +1,462 @@
+//! Closest points on the GPU (tiers "exact" and "fast"): shaders/closest_point.comp searches the
+//! reference tier's own hierarchies (`scene::ClosestScene`) best first, one invocation per point,
+//! with the CPU's f64 operations: the reference tier's answers, on the device's cores. Points go
+//! through in chunks, two in flight, as rays do (`chunks.rs`); only the distances travel back
+//! when only distances are asked.
+
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use ash::vk;
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::fields::{Field, HitSink};
+use super::profile::{Stamp, Stamps, TraceProfile};
+use super::request::Precision;
+use super::tiers;
+use super::tracer::Tracer;
+use crate::error::{try_vec, vulkan_error, Result, VkResultExt};
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::parallel;
+use crate::geometry::reference::ReferenceHit;
+use crate::gpu::context::{Commands, Context, Interrupt};
+use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
+use crate::gpu::records::{PointHit, PointParams};
+use crate::gpu::shaders;
+use crate::scene::{ClosestScene, Scene};
+
+/// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
+/// other): 2 × 20 MB of staging at full outputs.
+const CHUNK_POINTS: usize = 1 << 18;
+/// Threads per workgroup.
+const WORKGROUP_SIZE: u32 = 64;
+
+/// The closest-point pipelines of one device: f64 and f32 measurement, compiled on first use.
+pub struct PointPipelines {
+    ctx: Arc<Context>,
+    layout: vk::PipelineLayout,
+    module: vk::ShaderModule,
+    local_size: u32,
+    /// [f64, f32].
+    compiled: Mutex<[Option<vk::Pipeline>; 2]>,
+    idle: Mutex<Vec<PointSlot>>,
+}
+
+impl PointPipelines {
+    pub fn new(ctx: &Arc<Context>) -> Result<PointPipelines> {
+        let ranges = [vk::PushConstantRange::default()
+            .stage_flags(vk::ShaderStageFlags::COMPUTE)
+            .size(std::mem::size_of::<PointParams>() as u32)];
+        let layout_info = vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&ranges);
+        // SAFETY: a valid create info on a live device.
+        let layout = unsafe { ctx.device.create_pipeline_layout(&layout_info, None) }.vk("vkCreatePipelineLayout")?;
+        // The module uses f64, which only devices with shaderFloat64 may load.
+        let module = if ctx.info.shader_float64 {
+            let code = shaders::words(shaders::CLOSEST_POINT);
+            let info = vk::ShaderModuleCreateInfo::default().code(&code);
+            // SAFETY: SPIR-V compiled by glslc at build time (validated by the tests).
+            unsafe { ctx.device.create_shader_module(&info, None) }.vk("vkCreateShaderModule")?
+        } else {
+            vk::ShaderModule::null()
+        };
+        let local_size = WORKGROUP_SIZE
+            .min(ctx.limits.max_compute_work_group_size[0])
+            .min(ctx.limits.max_compute_work_group_invocations);
+        Ok(PointPipelines {
+            ctx: ctx.clone(),
+            layout,
+            module,
+            local_size,
+            compiled: Mutex::new([None, None]),
+            idle: Mutex::new(Vec::new()),
+        })
+    }
+
+    /// The pipeline measuring in f32 (`fast`) or f64: cached, or compiled now outside the lock.
+    fn pipeline(&self, fast: bool) -> Result<vk::Pipeline> {
+        if let Some(pipeline) = self.compiled.lock().unwrap_or_else(|e| e.into_inner())[fast as usize] {
+            return Ok(pipeline);
+        }
+        let values = [self.local_size, fast as u32];
+        let entries = [0u32, 1].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4));
+        let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
+        let stage = vk::PipelineShaderStageCreateInfo::default()
+            .stage(vk::ShaderStageFlags::COMPUTE)
+            .module(self.module)
+            .name(c"main")
+            .specialization_info(&spec);
+        let info = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(self.layout)];
+        // SAFETY: the module and layout are live objects of this device; the specialization data
+        // outlives the call.
+        let built = unsafe { self.ctx.device.create_compute_pipelines(vk::PipelineCache::null(), &info, None) }
+            .map_err(|(_, result)| vulkan_error("vkCreateComputePipelines", result))?[0];
+        self.ctx.check_validation()?;
+        let mut compiled = self.compiled.lock().unwrap_or_else(|e| e.into_inner());
+        match compiled[fast as usize] {
+            Some(first) => {
+                // SAFETY: `built` was never used.
+                unsafe { self.ctx.device.destroy_pipeline(built, None) };
+                Ok(first)
+            }
+            None => {
+                compiled[fast as usize] = Some(built);
+                Ok(built)
+            }
+        }
+    }
+
+    /// Two slots of at least `capacity` points with room for full outputs where `full`: idle
+    /// ones where they fit, new ones (allocated outside the lock) otherwise.
+    fn take_slots(&self, capacity: usize, full: bool) -> Result<[PointSlot; 2]> {
+        let mut found: Vec<PointSlot> = {
+            let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+            let mut found = Vec::new();
+            while found.len() < 2 {
+                match idle.iter().position(|s| s.capacity >= capacity && (s.full || !full)) {
+                    Some(k) => found.push(idle.swap_remove(k)),
+                    None => break,
+                }
+            }
+            found
+        };
+        while found.len() < 2 {
+            found.push(PointSlot::new(&self.ctx, capacity, full)?);
+        }
+        let second = found.pop().expect("two slots");
+        Ok([found.pop().expect("two slots"), second])
+    }
+
+    fn give_back(&self, slots: [PointSlot; 2]) {
+        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+        idle.extend(slots);
+        let surplus = idle.len().saturating_sub(2);
+        idle.drain(..surplus);
+    }
+}
+
+impl Drop for PointPipelines {
+    fn drop(&mut self) {
+        if !self.ctx.can_free() {
+            return;
+        }
+        self.idle.get_mut().unwrap_or_else(|e| e.into_inner()).clear();
+        let compiled = self.compiled.get_mut().unwrap_or_else(|e| e.into_inner());
+        // SAFETY: the tracer owning these is dropped only when no query runs (queries borrow it).
+        // Null handles are ignored by vkDestroyShaderModule.
+        unsafe {
+            for pipeline in compiled.iter().flatten() {
+                self.ctx.device.destroy_pipeline(*pipeline, None);
+            }
+            self.ctx.device.destroy_shader_module(self.module, None);
+            self.ctx.device.destroy_pipeline_layout(self.layout, None);
+        }
+    }
+}
+
+/// Staging for one chunk of points in flight: the points (f64 xyz) in, the distances (and, for
+/// full outputs, a `PointHit` each) out; device copies on discrete GPUs.
+struct PointSlot {
+    points_host: Buffer,
+    results_host: Buffer,
+    device: Option<(Buffer, Buffer)>,
+    capacity: usize,
+    full: bool,
+    stamps: Option<Stamps>,
+}
+
+impl PointSlot {
+    fn new(ctx: &Arc<Context>, capacity: usize, full: bool) -> Result<PointSlot> {
+        use vk::BufferUsageFlags as U;
+        let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
+        let points = (24 * capacity) as u64;
+        let results = PointSlot::results_bytes(capacity, full) as u64;
+        let (points_host, results_host, device) = if ctx.unified_memory {
+            (
+                Buffer::new(ctx, points, storage, MemoryLocation::CpuToGpu, "points")?,
+                Buffer::new(ctx, results, storage, MemoryLocation::GpuToCpu, "closest points")?,
+                None,
+            )
+        } else {
+            (
+                Buffer::new(ctx, points, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "points staging")?,
+                Buffer::new(ctx, results, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "closest points readback")?,
+                Some((
+                    Buffer::new(ctx, points, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "points")?,
+                    Buffer::new(ctx, results, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "closest points")?,
+                )),
+            )
+        };
+        Ok(PointSlot { points_host, results_host, device, capacity, full, stamps: Stamps::new(ctx)? })
+    }
+
+    /// Distances (f64 each), then (full outputs) the `PointHit`s.
+    fn results_bytes(capacity: usize, full: bool) -> usize {
+        8 * capacity + if full { std::mem::size_of::<PointHit>() * capacity } else { 0 }
+    }
+
+    fn points_address(&self) -> u64 {
+        self.device.as_ref().map_or(self.points_host.address(), |(points, _)| points.address())
+    }
+
+    fn results_address(&self) -> u64 {
+        self.device.as_ref().map_or(self.results_host.address(), |(_, results)| results.address())
+    }
+}
+
+/// What the chunks of one query share.
+struct PointJob<'a> {
+    points: Vec3s<'a>,
+    structures: &'a ClosestScene,
+    pipeline: vk::Pipeline,
+    center: DVec3,
+    max_distance: f64,
+    full: bool,
+}
+
+impl Tracer {
+    /// The surface point nearest to each point within `max_distance`, on the GPU, its fields
+    /// written into `sink`: measured in f64 (`Precision::Exact`, the reference tier's answers) or
+    /// in f32 (`Fast`).
+    pub(super) fn gpu_closest_points(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        max_distance: f64,
+        precision: Precision,
+        sink: &mut HitSink,
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        let n = points.rows();
+        let structures = scene.closest()?;
+        let full = sink.position.is_some()
+            || [Field::Prim, Field::Instance, Field::Custom, Field::Uv, Field::Normal, Field::Geometry]
+                .iter()
+                .any(|f| sink.field(*f).is_some());
+        let job = PointJob {
+            points,
+            structures: &structures,
+            pipeline: self.points.pipeline(precision == Precision::Fast)?,
+            center: scene.center,
+            max_distance,
+            full,
+        };
+        let mut distances = sink.take(Field::T);
+        let mut hits: Vec<PointHit> =
+            if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
+        let capacity = CHUNK_POINTS
+            .min(self.ctx.limits.max_compute_work_group_count[0] as usize * self.points.local_size as usize)
+            .min(n)
+            .max(1);
+        let mut slots = self.points.take_slots(capacity, full)?;
+        let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
+            let results = slot.results_host.mapped().expect("readback is host-visible");
+            if let Some(out) = distances.as_deref_mut() {
+                copy_parallel(&mut out[8 * start..8 * (start + len)], &results[..8 * len]);
+            }
+            if full {
+                let from = 8 * slot.capacity;
+                let records: &[PointHit] = bytemuck::cast_slice(&results[from..from + len * size_of_hit()]);
+                hits[start..start + len].copy_from_slice(records);
+            }
+        });
+        self.points.give_back(slots);
+        result?;
+        if full {
+            if let Some(out) = distances {
+                sink.set(Field::T, out);
+            }
+            let t: Vec<f64> = match sink.field(Field::T) {
+                Some(bytes) => bytemuck::cast_slice::<u8, f64>(bytes).to_vec(),
+                None => Vec::new(),
+            };
+            tiers::write_closest(scene, sink, |i| {
+                let h = &hits[i];
+                (h.instance >= 0).then(|| {
+                    let distance = t.get(i).copied().unwrap_or(0.0);
+                    let record =
+                        ReferenceHit { t: distance, u: h.u, v: h.v, instance: h.instance as u32, prim: h.prim };
+                    (record, DVec3::from_array(h.position))
+                })
+            });
+        }
+        Ok(())
+    }
+
+    /// Runs every chunk of `job` through the two `slots`, handing each finished one to `unpack`
+    /// (its first point, its length, its slot); where the time went goes to `last_profile`.
+    fn closest_chunks(
+        &self,
+        job: &PointJob,
+        slots: &mut [PointSlot; 2],
+        capacity: usize,
+        interrupt: &dyn Interrupt,
+        mut unpack: impl FnMut(usize, usize, &PointSlot),
+    ) -> Result<()> {
+        let n = job.points.rows();
+        let started = Instant::now();
+        let mut profile = TraceProfile { rays: n, ..Default::default() };
+        let mut clock = Instant::now();
+        let mut lap = |into: &mut f64| {
+            let now = Instant::now();
+            *into += (now - clock).as_secs_f64();
+            clock = now;
+        };
+        // Dropping these on an error waits for the chunks in flight before their memory goes.
+        let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
+        let mut in_flight: [Option<(usize, usize)>; 2] = [None, None];
+        let mut finished = 0;
+        let mut finish = |slot: &PointSlot, (start, len): (usize, usize), profile: &mut TraceProfile| -> Result<()> {
+            if let Some(stamps) = &slot.stamps {
+                stamps.add_to(profile)?;
+            }
+            unpack(start, len, slot);
+            finished += len;
+            interrupt.progress(finished, n);
+            Ok(())
+        };
+        for (chunk, start) in (0..n).step_by(capacity).enumerate() {
+            interrupt.check()?;
+            let s = chunk % 2;
+            let len = capacity.min(n - start);
+            lap(&mut profile.submit);
+            commands[s].wait()?;
+            lap(&mut profile.wait);
+            if let Some(done) = in_flight[s].take() {
+                finish(&slots[s], done, &mut profile)?;
+            }
+            lap(&mut profile.unpack);
+            pack_points(job.points, start, len, &mut slots[s]);
+            lap(&mut profile.pack);
+            profile.chunks += 1;
+            commands[s].begin()?;
+            self.record_points(commands[s].buffer, job, &slots[s], len);
+            commands[s].submit()?;
+            in_flight[s] = Some((start, len));
+        }
+        lap(&mut profile.submit);
+        for s in 0..2 {
+            commands[s].wait()?;
+            lap(&mut profile.wait);
+            if let Some(done) = in_flight[s].take() {
+                finish(&slots[s], done, &mut profile)?;
+            }
+            lap(&mut profile.unpack);
+        }
+        profile.total = started.elapsed().as_secs_f64();
+        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
+        Ok(())
+    }
+
+    /// Records one chunk: its upload (discrete GPUs), the search, its readback.
+    fn record_points(&self, cmd: vk::CommandBuffer, job: &PointJob, slot: &PointSlot, len: usize) {
+        let ctx = &self.ctx;
+        let device = &ctx.device;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        let stamp = |k| {
+            if let Some(stamps) = &slot.stamps {
+                stamps.write(cmd, k);
+            }
+        };
+        if let Some(stamps) = &slot.stamps {
+            stamps.reset(cmd);
+        }
+        stamp(Stamp::Start);
+        if let Some((points_device, _)) = &slot.device {
+            let region = [vk::BufferCopy::default().size(24 * len as u64)];
+            // SAFETY: `cmd` is recording; both buffers hold `capacity` points.
+            unsafe { device.cmd_copy_buffer(cmd, slot.points_host.raw(), points_device.raw(), &region) };
+            memory_barrier(
+                ctx,
+                cmd,
+                vk::PipelineStageFlags::TRANSFER,
+                vk::AccessFlags::TRANSFER_WRITE,
+                compute,
+                vk::AccessFlags::SHADER_READ,
+            );
+        }
+        stamp(Stamp::Uploaded);
+        let [nodes, triangles, instances, top_nodes, top_items] = job.structures.addresses();
+        let results = slot.results_address();
+        let params = PointParams {
+            points: slot.points_address(),
+            distances: results,
+            hits: if job.full { results + 8 * slot.capacity as u64 } else { 0 },
+            nodes,
+            triangles,
+            instances,
+            top_nodes,
+            top_items,
+            center: job.center.to_array(),
+            max_distance: job.max_distance,
+            count: len as u32,
+            instance_count: job.structures.instance_count,
+        };
+        // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
+        // cover exactly the layout's range; the group count is within maxComputeWorkGroupCount
+        // (the chunk's capacity is).
+        unsafe {
+            device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, job.pipeline);
+            device.cmd_push_constants(
+                cmd,
+                self.points.layout,
+                vk::ShaderStageFlags::COMPUTE,
+                0,
+                bytemuck::bytes_of(&params),
+            );
+            device.cmd_dispatch(cmd, (len as u32).div_ceil(self.points.local_size), 1, 1);
+        }
+        stamp(Stamp::Traced);
+        let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
+        let Some((_, results_device)) = &slot.device else {
+            memory_barrier(ctx, cmd, compute, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
+            stamp(Stamp::ReadBack);
+            return;
+        };
+        memory_barrier(
+            ctx,
+            cmd,
+            compute,
+            vk::AccessFlags::SHADER_WRITE,
+            vk::PipelineStageFlags::TRANSFER,
+            vk::AccessFlags::TRANSFER_READ,
+        );
+        let mut regions = vec![vk::BufferCopy::default().size(8 * len as u64)];
+        if job.full {
+            let at = 8 * slot.capacity as u64;
+            regions.push(vk::BufferCopy::default().src_offset(at).dst_offset(at).size((len * size_of_hit()) as u64));
+        }
+        // SAFETY: `cmd` is recording; both buffers share one layout and hold `capacity` points.
+        unsafe { device.cmd_copy_buffer(cmd, results_device.raw(), slot.results_host.raw(), &regions) };
+        memory_barrier(ctx, cmd, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE, host.0, host.1);
+        stamp(Stamp::ReadBack);
+    }
+}
+
+fn size_of_hit() -> usize {
+    std::mem::size_of::<PointHit>()
+}
+
+/// Points `start..start + len` as f64 xyz into the slot's staging, on all cores.
+fn pack_points(points: Vec3s, start: usize, len: usize, slot: &mut PointSlot) {
+    let staging = slot.points_host.mapped_mut().expect("point staging is host-visible");
+    let out: &mut [f64] = bytemuck::cast_slice_mut(&mut staging[..24 * len]);
+    match points {
+        Vec3s::F64(values) => {
+            copy_parallel(bytemuck::cast_slice_mut(out), bytemuck::cast_slice(&values[3 * start..3 * (start + len)]))
+        }
+        Vec3s::F32(_) => parallel::install(|| {
+            out.par_chunks_exact_mut(3).enumerate().with_min_len(4096).for_each(|(k, dst)| {
+                dst.copy_from_slice(&points.row_f64(start + k));
+            })
+        }),
+    }
+}
+
+/// `dst.copy_from_slice(src)` in pieces on all cores.
+fn copy_parallel(dst: &mut [u8], src: &[u8]) {
+    const PIECE_BYTES: usize = 1 << 20;
+    parallel::install(|| {
+        dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))
+    });
+}
