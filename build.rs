@@ -17,6 +17,7 @@ const SHADERS: &[&str] = &[
     "any_hit_all.rahit",
     "any_hit_opacity.rahit",
     "closest_point.comp",
+    "winding.comp",
 ];
 
 fn main() {

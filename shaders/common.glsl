@@ -29,9 +29,6 @@ const uint QUERY_ALL = 1u;
 const uint QUERY_PARITY = 2u;
 // The product of (1 - opacity) over every crossing in [tmin, tmax], written to out_t.
 const uint QUERY_TRANSMIT = 3u;
-// Exact tier: the surface point nearest to each ray's origin within tmax (the search radius), its
-// distance written to out_t (+inf where nothing lies within the radius) and its triangle's fields.
-const uint QUERY_DISTANCE = 4u;
 // The exact tier's edges (trace::Request::contacts): 0, crossings (an edge or vertex that several
 // triangles share belongs to exactly one of them: the tie-break); 1, contacts (closed triangles:
 // each triangle has its edges and vertices, so a ray that only touches a boundary hits it).
@@ -44,8 +41,6 @@ const uint RAYS_FROM_SENSOR = 1u;
 // Triangles whose opacity is below this let rays through in every query but transmittance (which
 // multiplies 1 - opacity over them all); cut-outs (0) always do. Only scenes with opacity read it.
 layout(constant_id = 6) const float OPACITY_THRESHOLD = 0.5;
-// Closest points (QUERY_DISTANCE): measure each candidate in f32 (the fast tier) rather than f64.
-layout(constant_id = 7) const uint DISTANCE_F32 = 0u;
 
 // One ray: origin and tmin, direction and tmax (32 bytes, one aligned pair of vec4).
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer RayBuffer { vec4 v[]; };

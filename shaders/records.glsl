@@ -50,6 +50,7 @@ layout(push_constant, std430) uniform Params {
 layout(push_constant, std430) uniform PointParams {
   uint64_t points;        // f64 xyz per point, tightly packed
   uint64_t distances;     // f64 per point: the distance, +inf where nothing is within max_distance
+                          // (winding.comp: the largest winding number of any instance)
   uint64_t hits;          // PointHit per point, or 0: only distances asked
   uint64_t nodes;         // BvhNode: every mesh's hierarchy, one after another
   uint64_t triangles;     // BvhTriangle: every mesh's triangles in its leaves' order
@@ -86,7 +87,8 @@ struct BvhTriangle {
 // Closest points, per instance: the f64 maps between the scene's frame and the mesh's (rows of
 // 3x4: xyz linear, w offset), the factor that turns the mesh's box distances into lower bounds of
 // scene distances (1 / the largest stretch of to_local, less a hair), where its mesh's nodes and
-// triangles start, its mask, and whether to_scene's linear part is the identity. 216 bytes.
+// triangles start, its mask, whether to_scene's linear part is the identity, its mesh's
+// triangle count, and whether to_scene mirrors (its determinant is negative). 224 bytes.
 struct BvhInstance {
   double to_local[12];
   double to_scene[12];
@@ -95,6 +97,8 @@ struct BvhInstance {
   uint triangles;
   uint mask;
   uint identity;
+  uint triangle_count;
+  uint mirrored;
 };
 
 // Closest points: the nearest surface point of one point (world, f64), the barycentrics (of
@@ -111,7 +115,7 @@ struct PointHit {
 // The exact tier, per instance: the f64 map from the scene's frame to the mesh's (rows: xyz
 // linear, w offset), and where the mesh's f64 vertices and boxed triangles live. Triangles are
 // counted among all parts of the mesh; `part_offsets` splits them back into (geometry, triangle
-// within it). 256 bytes (the dvec4s' 32-byte alignment).
+// within it). 160 bytes (the dvec4s' 32-byte alignment).
 struct ExactInstance {
   dvec4 rows[3];
   uint64_t vertices;         // f64 xyz per vertex, all parts
@@ -121,7 +125,6 @@ struct ExactInstance {
   uint part_count;
   uint flags;                // EXACT_CULL_DISABLE | EXACT_FLIP_FACING
   uint64_t opacity;          // float per caller's triangle among all parts, or 0: all opaque
-  dvec4 to_scene[3];         // the inverse map, mesh to scene (distances are the scene's)
 };
 const uint EXACT_CULL_DISABLE = 1u;  // query culling does not apply to this instance
 const uint EXACT_FLIP_FACING = 2u;   // front is the side opposite the object-space normal

@@ -9,30 +9,10 @@
 
 layout(local_size_x_id = 2) in;
 
-// Closest points (QUERY_DISTANCE): the ray's origin is the point, its tmax the search radius.
-void trace_distance(uint i, Ray64 ray) {
-  ExactBest best = exact_miss();
-  best.t = ray.tmax * ray.tmax;
-  rayQueryEXT query;
-  rayQueryInitializeEXT(query, accelerationStructureEXT(params.tlas), RAY_FLAGS, ray_cull_mask(i), vec3(ray.origin), 0.0,
-                        PROBE_DIRECTION, PROBE_LENGTH);
-  while (rayQueryProceedEXT(query)) {
-    if (rayQueryGetIntersectionTypeEXT(query, false) != gl_RayQueryCandidateIntersectionAABBEXT) continue;
-    distance_candidate(best, ray.origin, rayQueryGetIntersectionInstanceIdEXT(query, false),
-                       rayQueryGetIntersectionPrimitiveIndexEXT(query, false),
-                       rayQueryGetIntersectionInstanceCustomIndexEXT(query, false));
-  }
-  store_exact(i, finish_distance(ray.origin, best));
-}
-
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
   Ray64 ray = load_ray64(i);
-  if (QUERY == QUERY_DISTANCE) {
-    trace_distance(i, ray);
-    return;
-  }
   ExactBest best = exact_miss();
   int seen = 0;
   int on_surface = 0;

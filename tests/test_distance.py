@@ -227,3 +227,46 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
         spheres.closest_points([[0.0, 0.0, 5.0]])
     with pytest.raises(vkray.UnsupportedError, match="'refined' would be 'exact'"):
         scene.closest_points([[0.0, 0.0, 0.0]], precision="refined")
+
+
+def test_winding_numbers_on_the_gpu_decide_as_the_cpu(device, bunny):
+    """contains(method="winding") at "exact" (winding numbers on the GPU, f64 terms and f32
+    arctangents, points near 1/2 and points on a surface decided on the CPU) equals "reference"
+    (the CPU, f64) and the numpy oracle, for an open mesh under rotated, stretched and mirrored
+    instances; several threads at once give the same answers."""
+    v, f = bunny
+    mesh = device.mesh(v, f)
+    rotate = np.eye(4)
+    c, s = np.cos(0.7), np.sin(0.7)
+    rotate[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    rotate[:3, 3] = [0.3, 0.0, 0.0]
+    mirror = np.diag([-1.5, 1.0, 0.8, 1.0])
+    mirror[:3, 3] = [-0.3, 0.05, 0.0]
+    scene = device.scene([mesh, vkray.Instance(mesh, rotate), vkray.Instance(mesh, mirror)])
+    rng = np.random.default_rng(21)
+    tri = v[f[rng.integers(0, len(f), 300)]]
+    on_surface = tri.mean(axis=1)  # centroids: on the surface
+    near = tri[:, 0] + 1e-4 * rng.normal(size=(300, 3))
+    lo, hi = v.min(0) - 0.4, v.max(0) + 0.4
+    points = np.vstack([rng.uniform(lo, hi, (600, 3)), on_surface, near, v[:50]])
+    exact = scene.contains(points, method="winding", precision="exact")
+    reference = scene.contains(points, method="winding", precision="reference")
+    np.testing.assert_array_equal(exact, reference)
+    assert exact[600:900].all()  # on a surface: inside
+    world = [v, v @ rotate[:3, :3].T + rotate[:3, 3], v @ mirror[:3, :3].T + mirror[:3, 3]]
+    w = np.stack([oracle.winding_numbers(x, f, points[:600]) for x in world])
+    w[2] *= -1  # a mirror turns its triangles inside out
+    clear = np.abs(w.max(axis=0) - 0.5) > 1e-6
+    np.testing.assert_array_equal(exact[:600][clear], (w.max(axis=0) >= 0.5)[clear])
+    results = [None] * 4
+
+    def work(k):
+        results[k] = scene.contains(points, method="winding", precision="exact")
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for r in results:
+        np.testing.assert_array_equal(r, exact)

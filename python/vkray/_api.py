@@ -948,19 +948,18 @@ class Scene:
 
         precision:
 
-        - ``"fast"``: the GPU (ray-tracing hardware), each candidate triangle measured in f32 in
-          the scene's frame: the nearest to within f32 rounding (float32 distance, uv, position).
-        - ``"exact"``: the same search measuring in f64 with the reference tier's operations in
-          its order: its answers to f64 rounding (bit for bit on lavapipe; a GPU's f64 division and
+        - ``"fast"``: the GPU, each candidate triangle measured in f32 in the scene's frame: the
+          nearest to within f32 rounding (float32 distance, uv, position).
+        - ``"exact"``: the GPU, measuring in f64 with the reference tier's operations in its
+          order: its answers to f64 rounding (bit for bit on lavapipe; a GPU's f64 division and
           square root may round otherwise, and a near-tie then go to the other triangle).
         - ``"reference"`` (default): f64 best-first search over the scene's hierarchies on all CPU
           cores: the oracle.
 
-        On the GPU a zero-length ray at each point meets the per-triangle boxes of the exact tier
-        grown by a search radius (the median distance of a sample, at most a few triangles
-        across), doubled over three rounds for the points that found nothing within it; points
-        still unsettled then, far from every surface, are finished by the CPU's search (f64). Both
-        GPU tiers need the device's shaderFloat64. Scenes with spheres raise `UnsupportedError`.
+        On the GPU one compute invocation per point searches the reference tier's own
+        hierarchies (each mesh's, and the one over the instances), uploaded once per scene, best
+        first: the same search as the CPU's, on the GPU's cores. Both GPU tiers need the device's
+        shaderFloat64. Scenes with spheres raise `UnsupportedError`.
         """
         fields = _closest_outputs(outputs)
         p = _arrays.real_coordinates("points", points)

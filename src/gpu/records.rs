@@ -61,8 +61,8 @@ pub struct GeometrySource {
 pub const SPHERE_SOURCE: u32 = 3;
 
 /// The exact tier's record of one instance (`ExactInstance` in shaders/records.glsl): the f64 map
-/// from the scene's frame to the mesh's (and back) and where the mesh's exact-tier buffers live:
-/// 256 bytes (std430 aligns the record to its dvec4s' 32 bytes).
+/// from the scene's frame to the mesh's and where the mesh's exact-tier buffers live: 160 bytes
+/// (std430 aligns the record to its dvec4s' 32 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct ExactInstance {
@@ -81,10 +81,8 @@ pub struct ExactInstance {
     pub flags: u32,
     /// f32 opacity per caller's triangle among all parts, or 0 where all are opaque.
     pub opacity: u64,
-    /// Up to `to_scene`'s alignment (no data).
+    /// Up to the record's 32-byte alignment (no data).
     pub _padding: [u64; 2],
-    /// Rows of the inverse map, mesh to scene: distances are measured in the scene's frame.
-    pub to_scene: [[f64; 4]; 3],
 }
 
 /// `ExactInstance::flags`: query culling does not apply to the instance.
@@ -220,6 +218,10 @@ pub struct BvhInstance {
     pub mask: u32,
     /// 1 where `to_scene`'s linear part is the identity.
     pub identity: u32,
+    /// The mesh's triangles (all parts).
+    pub triangle_count: u32,
+    /// 1 where `to_scene` mirrors (a negative determinant).
+    pub mirrored: u32,
 }
 
 /// The nearest surface point of one point (`PointHit` in shaders/records.glsl).
@@ -248,16 +250,16 @@ layout!(Params, size 128, rays @ 0, instances @ 8, tlas @ 16, outputs @ 24, scra
     bounds @ 100, ray_mask @ 124);
 layout!(GeometrySource, size 40, vertices @ 0, indices @ 8, primitive_order @ 16, opacity @ 24, index_is_u16 @ 32,
     vertex_format @ 36);
-layout!(ExactInstance, size 256, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
-    part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144, to_scene @ 160);
+layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primitive_order @ 112, part_offsets @ 120,
+    part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144);
 layout!(Sensor, size 128, origin @ 0, axes @ 16, kind @ 64, columns @ 68, rows @ 72, pixel_offset @ 76, table @ 80,
     tmin64 @ 88, tmax64 @ 96, shift @ 104);
 layout!(PointParams, size 104, points @ 0, distances @ 8, hits @ 16, nodes @ 24, triangles @ 32, instances @ 40,
     top_nodes @ 48, top_items @ 56, center @ 64, max_distance @ 88, count @ 96, instance_count @ 100);
 layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
 layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
-layout!(BvhInstance, size 216, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
-    identity @ 212);
+layout!(BvhInstance, size 224, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
+    identity @ 212, triangle_count @ 216, mirrored @ 220);
 layout!(PointHit, size 48, position @ 0, u @ 24, v @ 32, instance @ 40, prim @ 44);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
 layout!(FastHit, size 32, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20, unused @ 24);
@@ -363,8 +365,7 @@ mod tests {
                     part_offsets,
                     part_count,
                     flags,
-                    opacity,
-                    to_scene
+                    opacity
                 ),
             ),
             (
@@ -395,7 +396,17 @@ mod tests {
             (
                 "BvhInstance",
                 size_of::<BvhInstance>(),
-                members!(BvhInstance: to_local, to_scene, shrink, nodes, triangles, mask, identity),
+                members!(
+                    BvhInstance: to_local,
+                    to_scene,
+                    shrink,
+                    nodes,
+                    triangles,
+                    mask,
+                    identity,
+                    triangle_count,
+                    mirrored
+                ),
             ),
             ("PointHit", size_of::<PointHit>(), members!(PointHit: position, u, v, instance, prim)),
             ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),

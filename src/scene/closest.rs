@@ -110,6 +110,8 @@ fn instance_record(p: &Placement, (nodes, triangles): (u32, u32)) -> BvhInstance
         triangles,
         mask: p.mask as u32,
         identity: (p.to_scene.linear == glam::DMat3::IDENTITY) as u32,
+        triangle_count: p.triangles.faces.len() as u32,
+        mirrored: (p.to_scene.linear.determinant() < 0.0) as u32,
     }
 }
 

@@ -49,10 +49,8 @@ struct ExactMesh {
 }
 
 impl ExactScene {
-    /// The exact tier's structures over `scene`, every box grown by `reach` (in the scene's frame)
-    /// beyond its slack: 0 for ray queries; a search radius for closest points, whose boxes must
-    /// hold every point within that distance of their triangle.
-    pub(super) fn build(scene: &Scene, reach: f64) -> Result<ExactScene> {
+    /// The exact tier's structures over `scene`, every box padded by its slack.
+    pub(super) fn build(scene: &Scene) -> Result<ExactScene> {
         let ctx = scene.tlas.context();
         if !ctx.info.shader_float64 {
             return Err(Error::Unsupported(format!(
@@ -61,7 +59,7 @@ impl ExactScene {
             )));
         }
         let scene_bounds = scene.placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds));
-        let world_slack = EXACT_SLACK * scene_bounds.extent().max_element() + reach;
+        let world_slack = EXACT_SLACK * scene_bounds.extent().max_element();
         let meshes =
             scene.meshes.iter().map(|mesh| ExactMesh::build(scene, mesh, world_slack)).collect::<Result<Vec<_>>>()?;
         let mesh_of =
@@ -175,13 +173,6 @@ impl ExactMesh {
                 _ => 0,
             },
             _padding: [0; 2],
-            to_scene: {
-                let (linear, offset) = (p.to_scene.linear, p.to_scene.offset);
-                [0, 1, 2].map(|r| {
-                    let row = linear.row(r);
-                    [row.x, row.y, row.z, offset[r]]
-                })
-            },
         }
     }
 }

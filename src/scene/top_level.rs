@@ -185,7 +185,7 @@ impl Scene {
         if let Some(exact) = self.exact.get() {
             return Ok(exact.clone());
         }
-        let built = Arc::new(ExactScene::build(self, 0.0)?);
+        let built = Arc::new(ExactScene::build(self)?);
         Ok(self.exact.get_or_init(|| built).clone())
     }
 
@@ -197,12 +197,6 @@ impl Scene {
         }
         let built = Arc::new(ClosestScene::build(self)?);
         Ok(self.closest.get_or_init(|| built).clone())
-    }
-
-    /// The exact tier's structures with every box grown by `radius`: a point query (a
-    /// zero-length ray) meets the box of every triangle within `radius` of it.
-    pub fn reach(&self, radius: f64) -> Result<ExactScene> {
-        ExactScene::build(self, radius)
     }
 
     /// Where rays are packed: the scene's frame and the sphere bounding its instances.

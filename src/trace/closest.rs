@@ -31,15 +31,30 @@ use crate::scene::{ClosestScene, Scene};
 const CHUNK_POINTS: usize = 1 << 18;
 /// Threads per workgroup.
 const WORKGROUP_SIZE: u32 = 64;
+/// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
+/// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
+const WINDING_TERM_ERROR: f64 = 2e-7;
 
-/// The closest-point pipelines of one device: f64 and f32 measurement, compiled on first use.
+/// The point queries' shaders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum PointShader {
+    /// Closest points measured in f64.
+    Closest,
+    /// Closest points measured in f32 (the fast tier).
+    ClosestF32,
+    /// Winding numbers.
+    Winding,
+}
+
+/// The point queries' pipelines of one device (compiled on first use) and their staging.
 pub struct PointPipelines {
     ctx: Arc<Context>,
     layout: vk::PipelineLayout,
-    module: vk::ShaderModule,
+    /// closest_point.comp, winding.comp (null without shaderFloat64).
+    modules: [vk::ShaderModule; 2],
     local_size: u32,
-    /// [f64, f32].
-    compiled: Mutex<[Option<vk::Pipeline>; 2]>,
+    /// By `PointShader`.
+    compiled: Mutex<[Option<vk::Pipeline>; 3]>,
     idle: Mutex<Vec<PointSlot>>,
 }
 
@@ -51,39 +66,50 @@ impl PointPipelines {
         let layout_info = vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&ranges);
         // SAFETY: a valid create info on a live device.
         let layout = unsafe { ctx.device.create_pipeline_layout(&layout_info, None) }.vk("vkCreatePipelineLayout")?;
-        // The module uses f64, which only devices with shaderFloat64 may load.
-        let module = if ctx.info.shader_float64 {
-            let code = shaders::words(shaders::CLOSEST_POINT);
+        // The modules use f64, which only devices with shaderFloat64 may load.
+        let load = |source: &[u8]| -> Result<vk::ShaderModule> {
+            if !ctx.info.shader_float64 {
+                return Ok(vk::ShaderModule::null());
+            }
+            let code = shaders::words(source);
             let info = vk::ShaderModuleCreateInfo::default().code(&code);
             // SAFETY: SPIR-V compiled by glslc at build time (validated by the tests).
-            unsafe { ctx.device.create_shader_module(&info, None) }.vk("vkCreateShaderModule")?
-        } else {
-            vk::ShaderModule::null()
+            unsafe { ctx.device.create_shader_module(&info, None) }.vk("vkCreateShaderModule")
         };
+        let modules = [load(shaders::CLOSEST_POINT)?, load(shaders::WINDING)?];
         let local_size = WORKGROUP_SIZE
             .min(ctx.limits.max_compute_work_group_size[0])
             .min(ctx.limits.max_compute_work_group_invocations);
         Ok(PointPipelines {
             ctx: ctx.clone(),
             layout,
-            module,
+            modules,
             local_size,
-            compiled: Mutex::new([None, None]),
+            compiled: Mutex::new([None; 3]),
             idle: Mutex::new(Vec::new()),
         })
     }
 
-    /// The pipeline measuring in f32 (`fast`) or f64: cached, or compiled now outside the lock.
-    fn pipeline(&self, fast: bool) -> Result<vk::Pipeline> {
-        if let Some(pipeline) = self.compiled.lock().unwrap_or_else(|e| e.into_inner())[fast as usize] {
+    /// The pipeline of `shader`: cached, or compiled now outside the lock.
+    pub(super) fn pipeline(&self, shader: PointShader) -> Result<vk::Pipeline> {
+        let slot = shader as usize;
+        if let Some(pipeline) = self.compiled.lock().unwrap_or_else(|e| e.into_inner())[slot] {
             return Ok(pipeline);
         }
-        let values = [self.local_size, fast as u32];
+        let module = self.modules[(shader == PointShader::Winding) as usize];
+        if module == vk::ShaderModule::null() {
+            return Err(crate::error::Error::Unsupported(format!(
+                "{} has no shaderFloat64, which point queries on the GPU need; precision='reference' gives the same \
+                 answers on the CPU",
+                self.ctx.info.name
+            )));
+        }
+        let values = [self.local_size, (shader == PointShader::ClosestF32) as u32];
         let entries = [0u32, 1].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4));
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let stage = vk::PipelineShaderStageCreateInfo::default()
             .stage(vk::ShaderStageFlags::COMPUTE)
-            .module(self.module)
+            .module(module)
             .name(c"main")
             .specialization_info(&spec);
         let info = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(self.layout)];
@@ -93,14 +119,14 @@ impl PointPipelines {
             .map_err(|(_, result)| vulkan_error("vkCreateComputePipelines", result))?[0];
         self.ctx.check_validation()?;
         let mut compiled = self.compiled.lock().unwrap_or_else(|e| e.into_inner());
-        match compiled[fast as usize] {
+        match compiled[slot] {
             Some(first) => {
                 // SAFETY: `built` was never used.
                 unsafe { self.ctx.device.destroy_pipeline(built, None) };
                 Ok(first)
             }
             None => {
-                compiled[fast as usize] = Some(built);
+                compiled[slot] = Some(built);
                 Ok(built)
             }
         }
@@ -148,7 +174,9 @@ impl Drop for PointPipelines {
             for pipeline in compiled.iter().flatten() {
                 self.ctx.device.destroy_pipeline(*pipeline, None);
             }
-            self.ctx.device.destroy_shader_module(self.module, None);
+            for module in self.modules {
+                self.ctx.device.destroy_shader_module(module, None);
+            }
             self.ctx.device.destroy_pipeline_layout(self.layout, None);
         }
     }
@@ -236,7 +264,11 @@ impl Tracer {
         let job = PointJob {
             points,
             structures: &structures,
-            pipeline: self.points.pipeline(precision == Precision::Fast)?,
+            pipeline: self.points.pipeline(if precision == Precision::Fast {
+                PointShader::ClosestF32
+            } else {
+                PointShader::Closest
+            })?,
             center: scene.center,
             max_distance,
             full,
@@ -244,10 +276,7 @@ impl Tracer {
         let mut distances = sink.take(Field::T);
         let mut hits: Vec<PointHit> =
             if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
-        let capacity = CHUNK_POINTS
-            .min(self.ctx.limits.max_compute_work_group_count[0] as usize * self.points.local_size as usize)
-            .min(n)
-            .max(1);
+        let capacity = self.point_capacity(n);
         let mut slots = self.points.take_slots(capacity, full)?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
@@ -281,6 +310,48 @@ impl Tracer {
             });
         }
         Ok(())
+    }
+
+    /// `contains` by winding number with the GPU's help: each instance's winding number about
+    /// each point on the GPU (f64 terms, f32 arctangents), decided on the host: inside at 1/2 or
+    /// more; points whose number lies within the GPU's error of 1/2, on the CPU in f64; points
+    /// outside, unless on a surface (the CPU's test). The reference tier's answers.
+    pub(super) fn gpu_contains_by_winding(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        out: &mut [u8],
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        let n = points.rows();
+        let structures = scene.closest()?;
+        let job = PointJob {
+            points,
+            structures: &structures,
+            pipeline: self.points.pipeline(PointShader::Winding)?,
+            center: scene.center,
+            max_distance: 0.0,
+            full: false,
+        };
+        let mut winding = try_vec(n, 0.0f64, "winding numbers")?;
+        let capacity = self.point_capacity(n);
+        let mut slots = self.points.take_slots(capacity, false)?;
+        let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
+            let results = slot.results_host.mapped().expect("readback is host-visible");
+            copy_parallel(bytemuck::cast_slice_mut(&mut winding[start..start + len]), &results[..8 * len]);
+        });
+        self.points.give_back(slots);
+        result?;
+        let most = scene.placements.iter().map(|p| p.triangles.faces.len()).max().unwrap_or(0);
+        tiers::inside_by_winding(scene, points, &winding, WINDING_TERM_ERROR * most as f64 + 1e-4, out, interrupt)
+    }
+
+    /// Points per chunk for a query of `n` points.
+    fn point_capacity(&self, n: usize) -> usize {
+        CHUNK_POINTS
+            .min(self.ctx.limits.max_compute_work_group_count[0] as usize * self.points.local_size as usize)
+            .min(n)
+            .max(1)
     }
 
     /// Runs every chunk of `job` through the two `slots`, handing each finished one to `unpack`

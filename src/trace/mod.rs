@@ -6,7 +6,6 @@
 mod all_hits;
 mod chunks;
 mod closest;
-mod distance;
 pub mod fields;
 mod probe;
 pub mod profile;

@@ -18,8 +18,6 @@ pub enum Query {
     Parity,
     /// The product of (1 - opacity) over every crossing in [tmin, tmax]: the light a ray keeps.
     Transmit,
-    /// Exact tier: the surface point nearest to the ray's origin within its tmax (a radius).
-    Distance,
 }
 
 /// `Query::Parity`'s flag in a count: the ray's origin lies on a surface.
@@ -44,7 +42,6 @@ impl Query {
             Query::Count | Query::All => 1,
             Query::Parity => 2,
             Query::Transmit => 3,
-            Query::Distance => 4,
         }
     }
 
@@ -57,7 +54,6 @@ impl Query {
             Query::All => "all",
             Query::Parity => "contains",
             Query::Transmit => "transmittance",
-            Query::Distance => "distance",
         }
     }
 }

@@ -401,6 +401,37 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
     })
 }
 
+/// `contains` by winding number from each point's largest winding number `winding` (the GPU's,
+/// within `band` of the CPU's): inside at 1/2 + band or more; within the band, the CPU's own test
+/// decides; below, inside only on a surface. The reference tier's answers.
+pub fn inside_by_winding(
+    scene: &Scene,
+    points: Vec3s,
+    winding: &[f64],
+    band: f64,
+    out: &mut [u8],
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
+    let tracer = scene.reference_tracer();
+    let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
+    in_blocks(out.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            out[range].par_iter_mut().enumerate().with_min_len(256).for_each(|(k, inside)| {
+                let (w, p) = (winding[start + k], point(start + k));
+                *inside = u8::from(if w >= 0.5 + band {
+                    true
+                } else if w < 0.5 - band {
+                    tracer.on_surface(p, ON_SURFACE_ULPS)
+                } else {
+                    tracer.on_surface(p, ON_SURFACE_ULPS)
+                        || scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5)
+                });
+            })
+        });
+    })
+}
+
 /// The surface point nearest to each point within `max_distance`, on the CPU in f64 (all cores):
 /// the reference tier of `closest_points`, and the others' oracle.
 pub fn closest_points(

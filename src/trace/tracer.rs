@@ -375,7 +375,6 @@ impl Tracer {
             opacity: scene.has_opacity() && !exact,
             threshold_bits: if scene.has_opacity() { request.opacity_threshold } else { DEFAULT_THRESHOLD }.to_bits(),
             ray_source: sensor as u32,
-            distance_f32: query == Query::Distance && request.precision == Precision::Fast,
         }
     }
 
@@ -519,10 +518,6 @@ impl Tracer {
         let hits =
             match precision {
                 Precision::Reference => tiers::closest_points(scene, points, max_distance, interrupt)?,
-                Precision::Exact | Precision::Fast if std::env::var("VKRAY_DISTANCE_SEARCH").as_deref() == Ok("rt") => {
-                    self.check_paths(scene, true)?;
-                    self.rt_closest_points(scene, points, max_distance, precision, interrupt)?
-                }
                 Precision::Exact | Precision::Fast => {
                     return self.gpu_closest_points(scene, points, max_distance, precision, sink, interrupt);
                 }
@@ -563,8 +558,13 @@ impl Tracer {
         }
         match precision {
             Precision::Exact if !winding => self.contains_by_gpu_parity(scene, points, out, interrupt),
+            Precision::Exact if self.ctx.info.shader_float64 => {
+                let _in_use = scene.hold_meshes();
+                scene.check_current()?;
+                self.gpu_contains_by_winding(scene, points, out, interrupt)
+            }
+            // Without f64 shaders, the exact tier's winding numbers are the reference tier's.
             Precision::Exact | Precision::Reference => {
-                // The exact tier's winding numbers are the reference tier's, on all CPU cores.
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
                 tiers::contains(scene, points, winding, out, interrupt)

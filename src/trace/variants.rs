@@ -38,8 +38,6 @@ pub struct VariantKey {
     pub threshold_bits: u32,
     /// RAY_SOURCE: rays from the rays buffer (0) or generated from a sensor (1).
     pub ray_source: u32,
-    /// DISTANCE_F32 (closest points): measure in f32 (the fast tier) rather than f64.
-    pub distance_f32: bool,
 }
 
 impl VariantKey {
@@ -352,7 +350,7 @@ impl Variants {
         let values = key.constants(0);
         // Every constant but the workgroup size (2), which ray-tracing stages do not have.
         let entries = specialization_entries();
-        let entries = [entries[0], entries[1], entries[3], entries[4], entries[5], entries[6], entries[7]];
+        let entries = [entries[0], entries[1], entries[3], entries[4], entries[5], entries[6]];
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let stage = |flags, module| {
             vk::PipelineShaderStageCreateInfo::default()
@@ -510,14 +508,14 @@ fn hit_groups(key: VariantKey) -> Vec<vk::RayTracingShaderGroupCreateInfoKHR<'st
 }
 
 /// Constants 0 (OUTPUTS), 1 (RAY_FLAGS), 2 (the workgroup size), 3 (QUERY), 4 (CLOSED_EDGES),
-/// 5 (RAY_SOURCE), 6 (OPACITY_THRESHOLD, f32 bits) and 7 (DISTANCE_F32), four bytes each.
-fn specialization_entries() -> [vk::SpecializationMapEntry; 8] {
-    [0u32, 1, 2, 3, 4, 5, 6, 7].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
+/// 5 (RAY_SOURCE) and 6 (OPACITY_THRESHOLD, f32 bits), four bytes each.
+fn specialization_entries() -> [vk::SpecializationMapEntry; 7] {
+    [0u32, 1, 2, 3, 4, 5, 6].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4))
 }
 
 impl VariantKey {
     /// The specialization constants' values, in `specialization_entries` order.
-    fn constants(&self, local_size: u32) -> [u32; 8] {
+    fn constants(&self, local_size: u32) -> [u32; 7] {
         [
             self.outputs,
             self.ray_flags,
@@ -526,7 +524,6 @@ impl VariantKey {
             self.closed_edges as u32,
             self.ray_source,
             self.threshold_bits,
-            self.distance_f32 as u32,
         ]
     }
 }
