@@ -1028,8 +1028,9 @@ class Scene:
         instance (Jacobson et al. 2013) is at least 1/2; meaningful for meshes with holes too.
         A point on a surface (within a few f64 ulps of a triangle) counts as inside, by either
         method. precision: ``"exact"`` (default: parity's crossings found on the GPU by the f64
-        test, the winding number on all CPU cores) or ``"reference"`` (everything on the CPU): the
-        same answers. The f32 tiers raise `UnsupportedError`: they may count a crossing at an edge
+        test; the winding numbers on the GPU, with points within the GPU's rounding of 1/2 and
+        points on a surface decided by the CPU's f64 test) or ``"reference"`` (everything on the
+        CPU): the same answers. The f32 tiers raise `UnsupportedError`: they may count a crossing at an edge
         twice or not at all.
         """
         if method not in ("parity", "winding"):
