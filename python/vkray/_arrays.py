@@ -7,7 +7,7 @@ Every array is handed on in native byte order (the core reads native numbers onl
 
 from __future__ import annotations
 
-from typing import Optional, Tuple, Union
+from typing import Any, Optional, Tuple, Union, cast
 
 import numpy as np
 
@@ -70,7 +70,59 @@ def _big_integers(array: np.ndarray) -> bool:
     )
 
 
+#: DLPack's device types (dlpack.h DLDeviceType), for naming where an array lives.
+_DLPACK_DEVICES = {
+    1: "cpu",
+    2: "cuda",
+    3: "cuda_host",
+    4: "opencl",
+    7: "vulkan",
+    8: "metal",
+    9: "vpi",
+    10: "rocm",
+    11: "rocm_host",
+    12: "ext_dev",
+    13: "cuda_managed",
+    14: "oneapi",
+    15: "webgpu",
+    16: "hexagon",
+}
+_DLPACK_CPU = 1
+
+
+def dlpack_device(value: object) -> Optional[Tuple[int, int]]:
+    """(device type, index) of an object that speaks DLPack (``__dlpack__`` and
+    ``__dlpack_device__``: torch, cupy, jax, numpy >= 1.22), or None."""
+    if isinstance(value, np.ndarray) or not hasattr(value, "__dlpack__"):
+        return None
+    device_of = getattr(value, "__dlpack_device__", None)
+    if device_of is None:
+        return None
+    kind, index = device_of()
+    return int(kind), int(index)
+
+
+def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarray:
+    """A DLPack array in host memory as a numpy view of the same memory (no copy); arrays
+    elsewhere are refused with an error naming their device."""
+    kind, index = device
+    if kind == _DLPACK_CPU:
+        try:
+            return np.from_dlpack(cast(Any, value))
+        except (TypeError, ValueError, BufferError, RuntimeError) as exc:  # e.g. a dtype numpy lacks
+            raise TypeError(f"{name}: numpy cannot read this DLPack array: {exc}") from None
+    where = f"{_DLPACK_DEVICES.get(kind, f'DLPack device type {kind}')}:{index}"
+    raise TypeError(
+        f"{name} lives on {where} (DLPack device type {kind}), which this build of vkray cannot read in "
+        f"place: vkray reads arrays in host memory; move it there first (torch: .cpu(), cupy: .get(), jax: "
+        f"jax.device_get)"
+    )
+
+
 def _asarray(name: str, value: object) -> np.ndarray:
+    device = dlpack_device(value)
+    if device is not None:
+        return _native(_from_dlpack(name, value, device))
     try:
         array = np.asarray(value)
     except (TypeError, ValueError) as exc:  # ragged lists and the like
