@@ -28,9 +28,10 @@ whole batch; where that took longer than --slow seconds it is the figure, else t
 --repeat further calls.
 
 Signs: vkray's sign is `Scene.contains`': parity of one exact ray per point for closed meshes
-(fandisk), the generalized winding number for open ones (the bunny). The winding number runs on
-the CPU cores over every triangle, so the bunny's signed distances are timed (and their signs
-compared) on the first --winding-points points only (about 1,400 points/s on 2 cores). Accuracy:
+(fandisk), the generalized winding number for open ones (the bunny). The winding number sums over
+every triangle (on the GPU in the GPU tiers, on the CPU cores in the reference tier), so the
+bunny's signed distances are timed (and their signs compared) on the first --winding-points points
+only (the reference tier: about 600 points/s on 2 cores, 3,000 on 16). Accuracy:
 against vkray reference: max |Δ distance| (Open3D: its float32 answer; closest points:
 |‖p − position‖ − reference distance|), the points whose distance is off by more than 1e-6 of the
 bounding diagonal (beyond float32 rounding), and the points whose sign differs from vkray exact's.
