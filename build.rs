@@ -18,6 +18,7 @@ const SHADERS: &[&str] = &[
     "any_hit_opacity.rahit",
     "closest_point.comp",
     "winding.comp",
+    "pack_rays.comp",
 ];
 
 fn main() {

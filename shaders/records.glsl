@@ -20,7 +20,33 @@ const uint VERTEX_F16 = 1u;
 const uint VERTEX_SNORM16 = 2u;
 const uint SPHERE_SOURCE = 3u;  // `vertices` holds spheres (vec4: centre, radius), no triangles
 
-#ifndef VKRAY_POINT_QUERY
+#if defined(VKRAY_PACK_RAYS)
+// The push constants of pack_rays.comp (records.rs PackParams): where one chunk of the caller's
+// rays lies in its own layout (each array by address and byte stride between rows; a stride of 0
+// repeats row 0), and where their packed form (Rays::pack's) goes.
+layout(push_constant, std430) uniform PackParams {
+  uint64_t origins;       // the chunk's first origin: 3 floats, or doubles (PACK_ORIGINS_F64)
+  uint64_t directions;    // the chunk's first direction: 3 floats or doubles (PACK_DIRECTIONS_F64)
+  uint64_t tmin;          // the chunk's first tmin (float or double), or 0: PackFrame.tmin
+  uint64_t tmax;          // the chunk's first tmax, or 0: PackFrame.tmax
+  uint64_t packed;        // out: 8 floats per ray, as the trace shaders read them
+  uint64_t advances;      // out: double per ray, how far a far ray was moved (0: not moved)
+  uint64_t frame;         // PackFrame
+  uint64_t t;             // finish: the chunk's hit distances (float per ray), to add `advances` to
+  uint origin_stride;     // bytes between rows of each array
+  uint direction_stride;
+  uint tmin_stride;
+  uint tmax_stride;
+  uint count;
+  uint first_row;         // the chunk's first row among all the rays (for first_invalid)
+  uint formats;           // PACK_*_F64 bits
+  uint unused;
+} pack_params;
+const uint PACK_ORIGINS_F64 = 1u;
+const uint PACK_DIRECTIONS_F64 = 2u;
+const uint PACK_TMIN_F64 = 4u;
+const uint PACK_TMAX_F64 = 8u;
+#elif !defined(VKRAY_POINT_QUERY)
 // The push constants of every query (records.rs Params, whose `outputs` array holds out_t ..
 // out_geometry in trace::Field order). QUERY_ALL writes no hit fields: out_t points at the
 // chunk's FastHit or ExactHit records, out_prim at one int per ray (the hits it met), scratch at
@@ -63,6 +89,20 @@ layout(push_constant, std430) uniform PointParams {
   uint instance_count;
 } point_params;
 #endif
+
+// A query's frame for pack_rays.comp (records.rs PackFrame, rays.rs Frame): the shift into the
+// scene's frame, the sphere bounding the scene in it, how far out rays are advanced, the interval
+// of rays without per-ray bounds; and the first invalid ray the shader met (host-visible).
+struct PackFrame {
+  double shift[3];
+  double bounds_center[3];
+  double radius;
+  double far_squared;
+  double tmin;
+  double tmax;
+  uint first_invalid;     // the first invalid row, or 0xFFFFFFFF (atomicMin)
+  uint unused;
+};
 
 // Closest points: one node of a bounding-volume hierarchy (geometry/reference.rs Bvh): f64
 // bounds, and a leaf's first item and count, or an inner node's left child (the right follows)

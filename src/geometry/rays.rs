@@ -190,22 +190,15 @@ impl Rays<'_> {
     }
 
     /// Why ray `i` is invalid, naming the array and the row.
-    fn invalid_ray(&self, i: usize) -> crate::error::Error {
-        let row = |v: &Vec3s| v.row_f64(if v.rows() == 1 { 0 } else { i });
-        let (tmin, tmax) = (self.tmin.get(i), self.tmax.get(i));
-        let tmin_ok = tmin >= 0.0 && (tmin as f32).is_finite();
-        let message = if !self.origin(i).iter().all(|c| c.is_finite()) {
-            format!("origins row {i} is not finite in float32: {}", fmt_row(row(&self.origins)))
-        } else if !self.direction(i).iter().all(|c| c.is_finite()) {
-            format!("directions row {i} is not finite in float32: {}", fmt_row(row(&self.directions)))
-        } else if self.direction(i).iter().all(|c| *c == 0.0) {
-            format!("directions row {i} has zero length in float32: {}", fmt_row(row(&self.directions)))
-        } else if !tmin_ok {
-            format!("tmin of ray {i} must be finite and >= 0, got {tmin}")
-        } else {
-            format!("ray {i} has tmax ({tmax}) below tmin ({tmin}) or NaN")
+    pub fn invalid_ray(&self, i: usize) -> crate::error::Error {
+        let (origin, direction) = match self.sensor {
+            Some(_) => (self.origin(i).map(f64::from), self.direction(i).map(f64::from)),
+            None => {
+                let row = |v: &Vec3s| v.row_f64(if v.rows() == 1 { 0 } else { i });
+                (row(&self.origins), row(&self.directions))
+            }
         };
-        invalid_value(message)
+        describe_invalid_ray(i, &origin, &direction, self.tmin.get(i), self.tmax.get(i))
     }
 
     /// Checks every ray, on all cores; the error names the first invalid one.
@@ -355,6 +348,11 @@ impl Frame {
         Frame { shift, bounds_center, radius, far_squared: far * far }
     }
 
+    /// The squared distance from `bounds_center` beyond which rays are advanced.
+    pub fn far_squared(&self) -> f64 {
+        self.far_squared
+    }
+
     /// A frame whose rays are never advanced.
     pub fn at(shift: DVec3) -> Frame {
         Frame::new(shift, DVec3::ZERO, f64::INFINITY)
@@ -395,6 +393,27 @@ impl Frame {
         }
         Approach::Advanced { origin, t: advanced }
     }
+}
+
+/// Why ray `i` (with these values) is invalid, naming the array and the row (see
+/// `Rays::is_valid`).
+pub fn describe_invalid_ray(i: usize, origin: &[f64], direction: &[f64], tmin: f64, tmax: f64) -> crate::error::Error {
+    let as_f32 = |v: &[f64]| v.iter().map(|c| *c as f32).collect::<Vec<f32>>();
+    let (o, d) = (as_f32(origin), as_f32(direction));
+    let row = |v: &[f64]| fmt_row([v[0], v[1], v[2]]);
+    let tmin_ok = tmin >= 0.0 && (tmin as f32).is_finite();
+    let message = if !o.iter().all(|c| c.is_finite()) {
+        format!("origins row {i} is not finite in float32: {}", row(origin))
+    } else if !d.iter().all(|c| c.is_finite()) {
+        format!("directions row {i} is not finite in float32: {}", row(direction))
+    } else if d.iter().all(|c| *c == 0.0) {
+        format!("directions row {i} has zero length in float32: {}", row(direction))
+    } else if !tmin_ok {
+        format!("tmin of ray {i} must be finite and >= 0, got {tmin}")
+    } else {
+        format!("ray {i} has tmax ({tmax}) below tmin ({tmin}) or NaN")
+    };
+    invalid_value(message)
 }
 
 /// `[tmin, tmax]` in f32, widened outward by one ulp at each end (an empty interval stays empty

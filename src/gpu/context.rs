@@ -77,6 +77,19 @@ pub struct Limits {
     pub vertex_formats: Vec<VertexFormat>,
 }
 
+/// What the device offers for sharing memory and synchronization with the host and with other
+/// APIs (CUDA); each extension is enabled only where the device lists it.
+#[derive(Clone, Debug, Default)]
+pub struct Interop {
+    /// The device's UUID (`VkPhysicalDeviceIDProperties::deviceUUID`), which CUDA reports too.
+    pub device_uuid: [u8; 16],
+    /// VK_EXT_external_memory_host: the alignment of host memory imported in place, if supported.
+    pub host_import_alignment: Option<u64>,
+    /// VK_KHR_external_memory_fd and VK_KHR_external_semaphore_fd with timeline semaphores:
+    /// memory and semaphores exported to CUDA as opaque file descriptors.
+    pub export_fd: bool,
+}
+
 /// Which device and backend to open.
 #[derive(Clone, Debug, Default)]
 pub struct DeviceRequest {
@@ -340,6 +353,7 @@ struct Candidate {
     limits: Limits,
     queue_family: u32,
     unified_memory: bool,
+    interop: Interop,
 }
 
 /// Usable devices: Vulkan 1.2, acceleration structures, buffer device addresses, 64-bit integers in
@@ -376,6 +390,7 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
     }
     let has_pipeline_ext = has(khr::ray_tracing_pipeline::NAME);
     let features = Features::query(instance, physical, has(khr::ray_query::NAME), has_pipeline_ext);
+    let host_import = has(ext::external_memory_host::NAME);
     if !features.required || !(features.ray_query || features.ray_tracing_pipeline) {
         return Ok(None);
     }
@@ -386,7 +401,9 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
     else {
         return Ok(None);
     };
-    let (props, driver, mut limits) = query_properties(instance, physical, has_pipeline_ext);
+    let (props, driver, mut limits, mut interop) = query_properties(instance, physical, has_pipeline_ext, host_import);
+    interop.export_fd =
+        has(khr::external_memory_fd::NAME) && has(khr::external_semaphore_fd::NAME) && features.timeline_semaphore;
     limits.ray_traversal_primitive_culling = features.primitive_culling;
     limits.timestamp_valid_bits = families[queue_family].timestamp_valid_bits;
     let info = DeviceInfo {
@@ -413,6 +430,7 @@ fn inspect(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Result<Opt
         limits,
         queue_family: queue_family as u32,
         unified_memory,
+        interop,
     }))
 }
 
@@ -424,6 +442,7 @@ struct Features {
     ray_tracing_pipeline: bool,
     primitive_culling: bool,
     shader_float64: bool,
+    timeline_semaphore: bool,
 }
 
 impl Features {
@@ -457,23 +476,31 @@ impl Features {
             ray_tracing_pipeline: has_pipeline_ext && f_pipeline.ray_tracing_pipeline == vk::TRUE,
             primitive_culling: has_pipeline_ext && f_pipeline.ray_traversal_primitive_culling == vk::TRUE,
             shader_float64: core.shader_float64 == vk::TRUE,
+            timeline_semaphore: f12.timeline_semaphore == vk::TRUE,
         }
     }
 }
 
-/// The device's core properties, its driver's name and info, and its limits (all but those of
-/// features and queues: primitive culling, timestamp bits).
+/// The device's core properties, its driver's name and info, its limits (all but those of
+/// features and queues: primitive culling, timestamp bits) and what it shares (all but export).
 fn query_properties(
     instance: &ash::Instance,
     physical: vk::PhysicalDevice,
     has_pipeline_ext: bool,
-) -> (vk::PhysicalDeviceProperties, String, Limits) {
+    has_host_import: bool,
+) -> (vk::PhysicalDeviceProperties, String, Limits, Interop) {
     let mut p_accel = vk::PhysicalDeviceAccelerationStructurePropertiesKHR::default();
     let mut p_pipeline = vk::PhysicalDeviceRayTracingPipelinePropertiesKHR::default();
     let mut p_driver = vk::PhysicalDeviceDriverProperties::default();
-    let mut properties = vk::PhysicalDeviceProperties2::default().push_next(&mut p_accel).push_next(&mut p_driver);
+    let mut p_id = vk::PhysicalDeviceIDProperties::default();
+    let mut p_host = vk::PhysicalDeviceExternalMemoryHostPropertiesEXT::default();
+    let mut properties =
+        vk::PhysicalDeviceProperties2::default().push_next(&mut p_accel).push_next(&mut p_driver).push_next(&mut p_id);
     if has_pipeline_ext {
         properties = properties.push_next(&mut p_pipeline);
+    }
+    if has_host_import {
+        properties = properties.push_next(&mut p_host);
     }
     // SAFETY: `physical` belongs to the live `instance`; the chain holds only structures of
     // Vulkan 1.2 and of extensions the device lists, each living through the call.
@@ -501,7 +528,12 @@ fn query_properties(
         timestamp_valid_bits: 0,
         vertex_formats: vertex_formats(instance, physical),
     };
-    (props, format!("{driver_name} {driver_info}").trim().to_string(), limits)
+    let interop = Interop {
+        device_uuid: p_id.device_uuid,
+        host_import_alignment: has_host_import.then_some(p_host.min_imported_host_pointer_alignment),
+        export_fd: false,
+    };
+    (props, format!("{driver_name} {driver_info}").trim().to_string(), limits, interop)
 }
 
 /// The vertex formats the device builds acceleration structures from.
@@ -575,7 +607,15 @@ fn choose_backend(candidate: &Candidate, requested: Option<Backend>) -> Result<B
 /// features vkray uses with `backend`.
 fn create_device(instance: &ash::Instance, candidate: &Candidate, backend: Backend) -> Result<ash::Device> {
     let mut extensions = vec![khr::acceleration_structure::NAME.as_ptr(), khr::deferred_host_operations::NAME.as_ptr()];
-    let mut f12 = vk::PhysicalDeviceVulkan12Features::default().buffer_device_address(true);
+    if candidate.interop.host_import_alignment.is_some() {
+        extensions.push(ext::external_memory_host::NAME.as_ptr());
+    }
+    if candidate.interop.export_fd {
+        extensions.extend([khr::external_memory_fd::NAME.as_ptr(), khr::external_semaphore_fd::NAME.as_ptr()]);
+    }
+    let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
+        .buffer_device_address(true)
+        .timeline_semaphore(candidate.interop.export_fd);
     let mut f_accel = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default().acceleration_structure(true);
     let mut f_query = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
     let mut f_pipeline = vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default()
@@ -618,6 +658,10 @@ pub struct Context {
     pub queue_family: u32,
     pub accel: khr::acceleration_structure::Device,
     pub pipeline_ext: Option<khr::ray_tracing_pipeline::Device>,
+    /// Where enabled (`Interop`): host memory imported in place; memory and semaphores exported.
+    pub host_memory: Option<ext::external_memory_host::Device>,
+    pub memory_fd: Option<khr::external_memory_fd::Device>,
+    pub semaphore_fd: Option<khr::external_semaphore_fd::Device>,
     object_names: Option<ext::debug_utils::Device>,
     allocator: ManuallyDrop<Mutex<Allocator>>,
     pub info: DeviceInfo,
@@ -625,6 +669,7 @@ pub struct Context {
     pub backend: Backend,
     pub validation: bool,
     pub unified_memory: bool,
+    pub interop: Interop,
     /// Whether meshes go to the device with triangles in spatial (Morton) order. lavapipe's BVH
     /// builder splits primitives in the order given, so its trees are only as good as that order;
     /// GPU drivers sort spatially themselves.
@@ -674,7 +719,16 @@ impl Context {
         let pipeline_ext =
             (backend == Backend::Pipeline).then(|| khr::ray_tracing_pipeline::Device::new(&instance.instance, &device));
         let object_names = request.validation.then(|| ext::debug_utils::Device::new(&instance.instance, &device));
+        let interop = &candidate.interop;
+        let host_memory =
+            interop.host_import_alignment.map(|_| ext::external_memory_host::Device::new(&instance.instance, &device));
+        let memory_fd = interop.export_fd.then(|| khr::external_memory_fd::Device::new(&instance.instance, &device));
+        let semaphore_fd =
+            interop.export_fd.then(|| khr::external_semaphore_fd::Device::new(&instance.instance, &device));
         let context = Context {
+            host_memory,
+            memory_fd,
+            semaphore_fd,
             object_names,
             physical: candidate.physical,
             device,
@@ -689,6 +743,7 @@ impl Context {
             backend,
             validation: request.validation,
             unified_memory: candidate.unified_memory,
+            interop: candidate.interop,
             instance: ManuallyDrop::new(instance),
             pid: std::process::id(),
             lost: AtomicBool::new(false),
@@ -719,13 +774,33 @@ impl Context {
         Err(Error::Validation(text))
     }
 
-    /// Submits one recorded command buffer and signals `fence` when it completes.
-    fn submit(&self, command_buffer: vk::CommandBuffer, fence: vk::Fence) -> Result<()> {
+    /// Submits one recorded command buffer and signals `fence` when it completes; with `timeline`,
+    /// the work first waits for the semaphore to reach one value and then signals another.
+    fn submit(&self, command_buffer: vk::CommandBuffer, fence: vk::Fence, timeline: Option<Timeline>) -> Result<()> {
         let buffers = [command_buffer];
-        let submit = [vk::SubmitInfo::default().command_buffers(&buffers)];
         let queue = self.queue.lock().unwrap_or_else(|e| e.into_inner());
-        // SAFETY: the caller ended `command_buffer` and reset `fence` (see `Commands`); the mutex
-        // gives the queue the external synchronisation Vulkan requires.
+        let Some(timeline) = timeline else {
+            let submit = [vk::SubmitInfo::default().command_buffers(&buffers)];
+            // SAFETY: the caller ended `command_buffer` and reset `fence` (see `Commands`); the
+            // mutex gives the queue the external synchronisation Vulkan requires.
+            return unsafe { self.device.queue_submit(*queue, &submit, fence) }.vk("vkQueueSubmit");
+        };
+        let (semaphores, stages) = ([timeline.semaphore], [vk::PipelineStageFlags::ALL_COMMANDS]);
+        let waits = [timeline.wait];
+        let signals: &[u64] = match &timeline.signal {
+            Some(value) => std::slice::from_ref(value),
+            None => &[],
+        };
+        let mut values =
+            vk::TimelineSemaphoreSubmitInfo::default().wait_semaphore_values(&waits).signal_semaphore_values(signals);
+        let submit = [vk::SubmitInfo::default()
+            .command_buffers(&buffers)
+            .wait_semaphores(&semaphores)
+            .wait_dst_stage_mask(&stages)
+            .signal_semaphores(&semaphores[..signals.len()])
+            .push_next(&mut values)];
+        // SAFETY: as above; the semaphore is a live timeline semaphore of this device and the
+        // values are past every value signalled before (`Timeline`'s contract).
         unsafe { self.device.queue_submit(*queue, &submit, fence) }.vk("vkQueueSubmit")
     }
 
@@ -827,6 +902,15 @@ impl Drop for Context {
     }
 }
 
+/// A timeline semaphore a submission waits for (`wait`: the value another API signals when the
+/// work's inputs are ready) and then, where given, signals (`signal`, greater: its outputs are).
+#[derive(Clone, Copy, Debug)]
+pub struct Timeline {
+    pub semaphore: vk::Semaphore,
+    pub wait: u64,
+    pub signal: Option<u64>,
+}
+
 /// A command pool with one primary command buffer and a fence: one submission at a time.
 pub(crate) struct Commands<'a> {
     ctx: &'a Context,
@@ -884,13 +968,18 @@ impl<'a> Commands<'a> {
 
     /// Ends the recording and submits it, signalling the fence when it completes.
     pub fn submit(&mut self) -> Result<()> {
+        self.submit_ordered(None)
+    }
+
+    /// As `submit`, ordered against other work by a timeline semaphore, where given.
+    pub fn submit_ordered(&mut self, timeline: Option<Timeline>) -> Result<()> {
         assert!(self.recording, "Commands::submit without begin");
         self.recording = false;
         // SAFETY: the buffer is recording (checked above).
         unsafe { self.ctx.device.end_command_buffer(self.buffer) }.vk("vkEndCommandBuffer")?;
         // SAFETY: no pending submission uses the fence (`begin` waited for the last one).
         unsafe { self.ctx.device.reset_fences(&[self.fence]) }.vk("vkResetFences")?;
-        self.ctx.submit(self.buffer, self.fence)?;
+        self.ctx.submit(self.buffer, self.fence, timeline)?;
         self.pending = true;
         Ok(())
     }

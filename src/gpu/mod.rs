@@ -3,6 +3,8 @@
 
 pub mod accel;
 pub mod context;
+pub mod cuda;
+pub mod external;
 pub mod memory;
 pub mod records;
 pub mod shaders;

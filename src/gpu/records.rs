@@ -177,6 +177,60 @@ pub struct PointParams {
     pub instance_count: u32,
 }
 
+/// The push constants of pack_rays.comp (`PackParams` in shaders/records.glsl): one chunk of the
+/// caller's rays in its own layout, and where their packed form goes.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct PackParams {
+    /// The chunk's first origin: 3 f32, or f64 with `PACK_ORIGINS_F64`.
+    pub origins: u64,
+    pub directions: u64,
+    /// The chunk's first tmin (f32 or f64), or 0: `PackFrame::tmin` for every ray.
+    pub tmin: u64,
+    pub tmax: u64,
+    /// Out: 8 f32 per ray, the trace shaders' rays.
+    pub packed: u64,
+    /// Out: f64 per ray, how far a far ray was advanced (0: not).
+    pub advances: u64,
+    /// The query's `PackFrame`.
+    pub frame: u64,
+    /// FINISH: the chunk's f32 hit distances, to add the advances back to.
+    pub t: u64,
+    /// Bytes between rows of each array (0: row 0 for every ray).
+    pub origin_stride: u32,
+    pub direction_stride: u32,
+    pub tmin_stride: u32,
+    pub tmax_stride: u32,
+    pub count: u32,
+    /// The chunk's first row among all the rays.
+    pub first_row: u32,
+    /// `PACK_*_F64` bits.
+    pub formats: u32,
+    pub unused: u32,
+}
+
+pub const PACK_ORIGINS_F64: u32 = 1;
+pub const PACK_DIRECTIONS_F64: u32 = 2;
+pub const PACK_TMIN_F64: u32 = 4;
+pub const PACK_TMAX_F64: u32 = 8;
+
+/// A query's frame for pack_rays.comp (`PackFrame` in shaders/records.glsl; `geometry::rays::Frame`),
+/// and the first invalid ray the shader met.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct PackFrame {
+    pub shift: [f64; 3],
+    pub bounds_center: [f64; 3],
+    pub radius: f64,
+    pub far_squared: f64,
+    /// The interval of rays without per-ray bounds.
+    pub tmin: f64,
+    pub tmax: f64,
+    /// The first invalid row, or `u32::MAX`.
+    pub first_invalid: u32,
+    pub unused: u32,
+}
+
 /// One node of a bounding-volume hierarchy for closest points (`BvhNode` in shaders/records.glsl).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -256,6 +310,11 @@ layout!(Sensor, size 128, origin @ 0, axes @ 16, kind @ 64, columns @ 68, rows @
     tmin64 @ 88, tmax64 @ 96, shift @ 104);
 layout!(PointParams, size 104, points @ 0, distances @ 8, hits @ 16, nodes @ 24, triangles @ 32, instances @ 40,
     top_nodes @ 48, top_items @ 56, center @ 64, max_distance @ 88, count @ 96, instance_count @ 100);
+layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
+    frame @ 48, t @ 56, origin_stride @ 64, direction_stride @ 68, tmin_stride @ 72, tmax_stride @ 76, count @ 80,
+    first_row @ 84, formats @ 88, unused @ 92);
+layout!(PackFrame, size 88, shift @ 0, bounds_center @ 24, radius @ 48, far_squared @ 56, tmin @ 64, tmax @ 72,
+    first_invalid @ 80, unused @ 84);
 layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
 layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
 layout!(BvhInstance, size 224, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
@@ -389,6 +448,42 @@ mod tests {
                     max_distance,
                     count,
                     instance_count
+                ),
+            ),
+            (
+                "PackParams",
+                size_of::<PackParams>(),
+                members!(
+                    PackParams: origins,
+                    directions,
+                    tmin,
+                    tmax,
+                    packed,
+                    advances,
+                    frame,
+                    t,
+                    origin_stride,
+                    direction_stride,
+                    tmin_stride,
+                    tmax_stride,
+                    count,
+                    first_row,
+                    formats,
+                    unused
+                ),
+            ),
+            (
+                "PackFrame",
+                size_of::<PackFrame>(),
+                members!(
+                    PackFrame: shift,
+                    bounds_center,
+                    radius,
+                    far_squared,
+                    tmin,
+                    tmax,
+                    first_invalid,
+                    unused
                 ),
             ),
             ("BvhNode", size_of::<BvhNode>(), members!(BvhNode: lo, hi, first, count)),

@@ -176,11 +176,9 @@ impl Tracer {
             stamps.reset(cmd);
         }
         stamp(Stamp::Start);
-        let (bind_point, shader_stage) = match ctx.backend {
-            Backend::RayQuery => (vk::PipelineBindPoint::COMPUTE, vk::PipelineStageFlags::COMPUTE_SHADER),
-            Backend::Pipeline => {
-                (vk::PipelineBindPoint::RAY_TRACING_KHR, vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR)
-            }
+        let shader_stage = match ctx.backend {
+            Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
+            Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
         };
         if let Some((rays_device, _)) = &slot.device {
             // Rays a sensor generates need no upload; the storing pass's lists always do.
@@ -219,19 +217,34 @@ impl Tracer {
                 params.outputs[Field::T as usize] = buffers.records_address();
             }
         }
+        self.record_trace(cmd, job.variant, &params, len);
+        stamp(Stamp::Traced);
+        record_readback(ctx, cmd, slot, job.outputs, len, lists, shader_stage);
+        stamp(Stamp::ReadBack);
+    }
+}
+
+impl Tracer {
+    /// Records the trace of `len` rays (within the device's dispatch limits) by `variant`.
+    pub(super) fn record_trace(&self, cmd: vk::CommandBuffer, variant: &Variant, params: &Params, len: usize) {
+        let ctx = &self.ctx;
+        let bind_point = match ctx.backend {
+            Backend::RayQuery => vk::PipelineBindPoint::COMPUTE,
+            Backend::Pipeline => vk::PipelineBindPoint::RAY_TRACING_KHR,
+        };
         // SAFETY: `cmd` is recording; the pipeline and its layout are live, and the push
         // constants cover exactly the range the layout declares.
         unsafe {
-            device.cmd_bind_pipeline(cmd, bind_point, job.variant.pipeline);
-            device.cmd_push_constants(
+            ctx.device.cmd_bind_pipeline(cmd, bind_point, variant.pipeline);
+            ctx.device.cmd_push_constants(
                 cmd,
                 self.variants.layout,
                 push_constant_stages(ctx.backend),
                 0,
-                bytemuck::bytes_of(&params),
+                bytemuck::bytes_of(params),
             );
         }
-        match (&job.variant.sbt, ctx.pipeline_ext.as_ref()) {
+        match (&variant.sbt, ctx.pipeline_ext.as_ref()) {
             // SAFETY: the SBT regions were laid out from this device's handle size and alignments
             // and `len` is within the device's dispatch limits (`Tracer::max_dispatch_rays`).
             (Some(sbt), Some(rt)) => unsafe {
@@ -239,11 +252,8 @@ impl Tracer {
                 rt.cmd_trace_rays(cmd, &sbt.raygen, &sbt.miss, &sbt.hit, &callable, len as u32, 1, 1);
             },
             // SAFETY: as above, for the compute dispatch's group count.
-            _ => unsafe { device.cmd_dispatch(cmd, (len as u32).div_ceil(self.variants.local_size), 1, 1) },
+            _ => unsafe { ctx.device.cmd_dispatch(cmd, (len as u32).div_ceil(self.variants.local_size), 1, 1) },
         }
-        stamp(Stamp::Traced);
-        record_readback(ctx, cmd, slot, job.outputs, len, lists, shader_stage);
-        stamp(Stamp::ReadBack);
     }
 }
 

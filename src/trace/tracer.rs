@@ -30,6 +30,10 @@ pub struct Tracer {
     pub(super) slots: SlotPool,
     /// Closest points' pipelines and staging.
     pub(super) points: super::closest::PointPipelines,
+    /// The pipelines that pack rays on the GPU, and their scratch.
+    pub(super) packing: super::device_rays::PackPipelines,
+    /// The CUDA device that is this device, and the GPU-resident path's idle leases.
+    pub(super) cuda: super::cuda_rays::CudaState,
     /// Idle lists and records of the all-hits storing pass (see `all_hits`).
     pub(super) idle_lists: Mutex<Vec<super::chunks::ListBuffers>>,
     /// Whether this driver runs the intersection shaders of each `Probe` path, once known.
@@ -37,6 +41,9 @@ pub struct Tracer {
     pub(super) last_profile: Mutex<TraceProfile>,
     /// Rays per chunk: bounds staging memory (two chunks in flight).
     chunk_rays: AtomicUsize,
+    /// Whether queries on host arrays have the GPU pack their rays where they can
+    /// (`device_rays::pack_on_gpu_by_default`).
+    pub(super) pack_on_gpu: bool,
 }
 
 /// What `Tracer::explain` tells of a variant.
@@ -69,11 +76,19 @@ impl Tracer {
             variants: Variants::new(ctx)?,
             slots: SlotPool::new(ctx),
             points: super::closest::PointPipelines::new(ctx)?,
+            packing: super::device_rays::PackPipelines::new(ctx)?,
+            cuda: Default::default(),
             idle_lists: Mutex::new(Vec::new()),
             probes: [OnceLock::new(), OnceLock::new()],
             last_profile: Mutex::new(TraceProfile::default()),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
+            pack_on_gpu: super::device_rays::pack_on_gpu_by_default(ctx),
         })
+    }
+
+    /// The device's name, for messages.
+    pub fn device_name(&self) -> &str {
+        &self.ctx.info.name
     }
 
     /// Where the time went in this device's last trace (of any thread).
@@ -95,7 +110,7 @@ impl Tracer {
     }
 
     /// Most rays one dispatch may cover on this device.
-    fn max_dispatch_rays(&self) -> usize {
+    pub(super) fn max_dispatch_rays(&self) -> usize {
         let limits = &self.ctx.limits;
         match self.ctx.backend {
             Backend::RayQuery => limits.max_compute_work_group_count[0] as usize * self.variants.local_size as usize,
@@ -301,7 +316,7 @@ impl Tracer {
 
     /// Fails where this driver does not run the intersection shaders a GPU query on `scene`
     /// needs (`exact`: the f64 test through per-triangle boxes; spheres).
-    fn check_paths(&self, scene: &Scene, exact: bool) -> Result<()> {
+    pub(super) fn check_paths(&self, scene: &Scene, exact: bool) -> Result<()> {
         if exact {
             self.check_intersection_shaders(super::probe::Probe::Exact)?;
         }
@@ -324,6 +339,9 @@ impl Tracer {
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<()> {
+        if !exact && self.trace_arrays_packed_on_gpu(scene, rays, request, sink, interrupt, profile)?.is_some() {
+            return Ok(());
+        }
         let outputs = sink.outputs();
         // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
         let exact_scene = if exact { Some(scene.exact()?) } else { None };

@@ -1,0 +1,631 @@
+//! Rays the GPU packs itself: the caller's arrays, wherever the device reaches them by address
+//! (host memory imported in place, memory shared with CUDA), are read in their own layout by
+//! shaders/pack_rays.comp, traced, and their far rays' distances finished, all in one submission:
+//! no host pass over the rays or the hits. The fast tier's closest-hit and occlusion queries.
+
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use ash::vk;
+
+use super::fields::{Field, HitSink, FIELDS, FIELD_COUNT};
+use super::profile::{Stamp, Stamps, TraceProfile};
+use super::request::{Precision, Query, Request};
+use super::tracer::Tracer;
+use super::variants::Variant;
+use crate::error::{invalid_value, vulkan_error, Error, Result, VkResultExt};
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::parallel;
+use crate::geometry::rays::{Masks, PerRay, Rays, RAY_FLOATS};
+use crate::gpu::context::{Backend, Commands, Context, Interrupt, Timeline};
+use crate::gpu::external::HostImport;
+use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
+use crate::gpu::records::{
+    PackFrame, PackParams, Params, PACK_DIRECTIONS_F64, PACK_ORIGINS_F64, PACK_TMAX_F64, PACK_TMIN_F64,
+};
+use crate::gpu::shaders;
+use crate::scene::Scene;
+
+/// One array of the caller's rays on the device: rows of 3 (origins, directions) or 1 (bounds)
+/// numbers, f32 or f64 (`wide`), `stride` bytes apart (0: row 0 for every ray).
+#[derive(Clone, Copy, Debug)]
+pub struct DeviceArray {
+    pub address: u64,
+    pub stride: u32,
+    pub wide: bool,
+}
+
+impl DeviceArray {
+    /// The array from row `row` on.
+    fn at_row(self, row: usize) -> u64 {
+        self.address + row as u64 * self.stride as u64
+    }
+}
+
+/// A bound of the rays' intervals: one for every ray, or one per ray.
+#[derive(Clone, Copy, Debug)]
+pub enum DeviceBound {
+    All(f64),
+    Each(DeviceArray),
+}
+
+/// The caller's rays, on the device.
+#[derive(Clone, Copy, Debug)]
+pub struct DeviceRays {
+    pub count: usize,
+    pub origins: DeviceArray,
+    pub directions: DeviceArray,
+    pub tmin: DeviceBound,
+    pub tmax: DeviceBound,
+    /// The cull mask of every ray.
+    pub mask: u8,
+}
+
+/// Where each requested hit field goes: the device address of the whole query's array (0: not
+/// requested), `t` and `uv` in f32.
+pub type DeviceOutputs = [u64; FIELD_COUNT];
+
+/// Threads per workgroup of the packing shader.
+const WORKGROUP_SIZE: u32 = 64;
+
+/// The packing shader's pipelines (compiled on first use) and idle scratch.
+pub struct PackPipelines {
+    ctx: Arc<Context>,
+    layout: vk::PipelineLayout,
+    /// Null without shaderFloat64 (the shader packs in f64).
+    module: vk::ShaderModule,
+    local_size: u32,
+    /// Pack, finish.
+    compiled: Mutex<[Option<vk::Pipeline>; 2]>,
+    idle: Mutex<Vec<PackScratch>>,
+}
+
+/// Device memory for one chunk of packed rays and their advances.
+struct PackScratch {
+    packed: Buffer,
+    advances: Buffer,
+    capacity: usize,
+}
+
+impl PackPipelines {
+    pub fn new(ctx: &Arc<Context>) -> Result<PackPipelines> {
+        let ranges = [vk::PushConstantRange::default()
+            .stage_flags(vk::ShaderStageFlags::COMPUTE)
+            .size(std::mem::size_of::<PackParams>() as u32)];
+        let layout_info = vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&ranges);
+        // SAFETY: a valid create info on a live device.
+        let layout = unsafe { ctx.device.create_pipeline_layout(&layout_info, None) }.vk("vkCreatePipelineLayout")?;
+        let module = if ctx.info.shader_float64 {
+            let code = shaders::words(shaders::PACK_RAYS);
+            let info = vk::ShaderModuleCreateInfo::default().code(&code);
+            // SAFETY: SPIR-V compiled by glslc at build time (validated by the tests); f64 is on.
+            unsafe { ctx.device.create_shader_module(&info, None) }.vk("vkCreateShaderModule")?
+        } else {
+            vk::ShaderModule::null()
+        };
+        let local_size = WORKGROUP_SIZE
+            .min(ctx.limits.max_compute_work_group_size[0])
+            .min(ctx.limits.max_compute_work_group_invocations);
+        Ok(PackPipelines {
+            ctx: ctx.clone(),
+            layout,
+            module,
+            local_size,
+            compiled: Mutex::new([None; 2]),
+            idle: Mutex::new(Vec::new()),
+        })
+    }
+
+    /// Most rays one packing dispatch may cover on this device.
+    fn max_rays(&self) -> usize {
+        self.ctx.limits.max_compute_work_group_count[0] as usize * self.local_size as usize
+    }
+
+    /// Whether this device packs rays itself (it needs shaderFloat64).
+    pub fn available(&self) -> bool {
+        self.module != vk::ShaderModule::null()
+    }
+
+    /// The packing (`finish` false) or finishing pipeline: cached, or compiled now outside the lock.
+    fn pipeline(&self, finish: bool) -> Result<vk::Pipeline> {
+        let slot = finish as usize;
+        if let Some(pipeline) = self.compiled.lock().unwrap_or_else(|e| e.into_inner())[slot] {
+            return Ok(pipeline);
+        }
+        if !self.available() {
+            return Err(Error::Unsupported(format!(
+                "{} has no shaderFloat64, which packing rays on the GPU needs",
+                self.ctx.info.name
+            )));
+        }
+        let values = [self.local_size, finish as u32];
+        let entries = [0u32, 1].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4));
+        let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
+        let stage = vk::PipelineShaderStageCreateInfo::default()
+            .stage(vk::ShaderStageFlags::COMPUTE)
+            .module(self.module)
+            .name(c"main")
+            .specialization_info(&spec);
+        let info = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(self.layout)];
+        // SAFETY: the module and layout are live objects of this device; the specialization data
+        // outlives the call.
+        let built = unsafe { self.ctx.device.create_compute_pipelines(vk::PipelineCache::null(), &info, None) }
+            .map_err(|(_, result)| vulkan_error("vkCreateComputePipelines", result))?[0];
+        let mut compiled = self.compiled.lock().unwrap_or_else(|e| e.into_inner());
+        match compiled[slot] {
+            Some(first) => {
+                // SAFETY: `built` was never used.
+                unsafe { self.ctx.device.destroy_pipeline(built, None) };
+                Ok(first)
+            }
+            None => {
+                compiled[slot] = Some(built);
+                Ok(built)
+            }
+        }
+    }
+
+    /// Scratch for `capacity` rays: an idle one where it fits, a new one (allocated outside the
+    /// lock) otherwise.
+    fn take_scratch(&self, capacity: usize) -> Result<PackScratch> {
+        let found = {
+            let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+            idle.iter().position(|s| s.capacity >= capacity).map(|k| idle.swap_remove(k))
+        };
+        if let Some(scratch) = found {
+            return Ok(scratch);
+        }
+        use vk::BufferUsageFlags as U;
+        let usage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
+        let ray_bytes = (capacity * RAY_FLOATS * 4) as u64;
+        Ok(PackScratch {
+            packed: Buffer::new(&self.ctx, ray_bytes, usage, MemoryLocation::GpuOnly, "packed rays")?,
+            advances: Buffer::new(&self.ctx, 8 * capacity as u64, usage, MemoryLocation::GpuOnly, "ray advances")?,
+            capacity,
+        })
+    }
+
+    /// Keeps one scratch (the largest) for the next query.
+    fn give_back(&self, scratch: PackScratch) {
+        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+        idle.push(scratch);
+        idle.sort_by_key(|s| std::cmp::Reverse(s.capacity));
+        idle.truncate(1);
+    }
+
+    /// Records the packing (or finishing) of one chunk.
+    fn record(&self, cmd: vk::CommandBuffer, pipeline: vk::Pipeline, params: &PackParams) {
+        let device = &self.ctx.device;
+        // SAFETY: `cmd` is recording; pipeline and layout are live; the push constants cover the
+        // layout's range; the group count is within limits (count < 2^32, local_size >= 1, and
+        // chunks fit `max_rays`).
+        unsafe {
+            device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
+            device.cmd_push_constants(cmd, self.layout, vk::ShaderStageFlags::COMPUTE, 0, bytemuck::bytes_of(params));
+            device.cmd_dispatch(cmd, params.count.div_ceil(self.local_size), 1, 1);
+        }
+    }
+}
+
+impl Drop for PackPipelines {
+    fn drop(&mut self) {
+        if !self.ctx.can_free() {
+            return;
+        }
+        // SAFETY: no work using these objects is in flight (every query waits for its own).
+        unsafe {
+            for pipeline in self.compiled.get_mut().unwrap_or_else(|e| e.into_inner()).iter().flatten() {
+                self.ctx.device.destroy_pipeline(*pipeline, None);
+            }
+            if self.module != vk::ShaderModule::null() {
+                self.ctx.device.destroy_shader_module(self.module, None);
+            }
+            self.ctx.device.destroy_pipeline_layout(self.layout, None);
+        }
+    }
+}
+
+/// Why a query cannot take the device-rays path, if it cannot: the fast tier's closest-hit and
+/// occlusion queries on triangles and spheres, without a position output.
+pub fn device_rays_refusal(request: Request) -> Option<&'static str> {
+    if request.precision != Precision::Fast {
+        return Some("only precision='fast' traces rays the GPU packs itself");
+    }
+    if !matches!(request.query, Query::Closest | Query::Occluded) {
+        return Some("only closest-hit and occlusion queries trace rays the GPU packs itself");
+    }
+    None
+}
+
+impl Tracer {
+    /// Whether queries on this device may have the GPU pack their rays.
+    pub fn packs_rays(&self) -> bool {
+        self.packing.available()
+    }
+
+    /// Traces `rays` (on the device) against `scene` in the fast tier, writing the fields
+    /// `outputs` points at: packing, tracing and finishing on the device, a submission a chunk,
+    /// ordered against another API's work by `order` where given. Returns the first invalid ray's row, if any (its
+    /// outputs, and perhaps others', are then not the caller's to read).
+    ///
+    /// The caller makes sure the arrays stay valid until this returns.
+    pub fn trace_device_rays(
+        &self,
+        scene: &Scene,
+        rays: &DeviceRays,
+        request: Request,
+        outputs: &DeviceOutputs,
+        order: Option<Ordering>,
+        interrupt: &dyn Interrupt,
+    ) -> Result<Option<usize>> {
+        if let Some(why) = device_rays_refusal(request) {
+            return Err(invalid_value(why));
+        }
+        // Here, not in `trace_packed`: `trace` holds the meshes already (holding them twice on
+        // one thread would deadlock behind a waiting update), and the intersection-shader probes
+        // trace through `run_gpu`.
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        self.check_paths(scene, false)?;
+        let mut profile = TraceProfile { rays: rays.count, ..Default::default() };
+        let started = Instant::now();
+        let invalid = self.trace_packed(scene, rays, request, outputs, order, interrupt, &mut profile)?;
+        profile.total = started.elapsed().as_secs_f64();
+        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
+        Ok(invalid)
+    }
+
+    /// `trace_device_rays` for any tier whose GPU part traverses in f32 (the refined tier's too),
+    /// its device times added to `profile`.
+    #[allow(clippy::too_many_arguments)]
+    fn trace_packed(
+        &self,
+        scene: &Scene,
+        rays: &DeviceRays,
+        request: Request,
+        outputs: &DeviceOutputs,
+        order: Option<Ordering>,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<Option<usize>> {
+        if rays.count >= u32::MAX as usize {
+            return Err(invalid_value("at most 2^32 - 2 rays a query when the GPU packs them"));
+        }
+        self.ctx.check_usable()?;
+        let bits = FIELDS.iter().filter(|f| outputs[**f as usize] != 0).fold(0, |b, f| b | f.bit());
+        let variant = self.variants.get(self.variant_key(scene, request, false, bits, false))?;
+        let frame_buffer = self.pack_frame(scene, rays)?;
+        // Chunks as the host path's (`Device.chunk_rays`): the interrupt is asked between them.
+        let capacity = self.chunk_capacity(rays.count).min(self.packing.max_rays());
+        let scratch = self.packing.take_scratch(capacity)?;
+        let job =
+            PackedJob { scene, rays, outputs, variant: &variant, scratch: &scratch, frame: frame_buffer.address() };
+        let traced = self.trace_packed_chunks(&job, capacity, order, interrupt, profile);
+        self.packing.give_back(scratch);
+        traced?;
+        self.ctx.check_validation()?;
+        let frame: PackFrame =
+            *bytemuck::from_bytes(&frame_buffer.mapped().expect("the frame is host-visible")[..size_of::<PackFrame>()]);
+        Ok((frame.first_invalid != u32::MAX).then_some(frame.first_invalid as usize))
+    }
+
+    /// Packs, traces and finishes `job`'s rays, one submission a chunk of `capacity` rays (each
+    /// waiting for `order`'s timeline value; the last one signals it and then calls its
+    /// `after_submit`); the interrupt is asked between chunks.
+    fn trace_packed_chunks(
+        &self,
+        job: &PackedJob,
+        capacity: usize,
+        mut order: Option<Ordering>,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let (pack, finish) = (self.packing.pipeline(false)?, self.packing.pipeline(true)?);
+        let stamps = Stamps::new(&self.ctx)?;
+        let mut commands = Commands::new(&self.ctx)?;
+        let count = job.rays.count;
+        for start in (0..count).step_by(capacity) {
+            interrupt.check()?;
+            let len = capacity.min(count - start);
+            commands.begin()?;
+            let cmd = commands.buffer;
+            let stamp = |k| {
+                if let Some(stamps) = &stamps {
+                    stamps.write(cmd, k);
+                }
+            };
+            if let Some(stamps) = &stamps {
+                stamps.reset(cmd);
+            }
+            stamp(Stamp::Start);
+            let mut pack_params = pack_params(job.rays, start, len, job.scratch, job.frame);
+            self.packing.record(cmd, pack, &pack_params);
+            self.barrier(cmd, vk::PipelineStageFlags::COMPUTE_SHADER, self.trace_stage());
+            stamp(Stamp::Uploaded);
+            let params = job.trace_params(start, len);
+            self.record_trace(cmd, job.variant, &params, len);
+            stamp(Stamp::Traced);
+            if params.outputs[Field::T as usize] != 0 {
+                self.barrier(cmd, self.trace_stage(), vk::PipelineStageFlags::COMPUTE_SHADER);
+                pack_params.t = params.outputs[Field::T as usize];
+                self.packing.record(cmd, finish, &pack_params);
+            }
+            let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
+            let all = (vk::PipelineStageFlags::ALL_COMMANDS, vk::AccessFlags::MEMORY_WRITE);
+            memory_barrier(&self.ctx, cmd, all.0, all.1, host.0, host.1);
+            stamp(Stamp::ReadBack);
+            let last = start + len == count;
+            let timeline =
+                order.as_ref().map(|o| Timeline { signal: last.then_some(o.timeline.signal).flatten(), ..o.timeline });
+            commands.submit_ordered(timeline)?;
+            if last {
+                if let Some(order) = order.as_mut() {
+                    (order.after_submit)()?;
+                }
+            }
+            commands.wait()?;
+            profile.chunks += 1;
+            if let Some(stamps) = &stamps {
+                stamps.add_to(profile)?;
+            }
+            interrupt.progress(start + len, count);
+        }
+        Ok(())
+    }
+
+    /// The shader stage tracing runs in on this device.
+    fn trace_stage(&self) -> vk::PipelineStageFlags {
+        match self.ctx.backend {
+            Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
+            Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
+        }
+    }
+
+    /// A barrier from shader writes in `src` to shader reads and writes in `dst`.
+    fn barrier(&self, cmd: vk::CommandBuffer, src: vk::PipelineStageFlags, dst: vk::PipelineStageFlags) {
+        use vk::AccessFlags as A;
+        memory_barrier(&self.ctx, cmd, src, A::SHADER_WRITE | A::SHADER_READ, dst, A::SHADER_READ | A::SHADER_WRITE);
+    }
+
+    /// The query's `PackFrame`, host-visible (the shader reports the first invalid ray in it).
+    fn pack_frame(&self, scene: &Scene, rays: &DeviceRays) -> Result<Buffer> {
+        let frame = scene.frame();
+        let bound = |b: DeviceBound| match b {
+            DeviceBound::All(value) => value,
+            DeviceBound::Each(_) => 0.0,
+        };
+        let record = PackFrame {
+            shift: frame.shift.to_array(),
+            bounds_center: frame.bounds_center.to_array(),
+            radius: frame.radius,
+            far_squared: frame.far_squared(),
+            tmin: bound(rays.tmin),
+            tmax: bound(rays.tmax),
+            first_invalid: u32::MAX,
+            unused: 0,
+        };
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
+        let size = size_of::<PackFrame>() as u64;
+        let mut buffer = Buffer::new(&self.ctx, size, usage, MemoryLocation::CpuToGpu, "pack frame")?;
+        buffer.mapped_mut().expect("CpuToGpu memory is host-visible")[..size as usize]
+            .copy_from_slice(bytemuck::bytes_of(&record));
+        Ok(buffer)
+    }
+}
+
+/// How a query on device rays is ordered against another API's work on them: a timeline
+/// semaphore every submission waits for (the rays are in place), the last one signalling when
+/// the hits are; `after_submit` runs right after that last submission (the other API queues its
+/// wait for the hits), before the host waits.
+pub struct Ordering<'a> {
+    pub timeline: Timeline,
+    pub after_submit: &'a mut dyn FnMut() -> Result<()>,
+}
+
+/// What every chunk of a query on device rays shares.
+struct PackedJob<'a> {
+    scene: &'a Scene,
+    rays: &'a DeviceRays,
+    outputs: &'a DeviceOutputs,
+    variant: &'a Variant,
+    scratch: &'a PackScratch,
+    /// The `PackFrame`'s address.
+    frame: u64,
+}
+
+impl PackedJob<'_> {
+    /// The trace's push constants for the packed rays `start..start + len`.
+    fn trace_params(&self, start: usize, len: usize) -> Params {
+        let mut params = Params {
+            rays: self.scratch.packed.address(),
+            count: len as u32,
+            ray_mask: self.rays.mask as u32,
+            instances: self.scene.instance_geometries_address(),
+            tlas: self.scene.tlas_address(),
+            ..Default::default()
+        };
+        for field in FIELDS {
+            let address = self.outputs[field as usize];
+            if address != 0 {
+                params.outputs[field as usize] = address + (start * field.bytes_per_ray(false)) as u64;
+            }
+        }
+        params
+    }
+}
+
+/// The packing shader's push constants for rays `start..start + len`.
+fn pack_params(rays: &DeviceRays, start: usize, len: usize, scratch: &PackScratch, frame: u64) -> PackParams {
+    let mut params = PackParams {
+        origins: rays.origins.at_row(start),
+        directions: rays.directions.at_row(start),
+        packed: scratch.packed.address(),
+        advances: scratch.advances.address(),
+        frame,
+        origin_stride: rays.origins.stride,
+        direction_stride: rays.directions.stride,
+        count: len as u32,
+        first_row: start as u32,
+        formats: if rays.origins.wide { PACK_ORIGINS_F64 } else { 0 }
+            | if rays.directions.wide { PACK_DIRECTIONS_F64 } else { 0 },
+        ..Default::default()
+    };
+    if let DeviceBound::Each(array) = rays.tmin {
+        (params.tmin, params.tmin_stride) = (array.at_row(start), array.stride);
+        params.formats |= if array.wide { PACK_TMIN_F64 } else { 0 };
+    }
+    if let DeviceBound::Each(array) = rays.tmax {
+        (params.tmax, params.tmax_stride) = (array.at_row(start), array.stride);
+        params.formats |= if array.wide { PACK_TMAX_F64 } else { 0 };
+    }
+    params
+}
+
+/// When queries on host arrays have the GPU pack their rays (`VKRAY_PACK`): "gpu" wherever it
+/// can; otherwise (the default, or "host") the host packs them. Measured on an H100 (docs/
+/// benchmarks.md, issue 14): importing 16M rays' host memory pins it at about 13 GB/s, which
+/// costs more than the host's packing pass it saves, so the GPU packs only rays already on it
+/// (CUDA arrays) unless asked.
+pub(super) fn pack_on_gpu_by_default(_ctx: &Context) -> bool {
+    matches!(std::env::var("VKRAY_PACK").as_deref(), Ok("gpu"))
+}
+
+/// Host memory the device reads or writes for one query: the caller's bytes imported in place,
+/// or a buffer of its own the bytes are copied into (inputs) or out of (outputs).
+enum Shared {
+    Imported(HostImport),
+    Copied(Buffer),
+}
+
+impl Shared {
+    /// The device's view of `bytes`, to read.
+    fn input(ctx: &Arc<Context>, bytes: &[u8], name: &str) -> Result<Shared> {
+        // SAFETY: `bytes` is borrowed for the whole query, which waits for the device before the
+        // import is dropped; nothing writes it meanwhile (a shared borrow).
+        if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
+            return Ok(Shared::Imported(import));
+        }
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
+        let mut buffer = Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::CpuToGpu, name)?;
+        let staging = buffer.mapped_mut().expect("CpuToGpu memory is host-visible");
+        copy_in_parallel(&mut staging[..bytes.len()], bytes);
+        Ok(Shared::Copied(buffer))
+    }
+
+    /// The device's view of `bytes`, to write (`finish` copies what it wrote into them).
+    fn output(ctx: &Arc<Context>, bytes: &mut [u8], name: &str) -> Result<Shared> {
+        // SAFETY: `bytes` is borrowed mutably for the whole query, which waits for the device
+        // before the import is dropped; the host does not touch it meanwhile.
+        if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
+            return Ok(Shared::Imported(import));
+        }
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
+        Ok(Shared::Copied(Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::GpuToCpu, name)?))
+    }
+
+    fn address(&self) -> u64 {
+        match self {
+            Shared::Imported(import) => import.address(),
+            Shared::Copied(buffer) => buffer.address(),
+        }
+    }
+
+    /// After the device wrote an output: its bytes into the caller's array, unless in place.
+    fn finish(&self, out: &mut [u8]) {
+        if let Shared::Copied(buffer) = self {
+            let written = buffer.mapped().expect("GpuToCpu memory is host-visible");
+            copy_in_parallel(out, &written[..out.len()]);
+        }
+    }
+}
+
+/// `dst.copy_from_slice(src)` on all cores.
+fn copy_in_parallel(dst: &mut [u8], src: &[u8]) {
+    const PIECE_BYTES: usize = 1 << 20;
+    parallel::install(|| {
+        dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))
+    });
+}
+
+fn vec3_bytes<'a>(v: &Vec3s<'a>) -> (&'a [u8], bool) {
+    match *v {
+        Vec3s::F32(values) => (bytemuck::cast_slice(values), false),
+        Vec3s::F64(values) => (bytemuck::cast_slice(values), true),
+    }
+}
+
+impl Tracer {
+    /// The GPU part of a query on host arrays with the rays packed by the GPU: the arrays are
+    /// imported in place where the device can (else copied once), and the hits written straight
+    /// into the caller's arrays (else copied out once). `None` where this query cannot go this
+    /// way (rays of a sensor, per-ray masks, every-hit queries, the exact tier, a policy of
+    /// packing on the host): the caller packs on the host instead.
+    pub(super) fn trace_arrays_packed_on_gpu(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        sink: &mut HitSink,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<Option<()>> {
+        let Masks::All(mask) = rays.mask else { return Ok(None) };
+        let eligible = self.pack_on_gpu
+            && self.packing.available()
+            && rays.sensor.is_none()
+            && matches!(request.query, Query::Closest | Query::Occluded)
+            && rays.len() < u32::MAX as usize;
+        if !eligible {
+            return Ok(None);
+        }
+        let ctx = &self.ctx;
+        let clock = Instant::now();
+        let mut inputs = Vec::new();
+        let mut array = |v: &Vec3s, name: &str| -> Result<DeviceArray> {
+            let (bytes, wide) = vec3_bytes(v);
+            let shared = Shared::input(ctx, bytes, name)?;
+            let stride = if v.rows() == 1 { 0 } else { 3 * if wide { 8 } else { 4 } };
+            let array = DeviceArray { address: shared.address(), stride, wide };
+            inputs.push(shared);
+            Ok(array)
+        };
+        let origins = array(&rays.origins, "origins")?;
+        let directions = array(&rays.directions, "directions")?;
+        let mut bound = |b: PerRay, name: &str| -> Result<DeviceBound> {
+            Ok(match b {
+                PerRay::All(value) => DeviceBound::All(value),
+                PerRay::Each(values) => {
+                    let shared = Shared::input(ctx, bytemuck::cast_slice(values), name)?;
+                    let array = DeviceArray { address: shared.address(), stride: 8, wide: true };
+                    inputs.push(shared);
+                    DeviceBound::Each(array)
+                }
+            })
+        };
+        let (tmin, tmax) = (bound(rays.tmin, "tmin")?, bound(rays.tmax, "tmax")?);
+        let device_rays = DeviceRays { count: rays.len(), origins, directions, tmin, tmax, mask };
+        let mut outputs: DeviceOutputs = [0; FIELD_COUNT];
+        let mut shared_outputs = Vec::new();
+        for (field, out) in sink.iter_mut() {
+            let shared = Shared::output(ctx, out, field.name())?;
+            outputs[field as usize] = shared.address();
+            shared_outputs.push((field, shared));
+        }
+        profile.pack += clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        let invalid = self.trace_packed(scene, &device_rays, request, &outputs, None, interrupt, profile)?;
+        profile.wait += clock.elapsed().as_secs_f64();
+        if let Some(row) = invalid {
+            return Err(rays.invalid_ray(row));
+        }
+        let clock = Instant::now();
+        for (field, shared) in &shared_outputs {
+            shared.finish(sink.field_mut(*field).expect("a requested field"));
+        }
+        profile.unpack += clock.elapsed().as_secs_f64();
+        drop(inputs);
+        Ok(Some(()))
+    }
+}
