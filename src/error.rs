@@ -25,6 +25,10 @@ pub enum Error {
     /// Host or device memory ran out, or a request could never fit (maps to `MemoryError`).
     #[error("{0}")]
     OutOfMemory(String),
+    /// A CUDA driver call failed (arrays shared with CUDA; maps to `VulkanError`'s sibling
+    /// `VkrayError`).
+    #[error("{call} failed: CUDA error {code}")]
+    Cuda { call: &'static str, code: i32 },
     /// The device was opened by the parent of this forked process (maps to `ForkedDeviceError`).
     #[error("{0}")]
     Forked(String),

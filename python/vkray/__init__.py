@@ -28,6 +28,7 @@ from ._api import (
     devices,
 )
 from ._core import (
+    CudaArray,
     ForkedDeviceError,
     NoDeviceError,
     UnsupportedError,
@@ -41,6 +42,7 @@ from .sensors import Lidar, OrthographicCamera, PinholeCamera, Sensor
 
 __all__ = [
     "AllHits",
+    "CudaArray",
     "CLOSEST_FIELDS",
     "Closest",
     "DEFAULT_FIELDS",

@@ -501,13 +501,16 @@ class Hits:
         self.precision: Precision = precision
         for name in HIT_FIELDS:
             array = fields.get(name)
-            if array is not None:
+            if isinstance(array, np.ndarray):
                 array = array.reshape(shape + array.shape[1:])
             setattr(self, name, array)
 
     @property
     def hit(self) -> np.ndarray:
-        """bool ``S``: whether each ray hit anything."""
+        """bool ``S``: whether each ray hit anything (numpy; for hits on the GPU, compare
+        ``prim_id >= 0`` in your array library)."""
+        if self._on_cuda():
+            raise TypeError("these hits are on the GPU: use e.g. torch.from_dlpack(hits.prim_id) >= 0")
         if self.prim_id is not None:
             hit: np.ndarray = self.prim_id >= 0
         elif self.t is not None:
@@ -516,6 +519,10 @@ class Hits:
             raise AttributeError("these hits hold neither prim_id nor t")
         return hit
 
+    def _on_cuda(self) -> bool:
+        """Whether these hits are `vkray.CudaArray`s (rays from CUDA arrays)."""
+        return any(isinstance(cast(Any, getattr(self, name)), _core.CudaArray) for name in ("prim_id", "t"))
+
     def __len__(self) -> int:
         if not self.shape:
             raise TypeError("len() of hits of a single ray (0-d)")
@@ -523,6 +530,8 @@ class Hits:
 
     def __repr__(self) -> str:
         fields = [name for name in HIT_FIELDS if getattr(self, name) is not None]
+        if self._on_cuda():
+            return f"<vkray.Hits shape={self.shape} on cuda precision={self.precision!r} fields={fields}>"
         hits = int(self.hit.sum())
         return f"<vkray.Hits shape={self.shape} hits={hits} precision={self.precision!r} fields={fields}>"
 
@@ -644,6 +653,10 @@ class Scene:
         ``opaque=True`` block everywhere. The same in `occluded`, `intersect_all` and `count`.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
+        if _arrays.on_cuda(origins, directions):
+            cuda = self._trace_cuda(origins, directions, tmin, tmax, "closest", fields, precision, cull, mask, progress,
+                                    opacity_threshold)
+            return Hits(_cuda_shape(cuda), cuda, precision)
         batch = _RayBatch(origins, directions, tmin, tmax, mask)
         if batch.echoes > 1:
             return self._echoes(batch, fields, precision, cull, progress, opacity_threshold)
@@ -721,8 +734,14 @@ class Scene:
         Traversal stops at the first hit found (TerminateOnFirstHit), so this is cheaper than
         `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray, in every tier
         (``"refined"`` decides hits as ``"fast"`` does). Rays or a sensor, ``cull``, ``mask`` and
-        ``opacity_threshold`` as in `intersect`.
+        ``opacity_threshold`` as in `intersect`. CUDA rays give a `CudaArray` of int32 ``S``, the hit
+        triangle (>= 0 where occluded, -1 where not), which stays on the GPU.
         """
+        if _arrays.on_cuda(origins, directions):
+            cuda = self._trace_cuda(origins, directions, tmin, tmax, "occluded", ("prim_id",), precision, cull, mask,
+                                    progress, opacity_threshold)
+            # Typed as the numpy path's result: CUDA rays are the exception, and documented.
+            return cast(np.ndarray, cuda["prim_id"])
         batch = _RayBatch(origins, directions, tmin, tmax, mask)
         arrays = _progress.call(
             progress,
@@ -740,6 +759,37 @@ class Scene:
             ),
         )
         return (arrays["prim_id"] >= 0).reshape(batch.shape)
+
+    def _trace_cuda(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any,
+        tmax: Any,
+        query: str,
+        fields: Iterable[str],
+        precision: Precision,
+        cull: Cull,
+        mask: Any,
+        progress: bool,
+        opacity_threshold: float,
+    ) -> Dict[str, Any]:
+        """The GPU-resident path: rays in CUDA memory, hits left there (see `intersect`)."""
+        if precision != "fast":
+            raise _core.UnsupportedError(
+                f"precision={precision!r} is not available for CUDA rays: only 'fast' stays on the GPU; pass numpy "
+                f"arrays for the other tiers (e.g. tensor.cpu().numpy())"
+            )
+        if "position" in fields:
+            raise _core.UnsupportedError("'position' is computed on the host: not available for CUDA rays")
+        if progress:
+            raise _core.UnsupportedError("progress is not shown for CUDA rays (one submission, nothing to report)")
+        ray_mask = _arrays.integer("mask", mask, 0, 255, " (one mask for every CUDA ray)")
+        return cast(
+            Dict[str, Any],
+            self._core.trace_cuda(origins, directions, tmin, tmax, query, list(fields), cull, ray_mask,
+                                  opacity_threshold),
+        )
 
     def explain(
         self,
@@ -1098,6 +1148,14 @@ class _RayBatch:
         self.shape = shape
         self.arrays = (o, d, lo, hi)
         self.mask = _arrays.masks(mask, shape)
+
+
+def _cuda_shape(arrays: Dict[str, Any]) -> Tuple[int, ...]:
+    """The rays' shape S of a GPU-resident query's hits (``t`` or ``prim_id`` always has it)."""
+    for name in ("t", "prim_id", "instance_id", "custom_index", "geometry_id"):
+        if name in arrays:
+            return tuple(arrays[name].shape)
+    return (0,)
 
 
 def _sensor_record(sensor: Any) -> Dict[str, Any]:

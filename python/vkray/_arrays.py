@@ -102,6 +102,19 @@ def dlpack_device(value: object) -> Optional[Tuple[int, int]]:
     return int(kind), int(index)
 
 
+#: DLPack's device type of CUDA memory.
+DLPACK_CUDA = 2
+
+
+def on_cuda(*values: object) -> bool:
+    """Whether any of the rays' arrays lives in CUDA memory (the GPU-resident path)."""
+    for value in values:
+        device = dlpack_device(value)
+        if device is not None and device[0] == DLPACK_CUDA:
+            return True
+    return False
+
+
 def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarray:
     """A DLPack array in host memory as a numpy view of the same memory (no copy); arrays
     elsewhere are refused with an error naming their device."""
@@ -113,9 +126,9 @@ def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarra
             raise TypeError(f"{name}: numpy cannot read this DLPack array: {exc}") from None
     where = f"{_DLPACK_DEVICES.get(kind, f'DLPack device type {kind}')}:{index}"
     raise TypeError(
-        f"{name} lives on {where} (DLPack device type {kind}), which this build of vkray cannot read in "
-        f"place: vkray reads arrays in host memory; move it there first (torch: .cpu(), cupy: .get(), jax: "
-        f"jax.device_get)"
+        f"{name} lives on {where} (DLPack device type {kind}), which vkray cannot read here: pass host arrays "
+        f"(torch: .cpu(), cupy: .get(), jax: jax.device_get), or, for Scene.intersect and Scene.occluded, CUDA "
+        f"arrays on the GPU the vkray.Device is"
     )
 
 

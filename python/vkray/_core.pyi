@@ -24,6 +24,7 @@ __all__ = [
     "VulkanError",
     "ValidationError",
     "ForkedDeviceError",
+    "CudaArray",
 ]
 
 # (N, 3) float32 or float64.
@@ -160,6 +161,18 @@ class Scene:
         opacity_threshold: float = 0.5,
         sensor: Optional[Dict[str, Any]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
+    def trace_cuda(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any,
+        tmax: Any,
+        query: str,
+        fields: List[str],
+        cull: Cull = None,
+        mask: int = 255,
+        opacity_threshold: float = 0.5,
+    ) -> Dict[str, CudaArray]: ...
     def trace_all(
         self,
         origins: _Vec3s,
@@ -213,3 +226,25 @@ class Scene:
         winding: bool = False,
         progress: Optional[Callable[[int, int], object]] = None,
     ) -> NDArray[np.bool_]: ...
+
+@final
+class CudaArray:
+    """Hits in CUDA memory owned by vkray (GPU-resident queries): read them without a copy through
+    DLPack (``torch.from_dlpack(a)``, ``cupy.from_dlpack(a)``), or copy them to numpy."""
+
+    @property
+    def shape(self) -> Tuple[int, ...]: ...
+    @property
+    def dtype(self) -> str: ...
+    def __len__(self) -> int: ...
+    def __dlpack_device__(self) -> Tuple[int, int]: ...
+    def __dlpack__(
+        self,
+        *,
+        stream: Optional[int] = None,
+        max_version: Optional[Tuple[int, int]] = None,
+        dl_device: Optional[Tuple[int, int]] = None,
+        copy: Optional[bool] = None,
+    ) -> Any: ...
+    def numpy(self) -> NDArray[Any]: ...
+    def __array__(self, dtype: Any = None, copy: Optional[bool] = None) -> NDArray[Any]: ...

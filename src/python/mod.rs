@@ -7,6 +7,7 @@
 
 mod arrays;
 mod device;
+mod dlpack;
 mod mesh;
 mod scene;
 
@@ -45,7 +46,7 @@ impl From<Error> for PyErr {
             Error::OutOfMemory(_) => PyMemoryError::new_err(message),
             Error::Forked(_) => ForkedDeviceError::new_err(message),
             Error::Interrupted => PyKeyboardInterrupt::new_err(()),
-            Error::Internal(_) => VkrayError::new_err(message),
+            Error::Internal(_) | Error::Cuda { .. } => VkrayError::new_err(message),
             Error::Validation(_) => ValidationError::new_err(message),
         }
     }
@@ -151,6 +152,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<device::PyDevice>()?;
     m.add_class::<mesh::PyMesh>()?;
     m.add_class::<scene::PyScene>()?;
+    m.add_class::<dlpack::PyCudaArray>()?;
     m.add("VkrayError", py.get_type::<VkrayError>())?;
     m.add("NoDeviceError", py.get_type::<NoDeviceError>())?;
     m.add("UnsupportedError", py.get_type::<UnsupportedError>())?;

@@ -14,13 +14,14 @@ use pyo3::types::PyDict;
 use super::arrays::{Bound1, MaskArray, Vec3Array};
 use super::device::stats_dict;
 use super::mesh::PyMesh;
-use super::{run, run_reporting};
+use super::{dlpack, run, run_reporting};
 use crate::error::try_vec;
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::rays::Rays;
 use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
+use crate::trace::cuda_rays::CudaRays;
 use crate::trace::fields::{position_bytes_per_ray, FIELDS};
 use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, Tracer};
 
@@ -249,6 +250,68 @@ impl PyScene {
         Ok(result)
     }
 
+    /// Traces rays that live in CUDA memory (DLPack arrays on this device's GPU) in the fast
+    /// tier; returns {field name: vkray.CudaArray} for the fields asked for, in CUDA memory.
+    /// `query` is "closest" or "occluded"; origins and directions of shape S + (3,) (one of
+    /// them may be a single row); tmin and tmax numbers or CUDA arrays of shape S.
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, cull=None, mask=255, opacity_threshold=0.5))]
+    #[allow(clippy::too_many_arguments)]
+    fn trace_cuda<'py>(
+        &self,
+        py: Python<'py>,
+        origins: &Bound<'py, PyAny>,
+        directions: &Bound<'py, PyAny>,
+        tmin: &Bound<'py, PyAny>,
+        tmax: &Bound<'py, PyAny>,
+        query: &str,
+        fields: Vec<String>,
+        cull: Option<&str>,
+        mask: u8,
+        opacity_threshold: f32,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
+        let wanted: Vec<Field> = fields_named(&fields)?
+            .into_iter()
+            .map(|(name, field)| {
+                field.ok_or_else(|| PyValueError::new_err(format!("{name} is not computed for CUDA rays (fast tier)")))
+            })
+            .collect::<PyResult<_>>()?;
+        let tracer = &self.tracer;
+        let Some(cuda) = tracer.cuda()? else {
+            return Err(dlpack::unreadable(tracer.device_name(), [("origins", origins), ("directions", directions)]));
+        };
+        let mut lease = tracer.cuda_lease()?;
+        let stream = lease.stream_handle();
+        let result = (|| -> PyResult<Bound<'py, PyDict>> {
+            let o = dlpack::borrow(origins, "origins", 3, stream, cuda.ordinal)?;
+            let d = dlpack::borrow(directions, "directions", 3, stream, cuda.ordinal)?;
+            let mut held = Vec::new();
+            let lo = dlpack::bound(tmin, "tmin", stream, cuda.ordinal, &mut held)?;
+            let hi = dlpack::bound(tmax, "tmax", stream, cuda.ordinal, &mut held)?;
+            let leading = broadcast_rays(&o, &d, &held)?;
+            let count = leading.iter().product();
+            let rays = CudaRays { count, origins: o.array, directions: d.array, tmin: lo, tmax: hi, mask };
+            let hits = if count == 0 {
+                None
+            } else {
+                Some(run(py, |interrupt| {
+                    let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+                    tracer.trace_cuda_rays(&scene, &mut lease, &rays, request, &wanted, interrupt)
+                })?)
+            };
+            let result = PyDict::new(py);
+            if let Some(hits) = hits {
+                for (field, allocation) in hits.fields {
+                    let array = dlpack::PyCudaArray::new(field, allocation, hits.ready.clone(), &leading);
+                    result.set_item(field.name(), Py::new(py, array)?)?;
+                }
+            }
+            Ok(result)
+        })();
+        tracer.give_back_lease(lease);
+        result
+    }
+
     /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
     #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None, contacts=false, progress=None, opacity_threshold=0.5, sensor=None))]
     #[allow(clippy::too_many_arguments)]
@@ -438,6 +501,29 @@ impl PyScene {
         })?;
         Ok(inside)
     }
+}
+
+/// The rays' shape S from CUDA origins and directions of shapes S + (3,) (one may be a single
+/// row) and bounds of shape S.
+fn broadcast_rays(o: &dlpack::Borrowed, d: &dlpack::Borrowed, bounds: &[dlpack::Borrowed]) -> PyResult<Vec<usize>> {
+    let single = |b: &dlpack::Borrowed| b.array.rows == 1;
+    let leading = if single(o) && !single(d) { d.leading.clone() } else { o.leading.clone() };
+    let rows = |shape: &[usize]| shape.iter().product::<usize>();
+    if !single(o) && !single(d) && o.leading != d.leading {
+        return Err(PyValueError::new_err(format!(
+            "origins and directions must have the same shape S + (3,) (or one a single row), got {:?} and {:?}",
+            o.leading, d.leading
+        )));
+    }
+    for bound in bounds {
+        if bound.leading != leading && bound.array.rows != rows(&leading) {
+            return Err(PyValueError::new_err(format!(
+                "tmin and tmax arrays must have the rays' shape {leading:?}, got {:?}",
+                bound.leading
+            )));
+        }
+    }
+    Ok(leading)
 }
 
 /// A query's request from the option strings it was called with.

@@ -1,11 +1,13 @@
 //! Queries: what they ask (`request`), the hit fields they write (`fields`), pipeline variants
 //! and their shader binding tables (`variants`), staging slots (`staging`), the chunk loop
-//! (`chunks`), closest points on the GPU (`closest`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
+//! (`chunks`), rays the GPU packs itself (`device_rays`), closest points on the GPU (`closest`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
 //! tiers (`tiers`), and the tracer that dispatches between them (`tracer`).
 
 mod all_hits;
 mod chunks;
 mod closest;
+pub mod cuda_rays;
+pub mod device_rays;
 pub mod fields;
 mod probe;
 pub mod profile;

@@ -1,0 +1,429 @@
+//! CUDA, through its driver API loaded at run time (cudarc): the CUDA device that is the same
+//! GPU as a Vulkan device (matched by UUID), Vulkan memory and timeline semaphores imported into
+//! it, and what the GPU-resident path does on a CUDA stream (copies, allocations, events).
+//! Nothing here runs unless arrays come from CUDA; without libcuda it reports `None`.
+
+use std::ffi::c_void;
+use std::mem::MaybeUninit;
+use std::os::fd::IntoRawFd;
+use std::sync::Arc;
+
+use cudarc::driver::sys;
+
+use super::context::Context;
+use super::external::{ExportedBuffer, ExportedSemaphore};
+use crate::error::{Error, Result};
+
+/// A CUDA call's result as ours.
+fn check(call: &'static str, result: sys::CUresult) -> Result<()> {
+    match result {
+        sys::CUresult::CUDA_SUCCESS => Ok(()),
+        error => Err(Error::Cuda { call, code: error as i32 }),
+    }
+}
+
+/// The CUDA device of one Vulkan device: its primary context (the one torch and cupy use).
+pub struct Cuda {
+    device: sys::CUdevice,
+    context: sys::CUcontext,
+    /// CUDA's index of the device (DLPack's device id).
+    pub ordinal: i32,
+}
+
+// SAFETY: a CUDA context may be made current on any thread; the handles are plain values.
+unsafe impl Send for Cuda {}
+// SAFETY: as above; CUDA's driver API is thread-safe.
+unsafe impl Sync for Cuda {}
+
+impl Cuda {
+    /// The CUDA device with Vulkan's `uuid`, or `None` where there is no CUDA driver or no such
+    /// device.
+    pub fn open(uuid: [u8; 16]) -> Result<Option<Arc<Cuda>>> {
+        // SAFETY: only probes whether the library loads.
+        if !unsafe { sys::is_culib_present() } {
+            return Ok(None);
+        }
+        // SAFETY: the driver is loaded; cuInit may be called any number of times.
+        check("cuInit", unsafe { sys::cuInit(0) })?;
+        let mut count = 0;
+        // SAFETY: `count` is writable.
+        check("cuDeviceGetCount", unsafe { sys::cuDeviceGetCount(&mut count) })?;
+        for ordinal in 0..count {
+            let mut device = 0;
+            // SAFETY: `ordinal` is below the device count; `device` is writable.
+            check("cuDeviceGet", unsafe { sys::cuDeviceGet(&mut device, ordinal) })?;
+            let mut id = MaybeUninit::<sys::CUuuid>::uninit();
+            // SAFETY: `device` is valid; `id` is writable.
+            check("cuDeviceGetUuid_v2", unsafe { sys::cuDeviceGetUuid_v2(id.as_mut_ptr(), device) })?;
+            // SAFETY: written by the call above.
+            let bytes = unsafe { id.assume_init() }.bytes.map(|b| b as u8);
+            if bytes != uuid {
+                continue;
+            }
+            let mut context = std::ptr::null_mut();
+            // SAFETY: `device` is valid; the retained context is released in `Drop`.
+            check("cuDevicePrimaryCtxRetain", unsafe { sys::cuDevicePrimaryCtxRetain(&mut context, device) })?;
+            return Ok(Some(Arc::new(Cuda { device, context, ordinal })));
+        }
+        Ok(None)
+    }
+
+    /// Makes the device's context current on this thread until the guard drops (restoring the
+    /// caller's).
+    pub fn enter(&self) -> Result<Entered<'_>> {
+        // SAFETY: the context is retained for `self`'s life.
+        check("cuCtxPushCurrent", unsafe { sys::cuCtxPushCurrent_v2(self.context) })?;
+        Ok(Entered { _cuda: self })
+    }
+}
+
+impl Drop for Cuda {
+    fn drop(&mut self) {
+        // SAFETY: retained once in `open`; everything made in it holds an `Arc<Cuda>` and is gone.
+        unsafe { sys::cuDevicePrimaryCtxRelease_v2(self.device) };
+    }
+}
+
+/// The device's context made current on this thread (see `Cuda::enter`).
+pub struct Entered<'a> {
+    _cuda: &'a Cuda,
+}
+
+impl Drop for Entered<'_> {
+    fn drop(&mut self) {
+        let mut previous = std::ptr::null_mut();
+        // SAFETY: pops what `enter` pushed on this thread.
+        unsafe { sys::cuCtxPopCurrent_v2(&mut previous) };
+    }
+}
+
+/// A CUDA stream of vkray's own (non-blocking): the GPU-resident path's copies and waits.
+pub struct Stream {
+    cuda: Arc<Cuda>,
+    pub raw: sys::CUstream,
+}
+
+// SAFETY: CUDA streams may be used from any thread (calls on one are serialized by their owner).
+unsafe impl Send for Stream {}
+// SAFETY: as above.
+unsafe impl Sync for Stream {}
+
+impl Stream {
+    pub fn new(cuda: &Arc<Cuda>) -> Result<Stream> {
+        let _current = cuda.enter()?;
+        let mut raw = std::ptr::null_mut();
+        let flags = sys::CUstream_flags::CU_STREAM_NON_BLOCKING as u32;
+        // SAFETY: the context is current; `raw` is writable.
+        check("cuStreamCreate", unsafe { sys::cuStreamCreate(&mut raw, flags) })?;
+        Ok(Stream { cuda: cuda.clone(), raw })
+    }
+
+    /// Copies a `rows` × `width` bytes block from `src` (rows `src_pitch` bytes apart) to `dst`
+    /// (rows `dst_pitch` apart), in stream order. The context must be current.
+    ///
+    /// # Safety
+    /// Both blocks must be device memory of this context, valid until the copy runs.
+    pub unsafe fn copy_2d(
+        &self,
+        dst: u64,
+        dst_pitch: usize,
+        src: u64,
+        src_pitch: usize,
+        width: usize,
+        rows: usize,
+    ) -> Result<()> {
+        if rows == 0 || width == 0 {
+            return Ok(());
+        }
+        if rows == 1 || (src_pitch == width && dst_pitch == width) {
+            // SAFETY: the caller's contract; one contiguous block.
+            return check("cuMemcpyDtoDAsync", unsafe { sys::cuMemcpyDtoDAsync_v2(dst, src, width * rows, self.raw) });
+        }
+        let copy = sys::CUDA_MEMCPY2D {
+            srcXInBytes: 0,
+            srcY: 0,
+            srcMemoryType: sys::CUmemorytype::CU_MEMORYTYPE_DEVICE,
+            srcHost: std::ptr::null(),
+            srcDevice: src,
+            srcArray: std::ptr::null_mut(),
+            srcPitch: src_pitch,
+            dstXInBytes: 0,
+            dstY: 0,
+            dstMemoryType: sys::CUmemorytype::CU_MEMORYTYPE_DEVICE,
+            dstHost: std::ptr::null_mut(),
+            dstDevice: dst,
+            dstArray: std::ptr::null_mut(),
+            dstPitch: dst_pitch,
+            WidthInBytes: width,
+            Height: rows,
+        };
+        // SAFETY: the caller's contract; `copy` lives through the call.
+        check("cuMemcpy2DAsync", unsafe { sys::cuMemcpy2DAsync_v2(&copy, self.raw) })
+    }
+
+    /// Makes this stream wait for `other`'s work queued so far (by an event).
+    pub fn wait_for(&self, event: &Event) -> Result<()> {
+        // SAFETY: both handles are live in this context.
+        check("cuStreamWaitEvent", unsafe { sys::cuStreamWaitEvent(self.raw, event.raw, 0) })
+    }
+
+    /// An event recorded now on this stream.
+    pub fn record(&self) -> Result<Event> {
+        Event::recorded(&self.cuda, self.raw)
+    }
+
+    /// Blocks until the stream's queued work is done.
+    pub fn synchronize(&self) -> Result<()> {
+        let _current = self.cuda.enter()?;
+        // SAFETY: the stream is live.
+        check("cuStreamSynchronize", unsafe { sys::cuStreamSynchronize(self.raw) })
+    }
+}
+
+impl Drop for Stream {
+    fn drop(&mut self) {
+        if let Ok(_current) = self.cuda.enter() {
+            // SAFETY: destroyed once; work queued on it still completes (CUDA's contract).
+            unsafe { sys::cuStreamDestroy_v2(self.raw) };
+        }
+    }
+}
+
+/// A CUDA event: a point in a stream other streams can wait for.
+pub struct Event {
+    cuda: Arc<Cuda>,
+    raw: sys::CUevent,
+}
+
+// SAFETY: events may be used from any thread.
+unsafe impl Send for Event {}
+// SAFETY: as above.
+unsafe impl Sync for Event {}
+
+impl Event {
+    fn recorded(cuda: &Arc<Cuda>, stream: sys::CUstream) -> Result<Event> {
+        let _current = cuda.enter()?;
+        let mut raw = std::ptr::null_mut();
+        let flags = sys::CUevent_flags::CU_EVENT_DISABLE_TIMING as u32;
+        // SAFETY: the context is current; `raw` is writable.
+        check("cuEventCreate", unsafe { sys::cuEventCreate(&mut raw, flags) })?;
+        let event = Event { cuda: cuda.clone(), raw };
+        // SAFETY: both are live in the current context.
+        check("cuEventRecord", unsafe { sys::cuEventRecord(event.raw, stream) })?;
+        Ok(event)
+    }
+
+    /// Blocks until the event is reached.
+    pub fn synchronize(&self) -> Result<()> {
+        let _current = self.cuda.enter()?;
+        // SAFETY: the event is live.
+        check("cuEventSynchronize", unsafe { sys::cuEventSynchronize(self.raw) })
+    }
+
+    /// Makes the caller's stream (a raw handle: DLPack's `stream` argument; 1 is the legacy
+    /// default stream, 2 the per-thread one) wait for this event.
+    pub fn order_before(&self, stream: usize) -> Result<()> {
+        let _current = self.cuda.enter()?;
+        // SAFETY: the event is live; the stream handle is the caller's, valid in this context by
+        // DLPack's contract.
+        check("cuStreamWaitEvent", unsafe { sys::cuStreamWaitEvent(stream as sys::CUstream, self.raw, 0) })
+    }
+}
+
+impl Drop for Event {
+    fn drop(&mut self) {
+        if let Ok(_current) = self.cuda.enter() {
+            // SAFETY: destroyed once; waits queued on it still complete.
+            unsafe { sys::cuEventDestroy_v2(self.raw) };
+        }
+    }
+}
+
+/// A Vulkan buffer CUDA reaches too: exported by Vulkan, imported and mapped by CUDA.
+pub struct SharedBuffer {
+    cuda: Arc<Cuda>,
+    pub vulkan: ExportedBuffer,
+    memory: sys::CUexternalMemory,
+    /// The buffer's CUDA address.
+    pub pointer: u64,
+}
+
+// SAFETY: the handles are plain values usable from any thread.
+unsafe impl Send for SharedBuffer {}
+// SAFETY: as above.
+unsafe impl Sync for SharedBuffer {}
+
+impl SharedBuffer {
+    pub fn new(ctx: &Arc<Context>, cuda: &Arc<Cuda>, size: u64, name: &str) -> Result<SharedBuffer> {
+        let vulkan = ExportedBuffer::new(ctx, size, name)?;
+        let fd = vulkan.export_fd()?;
+        let _current = cuda.enter()?;
+        let description = sys::CUDA_EXTERNAL_MEMORY_HANDLE_DESC {
+            type_: sys::CUexternalMemoryHandleType::CU_EXTERNAL_MEMORY_HANDLE_TYPE_OPAQUE_FD,
+            handle: sys::CUDA_EXTERNAL_MEMORY_HANDLE_DESC_st__bindgen_ty_1 { fd: fd.into_raw_fd() },
+            size: vulkan.size(),
+            flags: sys::CUDA_EXTERNAL_MEMORY_DEDICATED,
+            reserved: [0; 16],
+        };
+        let mut memory = std::ptr::null_mut();
+        // SAFETY: the descriptor names a live dedicated allocation of `size` bytes; on success
+        // CUDA owns the file descriptor (on failure it leaks: rare, and never reused).
+        check("cuImportExternalMemory", unsafe { sys::cuImportExternalMemory(&mut memory, &description) })?;
+        let buffer =
+            sys::CUDA_EXTERNAL_MEMORY_BUFFER_DESC { offset: 0, size: vulkan.size(), flags: 0, reserved: [0; 16] };
+        let mut pointer = 0;
+        // SAFETY: maps the whole imported memory; freed in `Drop`.
+        let mapped = check("cuExternalMemoryGetMappedBuffer", unsafe {
+            sys::cuExternalMemoryGetMappedBuffer(&mut pointer, memory, &buffer)
+        });
+        if let Err(e) = mapped {
+            // SAFETY: imported above, destroyed once.
+            unsafe { sys::cuDestroyExternalMemory(memory) };
+            return Err(e);
+        }
+        Ok(SharedBuffer { cuda: cuda.clone(), vulkan, memory, pointer })
+    }
+}
+
+impl Drop for SharedBuffer {
+    fn drop(&mut self) {
+        if let Ok(_current) = self.cuda.enter() {
+            // SAFETY: the owner drops it once no work of either API uses it; mapped buffer first,
+            // then the imported memory; the Vulkan memory goes after (field order).
+            unsafe {
+                sys::cuMemFree_v2(self.pointer);
+                sys::cuDestroyExternalMemory(self.memory);
+            }
+        }
+    }
+}
+
+/// A Vulkan timeline semaphore CUDA signals and waits for too.
+pub struct SharedSemaphore {
+    cuda: Arc<Cuda>,
+    pub vulkan: ExportedSemaphore,
+    semaphore: sys::CUexternalSemaphore,
+}
+
+// SAFETY: the handles are plain values usable from any thread.
+unsafe impl Send for SharedSemaphore {}
+// SAFETY: as above.
+unsafe impl Sync for SharedSemaphore {}
+
+impl SharedSemaphore {
+    pub fn new(ctx: &Arc<Context>, cuda: &Arc<Cuda>) -> Result<SharedSemaphore> {
+        let vulkan = ExportedSemaphore::new(ctx)?;
+        let fd = vulkan.export_fd()?;
+        let _current = cuda.enter()?;
+        let description = sys::CUDA_EXTERNAL_SEMAPHORE_HANDLE_DESC {
+            type_: sys::CUexternalSemaphoreHandleType::CU_EXTERNAL_SEMAPHORE_HANDLE_TYPE_TIMELINE_SEMAPHORE_FD,
+            handle: sys::CUDA_EXTERNAL_SEMAPHORE_HANDLE_DESC_st__bindgen_ty_1 { fd: fd.into_raw_fd() },
+            flags: 0,
+            reserved: [0; 16],
+        };
+        let mut semaphore = std::ptr::null_mut();
+        // SAFETY: the descriptor names a live exportable timeline semaphore; CUDA owns the fd.
+        check("cuImportExternalSemaphore", unsafe { sys::cuImportExternalSemaphore(&mut semaphore, &description) })?;
+        Ok(SharedSemaphore { cuda: cuda.clone(), vulkan, semaphore })
+    }
+
+    /// Queues on `stream` the signal of `value`. The context must be current.
+    pub fn signal(&self, stream: &Stream, value: u64) -> Result<()> {
+        // SAFETY: zeroed is a valid bit pattern of this plain C struct (no fences, no flags).
+        let mut params: sys::CUDA_EXTERNAL_SEMAPHORE_SIGNAL_PARAMS = unsafe { std::mem::zeroed() };
+        params.params.fence.value = value;
+        // SAFETY: one live semaphore and its parameters, on a live stream.
+        check("cuSignalExternalSemaphoresAsync", unsafe {
+            sys::cuSignalExternalSemaphoresAsync(&self.semaphore, &params, 1, stream.raw)
+        })
+    }
+
+    /// Queues on `stream` a wait for `value`. The context must be current.
+    pub fn wait(&self, stream: &Stream, value: u64) -> Result<()> {
+        // SAFETY: as in `signal`.
+        let mut params: sys::CUDA_EXTERNAL_SEMAPHORE_WAIT_PARAMS = unsafe { std::mem::zeroed() };
+        params.params.fence.value = value;
+        // SAFETY: as in `signal`.
+        check("cuWaitExternalSemaphoresAsync", unsafe {
+            sys::cuWaitExternalSemaphoresAsync(&self.semaphore, &params, 1, stream.raw)
+        })
+    }
+}
+
+impl Drop for SharedSemaphore {
+    fn drop(&mut self) {
+        if let Ok(_current) = self.cuda.enter() {
+            // SAFETY: the owner drops it once no queued work signals or waits for it.
+            unsafe { sys::cuDestroyExternalSemaphore(self.semaphore) };
+        }
+    }
+}
+
+/// Device memory CUDA allocated for the caller (the hits of a GPU-resident query): stream-ordered,
+/// freed on the legacy default stream when dropped (so that work the caller queued on blocking
+/// streams before dropping it finishes first).
+pub struct CudaAllocation {
+    cuda: Arc<Cuda>,
+    pub pointer: u64,
+    pub bytes: usize,
+}
+
+// SAFETY: the pointer is a plain value; CUDA's allocator is thread-safe.
+unsafe impl Send for CudaAllocation {}
+// SAFETY: as above.
+unsafe impl Sync for CudaAllocation {}
+
+impl CudaAllocation {
+    /// `bytes` (at least 1) allocated in `stream`'s order. The context must be current.
+    pub fn new(stream: &Stream, bytes: usize) -> Result<CudaAllocation> {
+        let mut pointer = 0;
+        // SAFETY: `pointer` is writable; the stream is live.
+        let result = unsafe { sys::cuMemAllocAsync(&mut pointer, bytes.max(1), stream.raw) };
+        if result == sys::CUresult::CUDA_ERROR_OUT_OF_MEMORY {
+            return Err(Error::OutOfMemory(format!("CUDA could not allocate {bytes} bytes for the hits")));
+        }
+        check("cuMemAllocAsync", result)?;
+        Ok(CudaAllocation { cuda: stream.cuda.clone(), pointer, bytes })
+    }
+
+    pub fn ordinal(&self) -> i32 {
+        self.cuda.ordinal
+    }
+
+    /// Its bytes, read back now (after the caller made sure they are written).
+    pub fn read(&self) -> Result<Vec<u8>> {
+        read_bytes(&self.cuda, self.pointer, self.bytes)
+    }
+}
+
+impl Drop for CudaAllocation {
+    fn drop(&mut self) {
+        if let Ok(_current) = self.cuda.enter() {
+            // SAFETY: allocated by cuMemAllocAsync, freed once, after the legacy default stream's
+            // queued work.
+            unsafe { sys::cuMemFreeAsync(self.pointer, 1 as sys::CUstream) };
+        }
+    }
+}
+
+/// `bytes` bytes at a CUDA address of `cuda`'s device, read back now.
+pub fn read_bytes(cuda: &Cuda, address: u64, bytes: usize) -> Result<Vec<u8>> {
+    let _current = cuda.enter()?;
+    let mut host = vec![0u8; bytes];
+    // SAFETY: `host` has room for `bytes`; the address is device memory of this context.
+    check("cuMemcpyDtoH", unsafe { sys::cuMemcpyDtoH_v2(host.as_mut_ptr() as *mut c_void, address, bytes) })?;
+    Ok(host)
+}
+
+/// One f32 (or f64, `wide`) number at a CUDA address, read back now. The context must be current.
+pub fn read_number(address: u64, wide: bool) -> Result<f64> {
+    let mut bytes = [0u8; 8];
+    let size = if wide { 8 } else { 4 };
+    // SAFETY: `bytes` has room for `size` bytes; the address is the caller's device memory.
+    check("cuMemcpyDtoH", unsafe { sys::cuMemcpyDtoH_v2(bytes.as_mut_ptr() as *mut c_void, address, size) })?;
+    Ok(if wide {
+        f64::from_ne_bytes(bytes)
+    } else {
+        f32::from_ne_bytes(bytes[..4].try_into().expect("4 bytes")) as f64
+    })
+}

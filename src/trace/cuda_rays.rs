@@ -1,0 +1,333 @@
+//! Rays that live in CUDA memory (torch, cupy, jax through DLPack) and hits that stay there: the
+//! caller's arrays are copied device to device on vkray's CUDA stream into memory Vulkan shares
+//! with CUDA, the GPU packs and traces them (`device_rays`), and the hits are copied into fresh
+//! CUDA allocations. A timeline semaphore orders Vulkan's work between the two copies; the host
+//! waits only for Vulkan's part (to report an invalid ray as the numpy path does).
+
+use std::sync::{Arc, Mutex, OnceLock};
+
+use super::device_rays::{DeviceArray, DeviceBound, DeviceOutputs, DeviceRays, Ordering};
+use super::fields::{Field, FIELD_COUNT};
+use super::request::Request;
+use super::tracer::Tracer;
+use crate::error::{invalid_value, Error, Result};
+use crate::gpu::context::{Interrupt, Timeline};
+use crate::gpu::cuda::{Cuda, CudaAllocation, Event, SharedBuffer, SharedSemaphore, Stream};
+use crate::gpu::memory::align_up;
+use crate::scene::Scene;
+
+/// One of the caller's CUDA arrays: `rows` rows of `columns` numbers (f32, or f64 where `wide`),
+/// with byte strides between rows and between a row's numbers (a stride of 0 repeats one row).
+#[derive(Clone, Copy, Debug)]
+pub struct CudaArray {
+    pub pointer: u64,
+    pub rows: usize,
+    pub columns: usize,
+    pub wide: bool,
+    pub row_stride: usize,
+    pub column_stride: usize,
+}
+
+impl CudaArray {
+    fn element_bytes(&self) -> usize {
+        if self.wide {
+            8
+        } else {
+            4
+        }
+    }
+
+    /// Bytes of the array once copied tightly packed.
+    fn packed_bytes(&self) -> usize {
+        self.rows * self.columns * self.element_bytes()
+    }
+}
+
+/// A bound of the caller's rays' intervals: one for all, or a CUDA array.
+#[derive(Clone, Copy, Debug)]
+pub enum CudaBound {
+    All(f64),
+    Each(CudaArray),
+}
+
+/// The caller's rays in CUDA memory.
+#[derive(Clone, Copy, Debug)]
+pub struct CudaRays {
+    pub count: usize,
+    pub origins: CudaArray,
+    pub directions: CudaArray,
+    pub tmin: CudaBound,
+    pub tmax: CudaBound,
+    pub mask: u8,
+}
+
+/// A query's hits in CUDA memory: one allocation per requested field, written once `ready` is
+/// reached (streams that read them wait for it).
+pub struct CudaHits {
+    pub fields: Vec<(Field, CudaAllocation)>,
+    pub ready: Arc<Event>,
+}
+
+/// What one GPU-resident query at a time uses: vkray's CUDA stream, the semaphore that orders
+/// Vulkan's work on it, and the shared memory the rays and hits pass through (grown as needed).
+pub struct CudaLease {
+    pub stream: Stream,
+    semaphore: SharedSemaphore,
+    /// The semaphore's last value.
+    value: u64,
+    input: Option<SharedBuffer>,
+    output: Option<SharedBuffer>,
+}
+
+impl CudaLease {
+    /// The stream's handle, for DLPack's `__dlpack__(stream=...)`: the caller's producer orders
+    /// its pending writes before this stream's work.
+    pub fn stream_handle(&self) -> usize {
+        self.stream.raw as usize
+    }
+}
+
+/// The CUDA side of a tracer: its device (looked up once) and idle leases.
+#[derive(Default)]
+pub struct CudaState {
+    cuda: OnceLock<Option<Arc<Cuda>>>,
+    idle: Mutex<Vec<CudaLease>>,
+}
+
+/// Alignment of each array within the shared buffers.
+const SHARED_ALIGN: u64 = 256;
+
+impl Tracer {
+    /// The CUDA device that is this Vulkan device, where there is one (an NVIDIA GPU with the
+    /// CUDA driver, and Vulkan able to share memory and semaphores with it).
+    pub fn cuda(&self) -> Result<Option<Arc<Cuda>>> {
+        if let Some(found) = self.cuda.cuda.get() {
+            return Ok(found.clone());
+        }
+        let found = if self.ctx.interop.export_fd && self.packs_rays() {
+            Cuda::open(self.ctx.interop.device_uuid)?
+        } else {
+            None
+        };
+        Ok(self.cuda.cuda.get_or_init(|| found).clone())
+    }
+
+    /// A lease for one GPU-resident query: an idle one, or a new one.
+    pub fn cuda_lease(&self) -> Result<CudaLease> {
+        if let Some(lease) = self.cuda.idle.lock().unwrap_or_else(|e| e.into_inner()).pop() {
+            return Ok(lease);
+        }
+        let Some(cuda) = self.cuda()? else {
+            return Err(Error::Unsupported(format!(
+                "{} cannot share memory with CUDA (it is not an NVIDIA GPU with the CUDA driver and Vulkan's \
+                 external memory and semaphore extensions)",
+                self.ctx.info.name
+            )));
+        };
+        let semaphore = SharedSemaphore::new(&self.ctx, &cuda)?;
+        Ok(CudaLease { stream: Stream::new(&cuda)?, semaphore, value: 0, input: None, output: None })
+    }
+
+    /// Returns a lease for the next query (its stream's work may still be running: the next
+    /// query queues after it on the same stream).
+    pub fn give_back_lease(&self, lease: CudaLease) {
+        let mut idle = self.cuda.idle.lock().unwrap_or_else(|e| e.into_inner());
+        if idle.len() < 4 {
+            idle.push(lease);
+        }
+    }
+
+    /// Traces `rays` (CUDA memory, ordered before `lease`'s stream by the caller's producer)
+    /// against `scene` in the fast tier, writing the `fields` asked into new CUDA allocations.
+    /// Errors name the first invalid ray as the numpy path does (its values read back).
+    pub fn trace_cuda_rays(
+        &self,
+        scene: &Scene,
+        lease: &mut CudaLease,
+        rays: &CudaRays,
+        request: Request,
+        fields: &[Field],
+        interrupt: &dyn Interrupt,
+    ) -> Result<CudaHits> {
+        if let Some(why) = super::device_rays::device_rays_refusal(request) {
+            return Err(invalid_value(why));
+        }
+        let cuda = self.cuda()?.expect("a lease implies CUDA");
+        let arrays = arrays_of(rays);
+        let input_bytes = layout_bytes(arrays.iter().map(|a| a.packed_bytes()));
+        let output_bytes = layout_bytes(fields.iter().map(|f| rays.count * f.bytes_per_ray(false)));
+        grow(&self.ctx, &cuda, &lease.stream, &mut lease.input, input_bytes, "rays shared with CUDA")?;
+        grow(&self.ctx, &cuda, &lease.stream, &mut lease.output, output_bytes, "hits shared with CUDA")?;
+        let (input, output) = (lease.input.as_ref().expect("grown"), lease.output.as_ref().expect("grown"));
+        let _current = cuda.enter()?;
+        // The caller's rays into the shared buffer, tightly packed, in the stream's order.
+        let mut at = 0u64;
+        let mut placed = Vec::new();
+        for array in &arrays {
+            copy_packed(&lease.stream, input.pointer + at, array)?;
+            placed.push(at);
+            at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
+        }
+        let (wait, signal) = (lease.value + 1, lease.value + 2);
+        lease.value = signal;
+        lease.semaphore.signal(&lease.stream, wait)?;
+        let device_rays = device_rays_in(rays, input.vulkan.address(), &placed);
+        let mut outputs: DeviceOutputs = [0; FIELD_COUNT];
+        let mut offsets = Vec::new();
+        let mut at = 0u64;
+        for field in fields {
+            outputs[*field as usize] = output.vulkan.address() + at;
+            offsets.push(at);
+            at = align_up(at + (rays.count * field.bytes_per_ray(false)) as u64, SHARED_ALIGN);
+        }
+        let mut hits = Vec::new();
+        let (stream, semaphore) = (&lease.stream, &lease.semaphore);
+        // Right after Vulkan's submission: the stream waits for its hits and copies them out.
+        let mut after_submit = || -> Result<()> {
+            semaphore.wait(stream, signal)?;
+            for (field, offset) in fields.iter().zip(&offsets) {
+                let bytes = rays.count * field.bytes_per_ray(false);
+                let allocation = CudaAllocation::new(stream, bytes)?;
+                // SAFETY: both are device memory of this context, live until the copy runs (the
+                // allocation is the caller's from now on, the shared buffer stays in the lease,
+                // whose later users queue on the same stream).
+                unsafe { stream.copy_2d(allocation.pointer, bytes, output.pointer + offset, bytes, bytes, 1)? };
+                hits.push((*field, allocation));
+            }
+            Ok(())
+        };
+        let timeline = Timeline { semaphore: semaphore.vulkan.semaphore, wait, signal: Some(signal) };
+        let order = Ordering { timeline, after_submit: &mut after_submit };
+        let traced = self.trace_device_rays(scene, &device_rays, request, &outputs, Some(order), interrupt);
+        let failure = match traced {
+            Ok(None) => None,
+            Ok(Some(row)) => Some(invalid_ray(&lease.stream, rays, row)),
+            Err(e) => Some(e),
+        };
+        if let Some(error) = failure {
+            // The copies out may be queued: they finish before their allocations are freed.
+            let _ = lease.stream.synchronize();
+            drop(hits);
+            return Err(error);
+        }
+        let ready = Arc::new(lease.stream.record()?);
+        Ok(CudaHits { fields: hits, ready })
+    }
+}
+
+/// The arrays of `rays`, in the order they are placed in the shared buffer.
+fn arrays_of(rays: &CudaRays) -> Vec<CudaArray> {
+    let mut arrays = vec![rays.origins, rays.directions];
+    for bound in [rays.tmin, rays.tmax] {
+        if let CudaBound::Each(array) = bound {
+            arrays.push(array);
+        }
+    }
+    arrays
+}
+
+/// Bytes of arrays of these sizes placed one after another, each aligned.
+fn layout_bytes(sizes: impl Iterator<Item = usize>) -> u64 {
+    sizes.fold(0, |at, bytes| align_up(at + bytes as u64, SHARED_ALIGN)).max(1)
+}
+
+/// Makes `buffer` a shared buffer of at least `bytes` (replacing a smaller one).
+fn grow(
+    ctx: &Arc<crate::gpu::context::Context>,
+    cuda: &Arc<Cuda>,
+    stream: &Stream,
+    buffer: &mut Option<SharedBuffer>,
+    bytes: u64,
+    name: &str,
+) -> Result<()> {
+    if buffer.as_ref().is_some_and(|b| b.vulkan.size() >= bytes) {
+        return Ok(());
+    }
+    // The last query's copy out of the old buffer may still be queued on the stream.
+    if buffer.is_some() {
+        stream.synchronize()?;
+    }
+    *buffer = None;
+    *buffer = Some(SharedBuffer::new(ctx, cuda, bytes.next_power_of_two(), name)?);
+    Ok(())
+}
+
+/// Queues the copy of `array` into `dst`, tightly packed (rows of `columns` numbers).
+fn copy_packed(stream: &Stream, dst: u64, array: &CudaArray) -> Result<()> {
+    let element = array.element_bytes();
+    let row_bytes = array.columns * element;
+    if array.column_stride == element || array.columns == 1 {
+        // SAFETY: the caller's array is CUDA memory of this context (DLPack's contract) of these
+        // rows and strides; `dst` has room for the packed copy (`grow`).
+        return unsafe {
+            stream.copy_2d(dst, row_bytes, array.pointer, array.row_stride.max(row_bytes), row_bytes, array.rows)
+        };
+    }
+    for column in 0..array.columns {
+        let src = array.pointer + (column * array.column_stride) as u64;
+        // SAFETY: as above, one column at a time.
+        unsafe {
+            stream.copy_2d(
+                dst + (column * element) as u64,
+                row_bytes,
+                src,
+                array.row_stride.max(element),
+                element,
+                array.rows,
+            )?
+        };
+    }
+    Ok(())
+}
+
+/// The rays as the GPU packs them: each array where `placed` put it in the shared buffer.
+fn device_rays_in(rays: &CudaRays, base: u64, placed: &[u64]) -> DeviceRays {
+    let array = |a: &CudaArray, at: u64| DeviceArray {
+        address: base + at,
+        stride: if a.rows == 1 { 0 } else { (a.columns * a.element_bytes()) as u32 },
+        wide: a.wide,
+    };
+    let mut next = 2;
+    let mut bound = |b: CudaBound| match b {
+        CudaBound::All(value) => DeviceBound::All(value),
+        CudaBound::Each(a) => {
+            next += 1;
+            DeviceBound::Each(array(&a, placed[next - 1]))
+        }
+    };
+    let (tmin, tmax) = (bound(rays.tmin), bound(rays.tmax));
+    DeviceRays {
+        count: rays.count,
+        origins: array(&rays.origins, placed[0]),
+        directions: array(&rays.directions, placed[1]),
+        tmin,
+        tmax,
+        mask: rays.mask,
+    }
+}
+
+/// Why ray `row` is invalid, from its values read back (the numpy path's message).
+fn invalid_ray(stream: &Stream, rays: &CudaRays, row: usize) -> Error {
+    let read = |array: &CudaArray| -> Result<Vec<f64>> {
+        let row = if array.rows == 1 { 0 } else { row };
+        stream.synchronize()?;
+        let mut values = Vec::new();
+        for column in 0..array.columns {
+            let at = array.pointer + (row * array.row_stride + column * array.column_stride) as u64;
+            values.push(crate::gpu::cuda::read_number(at, array.wide)?);
+        }
+        Ok(values)
+    };
+    let describe = || -> Result<Error> {
+        let (origin, direction) = (read(&rays.origins)?, read(&rays.directions)?);
+        let bound = |b: CudaBound| -> Result<f64> {
+            match b {
+                CudaBound::All(value) => Ok(value),
+                CudaBound::Each(array) => Ok(read(&array)?[0]),
+            }
+        };
+        let (tmin, tmax) = (bound(rays.tmin)?, bound(rays.tmax)?);
+        Ok(crate::geometry::rays::describe_invalid_ray(row, &origin, &direction, tmin, tmax))
+    };
+    describe().unwrap_or_else(|e| e)
+}

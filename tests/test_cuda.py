@@ -1,0 +1,192 @@
+"""Rays that never leave the GPU: torch CUDA tensors in, `vkray.CudaArray` hits out, through
+CUDA–Vulkan interop (memory and a timeline semaphore Vulkan exports and CUDA imports). Runs where
+torch sees a CUDA GPU that is the vkray device (the H100 machines); skipped elsewhere. The
+oracle: the same query on numpy arrays (checked against Embree and brute force elsewhere), which
+must agree bit for bit."""
+
+from __future__ import annotations
+
+import gc
+import threading
+
+import numpy as np
+import pytest
+
+import oracle
+import vkray
+
+torch = pytest.importorskip("torch")
+if not torch.cuda.is_available():
+    pytest.skip("torch sees no CUDA GPU", allow_module_level=True)
+
+DEVICE = vkray.Device()
+
+
+def cuda_scene_or_skip():
+    v, f = oracle.load_obj("stanford-bunny")
+    scene = DEVICE.scene([DEVICE.mesh(v, f)])
+    try:
+        scene.intersect(torch.zeros((1, 3), device="cuda"), torch.ones((1, 3), device="cuda"))
+    except TypeError as exc:
+        pytest.skip(f"this vkray device shares no memory with CUDA: {exc}")
+    return v, scene
+
+
+@pytest.fixture(scope="module")
+def bunny():
+    return cuda_scene_or_skip()
+
+
+def on_host(array) -> np.ndarray:
+    return torch.from_dlpack(array).cpu().numpy()
+
+
+def assert_same(hits_gpu, hits_np, fields):
+    for name in fields:
+        np.testing.assert_array_equal(on_host(getattr(hits_gpu, name)), getattr(hits_np, name), err_msg=name)
+
+
+EVERY = ["t", "prim_id", "instance_id", "custom_index", "uv", "normal", "geometry_id"]
+
+
+def test_torch_in_torch_out_equals_numpy(bunny):
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 200_000, seed=1)
+    o32, d32 = o.astype(np.float32), d.astype(np.float32)
+    expected = scene.intersect(o32, d32, outputs=EVERY)
+    hits = scene.intersect(torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda(), outputs=EVERY)
+    assert isinstance(hits.t, vkray.CudaArray) and hits.t.shape == (200_000,) and hits.uv.shape == (200_000, 2)
+    t = torch.from_dlpack(hits.t)
+    assert t.device.type == "cuda" and t.dtype == torch.float32
+    assert_same(hits, expected, EVERY)
+    assert expected.hit.sum() > 10_000
+    blocked = scene.occluded(torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda())
+    np.testing.assert_array_equal(on_host(blocked) >= 0, scene.occluded(o32, d32))
+
+
+def test_float64_broadcast_bounds_and_far_rays(bunny):
+    v, scene = bunny
+    rng = np.random.default_rng(2)
+    n = 50_000
+    eye = (v.mean(axis=0) + [0.0, 0.0, 1e6]).reshape(1, 3)  # far: advanced on the GPU
+    d = (v[rng.integers(0, len(v), n)] - eye).astype(np.float64)
+    tmax = rng.uniform(0.5, 2.0, n)
+    expected = scene.intersect(eye, d, tmax=tmax, outputs=["t", "prim_id"])
+    hits = scene.intersect(torch.from_numpy(eye).cuda(), torch.from_numpy(d).cuda(),
+                           tmax=torch.from_numpy(tmax).cuda(), outputs=["t", "prim_id"])
+    assert_same(hits, expected, ["t", "prim_id"])
+    assert expected.hit.sum() > 1000
+
+
+def test_camera_shaped_rays(bunny):
+    v, scene = bunny
+    centre = v.mean(axis=0)
+    camera = vkray.PinholeCamera(64, 48, fov_deg=60.0, eye=centre + [0.0, 0.0, 0.4], target=centre,
+                                 up=[0.0, 1.0, 0.0])
+    o, d = camera.rays()
+    expected = scene.intersect(o, d)
+    cuda = [torch.from_numpy(np.ascontiguousarray(a)).cuda() for a in (o, d)]
+    hits = scene.intersect(*cuda)
+    assert hits.t.shape == expected.t.shape
+    assert_same(hits, expected, ["t", "prim_id", "normal"])
+
+
+def test_non_contiguous_tensors(bunny):
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 30_000, seed=3)
+    o32, d32 = o.astype(np.float32), d.astype(np.float32)
+    expected = scene.intersect(o32, d32, outputs=["t", "prim_id"])
+    both = torch.from_numpy(np.hstack([o32, d32])).cuda()  # rows 6 floats apart
+    transposed = torch.from_numpy(np.ascontiguousarray(d32.T)).cuda().T  # columns 30000 apart
+    assert not both[:, :3].is_contiguous() and not transposed.is_contiguous()
+    assert_same(scene.intersect(both[:, :3], both[:, 3:], outputs=["t", "prim_id"]), expected, ["t", "prim_id"])
+    assert_same(scene.intersect(both[:, :3], transposed, outputs=["t", "prim_id"]), expected, ["t", "prim_id"])
+    every_other = torch.from_numpy(np.repeat(o32, 2, axis=0)).cuda()[::2]
+    assert_same(scene.intersect(every_other, torch.from_numpy(d32).cuda(), outputs=["t"]), expected, ["t"])
+
+
+def test_lifetimes(bunny):
+    """The caller's tensors freed right after the call (their memory reused at once); hits that
+    outlive their Scene and Device."""
+    v, _ = bunny
+    device = vkray.Device()
+    vv, f = oracle.load_obj("stanford-bunny")
+    scene = device.scene([device.mesh(vv, f)])
+    o, d = oracle.random_rays(v, 100_000, seed=4)
+    o32, d32 = o.astype(np.float32), d.astype(np.float32)
+    expected = scene.intersect(o32, d32, outputs=["t", "prim_id"])
+    origins, directions = torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda()
+    hits = scene.intersect(origins, directions, outputs=["t", "prim_id"])
+    del origins, directions
+    garbage = [torch.full((100_000, 3), float("nan"), device="cuda") for _ in range(4)]  # reuses their memory
+    del scene, device
+    gc.collect()
+    t = torch.from_dlpack(hits.t)
+    del hits
+    gc.collect()
+    torch.cuda.synchronize()
+    np.testing.assert_array_equal(t.cpu().numpy(), expected.t)
+    del garbage
+
+
+def test_numpy_copy_and_repr(bunny):
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 1000, seed=5)
+    hits = scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda())
+    np.testing.assert_array_equal(np.asarray(hits.prim_id), scene.intersect(o, d).prim_id)
+    assert "on cuda" in repr(hits) and "cuda:" in repr(hits.t)
+    with pytest.raises(TypeError, match="on the GPU"):
+        _ = hits.hit
+
+
+def test_errors(bunny):
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 1000, seed=6)
+    d[321] = 0.0
+    with pytest.raises(ValueError) as expected:
+        scene.intersect(o, d)
+    with pytest.raises(ValueError, match="row 321"):
+        scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda())
+    assert "row 321" in str(expected.value)
+    with pytest.raises(TypeError, match="directions is in host memory"):
+        scene.intersect(torch.from_numpy(o).cuda(), d)  # numpy directions with CUDA origins
+    with pytest.raises(TypeError, match="float32 or float64"):
+        scene.intersect(torch.from_numpy(o).cuda().half(), torch.from_numpy(d).cuda())
+    with pytest.raises(vkray.UnsupportedError, match="fast"):
+        scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda(), precision="exact")
+    if torch.cuda.device_count() > 1:
+        with pytest.raises(TypeError, match="cuda:1"):
+            scene.intersect(torch.from_numpy(o).to("cuda:1"), torch.from_numpy(d).to("cuda:1"))
+
+
+def test_several_threads(bunny):
+    v, scene = bunny
+    batches = [oracle.random_rays(v, 20_000, seed=10 + k) for k in range(6)]
+    expected = [scene.intersect(o.astype(np.float32), d.astype(np.float32)).t for o, d in batches]
+    found: list = [None] * len(batches)
+    errors = []
+
+    def work(k):
+        try:
+            o, d = (torch.from_numpy(a.astype(np.float32)).cuda() for a in batches[k])
+            for _ in range(3):
+                found[k] = on_host(scene.intersect(o, d).t)
+        except Exception as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(len(batches))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    for a, b in zip(found, expected):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_cupy_reads_the_hits(bunny):
+    cupy = pytest.importorskip("cupy")
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 5000, seed=7)
+    hits = scene.intersect(cupy.asarray(o), cupy.asarray(d))
+    np.testing.assert_array_equal(cupy.from_dlpack(hits.prim_id).get(), scene.intersect(o, d).prim_id)
