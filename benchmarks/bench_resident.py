@@ -1,0 +1,149 @@
+"""Rays that stay on the GPU against numpy in and out, and the peers, on the same rays; prints a
+Markdown table (issue 14's figures).
+
+    python benchmarks/bench_resident.py --rays 1e6 16e6 --big            # vkray (torch and numpy) + Embree
+    python benchmarks/bench_resident.py --rays 1e6 16e6 --big --only open3d   # Open3D, in its own venv
+
+Per mesh (the bunny; with --big the bunny subdivided twice, 1.1M triangles) and rays (camera and
+random, the same seeds everywhere): vkray with torch CUDA tensors in and `vkray.CudaArray` out
+(read as torch tensors, timed to torch.cuda.synchronize()), vkray numpy in and out with the rays
+packed by the GPU (the default on GPUs) and by the host (VKRAY_PACK=host: the earlier path), each
+asking t and prim_id (lean) and the default fields; Embree in N processes; Open3D's
+RaycastingScene.cast_rays on numpy and on its own tensors. Best of --repeat after a warm-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from oracle import camera_rays, load_obj, random_rays  # noqa: E402
+
+LEAN = ["t", "prim_id"]
+
+
+def best_of(repeat, fn):
+    fn()
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def subdivided(vertices, faces, times):
+    for _ in range(times):
+        a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+        n = len(vertices)
+        mids = np.concatenate([(vertices[a] + vertices[b]) / 2, (vertices[b] + vertices[c]) / 2,
+                               (vertices[c] + vertices[a]) / 2])
+        m = len(faces)
+        ab, bc, ca = n + np.arange(m), n + m + np.arange(m), n + 2 * m + np.arange(m)
+        vertices = np.concatenate([vertices, mids])
+        faces = np.concatenate([np.stack(t, 1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return vertices, faces
+
+
+def rays_for(vertices, kind, n):
+    if kind == "camera":
+        side = int(round(np.sqrt(n)))
+        o, d = camera_rays(vertices, side, side)
+        o = np.broadcast_to(o, d.shape)  # every peer gets whole arrays
+    else:
+        o, d = random_rays(vertices, n, seed=1)
+    return np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32)
+
+
+def vkray_rows(name, v, f, kind, n, repeat, processes):
+    import torch
+
+    import vkray
+
+    o, d = rays_for(v, kind, n)
+    rows = {}
+    devices = {"gpu": vkray.Device()}
+    os.environ["VKRAY_PACK"] = "host"
+    devices["host"] = vkray.Device()
+    del os.environ["VKRAY_PACK"]
+    scenes = {k: dev.scene([dev.mesh(v, f)]) for k, dev in devices.items()}
+    to, td = torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda()
+    for label, fields in (("lean", LEAN), ("default", None)):
+        def resident():
+            hits = scenes["gpu"].intersect(to, td, outputs=fields)
+            torch.from_dlpack(hits.t)
+            torch.cuda.synchronize()
+
+        rows[f"torch {label}"] = best_of(repeat, resident)
+        for packing in ("gpu", "host"):
+            rows[f"numpy {label} ({packing} packs)"] = best_of(
+                repeat, lambda: scenes[packing].intersect(o, d, outputs=fields))
+            if label == "lean":
+                rows[f"profile {packing}"] = devices[packing].last_trace_profile
+    if processes:
+        import bench_core
+
+        rows["embree"] = embree_seconds(bench_core, v, f, o, d, processes, repeat)
+    return rows
+
+
+def embree_seconds(bench_core, v, f, o, d, processes, repeat):
+    import multiprocessing as mp
+
+    bench_core._worker["rays"] = (o, d)
+    n = len(o)
+    jobs = [(k * n // processes, (k + 1) * n // processes, False) for k in range(processes)]
+    with mp.get_context("fork").Pool(processes, bench_core._embree_init, (v, f)) as pool:
+        return best_of(repeat, lambda: pool.map(bench_core._embree_part, jobs))
+
+
+def open3d_rows(v, f, kind, n, repeat):
+    import open3d as o3d
+
+    o, d = rays_for(v, kind, n)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    rays = o3d.core.Tensor(np.hstack([o, d]))
+
+    def from_numpy():
+        result = scene.cast_rays(o3d.core.Tensor(np.hstack([o, d])))
+        return result["t_hit"].numpy(), result["primitive_ids"].numpy()
+
+    return {"open3d numpy": best_of(repeat, from_numpy), "open3d tensors": best_of(repeat, lambda: scene.cast_rays(rays))}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rays", type=float, nargs="+", default=[1e6])
+    parser.add_argument("--big", action="store_true")
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--embree-processes", type=int, default=0)
+    parser.add_argument("--only", choices=["vkray", "open3d"], default="vkray")
+    args = parser.parse_args()
+    v, f = load_obj("stanford-bunny")
+    meshes = [("bunny", v, f)] + ([("bunny x16 (subdivided)", *subdivided(v, f, 2))] if args.big else [])
+    for name, vv, ff in meshes:
+        for kind in ("camera", "random"):
+            for n in (int(r) for r in args.rays):
+                if args.only == "open3d":
+                    rows = open3d_rows(vv, ff, kind, n, args.repeat)
+                else:
+                    rows = vkray_rows(name, vv, ff, kind, n, args.repeat, args.embree_processes)
+                speeds = " | ".join(f"{k}: {n / s / 1e6:.0f}" for k, s in rows.items() if not k.startswith("profile"))
+                print(f"| {name} | {kind} | {n:,} | {speeds} |", flush=True)
+                for k, p in rows.items():
+                    if k.startswith("profile"):
+                        split = ", ".join(f"{key} {value:.4f}" for key, value in p.items()
+                                          if isinstance(value, float) and value)
+                        print(f"|   | {k} | {split} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
