@@ -448,7 +448,7 @@ class DeviceGroup:
         compact: bool = False,
     ) -> GroupScene:
         """`Device.scene` on every device (at once), over `GroupMesh`es and `GroupInstance`s."""
-        if isinstance(items, (GroupMesh, GroupInstance)):
+        if isinstance(items, (GroupMesh, GroupInstance, Mesh, Instance)):  # one item (a device's: refused below)
             items = [items]
         instances: List[GroupInstance] = []
         for i, item in enumerate(items):
