@@ -273,9 +273,10 @@ class _Run:
 _ROW_IN_ERROR = re.compile(r"\b(row|ray) (\d+)")
 
 
-def _in_callers_rows(error: BaseException, start: int) -> BaseException:
-    """A piece's ValueError/TypeError with the row it names counted in the caller's rays, so that
-    the group raises what one device would raise; other errors as they are."""
+def in_callers_rows(error: BaseException, start: int) -> BaseException:
+    """The ValueError/TypeError of a piece that starts at row ``start`` of the caller's batch,
+    naming its row as the caller counts it, so that a group of devices (or vkray.dask's chunks)
+    raise what one device raises for the whole batch; other errors as they are."""
     if start == 0 or type(error) not in (ValueError, TypeError):
         return error
     message = _ROW_IN_ERROR.sub(lambda m: f"{m[1]} {int(m[2]) + start}", str(error), count=1)
@@ -315,7 +316,7 @@ class DeviceGroup:
         validation: bool = False,
         weights: Optional[Sequence[float]] = None,
     ) -> None:
-        chosen = _default_devices() if devices is None else list(devices)
+        chosen = default_devices() if devices is None else list(devices)
         if not chosen:
             raise ValueError("a DeviceGroup needs at least one device")
         opened = [d if isinstance(d, Device) else Device(d, backend, validation=validation) for d in chosen]
@@ -536,7 +537,7 @@ class DeviceGroup:
         for future, (_, start, _) in zip(futures, pieces):
             error = future.exception()
             if error is not None and not isinstance(error, _Cancelled):
-                raise _in_callers_rows(error, start)
+                raise in_callers_rows(error, start)
         return [future.result() for future in futures]
 
     def __repr__(self) -> str:
@@ -555,7 +556,7 @@ def _wait_stopping_after_failures(futures: Sequence[Future[Any]], run: _Run) -> 
                 run.fail(index[future])
 
 
-def _default_devices() -> List[Union[int, str, Device]]:
+def default_devices() -> List[Union[int, str, Device]]:
     """Every usable device's index, only the hardware ones where there are any."""
     found = devices()
     hardware = [d.index for d in found if not d.is_software]
