@@ -260,6 +260,39 @@ def test_builders_and_updates_match_one_device():
     assert not np.array_equal(answers[0][0].t, answers[0][1].t)  # the update moved something
 
 
+def test_updates_never_meet_a_query_half_way():
+    """A thread moves the box back and forth (GroupScene.update) while three threads query: every
+    answer is one device's before the update or after it, never pieces of both."""
+    group = make_group(2, (1, 1))
+    scene = group.scene([group.mesh(*box())], allow_update=True)
+    o, d = rays(N, 18)
+    poses = [np.eye(4)[None], ROTATE_SHIFT[None]]
+    answers = []
+    for pose in poses:
+        scene.update(transforms=pose)
+        answers.append(scene.per_device[0].intersect(o, d, outputs=["t", "prim_id"]))
+    assert not np.array_equal(answers[0].prim_id, answers[1].prim_id)
+    stop = threading.Event()
+
+    def move():
+        k = 0
+        while not stop.is_set():
+            k += 1
+            scene.update(transforms=poses[k % 2])
+        return k
+
+    def query(_):
+        got = [scene.intersect(o, d, outputs=["t", "prim_id"]) for _ in range(10)]
+        return [[np.array_equal(h.t, a.t) and np.array_equal(h.prim_id, a.prim_id) for a in answers] for h in got]
+
+    with ThreadPoolExecutor(4) as pool:
+        mover = pool.submit(move)
+        matches = sum(pool.map(query, range(3)), [])
+        stop.set()
+        assert mover.result() > 5
+    assert all(any(match) for match in matches)
+
+
 def test_speeds_are_measured_and_size_the_pieces():
     """Unmeasured devices share equally; a piece's rays per second updates its device's moving
     average (pieces too small to tell are ignored); shares follow the averages."""

@@ -9,6 +9,7 @@ share.
 
 from __future__ import annotations
 
+import contextlib
 import re
 import threading
 import time
@@ -19,6 +20,7 @@ from typing import (
     Callable,
     Dict,
     Iterable,
+    Iterator,
     List,
     Optional,
     Protocol,
@@ -704,6 +706,55 @@ def _join_all_hits(shape: Tuple[int, ...], parts: Sequence[AllHits], starts: Seq
     return AllHits(shape, arrays, parts[0].precision)
 
 
+class _UpdateLock:
+    """Queries share it, `GroupScene.update` takes it alone, so that all the pieces of a query see
+    the scene as it was before an update, or all as it is after (on one device, `Scene.update`
+    waits for the queries running on the scene, and queries started meanwhile wait for it).
+
+    Fair both ways: queries asked during an update wait for it, and go before the next update."""
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._running = 0  # queries
+        self._waiting = 0  # queries held by an update
+        self._updating = False
+
+    @contextlib.contextmanager
+    def query(self) -> Iterator[None]:
+        with self._condition:
+            self._waiting += 1
+            try:
+                self._condition.wait_for(lambda: not self._updating)
+            finally:
+                self._waiting -= 1
+                self._condition.notify_all()
+            self._running += 1
+        try:
+            yield
+        finally:
+            with self._condition:
+                self._running -= 1
+                self._condition.notify_all()
+
+    @contextlib.contextmanager
+    def update(self) -> Iterator[None]:
+        with self._condition:
+            self._condition.wait_for(lambda: not self._updating and self._waiting == 0)
+            self._updating = True  # queries asked from now on wait
+            try:
+                self._condition.wait_for(lambda: self._running == 0)
+            except BaseException:  # Ctrl-C while waiting: no update, and no query left waiting
+                self._updating = False
+                self._condition.notify_all()
+                raise
+        try:
+            yield
+        finally:
+            with self._condition:
+                self._updating = False
+                self._condition.notify_all()
+
+
 class GroupScene:
     """A scene built on every device of a `DeviceGroup` (`per_device[k]` is device k's `Scene`).
 
@@ -719,12 +770,15 @@ class GroupScene:
         self.group = group
         self.per_device: Tuple[Scene, ...] = tuple(per_device)
         self.instances: Tuple[GroupInstance, ...] = tuple(instances)
+        self._updates = _UpdateLock()
 
     def update(self, transforms: Any = None, masks: Any = None) -> None:
         """`Scene.update` on every device, one after another (bad arguments raise on the first
-        device, before any scene changes)."""
-        for scene in self.per_device:
-            scene.update(transforms, masks)
+        device, before any scene changes). It waits for the queries running on this scene, and
+        queries asked meanwhile wait for it: no query mixes pieces from before and after."""
+        with self._updates.update():
+            for scene in self.per_device:
+                scene.update(transforms, masks)
 
     def explain(
         self,
@@ -741,12 +795,18 @@ class GroupScene:
             kind, outputs, precision, cull, opacity_threshold=opacity_threshold, sensor=sensor
         )
 
+    def _run(
+        self, kind: str, pieces: Sequence[Tuple[int, int, int]], work: Callable[[int, int, int], T], progress: bool
+    ) -> List[T]:
+        """`DeviceGroup._run_pieces`, never during an `update`."""
+        with self._updates.query():
+            return self.group._run_pieces(kind, pieces, work, progress)
+
     def _whole(self, kind: str, count: int, call: Callable[[Scene], T], progress: bool) -> T:
         """A query of ``count`` rays run unsplit on the least busy device (in its thread,
         stoppable as pieces are)."""
         device = self.group._least_busy(kind)
-        piece = [(device, 0, count)]
-        return self.group._run_pieces(kind, piece, lambda k, _start, _stop: call(self.per_device[k]), progress)[0]
+        return self._run(kind, [(device, 0, count)], lambda k, _start, _stop: call(self.per_device[k]), progress)[0]
 
     def _pieces(self, kind: str, count: int) -> List[Tuple[int, int, int]]:
         """(device, start, stop) of each non-empty piece of ``count`` rays."""
@@ -785,7 +845,7 @@ class GroupScene:
         def piece(device: int, start: int, stop: int) -> T:
             return query(self.per_device[device], **batch.piece(start, stop))
 
-        results = self.group._run_pieces(kind, pieces, piece, progress)
+        results = self._run(kind, pieces, piece, progress)
         return merge(batch.shape, results, [start for _, start, _ in pieces])
 
     def _points(
@@ -809,7 +869,7 @@ class GroupScene:
             return self._whole(kind, p.size // 3, lambda s: query(s, points), progress)
         flat = p.reshape(-1, 3)
         pieces = self._pieces(kind, len(flat))
-        results = self.group._run_pieces(
+        results = self._run(
             kind, pieces, lambda device, start, stop: query(self.per_device[device], flat[start:stop]), progress
         )
         return merge(p.shape[:-1], results)

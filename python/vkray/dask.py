@@ -35,7 +35,7 @@ import importlib.util
 import logging
 import os
 import threading
-from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -49,6 +49,9 @@ if importlib.util.find_spec("dask") is None:
 import dask.array as da  # noqa: E402
 from dask.base import tokenize  # noqa: E402
 from dask.delayed import delayed  # noqa: E402
+
+if TYPE_CHECKING:
+    from distributed import SpecCluster
 
 __all__ = [
     "SceneSpec",
@@ -82,7 +85,9 @@ class SceneSpec:
     workers keep one built scene per key and device.
     """
 
-    def __init__(self, meshes: Sequence[Tuple[Any, Any]], instances: Optional[Sequence[Mapping[str, Any]]] = None):
+    def __init__(
+        self, meshes: Sequence[Tuple[Any, Any]], instances: Optional[Sequence[Mapping[str, Any]]] = None
+    ) -> None:
         self._meshes: List[Tuple[np.ndarray, np.ndarray]] = [
             (_arrays.points("vertices", v), _arrays.faces(f)) for v, f in meshes
         ]
@@ -113,10 +118,8 @@ class SceneSpec:
         meshes = [device.mesh(v, f) for v, f in self._meshes]
         return device.scene([Instance(meshes[x["mesh"]], **x["arguments"]) for x in self._instances])
 
-    def __getstate__(self) -> Dict[str, Any]:
-        return dict(self.__dict__)
-
     def __setstate__(self, state: Dict[str, Any]) -> None:
+        """Unpickled (on a worker, as its task's dependency arrives): counted in `cache_info`."""
         self.__dict__.update(state)
         with _cache_lock:
             _worker_counts["specs_received"] += 1
@@ -213,8 +216,9 @@ def _query_block(
     """One chunk's answer on a worker: ``Scene.<query>`` with the chunk's arrays (named ``names``)
     and ``options``, as a dict of arrays (one ``"result"`` for queries that return one array).
     Errors name rows as the whole batch counts them (the chunk starts at row ``start``)."""
+    scene = _worker_scene(spec)  # its errors (a bad mesh) name the spec's rows, not the chunk's
     try:
-        answer = getattr(_worker_scene(spec), query)(**dict(zip(names, arrays)), **options)
+        answer = getattr(scene, query)(**dict(zip(names, arrays)), **options)
     except (ValueError, TypeError) as error:
         raise in_callers_rows(error, start) from None
     if isinstance(answer, np.ndarray):
@@ -427,7 +431,7 @@ def local_cluster(
     *,
     threads_per_worker: int = 1,
     env: Optional[Mapping[str, str]] = None,
-) -> Any:
+) -> SpecCluster:
     """A `dask.distributed` cluster on this machine with one worker process per device, each
     with ``VKRAY_DEVICE`` set to its device (``env`` adds more variables to every worker).
 
