@@ -406,6 +406,35 @@ def test_ctrl_c_stops_every_piece():
     assert_same(scene.count(o[:100], d[:100]), scene.per_device[1].count(o[:100], d[:100]))
 
 
+def test_one_progress_bar_for_every_piece(monkeypatch):
+    """progress=True: one bar, fed by every piece's chunks, rising to the whole batch, then closed."""
+    reports, closed = [], []
+
+    class Recorder:
+        def __init__(self, what, unit="ray"):
+            self.what = what
+
+        def __call__(self, done, total):
+            reports.append((self.what, done, total))
+
+        def close(self):
+            closed.append(self.what)
+
+    monkeypatch.setattr(vkray._progress, "Progress", Recorder)
+    group = make_group(2, (1, 2))
+    scene = group.scene(group.mesh(*box()))
+    saved = group.chunk_rays
+    group.chunk_rays = 256
+    try:
+        scene.count(*rays(N, 19), progress=True)
+    finally:
+        group.chunk_rays = saved[0]
+    assert closed == ["count"] and {what for what, _, _ in reports} == {"count"}
+    done = [d for _, d, _ in reports]
+    assert all(total == N for _, _, total in reports) and len(done) >= N // 256 and max(done) == N
+    assert (np.diff(done) >= 0).all() and done[-1] == N
+
+
 def test_group_arguments():
     """Devices by index, twice; a bad weight list; a mesh from another group; a Device's mesh."""
     group = vkray.DeviceGroup([0, 0], backend=BACKENDS[0], validation=VALIDATION)

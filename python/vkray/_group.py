@@ -209,6 +209,7 @@ class _Speeds:
         return [fill if s is None else s for s in speeds]
 
     def snapshot(self) -> Dict[str, List[Optional[float]]]:
+        """A copy of every kind's speeds (None where unmeasured)."""
         with self._lock:
             return {kind: list(speeds) for kind, speeds in self._by_kind.items()}
 
@@ -249,6 +250,7 @@ class _Run:
             self._stop_after = min(self._stop_after, piece)
 
     def stop_all(self) -> None:
+        """The caller was interrupted: stop every piece."""
         with self._lock:
             self._stop_after = -1
 
@@ -371,6 +373,7 @@ class DeviceGroup:
         opacity: Any = None,
     ) -> GroupMesh:
         """`Device.mesh` on every device (at once)."""
+
         def build_on(d: Device) -> Mesh:
             return d.mesh(
                 vertices,
@@ -574,6 +577,7 @@ class GroupMesh:
 
     @property
     def vertices(self) -> np.ndarray:
+        """As `Mesh.vertices` (the same on every device)."""
         return self.per_device[0].vertices
 
     @property
@@ -583,10 +587,12 @@ class GroupMesh:
 
     @property
     def vertex_count(self) -> int:
+        """Vertices (spheres) per device."""
         return self.per_device[0].vertex_count
 
     @property
     def triangle_count(self) -> int:
+        """Triangles per device."""
         return self.per_device[0].triangle_count
 
     @property
@@ -647,6 +653,7 @@ class GroupInstance:
 
     @property
     def custom_index(self) -> int:
+        """As `Instance.custom_index`."""
         return self.per_device[0].custom_index
 
     @property
@@ -721,6 +728,7 @@ class _UpdateLock:
 
     @contextlib.contextmanager
     def query(self) -> Iterator[None]:
+        """Held by a query for as long as its pieces run."""
         with self._condition:
             self._waiting += 1
             try:
@@ -738,6 +746,7 @@ class _UpdateLock:
 
     @contextlib.contextmanager
     def update(self) -> Iterator[None]:
+        """Held by an update alone, once the queries before it are done."""
         with self._condition:
             self._condition.wait_for(lambda: not self._updating and self._waiting == 0)
             self._updating = True  # queries asked from now on wait

@@ -235,6 +235,7 @@ _TAILS = {"uv": (2,), "normal": (3,), "position": (3,)}
 
 
 def _field_type(name: str, precision: Precision) -> Tuple[np.dtype[Any], Tuple[int, ...]]:
+    """The dtype and trailing shape of a hit or closest-point field, as `Scene` returns it."""
     if name in _FLOAT_FIELDS:
         dtype: np.dtype[Any] = np.dtype(np.float32 if precision == "fast" else np.float64)
     else:
@@ -243,6 +244,7 @@ def _field_type(name: str, precision: Precision) -> Tuple[np.dtype[Any], Tuple[i
 
 
 def _as_scene_spec(scene: Union[SceneSpec, Builder]) -> SceneSpec:
+    """A SceneSpec, or a builder wrapped in one."""
     if isinstance(scene, SceneSpec):
         return scene
     if callable(scene):
