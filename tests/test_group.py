@@ -114,10 +114,10 @@ def group_precisions(group):
     return [p for p in ("fast", "exact") if p in tiers(group.devices[0])]
 
 
-@pytest.mark.parametrize("weights", [None, (5, 1), (0, 1)], ids=["measured", "5-to-1", "all-on-one"])
+@pytest.mark.parametrize("weights", [None, (5, 1), (0, 1)], ids=["equal", "5-to-1", "all-on-one"])
 def test_every_query_answers_what_one_device_answers(weights):
-    """Every query kind, every GPU tier, rays split equally (then by measured speed), 5 to 1, or
-    all on the second device: each answer equals one device's, field for field."""
+    """Every query kind, every GPU tier, rays split equally (too few rays to measure the devices),
+    5 to 1, or all on the second device: each answer equals one device's, field for field."""
     group = make_group(2, weights)
     device = group.devices[0]
     scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(device, vkray.Instance)]
