@@ -36,6 +36,7 @@ from ._core import (
     VkrayError,
     VulkanError,
 )
+from ._group import DeviceGroup, GroupInstance, GroupMesh, GroupScene, SceneLike
 from ._pictures import Picture, preview
 from ._secondary import offset_origins
 from .sensors import Lidar, OrthographicCamera, PinholeCamera, Sensor
@@ -61,7 +62,12 @@ __all__ = [
     "preview",
     "Picture",
     "Device",
+    "DeviceGroup",
     "DeviceInfo",
+    "GroupInstance",
+    "GroupMesh",
+    "GroupScene",
+    "SceneLike",
     "Hits",
     "Instance",
     "Mesh",

@@ -3,10 +3,12 @@ on stderr at most twice a second."""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import importlib
 import sys
 import time
-from typing import Any, Callable, Optional, TypeVar
+from typing import Any, Callable, Iterator, Optional, TypeVar
 
 T = TypeVar("T")
 
@@ -44,9 +46,33 @@ class Progress:
             self._bar.close()
 
 
-def call(progress: bool, what: str, work: Callable[[Optional[Progress]], T], unit: str = "ray") -> T:
-    """Runs `work` with a progress bar (of `unit`s) when the caller asked for one, else None;
-    closes the bar however `work` ends."""
+#: A callable the core calls with (done, total) between chunks, or raises from to stop the work.
+Reporter = Callable[[int, int], None]
+
+# Set by `reporting`: the reporter that takes the place of every query's own progress bar.
+_reporter: contextvars.ContextVar[Optional[Reporter]] = contextvars.ContextVar("vkray_reporter", default=None)
+
+
+@contextlib.contextmanager
+def reporting(reporter: Reporter) -> Iterator[None]:
+    """Within it, every query of this thread reports to `reporter` instead of showing a bar.
+
+    `vkray.DeviceGroup` runs a query's pieces in worker threads this way: it adds their progress
+    up into one bar, and stops them all (its reporter raises) when one fails or Ctrl-C reaches
+    the calling thread, which the core's signal checks in other threads never see."""
+    token = _reporter.set(reporter)
+    try:
+        yield
+    finally:
+        _reporter.reset(token)
+
+
+def call(progress: bool, what: str, work: Callable[[Optional[Reporter]], T], unit: str = "ray") -> T:
+    """Runs `work` with the reporter `reporting` set, else with a progress bar (of `unit`s) when
+    the caller asked for one, else None; closes the bar however `work` ends."""
+    reporter = _reporter.get()
+    if reporter is not None:
+        return work(reporter)
     bar = Progress(what, unit) if progress else None
     try:
         return work(bar)

@@ -1,0 +1,1079 @@
+"""Several devices as one: `DeviceGroup` builds every mesh and scene on each of its devices and
+splits each query's rays (or points) over them, in proportion to each device's measured speed.
+
+The pieces are contiguous runs of the caller's rays, traced at once by one thread per device (every
+core call releases the GIL) and put back together in the caller's order, so a `GroupScene` answers
+exactly what a `Scene` on any one of the devices answers. `SceneLike` is the query interface both
+share.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import threading
+import time
+from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
+from typing import (
+    TYPE_CHECKING,
+    Any,
+    Callable,
+    Dict,
+    Iterable,
+    Iterator,
+    List,
+    Optional,
+    Protocol,
+    Sequence,
+    Tuple,
+    TypeVar,
+    Union,
+)
+
+import numpy as np
+
+from . import _arrays, _progress
+from ._api import (
+    CLOSEST_FIELDS,
+    HIT_FIELDS,
+    AllHits,
+    Backend,
+    Build,
+    Closest,
+    Cull,
+    Device,
+    Hits,
+    Instance,
+    Mesh,
+    Precision,
+    Scene,
+    VertexFormat,
+    _check_outputs,
+    _closest_outputs,
+    devices,
+)
+from .sensors import Sensor
+
+T = TypeVar("T")
+
+
+class SceneLike(Protocol):
+    """The queries that `Scene` (one device) and `GroupScene` (several) both answer, with the same
+    arguments and the same results: code written against it runs on either."""
+
+    def intersect(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> Hits:
+        """The closest hit of each ray (`Scene.intersect`)."""
+
+    def occluded(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> np.ndarray:
+        """Whether anything lies along each ray (`Scene.occluded`)."""
+
+    def transmittance(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+    ) -> np.ndarray:
+        """The light each ray keeps through translucent triangles (`Scene.transmittance`)."""
+
+    def intersect_all(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        max_hits: Optional[int] = None,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> AllHits:
+        """Every hit of each ray, nearest first (`Scene.intersect_all`)."""
+
+    def count(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> np.ndarray:
+        """The number of hits of each ray (`Scene.count`)."""
+
+    def closest_points(
+        self,
+        points: Any,
+        *,
+        max_distance: float = np.inf,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "reference",
+        progress: bool = False,
+    ) -> Closest:
+        """The surface point nearest to each point (`Scene.closest_points`)."""
+
+    def distance(
+        self, points: Any, *, max_distance: float = np.inf, precision: Precision = "reference", progress: bool = False
+    ) -> np.ndarray:
+        """The distance from each point to the surface (`Scene.distance`)."""
+
+    def signed_distance(
+        self,
+        points: Any,
+        *,
+        max_distance: float = np.inf,
+        precision: Precision = "reference",
+        method: Optional[str] = None,
+        progress: bool = False,
+    ) -> np.ndarray:
+        """The distance, negative inside (`Scene.signed_distance`)."""
+
+    def contains(
+        self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
+    ) -> np.ndarray:
+        """Whether each point lies inside (`Scene.contains`)."""
+
+    def update(self, transforms: Any = None, masks: Any = None) -> None:
+        """Refits the scene's instances (`Scene.update`)."""
+
+
+# A device's speed is measured on pieces of at least this many rays: smaller ones take about the
+# same time whatever their size (a submission, a wait), which says nothing about the device.
+_MIN_TIMED_RAYS = 1 << 14
+# The weight of the newest measurement in a device's moving average of rays per second.
+_SPEED_SMOOTHING = 0.5
+
+
+class _Speeds:
+    """Rays per second of each device, per query kind: exponential moving averages of the pieces'
+    measured speeds. Unmeasured devices count as the mean of the measured ones (all equal at first)."""
+
+    def __init__(self, device_count: int) -> None:
+        self._device_count = device_count
+        self._lock = threading.Lock()
+        self._by_kind: Dict[str, List[Optional[float]]] = {}
+
+    def record(self, kind: str, device: int, rays: int, seconds: float) -> None:
+        """Folds one piece's time into the device's average (pieces too small to tell are ignored)."""
+        if rays < _MIN_TIMED_RAYS or seconds <= 0:
+            return
+        measured = rays / seconds
+        with self._lock:
+            speeds = self._by_kind.setdefault(kind, [None] * self._device_count)
+            old = speeds[device]
+            speeds[device] = measured if old is None else (1 - _SPEED_SMOOTHING) * old + _SPEED_SMOOTHING * measured
+
+    def weights(self, kind: str) -> List[float]:
+        """Each device's share of the next query of this kind (proportional to its speed)."""
+        with self._lock:
+            speeds = list(self._by_kind.get(kind, [None] * self._device_count))
+        known = [s for s in speeds if s is not None]
+        fill = sum(known) / len(known) if known else 1.0
+        return [fill if s is None else s for s in speeds]
+
+    def snapshot(self) -> Dict[str, List[Optional[float]]]:
+        """A copy of every kind's speeds (None where unmeasured)."""
+        with self._lock:
+            return {kind: list(speeds) for kind, speeds in self._by_kind.items()}
+
+
+def split(count: int, weights: Sequence[float]) -> List[Tuple[int, int]]:
+    """``[start, stop)`` of each device's contiguous piece of ``count`` items, sized in proportion
+    to ``weights`` (rounded so that the pieces cover the items exactly once; some may be empty)."""
+    total = float(sum(weights))
+    cumulative = np.cumsum([0.0] + [float(w) for w in weights]) / total
+    bounds = np.rint(cumulative * count).astype(np.int64)
+    bounds[-1] = count
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+class _Cancelled(Exception):
+    """Raised from a piece's progress reporter to stop it: an earlier piece failed, or the caller
+    was interrupted."""
+
+
+class _Run:
+    """One query's pieces in flight: their progress added up into one bar (when asked for), and
+    which of them are to stop at their next chunk.
+
+    When piece p fails, the pieces after it stop: whatever they would raise, p's error comes first
+    in the caller's rays. The pieces before it run on, since one of them may hold an earlier bad
+    row, and the group raises the earliest error, as one device would."""
+
+    def __init__(self, sizes: Sequence[int], bar: Optional[_progress.Progress]) -> None:
+        self._sizes = sizes
+        self._done = [0.0] * len(sizes)
+        self._bar = bar
+        self._lock = threading.Lock()
+        self._stop_after = len(sizes)  # pieces after this one stop
+
+    def fail(self, piece: int) -> None:
+        """Piece ``piece`` failed: stop the pieces after it."""
+        with self._lock:
+            self._stop_after = min(self._stop_after, piece)
+
+    def stop_all(self) -> None:
+        """The caller was interrupted: stop every piece."""
+        with self._lock:
+            self._stop_after = -1
+
+    def check(self, piece: int) -> None:
+        """Raises `_Cancelled` where piece ``piece`` is to stop."""
+        if piece > self._stop_after:
+            raise _Cancelled()
+
+    def reporter(self, piece: int) -> _progress.Reporter:
+        """The callable that piece ``piece``'s core call reports (done, total) to."""
+
+        def report(done: int, total: int) -> None:
+            self.check(piece)
+            if self._bar is not None:
+                with self._lock:
+                    self._done[piece] = self._sizes[piece] * done / max(total, 1)
+                    self._bar(int(sum(self._done)), int(sum(self._sizes)))
+
+        return report
+
+
+# The row or ray a core error names ("origins row 7 ...", "ray 6 has tmax ..."), counted from the
+# start of the piece it came from.
+_ROW_IN_ERROR = re.compile(r"\b(row|ray) (\d+)")
+
+
+def in_callers_rows(error: BaseException, start: int) -> BaseException:
+    """The ValueError/TypeError of a piece that starts at row ``start`` of the caller's batch,
+    naming its row as the caller counts it, so that a group of devices (or vkray.dask's chunks)
+    raise what one device raises for the whole batch; other errors as they are."""
+    if start == 0 or type(error) not in (ValueError, TypeError):
+        return error
+    message = _ROW_IN_ERROR.sub(lambda m: f"{m[1]} {int(m[2]) + start}", str(error), count=1)
+    return type(error)(message).with_traceback(error.__traceback__)
+
+
+class DeviceGroup:
+    """Several devices used as one: meshes and scenes are built on each, and each query's rays are
+    split over them in proportion to their speed, traced at once and merged in the caller's order.
+
+    The API is `Device`'s: `mesh`, `spheres`, `mesh_from_parts`, `meshes` and `scene` take the same
+    arguments and return `GroupMesh` and `GroupScene`, whose queries take and return what `Mesh`
+    and `Scene`'s do (`SceneLike`). Answers are those of one device, ray for ray.
+
+    Parameters
+    ----------
+    devices:
+        ``None`` (default): every usable device of `vkray.devices()`, but only the hardware ones
+        where any exists (a software device such as lavapipe is many times slower, and takes the
+        CPU cores that feed the GPUs). Or a list whose items are device indices or names (as
+        `Device` takes them) or already opened `Device` objects. A device may appear more than
+        once: ``DeviceGroup([0, 0])`` opens device 0 twice, as two independent `Device`s.
+    backend, validation:
+        As `Device` takes them, for the devices this group opens itself.
+    weights:
+        Fixed shares of each query's rays, one per device (for devices of known relative speed,
+        or to choose the split). ``None`` (default) measures them: the first query of a kind is
+        split equally; each piece's rays per second then update an exponential moving average per
+        device and query kind (`speeds`), which sizes the next query's pieces.
+    """
+
+    def __init__(
+        self,
+        devices: Optional[Sequence[Union[int, str, Device]]] = None,
+        *,
+        backend: Optional[Backend] = None,
+        validation: bool = False,
+        weights: Optional[Sequence[float]] = None,
+    ) -> None:
+        chosen = default_devices() if devices is None else list(devices)
+        if not chosen:
+            raise ValueError("a DeviceGroup needs at least one device")
+        opened = [d if isinstance(d, Device) else Device(d, backend, validation=validation) for d in chosen]
+        self.devices: Tuple[Device, ...] = tuple(opened)
+        if weights is not None:
+            weights = [float(w) for w in weights]
+            if len(weights) != len(self.devices) or not all(w >= 0 for w in weights) or not sum(weights) > 0:
+                raise ValueError(
+                    f"weights must be {len(self.devices)} numbers >= 0 (one per device), not all 0, got {weights}"
+                )
+        self._weights = weights
+        self._speeds = _Speeds(len(self.devices))
+        # One thread per device: its pieces of every query, in the order they were asked for.
+        self._threads = [ThreadPoolExecutor(1, thread_name_prefix=f"vkray-device-{k}") for k in range(len(opened))]
+        self._busy = [0] * len(self.devices)
+        self._busy_lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self.devices)
+
+    @property
+    def speeds(self) -> Dict[str, List[Optional[float]]]:
+        """Measured rays (or points) per second of each device, by query kind (``"intersect/fast"``,
+        ``"count/exact"``, ...); ``None`` where a device has not been measured yet."""
+        return self._speeds.snapshot()
+
+    @property
+    def chunk_rays(self) -> List[int]:
+        """Each device's `Device.chunk_rays`."""
+        return [d.chunk_rays for d in self.devices]
+
+    @chunk_rays.setter
+    def chunk_rays(self, rays: int) -> None:
+        for d in self.devices:
+            d.chunk_rays = rays
+
+    def weights(self, kind: str) -> List[float]:
+        """Each device's share of the next query of ``kind`` (see `speeds`), or the fixed weights."""
+        return list(self._weights) if self._weights is not None else self._speeds.weights(kind)
+
+    def mesh(
+        self,
+        vertices: Any,
+        faces: Any = None,
+        *,
+        build: Build = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        vertex_format: VertexFormat = "float32",
+        opacity: Any = None,
+    ) -> GroupMesh:
+        """`Device.mesh` on every device (at once)."""
+
+        def build_on(d: Device) -> Mesh:
+            return d.mesh(
+                vertices,
+                faces,
+                build=build,
+                allow_update=allow_update,
+                compact=compact,
+                vertex_format=vertex_format,
+                opacity=opacity,
+            )
+
+        return GroupMesh(self, self.on_each(build_on))
+
+    def spheres(self, centers: Any, radii: Any, *, build: Build = "fast_trace", compact: bool = False) -> GroupMesh:
+        """`Device.spheres` on every device (at once)."""
+        return GroupMesh(self, self.on_each(lambda d: d.spheres(centers, radii, build=build, compact=compact)))
+
+    def mesh_from_parts(
+        self,
+        parts: Iterable[Tuple[Any, ...]],
+        *,
+        build: Build = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        vertex_format: VertexFormat = "float32",
+        opacity: Optional[Iterable[Any]] = None,
+    ) -> GroupMesh:
+        """`Device.mesh_from_parts` on every device (at once)."""
+        parts = list(parts)  # read by every device
+        alphas = None if opacity is None else list(opacity)
+
+        def build_on(d: Device) -> Mesh:
+            return d.mesh_from_parts(
+                parts,
+                build=build,
+                allow_update=allow_update,
+                compact=compact,
+                vertex_format=vertex_format,
+                opacity=alphas,
+            )
+
+        return GroupMesh(self, self.on_each(build_on))
+
+    def meshes(
+        self,
+        items: Iterable[Tuple[Any, Any]],
+        *,
+        build: Build = "fast_trace",
+        allow_update: bool = False,
+        compact: bool = False,
+        budget_bytes: Optional[int] = None,
+        vertex_format: VertexFormat = "float32",
+        progress: bool = False,
+    ) -> List[GroupMesh]:
+        """`Device.meshes` on every device (at once); ``progress=True`` shows the first device's bar."""
+        items = list(items)
+
+        def build_on(k: int, d: Device) -> List[Mesh]:
+            return d.meshes(
+                items,
+                build=build,
+                allow_update=allow_update,
+                compact=compact,
+                budget_bytes=budget_bytes,
+                vertex_format=vertex_format,
+                progress=progress and k == 0,
+            )
+
+        per_device = self.on_each(build_on, with_index=True)
+        return [GroupMesh(self, meshes) for meshes in zip(*per_device)]
+
+    def scene(
+        self,
+        items: Union[GroupMesh, GroupInstance, Iterable[Union[GroupMesh, GroupInstance]]],
+        *,
+        build: Build = "fast_build",
+        allow_update: bool = False,
+        compact: bool = False,
+    ) -> GroupScene:
+        """`Device.scene` on every device (at once), over `GroupMesh`es and `GroupInstance`s."""
+        if isinstance(items, (GroupMesh, GroupInstance, Mesh, Instance)):  # one item (a device's: refused below)
+            items = [items]
+        instances: List[GroupInstance] = []
+        for i, item in enumerate(items):
+            if isinstance(item, GroupMesh):
+                item = GroupInstance(item)
+            if not isinstance(item, GroupInstance):
+                raise TypeError(
+                    f"scene item {i} must be a GroupMesh or a GroupInstance (of this DeviceGroup), "
+                    f"got {type(item).__name__}"
+                )
+            if item.mesh.group is not self:
+                raise ValueError(f"scene item {i} uses a mesh built on another DeviceGroup")
+            instances.append(item)
+
+        def build_on(k: int, d: Device) -> Scene:
+            return d.scene(
+                [x.per_device[k] for x in instances], build=build, allow_update=allow_update, compact=compact
+            )
+
+        return GroupScene(self, self.on_each(build_on, with_index=True), instances)
+
+    def on_each(self, work: Callable[..., T], *, with_index: bool = False) -> List[T]:
+        """``work(device)`` (or ``work(index, device)``) on every device at once, each in its
+        device's thread; the results in device order. When any raises, all are waited for and the
+        first device's error (in device order) is raised."""
+        futures = [
+            thread.submit(work, *((k, d) if with_index else (d,)))
+            for k, (thread, d) in enumerate(zip(self._threads, self.devices))
+        ]
+        wait(futures)
+        for future in futures:
+            error = future.exception()
+            if error is not None:
+                raise error
+        return [future.result() for future in futures]
+
+    def _least_busy(self, kind: str) -> int:
+        """The device with the fewest pieces in flight, the fastest for ``kind`` among those."""
+        weights = self.weights(kind)
+        with self._busy_lock:
+            return min(range(len(self.devices)), key=lambda k: (self._busy[k], -weights[k]))
+
+    def _run_piece(self, device: int, run: _Run, piece: int, rays: int, work: Callable[[], T], kind: str) -> T:
+        """One piece in its device's thread: reports to its query's run, and times the device."""
+        try:
+            run.check(piece)  # an earlier piece may have failed while this one waited its turn
+            with _progress.reporting(run.reporter(piece)):
+                start = time.perf_counter()
+                result = work()
+                self._speeds.record(kind, device, rays, time.perf_counter() - start)
+                return result
+        finally:
+            with self._busy_lock:
+                self._busy[device] -= 1
+
+    def _run_pieces(
+        self, kind: str, pieces: Sequence[Tuple[int, int, int]], work: Callable[[int, int, int], T], progress: bool
+    ) -> List[T]:
+        """``work(device, start, stop)`` for each piece ``(device, start, stop)`` of a query of
+        ``kind``, in that device's thread, all at once; the results in the pieces' order.
+
+        A failing piece stops the pieces after it (at their next chunk), and Ctrl-C in the calling
+        thread stops them all; every piece is waited for, then the earliest piece's error is
+        raised, naming rows as the caller counts them (see `_Run`)."""
+        bar = _progress.Progress(kind.split("/")[0]) if progress else None
+        run = _Run([stop - start for _, start, stop in pieces], bar)
+        futures: List[Future[T]] = []
+        try:
+            for p, (device, start, stop) in enumerate(pieces):
+                with self._busy_lock:
+                    self._busy[device] += 1
+
+                def piece(device: int = device, start: int = start, stop: int = stop) -> T:
+                    return work(device, start, stop)
+
+                futures.append(self._threads[device].submit(self._run_piece, device, run, p, stop - start, piece, kind))
+            _wait_stopping_after_failures(futures, run)
+        except BaseException:
+            run.stop_all()
+            wait(futures)
+            raise
+        finally:
+            if bar is not None:
+                bar.close()
+        for future, (_, start, _) in zip(futures, pieces):
+            error = future.exception()
+            if error is not None and not isinstance(error, _Cancelled):
+                raise in_callers_rows(error, start)
+        return [future.result() for future in futures]
+
+    def __repr__(self) -> str:
+        names = ", ".join(repr(d.name) for d in self.devices)
+        return f"<vkray.DeviceGroup of {len(self.devices)} devices: {names}>"
+
+
+def _wait_stopping_after_failures(futures: Sequence[Future[Any]], run: _Run) -> None:
+    """Waits for every piece, telling the run of each failure as it happens."""
+    index = {future: p for p, future in enumerate(futures)}
+    pending = set(futures)
+    while pending:
+        done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+        for future in done:
+            if future.exception() is not None:
+                run.fail(index[future])
+
+
+def default_devices() -> List[Union[int, str, Device]]:
+    """Every usable device's index, only the hardware ones where there are any."""
+    found = devices()
+    hardware = [d.index for d in found if not d.is_software]
+    return list(hardware or [d.index for d in found])
+
+
+class GroupMesh:
+    """One mesh on every device of a `DeviceGroup` (`per_device[k]` is device k's `Mesh`)."""
+
+    def __init__(self, group: DeviceGroup, per_device: Sequence[Mesh]) -> None:
+        self.group = group
+        self.per_device: Tuple[Mesh, ...] = tuple(per_device)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """As `Mesh.vertices` (the same on every device)."""
+        return self.per_device[0].vertices
+
+    @property
+    def faces(self) -> Optional[np.ndarray]:
+        """The triangles' corner indices; ``None`` for spheres."""
+        return self.per_device[0].faces
+
+    @property
+    def vertex_count(self) -> int:
+        """Vertices (spheres) per device."""
+        return self.per_device[0].vertex_count
+
+    @property
+    def triangle_count(self) -> int:
+        """Triangles per device."""
+        return self.per_device[0].triangle_count
+
+    @property
+    def kind(self) -> str:
+        """``"triangles"``, or ``"spheres"``."""
+        return self.per_device[0].kind
+
+    @property
+    def is_closed(self) -> bool:
+        """`Mesh.is_closed`."""
+        return self.per_device[0].is_closed
+
+    def update(self, vertices: Any) -> None:
+        """`Mesh.update` on every device, one after another (the first device's error, if any,
+        leaves every device's mesh as it was)."""
+        for mesh in self.per_device:
+            mesh.update(vertices)
+
+    def __repr__(self) -> str:
+        return f"<vkray.GroupMesh {self.per_device[0]!r} on {len(self.per_device)} devices>"
+
+
+class GroupInstance:
+    """A `GroupMesh` placed in a group's scene: `Instance`'s arguments, one `Instance` per device
+    (`per_device`); invalid arguments raise as `Instance` raises them."""
+
+    def __init__(
+        self,
+        mesh: GroupMesh,
+        transform: Any = None,
+        *,
+        custom_index: int = 0,
+        mask: int = 0xFF,
+        cull_disable: bool = False,
+        flip_facing: bool = False,
+        opaque: Optional[bool] = None,
+    ) -> None:
+        if not isinstance(mesh, GroupMesh):
+            raise TypeError(f"mesh must be a vkray.GroupMesh, got {type(mesh).__name__}")
+        self.mesh = mesh
+        self.per_device: Tuple[Instance, ...] = tuple(
+            Instance(
+                m,
+                transform,
+                custom_index=custom_index,
+                mask=mask,
+                cull_disable=cull_disable,
+                flip_facing=flip_facing,
+                opaque=opaque,
+            )
+            for m in mesh.per_device
+        )
+
+    @property
+    def transform(self) -> Optional[np.ndarray]:
+        """As `Instance.transform` (`GroupScene.update` changes it)."""
+        return self.per_device[0].transform
+
+    @property
+    def custom_index(self) -> int:
+        """As `Instance.custom_index`."""
+        return self.per_device[0].custom_index
+
+    @property
+    def mask(self) -> int:
+        """As `Instance.mask` (`GroupScene.update` changes it)."""
+        return self.per_device[0].mask
+
+    def __repr__(self) -> str:
+        return f"<vkray.GroupInstance of {self.mesh!r} custom_index={self.custom_index} mask={self.mask:#04x}>"
+
+
+class _RaysToSplit:
+    """A query's rays as `Scene` would read them (broadcast, flattened), cut into contiguous pieces
+    that each device's `Scene` reads back as exactly those rays."""
+
+    def __init__(self, origins: Any, directions: Any, tmin: Any, tmax: Any, mask: Any) -> None:
+        self.shape, self.origins, self.directions, self.tmin, self.tmax = _arrays.rays(origins, directions, tmin, tmax)
+        self.mask = _arrays.masks(mask, self.shape)
+        self.count = int(np.prod(self.shape, dtype=np.int64))
+
+    def piece(self, start: int, stop: int) -> Dict[str, Any]:
+        """The arguments of rays ``start:stop``: arrays of one row per ray are cut, one row shared
+        by every ray (an eye) and scalars stay as they are."""
+
+        def cut(value: Any) -> Any:
+            return value[start:stop] if isinstance(value, np.ndarray) and len(value) == self.count else value
+
+        return {
+            "origins": cut(self.origins),
+            "directions": cut(self.directions),
+            "tmin": cut(self.tmin),
+            "tmax": cut(self.tmax),
+            "mask": cut(self.mask),
+        }
+
+
+def _join(parts: Sequence[Optional[np.ndarray]]) -> Optional[np.ndarray]:
+    """The pieces' arrays of one field end to end (None where the field was not asked)."""
+    if parts[0] is None:
+        return None
+    return np.concatenate([p for p in parts if p is not None])
+
+
+def _join_all_hits(shape: Tuple[int, ...], parts: Sequence[AllHits], starts: Sequence[int]) -> AllHits:
+    """The pieces' `AllHits` as one: each piece's hits follow the previous pieces', so its offsets
+    shift by the hits before it and its ray indices by the rays before it."""
+    hits_before = np.cumsum([0] + [len(p.ray_index) for p in parts])
+    offsets = [parts[0].offsets[:1]] + [p.offsets[1:] + h for p, h in zip(parts, hits_before)]
+    arrays: Dict[str, np.ndarray] = {
+        "offsets": np.concatenate(offsets),
+        "ray_index": np.concatenate([p.ray_index + s for p, s in zip(parts, starts)]),
+    }
+    for name in HIT_FIELDS:
+        joined = _join([getattr(p, name) for p in parts])
+        if joined is not None:
+            arrays[name] = joined
+    return AllHits(shape, arrays, parts[0].precision)
+
+
+class _UpdateLock:
+    """Queries share it, `GroupScene.update` takes it alone, so that all the pieces of a query see
+    the scene as it was before an update, or all as it is after (on one device, `Scene.update`
+    waits for the queries running on the scene, and queries started meanwhile wait for it).
+
+    Fair both ways: queries asked during an update wait for it, and go before the next update."""
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._running = 0  # queries
+        self._waiting = 0  # queries held by an update
+        self._updating = False
+
+    @contextlib.contextmanager
+    def query(self) -> Iterator[None]:
+        """Held by a query for as long as its pieces run."""
+        with self._condition:
+            self._waiting += 1
+            try:
+                self._condition.wait_for(lambda: not self._updating)
+            finally:
+                self._waiting -= 1
+                self._condition.notify_all()
+            self._running += 1
+        try:
+            yield
+        finally:
+            with self._condition:
+                self._running -= 1
+                self._condition.notify_all()
+
+    @contextlib.contextmanager
+    def update(self) -> Iterator[None]:
+        """Held by an update alone, once the queries before it are done."""
+        with self._condition:
+            self._condition.wait_for(lambda: not self._updating and self._waiting == 0)
+            self._updating = True  # queries asked from now on wait
+            try:
+                self._condition.wait_for(lambda: self._running == 0)
+            except BaseException:  # Ctrl-C while waiting: no update, and no query left waiting
+                self._updating = False
+                self._condition.notify_all()
+                raise
+        try:
+            yield
+        finally:
+            with self._condition:
+                self._updating = False
+                self._condition.notify_all()
+
+
+class GroupScene:
+    """A scene built on every device of a `DeviceGroup` (`per_device[k]` is device k's `Scene`).
+
+    Its queries are `Scene`'s, with the same arguments and results (`SceneLike`): the rays (or
+    points) are split into contiguous pieces, one per device, sized by `DeviceGroup.weights`,
+    traced at once and merged in the caller's order. A sensor (`vkray.PinholeCamera`, ...) is not
+    split, since its rays are generated on the device: each sensor query runs whole on the least
+    busy device, so that sensor queries from several threads spread over the devices. Batches of
+    at most one ray, and 0 rays, run on one device too. `progress=True` shows one bar for all
+    pieces; a piece's error stops the others and is raised as one device would raise it."""
+
+    def __init__(self, group: DeviceGroup, per_device: Sequence[Scene], instances: Sequence[GroupInstance]) -> None:
+        self.group = group
+        self.per_device: Tuple[Scene, ...] = tuple(per_device)
+        self.instances: Tuple[GroupInstance, ...] = tuple(instances)
+        self._updates = _UpdateLock()
+
+    def update(self, transforms: Any = None, masks: Any = None) -> None:
+        """`Scene.update` on every device, one after another (bad arguments raise on the first
+        device, before any scene changes). It waits for the queries running on this scene, and
+        queries asked meanwhile wait for it: no query mixes pieces from before and after."""
+        with self._updates.update():
+            for scene in self.per_device:
+                scene.update(transforms, masks)
+
+    def explain(
+        self,
+        kind: str = "closest",
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        *,
+        opacity_threshold: float = 0.5,
+        sensor: bool = False,
+    ) -> Dict[str, Any]:
+        """`Scene.explain` of the first device's scene (devices of one kind run the same variant)."""
+        return self.per_device[0].explain(
+            kind, outputs, precision, cull, opacity_threshold=opacity_threshold, sensor=sensor
+        )
+
+    def _run(
+        self, kind: str, pieces: Sequence[Tuple[int, int, int]], work: Callable[[int, int, int], T], progress: bool
+    ) -> List[T]:
+        """`DeviceGroup._run_pieces`, never during an `update`."""
+        with self._updates.query():
+            return self.group._run_pieces(kind, pieces, work, progress)
+
+    def _whole(self, kind: str, count: int, call: Callable[[Scene], T], progress: bool) -> T:
+        """A query of ``count`` rays run unsplit on the least busy device (in its thread,
+        stoppable as pieces are)."""
+        device = self.group._least_busy(kind)
+        return self._run(kind, [(device, 0, count)], lambda k, _start, _stop: call(self.per_device[k]), progress)[0]
+
+    def _pieces(self, kind: str, count: int) -> List[Tuple[int, int, int]]:
+        """(device, start, stop) of each non-empty piece of ``count`` rays."""
+        spans = split(count, self.group.weights(kind))
+        return [(k, start, stop) for k, (start, stop) in enumerate(spans) if stop > start]
+
+    def _trace(
+        self,
+        query_name: str,
+        merge: Callable[[Tuple[int, ...], List[Any], List[int]], T],
+        rays: Dict[str, Any],
+        progress: bool,
+        **options: Any,
+    ) -> T:
+        """``Scene.<query_name>(**rays, **options)`` over the rays: whole where they cannot be split,
+        else in pieces merged by ``merge(shape, results, starts)``."""
+        kind = f"{query_name}/{options['precision']}"
+
+        def query(scene: Scene, **arguments: Any) -> T:
+            result: T = getattr(scene, query_name)(**arguments, **options, progress=False)
+            return result
+
+        def unsplit(scene: Scene) -> T:
+            return query(scene, **rays)
+
+        origins = rays["origins"]
+        if isinstance(origins, Sensor):
+            return self._whole(kind, len(origins), unsplit, progress)
+        if rays["directions"] is None:  # the device raises what it raises
+            return self._whole(kind, 0, unsplit, progress)
+        batch = _RaysToSplit(**rays)
+        if batch.count <= 1 or len(self.per_device) == 1:
+            return self._whole(kind, batch.count, unsplit, progress)
+        pieces = self._pieces(kind, batch.count)
+
+        def piece(device: int, start: int, stop: int) -> T:
+            return query(self.per_device[device], **batch.piece(start, stop))
+
+        results = self._run(kind, pieces, piece, progress)
+        return merge(batch.shape, results, [start for _, start, _ in pieces])
+
+    def _points(
+        self,
+        query_name: str,
+        merge: Callable[[Tuple[int, ...], List[Any]], T],
+        points: Any,
+        progress: bool,
+        **options: Any,
+    ) -> T:
+        """``Scene.<query_name>(points, **options)`` over points of shape ``S + (3,)``, split as
+        `_trace` splits rays."""
+        kind = f"{query_name}/{options['precision']}"
+
+        def query(scene: Scene, p: Any) -> T:
+            result: T = getattr(scene, query_name)(p, **options, progress=False)
+            return result
+
+        p = _arrays.real_coordinates("points", points)
+        if len(self.per_device) == 1 or p.ndim == 0 or p.shape[-1] != 3 or p.size <= 3:
+            return self._whole(kind, p.size // 3, lambda s: query(s, points), progress)
+        flat = p.reshape(-1, 3)
+        pieces = self._pieces(kind, len(flat))
+        results = self._run(
+            kind, pieces, lambda device, start, stop: query(self.per_device[device], flat[start:stop]), progress
+        )
+        return merge(p.shape[:-1], results)
+
+    def intersect(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> Hits:
+        """`Scene.intersect`, the rays split over the devices."""
+        fields = None if outputs is None else _check_outputs(outputs)  # checked first, as Scene does
+
+        def merge(shape: Tuple[int, ...], parts: List[Hits], _starts: List[int]) -> Hits:
+            joined = {name: _join([getattr(p, name) for p in parts]) for name in HIT_FIELDS}
+            return Hits(shape, {k: v for k, v in joined.items() if v is not None}, precision)
+
+        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
+        return self._trace(
+            "intersect",
+            merge,
+            rays,
+            progress,
+            outputs=fields,
+            precision=precision,
+            cull=cull,
+            opacity_threshold=opacity_threshold,
+        )
+
+    def occluded(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> np.ndarray:
+        """`Scene.occluded`, the rays split over the devices."""
+        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
+        return self._trace(
+            "occluded", _concat, rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
+        )
+
+    def transmittance(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+    ) -> np.ndarray:
+        """`Scene.transmittance`, the rays split over the devices."""
+        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
+        return self._trace("transmittance", _concat, rays, progress, precision=precision, cull=cull)
+
+    def intersect_all(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        max_hits: Optional[int] = None,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> AllHits:
+        """`Scene.intersect_all`, the rays split over the devices (their lists of hits joined)."""
+        fields = None if outputs is None else _check_outputs(outputs)  # checked first, as Scene does
+        if max_hits is not None:
+            _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
+        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
+        return self._trace(
+            "intersect_all",
+            _join_all_hits,
+            rays,
+            progress,
+            max_hits=max_hits,
+            outputs=fields,
+            precision=precision,
+            cull=cull,
+            opacity_threshold=opacity_threshold,
+        )
+
+    def count(
+        self,
+        origins: Any,
+        directions: Any = None,
+        *,
+        tmin: Any = 0.0,
+        tmax: Any = np.inf,
+        precision: Precision = "fast",
+        cull: Cull = None,
+        mask: Any = 0xFF,
+        progress: bool = False,
+        opacity_threshold: float = 0.5,
+    ) -> np.ndarray:
+        """`Scene.count`, the rays split over the devices."""
+        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
+        return self._trace(
+            "count", _concat, rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
+        )
+
+    def closest_points(
+        self,
+        points: Any,
+        *,
+        max_distance: float = np.inf,
+        outputs: Optional[Iterable[str]] = None,
+        precision: Precision = "reference",
+        progress: bool = False,
+    ) -> Closest:
+        """`Scene.closest_points`, the points split over the devices."""
+        fields = _closest_outputs(outputs)  # checked first, as Scene does
+
+        def merge(shape: Tuple[int, ...], parts: List[Closest]) -> Closest:
+            joined = {name: _join([getattr(p, name) for p in parts]) for name in CLOSEST_FIELDS}
+            return Closest(shape, {k: v for k, v in joined.items() if v is not None}, precision)
+
+        return self._points(
+            "closest_points", merge, points, progress, max_distance=max_distance, outputs=fields, precision=precision
+        )
+
+    def distance(
+        self, points: Any, *, max_distance: float = np.inf, precision: Precision = "reference", progress: bool = False
+    ) -> np.ndarray:
+        """`Scene.distance`, the points split over the devices."""
+        return self._points(
+            "distance", _concat_points, points, progress, max_distance=max_distance, precision=precision
+        )
+
+    def signed_distance(
+        self,
+        points: Any,
+        *,
+        max_distance: float = np.inf,
+        precision: Precision = "reference",
+        method: Optional[str] = None,
+        progress: bool = False,
+    ) -> np.ndarray:
+        """`Scene.signed_distance`, the points split over the devices."""
+        return self._points(
+            "signed_distance",
+            _concat_points,
+            points,
+            progress,
+            max_distance=max_distance,
+            precision=precision,
+            method=method,
+        )
+
+    def contains(
+        self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
+    ) -> np.ndarray:
+        """`Scene.contains`, the points split over the devices."""
+        return self._points("contains", _concat_points, points, progress, precision=precision, method=method)
+
+    def __repr__(self) -> str:
+        return f"<vkray.GroupScene {len(self.instances)} instances on {len(self.per_device)} devices>"
+
+
+def _concat(shape: Tuple[int, ...], parts: List[np.ndarray], _starts: List[int]) -> np.ndarray:
+    """Per-ray arrays of the pieces, end to end, in the rays' shape."""
+    return np.concatenate(parts).reshape(shape)
+
+
+def _concat_points(shape: Tuple[int, ...], parts: List[np.ndarray]) -> np.ndarray:
+    """Per-point arrays of the pieces, end to end, in the points' shape."""
+    return np.concatenate(parts).reshape(shape)
+
+
+if TYPE_CHECKING:
+    # mypy checks that both scenes answer every query of SceneLike, with its signatures.
+    def _scene_is_scene_like(scene: Scene) -> SceneLike:
+        return scene
+
+    def _group_scene_is_scene_like(scene: GroupScene) -> SceneLike:
+        return scene

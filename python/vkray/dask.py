@@ -1,0 +1,459 @@
+"""vkray queries over Dask arrays, on as many GPUs and machines as a Dask cluster has.
+
+Needs Dask (``pip install 'vkray[dask]'``). A cluster has one worker process per GPU, each told its
+device by the ``VKRAY_DEVICE`` environment variable (an index or a name, as `vkray.Device` reads
+it); `local_cluster` starts such a cluster on this machine:
+
+>>> import dask, dask.array as da, vkray.dask
+>>> from dask.distributed import Client
+>>> cluster = vkray.dask.local_cluster()                  # one worker per GPU
+>>> client = Client(cluster)
+>>> spec = vkray.dask.SceneSpec([(vertices, faces)])      # meshes as numpy arrays
+>>> origins = da.from_array(o, chunks=4_000_000)          # (N, 3) rays, any chunking along N
+>>> directions = da.from_array(d, chunks=4_000_000)
+>>> hits = vkray.dask.intersect(spec, origins, directions, outputs=["t", "prim_id"])
+>>> (found,) = dask.compute(hits)                         # {"t": numpy array, "prim_id": ...}
+
+`intersect`, `occluded`, `count`, `contains` and `closest_points` take rays or points as dask
+arrays of shape (N, 3) (or anything `dask.array.asarray` takes), chunked in any way along N (the
+second axis is made one chunk), and return dask arrays chunked as the rays are; `intersect` and
+`closest_points` return a dict of them, one per field. Each chunk's answer is `vkray.Scene`'s
+for those rays, so the computed arrays equal what one `Scene` answers in one process. Compute a
+dict's fields together (``dask.compute(hits)``): computed one at a time, each traces anew.
+
+The scene travels as a `SceneSpec`: meshes and instances as numpy arrays, or a picklable callable
+that builds the scene on a device. It is one key of the task graph on which every chunk's task
+depends, so it is serialized once and reaches each worker once, not once per chunk; each worker
+process builds it once per device and keeps it, cached by the spec's content hash (`cache_info`).
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import importlib.util
+import logging
+import os
+import threading
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _arrays
+from ._api import DEFAULT_FIELDS, PRECISIONS, Cull, Device, Instance, Precision, Scene, _check_outputs, _closest_outputs
+from ._group import default_devices, in_callers_rows
+
+if importlib.util.find_spec("dask") is None:
+    raise ImportError("vkray.dask needs Dask: pip install 'vkray[dask]'")
+
+import dask.array as da  # noqa: E402
+from dask.base import tokenize  # noqa: E402
+from dask.delayed import delayed  # noqa: E402
+
+if TYPE_CHECKING:
+    from distributed import SpecCluster
+
+__all__ = [
+    "SceneSpec",
+    "intersect",
+    "occluded",
+    "count",
+    "contains",
+    "closest_points",
+    "local_cluster",
+    "cache_info",
+]
+
+#: A builder: makes the scene on the worker's device.
+Builder = Callable[[Device], Scene]
+
+# What `Instance` takes besides the mesh, as a SceneSpec's instance mappings may give it.
+_INSTANCE_KEYS = ("transform", "custom_index", "mask", "cull_disable", "flip_facing", "opaque")
+# Scenes a worker process keeps built (the least recently used goes first): each holds GPU memory.
+MAX_CACHED_SCENES = 8
+
+
+class SceneSpec:
+    """What a worker needs to build a scene: meshes and instances as numpy arrays, or a builder.
+
+    meshes: ``(vertices, faces)`` pairs, as `Device.mesh` takes them.
+    instances: mappings with a ``"mesh"`` (an index into meshes) and any of `Instance`'s
+    arguments (``"transform"``, ``"custom_index"``, ``"mask"``, ``"cull_disable"``,
+    ``"flip_facing"``, ``"opaque"``); ``None`` places each mesh once, untransformed, in order.
+    `from_builder` takes a callable instead, for anything else (spheres, parts, opacity, build
+    options). `key` is a hash of the content (the arrays' bytes, or the builder's pickle):
+    workers keep one built scene per key and device.
+    """
+
+    def __init__(
+        self, meshes: Sequence[Tuple[Any, Any]], instances: Optional[Sequence[Mapping[str, Any]]] = None
+    ) -> None:
+        self._meshes: List[Tuple[np.ndarray, np.ndarray]] = [
+            (_arrays.points("vertices", v), _arrays.faces(f)) for v, f in meshes
+        ]
+        chosen = [{"mesh": k} for k in range(len(self._meshes))] if instances is None else instances
+        self._instances = [_instance_arguments(k, x, len(self._meshes)) for k, x in enumerate(chosen)]
+        self._builder: Optional[Builder] = None
+        self.key = _content_hash(self._meshes, self._instances)
+
+    @classmethod
+    def from_builder(cls, builder: Builder) -> SceneSpec:
+        """A spec whose scene ``builder(device)`` builds on each worker's device. The builder must
+        pickle (Dask pickles closures and lambdas by value, with cloudpickle), and its pickle is
+        its identity: the same pickle, the same cached scene."""
+        if not callable(builder):
+            raise TypeError(f"a builder must be callable (device -> Scene), got {type(builder).__name__}")
+        spec = cls.__new__(cls)
+        spec._meshes, spec._instances, spec._builder = [], [], builder
+        spec.key = hashlib.sha256(_pickled(builder)).hexdigest()
+        return spec
+
+    def build(self, device: Device) -> Scene:
+        """The scene, built on ``device``."""
+        if self._builder is not None:
+            scene = self._builder(device)
+            if not isinstance(scene, Scene):
+                raise TypeError(f"the scene builder must return a vkray.Scene, got {type(scene).__name__}")
+            return scene
+        meshes = [device.mesh(v, f) for v, f in self._meshes]
+        return device.scene([Instance(meshes[x["mesh"]], **x["arguments"]) for x in self._instances])
+
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        """Unpickled (on a worker, as its task's dependency arrives): counted in `cache_info`."""
+        self.__dict__.update(state)
+        with _cache_lock:
+            _worker_counts["specs_received"] += 1
+
+    def __repr__(self) -> str:
+        if self._builder is not None:
+            what = "a builder"
+        else:
+            what = f"{len(self._meshes)} meshes, {len(self._instances)} instances"
+        return f"<vkray.dask.SceneSpec of {what}, key {self.key[:12]}>"
+
+
+def _instance_arguments(k: int, instance: Mapping[str, Any], mesh_count: int) -> Dict[str, Any]:
+    """A SceneSpec's instance, checked: its mesh's index and `Instance`'s other arguments."""
+    unknown = sorted(set(instance) - {"mesh", *_INSTANCE_KEYS})
+    if unknown:
+        raise ValueError(f"instance {k} has unknown keys {unknown}; it takes 'mesh' and {_INSTANCE_KEYS}")
+    mesh = _arrays.integer(f"instance {k}'s mesh", instance.get("mesh"), 0, mesh_count - 1)
+    arguments = {key: instance[key] for key in _INSTANCE_KEYS if key in instance}
+    if arguments.get("transform") is not None:
+        arguments["transform"] = _arrays.transform(arguments["transform"])
+    return {"mesh": mesh, "arguments": arguments}
+
+
+def _content_hash(meshes: Sequence[Tuple[np.ndarray, np.ndarray]], instances: Sequence[Dict[str, Any]]) -> str:
+    """sha256 of the meshes' arrays (dtype, shape and bytes) and the instances' arguments."""
+    digest = hashlib.sha256()
+    for array in (a for mesh in meshes for a in mesh):
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    for instance in instances:
+        arguments = dict(instance["arguments"])
+        transform = arguments.pop("transform", None)
+        digest.update(repr((instance["mesh"], sorted(arguments.items()))).encode())
+        digest.update(b"none" if transform is None else transform.tobytes())
+    return digest.hexdigest()
+
+
+def _pickled(builder: Builder) -> bytes:
+    """The builder's pickle as Dask sends it (cloudpickle, a dependency of Dask's: closures and
+    lambdas by value)."""
+    import cloudpickle  # type: ignore[import-untyped]
+
+    pickled: bytes = cloudpickle.dumps(builder)
+    return pickled
+
+
+# --------------------------------------------------------------------------------------------------
+# The worker's side: its device and the scenes built on it, kept between tasks.
+
+_cache_lock = threading.Lock()
+_worker_scenes: collections.OrderedDict[Tuple[str, str], Scene] = collections.OrderedDict()
+_worker_devices: Dict[str, Device] = {}
+_worker_counts = {"builds": 0, "specs_received": 0}
+
+
+def _device_selection() -> str:
+    """The device this process is told to use (``VKRAY_DEVICE``, ``VKRAY_BACKEND``)."""
+    return f"{os.environ.get('VKRAY_DEVICE', '')}/{os.environ.get('VKRAY_BACKEND', '')}"
+
+
+def _worker_scene(spec: SceneSpec) -> Scene:
+    """The spec's scene on this process's device: built on first use, then kept."""
+    selection = _device_selection()
+    key = (spec.key, selection)
+    with _cache_lock:
+        scene = _worker_scenes.get(key)
+        if scene is not None:
+            _worker_scenes.move_to_end(key)
+            return scene
+        device = _worker_devices.get(selection)
+        if device is None:
+            device = _worker_devices[selection] = Device()  # reads VKRAY_DEVICE and VKRAY_BACKEND
+        scene = _worker_scenes[key] = spec.build(device)
+        _worker_counts["builds"] += 1
+        while len(_worker_scenes) > MAX_CACHED_SCENES:
+            _worker_scenes.popitem(last=False)
+        return scene
+
+
+def cache_info() -> Dict[str, Any]:
+    """This process's scene cache: ``device`` (its ``VKRAY_DEVICE/VKRAY_BACKEND``), ``scenes``
+    (the keys of the specs whose scenes it keeps, least recently used first), ``builds`` (scenes
+    built so far) and ``specs_received`` (SceneSpecs unpickled so far). On a cluster,
+    ``client.run(vkray.dask.cache_info)`` asks every worker."""
+    with _cache_lock:
+        scenes = [spec_key for spec_key, _ in _worker_scenes]
+        return {"device": _device_selection(), "scenes": scenes, **_worker_counts}
+
+
+def _query_block(
+    spec: SceneSpec, query: str, names: Tuple[str, ...], options: Dict[str, Any], start: int, *arrays: np.ndarray
+) -> Dict[str, np.ndarray]:
+    """One chunk's answer on a worker: ``Scene.<query>`` with the chunk's arrays (named ``names``)
+    and ``options``, as a dict of arrays (one ``"result"`` for queries that return one array).
+    Errors name rows as the whole batch counts them (the chunk starts at row ``start``)."""
+    scene = _worker_scene(spec)  # its errors (a bad mesh) name the spec's rows, not the chunk's
+    try:
+        answer = getattr(scene, query)(**dict(zip(names, arrays)), **options)
+    except (ValueError, TypeError) as error:
+        raise in_callers_rows(error, start) from None
+    if isinstance(answer, np.ndarray):
+        return {"result": answer}
+    return {name: value for name, value in vars(answer).items() if isinstance(value, np.ndarray)}
+
+
+# --------------------------------------------------------------------------------------------------
+# The client's side: task graphs.
+
+# (dtype, trailing shape) of each field, by tier: float fields are float32 in the fast tier only.
+_FLOAT_FIELDS = ("t", "uv", "position", "distance")
+_TAILS = {"uv": (2,), "normal": (3,), "position": (3,)}
+
+
+def _field_type(name: str, precision: Precision) -> Tuple[np.dtype[Any], Tuple[int, ...]]:
+    """The dtype and trailing shape of a hit or closest-point field, as `Scene` returns it."""
+    if name in _FLOAT_FIELDS:
+        dtype: np.dtype[Any] = np.dtype(np.float32 if precision == "fast" else np.float64)
+    else:
+        dtype = np.dtype(np.float32 if name == "normal" else np.int32)
+    return dtype, _TAILS.get(name, ())
+
+
+def _as_scene_spec(scene: Union[SceneSpec, Builder]) -> SceneSpec:
+    """A SceneSpec, or a builder wrapped in one."""
+    if isinstance(scene, SceneSpec):
+        return scene
+    if callable(scene):
+        return SceneSpec.from_builder(scene)
+    raise TypeError(f"scene must be a vkray.dask.SceneSpec or a builder (device -> Scene), got {type(scene).__name__}")
+
+
+def _check_precision(precision: str) -> None:
+    """Refused here, when the graph is made, rather than by every chunk's task."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+
+
+def _rows(name: str, value: Any) -> da.Array:
+    """An (N, 3) dask array with its three columns in one chunk."""
+    array = da.asarray(value)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {array.shape}")
+    return array.rechunk({1: -1})
+
+
+def _per_ray(name: str, value: Any, rays: da.Array) -> Optional[da.Array]:
+    """A per-ray argument (tmin, tmax, mask) as an (N,) dask array chunked as the rays, or None
+    for one value for every ray (which the tasks take as it is)."""
+    if np.ndim(value) == 0:
+        return None
+    array = da.asarray(value)
+    if array.shape != rays.shape[:1]:
+        raise ValueError(f"{name} must be one value or one per ray, shape {rays.shape[:1]}, got {array.shape}")
+    return array.rechunk((rays.chunks[0],))
+
+
+def _map_chunks(
+    spec: SceneSpec,
+    query: str,
+    arrays: Dict[str, da.Array],
+    options: Dict[str, Any],
+    fields: Mapping[str, Tuple[np.dtype[Any], Tuple[int, ...]]],
+) -> Dict[str, da.Array]:
+    """One task per chunk of the rays (or points) runs ``Scene.<query>`` on a worker; each of its
+    ``fields`` becomes a dask array chunked as the rays are.
+
+    The spec is one key of the graph (named by its content hash), on which every chunk's task
+    depends: Dask sends it to a worker once, and other workers fetch it from there once."""
+    spec_key = delayed(spec, name=f"vkray-scene-{spec.key}")
+    names = tuple(arrays)
+    blocks = [arrays[name].to_delayed().ravel() for name in names]
+    lengths = arrays[names[0]].chunks[0]
+    token = tokenize(spec.key, query, names, options, *arrays.values())
+    parts: Dict[str, List[da.Array]] = {name: [] for name in fields}
+    starts = np.cumsum((0,) + lengths[:-1])
+    for k, (start, length) in enumerate(zip(starts, lengths)):
+        answer = delayed(_query_block, pure=True)(
+            spec_key,
+            query,
+            names,
+            options,
+            int(start),
+            *(b[k] for b in blocks),
+            dask_key_name=f"vkray-{query}-{token}-{k}",
+        )
+        for name, (dtype, tail) in fields.items():
+            parts[name].append(da.from_delayed(answer[name], shape=(length,) + tail, dtype=dtype))
+    return {name: da.concatenate(chunks) for name, chunks in parts.items()}
+
+
+def _trace(
+    scene: Union[SceneSpec, Builder],
+    query: str,
+    origins: Any,
+    directions: Any,
+    per_ray: Dict[str, Any],
+    options: Dict[str, Any],
+    fields: Mapping[str, Tuple[np.dtype[Any], Tuple[int, ...]]],
+) -> Dict[str, da.Array]:
+    """A ray query's graph: rays aligned to the origins' chunks, per-ray arguments to theirs."""
+    spec = _as_scene_spec(scene)
+    _check_precision(options["precision"])
+    o = _rows("origins", origins)
+    d = _rows("directions", directions)
+    if d.shape != o.shape:
+        raise ValueError(f"origins {o.shape} and directions {d.shape} must have the same shape (N, 3)")
+    arrays = {"origins": o, "directions": d.rechunk(o.chunks)}
+    for name, value in per_ray.items():
+        aligned = _per_ray(name, value, o)
+        if aligned is None:
+            options[name] = value
+        else:
+            arrays[name] = aligned
+    return _map_chunks(spec, query, arrays, options, fields)
+
+
+def intersect(
+    scene: Union[SceneSpec, Builder],
+    origins: Any,
+    directions: Any,
+    *,
+    tmin: Any = 0.0,
+    tmax: Any = np.inf,
+    outputs: Optional[Sequence[str]] = None,
+    precision: Precision = "fast",
+    cull: Cull = None,
+    mask: Any = 0xFF,
+    opacity_threshold: float = 0.5,
+) -> Dict[str, da.Array]:
+    """`Scene.intersect` over dask arrays of rays: a dict of dask arrays, one per field asked
+    (``outputs``, as `Scene.intersect` takes it), chunked as ``origins``. ``tmin``, ``tmax`` and
+    ``mask`` are one value, or one per ray (dask or numpy arrays of shape (N,))."""
+    chosen = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
+    options: Dict[str, Any] = {"outputs": chosen, "precision": precision, "cull": cull}
+    options["opacity_threshold"] = opacity_threshold
+    per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
+    types = {name: _field_type(name, precision) for name in chosen}
+    return _trace(scene, "intersect", origins, directions, per_ray, options, types)
+
+
+def occluded(
+    scene: Union[SceneSpec, Builder],
+    origins: Any,
+    directions: Any,
+    *,
+    tmin: Any = 0.0,
+    tmax: Any = np.inf,
+    precision: Precision = "fast",
+    cull: Cull = None,
+    mask: Any = 0xFF,
+    opacity_threshold: float = 0.5,
+) -> da.Array:
+    """`Scene.occluded` over dask arrays of rays: a bool dask array (N,), chunked as ``origins``."""
+    options: Dict[str, Any] = {"precision": precision, "cull": cull, "opacity_threshold": opacity_threshold}
+    per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
+    result = {"result": (np.dtype(bool), ())}
+    return _trace(scene, "occluded", origins, directions, per_ray, options, result)["result"]
+
+
+def count(
+    scene: Union[SceneSpec, Builder],
+    origins: Any,
+    directions: Any,
+    *,
+    tmin: Any = 0.0,
+    tmax: Any = np.inf,
+    precision: Precision = "fast",
+    cull: Cull = None,
+    mask: Any = 0xFF,
+    opacity_threshold: float = 0.5,
+) -> da.Array:
+    """`Scene.count` over dask arrays of rays: an int32 dask array (N,), chunked as ``origins``."""
+    options: Dict[str, Any] = {"precision": precision, "cull": cull, "opacity_threshold": opacity_threshold}
+    per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
+    result = {"result": (np.dtype(np.int32), ())}
+    return _trace(scene, "count", origins, directions, per_ray, options, result)["result"]
+
+
+def contains(
+    scene: Union[SceneSpec, Builder], points: Any, *, precision: Precision = "exact", method: str = "parity"
+) -> da.Array:
+    """`Scene.contains` over a dask array of points (N, 3): a bool dask array (N,)."""
+    spec = _as_scene_spec(scene)
+    _check_precision(precision)
+    options = {"precision": precision, "method": method}
+    result = {"result": (np.dtype(bool), ())}
+    return _map_chunks(spec, "contains", {"points": _rows("points", points)}, options, result)["result"]
+
+
+def closest_points(
+    scene: Union[SceneSpec, Builder],
+    points: Any,
+    *,
+    max_distance: float = np.inf,
+    outputs: Optional[Sequence[str]] = None,
+    precision: Precision = "reference",
+) -> Dict[str, da.Array]:
+    """`Scene.closest_points` over a dask array of points (N, 3): a dict of dask arrays, one per
+    field (``outputs``, as `Scene.closest_points` takes it, ``"distance"`` always among them)."""
+    spec = _as_scene_spec(scene)
+    _check_precision(precision)
+    fields = _closest_outputs(outputs)
+    options = {"max_distance": max_distance, "outputs": fields, "precision": precision}
+    types = {name: _field_type(name, precision) for name in fields}
+    return _map_chunks(spec, "closest_points", {"points": _rows("points", points)}, options, types)
+
+
+def local_cluster(
+    devices: Optional[Sequence[Union[int, str]]] = None,
+    *,
+    threads_per_worker: int = 1,
+    env: Optional[Mapping[str, str]] = None,
+) -> SpecCluster:
+    """A `dask.distributed` cluster on this machine with one worker process per device, each
+    with ``VKRAY_DEVICE`` set to its device (``env`` adds more variables to every worker).
+
+    devices: indices or names as `vkray.Device` takes them; ``None``: every usable device, only
+    the hardware ones where there are any (as `vkray.DeviceGroup` chooses). A device listed twice
+    gets two workers. Use it as ``with local_cluster() as cluster, Client(cluster) as client:``.
+    """
+    from distributed import Nanny, Scheduler, SpecCluster
+
+    chosen = default_devices() if devices is None else list(devices)
+    workers = {
+        f"vkray-{k}": {
+            "cls": Nanny,
+            "options": {
+                "nthreads": threads_per_worker,
+                "env": {**(env or {}), "VKRAY_DEVICE": str(device)},
+                "silence_logs": logging.WARN,
+            },
+        }
+        for k, device in enumerate(chosen)
+    }
+    scheduler = {"cls": Scheduler, "options": {"host": "127.0.0.1", "dashboard_address": ":0"}}
+    return SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.WARN)

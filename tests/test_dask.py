@@ -1,0 +1,219 @@
+"""vkray.dask on a cluster of two worker processes (lavapipe twice, as two GPUs; one thread
+each, under the validation layer as the suite is): each function's computed arrays equal one
+process's `Scene` answer, whatever the chunking; the scene reaches each worker once per
+computation and is built once per worker; a worker killed in the middle of a computation is
+replaced, its tasks run again, and the result is still the same: nothing lost, nothing twice."""
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dask.distributed")
+
+import dask  # noqa: E402
+import dask.array as da  # noqa: E402
+from dask.distributed import Client, get_task_stream  # noqa: E402
+
+import vkray  # noqa: E402
+import vkray.dask as vkray_dask  # noqa: E402
+from conftest import VALIDATION  # noqa: E402
+from oracle import box, triangle_soup  # noqa: E402
+from test_precision import tiers  # noqa: E402
+
+N = 4001
+UNEVEN = (700, 1300, 1, 999, 1001)  # chunks of the origins; directions are chunked otherwise
+SHIFT = np.array([[1.0, 0, 0, 0.4], [0, 1, 0, 0.3], [0, 0, 1, 0.2], [0, 0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def client():
+    """Two workers on device 0 (lavapipe), one thread each; the validation layer on in each, as
+    it is in this process, so that any message it reports fails the task and the test."""
+    env = {"VKRAY_VALIDATION": "1"} if VALIDATION else {}
+    with vkray_dask.local_cluster([0, 0], env=env) as cluster, Client(cluster) as client:
+        client.wait_for_workers(2)
+        yield client
+
+
+def solids_spec(shift=SHIFT):
+    """Two closed boxes (the second shifted) and a soup, as numpy arrays."""
+    return vkray_dask.SceneSpec(
+        [box(), triangle_soup(100, seed=20)],
+        [{"mesh": 0, "custom_index": 3}, {"mesh": 0, "transform": shift, "mask": 0x2}, {"mesh": 1}],
+    )
+
+
+def rays(n, seed):
+    rng = np.random.default_rng(seed)
+    origins = rng.uniform(-0.8, 1.8, (n, 3))
+    return origins, rng.uniform(0.0, 1.0, (n, 3)) - origins
+
+
+def chunked(array, chunks):
+    return da.from_array(array, chunks=(chunks, 3))
+
+
+def assert_fields_equal(got, lazy, want, names):
+    """Computed fields equal one Scene's, with the dtypes and shapes the lazy arrays announced."""
+    assert sorted(got) == sorted(lazy) == sorted(names)
+    for name in names:
+        expected = getattr(want, name)
+        assert got[name].dtype == lazy[name].dtype == expected.dtype, name
+        assert got[name].shape == lazy[name].shape == expected.shape, name
+        np.testing.assert_array_equal(got[name], expected, err_msg=name)
+
+
+def test_every_function_answers_what_one_process_answers(client, any_device):
+    spec = solids_spec()
+    scene = spec.build(any_device)
+    o, d = rays(N, 21)
+    origins, directions = chunked(o, UNEVEN), chunked(d, 1000)
+    tmax = np.random.default_rng(21).uniform(0.5, 3.0, N)
+    points = np.random.default_rng(22).uniform(-0.5, 1.8, (N, 3))
+    p = chunked(points, (2000, 5, 1996))
+    precisions = [x for x in ("fast", "exact") if x in tiers(any_device)]
+
+    lazy = {f"intersect {x}": vkray_dask.intersect(spec, origins, directions, outputs=vkray.HIT_FIELDS, precision=x)
+            for x in precisions}
+    lazy["intersect masked"] = vkray_dask.intersect(spec, origins, directions, tmax=da.from_array(tmax, 900), mask=1)
+    lazy["closest"] = vkray_dask.closest_points(spec, p, outputs=vkray.CLOSEST_FIELDS)
+    lazy["closest exact"] = vkray_dask.closest_points(spec, p, max_distance=0.3, precision="exact")
+    arrays = {
+        "occluded": vkray_dask.occluded(spec, origins, directions, tmax=tmax),
+        "count": vkray_dask.count(spec, origins, directions, precision=precisions[-1]),
+        "contains": vkray_dask.contains(spec, p, method="winding"),
+    }
+    got, got_arrays = dask.compute(lazy, arrays)
+
+    for x in precisions:
+        want = scene.intersect(o, d, outputs=vkray.HIT_FIELDS, precision=x)
+        assert_fields_equal(got[f"intersect {x}"], lazy[f"intersect {x}"], want, vkray.HIT_FIELDS)
+    want = scene.intersect(o, d, tmax=tmax, mask=1)
+    assert_fields_equal(got["intersect masked"], lazy["intersect masked"], want, vkray.DEFAULT_FIELDS)
+    want = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS)
+    assert_fields_equal(got["closest"], lazy["closest"], want, vkray.CLOSEST_FIELDS)
+    want = scene.closest_points(points, max_distance=0.3, precision="exact")
+    assert_fields_equal(got["closest exact"], lazy["closest exact"], want, lazy["closest exact"].keys())
+    wanted = {
+        "occluded": scene.occluded(o, d, tmax=tmax),
+        "count": scene.count(o, d, precision=precisions[-1]),
+        "contains": scene.contains(points, method="winding"),
+    }
+    for name, want in wanted.items():
+        assert got_arrays[name].dtype == arrays[name].dtype == want.dtype, name
+        np.testing.assert_array_equal(got_arrays[name], want, err_msg=name)
+    assert 0 < wanted["occluded"].mean() < 1 and 0 < wanted["contains"].mean() < 1
+    assert origins.chunks[0] == arrays["count"].chunks[0] == UNEVEN
+
+
+def test_a_builder_and_parity(client, any_device):
+    """A scene from a builder (a closure, pickled by value) and contains' parity on closed boxes:
+    one process's answers, on 0 rays too."""
+    shift = SHIFT.copy()
+
+    def build(device):
+        cube = device.mesh(*box())
+        return device.scene([cube, vkray.Instance(cube, shift, custom_index=5)])
+
+    scene = build(any_device)
+    points = np.random.default_rng(23).uniform(-0.5, 1.8, (N, 3))
+    inside = vkray_dask.contains(build, chunked(points, 1500))
+    counts = vkray_dask.count(build, *(chunked(a, 999) for a in rays(N, 24)), precision="reference")
+    empty = vkray_dask.occluded(build, np.zeros((0, 3)), np.zeros((0, 3)))
+    got_inside, got_counts, got_empty = dask.compute(inside, counts, empty)
+    np.testing.assert_array_equal(got_inside, scene.contains(points))
+    np.testing.assert_array_equal(got_counts, scene.count(*rays(N, 24), precision="reference"))
+    assert got_empty.shape == (0,) and got_empty.dtype == bool
+    assert 0 < got_inside.mean() < 1
+
+
+def test_the_scene_reaches_each_worker_once_and_is_built_once(client):
+    """12 chunks over 2 workers: each worker receives the spec at most once per computation and
+    builds its scene at most once, then keeps it for the next computation."""
+    spec = solids_spec(SHIFT + np.eye(4, k=3) * np.random.default_rng().uniform(0.1, 0.2))  # a new scene
+    before = client.run(vkray_dask.cache_info)
+    origins, directions = (chunked(a, 350) for a in rays(N, 25))
+    assert origins.numblocks[0] == 12
+    vkray_dask.count(spec, origins, directions).compute()
+    middle = client.run(vkray_dask.cache_info)
+    vkray_dask.occluded(spec, origins, directions).compute()
+    after = client.run(vkray_dask.cache_info)
+    for worker in before:
+        assert after[worker]["device"] == "0/"  # VKRAY_DEVICE, set per worker
+        assert middle[worker]["specs_received"] - before[worker]["specs_received"] <= 1
+        assert after[worker]["specs_received"] - middle[worker]["specs_received"] <= 1
+        assert middle[worker]["builds"] - before[worker]["builds"] <= 1
+        assert after[worker]["builds"] == middle[worker]["builds"]
+    assert sum(middle[w]["builds"] - before[w]["builds"] for w in before) >= 1
+
+
+def test_errors_are_one_process_errors(client, any_device):
+    """Bad rows raise at compute time what one Scene raises for the whole batch (the row counted
+    in the whole batch); bad shapes, options and specs when the graph is made."""
+    spec = solids_spec()
+    o, d = rays(N, 26)
+    o[2500] = np.nan  # in the third chunk of UNEVEN
+    with pytest.raises(ValueError) as want:
+        spec.build(any_device).occluded(o, d)
+    with pytest.raises(ValueError) as got:
+        vkray_dask.occluded(spec, chunked(o, UNEVEN), chunked(d, UNEVEN)).compute()
+    assert str(got.value) == str(want.value) and str(want.value).startswith("origins row 2500 is not finite")
+    with pytest.raises(ValueError, match=r"points must have shape \(N, 3\)"):
+        vkray_dask.contains(spec, da.zeros((10, 2)))
+    with pytest.raises(ValueError, match="same shape"):
+        vkray_dask.count(spec, da.zeros((10, 3)), da.zeros((9, 3)))
+    with pytest.raises(ValueError, match="one per ray"):
+        vkray_dask.count(spec, da.zeros((10, 3)), da.ones((10, 3)), tmax=np.ones(9))
+    with pytest.raises(ValueError, match="precision must be one of"):
+        vkray_dask.intersect(spec, da.zeros((10, 3)), da.ones((10, 3)), precision="nonsense")
+    with pytest.raises(ValueError, match="unknown hit fields"):
+        vkray_dask.intersect(spec, da.zeros((10, 3)), da.ones((10, 3)), outputs=["colour"])
+    with pytest.raises(ValueError, match="unknown keys"):
+        vkray_dask.SceneSpec([box()], [{"mesh": 0, "colour": 1}])
+    with pytest.raises(ValueError, match="mesh must be in"):
+        vkray_dask.SceneSpec([box()], [{"mesh": 1}])
+    with pytest.raises(TypeError, match="SceneSpec or a builder"):
+        vkray_dask.count(box(), da.zeros((10, 3)), da.ones((10, 3)))
+
+
+def test_specs_are_named_by_their_content():
+    v, f = box()
+    assert vkray_dask.SceneSpec([(v, f)]).key == vkray_dask.SceneSpec([(v.copy(), f.copy())]).key
+    assert vkray_dask.SceneSpec([(v, f)]).key != vkray_dask.SceneSpec([(v + 1e-9, f)]).key
+    assert vkray_dask.SceneSpec([(v, f)]).key != vkray_dask.SceneSpec([(v, f)], [{"mesh": 0, "mask": 1}]).key
+    assert vkray_dask.SceneSpec([(v, f)]).key != vkray_dask.SceneSpec([(v.astype(np.float32), f)]).key
+
+
+def test_a_worker_killed_mid_computation_is_replaced_and_nothing_is_lost(client, any_device, tmp_path):
+    """A task upstream of vkray's kills its worker process the first time it runs on a worker
+    that has traced a chunk of this scene (a marker file remembers): the chunks it traced are lost
+    with it. Dask replaces the worker, traces the lost chunks again, and the answers equal one
+    process's, each ray's once, in order."""
+    spec = solids_spec(SHIFT + np.eye(4, k=3) * np.random.default_rng().uniform(0.2, 0.3))  # a new scene
+    o, d = rays(N, 27)
+    marker = str(tmp_path / "killed")
+    pids = set(client.run(os.getpid).values())
+
+    def kill_once_after_a_trace(block, spec_key=spec.key):
+        if spec_key in vkray_dask.cache_info()["scenes"] and not os.path.exists(marker):
+            open(marker, "w").close()
+            time.sleep(0.5)  # for the worker to tell the scheduler of the chunks it traced
+            os.kill(os.getpid(), signal.SIGKILL)
+        return block
+
+    origins = chunked(o, 401).map_blocks(kill_once_after_a_trace, dtype=o.dtype)
+    assert origins.numblocks[0] == 10
+    fields = ("t", "prim_id", "instance_id")
+    hits = vkray_dask.intersect(spec, origins, chunked(d, 401), outputs=fields)
+    with get_task_stream(client) as stream:
+        (got,) = dask.compute(hits)
+    assert os.path.exists(marker)  # the worker was killed
+    traced = [task["key"] for task in stream.data if "vkray-intersect" in str(task["key"])]
+    assert len(traced) > 10 and len(set(traced)) == 10  # some chunks traced twice: lost, then traced again
+    want = spec.build(any_device).intersect(o, d, outputs=fields)
+    assert_fields_equal(got, hits, want, fields)
+    client.wait_for_workers(2)
+    assert len(pids - set(client.run(os.getpid).values())) == 1  # one worker process was replaced
