@@ -397,7 +397,8 @@ def test_ctrl_c_stops_every_piece():
     try:
         timer.start()
         with pytest.raises(KeyboardInterrupt):
-            scene.count(o, d)
+            while True:  # a fast GPU may finish one query before the signal: it lands in a later one
+                scene.count(o, d)
         stopped = time.perf_counter() - started
     finally:
         timer.join()
