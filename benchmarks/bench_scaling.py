@@ -21,7 +21,7 @@ the workers (the same formula without random_rays' quarter of wild directions, e
 --chunk rays from its own seed), so that no ray crosses the network; the figure is the best of --repeat of `dask.compute` gathering every answer
 into this process (numpy out), after one warm-up computation (each worker builds its scene and
 compiles its pipelines). Answers compared with a `Scene` in this process on the same rays.
-GPU-resident arrays (issue 14) are not in this build: every figure is numpy in host memory.
+DeviceGroup does not split CUDA arrays (issue 14) yet: every figure is numpy in host memory.
 """
 
 from __future__ import annotations
