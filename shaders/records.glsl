@@ -83,6 +83,8 @@ layout(push_constant, std430) uniform PointParams {
   uint64_t instances;     // BvhInstance per instance
   uint64_t top_nodes;     // BvhNode: the hierarchy over the instances' bounds (scene frame)
   uint64_t top_items;     // uint per instance: its index, in the top hierarchy's leaf order
+  uint64_t spans;         // winding.comp: WindingSpan per node of `nodes` (0 for closest_point.comp)
+  uint64_t edges;         // winding.comp: WindingEdge, every node's boundary
   double center[3];       // world = scene frame + center
   double max_distance;
   uint count;
@@ -139,6 +141,21 @@ struct BvhInstance {
   uint identity;
   uint triangle_count;
   uint mirrored;
+};
+
+// Winding numbers (geometry/winding.rs): where a node's boundary lies among the WindingEdges
+// (absolute indices), or count 0xFFFFFFFF where the node keeps none (its children or its
+// triangles are summed). 8 bytes.
+struct WindingSpan {
+  uint first;
+  uint count;
+};
+
+// Winding numbers: one oriented boundary edge of a node's triangles, in the mesh's frame (f64).
+// 48 bytes.
+struct WindingEdge {
+  double a[3];
+  double b[3];
 };
 
 // Closest points: the nearest surface point of one point (world, f64), the barycentrics (of

@@ -1,5 +1,6 @@
 //! Host-side geometry: the caller's arrays and their checks, rays and their packing, vertex
-//! formats, Morton order, f64 ray–triangle math and the CPU BVH. Nothing here touches Vulkan.
+//! formats, Morton order, f64 ray–triangle math, the CPU BVH and winding numbers over it.
+//! Nothing here touches Vulkan.
 
 pub mod arrays;
 pub mod morton;
@@ -9,6 +10,7 @@ pub mod rays;
 pub mod reference;
 pub mod sensor;
 pub mod vertex_format;
+pub mod winding;
 
 /// Rounds `value` up to a multiple of `alignment` (a power of two, or 0/1 for none).
 pub fn align_up(value: u64, alignment: u64) -> u64 {

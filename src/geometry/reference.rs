@@ -8,6 +8,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::parallel;
+use super::winding::WindingTree;
 
 use crate::geometry::precision::{closest_point_on_triangle, watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
 
@@ -154,6 +155,7 @@ pub struct TriangleSet {
     /// Where each part (geometry) of a multi-part mesh starts among `faces`, and the end.
     pub part_offsets: Vec<u32>,
     bvh: OnceLock<Bvh>,
+    winding: OnceLock<WindingTree>,
 }
 
 impl TriangleSet {
@@ -161,7 +163,7 @@ impl TriangleSet {
     pub fn new(vertices: Vec<DVec3>, faces: Vec<[u32; 3]>, part_offsets: Vec<u32>) -> TriangleSet {
         debug_assert_eq!(part_offsets.last().copied(), Some(faces.len() as u32));
         let bounds = Aabb::of_points(vertices.iter().copied());
-        TriangleSet { vertices, faces, bounds, part_offsets, bvh: OnceLock::new() }
+        TriangleSet { vertices, faces, bounds, part_offsets, bvh: OnceLock::new(), winding: OnceLock::new() }
     }
 
     /// The index among all triangles of triangle `prim` of part `part`.
@@ -185,6 +187,11 @@ impl TriangleSet {
             });
             Bvh::build(&boxes)
         })
+    }
+
+    /// The boundaries of the hierarchy's nodes, for winding numbers (built on first use).
+    pub fn winding_tree(&self) -> &WindingTree {
+        self.winding.get_or_init(|| WindingTree::build(self))
     }
 
     pub fn triangle(&self, prim: usize) -> [DVec3; 3] {

@@ -170,6 +170,10 @@ pub struct PointParams {
     pub top_nodes: u64,
     /// u32 instance indices in the top hierarchy's leaf order.
     pub top_items: u64,
+    /// Winding numbers: `WindingSpan` per node of `nodes` (0 for closest points).
+    pub spans: u64,
+    /// Winding numbers: `WindingEdge`s, every node's boundary.
+    pub edges: u64,
     /// The scene frame's offset: world = scene + center.
     pub center: [f64; 3],
     pub max_distance: f64,
@@ -278,6 +282,25 @@ pub struct BvhInstance {
     pub mirrored: u32,
 }
 
+/// Where one node's boundary lies among the `WindingEdge`s (`WindingSpan` in
+/// shaders/records.glsl; geometry::winding::Span with absolute indices).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct WindingSpan {
+    pub first: u32,
+    /// `geometry::winding::NO_CAP`: the node keeps no boundary.
+    pub count: u32,
+}
+
+/// One oriented boundary edge of a node's triangles, in the mesh's frame (`WindingEdge` in
+/// shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct WindingEdge {
+    pub a: [f64; 3],
+    pub b: [f64; 3],
+}
+
 /// The nearest surface point of one point (`PointHit` in shaders/records.glsl).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -308,8 +331,9 @@ layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primiti
     part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144);
 layout!(Sensor, size 128, origin @ 0, axes @ 16, kind @ 64, columns @ 68, rows @ 72, pixel_offset @ 76, table @ 80,
     tmin64 @ 88, tmax64 @ 96, shift @ 104);
-layout!(PointParams, size 104, points @ 0, distances @ 8, hits @ 16, nodes @ 24, triangles @ 32, instances @ 40,
-    top_nodes @ 48, top_items @ 56, center @ 64, max_distance @ 88, count @ 96, instance_count @ 100);
+layout!(PointParams, size 120, points @ 0, distances @ 8, hits @ 16, nodes @ 24, triangles @ 32, instances @ 40,
+    top_nodes @ 48, top_items @ 56, spans @ 64, edges @ 72, center @ 80, max_distance @ 104, count @ 112,
+    instance_count @ 116);
 layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
     frame @ 48, t @ 56, origin_stride @ 64, direction_stride @ 68, tmin_stride @ 72, tmax_stride @ 76, count @ 80,
     first_row @ 84, formats @ 88, unused @ 92);
@@ -319,6 +343,8 @@ layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
 layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
 layout!(BvhInstance, size 224, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
     identity @ 212, triangle_count @ 216, mirrored @ 220);
+layout!(WindingSpan, size 8, first @ 0, count @ 4);
+layout!(WindingEdge, size 48, a @ 0, b @ 24);
 layout!(PointHit, size 48, position @ 0, u @ 24, v @ 32, instance @ 40, prim @ 44);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
 layout!(FastHit, size 32, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20, unused @ 24);
@@ -444,6 +470,8 @@ mod tests {
                     instances,
                     top_nodes,
                     top_items,
+                    spans,
+                    edges,
                     center,
                     max_distance,
                     count,
@@ -503,6 +531,8 @@ mod tests {
                     mirrored
                 ),
             ),
+            ("WindingSpan", size_of::<WindingSpan>(), members!(WindingSpan: first, count)),
+            ("WindingEdge", size_of::<WindingEdge>(), members!(WindingEdge: a, b)),
             ("PointHit", size_of::<PointHit>(), members!(PointHit: position, u, v, instance, prim)),
             ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),
             ("HitList", size_of::<HitList>(), members!(HitList: first, capacity)),

@@ -1,6 +1,7 @@
 //! Closest points' view of a scene on the device: the reference tier's own hierarchies (each
 //! mesh's, and the one over the instances' bounds), flattened into f64 records that a compute
-//! shader searches best first, as `ReferenceTracer::closest_point` does on the CPU.
+//! shader searches best first, as `ReferenceTracer::closest_point` does on the CPU; and winding
+//! numbers' boundaries of those hierarchies' nodes.
 
 use std::sync::Arc;
 
@@ -10,7 +11,7 @@ use crate::error::{Error, Result};
 use crate::geometry::precision::{Aabb, Affine};
 use crate::geometry::reference::{largest_stretch, Bvh, TriangleSet};
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
-use crate::gpu::records::{BvhInstance, BvhNode, BvhTriangle};
+use crate::gpu::records::{BvhInstance, BvhNode, BvhTriangle, WindingEdge, WindingSpan};
 
 /// The device's copy of every hierarchy closest points search.
 pub struct ClosestScene {
@@ -32,17 +33,13 @@ impl ClosestScene {
                 ctx.info.name
             )));
         }
-        let mut sets: Vec<&Arc<TriangleSet>> = Vec::new();
+        let sets = unique_sets(scene);
         let (mut nodes, mut triangles) = (Vec::new(), Vec::new());
         // Where each set's nodes and triangles start.
         let mut starts: Vec<(u32, u32)> = Vec::new();
-        for placement in &scene.placements {
-            if sets.iter().any(|s| Arc::ptr_eq(s, &placement.triangles)) {
-                continue;
-            }
-            sets.push(&placement.triangles);
+        for set in &sets {
             starts.push((count_u32(nodes.len(), "nodes")?, count_u32(triangles.len(), "triangles")?));
-            flatten(&placement.triangles, &mut nodes, &mut triangles);
+            flatten(set, &mut nodes, &mut triangles);
         }
         let instances: Vec<BvhInstance> = scene
             .placements
@@ -81,6 +78,57 @@ impl ClosestScene {
     pub fn addresses(&self) -> [u64; 5] {
         [&self.nodes, &self.triangles, &self.instances, &self.top_nodes, &self.top_items].map(Buffer::address)
     }
+}
+
+/// Winding numbers' view of a scene on the device: every node's boundary (geometry::winding),
+/// beside `ClosestScene`'s nodes and in their order, the edges' corners in f64.
+pub struct WindingScene {
+    spans: Buffer,
+    edges: Buffer,
+}
+
+impl WindingScene {
+    pub(super) fn build(scene: &Scene) -> Result<WindingScene> {
+        let ctx = scene.tlas.context();
+        let (mut spans, mut edges) = (Vec::new(), Vec::new());
+        for set in unique_sets(scene) {
+            let tree = set.winding_tree();
+            let first = count_u32(edges.len(), "boundary edges")?;
+            count_u32(edges.len() + tree.edges().len(), "boundary edges")?;
+            spans.extend(tree.spans().iter().map(|span| WindingSpan { first: first + span.first, count: span.count }));
+            edges.extend(tree.edges().iter().map(|&[u, v]| WindingEdge {
+                a: set.vertices[u as usize].to_array(),
+                b: set.vertices[v as usize].to_array(),
+            }));
+        }
+        let mut uploads = Uploads::default();
+        let built = WindingScene {
+            spans: uploads.records(ctx, &at_least_one(spans), GEOMETRY_INPUT, "winding spans")?,
+            edges: uploads.records(ctx, &at_least_one(edges), GEOMETRY_INPUT, "winding edges")?,
+        };
+        ctx.run_commands(|cmd| {
+            uploads.record(ctx, cmd);
+            Ok(())
+        })?;
+        Ok(built)
+    }
+
+    /// Device addresses: spans, edges.
+    pub fn addresses(&self) -> [u64; 2] {
+        [&self.spans, &self.edges].map(Buffer::address)
+    }
+}
+
+/// The scene's triangle sets, each once, in the order of their first placement: the order of
+/// both views' records.
+fn unique_sets(scene: &Scene) -> Vec<&Arc<TriangleSet>> {
+    let mut sets: Vec<&Arc<TriangleSet>> = Vec::new();
+    for placement in &scene.placements {
+        if !sets.iter().any(|s| Arc::ptr_eq(s, &placement.triangles)) {
+            sets.push(&placement.triangles);
+        }
+    }
+    sets
 }
 
 /// Appends a set's hierarchy (child and leaf indices from its first node) and its triangles in

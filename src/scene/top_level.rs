@@ -6,7 +6,7 @@ use std::time::Instant;
 use ash::vk;
 use glam::DVec3;
 
-use super::closest::ClosestScene;
+use super::closest::{ClosestScene, WindingScene};
 use super::exact::ExactScene;
 use super::instance::{place, Instance, Placement, MAX_CUSTOM_INDEX};
 use super::mesh::{Mesh, MeshKind};
@@ -43,6 +43,8 @@ pub struct Scene {
     exact: OnceLock<Arc<ExactScene>>,
     /// Closest points' hierarchies on the device, built on their first query.
     closest: OnceLock<Arc<ClosestScene>>,
+    /// Winding numbers' boundaries on the device, built on their first query.
+    winding: OnceLock<Arc<WindingScene>>,
     /// The instances' bounds in the scene's frame.
     bounds: Aabb,
 }
@@ -91,6 +93,7 @@ impl Scene {
             last_update_seconds: 0.0,
             exact: OnceLock::new(),
             closest: OnceLock::new(),
+            winding: OnceLock::new(),
         })
     }
 
@@ -137,6 +140,7 @@ impl Scene {
         self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
         self.exact = OnceLock::new();
         self.closest = OnceLock::new();
+        self.winding = OnceLock::new();
         self.last_update_seconds = started.elapsed().as_secs_f64();
         Ok(())
     }
@@ -197,6 +201,16 @@ impl Scene {
         }
         let built = Arc::new(ClosestScene::build(self)?);
         Ok(self.closest.get_or_init(|| built).clone())
+    }
+
+    /// Winding numbers' boundaries on the device, built on first use (outside any lock, as
+    /// `exact`).
+    pub fn winding(&self) -> Result<Arc<WindingScene>> {
+        if let Some(winding) = self.winding.get() {
+            return Ok(winding.clone());
+        }
+        let built = Arc::new(WindingScene::build(self)?);
+        Ok(self.winding.get_or_init(|| built).clone())
     }
 
     /// Where rays are packed: the scene's frame and the sphere bounding its instances.

@@ -20,11 +20,12 @@ use crate::error::{try_vec, vulkan_error, Result, VkResultExt};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::geometry::reference::ReferenceHit;
+use crate::geometry::winding::CAP_MARGIN_DIVISOR;
 use crate::gpu::context::{Commands, Context, Interrupt};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{PointHit, PointParams};
 use crate::gpu::shaders;
-use crate::scene::{ClosestScene, Scene};
+use crate::scene::{ClosestScene, Scene, WindingScene};
 
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
@@ -104,8 +105,10 @@ impl PointPipelines {
                 self.ctx.info.name
             )));
         }
-        let values = [self.local_size, (shader == PointShader::ClosestF32) as u32];
-        let entries = [0u32, 1].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4));
+        // closest_point.comp reads 0 and 1, winding.comp 0 and 2.
+        let values = [self.local_size, (shader == PointShader::ClosestF32) as u32, CAP_MARGIN_DIVISOR];
+        let entries =
+            [0u32, 1, 2].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4));
         let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
         let stage = vk::PipelineShaderStageCreateInfo::default()
             .stage(vk::ShaderStageFlags::COMPUTE)
@@ -236,6 +239,8 @@ impl PointSlot {
 struct PointJob<'a> {
     points: Vec3s<'a>,
     structures: &'a ClosestScene,
+    /// Winding numbers' boundaries (winding.comp), or none (closest_point.comp).
+    boundaries: Option<&'a WindingScene>,
     pipeline: vk::Pipeline,
     center: DVec3,
     max_distance: f64,
@@ -264,6 +269,7 @@ impl Tracer {
         let job = PointJob {
             points,
             structures: &structures,
+            boundaries: None,
             pipeline: self.points.pipeline(if precision == Precision::Fast {
                 PointShader::ClosestF32
             } else {
@@ -325,9 +331,11 @@ impl Tracer {
     ) -> Result<()> {
         let n = points.rows();
         let structures = scene.closest()?;
+        let boundaries = scene.winding()?;
         let job = PointJob {
             points,
             structures: &structures,
+            boundaries: Some(&boundaries),
             pipeline: self.points.pipeline(PointShader::Winding)?,
             center: scene.center,
             max_distance: 0.0,
@@ -448,6 +456,7 @@ impl Tracer {
         }
         stamp(Stamp::Uploaded);
         let [nodes, triangles, instances, top_nodes, top_items] = job.structures.addresses();
+        let [spans, edges] = job.boundaries.map_or([0, 0], WindingScene::addresses);
         let results = slot.results_address();
         let params = PointParams {
             points: slot.points_address(),
@@ -458,6 +467,8 @@ impl Tracer {
             instances,
             top_nodes,
             top_items,
+            spans,
+            edges,
             center: job.center.to_array(),
             max_distance: job.max_distance,
             count: len as u32,

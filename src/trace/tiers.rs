@@ -380,6 +380,9 @@ pub const PARITY_DIRECTION: DVec3 = DVec3::new(0.6, 0.48, 0.64);
 /// counts as inside, by either method.
 pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], interrupt: &dyn Interrupt) -> Result<()> {
     let tracer = scene.reference_tracer();
+    if winding {
+        build_winding_trees(scene);
+    }
     let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
     in_blocks(out.len(), interrupt, |range| {
         let start = range.start;
@@ -413,6 +416,7 @@ pub fn inside_by_winding(
     interrupt: &dyn Interrupt,
 ) -> Result<()> {
     let tracer = scene.reference_tracer();
+    build_winding_trees(scene);
     let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
     in_blocks(out.len(), interrupt, |range| {
         let start = range.start;
@@ -510,22 +514,28 @@ pub fn odd_crossings(hits: &[ReferenceHit], instances: usize) -> bool {
 }
 
 /// The generalized winding number of an instance's triangles about `p` (scene frame): the sum
-/// of their signed solid angles over 4π (Jacobson et al. 2013; each by Van Oosterom and
-/// Strackee's formula), 1 inside a closed surface, 0 outside, in between near holes; a mirroring
-/// placement turns its triangles inside out, so its sum is negated.
+/// of their signed solid angles over 4π (Jacobson et al. 2013), 1 inside a closed surface, 0
+/// outside, in between near holes, summed over the mesh's hierarchy (`WindingTree`: exact, far
+/// nodes by their boundaries); a mirroring placement turns its triangles inside out, so its sum
+/// is negated.
 fn winding_number(placement: &crate::scene::Placement, p: DVec3) -> f64 {
-    let triangles = &placement.triangles;
-    let total: f64 = (0..triangles.faces.len())
-        .map(|t| {
-            let [a, b, c] = triangles.triangle(t).map(|v| placement.to_scene.point(v) - p);
-            let (la, lb, lc) = (a.length(), b.length(), c.length());
-            let numerator = a.dot(b.cross(c));
-            let denominator = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
-            2.0 * numerator.atan2(denominator)
-        })
-        .sum();
+    let set = &placement.triangles;
+    let w = set.winding_tree().winding_number(set, &placement.to_scene, p, placement.to_local.point(p));
     let mirrored = placement.to_scene.linear.determinant() < 0.0;
-    total / (4.0 * std::f64::consts::PI) * if mirrored { -1.0 } else { 1.0 }
+    if mirrored {
+        -w
+    } else {
+        w
+    }
+}
+
+/// Builds every instance's winding tree before a parallel pass reads them: built lazily inside
+/// it, a thread waiting on one under construction could be the one constructing it (rayon steals
+/// work while it waits) and never wake.
+pub fn build_winding_trees(scene: &Scene) {
+    for placement in &scene.placements {
+        placement.triangles.winding_tree();
+    }
 }
 
 /// The hit triangles of a batch: caller's prim, instance and geometry (int32, -1 on a miss),

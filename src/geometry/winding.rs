@@ -1,0 +1,299 @@
+//! Generalized winding numbers (Jacobson et al. 2013) summed over a mesh's hierarchy, exactly.
+//!
+//! The winding number of a set of triangles S about a point p is the sum of their signed solid
+//! angles over 4π. Where p lies outside a convex region holding all of S, that sum equals the sum
+//! over S's boundary alone: close S with the fan of triangles (o, u, v) from a point o of the
+//! region over each boundary edge u → v (the oriented edges of S's triangles that no other
+//! triangle of S cancels); S less the fan has no boundary, so its winding number is an integer,
+//! 0 outside the region, and S's number is the fan's. This is exact, not a far-field
+//! approximation (Barill et al. 2018 approximate it): a node of the hierarchy whose box p lies
+//! well outside contributes its boundary's few edges instead of its many triangles, and a closed
+//! part contributes nothing. A node keeps its boundary only where it has fewer edges than
+//! triangles; otherwise its children (or its triangles) are summed.
+
+use glam::DVec3;
+
+use super::precision::{Aabb, Affine};
+use super::reference::TriangleSet;
+
+/// A node's boundary among `WindingTree::edges`; `count == NO_CAP`: none kept (sum below it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Span {
+    pub first: u32,
+    pub count: u32,
+}
+
+/// `Span::count` of a node whose boundary is not kept.
+pub const NO_CAP: u32 = u32::MAX;
+
+/// How far outside its box (the box's largest side over this) a point must lie for a node's
+/// boundary to stand in for its triangles: the fan's triangles then keep that distance from the
+/// point, and their solid angles are well conditioned. winding.comp's specialization constant.
+pub const CAP_MARGIN_DIVISOR: u32 = 8;
+
+/// The boundaries of every node of a triangle set's hierarchy (`TriangleSet::bvh`).
+pub struct WindingTree {
+    /// Per node of the hierarchy.
+    spans: Vec<Span>,
+    /// Oriented edges (vertex indices) of the nodes' boundaries, each node's together.
+    edges: Vec<[u32; 2]>,
+}
+
+/// An edge keyed by its lower vertex first, and how many times it runs from the lower vertex to
+/// the higher, less the other way.
+type NetEdge = (u32, u32, i32);
+
+impl WindingTree {
+    pub fn build(set: &TriangleSet) -> WindingTree {
+        let bvh = set.bvh();
+        let (nodes, items) = (bvh.nodes(), bvh.items());
+        let mut boundaries: Vec<Vec<NetEdge>> = (0..nodes.len()).map(|_| Vec::new()).collect();
+        let mut triangles = vec![0usize; nodes.len()];
+        let mut spans = vec![Span { first: 0, count: NO_CAP }; nodes.len()];
+        let mut edges = Vec::new();
+        // Children come after their parent (Bvh::build): the reverse order visits them first.
+        for i in (0..nodes.len()).rev() {
+            let node = &nodes[i];
+            let first = node.first as usize;
+            let boundary = if node.count > 0 {
+                triangles[i] = node.count as usize;
+                let mut own = Vec::with_capacity(3 * node.count as usize);
+                for &prim in &items[first..first + node.count as usize] {
+                    let [a, b, c] = set.faces[prim as usize];
+                    own.extend([net_edge(a, b), net_edge(b, c), net_edge(c, a)]);
+                }
+                own.sort_unstable();
+                cancel(own)
+            } else {
+                triangles[i] = triangles[first] + triangles[first + 1];
+                let left = std::mem::take(&mut boundaries[first]);
+                let right = std::mem::take(&mut boundaries[first + 1]);
+                merge(left, right)
+            };
+            let count: usize = boundary.iter().map(|e| e.2.unsigned_abs() as usize).sum();
+            if count < triangles[i] {
+                spans[i] = Span { first: edges.len() as u32, count: count as u32 };
+                for &(lo, hi, net) in &boundary {
+                    let edge = if net > 0 { [lo, hi] } else { [hi, lo] };
+                    edges.extend(std::iter::repeat_n(edge, net.unsigned_abs() as usize));
+                }
+            }
+            boundaries[i] = boundary;
+        }
+        WindingTree { spans, edges }
+    }
+
+    /// Per node of the set's hierarchy, its boundary among `edges` (or `NO_CAP`).
+    pub fn spans(&self) -> &[Span] {
+        &self.spans
+    }
+
+    /// The boundaries' oriented edges, as vertex indices of the set.
+    pub fn edges(&self) -> &[[u32; 2]] {
+        &self.edges
+    }
+
+    /// The winding number about `p` (scene frame; `local`: the same point in the set's frame) of
+    /// the set's triangles placed by `to_scene`, unsigned by any mirroring.
+    pub fn winding_number(&self, set: &TriangleSet, to_scene: &Affine, p: DVec3, local: DVec3) -> f64 {
+        let bvh = set.bvh();
+        let (nodes, items) = (bvh.nodes(), bvh.items());
+        if nodes.is_empty() {
+            return 0.0;
+        }
+        let corner = |v: DVec3| to_scene.point(v) - p;
+        let vertex = |i: u32| corner(set.vertices[i as usize]);
+        let mut sum = 0.0;
+        let mut stack = Vec::with_capacity(64);
+        stack.push(0usize);
+        while let Some(i) = stack.pop() {
+            let node = &nodes[i];
+            let span = self.spans[i];
+            if span.count != NO_CAP && beyond_margin(&node.bounds, local) {
+                let apex = corner(node.bounds.center());
+                let range = span.first as usize..(span.first + span.count) as usize;
+                for &[u, v] in &self.edges[range] {
+                    sum += twice_solid_angle(apex, vertex(u), vertex(v));
+                }
+            } else if node.count > 0 {
+                for &prim in &items[node.first as usize..(node.first + node.count) as usize] {
+                    let [a, b, c] = set.faces[prim as usize].map(vertex);
+                    sum += twice_solid_angle(a, b, c);
+                }
+            } else {
+                stack.push(node.first as usize + 1);
+                stack.push(node.first as usize);
+            }
+        }
+        sum / (4.0 * std::f64::consts::PI)
+    }
+}
+
+/// Whether `p` lies outside `bounds` grown by its largest side over `CAP_MARGIN_DIVISOR`.
+pub fn beyond_margin(bounds: &Aabb, p: DVec3) -> bool {
+    let margin = DVec3::splat(bounds.extent().max_element() / CAP_MARGIN_DIVISOR as f64);
+    p.cmplt(bounds.min - margin).any() || p.cmpgt(bounds.max + margin).any()
+}
+
+/// Twice the signed solid angle of the triangle (a, b, c) seen from the origin (the corners
+/// relative to the point), by Van Oosterom and Strackee's formula.
+pub fn twice_solid_angle(a: DVec3, b: DVec3, c: DVec3) -> f64 {
+    let (la, lb, lc) = (a.length(), b.length(), c.length());
+    let numerator = a.dot(b.cross(c));
+    let denominator = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
+    2.0 * numerator.atan2(denominator)
+}
+
+fn net_edge(u: u32, v: u32) -> NetEdge {
+    if u < v {
+        (u, v, 1)
+    } else {
+        (v, u, -1)
+    }
+}
+
+/// Sums the counts of equal edges of a sorted list, dropping those that cancel.
+fn cancel(sorted: Vec<NetEdge>) -> Vec<NetEdge> {
+    let mut out: Vec<NetEdge> = Vec::with_capacity(sorted.len());
+    for (lo, hi, net) in sorted {
+        match out.last_mut() {
+            Some(last) if last.0 == lo && last.1 == hi => last.2 += net,
+            _ => out.push((lo, hi, net)),
+        }
+        if out.last().is_some_and(|e| e.2 == 0) {
+            out.pop();
+        }
+    }
+    out
+}
+
+/// Two sorted, cancelled boundaries' sum, sorted and cancelled.
+fn merge(left: Vec<NetEdge>, right: Vec<NetEdge>) -> Vec<NetEdge> {
+    let mut both = Vec::with_capacity(left.len() + right.len());
+    let (mut l, mut r) = (left.into_iter().peekable(), right.into_iter().peekable());
+    loop {
+        let next = match (l.peek(), r.peek()) {
+            (Some(a), Some(b)) => {
+                if (a.0, a.1) <= (b.0, b.1) {
+                    l.next()
+                } else {
+                    r.next()
+                }
+            }
+            (Some(_), None) => l.next(),
+            (None, Some(_)) => r.next(),
+            (None, None) => break,
+        };
+        both.extend(next);
+    }
+    cancel(both)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A unit cube's 12 triangles (outward), with the two on the top face left out when `open`.
+    fn cube(open: bool) -> TriangleSet {
+        let vertices: Vec<DVec3> =
+            (0..8).map(|k| DVec3::new((k & 1) as f64, ((k >> 1) & 1) as f64, ((k >> 2) & 1) as f64)).collect();
+        let mut faces = vec![
+            [0, 2, 1],
+            [1, 2, 3],
+            [0, 1, 5],
+            [0, 5, 4],
+            [1, 3, 7],
+            [1, 7, 5],
+            [3, 2, 6],
+            [3, 6, 7],
+            [2, 0, 4],
+            [2, 4, 6],
+        ];
+        if !open {
+            faces.extend([[4, 5, 7], [4, 7, 6]]);
+        }
+        let count = faces.len() as u32;
+        TriangleSet::new(vertices, faces, vec![0, count])
+    }
+
+    /// A wavy open sheet of `n`×`n` squares: many nodes, each with a boundary.
+    fn sheet(n: u32) -> TriangleSet {
+        let mut vertices = Vec::new();
+        for y in 0..=n {
+            for x in 0..=n {
+                let (fx, fy) = (x as f64 / n as f64, y as f64 / n as f64);
+                vertices.push(DVec3::new(fx, fy, 0.2 * (6.0 * fx).sin() * (5.0 * fy).cos()));
+            }
+        }
+        let at = |x: u32, y: u32| y * (n + 1) + x;
+        let mut faces = Vec::new();
+        for y in 0..n {
+            for x in 0..n {
+                faces.push([at(x, y), at(x + 1, y), at(x + 1, y + 1)]);
+                faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
+            }
+        }
+        let count = faces.len() as u32;
+        TriangleSet::new(vertices, faces, vec![0, count])
+    }
+
+    fn brute_force(set: &TriangleSet, to_scene: &Affine, p: DVec3) -> f64 {
+        let total: f64 = (0..set.faces.len())
+            .map(|t| {
+                let [a, b, c] = set.triangle(t).map(|v| to_scene.point(v) - p);
+                twice_solid_angle(a, b, c)
+            })
+            .sum();
+        total / (4.0 * std::f64::consts::PI)
+    }
+
+    fn points() -> Vec<DVec3> {
+        // A deterministic scatter around the unit cube, near and far.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        (0..400).map(|_| DVec3::new(next(), next(), next()) * 3.0 - DVec3::splat(1.0)).collect()
+    }
+
+    #[test]
+    fn a_closed_part_adds_nothing_and_the_tree_matches_brute_force() {
+        for set in [cube(false), cube(true), sheet(24)] {
+            let tree = WindingTree::build(&set);
+            for p in points() {
+                let (fast, brute) =
+                    (tree.winding_number(&set, &Affine::IDENTITY, p, p), brute_force(&set, &Affine::IDENTITY, p));
+                assert!((fast - brute).abs() < 1e-12, "{p}: {fast} against {brute}");
+            }
+        }
+        // Inside and outside the closed cube: 1 and 0.
+        let closed = cube(false);
+        let tree = WindingTree::build(&closed);
+        let w = |p: DVec3| tree.winding_number(&closed, &Affine::IDENTITY, p, p);
+        assert!((w(DVec3::splat(0.5)) - 1.0).abs() < 1e-12);
+        assert!(w(DVec3::splat(3.0)).abs() < 1e-12);
+        // The closed cube's root has an empty boundary: a far point sums no term at all.
+        assert_eq!(tree.spans()[0], Span { first: tree.spans()[0].first, count: 0 });
+    }
+
+    #[test]
+    fn large_sheets_keep_boundaries_shorter_than_their_triangles() {
+        let set = sheet(64);
+        let tree = WindingTree::build(&set);
+        let root = tree.spans()[0];
+        assert_ne!(root.count, NO_CAP);
+        // The sheet's rim: 4 · 64 edges, against 8192 triangles.
+        assert_eq!(root.count, 4 * 64);
+        let placed = Affine::from_rows(&[0.0, 2.0, 0.0, 5.0, -1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 3.0, -2.0]);
+        let to_local = placed.inverse().expect("invertible");
+        for p in points() {
+            let scene = placed.point(p);
+            let fast = tree.winding_number(&set, &placed, scene, to_local.point(scene));
+            let brute = brute_force(&set, &placed, scene);
+            assert!((fast - brute).abs() < 1e-11, "{p}: {fast} against {brute}");
+        }
+    }
+}
