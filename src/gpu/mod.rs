@@ -2,6 +2,7 @@
 //! records shaders read, and the embedded shaders.
 
 pub mod accel;
+pub mod compute;
 pub mod context;
 pub mod cuda;
 pub mod external;

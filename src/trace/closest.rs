@@ -16,11 +16,12 @@ use super::profile::{Stamp, Stamps, TraceProfile};
 use super::request::Precision;
 use super::tiers;
 use super::tracer::Tracer;
-use crate::error::{try_vec, vulkan_error, Result, VkResultExt};
+use crate::error::{try_vec, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::geometry::reference::ReferenceHit;
 use crate::geometry::winding::CAP_MARGIN_DIVISOR;
+use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::{Commands, Context, Interrupt};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{PointHit, PointParams};
@@ -30,8 +31,6 @@ use crate::scene::{ClosestScene, Scene, WindingScene};
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
 const CHUNK_POINTS: usize = 1 << 18;
-/// Threads per workgroup.
-const WORKGROUP_SIZE: u32 = 64;
 /// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
 /// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
 const WINDING_TERM_ERROR: f64 = 2e-7;
@@ -50,88 +49,35 @@ pub(super) enum PointShader {
 /// The point queries' pipelines of one device (compiled on first use) and their staging.
 pub struct PointPipelines {
     ctx: Arc<Context>,
-    layout: vk::PipelineLayout,
-    /// closest_point.comp, winding.comp (null without shaderFloat64).
-    modules: [vk::ShaderModule; 2],
-    local_size: u32,
-    /// By `PointShader`.
-    compiled: Mutex<[Option<vk::Pipeline>; 3]>,
+    /// closest_point.comp, winding.comp (both in f64: loaded only with shaderFloat64).
+    kernels: [ComputeKernel; 2],
     idle: Mutex<Vec<PointSlot>>,
 }
 
 impl PointPipelines {
     pub fn new(ctx: &Arc<Context>) -> Result<PointPipelines> {
-        let ranges = [vk::PushConstantRange::default()
-            .stage_flags(vk::ShaderStageFlags::COMPUTE)
-            .size(std::mem::size_of::<PointParams>() as u32)];
-        let layout_info = vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&ranges);
-        // SAFETY: a valid create info on a live device.
-        let layout = unsafe { ctx.device.create_pipeline_layout(&layout_info, None) }.vk("vkCreatePipelineLayout")?;
-        // The modules use f64, which only devices with shaderFloat64 may load.
-        let load = |source: &[u8]| -> Result<vk::ShaderModule> {
-            if !ctx.info.shader_float64 {
-                return Ok(vk::ShaderModule::null());
-            }
-            let code = shaders::words(source);
-            let info = vk::ShaderModuleCreateInfo::default().code(&code);
-            // SAFETY: SPIR-V compiled by glslc at build time (validated by the tests).
-            unsafe { ctx.device.create_shader_module(&info, None) }.vk("vkCreateShaderModule")
-        };
-        let modules = [load(shaders::CLOSEST_POINT)?, load(shaders::WINDING)?];
-        let local_size = WORKGROUP_SIZE
-            .min(ctx.limits.max_compute_work_group_size[0])
-            .min(ctx.limits.max_compute_work_group_invocations);
+        let needs = "point queries on the GPU need; precision='reference' gives the same answers on the CPU";
+        let kernel = |spirv| ComputeKernel::new(ctx, spirv, std::mem::size_of::<PointParams>(), Some(needs));
         Ok(PointPipelines {
             ctx: ctx.clone(),
-            layout,
-            modules,
-            local_size,
-            compiled: Mutex::new([None; 3]),
+            kernels: [kernel(shaders::CLOSEST_POINT)?, kernel(shaders::WINDING)?],
             idle: Mutex::new(Vec::new()),
         })
     }
 
-    /// The pipeline of `shader`: cached, or compiled now outside the lock.
+    fn kernel(&self, shader: PointShader) -> &ComputeKernel {
+        &self.kernels[(shader == PointShader::Winding) as usize]
+    }
+
+    /// The pipeline of `shader`.
     pub(super) fn pipeline(&self, shader: PointShader) -> Result<vk::Pipeline> {
-        let slot = shader as usize;
-        if let Some(pipeline) = self.compiled.lock().unwrap_or_else(|e| e.into_inner())[slot] {
-            return Ok(pipeline);
-        }
-        let module = self.modules[(shader == PointShader::Winding) as usize];
-        if module == vk::ShaderModule::null() {
-            return Err(crate::error::Error::Unsupported(format!(
-                "{} has no shaderFloat64, which point queries on the GPU need; precision='reference' gives the same \
-                 answers on the CPU",
-                self.ctx.info.name
-            )));
-        }
-        // closest_point.comp reads 0 and 1, winding.comp 0 and 2.
-        let values = [self.local_size, (shader == PointShader::ClosestF32) as u32, CAP_MARGIN_DIVISOR];
-        let entries =
-            [0u32, 1, 2].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4));
-        let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
-        let stage = vk::PipelineShaderStageCreateInfo::default()
-            .stage(vk::ShaderStageFlags::COMPUTE)
-            .module(module)
-            .name(c"main")
-            .specialization_info(&spec);
-        let info = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(self.layout)];
-        // SAFETY: the module and layout are live objects of this device; the specialization data
-        // outlives the call.
-        let built = unsafe { self.ctx.device.create_compute_pipelines(vk::PipelineCache::null(), &info, None) }
-            .map_err(|(_, result)| vulkan_error("vkCreateComputePipelines", result))?[0];
-        self.ctx.check_validation()?;
-        let mut compiled = self.compiled.lock().unwrap_or_else(|e| e.into_inner());
-        match compiled[slot] {
-            Some(first) => {
-                // SAFETY: `built` was never used.
-                unsafe { self.ctx.device.destroy_pipeline(built, None) };
-                Ok(first)
+        match shader {
+            // closest_point.comp's constant 1: measure in f32.
+            PointShader::Closest | PointShader::ClosestF32 => {
+                self.kernel(shader).pipeline(&[(shader == PointShader::ClosestF32) as u32])
             }
-            None => {
-                compiled[slot] = Some(built);
-                Ok(built)
-            }
+            // winding.comp's constant 2 (1 is unused).
+            PointShader::Winding => self.kernel(shader).pipeline(&[0, CAP_MARGIN_DIVISOR]),
         }
     }
 
@@ -161,27 +107,6 @@ impl PointPipelines {
         idle.extend(slots);
         let surplus = idle.len().saturating_sub(2);
         idle.drain(..surplus);
-    }
-}
-
-impl Drop for PointPipelines {
-    fn drop(&mut self) {
-        if !self.ctx.can_free() {
-            return;
-        }
-        self.idle.get_mut().unwrap_or_else(|e| e.into_inner()).clear();
-        let compiled = self.compiled.get_mut().unwrap_or_else(|e| e.into_inner());
-        // SAFETY: the tracer owning these is dropped only when no query runs (queries borrow it).
-        // Null handles are ignored by vkDestroyShaderModule.
-        unsafe {
-            for pipeline in compiled.iter().flatten() {
-                self.ctx.device.destroy_pipeline(*pipeline, None);
-            }
-            for module in self.modules {
-                self.ctx.device.destroy_shader_module(module, None);
-            }
-            self.ctx.device.destroy_pipeline_layout(self.layout, None);
-        }
     }
 }
 
@@ -241,6 +166,8 @@ struct PointJob<'a> {
     structures: &'a ClosestScene,
     /// Winding numbers' boundaries (winding.comp), or none (closest_point.comp).
     boundaries: Option<&'a WindingScene>,
+    /// The shader's kernel, and the pipeline specialized from it.
+    kernel: &'a ComputeKernel,
     pipeline: vk::Pipeline,
     center: DVec3,
     max_distance: f64,
@@ -266,15 +193,13 @@ impl Tracer {
             || [Field::Prim, Field::Instance, Field::Custom, Field::Uv, Field::Normal, Field::Geometry]
                 .iter()
                 .any(|f| sink.field(*f).is_some());
+        let shader = if precision == Precision::Fast { PointShader::ClosestF32 } else { PointShader::Closest };
         let job = PointJob {
             points,
             structures: &structures,
             boundaries: None,
-            pipeline: self.points.pipeline(if precision == Precision::Fast {
-                PointShader::ClosestF32
-            } else {
-                PointShader::Closest
-            })?,
+            kernel: self.points.kernel(shader),
+            pipeline: self.points.pipeline(shader)?,
             center: scene.center,
             max_distance,
             full,
@@ -336,6 +261,7 @@ impl Tracer {
             points,
             structures: &structures,
             boundaries: Some(&boundaries),
+            kernel: self.points.kernel(PointShader::Winding),
             pipeline: self.points.pipeline(PointShader::Winding)?,
             center: scene.center,
             max_distance: 0.0,
@@ -356,10 +282,7 @@ impl Tracer {
 
     /// Points per chunk for a query of `n` points.
     fn point_capacity(&self, n: usize) -> usize {
-        CHUNK_POINTS
-            .min(self.ctx.limits.max_compute_work_group_count[0] as usize * self.points.local_size as usize)
-            .min(n)
-            .max(1)
+        CHUNK_POINTS.min(self.points.kernels[0].max_invocations()).min(n).max(1)
     }
 
     /// Runs every chunk of `job` through the two `slots`, handing each finished one to `unpack`
@@ -481,12 +404,12 @@ impl Tracer {
             device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, job.pipeline);
             device.cmd_push_constants(
                 cmd,
-                self.points.layout,
+                job.kernel.layout(),
                 vk::ShaderStageFlags::COMPUTE,
                 0,
                 bytemuck::bytes_of(&params),
             );
-            device.cmd_dispatch(cmd, (len as u32).div_ceil(self.points.local_size), 1, 1);
+            device.cmd_dispatch(cmd, (len as u32).div_ceil(job.kernel.local_size), 1, 1);
         }
         stamp(Stamp::Traced);
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);

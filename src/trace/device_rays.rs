@@ -15,10 +15,11 @@ use super::profile::{Stamp, Stamps, TraceProfile};
 use super::request::{Precision, Query, Request};
 use super::tracer::Tracer;
 use super::variants::Variant;
-use crate::error::{invalid_value, vulkan_error, Error, Result, VkResultExt};
+use crate::error::{invalid_value, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::geometry::rays::{Masks, PerRay, Rays, RAY_FLOATS};
+use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::{Backend, Commands, Context, Interrupt, Timeline};
 use crate::gpu::external::HostImport;
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
@@ -67,18 +68,11 @@ pub struct DeviceRays {
 /// requested), `t` and `uv` in f32.
 pub type DeviceOutputs = [u64; FIELD_COUNT];
 
-/// Threads per workgroup of the packing shader.
-const WORKGROUP_SIZE: u32 = 64;
-
 /// The packing shader's pipelines (compiled on first use) and idle scratch.
 pub struct PackPipelines {
     ctx: Arc<Context>,
-    layout: vk::PipelineLayout,
-    /// Null without shaderFloat64 (the shader packs in f64).
-    module: vk::ShaderModule,
-    local_size: u32,
-    /// Pack, finish.
-    compiled: Mutex<[Option<vk::Pipeline>; 2]>,
+    /// pack_rays.comp (it packs in f64: loaded only with shaderFloat64).
+    kernel: ComputeKernel,
     idle: Mutex<Vec<PackScratch>>,
 }
 
@@ -91,80 +85,28 @@ struct PackScratch {
 
 impl PackPipelines {
     pub fn new(ctx: &Arc<Context>) -> Result<PackPipelines> {
-        let ranges = [vk::PushConstantRange::default()
-            .stage_flags(vk::ShaderStageFlags::COMPUTE)
-            .size(std::mem::size_of::<PackParams>() as u32)];
-        let layout_info = vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&ranges);
-        // SAFETY: a valid create info on a live device.
-        let layout = unsafe { ctx.device.create_pipeline_layout(&layout_info, None) }.vk("vkCreatePipelineLayout")?;
-        let module = if ctx.info.shader_float64 {
-            let code = shaders::words(shaders::PACK_RAYS);
-            let info = vk::ShaderModuleCreateInfo::default().code(&code);
-            // SAFETY: SPIR-V compiled by glslc at build time (validated by the tests); f64 is on.
-            unsafe { ctx.device.create_shader_module(&info, None) }.vk("vkCreateShaderModule")?
-        } else {
-            vk::ShaderModule::null()
-        };
-        let local_size = WORKGROUP_SIZE
-            .min(ctx.limits.max_compute_work_group_size[0])
-            .min(ctx.limits.max_compute_work_group_invocations);
-        Ok(PackPipelines {
-            ctx: ctx.clone(),
-            layout,
-            module,
-            local_size,
-            compiled: Mutex::new([None; 2]),
-            idle: Mutex::new(Vec::new()),
-        })
+        let kernel = ComputeKernel::new(
+            ctx,
+            shaders::PACK_RAYS,
+            std::mem::size_of::<PackParams>(),
+            Some("packing rays on the GPU needs"),
+        )?;
+        Ok(PackPipelines { ctx: ctx.clone(), kernel, idle: Mutex::new(Vec::new()) })
     }
 
     /// Most rays one packing dispatch may cover on this device.
     fn max_rays(&self) -> usize {
-        self.ctx.limits.max_compute_work_group_count[0] as usize * self.local_size as usize
+        self.kernel.max_invocations()
     }
 
     /// Whether this device packs rays itself (it needs shaderFloat64).
     pub fn available(&self) -> bool {
-        self.module != vk::ShaderModule::null()
+        self.kernel.available()
     }
 
-    /// The packing (`finish` false) or finishing pipeline: cached, or compiled now outside the lock.
+    /// The packing (`finish` false) or finishing pipeline.
     fn pipeline(&self, finish: bool) -> Result<vk::Pipeline> {
-        let slot = finish as usize;
-        if let Some(pipeline) = self.compiled.lock().unwrap_or_else(|e| e.into_inner())[slot] {
-            return Ok(pipeline);
-        }
-        if !self.available() {
-            return Err(Error::Unsupported(format!(
-                "{} has no shaderFloat64, which packing rays on the GPU needs",
-                self.ctx.info.name
-            )));
-        }
-        let values = [self.local_size, finish as u32];
-        let entries = [0u32, 1].map(|id| vk::SpecializationMapEntry::default().constant_id(id).offset(4 * id).size(4));
-        let spec = vk::SpecializationInfo::default().map_entries(&entries).data(bytemuck::cast_slice(&values));
-        let stage = vk::PipelineShaderStageCreateInfo::default()
-            .stage(vk::ShaderStageFlags::COMPUTE)
-            .module(self.module)
-            .name(c"main")
-            .specialization_info(&spec);
-        let info = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(self.layout)];
-        // SAFETY: the module and layout are live objects of this device; the specialization data
-        // outlives the call.
-        let built = unsafe { self.ctx.device.create_compute_pipelines(vk::PipelineCache::null(), &info, None) }
-            .map_err(|(_, result)| vulkan_error("vkCreateComputePipelines", result))?[0];
-        let mut compiled = self.compiled.lock().unwrap_or_else(|e| e.into_inner());
-        match compiled[slot] {
-            Some(first) => {
-                // SAFETY: `built` was never used.
-                unsafe { self.ctx.device.destroy_pipeline(built, None) };
-                Ok(first)
-            }
-            None => {
-                compiled[slot] = Some(built);
-                Ok(built)
-            }
-        }
+        self.kernel.pipeline(&[finish as u32])
     }
 
     /// Scratch for `capacity` rays: an idle one where it fits, a new one (allocated outside the
@@ -203,26 +145,14 @@ impl PackPipelines {
         // chunks fit `max_rays`).
         unsafe {
             device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
-            device.cmd_push_constants(cmd, self.layout, vk::ShaderStageFlags::COMPUTE, 0, bytemuck::bytes_of(params));
-            device.cmd_dispatch(cmd, params.count.div_ceil(self.local_size), 1, 1);
-        }
-    }
-}
-
-impl Drop for PackPipelines {
-    fn drop(&mut self) {
-        if !self.ctx.can_free() {
-            return;
-        }
-        // SAFETY: no work using these objects is in flight (every query waits for its own).
-        unsafe {
-            for pipeline in self.compiled.get_mut().unwrap_or_else(|e| e.into_inner()).iter().flatten() {
-                self.ctx.device.destroy_pipeline(*pipeline, None);
-            }
-            if self.module != vk::ShaderModule::null() {
-                self.ctx.device.destroy_shader_module(self.module, None);
-            }
-            self.ctx.device.destroy_pipeline_layout(self.layout, None);
+            device.cmd_push_constants(
+                cmd,
+                self.kernel.layout(),
+                vk::ShaderStageFlags::COMPUTE,
+                0,
+                bytemuck::bytes_of(params),
+            );
+            device.cmd_dispatch(cmd, params.count.div_ceil(self.kernel.local_size), 1, 1);
         }
     }
 }
