@@ -19,6 +19,7 @@ const SHADERS: &[&str] = &[
     "closest_point.comp",
     "winding.comp",
     "pack_rays.comp",
+    "point_order.comp",
 ];
 
 fn main() {

@@ -117,6 +117,8 @@ void search_instance(inout Search s, dvec3 p, int instance) {
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= point_params.count) return;
+  // The point this invocation searches (point_order.comp: neighbours in space side by side).
+  if (point_params.order != 0ul) i = Words(point_params.order).v[i];
   Doubles points = Doubles(point_params.points);
   dvec3 center = dvec3(point_params.center[0], point_params.center[1], point_params.center[2]);
   precise dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]) - center;

@@ -46,6 +46,22 @@ const uint PACK_ORIGINS_F64 = 1u;
 const uint PACK_DIRECTIONS_F64 = 2u;
 const uint PACK_TMIN_F64 = 4u;
 const uint PACK_TMAX_F64 = 8u;
+#elif defined(VKRAY_POINT_ORDER)
+// The push constants of point_order.comp (records.rs PointOrderParams): the chunk's points (f64
+// xyz, world), its cells' counters, the order it writes, the grid's corner and cells per unit
+// along each axis (world), the chunk's point count and the pass (POINT_ORDER_*).
+layout(push_constant, std430) uniform PointOrderParams {
+  uint64_t points;
+  uint64_t cells;         // uint per cell: its points' count, then (scanned) its next slot
+  uint64_t order;         // uint per point: the points' indices, cell by cell
+  double corner[3];
+  double scale[3];
+  uint count;
+  uint pass;
+} order_params;
+const uint POINT_ORDER_COUNT = 0u;
+const uint POINT_ORDER_SCAN = 1u;
+const uint POINT_ORDER_SCATTER = 2u;
 #elif !defined(VKRAY_POINT_QUERY)
 // The push constants of every query (records.rs Params, whose `outputs` array holds out_t ..
 // out_geometry in trace::Field order). QUERY_ALL writes no hit fields: out_t points at the
@@ -85,6 +101,8 @@ layout(push_constant, std430) uniform PointParams {
   uint64_t top_items;     // uint per instance: its index, in the top hierarchy's leaf order
   uint64_t spans;         // winding.comp: WindingSpan per node of `nodes` (0 for closest_point.comp)
   uint64_t edges;         // winding.comp: WindingEdge, every node's boundary
+  uint64_t order;         // uint per point: the order to take the points in (point_order.comp),
+                          // or 0: as they come
   double center[3];       // world = scene frame + center
   double max_distance;
   uint count;

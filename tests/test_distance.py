@@ -270,3 +270,29 @@ def test_winding_numbers_on_the_gpu_decide_as_the_cpu(device, bunny):
         t.join()
     for r in results:
         np.testing.assert_array_equal(r, exact)
+
+
+def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, monkeypatch):
+    """A chunk of 4,096 points or more is searched cell by cell of a grid over the scene
+    (point_order.comp's counting sort on the GPU); each answer must still land in its own row:
+    the exact tier equals the reference tier bit for bit, and equals the same query with the
+    points searched as they come (VKRAY_POINT_ORDER=input), for points inside the grid, far
+    outside it (clamped to its border cells) and repeated ones; winding numbers likewise."""
+    v, f = bunny
+    scene = device.scene([device.mesh(v, f)])
+    rng = np.random.default_rng(5)
+    points = np.vstack([points_around(v, 9000, seed=3), np.repeat(v[:10], 100, axis=0), [[1e6, -1e6, 3e5]]])
+    rng.shuffle(points)
+    ordered = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS, precision="exact")
+    reference = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS, precision="reference")
+    monkeypatch.setenv("VKRAY_POINT_ORDER", "input")
+    as_they_come = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS, precision="exact")
+    for field in vkray.CLOSEST_FIELDS:
+        np.testing.assert_array_equal(getattr(ordered, field), getattr(as_they_come, field), err_msg=field)
+    np.testing.assert_array_equal(ordered.distance, reference.distance)
+    np.testing.assert_array_equal(ordered.position, reference.position)
+    inside_as_they_come = scene.contains(points[:5000], method="winding")
+    monkeypatch.delenv("VKRAY_POINT_ORDER")
+    inside = scene.contains(points[:5000], method="winding")
+    np.testing.assert_array_equal(inside, inside_as_they_come)
+    np.testing.assert_array_equal(inside, scene.contains(points[:5000], method="winding", precision="reference"))

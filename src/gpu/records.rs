@@ -174,12 +174,39 @@ pub struct PointParams {
     pub spans: u64,
     /// Winding numbers: `WindingEdge`s, every node's boundary.
     pub edges: u64,
+    /// u32 per point: the order to search the points in (point_order.comp), or 0: as they come.
+    pub order: u64,
     /// The scene frame's offset: world = scene + center.
     pub center: [f64; 3],
     pub max_distance: f64,
     pub count: u32,
     pub instance_count: u32,
 }
+
+/// The push constants of point_order.comp (`PointOrderParams` in shaders/records.glsl): one
+/// chunk's points, its grid's cells and the order it writes.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct PointOrderParams {
+    /// f64 xyz per point, world.
+    pub points: u64,
+    /// u32 per cell.
+    pub cells: u64,
+    /// u32 per point.
+    pub order: u64,
+    /// The grid's corner (world) and cells per unit along each axis.
+    pub corner: [f64; 3],
+    pub scale: [f64; 3],
+    pub count: u32,
+    /// `POINT_ORDER_*`.
+    pub pass: u32,
+}
+
+/// `PointOrderParams::pass`: count each cell's points; scan the counts into first slots; write
+/// each point's index into its cell's next slot.
+pub const POINT_ORDER_COUNT: u32 = 0;
+pub const POINT_ORDER_SCAN: u32 = 1;
+pub const POINT_ORDER_SCATTER: u32 = 2;
 
 /// The push constants of pack_rays.comp (`PackParams` in shaders/records.glsl): one chunk of the
 /// caller's rays in its own layout, and where their packed form goes.
@@ -331,9 +358,10 @@ layout!(ExactInstance, size 160, rows @ 0, vertices @ 96, indices @ 104, primiti
     part_count @ 128, flags @ 132, opacity @ 136, _padding @ 144);
 layout!(Sensor, size 128, origin @ 0, axes @ 16, kind @ 64, columns @ 68, rows @ 72, pixel_offset @ 76, table @ 80,
     tmin64 @ 88, tmax64 @ 96, shift @ 104);
-layout!(PointParams, size 120, points @ 0, distances @ 8, hits @ 16, nodes @ 24, triangles @ 32, instances @ 40,
-    top_nodes @ 48, top_items @ 56, spans @ 64, edges @ 72, center @ 80, max_distance @ 104, count @ 112,
-    instance_count @ 116);
+layout!(PointParams, size 128, points @ 0, distances @ 8, hits @ 16, nodes @ 24, triangles @ 32, instances @ 40,
+    top_nodes @ 48, top_items @ 56, spans @ 64, edges @ 72, order @ 80, center @ 88, max_distance @ 112, count @ 120,
+    instance_count @ 124);
+layout!(PointOrderParams, size 80, points @ 0, cells @ 8, order @ 16, corner @ 24, scale @ 48, count @ 72, pass @ 76);
 layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
     frame @ 48, t @ 56, origin_stride @ 64, direction_stride @ 68, tmin_stride @ 72, tmax_stride @ 76, count @ 80,
     first_row @ 84, formats @ 88, unused @ 92);
@@ -472,6 +500,7 @@ mod tests {
                     top_items,
                     spans,
                     edges,
+                    order,
                     center,
                     max_distance,
                     count,
@@ -530,6 +559,11 @@ mod tests {
                     triangle_count,
                     mirrored
                 ),
+            ),
+            (
+                "PointOrderParams",
+                size_of::<PointOrderParams>(),
+                members!(PointOrderParams: points, cells, order, corner, scale, count, pass),
             ),
             ("WindingSpan", size_of::<WindingSpan>(), members!(WindingSpan: first, count)),
             ("WindingEdge", size_of::<WindingEdge>(), members!(WindingEdge: a, b)),

@@ -19,6 +19,7 @@ pub const ANY_HIT_OPACITY: &[u8] = spirv!("any_hit_opacity.rahit");
 pub const CLOSEST_POINT: &[u8] = spirv!("closest_point.comp");
 pub const WINDING: &[u8] = spirv!("winding.comp");
 pub const PACK_RAYS: &[u8] = spirv!("pack_rays.comp");
+pub const POINT_ORDER: &[u8] = spirv!("point_order.comp");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -35,6 +36,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("closest_point.comp", CLOSEST_POINT),
     ("winding.comp", WINDING),
     ("pack_rays.comp", PACK_RAYS),
+    ("point_order.comp", POINT_ORDER),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

@@ -193,6 +193,11 @@ impl Scene {
         Ok(self.exact.get_or_init(|| built).clone())
     }
 
+    /// The instances' bounds in the scene's frame (empty without instances).
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
     /// Closest points' hierarchies on the device, built on first use (outside any lock, as
     /// `exact`).
     pub fn closest(&self) -> Result<Arc<ClosestScene>> {

@@ -24,13 +24,21 @@ use crate::geometry::winding::CAP_MARGIN_DIVISOR;
 use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::{Commands, Context, Interrupt};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
-use crate::gpu::records::{PointHit, PointParams};
+use crate::gpu::records::{
+    PointHit, PointOrderParams, PointParams, POINT_ORDER_COUNT, POINT_ORDER_SCAN, POINT_ORDER_SCATTER,
+};
 use crate::gpu::shaders;
 use crate::scene::{ClosestScene, Scene, WindingScene};
 
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
 const CHUNK_POINTS: usize = 1 << 18;
+/// Cells per axis of the grid that orders each chunk's points (point_order.comp's GRID): 32³
+/// cells, a few points each at full chunks.
+const ORDER_GRID: u32 = 32;
+/// Chunks of fewer points are searched as they come (ordering them would cost more than it buys).
+const ORDER_MIN_POINTS: usize = 4096;
+
 /// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
 /// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
 const WINDING_TERM_ERROR: f64 = 2e-7;
@@ -51,6 +59,8 @@ pub struct PointPipelines {
     ctx: Arc<Context>,
     /// closest_point.comp, winding.comp (both in f64: loaded only with shaderFloat64).
     kernels: [ComputeKernel; 2],
+    /// point_order.comp.
+    order: ComputeKernel,
     idle: Mutex<Vec<PointSlot>>,
 }
 
@@ -61,6 +71,7 @@ impl PointPipelines {
         Ok(PointPipelines {
             ctx: ctx.clone(),
             kernels: [kernel(shaders::CLOSEST_POINT)?, kernel(shaders::WINDING)?],
+            order: ComputeKernel::new(ctx, shaders::POINT_ORDER, std::mem::size_of::<PointOrderParams>(), Some(needs))?,
             idle: Mutex::new(Vec::new()),
         })
     }
@@ -116,6 +127,9 @@ struct PointSlot {
     points_host: Buffer,
     results_host: Buffer,
     device: Option<(Buffer, Buffer)>,
+    /// point_order.comp's cells (u32 each) and order (u32 per point).
+    cells: Buffer,
+    order: Buffer,
     capacity: usize,
     full: bool,
     stamps: Option<Stamps>,
@@ -143,7 +157,10 @@ impl PointSlot {
                 )),
             )
         };
-        Ok(PointSlot { points_host, results_host, device, capacity, full, stamps: Stamps::new(ctx)? })
+        let cells = (4 * ORDER_GRID.pow(3)) as u64;
+        let cells = Buffer::new(ctx, cells, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "point order cells")?;
+        let order = Buffer::new(ctx, 4 * capacity as u64, storage, MemoryLocation::GpuOnly, "point order")?;
+        Ok(PointSlot { points_host, results_host, device, cells, order, capacity, full, stamps: Stamps::new(ctx)? })
     }
 
     /// Distances (f64 each), then (full outputs) the `PointHit`s.
@@ -172,6 +189,18 @@ struct PointJob<'a> {
     center: DVec3,
     max_distance: f64,
     full: bool,
+    /// How point_order.comp orders the points, or none: as they come.
+    grid: Option<OrderGrid>,
+}
+
+/// The grid point_order.comp orders a query's points by, and its pipeline.
+#[derive(Clone, Copy)]
+struct OrderGrid {
+    /// World.
+    corner: [f64; 3],
+    /// Cells per unit along each axis.
+    scale: [f64; 3],
+    pipeline: vk::Pipeline,
 }
 
 impl Tracer {
@@ -203,6 +232,7 @@ impl Tracer {
             center: scene.center,
             max_distance,
             full,
+            grid: self.order_grid(scene)?,
         };
         let mut distances = sink.take(Field::T);
         let mut hits: Vec<PointHit> =
@@ -266,6 +296,7 @@ impl Tracer {
             center: scene.center,
             max_distance: 0.0,
             full: false,
+            grid: self.order_grid(scene)?,
         };
         let mut winding = try_vec(n, 0.0f64, "winding numbers")?;
         let capacity = self.point_capacity(n);
@@ -377,6 +408,13 @@ impl Tracer {
                 vk::AccessFlags::SHADER_READ,
             );
         }
+        let order = match job.grid {
+            Some(grid) if len >= ORDER_MIN_POINTS => {
+                self.record_order(cmd, slot, len, grid);
+                slot.order.address()
+            }
+            _ => 0,
+        };
         stamp(Stamp::Uploaded);
         let [nodes, triangles, instances, top_nodes, top_items] = job.structures.addresses();
         let [spans, edges] = job.boundaries.map_or([0, 0], WindingScene::addresses);
@@ -392,6 +430,7 @@ impl Tracer {
             top_items,
             spans,
             edges,
+            order,
             center: job.center.to_array(),
             max_distance: job.max_distance,
             count: len as u32,
@@ -435,6 +474,79 @@ impl Tracer {
         unsafe { device.cmd_copy_buffer(cmd, results_device.raw(), slot.results_host.raw(), &regions) };
         memory_barrier(ctx, cmd, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE, host.0, host.1);
         stamp(Stamp::ReadBack);
+    }
+}
+
+impl Tracer {
+    /// Records point_order.comp's three passes over a chunk's points (already on the device):
+    /// the slot's `order` then lists them cell by cell along a Morton curve over `grid`.
+    fn record_order(&self, cmd: vk::CommandBuffer, slot: &PointSlot, len: usize, grid: OrderGrid) {
+        let ctx = &self.ctx;
+        let kernel = &self.points.order;
+        let OrderGrid { corner, scale, pipeline } = grid;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        let read_write = vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE;
+        // SAFETY: `cmd` is recording; the cells buffer is the slot's, TRANSFER_DST, 4-aligned.
+        unsafe { ctx.device.cmd_fill_buffer(cmd, slot.cells.raw(), 0, vk::WHOLE_SIZE, 0) };
+        memory_barrier(
+            ctx,
+            cmd,
+            vk::PipelineStageFlags::TRANSFER,
+            vk::AccessFlags::TRANSFER_WRITE,
+            compute,
+            read_write,
+        );
+        let points_address = slot.points_address();
+        let pass = |pass: u32, groups: u32| {
+            let params = PointOrderParams {
+                points: points_address,
+                cells: slot.cells.address(),
+                order: slot.order.address(),
+                corner,
+                scale,
+                count: len as u32,
+                pass,
+            };
+            // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push
+            // constants cover exactly the layout's range; `groups` is within
+            // maxComputeWorkGroupCount (the chunk's capacity is).
+            unsafe {
+                ctx.device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
+                ctx.device.cmd_push_constants(
+                    cmd,
+                    kernel.layout(),
+                    vk::ShaderStageFlags::COMPUTE,
+                    0,
+                    bytemuck::bytes_of(&params),
+                );
+                ctx.device.cmd_dispatch(cmd, groups, 1, 1);
+            }
+            memory_barrier(ctx, cmd, compute, vk::AccessFlags::SHADER_WRITE, compute, read_write);
+        };
+        let groups = (len as u32).div_ceil(kernel.local_size);
+        pass(POINT_ORDER_COUNT, groups);
+        pass(POINT_ORDER_SCAN, 1);
+        pass(POINT_ORDER_SCATTER, groups);
+    }
+
+    /// The grid point_order.comp sorts a scene's points by: its bounds (world), ORDER_GRID cells
+    /// a side; none for an empty scene, or where VKRAY_POINT_ORDER=input asks to search points as
+    /// they come (to measure what the order buys).
+    fn order_grid(&self, scene: &Scene) -> Result<Option<OrderGrid>> {
+        if std::env::var("VKRAY_POINT_ORDER").is_ok_and(|v| v == "input") {
+            return Ok(None);
+        }
+        let bounds = scene.bounds();
+        let extent = bounds.extent();
+        if !(bounds.min.is_finite() && extent.is_finite()) {
+            return Ok(None);
+        }
+        let scale = DVec3::select(extent.cmpgt(DVec3::ZERO), ORDER_GRID as f64 / extent, DVec3::ZERO);
+        Ok(Some(OrderGrid {
+            corner: (bounds.min + scene.center).to_array(),
+            scale: scale.to_array(),
+            pipeline: self.points.order.pipeline(&[ORDER_GRID])?,
+        }))
     }
 }
 
