@@ -291,7 +291,9 @@ def _map_chunks(
     depends: Dask sends it to a worker once, and other workers fetch it from there once."""
     spec_key = delayed(spec, name=f"vkray-scene-{spec.key}")
     names = tuple(arrays)
-    blocks = [arrays[name].to_delayed().ravel() for name in names]
+    # Unoptimized: optimizing each array's graph on its own fuses what the arrays share (origins
+    # and directions sliced from one array of rays) into each of them, which then runs twice.
+    blocks = [arrays[name].to_delayed(optimize_graph=False).ravel() for name in names]
     lengths = arrays[names[0]].chunks[0]
     token = tokenize(spec.key, query, names, options, *arrays.values())
     parts: Dict[str, List[da.Array]] = {name: [] for name in fields}
