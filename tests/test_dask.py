@@ -242,3 +242,15 @@ def test_rays_from_one_array_are_computed_once_per_chunk(client, any_device, tmp
     want = spec.build(any_device).intersect(o, d, outputs=["t", "prim_id"])
     assert_fields_equal(got, hits, want, ["t", "prim_id"])
     np.testing.assert_array_equal(got_blocked, want.hit)
+
+
+def test_local_clusters_share_the_machines_memory(client):
+    """Each of local_cluster's workers may hold its share of the machine's memory (two workers:
+    half each), not a Nanny's default share of one thread's (the machine over its CPU cores)."""
+    from distributed.system import MEMORY_LIMIT
+
+    limits = [w["memory_limit"] for w in client.scheduler_info()["workers"].values()]
+    assert len(limits) == 2 and all(abs(limit - MEMORY_LIMIT / 2) <= 1 for limit in limits)
+    with vkray_dask.local_cluster([0], memory_limit="1 GiB") as cluster, Client(cluster) as one:
+        one.wait_for_workers(1)
+        assert [w["memory_limit"] for w in one.scheduler_info()["workers"].values()] == [2**30]
