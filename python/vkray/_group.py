@@ -10,6 +10,7 @@ share.
 from __future__ import annotations
 
 import contextlib
+import os
 import re
 import threading
 import time
@@ -1155,6 +1156,34 @@ class _Joined(_Assembly[T]):
         return self._join(shape, parts, starts)
 
 
+# Rows copied by one thread at a time: big copies are cut into blocks of about this many bytes,
+# copied by several threads at once (numpy copies without holding the GIL).
+_COPY_BLOCK_BYTES = 1 << 22
+_copiers: Optional[ThreadPoolExecutor] = None
+_copiers_lock = threading.Lock()
+
+
+def _copy_rows(dst: np.ndarray, src: np.ndarray) -> None:
+    """``dst[...] = src`` (arrays of equal shape, rows along the first axis); big arrays by blocks
+    of rows on up to 16 threads, as the core's own host passes use every core: one thread alone
+    reads and writes memory several times slower than the machine can."""
+    global _copiers
+    rows = max(1, _COPY_BLOCK_BYTES // max(1, src[:1].nbytes))
+    if len(src) <= 2 * rows:
+        dst[...] = src
+        return
+    with _copiers_lock:
+        if _copiers is None:
+            _copiers = ThreadPoolExecutor(min(16, os.cpu_count() or 1), thread_name_prefix="vkray-copy")
+        copiers = _copiers
+
+    def block(start: int) -> None:
+        dst[start : start + rows] = src[start : start + rows]
+
+    for _ in copiers.map(block, range(0, len(src), rows)):
+        pass
+
+
 class _Rows:
     """A split query's per-ray arrays for the whole batch, written piece by piece: each piece
     copies its rows in from its device's thread as it finishes (numpy copies without holding the
@@ -1175,7 +1204,7 @@ class _Rows:
                 }
             whole = self._arrays
         for name, array in arrays.items():
-            whole[name][start : start + len(array)] = array
+            _copy_rows(whole[name][start : start + len(array)], array)
 
     def arrays(self) -> Dict[str, np.ndarray]:
         """The batch's arrays, once every piece has put its own."""
