@@ -1,39 +1,52 @@
 """Issue 15: rays per second on 1, 2, 4 ... devices. `vkray.DeviceGroup` (one process, a thread per
 device, numpy in and numpy out), and with --dask `vkray.dask` on a local cluster of one worker
 process per device (`vkray.dask.local_cluster`: VKRAY_DEVICE per worker). Prints Markdown; `--json`
-keeps every figure.
+keeps every figure. Progress lines (each step, each timed run, with the seconds since the start) go
+to stderr as they happen, so that a run cut short shows where it stopped.
 
     python benchmarks/bench_scaling.py --rays 64e6 --json $OUT/scaling.json          # every GPU of the machine
-    python benchmarks/bench_scaling.py --rays 64e6 --dask --json $OUT/scaling-dask.json
-    python benchmarks/bench_scaling.py --rays 2e5 --same-device 2 --dask              # lavapipe smoke test
+    python benchmarks/bench_scaling.py --rays 256e6 --dask --gather --json $OUT/scaling-dask.json
+    python benchmarks/bench_scaling.py --rays 2e5 --same-device 2 --dask --gather     # lavapipe smoke test
 
-Rays: the bunny (../shared/meshes), float32 rays from a sphere of twice its bounding radius towards
-uniform points of its bounding box (tests/oracle.py's random_rays, seed 1). Queries: `intersect`
-with `outputs=["t", "prim_id"]` (8 bytes a ray out: the lean closest hit) and `occluded`.
+Rays: the bunny (../shared/meshes). Queries: `intersect` with `outputs=["t", "prim_id"]` (8 bytes a
+ray out: the lean closest hit) and `occluded`.
 
-Group: for each device count k, a `DeviceGroup` of the first k devices (--devices, default every
-hardware device; --same-device K opens device 0 K times) builds the scene; one query of each kind
-on all the rays sizes the pieces by the devices' measured speeds, then the figure is the best of
---repeat. k = 1 is also timed on a plain `Scene`. Every answer is compared with that `Scene`'s.
+Group: float32 rays from a sphere of twice the bunny's bounding radius towards uniform points of its
+bounding box (tests/oracle.py's random_rays, seed 1). For each device count k, a `DeviceGroup` of
+the first k devices (--devices, default every hardware device; --same-device K opens device 0 K
+times) builds the scene; one query of each kind on all the rays sizes the pieces by the devices'
+measured speeds, then the figure is the best of --repeat. k = 1 is also timed on a plain `Scene`.
+Every answer is compared with that `Scene`'s.
 
-Dask (--dask): for each k, a cluster of k worker processes (one thread each); the rays are made on
-the workers (the same formula without random_rays' quarter of wild directions, each chunk of
---chunk rays from its own seed), so that no ray crosses the network; the figure is the best of --repeat of `dask.compute` gathering every answer
-into this process (numpy out), after one warm-up computation (each worker builds its scene and
-compiles its pipelines). Answers compared with a `Scene` in this process on the same rays.
+Dask (--dask): the same kind of rays without random_rays' quarter of wild directions, drawn in
+float32, each chunk of --chunk rays from its own seed. For each k, a cluster of k worker processes
+(one thread each); the rays are made on the workers and kept there (`Client.persist`), outside the
+timing, so that no ray crosses the network and the figure is the tracing. "dask": the best of
+--repeat of tracing every chunk where its rays are, the answers kept in the workers' memory
+(`Client.persist`, numpy out on the workers), after one warm-up (each worker builds its scene and
+compiles its pipelines); the answers' chunks are compared with one `Scene`'s in this process by
+digest (blake2b of each chunk, computed where the chunk is), so that nothing but the digests
+crosses to this process. "dask gathered" (--gather): the best of --repeat of `dask.compute`
+gathering every answer into this process (numpy out here: 8 bytes a ray for intersect, 1 for
+occluded, through the network), compared whole. Until this revision the dask figure was the
+gathered one and included making the rays on the workers, in float64, each chunk twice (vkray.dask
+took each array's blocks from its own optimized graph): 20 s a computation for 64M rays on one
+worker of the 2-core test machine, in each of the 8 computations per device count.
 DeviceGroup does not split CUDA arrays (issue 14) yet: every figure is numpy in host memory.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import pathlib
 import platform
 import sys
 import time
-from typing import Any, Callable, Dict, List
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Dict, List, Sequence
 
 import numpy as np
 
@@ -43,6 +56,12 @@ from oracle import bounds, load_obj, random_rays  # noqa: E402
 
 QUERIES = ("intersect", "occluded")
 LEAN = ["t", "prim_id"]
+STARTED = time.perf_counter()
+
+
+def log(message: str) -> None:
+    """A progress line on stderr, at once: where a run that times out stopped."""
+    print(f"[{time.perf_counter() - STARTED:7.1f} s] {message}", file=sys.stderr, flush=True)
 
 
 def best_of(repeat: int, run: Callable[[], Any]) -> float:
@@ -74,6 +93,7 @@ def device_counts(available: int) -> List[int]:
 
 def bench_group(devices: List[Any], mesh: Any, o: np.ndarray, d: np.ndarray, repeat: int) -> List[Dict[str, Any]]:
     n = len(o)
+    log(f"building the Scene on device {devices[0]!r}")
     first = vkray.Device(devices[0])
     scene = first.scene(first.mesh(*mesh))
     reference = {}
@@ -82,70 +102,178 @@ def bench_group(devices: List[Any], mesh: Any, o: np.ndarray, d: np.ndarray, rep
         answer(scene, query, o[:1024], d[:1024])  # compiles the pipeline
         reference[query] = answer(scene, query, o, d)
         seconds = best_of(repeat, lambda: answer(scene, query, o, d))
+        log(f"Scene {query}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s)")
         rows.append(dict(mode="Scene", devices=1, query=query, rays=n, seconds=seconds, same=True))
     for k in device_counts(len(devices)):
+        log(f"{k} devices: opening them, building the scene on each")
         group = vkray.DeviceGroup(devices[:k])
         group_scene = group.scene(group.mesh(*mesh))
         for query in QUERIES:
             answer(group_scene, query, o[: 1024 * k], d[: 1024 * k])
             answer(group_scene, query, o, d)  # measures the devices' speeds
+            log(f"{k} devices: {query} warmed up and the devices' speeds measured")
             seconds = best_of(repeat, lambda: answer(group_scene, query, o, d))
             ok = same(answer(group_scene, query, o, d), reference[query])
             weights = group.weights(f"{query}/fast")
             shares = [round(w / sum(weights), 3) for w in weights]
+            log(f"{k} devices: {query}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), shares {shares}, "
+                f"answers {'equal' if ok else 'DIFFER FROM'} one Scene's")
             rows.append(dict(mode="DeviceGroup", devices=k, query=query, rays=n, seconds=seconds, same=ok, shares=shares))
     return rows
 
 
 def _ray_block(centre: np.ndarray, radius: float, lo: np.ndarray, hi: np.ndarray, block_info: Any = None) -> np.ndarray:
-    """One chunk of rays as (k, 6) float32 (origins, directions): oracle.random_rays' formula,
-    without its quarter of wild directions, seeded by the chunk's index."""
+    """One chunk of rays as (k, 6) float32 (origins, directions), from its own seed (the chunk's
+    index): origins uniform on the sphere of twice the bounding radius, towards uniform points of
+    the bounding box. Drawn in float32: 0.2 s for 4M rays on one core of the 2-core test
+    machine, against 1.4 s for the same formula in float64 (this benchmark's earlier version)."""
     k = block_info[None]["chunk-shape"][0]
     rng = np.random.default_rng([1, block_info[None]["chunk-location"][0]])
-    u = rng.normal(size=(k, 3))
-    origins = centre + 2.0 * radius * u / np.linalg.norm(u, axis=1, keepdims=True)
-    targets = rng.uniform(lo, hi, size=(k, 3))
-    return np.hstack([origins, targets - origins]).astype(np.float32)
+    rays = np.empty((k, 6), np.float32)
+    u = rng.standard_normal((k, 3), dtype=np.float32)
+    u *= np.float32(2.0 * radius) / np.sqrt(np.einsum("ij,ij->i", u, u))[:, None]
+    rays[:, :3] = u + centre.astype(np.float32)
+    targets = rng.random((k, 3), dtype=np.float32)
+    targets *= (hi - lo).astype(np.float32)
+    targets += lo.astype(np.float32)
+    rays[:, 3:] = targets - rays[:, :3]
+    return rays
 
 
 def dask_rays(mesh: Any, n: int, chunk: int) -> Any:
-    """Rays as dask arrays (origins, directions), each chunk made on a worker."""
+    """Rays as dask arrays (origins, directions), each chunk made on a worker, C-contiguous."""
     import dask.array as da
 
     v, _ = mesh
     centre, radius = bounds(v)
     lengths = (chunk,) * (n // chunk) + ((n % chunk,) if n % chunk else ())
-    rays = da.map_blocks(_ray_block, centre, radius, v.min(axis=0), v.max(axis=0), chunks=(lengths, (6,)), dtype=np.float32)
-    return rays[:, :3], rays[:, 3:]
+    meta = np.empty((0, 6), np.float32)
+    rays = da.map_blocks(_ray_block, centre, radius, v.min(axis=0), v.max(axis=0), chunks=(lengths, (6,)), meta=meta)
+    origins = rays[:, :3].map_blocks(np.ascontiguousarray, meta=meta[:, :3])
+    directions = rays[:, 3:].map_blocks(np.ascontiguousarray, meta=meta[:, :3])
+    return origins, directions
 
 
-def bench_dask(devices: List[Any], mesh: Any, n: int, chunk: int, repeat: int) -> List[Dict[str, Any]]:
+def digest(array: np.ndarray) -> str:
+    """An array's dtype, shape and bytes, hashed: equal digests, equal arrays."""
+    h = hashlib.blake2b(f"{array.dtype.str}{array.shape}".encode(), digest_size=16)
+    h.update(np.ascontiguousarray(array).data)
+    return h.hexdigest()
+
+
+def block_digests(answers: Dict[str, np.ndarray], lengths: Sequence[int]) -> Dict[str, List[str]]:
+    """`digest` of each chunk of each answer (the chunks of dask arrays chunked by ``lengths``),
+    on this process's threads (hashlib lets go of the GIL)."""
+    bounds_ = np.cumsum((0,) + tuple(lengths))
+    with ThreadPoolExecutor(os.cpu_count()) as pool:
+        return {
+            name: list(pool.map(lambda ab, a=array: digest(a[ab[0] : ab[1]]), zip(bounds_[:-1], bounds_[1:])))
+            for name, array in answers.items()
+        }
+
+
+def dask_digests(answers: Dict[str, Any]) -> Dict[str, List[str]]:
+    """`digest` of each chunk of each dask array, computed where the chunk is (the default client)."""
     import dask
-    from dask.distributed import Client
+
+    names = sorted(answers)
+    per_block = {name: [dask.delayed(digest)(b) for b in answers[name].to_delayed(optimize_graph=False).ravel()]
+                 for name in names}
+    (found,) = dask.compute(per_block)
+    return {name: list(found[name]) for name in names}
+
+
+def _count_known(keys: Sequence[str], dask_scheduler: Any = None) -> int:
+    """How many of ``keys`` (as str) the scheduler still knows."""
+    wanted = set(keys)
+    return sum(str(key) in wanted for key in dask_scheduler.tasks)
+
+
+def forget(client: Any, collections: List[Any]) -> None:
+    """Releases persisted collections and waits until the scheduler has forgotten their keys, so
+    that persisting the same graph again computes it again (its keys are the same)."""
+    from dask.distributed import futures_of
+
+    keys = [str(f.key) for f in futures_of(collections)]
+    collections.clear()
+    deadline = time.monotonic() + 60
+    while client.run_on_scheduler(_count_known, keys):
+        if time.monotonic() > deadline:
+            log("warning: the scheduler still holds answers released 60 s ago: the next run may reuse them")
+            return
+        time.sleep(0.01)
+
+
+def bench_dask(devices: List[Any], mesh: Any, n: int, chunk: int, repeat: int, gather: bool) -> List[Dict[str, Any]]:
+    import dask
+    from dask.distributed import Client, futures_of, wait
 
     import vkray.dask as vkray_dask
 
     spec = vkray_dask.SceneSpec([mesh])
     origins, directions = dask_rays(mesh, n, chunk)
-    o, d = dask.compute(origins, directions)
-    device = vkray.Device(devices[0])
-    scene = spec.build(device)
-    reference = {query: answer(scene, query, o, d) for query in QUERIES}
-    lazy = {
-        "intersect": lambda: vkray_dask.intersect(spec, origins, directions, outputs=LEAN),
-        "occluded": lambda: {"occluded": vkray_dask.occluded(spec, origins, directions)},
-    }
+    lengths = origins.chunks[0]
+    log(f"making {n:,} rays in this process (the reference), {len(lengths)} chunks")
+    o, d = dask.compute(origins, directions, scheduler="threads")
+    log(f"building the reference Scene on device {devices[0]!r}")
+    scene = spec.build(vkray.Device(devices[0]))
+    reference = {}
+    for query in QUERIES:
+        answer(scene, query, o[:1024], d[:1024])  # compiles the pipeline
+        start = time.perf_counter()
+        want = answer(scene, query, o, d)
+        seconds = time.perf_counter() - start
+        reference[query] = (want, block_digests(want, lengths))
+        log(f"reference {query}: {seconds:.2f} s on one Scene in this process")
+    del o, d, scene
+
     rows = []
     for k in device_counts(len(devices)):
+        log(f"{k} devices: starting a local cluster of {k} workers")
         with vkray_dask.local_cluster(devices[:k]) as cluster, Client(cluster) as client:
-            client.wait_for_workers(k)
+            client.wait_for_workers(k, timeout=300)
+            limits = sorted({w["memory_limit"] for w in client.scheduler_info()["workers"].values()})
+            log(f"{k} devices: {k} workers up (memory limit each: {[f'{x / 2**30:.0f} GiB' for x in limits]})")
+            start = time.perf_counter()
+            rays = client.persist([origins, directions])
+            wait(futures_of(rays))
+            log(f"{k} devices: rays made on the workers and kept there in {time.perf_counter() - start:.1f} s")
+            o_kept, d_kept = rays
+            lazy = {
+                "intersect": lambda: vkray_dask.intersect(spec, o_kept, d_kept, outputs=LEAN),
+                "occluded": lambda: {"occluded": vkray_dask.occluded(spec, o_kept, d_kept)},
+            }
             for query in QUERIES:
                 graph = lazy[query]()
-                dask.compute(graph)  # each worker builds the scene, compiles its pipeline
-                seconds = best_of(repeat, lambda: dask.compute(graph))
-                (got,) = dask.compute(graph)
-                rows.append(dict(mode="dask", devices=k, query=query, rays=n, seconds=seconds, same=same(got, reference[query]),
+                names = sorted(graph)
+                times = []
+                for run in range(repeat + 1):  # run 0: each worker builds the scene, compiles its pipeline
+                    start = time.perf_counter()
+                    kept = client.persist([graph[name] for name in names])
+                    wait(futures_of(kept))
+                    seconds = time.perf_counter() - start
+                    what = "warm-up" if run == 0 else f"run {run}/{repeat}"
+                    log(f"{k} devices: {query} {what}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), answers kept")
+                    if run > 0:
+                        times.append(seconds)
+                    if run == repeat:
+                        ok = dask_digests(dict(zip(names, kept))) == reference[query][1]
+                        log(f"{k} devices: {query} answers {'equal' if ok else 'DIFFER FROM'} one Scene's")
+                    forget(client, kept)
+                rows.append(dict(mode="dask", devices=k, query=query, rays=n, seconds=min(times), same=ok, chunk=chunk))
+                if not gather:
+                    continue
+                times = []
+                for run in range(repeat):
+                    start = time.perf_counter()
+                    (got,) = dask.compute(graph)
+                    times.append(time.perf_counter() - start)
+                    log(f"{k} devices: {query} gathered, run {run + 1}/{repeat}: {times[-1]:.3f} s")
+                ok = same(got, reference[query][0])
+                del got
+                rows.append(dict(mode="dask gathered", devices=k, query=query, rays=n, seconds=min(times), same=ok,
                                  chunk=chunk))
+            log(f"{k} devices: closing the cluster")
     return rows
 
 
@@ -155,6 +283,7 @@ def main() -> None:
     parser.add_argument("--devices", nargs="+", help="device indices or names (default: every hardware device)")
     parser.add_argument("--same-device", type=int, metavar="K", help="device 0, opened K times (lavapipe)")
     parser.add_argument("--dask", action="store_true", help="vkray.dask on a local cluster, instead of DeviceGroup")
+    parser.add_argument("--gather", action="store_true", help="with --dask: also time gathering the answers here")
     parser.add_argument("--chunk", type=float, default=4e6, help="rays per dask chunk")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--mesh", default="stanford-bunny")
@@ -167,12 +296,14 @@ def main() -> None:
     n = int(args.rays)
     mesh = load_obj(args.mesh)
     if args.dask:
-        rows = bench_dask(devices, mesh, n, int(args.chunk), args.repeat)
+        rows = bench_dask(devices, mesh, n, int(args.chunk), args.repeat, args.gather)
     else:
+        log(f"making {n:,} rays (random_rays)")
         o, d = (a.astype(np.float32) for a in random_rays(mesh[0], n, seed=1))
         rows = bench_group(devices, mesh, o, d, args.repeat)
+    log("done")
 
-    names = [vkray.Device(x).name for x in devices]
+    names = [vkray.devices()[x].name if isinstance(x, int) else str(x) for x in devices]
     host = f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}"
     print(f"Command: `python {' '.join(sys.argv)}`\n")
     print(f"Devices: {', '.join(names)}; host {host}; {args.mesh}, {n:,} rays, best of {args.repeat}.\n")

@@ -217,3 +217,40 @@ def test_a_worker_killed_mid_computation_is_replaced_and_nothing_is_lost(client,
     assert_fields_equal(got, hits, want, fields)
     client.wait_for_workers(2)
     assert len(pids - set(client.run(os.getpid).values())) == 1  # one worker process was replaced
+
+
+def test_rays_from_one_array_are_computed_once_per_chunk(client, any_device, tmp_path):
+    """Origins and directions sliced from one (N, 6) dask array, each chunk of which is made by a
+    task upstream (generated, read from a file): each such task runs once per computation, not
+    once for the origins and again for the directions (no graph optimization that fuses it into
+    both slices)."""
+    spec = solids_spec()
+    o, d = rays(N, 28)
+    log = tmp_path / "made"
+
+    def make(block):
+        with open(log, "a") as f:  # several worker processes append: one line per run
+            f.write(f"{block.shape[0]}\n")
+        return block
+
+    both = da.from_array(np.hstack([o, d]), chunks=(1000, 6)).map_blocks(make, dtype=o.dtype)
+    hits = vkray_dask.intersect(spec, both[:, :3], both[:, 3:], outputs=["t", "prim_id"])
+    blocked = vkray_dask.occluded(spec, both[:, :3], both[:, 3:])
+    got, got_blocked = dask.compute(hits, blocked)
+    runs = [int(n) for n in log.read_text().split() if n != "0"]  # 0: dask's try on an empty block
+    assert sorted(runs) == sorted(both.chunks[0])  # each chunk made once, for both queries
+    want = spec.build(any_device).intersect(o, d, outputs=["t", "prim_id"])
+    assert_fields_equal(got, hits, want, ["t", "prim_id"])
+    np.testing.assert_array_equal(got_blocked, want.hit)
+
+
+def test_local_clusters_share_the_machines_memory(client):
+    """Each of local_cluster's workers may hold its share of the machine's memory (two workers:
+    half each), not a Nanny's default share of one thread's (the machine over its CPU cores)."""
+    from distributed.system import MEMORY_LIMIT
+
+    limits = [w["memory_limit"] for w in client.scheduler_info()["workers"].values()]
+    assert len(limits) == 2 and all(abs(limit - MEMORY_LIMIT / 2) <= 1 for limit in limits)
+    with vkray_dask.local_cluster([0], memory_limit="1 GiB") as cluster, Client(cluster) as one:
+        one.wait_for_workers(1)
+        assert [w["memory_limit"] for w in one.scheduler_info()["workers"].values()] == [2**30]

@@ -129,6 +129,18 @@ def test_every_query_answers_what_one_device_answers(weights):
         assert_same(grouped(), single(), name)
 
 
+def test_answers_copied_in_blocks_by_several_threads(monkeypatch):
+    """The pieces' answers copied into the batch's arrays by blocks of a few rows on several
+    threads (as big answers are: here blocks of 64 bytes, so that 3001 rays make many, the last
+    one short): every query kind still answers what one device answers."""
+    monkeypatch.setattr(vkray._group, "_COPY_BLOCK_BYTES", 64)
+    group = make_group(3, (3, 1, 2))
+    device = group.devices[0]
+    scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(device, vkray.Instance)]
+    for (name, grouped), (_, single) in zip(*(every_query(s, group_precisions(group)[-1]) for s in scenes)):
+        assert_same(grouped(), single(), name)
+
+
 def test_the_split_follows_the_weights():
     """5 to 1 over 3001 rays: the second device traces rays 2501-3000, the first the rest."""
     group = make_group(2, (5, 1))

@@ -10,6 +10,7 @@ share.
 from __future__ import annotations
 
 import contextlib
+import os
 import re
 import threading
 import time
@@ -19,6 +20,7 @@ from typing import (
     Any,
     Callable,
     Dict,
+    Generic,
     Iterable,
     Iterator,
     List,
@@ -52,6 +54,7 @@ from ._api import (
     _closest_outputs,
     devices,
 )
+from ._core import VkrayError
 from .sensors import Sensor
 
 T = TypeVar("T")
@@ -825,13 +828,13 @@ class GroupScene:
     def _trace(
         self,
         query_name: str,
-        merge: Callable[[Tuple[int, ...], List[Any], List[int]], T],
+        assembly: _Assembly[T],
         rays: Dict[str, Any],
         progress: bool,
         **options: Any,
     ) -> T:
-        """``Scene.<query_name>(**rays, **options)`` over the rays: whole where they cannot be split,
-        else in pieces merged by ``merge(shape, results, starts)``."""
+        """``Scene.<query_name>(**rays, **options)`` over the rays: whole where they cannot be split
+        (or where one device takes them all), else in pieces put together by ``assembly``."""
         kind = f"{query_name}/{options['precision']}"
 
         def query(scene: Scene, **arguments: Any) -> T:
@@ -849,18 +852,17 @@ class GroupScene:
         batch = _RaysToSplit(**rays)
         if batch.count <= 1 or len(self.per_device) == 1:
             return self._whole(kind, batch.count, unsplit, progress)
-        pieces = self._pieces(kind, batch.count)
 
         def piece(device: int, start: int, stop: int) -> T:
             return query(self.per_device[device], **batch.piece(start, stop))
 
-        results = self._run(kind, pieces, piece, progress)
-        return merge(batch.shape, results, [start for _, start, _ in pieces])
+        pieces = self._pieces(kind, batch.count)
+        return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress)
 
     def _points(
         self,
         query_name: str,
-        merge: Callable[[Tuple[int, ...], List[Any]], T],
+        assembly: _Assembly[T],
         points: Any,
         progress: bool,
         **options: Any,
@@ -873,15 +875,48 @@ class GroupScene:
             result: T = getattr(scene, query_name)(p, **options, progress=False)
             return result
 
+        def unsplit(scene: Scene) -> T:
+            return query(scene, points)
+
         p = _arrays.real_coordinates("points", points)
         if len(self.per_device) == 1 or p.ndim == 0 or p.shape[-1] != 3 or p.size <= 3:
-            return self._whole(kind, p.size // 3, lambda s: query(s, points), progress)
+            return self._whole(kind, p.size // 3, unsplit, progress)
         flat = p.reshape(-1, 3)
+
+        def piece(device: int, start: int, stop: int) -> T:
+            return query(self.per_device[device], flat[start:stop])
+
         pieces = self._pieces(kind, len(flat))
-        results = self._run(
-            kind, pieces, lambda device, start, stop: query(self.per_device[device], flat[start:stop]), progress
-        )
-        return merge(p.shape[:-1], results)
+        return self._assemble(kind, pieces, piece, unsplit, assembly, p.shape[:-1], progress)
+
+    def _assemble(
+        self,
+        kind: str,
+        pieces: List[Tuple[int, int, int]],
+        piece: Callable[[int, int, int], T],
+        unsplit: Callable[[Scene], T],
+        assembly: _Assembly[T],
+        shape: Tuple[int, ...],
+        progress: bool,
+    ) -> T:
+        """The batch's answer from ``piece(device, start, stop)`` of each of ``pieces``.
+
+        One piece (one device takes every ray): that device's answer to the whole batch
+        (``unsplit``), nothing to copy. Per-ray answers: each piece writes its rows into the
+        batch's arrays from its own thread as it finishes (`_Rows`), at once with the other
+        pieces' work. Others (`AllHits`): the pieces' answers joined once all are done."""
+        if len(pieces) == 1:
+            return self._run(kind, pieces, lambda device, _start, _stop: unsplit(self.per_device[device]), progress)[0]
+        if not assembly.in_place:
+            parts = self._run(kind, pieces, piece, progress)
+            return assembly.join(shape, parts, [start for _, start, _ in pieces])
+        rows = _Rows(int(np.prod(shape, dtype=np.int64)))
+
+        def write(device: int, start: int, stop: int) -> None:
+            rows.put(start, assembly.arrays(piece(device, start, stop)))
+
+        self._run(kind, pieces, write, progress)
+        return assembly.whole(shape, rows.arrays())
 
     def intersect(
         self,
@@ -900,14 +935,13 @@ class GroupScene:
         """`Scene.intersect`, the rays split over the devices."""
         fields = None if outputs is None else _check_outputs(outputs)  # checked first, as Scene does
 
-        def merge(shape: Tuple[int, ...], parts: List[Hits], _starts: List[int]) -> Hits:
-            joined = {name: _join([getattr(p, name) for p in parts]) for name in HIT_FIELDS}
-            return Hits(shape, {k: v for k, v in joined.items() if v is not None}, precision)
+        def hits(shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> Hits:
+            return Hits(shape, arrays, precision)
 
         rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
         return self._trace(
             "intersect",
-            merge,
+            _Fields(HIT_FIELDS, hits),
             rays,
             progress,
             outputs=fields,
@@ -932,7 +966,7 @@ class GroupScene:
         """`Scene.occluded`, the rays split over the devices."""
         rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
         return self._trace(
-            "occluded", _concat, rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
+            "occluded", _Array(), rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
         )
 
     def transmittance(
@@ -949,7 +983,7 @@ class GroupScene:
     ) -> np.ndarray:
         """`Scene.transmittance`, the rays split over the devices."""
         rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
-        return self._trace("transmittance", _concat, rays, progress, precision=precision, cull=cull)
+        return self._trace("transmittance", _Array(), rays, progress, precision=precision, cull=cull)
 
     def intersect_all(
         self,
@@ -973,7 +1007,7 @@ class GroupScene:
         rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
         return self._trace(
             "intersect_all",
-            _join_all_hits,
+            _Joined(_join_all_hits),
             rays,
             progress,
             max_hits=max_hits,
@@ -999,7 +1033,7 @@ class GroupScene:
         """`Scene.count`, the rays split over the devices."""
         rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
         return self._trace(
-            "count", _concat, rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
+            "count", _Array(), rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
         )
 
     def closest_points(
@@ -1014,12 +1048,17 @@ class GroupScene:
         """`Scene.closest_points`, the points split over the devices."""
         fields = _closest_outputs(outputs)  # checked first, as Scene does
 
-        def merge(shape: Tuple[int, ...], parts: List[Closest]) -> Closest:
-            joined = {name: _join([getattr(p, name) for p in parts]) for name in CLOSEST_FIELDS}
-            return Closest(shape, {k: v for k, v in joined.items() if v is not None}, precision)
+        def closest(shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> Closest:
+            return Closest(shape, arrays, precision)
 
         return self._points(
-            "closest_points", merge, points, progress, max_distance=max_distance, outputs=fields, precision=precision
+            "closest_points",
+            _Fields(CLOSEST_FIELDS, closest),
+            points,
+            progress,
+            max_distance=max_distance,
+            outputs=fields,
+            precision=precision,
         )
 
     def distance(
@@ -1027,7 +1066,7 @@ class GroupScene:
     ) -> np.ndarray:
         """`Scene.distance`, the points split over the devices."""
         return self._points(
-            "distance", _concat_points, points, progress, max_distance=max_distance, precision=precision
+            "distance", _Array(), points, progress, max_distance=max_distance, precision=precision
         )
 
     def signed_distance(
@@ -1042,7 +1081,7 @@ class GroupScene:
         """`Scene.signed_distance`, the points split over the devices."""
         return self._points(
             "signed_distance",
-            _concat_points,
+            _Array(),
             points,
             progress,
             max_distance=max_distance,
@@ -1054,20 +1093,124 @@ class GroupScene:
         self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
     ) -> np.ndarray:
         """`Scene.contains`, the points split over the devices."""
-        return self._points("contains", _concat_points, points, progress, precision=precision, method=method)
+        return self._points("contains", _Array(), points, progress, precision=precision, method=method)
 
     def __repr__(self) -> str:
         return f"<vkray.GroupScene {len(self.instances)} instances on {len(self.per_device)} devices>"
 
 
-def _concat(shape: Tuple[int, ...], parts: List[np.ndarray], _starts: List[int]) -> np.ndarray:
-    """Per-ray arrays of the pieces, end to end, in the rays' shape."""
-    return np.concatenate(parts).reshape(shape)
+class _Assembly(Generic[T]):
+    """How a split query's answer is put together from its pieces' answers: per-ray (or per-point)
+    arrays written in place (`in_place`: `arrays` of each piece into the batch's, then `whole`),
+    or the pieces' answers joined once all are done (`join`)."""
+
+    in_place = True
+
+    def arrays(self, part: T) -> Dict[str, np.ndarray]:
+        """A piece's per-ray arrays, by name."""
+        raise NotImplementedError
+
+    def whole(self, shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> T:
+        """The batch's answer, of shape ``shape``, from its (flat) per-ray arrays."""
+        raise NotImplementedError
+
+    def join(self, shape: Tuple[int, ...], parts: List[T], starts: List[int]) -> T:
+        """The batch's answer from its pieces' answers (``starts``: each piece's first ray)."""
+        raise NotImplementedError
 
 
-def _concat_points(shape: Tuple[int, ...], parts: List[np.ndarray]) -> np.ndarray:
-    """Per-point arrays of the pieces, end to end, in the points' shape."""
-    return np.concatenate(parts).reshape(shape)
+class _Array(_Assembly[np.ndarray]):
+    """One array, one row per ray or point (occluded, count, transmittance, distance, contains)."""
+
+    def arrays(self, part: np.ndarray) -> Dict[str, np.ndarray]:
+        return {"": part}
+
+    def whole(self, shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> np.ndarray:
+        return arrays[""].reshape(shape)
+
+
+class _Fields(_Assembly[T]):
+    """`Hits` or `Closest`: the fields the query computed (the same in every piece)."""
+
+    def __init__(self, names: Sequence[str], make: Callable[[Tuple[int, ...], Dict[str, np.ndarray]], T]) -> None:
+        self._names = names
+        self._make = make
+
+    def arrays(self, part: T) -> Dict[str, np.ndarray]:
+        found = {name: getattr(part, name) for name in self._names}
+        return {name: array for name, array in found.items() if array is not None}
+
+    def whole(self, shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> T:
+        return self._make(shape, arrays)
+
+
+class _Joined(_Assembly[T]):
+    """Answers joined once every piece is done (`AllHits`: each ray's number of hits varies)."""
+
+    in_place = False
+
+    def __init__(self, join: Callable[[Tuple[int, ...], List[T], List[int]], T]) -> None:
+        self._join = join
+
+    def join(self, shape: Tuple[int, ...], parts: List[T], starts: List[int]) -> T:
+        return self._join(shape, parts, starts)
+
+
+# Rows copied by one thread at a time: big copies are cut into blocks of about this many bytes,
+# copied by several threads at once (numpy copies without holding the GIL).
+_COPY_BLOCK_BYTES = 1 << 22
+_copiers: Optional[ThreadPoolExecutor] = None
+_copiers_lock = threading.Lock()
+
+
+def _copy_rows(dst: np.ndarray, src: np.ndarray) -> None:
+    """``dst[...] = src`` (arrays of equal shape, rows along the first axis); big arrays by blocks
+    of rows on up to 16 threads, as the core's own host passes use every core: one thread alone
+    reads and writes memory several times slower than the machine can."""
+    global _copiers
+    rows = max(1, _COPY_BLOCK_BYTES // max(1, src[:1].nbytes))
+    if len(src) <= 2 * rows:
+        dst[...] = src
+        return
+    with _copiers_lock:
+        if _copiers is None:
+            _copiers = ThreadPoolExecutor(min(16, os.cpu_count() or 1), thread_name_prefix="vkray-copy")
+        copiers = _copiers
+
+    def block(start: int) -> None:
+        dst[start : start + rows] = src[start : start + rows]
+
+    for _ in copiers.map(block, range(0, len(src), rows)):
+        pass
+
+
+class _Rows:
+    """A split query's per-ray arrays for the whole batch, written piece by piece: each piece
+    copies its rows in from its device's thread as it finishes (numpy copies without holding the
+    GIL), at once with the other pieces' work, rather than one thread concatenating every piece's
+    arrays after the last one. The first piece to finish makes them, of its arrays' dtypes."""
+
+    def __init__(self, count: int) -> None:
+        self._count = count
+        self._arrays: Optional[Dict[str, np.ndarray]] = None
+        self._lock = threading.Lock()
+
+    def put(self, start: int, arrays: Dict[str, np.ndarray]) -> None:
+        """Writes a piece's arrays (its rays from ``start`` on) into the batch's."""
+        with self._lock:
+            if self._arrays is None:
+                self._arrays = {
+                    name: np.empty((self._count,) + array.shape[1:], array.dtype) for name, array in arrays.items()
+                }
+            whole = self._arrays
+        for name, array in arrays.items():
+            _copy_rows(whole[name][start : start + len(array)], array)
+
+    def arrays(self) -> Dict[str, np.ndarray]:
+        """The batch's arrays, once every piece has put its own."""
+        if self._arrays is None:
+            raise VkrayError("a split query finished without any piece's answer")
+        return self._arrays
 
 
 if TYPE_CHECKING:

@@ -291,7 +291,9 @@ def _map_chunks(
     depends: Dask sends it to a worker once, and other workers fetch it from there once."""
     spec_key = delayed(spec, name=f"vkray-scene-{spec.key}")
     names = tuple(arrays)
-    blocks = [arrays[name].to_delayed().ravel() for name in names]
+    # Unoptimized: optimizing each array's graph on its own fuses what the arrays share (origins
+    # and directions sliced from one array of rays) into each of them, which then runs twice.
+    blocks = [arrays[name].to_delayed(optimize_graph=False).ravel() for name in names]
     lengths = arrays[names[0]].chunks[0]
     token = tokenize(spec.key, query, names, options, *arrays.values())
     parts: Dict[str, List[da.Array]] = {name: [] for name in fields}
@@ -433,6 +435,7 @@ def local_cluster(
     *,
     threads_per_worker: int = 1,
     env: Optional[Mapping[str, str]] = None,
+    memory_limit: Union[str, float, None] = "auto",
 ) -> SpecCluster:
     """A `dask.distributed` cluster on this machine with one worker process per device, each
     with ``VKRAY_DEVICE`` set to its device (``env`` adds more variables to every worker).
@@ -440,16 +443,24 @@ def local_cluster(
     devices: indices or names as `vkray.Device` takes them; ``None``: every usable device, only
     the hardware ones where there are any (as `vkray.DeviceGroup` chooses). A device listed twice
     gets two workers. Use it as ``with local_cluster() as cluster, Client(cluster) as client:``.
+    memory_limit: each worker's, past which Dask spills its data to disk (60%), pauses it (80%)
+    and restarts it (95%). ``"auto"`` (default): the machine's memory shared equally by the
+    workers, as `distributed.LocalCluster` shares it (a `Nanny`'s own default gives a one-thread
+    worker only its thread's share of the machine: 1/64 on 64 cores, where a GPU's worker holds
+    far more); else what `Nanny` takes (bytes, ``"64 GiB"``, a fraction of the machine's memory,
+    ``0`` or ``None`` for no limit).
     """
     from distributed import Nanny, Scheduler, SpecCluster
 
     chosen = default_devices() if devices is None else list(devices)
+    limit = 1 / max(len(chosen), 1) if memory_limit == "auto" else memory_limit
     workers = {
         f"vkray-{k}": {
             "cls": Nanny,
             "options": {
                 "nthreads": threads_per_worker,
                 "env": {**(env or {}), "VKRAY_DEVICE": str(device)},
+                "memory_limit": limit,
                 "silence_logs": logging.WARN,
             },
         }
