@@ -29,9 +29,10 @@ whole batch; where that took longer than --slow seconds it is the figure, else t
 
 Signs: vkray's sign is `Scene.contains`': parity of one exact ray per point for closed meshes
 (fandisk), the generalized winding number for open ones (the bunny). The winding number sums over
-every triangle (on the GPU in the GPU tiers, on the CPU cores in the reference tier), so the
-bunny's signed distances are timed (and their signs compared) on the first --winding-points points
-only (the reference tier: about 600 points/s on 2 cores, 3,000 on 16). Accuracy:
+the mesh's hierarchy (far nodes by their boundary edges; on the GPU in the GPU tiers, on the CPU
+cores in the reference tier), so the bunny's signed distances may be timed (and their signs
+compared) on the first --winding-points points only (the reference tier: about 60,000 points/s
+on 2 cores, 140,000 on 16). Accuracy:
 against vkray reference: max |Δ distance| (Open3D: its float32 answer; closest points:
 |‖p − position‖ − reference distance|), the points whose distance is off by more than 1e-6 of the
 bounding diagonal (beyond float32 rounding), and the points whose sign differs from vkray exact's.
