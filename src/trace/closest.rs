@@ -33,6 +33,11 @@ use crate::scene::{ClosestScene, Scene, WindingScene};
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
 const CHUNK_POINTS: usize = 1 << 18;
+/// Points per chunk at most where only one f64 a point comes back (distances, winding numbers) on
+/// a hardware GPU: 2 × 32 MB of staging. Denser chunks put nearer neighbours side by side in the
+/// grid order (docs/benchmarks.md); a software device keeps CHUNK_POINTS, so that Ctrl-C and
+/// progress come between chunks of seconds, not tens of seconds.
+const LEAN_CHUNK_POINTS: usize = 1 << 20;
 /// Cells per axis of the grid that orders each chunk's points (point_order.comp's GRID): 32³
 /// cells, a few points each at full chunks.
 const ORDER_GRID: u32 = 32;
@@ -237,7 +242,7 @@ impl Tracer {
         let mut distances = sink.take(Field::T);
         let mut hits: Vec<PointHit> =
             if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
-        let capacity = self.point_capacity(n);
+        let capacity = self.point_capacity(n, full);
         let mut slots = self.points.take_slots(capacity, full)?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
@@ -299,7 +304,7 @@ impl Tracer {
             grid: self.order_grid(scene)?,
         };
         let mut winding = try_vec(n, 0.0f64, "winding numbers")?;
-        let capacity = self.point_capacity(n);
+        let capacity = self.point_capacity(n, false);
         let mut slots = self.points.take_slots(capacity, false)?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
@@ -311,9 +316,10 @@ impl Tracer {
         tiers::inside_by_winding(scene, points, &winding, WINDING_TERM_ERROR * most as f64 + 1e-4, out, interrupt)
     }
 
-    /// Points per chunk for a query of `n` points.
-    fn point_capacity(&self, n: usize) -> usize {
-        CHUNK_POINTS.min(self.points.kernels[0].max_invocations()).min(n).max(1)
+    /// Points per chunk for a query of `n` points (with `full` outputs, or one f64 a point).
+    fn point_capacity(&self, n: usize, full: bool) -> usize {
+        let most = if full || self.ctx.info.is_software { CHUNK_POINTS } else { LEAN_CHUNK_POINTS };
+        most.min(self.points.kernels[0].max_invocations()).min(n).max(1)
     }
 
     /// Runs every chunk of `job` through the two `slots`, handing each finished one to `unpack`
