@@ -38,9 +38,10 @@ const CHUNK_POINTS: usize = 1 << 18;
 /// grid order (docs/benchmarks.md); a software device keeps CHUNK_POINTS, so that Ctrl-C and
 /// progress come between chunks of seconds, not tens of seconds.
 const LEAN_CHUNK_POINTS: usize = 1 << 20;
-/// Cells per axis of the grid that orders each chunk's points (point_order.comp's GRID): 32³
-/// cells, a few points each at full chunks.
-const ORDER_GRID: u32 = 32;
+/// Cells per axis of the grid that orders each chunk's points (point_order.comp's GRID): 64³
+/// cells (1 MB of counters), a few points each at full chunks; points crowded near a surface
+/// then spread over enough cells that their counters' atomics do not queue.
+const ORDER_GRID: u32 = 64;
 /// Chunks of fewer points are searched as they come (ordering them would cost more than it buys).
 const ORDER_MIN_POINTS: usize = 4096;
 
