@@ -296,3 +296,16 @@ def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, m
     inside = scene.contains(points[:5000], method="winding")
     np.testing.assert_array_equal(inside, inside_as_they_come)
     np.testing.assert_array_equal(inside, scene.contains(points[:5000], method="winding", precision="reference"))
+    # Several threads at once, each with its own chunks in grid order: the same answers.
+    results = [None] * 3
+
+    def work(k):
+        results[k] = scene.distance(points, precision="exact")
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for got in results:
+        np.testing.assert_array_equal(got, reference.distance)

@@ -479,28 +479,36 @@ impl<'a> ReferenceTracer<'a> {
     }
 }
 
+/// A sheet of `n`×`n` squares of side `side` (two triangles each, counter-clockwise seen from +z)
+/// at heights `height(x, y)`: the tests' open meshes.
+#[cfg(test)]
+pub(crate) fn grid_sheet(n: u32, side: f64, height: impl Fn(f64, f64) -> f64) -> TriangleSet {
+    let mut vertices = Vec::new();
+    for y in 0..=n {
+        for x in 0..=n {
+            let (fx, fy) = (x as f64 * side, y as f64 * side);
+            vertices.push(DVec3::new(fx, fy, height(fx, fy)));
+        }
+    }
+    let at = |x: u32, y: u32| y * (n + 1) + x;
+    let mut faces = Vec::new();
+    for y in 0..n {
+        for x in 0..n {
+            faces.push([at(x, y), at(x + 1, y), at(x + 1, y + 1)]);
+            faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
+        }
+    }
+    let count = faces.len() as u32;
+    TriangleSet::new(vertices, faces, vec![0, count])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     /// A grid of `n`×`n` unit squares (two triangles each) in the plane z = 0.
     fn grid(n: u32) -> TriangleSet {
-        let mut vertices = Vec::new();
-        for y in 0..=n {
-            for x in 0..=n {
-                vertices.push(DVec3::new(x as f64, y as f64, 0.0));
-            }
-        }
-        let at = |x: u32, y: u32| y * (n + 1) + x;
-        let mut faces = Vec::new();
-        for y in 0..n {
-            for x in 0..n {
-                faces.push([at(x, y), at(x + 1, y), at(x + 1, y + 1)]);
-                faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
-            }
-        }
-        let count = faces.len() as u32;
-        TriangleSet::new(vertices, faces, vec![0, count])
+        grid_sheet(n, 1.0, |_, _| 0.0)
     }
 
     #[test]

@@ -216,25 +216,10 @@ mod tests {
         TriangleSet::new(vertices, faces, vec![0, count])
     }
 
-    /// A wavy open sheet of `n`×`n` squares: many nodes, each with a boundary.
+    /// A wavy open sheet of `n`×`n` squares over the unit square: many nodes, each with a
+    /// boundary.
     fn sheet(n: u32) -> TriangleSet {
-        let mut vertices = Vec::new();
-        for y in 0..=n {
-            for x in 0..=n {
-                let (fx, fy) = (x as f64 / n as f64, y as f64 / n as f64);
-                vertices.push(DVec3::new(fx, fy, 0.2 * (6.0 * fx).sin() * (5.0 * fy).cos()));
-            }
-        }
-        let at = |x: u32, y: u32| y * (n + 1) + x;
-        let mut faces = Vec::new();
-        for y in 0..n {
-            for x in 0..n {
-                faces.push([at(x, y), at(x + 1, y), at(x + 1, y + 1)]);
-                faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
-            }
-        }
-        let count = faces.len() as u32;
-        TriangleSet::new(vertices, faces, vec![0, count])
+        crate::geometry::reference::grid_sheet(n, 1.0 / n as f64, |x, y| 0.2 * (6.0 * x).sin() * (5.0 * y).cos())
     }
 
     fn brute_force(set: &TriangleSet, to_scene: &Affine, p: DVec3) -> f64 {
