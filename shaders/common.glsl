@@ -21,19 +21,24 @@ layout(constant_id = 0) const uint OUTPUTS = 0x7Fu;
 layout(constant_id = 1) const uint RAY_FLAGS = 0u;
 // What each ray asks: the closest hit (or any, with TerminateOnFirstHit), or all of them (ALL:
 // every hit counted, none committed, the nearest kept in the ray's HitList; see hit_lists.glsl),
-// or (PARITY, exact tier, for contains) their count and whether the ray's origin lies on a
-// surface (ON_SURFACE in the count).
+// or (PARITY, exact tier, for contains) the signed sum of its crossings and whether the ray's
+// origin lies on a surface, into one int (trace::request::Crossings): CROSSING where the ray
+// meets a triangle's back in the mesh's frame (it leaves an outward mesh), -CROSSING its front,
+// plus ON_SURFACE; or (WINDING, exact tier, one instance) PARITY's sum, less the crossings of the
+// cap that closes the mesh's holes, and the cap's winding number about the origin in out_t.
 layout(constant_id = 3) const uint QUERY = 0u;
 const uint QUERY_CLOSEST = 0u;
 const uint QUERY_ALL = 1u;
 const uint QUERY_PARITY = 2u;
 // The product of (1 - opacity) over every crossing in [tmin, tmax], written to out_t.
 const uint QUERY_TRANSMIT = 3u;
+const uint QUERY_WINDING = 4u;
 // The exact tier's edges (trace::Request::contacts): 0, crossings (an edge or vertex that several
 // triangles share belongs to exactly one of them: the tie-break); 1, contacts (closed triangles:
 // each triangle has its edges and vertices, so a ray that only touches a boundary hits it).
 layout(constant_id = 4) const uint CLOSED_EDGES = 0u;
-const int ON_SURFACE = 1 << 30;
+const int ON_SURFACE = 1;
+const int CROSSING = 2;
 // Where rays come from: the rays buffer, or a Sensor record the shaders generate them from.
 layout(constant_id = 5) const uint RAY_SOURCE = 0u;
 const uint RAYS_FROM_BUFFER = 0u;

@@ -6,6 +6,7 @@
 
 // ExactInstance and ExactBest, the records this tier shares with the host, are in records.glsl.
 #include "point_triangle.glsl"
+#include "solid_angle.glsl"
 layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer ExactInstances { ExactInstance x[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer DoubleOut { double v[]; };
@@ -102,10 +103,15 @@ dvec3 exact_vertex(ExactInstance x, uint index) {
   return dvec3(d.v[3u * index], d.v[3u * index + 1u], d.v[3u * index + 2u]);
 }
 
-// Runs the watertight test of device triangle `prim` of `instance` within the ray's interval and
-// the query's culling; on a hit, its t and barycentrics (of vertices 1 and 2).
-bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u_hit, out double v_hit) {
-  ExactInstance x = ExactInstances(params.instances).x[instance];
+// A ray in a mesh's frame, made ready for Woop, Benthin and Wald's watertight test: permuted so
+// that z is the dominant axis (kx, ky, kz) and sheared onto +z (sx, sy, sz).
+struct ShearedRay {
+  dvec3 origin;
+  ivec3 axes;
+  dvec3 shear;
+};
+
+ShearedRay shear_ray(ExactInstance x, Ray64 ray) {
   precise dvec3 o;
   precise dvec3 d;
   for (int r = 0; r < 3; ++r) {
@@ -114,7 +120,6 @@ bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u
     o[r] = ox;
     d[r] = dx;
   }
-  // Woop, Benthin and Wald: permute so that z is the dominant axis, shear onto +z.
   dvec3 a = abs(d);
   int kz = (a.x >= a.y && a.x >= a.z) ? 0 : (a.y >= a.z ? 1 : 2);
   int kx = (kz + 1) % 3;
@@ -127,22 +132,56 @@ bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u
   precise double sx = d[kx] / d[kz];
   precise double sy = d[ky] / d[kz];
   precise double sz = 1.0 / d[kz];
+  return ShearedRay(o, ivec3(kx, ky, kz), dvec3(sx, sy, sz));
+}
 
-  uvec3 idx = triangle_indices_at(x.indices, 0u, uint(prim));
-  dvec3 p[3];
-  for (int k = 0; k < 3; ++k) {
-    precise dvec3 v = exact_vertex(x, idx[k]) - o;
-    precise double px = v[kx] - sx * v[kz];
-    precise double py = v[ky] - sy * v[kz];
-    precise double pz = sz * v[kz];
-    p[k] = dvec3(px, py, pz);
-  }
+// A corner (mesh frame) relative to the ray's origin, permuted and sheared.
+dvec3 sheared_corner(ShearedRay s, dvec3 vertex) {
+  precise dvec3 v = vertex - s.origin;
+  precise double px = v[s.axes.x] - s.shear.x * v[s.axes.z];
+  precise double py = v[s.axes.y] - s.shear.y * v[s.axes.z];
+  precise double pz = s.shear.z * v[s.axes.z];
+  return dvec3(px, py, pz);
+}
+
+// The watertight test of one triangle's sheared corners `p`: false where the ray passes beside
+// it, meets it edge-on, or meets only an edge or corner another triangle owns (CLOSED_EDGES 0);
+// else its edge functions (`uvw`), their sum `det` (> 0: the ray meets its front, where the mesh
+// frame's normal faces the ray) and the hit's distance `t` along the ray. The two triangles that
+// share an edge compute exact negations of its edge function (no fused multiply-adds), so a ray
+// through the edge meets exactly one of them.
+bool watertight(dvec3 p[3], out dvec3 uvw, out double det, out double t) {
   precise double u = p[2].x * p[1].y - p[2].y * p[1].x;
   precise double v = p[0].x * p[2].y - p[0].y * p[2].x;
   precise double w = p[1].x * p[0].y - p[1].y * p[0].x;
   if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) return false;
-  precise double det = u + v + w;
+  precise double sum = u + v + w;
+  det = sum;
   if (det == 0.0) return false;
+  double sign = det > 0.0 ? 1.0 : -1.0;
+  if (CLOSED_EDGES == 0u) {
+    if (u == 0.0 && !owns_edge(sign * (p[2].xy - p[1].xy))) return false;
+    if (v == 0.0 && !owns_edge(sign * (p[0].xy - p[2].xy))) return false;
+    if (w == 0.0 && !owns_edge(sign * (p[1].xy - p[0].xy))) return false;
+  }
+  precise double distance = (u * p[0].z + v * p[1].z + w * p[2].z) / det;
+  uvw = dvec3(u, v, w);
+  t = distance;
+  return true;
+}
+
+// The watertight test of device triangle `prim` of `instance` (the ray already in its frame),
+// within the ray's interval and the query's culling; on a hit, its t, barycentrics (of vertices
+// 1 and 2) and det (its sign: the side met, as `watertight`'s).
+bool exact_hit(ShearedRay s, Ray64 ray, int instance, int prim, out double t_hit, out double u_hit, out double v_hit,
+               out double det) {
+  ExactInstance x = ExactInstances(params.instances).x[instance];
+  uvec3 idx = triangle_indices_at(x.indices, 0u, uint(prim));
+  dvec3 p[3];
+  for (int k = 0; k < 3; ++k) p[k] = sheared_corner(s, exact_vertex(x, idx[k]));
+  dvec3 uvw;
+  double t;
+  if (!watertight(p, uvw, det, t)) return false;
   // Query culling: front is the side the hit's normal points to (see InstanceFlags).
   bool front = (det > 0.0) != ((x.flags & EXACT_FLIP_FACING) != 0u);
   if ((x.flags & EXACT_CULL_DISABLE) == 0u &&
@@ -150,18 +189,19 @@ bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u
        (RAY_FLAGS & gl_RayFlagsCullFrontFacingTrianglesEXT) != 0u && front)) {
     return false;
   }
-  double sign = det > 0.0 ? 1.0 : -1.0;
-  if (CLOSED_EDGES == 0u) {
-    if (u == 0.0 && !owns_edge(sign * (p[2].xy - p[1].xy))) return false;
-    if (v == 0.0 && !owns_edge(sign * (p[0].xy - p[2].xy))) return false;
-    if (w == 0.0 && !owns_edge(sign * (p[1].xy - p[0].xy))) return false;
-  }
-  precise double t = (u * p[0].z + v * p[1].z + w * p[2].z) / det;
   if (!(t >= ray.tmin && t <= ray.tmax)) return false;
   t_hit = t;
-  u_hit = v / det;
-  v_hit = w / det;
+  u_hit = uvw.y / det;
+  v_hit = uvw.z / det;
   return true;
+}
+
+// Runs the watertight test of device triangle `prim` of `instance` within the ray's interval and
+// the query's culling; on a hit, its t and barycentrics (of vertices 1 and 2).
+bool exact_hit(Ray64 ray, int instance, int prim, out double t_hit, out double u_hit, out double v_hit) {
+  double det;
+  ShearedRay s = shear_ray(ExactInstances(params.instances).x[instance], ray);
+  return exact_hit(s, ray, instance, prim, t_hit, u_hit, v_hit, det);
 }
 
 // The opacity of the caller's triangle `caller` (among all parts) of an instance.
@@ -279,4 +319,59 @@ void store_exact(uint i, ExactBest best) {
     n.v[3u * i + 1u] = normal.y;
     n.v[3u * i + 2u] = normal.z;
   }
+}
+
+// PARITY and WINDING: what device triangle `prim` of `instance` adds to the ray's count (see
+// QUERY_PARITY): its crossing, signed by the side met, and whether the origin lies on it.
+int exact_crossing(Ray64 ray, int instance, int prim) {
+  double t;
+  double u;
+  double v;
+  double det;
+  ShearedRay s = shear_ray(ExactInstances(params.instances).x[instance], ray);
+  int count = exact_hit(s, ray, instance, prim, t, u, v, det) ? (det > 0.0 ? -CROSSING : CROSSING) : 0;
+  return origin_on_triangle(ray, instance, prim) ? count | ON_SURFACE : count;
+}
+
+// WINDING: the cap of instance 0 (WindingCapHeader, then its edges), at params.scratch.
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCap {
+  WindingCapHeader head;
+  WindingCapEdge e[];
+};
+
+dvec3 dvec3_of(double v[3]) {
+  return dvec3(v[0], v[1], v[2]);
+}
+
+// WINDING, after the mesh's crossings are in `count`: takes away the crossings of the cap (the
+// fan from its apex over each boundary edge a -> b) from it, tested as the mesh's triangles are
+// (the same sheared ray, the boundary's own vertices: a ray through a boundary edge meets either
+// the mesh or the cap), and writes the cap's winding number about the origin to out_t (NaN where
+// the origin lies within rounding of the cap). The mesh less the cap has no boundary: its
+// winding number is the integer count, and the mesh's is that plus the cap's.
+int add_cap(uint i, Ray64 ray, int count) {
+  WindingCap cap = WindingCap(params.scratch);
+  ShearedRay s = shear_ray(ExactInstances(params.instances).x[0], ray);
+  dvec3 p[3];
+  p[0] = sheared_corner(s, dvec3_of(cap.head.apex));
+  dvec3 apex = dvec3_of(cap.head.apex_scene) - ray.origin;
+  double sum = 0.0;
+  bool unsure = false;
+  for (uint k = 0u; k < cap.head.edge_count; ++k) {
+    WindingCapEdge edge = cap.e[k];
+    p[1] = sheared_corner(s, dvec3_of(edge.a));
+    p[2] = sheared_corner(s, dvec3_of(edge.b));
+    dvec3 uvw;
+    double det;
+    double t;
+    if (watertight(p, uvw, det, t) && t >= ray.tmin && t <= ray.tmax) count -= det > 0.0 ? -CROSSING : CROSSING;
+    dvec3 a = dvec3_of(edge.a_scene) - ray.origin;
+    dvec3 b = dvec3_of(edge.b_scene) - ray.origin;
+    dvec2 pair = solid_angle_pair(apex, a, b);
+    unsure = unsure || near_inside(apex, a, b, pair);
+    sum += twice_solid_angle(pair);
+  }
+  double w = sum / FOUR_PI;
+  DoubleOut(params.out_t).v[i] = unsure ? 0.0 / 0.0 : (cap.head.mirrored != 0u ? -w : w);
+  return count;
 }

@@ -176,6 +176,26 @@ struct WindingEdge {
   double b[3];
 };
 
+// The exact tier's winding query (trace::Query::Winding, one instance): the cap that closes its
+// mesh's holes, the fan from `apex` over every boundary edge of the mesh (geometry/winding.rs,
+// the hierarchy's root), each corner in the mesh's frame (the crossing test's, the vertices' own
+// f64 values) and in the scene's (the solid angles'). A WindingCapHeader, then `edge_count`
+// WindingCapEdges. 56 bytes.
+struct WindingCapHeader {
+  uint edge_count;
+  uint mirrored;          // the instance mirrors: its winding number is the negated sum
+  double apex[3];
+  double apex_scene[3];
+};
+
+// One boundary edge a -> b of the cap's mesh. 96 bytes.
+struct WindingCapEdge {
+  double a[3];
+  double b[3];
+  double a_scene[3];
+  double b_scene[3];
+};
+
 // Closest points: the nearest surface point of one point (world, f64), the barycentrics (of
 // vertices 1 and 2) of that point on its triangle, the instance and the triangle among all parts
 // of its mesh (instance -1: none within max_distance). 48 bytes.

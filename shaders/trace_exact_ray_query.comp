@@ -15,7 +15,6 @@ void main() {
   Ray64 ray = load_ray64(i);
   ExactBest best = exact_miss();
   int seen = 0;
-  int on_surface = 0;
   double left = 1.0;
   double entry = scene_entry(ray);
   if (entry >= 0.0) {
@@ -36,12 +35,9 @@ void main() {
         // the f64 test accepts is met once.
         ExactHit h;
         if (exact_record(ray, instance, prim, h)) seen = keep_hit(i, seen, h);
-      } else if (QUERY == QUERY_PARITY) {
-        double t;
-        double u;
-        double v;
-        if (exact_hit(ray, instance, prim, t, u, v)) ++seen;
-        if (origin_on_triangle(ray, instance, prim)) on_surface = ON_SURFACE;
+      } else if (QUERY == QUERY_PARITY || QUERY == QUERY_WINDING) {
+        int count = exact_crossing(ray, instance, prim);
+        seen = (seen + (count & ~ON_SURFACE)) | (count & ON_SURFACE);
       } else if (exact_candidate(best, ray, instance, prim, rayQueryGetIntersectionInstanceCustomIndexEXT(query, false),
                                  rayQueryGetIntersectionGeometryIndexEXT(query, false))) {
         // Commit in f32 too, so that traversal skips boxes beyond the best hit.
@@ -51,8 +47,10 @@ void main() {
       }
     }
   }
-  if (QUERY == QUERY_ALL || QUERY == QUERY_PARITY) {
-    HitCounts(params.out_prim).v[i] = seen | on_surface;
+  if (QUERY == QUERY_WINDING) {
+    HitCounts(params.out_prim).v[i] = add_cap(i, ray, seen);
+  } else if (QUERY == QUERY_ALL || QUERY == QUERY_PARITY) {
+    HitCounts(params.out_prim).v[i] = seen;
   } else if (QUERY == QUERY_TRANSMIT) {
     DoubleOut(params.out_t).v[i] = left;
   } else {

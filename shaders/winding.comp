@@ -16,6 +16,7 @@
 #include "records.glsl"
 #include "point_triangle.glsl"
 #include "point_scene.glsl"
+#include "solid_angle.glsl"
 
 layout(local_size_x_id = 0) in;
 // geometry/winding.rs CAP_MARGIN_DIVISOR: a node's boundary stands in for its triangles where the
@@ -25,27 +26,9 @@ layout(constant_id = 2) const uint CAP_MARGIN_DIVISOR = 8u;
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingSpans { WindingSpan s[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingEdges { WindingEdge e[]; };
 
-const double FOUR_PI = 12.566370614359172lf;
 const uint NO_CAP = 0xFFFFFFFFu;
 // One pending sibling per level of a median-split hierarchy: 40 covers 2^32 triangles.
 const int STACK = 40;
-
-// Twice the signed solid angle of triangle (a, b, c) seen from the origin (the corners relative
-// to the point): 2 atan2(a · (b × c), |a||b||c| + (a·b)|c| + (b·c)|a| + (c·a)|b|).
-double twice_solid_angle(dvec3 a, dvec3 b, dvec3 c) {
-  double la = sqrt(dot3(a, a));
-  double lb = sqrt(dot3(b, b));
-  double lc = sqrt(dot3(c, c));
-  double numerator = dot3(a, cross(b, c));
-  double denominator = la * lb * lc + dot3(a, b) * lc + dot3(b, c) * la + dot3(c, a) * lb;
-  double m = max(abs(numerator), abs(denominator));
-  // atan2(0, 0) is 0 on the CPU (a point on a corner); GLSL leaves it undefined.
-  if (m == 0.0) return 0.0;
-  // An exact scaling by a power of two brings both into float's range.
-  int e;
-  frexp(m, e);
-  return 2.0 * double(atan(float(ldexp(numerator, -e)), float(ldexp(denominator, -e))));
-}
 
 // geometry/winding.rs beyond_margin: whether p lies outside the node's box grown by its largest
 // side over CAP_MARGIN_DIVISOR.

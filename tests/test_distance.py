@@ -272,6 +272,82 @@ def test_winding_numbers_on_the_gpu_decide_as_the_cpu(device, bunny):
         np.testing.assert_array_equal(r, exact)
 
 
+def boundary_edges(faces):
+    """The directed edges a -> b of the faces that no face runs b -> a (an oriented mesh's holes)."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    forward = {tuple(e) for e in edges.tolist()}
+    return np.array([e for e in edges.tolist() if (e[1], e[0]) not in forward])
+
+
+def points_on_the_cap(vertices, faces, transform, n, seed):
+    """Points where the exact tier's winding query is least sure: on the cap that closes the
+    mesh's holes (the fan from its box's centre over its boundary edges), on the fan's inner edges,
+    on the boundary, and the apex itself, placed by `transform`."""
+    rng = np.random.default_rng(seed)
+    edges = boundary_edges(faces)
+    apex = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
+    k = rng.integers(0, len(edges), n)
+    s, t = rng.uniform(0, 1, (2, n, 1))
+    s, t = np.where(s + t > 1, 1 - s, s), np.where(s + t > 1, 1 - t, t)
+    on_fan = apex + s * (a[k] - apex) + t * (b[k] - apex)
+    on_spokes = apex + s * (a[k] - apex)
+    on_boundary = a[k] + s * (b[k] - a[k])
+    local = np.vstack([[apex], on_fan, on_spokes, on_boundary, a])
+    return local @ transform[:3, :3].T + transform[:3, 3]
+
+
+@pytest.mark.parametrize("name", ["open box", "bunny"])
+def test_winding_numbers_through_the_cap_decide_as_the_cpu(device, bunny, name):
+    """With one instance, contains(method="winding") at "exact" counts one ray's signed crossings
+    with the mesh less the cap that closes its holes, on the GPU, and adds the cap's winding
+    number. It must equal "reference" (the CPU's winding number over the hierarchy, which knows no
+    cap) where the two meet: on the cap, its inner edges and its apex (the box's centre), on the
+    holes' edges, on a lattice whose points lie on the cap's planes, under a mirroring stretch and
+    far from the origin; and numpy's oracle where the winding number is clear of 1/2. Several
+    threads at once give the same answers."""
+    if name == "bunny":
+        v, f = bunny
+    else:
+        v, f = oracle.box()
+        f = f[~(v[f][:, :, 2] == 1.0).all(axis=1)]  # no lid: a hole of 4 edges
+    assert len(boundary_edges(f)) > 0
+    transform = np.diag([-1.5, 1.0, 0.5, 1.0])
+    transform[:3, 3] = [1e4, -2.0, 0.25]
+    scene = device.scene([vkray.Instance(device.mesh(v, f), transform)])
+    lo, hi = v.min(0), v.max(0)
+    axes = [np.linspace(a - 0.25 * (b - a), b + 0.25 * (b - a), 13) for a, b in zip(lo, hi)]
+    lattice = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    rng = np.random.default_rng(8)
+    local = np.vstack([lattice, rng.uniform(lo - 0.3 * (hi - lo), hi + 0.3 * (hi - lo), (2000, 3))])
+    placed = local @ transform[:3, :3].T + transform[:3, 3]
+    points = np.vstack([placed, points_on_the_cap(v, f, transform, 300, seed=9)])
+    exact = scene.contains(points, method="winding", precision="exact")
+    reference = scene.contains(points, method="winding", precision="reference")
+    np.testing.assert_array_equal(exact, reference)
+    assert 0 < exact.sum() < len(exact)
+    # The winding number in the scene's frame, negated: the mirror turns the triangles inside out
+    # (numpy's oracle, over every triangle: on some of the points).
+    world = v @ transform[:3, :3].T + transform[:3, 3]
+    some = rng.choice(len(local), min(len(local), 400), replace=False)
+    w = -oracle.winding_numbers(world, f, points[some])
+    clear = (np.abs(w - 0.5) > 1e-6) & (oracle.surface_distance(world, f, points[some]) > 1e-9)
+    assert clear.mean() > 0.9
+    np.testing.assert_array_equal(exact[some][clear], (w >= 0.5)[clear])
+    results = [None] * 3
+
+    def work(k):
+        results[k] = scene.contains(points, method="winding", precision="exact")
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for r in results:
+        np.testing.assert_array_equal(r, exact)
+
+
 def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, monkeypatch):
     """A chunk of 4,096 points or more is searched cell by cell of a grid over the scene
     (point_order.comp's counting sort on the GPU); each answer must still land in its own row:

@@ -1082,6 +1082,13 @@ class Scene:
         points on a surface decided by the CPU's f64 test) or ``"reference"`` (everything on the
         CPU): the same answers. The f32 tiers raise `UnsupportedError`: they may count a crossing at an edge
         twice or not at all.
+
+        On the GPU, the winding number of a scene of one instance comes from one ray a point too:
+        the mesh less the cap that closes its holes (the fan from the centre of its box over its
+        boundary edges, up to 4,096 of them) has no boundary, so its winding number is the signed
+        count of the ray's crossings with both, each exact; the cap's own winding number (a sum
+        over its few triangles) is added. Scenes of several instances sum each instance's
+        triangles over its hierarchy instead.
         """
         if method not in ("parity", "winding"):
             raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")

@@ -328,6 +328,30 @@ pub struct WindingEdge {
     pub b: [f64; 3],
 }
 
+/// The head of the cap that closes one mesh's holes, for the exact tier's winding query
+/// (`WindingCapHeader` in shaders/records.glsl); its `WindingCapEdge`s follow it in one buffer.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct WindingCapHeader {
+    pub edge_count: u32,
+    /// 1 where the instance mirrors (its winding number is the negated sum).
+    pub mirrored: u32,
+    /// The fan's apex in the mesh's frame, and in the scene's.
+    pub apex: [f64; 3],
+    pub apex_scene: [f64; 3],
+}
+
+/// One boundary edge a -> b of a cap's mesh, in the mesh's frame and in the scene's
+/// (`WindingCapEdge` in shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct WindingCapEdge {
+    pub a: [f64; 3],
+    pub b: [f64; 3],
+    pub a_scene: [f64; 3],
+    pub b_scene: [f64; 3],
+}
+
 /// The nearest surface point of one point (`PointHit` in shaders/records.glsl).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -373,6 +397,10 @@ layout!(BvhInstance, size 224, to_local @ 0, to_scene @ 96, shrink @ 192, nodes 
     identity @ 212, triangle_count @ 216, mirrored @ 220);
 layout!(WindingSpan, size 8, first @ 0, count @ 4);
 layout!(WindingEdge, size 48, a @ 0, b @ 24);
+layout!(WindingCapHeader, size 56, edge_count @ 0, mirrored @ 4, apex @ 8, apex_scene @ 32);
+layout!(WindingCapEdge, size 96, a @ 0, b @ 24, a_scene @ 48, b_scene @ 72);
+// The edges follow the header in one buffer: the header keeps their alignment.
+const _: () = assert!(std::mem::size_of::<WindingCapHeader>() % std::mem::align_of::<WindingCapEdge>() == 0);
 layout!(PointHit, size 48, position @ 0, u @ 24, v @ 32, instance @ 40, prim @ 44);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
 layout!(FastHit, size 32, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20, unused @ 24);
@@ -567,6 +595,12 @@ mod tests {
             ),
             ("WindingSpan", size_of::<WindingSpan>(), members!(WindingSpan: first, count)),
             ("WindingEdge", size_of::<WindingEdge>(), members!(WindingEdge: a, b)),
+            (
+                "WindingCapHeader",
+                size_of::<WindingCapHeader>(),
+                members!(WindingCapHeader: edge_count, mirrored, apex, apex_scene),
+            ),
+            ("WindingCapEdge", size_of::<WindingCapEdge>(), members!(WindingCapEdge: a, b, a_scene, b_scene)),
             ("PointHit", size_of::<PointHit>(), members!(PointHit: position, u, v, instance, prim)),
             ("ExactBest", size_of::<ExactBest>(), members!(ExactBest: t, u, v, instance, prim, custom, geometry)),
             ("HitList", size_of::<HitList>(), members!(HitList: first, capacity)),

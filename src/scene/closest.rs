@@ -11,7 +11,9 @@ use crate::error::{Error, Result};
 use crate::geometry::precision::{Aabb, Affine};
 use crate::geometry::reference::{largest_stretch, Bvh, TriangleSet};
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
-use crate::gpu::records::{BvhInstance, BvhNode, BvhTriangle, WindingEdge, WindingSpan};
+use crate::gpu::records::{
+    BvhInstance, BvhNode, BvhTriangle, WindingCapEdge, WindingCapHeader, WindingEdge, WindingSpan,
+};
 
 /// The device's copy of every hierarchy closest points search.
 pub struct ClosestScene {
@@ -116,6 +118,68 @@ impl WindingScene {
     /// Device addresses: spans, edges.
     pub fn addresses(&self) -> [u64; 2] {
         [&self.spans, &self.edges].map(Buffer::address)
+    }
+}
+
+/// The most boundary edges a cap may have: each ray of the exact tier's winding query tests
+/// and sums them all, where the hierarchy (`WindingScene`) sums a few nodes' boundaries.
+pub const MAX_CAP_EDGES: usize = 4096;
+
+/// The cap that closes the holes of a one-instance scene's mesh, for the exact tier's winding
+/// query (trace::Query::Winding): the fan from the centre of the mesh's box over each edge of its
+/// boundary (the hierarchy's root's, geometry::winding), corners in the mesh's frame and the
+/// scene's. The mesh less the cap has no boundary, so its winding number about a point is the
+/// signed count of a ray's crossings, and the mesh's is that plus the cap's.
+pub struct WindingCap {
+    buffer: Buffer,
+    pub edge_count: usize,
+}
+
+impl WindingCap {
+    /// The cap of the scene's one instance, or None: several instances (a ray's crossings would
+    /// need telling apart), an instance no ray meets (mask 0), or a boundary of more than
+    /// `MAX_CAP_EDGES` edges (the root keeps none, or too many to sum per ray).
+    pub(super) fn build(scene: &Scene) -> Result<Option<WindingCap>> {
+        let [placement] = scene.placements.as_slice() else { return Ok(None) };
+        if placement.mask == 0 {
+            return Ok(None);
+        }
+        let set = &placement.triangles;
+        let (tree, nodes) = (set.winding_tree(), set.bvh().nodes());
+        let Some((root, span)) = nodes.first().zip(tree.spans().first()) else { return Ok(None) };
+        if span.count == crate::geometry::winding::NO_CAP || span.count as usize > MAX_CAP_EDGES {
+            return Ok(None);
+        }
+        let first = span.first as usize;
+        let edges = &tree.edges()[first..first + span.count as usize];
+        let in_scene = |v: glam::DVec3| placement.to_scene.point(v).to_array();
+        let apex = root.bounds.center();
+        let header = WindingCapHeader {
+            edge_count: edges.len() as u32,
+            mirrored: (placement.to_scene.linear.determinant() < 0.0) as u32,
+            apex: apex.to_array(),
+            apex_scene: in_scene(apex),
+        };
+        let mut bytes = bytemuck::bytes_of(&header).to_vec();
+        for &[u, v] in edges {
+            let (a, b) = (set.vertices[u as usize], set.vertices[v as usize]);
+            let edge = WindingCapEdge { a: a.to_array(), b: b.to_array(), a_scene: in_scene(a), b_scene: in_scene(b) };
+            bytes.extend_from_slice(bytemuck::bytes_of(&edge));
+        }
+        let ctx = scene.tlas.context();
+        let mut uploads = Uploads::default();
+        let buffer = uploads
+            .buffer(ctx, bytes.len() as u64, GEOMETRY_INPUT, "winding cap", |out, _| out.copy_from_slice(&bytes))?;
+        ctx.run_commands(|cmd| {
+            uploads.record(ctx, cmd);
+            Ok(())
+        })?;
+        Ok(Some(WindingCap { buffer, edge_count: edges.len() }))
+    }
+
+    /// The device address of the header (the edges follow it).
+    pub fn address(&self) -> u64 {
+        self.buffer.address()
     }
 }
 

@@ -6,7 +6,7 @@ use std::time::Instant;
 use ash::vk;
 use glam::DVec3;
 
-use super::closest::{ClosestScene, WindingScene};
+use super::closest::{ClosestScene, WindingCap, WindingScene};
 use super::exact::ExactScene;
 use super::instance::{place, Instance, Placement, MAX_CUSTOM_INDEX};
 use super::mesh::{Mesh, MeshKind};
@@ -45,6 +45,7 @@ pub struct Scene {
     closest: OnceLock<Arc<ClosestScene>>,
     /// Winding numbers' boundaries on the device, built on their first query.
     winding: OnceLock<Arc<WindingScene>>,
+    winding_cap: OnceLock<Option<Arc<WindingCap>>>,
     /// The instances' bounds in the scene's frame.
     bounds: Aabb,
 }
@@ -94,6 +95,7 @@ impl Scene {
             exact: OnceLock::new(),
             closest: OnceLock::new(),
             winding: OnceLock::new(),
+            winding_cap: OnceLock::new(),
         })
     }
 
@@ -216,6 +218,17 @@ impl Scene {
         }
         let built = Arc::new(WindingScene::build(self)?);
         Ok(self.winding.get_or_init(|| built).clone())
+    }
+
+    /// The cap that closes the holes of the scene's one mesh, for the exact tier's winding query,
+    /// built on first use (outside any lock, as `exact`); None where the scene has none
+    /// (`WindingCap::build`).
+    pub fn winding_cap(&self) -> Result<Option<Arc<WindingCap>>> {
+        if let Some(cap) = self.winding_cap.get() {
+            return Ok(cap.clone());
+        }
+        let built = WindingCap::build(self)?.map(Arc::new);
+        Ok(self.winding_cap.get_or_init(|| built).clone())
     }
 
     /// Where rays are packed: the scene's frame and the sphere bounding its instances.

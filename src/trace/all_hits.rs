@@ -158,6 +158,7 @@ impl Tracer {
             frame,
             all_hits: true,
             sensor,
+            cap: None,
         };
         let result = self.store_chunks(&job, &plan, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
         self.slots.give_back(slots);

@@ -21,7 +21,7 @@ use std::sync::Arc;
 use crate::gpu::context::{Backend, Commands, Context, Interrupt};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{HitList, Params};
-use crate::scene::{ExactScene, Scene};
+use crate::scene::{ExactScene, Scene, WindingCap};
 
 /// What every chunk of one query shares.
 pub(super) struct GpuJob<'a> {
@@ -36,6 +36,8 @@ pub(super) struct GpuJob<'a> {
     pub all_hits: bool,
     /// The sensor record the shaders generate the rays from, when they do (nothing uploaded).
     pub sensor: Option<&'a Buffer>,
+    /// The cap a winding query's rays take away (`Query::Winding`).
+    pub cap: Option<&'a WindingCap>,
 }
 
 /// The storing pass of all hits, per chunk in flight: each ray's `HitList` (uploaded with the
@@ -216,6 +218,10 @@ impl Tracer {
             if let Some((buffers, _)) = lists {
                 params.outputs[Field::T as usize] = buffers.records_address();
             }
+        }
+        if let Some(cap) = job.cap {
+            // QUERY_WINDING reads `scratch` as the cap.
+            params.scratch = cap.address();
         }
         self.record_trace(cmd, job.variant, &params, len);
         stamp(Stamp::Traced);

@@ -47,7 +47,10 @@ const ORDER_MIN_POINTS: usize = 4096;
 
 /// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
 /// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
-const WINDING_TERM_ERROR: f64 = 2e-7;
+pub(super) const WINDING_TERM_ERROR: f64 = 2e-7;
+/// Added to the terms' bound: winding numbers on the GPU within this (and the terms' bound) of
+/// 1/2 are decided on the CPU.
+pub(super) const WINDING_MARGIN: f64 = 1e-4;
 
 /// The point queries' shaders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -314,7 +317,14 @@ impl Tracer {
         self.points.give_back(slots);
         result?;
         let most = scene.placements.iter().map(|p| p.triangles.faces.len()).max().unwrap_or(0);
-        tiers::inside_by_winding(scene, points, &winding, WINDING_TERM_ERROR * most as f64 + 1e-4, out, interrupt)
+        tiers::inside_by_winding(
+            scene,
+            points,
+            &winding,
+            WINDING_TERM_ERROR * most as f64 + WINDING_MARGIN,
+            out,
+            interrupt,
+        )
     }
 
     /// Points per chunk for a query of `n` points (with `full` outputs, or one f64 a point).

@@ -13,35 +13,62 @@ pub enum Query {
     Count,
     /// Every hit in [tmin, tmax] (the nearest `max_hits`), in order.
     All,
-    /// For `contains`, exact tier: the number of hits, and whether the ray's origin lies on a
-    /// surface (`ON_SURFACE` added to the count).
+    /// For `contains`, exact tier: the signed sum of the ray's crossings, and whether its origin
+    /// lies on a surface, into one int32 (`Crossings`).
     Parity,
     /// The product of (1 - opacity) over every crossing in [tmin, tmax]: the light a ray keeps.
     Transmit,
+    /// For `contains` by winding number, exact tier, one instance: `Parity`'s sum less the
+    /// crossings of the cap that closes the mesh's holes (`scene::WindingCap`), and the cap's
+    /// winding number about the ray's origin in `t` (NaN where it lies within rounding of the
+    /// cap): the mesh's winding number is their sum.
+    Winding,
 }
 
-/// `Query::Parity`'s flag in a count: the ray's origin lies on a surface.
-pub const ON_SURFACE: i32 = 1 << 30;
+/// What `Query::Parity` and `Query::Winding` write into one int32 a ray (QUERY_PARITY in
+/// shaders/common.glsl): 2 per crossing, + where the ray meets a triangle's back in its mesh's
+/// frame (it leaves an outward mesh there), - its front; plus 1 where the origin lies on a
+/// surface.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Crossings(pub i32);
+
+impl Crossings {
+    /// The signed sum of the crossings (for a closed mesh: its winding number about the origin).
+    pub fn sum(self) -> i32 {
+        self.0 >> 1
+    }
+
+    /// Whether the crossings are odd in number.
+    pub fn odd(self) -> bool {
+        self.sum() & 1 == 1
+    }
+
+    /// Whether the ray's origin lies on a surface (within 8 ulps: `ReferenceTracer::on_surface`).
+    pub fn on_surface(self) -> bool {
+        self.0 & 1 == 1
+    }
+}
 
 impl Query {
     /// Whether traversal must meet every hit: counts, all hits, parities, transmittance.
     pub fn meets_every_hit(self) -> bool {
-        matches!(self, Query::Count | Query::All | Query::Parity | Query::Transmit)
+        matches!(self, Query::Count | Query::All | Query::Parity | Query::Transmit | Query::Winding)
     }
 
     /// Whether the shaders write per-ray counts (and lists) rather than hit fields.
     pub fn counts_hits(self) -> bool {
-        matches!(self, Query::Count | Query::All | Query::Parity)
+        matches!(self, Query::Count | Query::All | Query::Parity | Query::Winding)
     }
 
-    /// The shaders' QUERY constant: QUERY_CLOSEST (0), QUERY_ALL (1), QUERY_PARITY (2) or
-    /// QUERY_TRANSMIT (3).
+    /// The shaders' QUERY constant: QUERY_CLOSEST (0), QUERY_ALL (1), QUERY_PARITY (2),
+    /// QUERY_TRANSMIT (3) or QUERY_WINDING (4).
     pub fn shader_query(self) -> u32 {
         match self {
             Query::Closest | Query::Occluded => 0,
             Query::Count | Query::All => 1,
             Query::Parity => 2,
             Query::Transmit => 3,
+            Query::Winding => 4,
         }
     }
 
@@ -54,6 +81,7 @@ impl Query {
             Query::All => "all",
             Query::Parity => "contains",
             Query::Transmit => "transmittance",
+            Query::Winding => "contains by winding number",
         }
     }
 }

@@ -5,6 +5,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::fields::{Field, HitSink};
+use super::request::Crossings;
 use crate::error::{try_vec, Error, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
@@ -435,6 +436,58 @@ pub fn inside_by_winding(
         });
     })
 }
+
+/// Whether each point lies inside the scene's one instance, from its winding query's answers
+/// (`Query::Winding`): the signed crossings of its ray with the mesh less its cap (`counts`) and
+/// the cap's winding number about it (`cap_winding`; NaN: unsure). Points on a surface are
+/// inside; points whose winding number lies within `band` of 1/2 (or unsure) are decided on the
+/// CPU (the reference tier's winding number).
+pub fn inside_by_crossings(
+    scene: &Scene,
+    points: Vec3s,
+    counts: &[i32],
+    cap_winding: &[f64],
+    band: f64,
+    out: &mut [u8],
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
+    parallel::install(|| {
+        out.par_iter_mut().zip(counts.par_iter().zip(cap_winding)).with_min_len(4096).for_each(|(inside, (&c, &w))| {
+            let crossings = Crossings(c);
+            let w = f64::from(crossings.sum()) + w;
+            *inside = if crossings.on_surface() || w >= 0.5 + band {
+                1
+            } else if w < 0.5 - band {
+                0
+            } else {
+                UNSURE
+            };
+        })
+    });
+    if !parallel::install(|| out.par_iter().any(|&x| x == UNSURE)) {
+        return Ok(());
+    }
+    let tracer = scene.reference_tracer();
+    build_winding_trees(scene);
+    let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
+    in_blocks(out.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            out[range].par_iter_mut().enumerate().with_min_len(256).filter(|(_, x)| **x == UNSURE).for_each(
+                |(k, inside)| {
+                    let p = point(start + k);
+                    *inside = u8::from(
+                        tracer.on_surface(p, ON_SURFACE_ULPS)
+                            || scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5),
+                    );
+                },
+            )
+        });
+    })
+}
+
+/// `inside_by_crossings`' mark of a point it leaves to the CPU.
+const UNSURE: u8 = 2;
 
 /// The surface point nearest to each point within `max_distance`, on the CPU in f64 (all cores):
 /// the reference tier of `closest_points`, and the others' oracle.

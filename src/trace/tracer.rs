@@ -6,9 +6,10 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use super::chunks::GpuJob;
+use super::closest::{WINDING_MARGIN, WINDING_TERM_ERROR};
 use super::fields::{position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::profile::TraceProfile;
-use super::request::{Precision, Query, Request, DEFAULT_THRESHOLD, ON_SURFACE};
+use super::request::{Crossings, Precision, Query, Request, DEFAULT_THRESHOLD};
 use super::staging::SlotPool;
 use super::tiers;
 use super::variants::{ray_flag_names, ray_flags, Stage, Variant, VariantKey, Variants};
@@ -18,7 +19,7 @@ use crate::geometry::rays::Rays;
 use crate::gpu::context::{Backend, Context, Interrupt};
 use crate::gpu::memory::Buffer;
 use crate::gpu::records::{ExactHit, FastHit};
-use crate::scene::Scene;
+use crate::scene::{Scene, WindingCap};
 use rayon::prelude::*;
 
 /// Traces rays on one device; owns the pipeline variants and reusable staging. Any number of
@@ -351,8 +352,14 @@ impl Tracer {
         let mut slots = self.slots.take(capacity, exact)?;
         let frame = scene.frame();
         let sensor = sensor.as_ref();
-        let job =
-            GpuJob { scene, exact: exact_scene.as_deref(), rays, variant: &variant, outputs, frame, all_hits, sensor };
+        let cap = match request.query {
+            Query::Winding => Some(scene.winding_cap()?.ok_or_else(|| {
+                invalid_value("a winding query needs a scene of one instance whose mesh has a cap (WindingCap)")
+            })?),
+            _ => None,
+        };
+        let (exact, cap) = (exact_scene.as_deref(), cap.as_deref());
+        let job = GpuJob { scene, exact, rays, variant: &variant, outputs, frame, all_hits, sensor, cap };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
         self.slots.give_back(slots);
         result
@@ -575,11 +582,14 @@ impl Tracer {
             return Ok(());
         }
         match precision {
-            Precision::Exact if !winding => self.contains_by_gpu_parity(scene, points, out, interrupt),
+            Precision::Exact if !winding => self.contains_by_gpu_crossings(scene, points, None, out, interrupt),
             Precision::Exact if self.ctx.info.shader_float64 => {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
-                self.gpu_contains_by_winding(scene, points, out, interrupt)
+                match scene.winding_cap()? {
+                    Some(cap) => self.contains_by_gpu_crossings(scene, points, Some(&cap), out, interrupt),
+                    None => self.gpu_contains_by_winding(scene, points, out, interrupt),
+                }
             }
             // Without f64 shaders, the exact tier's winding numbers are the reference tier's.
             Precision::Exact | Precision::Reference => {
@@ -595,14 +605,17 @@ impl Tracer {
         }
     }
 
-    /// `contains` by parity on the GPU: each point's ray's crossings are counted exactly, and
-    /// whether the point lies on a surface tested on the GPU too (one instance: a ray cannot tell,
-    /// its t there rounds to either side of 0); or, with several instances, the crossings are
-    /// found with their instances (a parity each) and the CPU tells points on a surface.
-    fn contains_by_gpu_parity(
+    /// `contains` from one ray a point on the GPU, its crossings counted exactly: by parity
+    /// (`cap` None: the caller checked that every mesh is closed), or by the winding number of
+    /// the scene's one mesh through its `cap` (its signed crossings plus the cap's winding number).
+    /// With one instance the GPU also tests whether the point lies on a surface (a ray cannot
+    /// tell: its t there rounds to either side of 0). With several (parity only), the crossings
+    /// are found with their instances (a parity each) and the CPU tells points on a surface.
+    fn contains_by_gpu_crossings(
         &self,
         scene: &Scene,
         points: crate::geometry::arrays::Vec3s,
+        cap: Option<&WindingCap>,
         out: &mut [u8],
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
@@ -622,24 +635,31 @@ impl Tracer {
         };
         self.check_paths(scene, true)?;
         let mut odd = try_vec(points.rows(), 0i32, "the crossings of contains")?;
+        if let Some(cap) = cap {
+            let mut cap_winding = try_vec(points.rows(), 0.0f64, "the cap's winding numbers")?;
+            let mut sink = HitSink::default();
+            sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut odd));
+            sink.set(Field::T, bytemuck::cast_slice_mut(&mut cap_winding));
+            self.trace(scene, &rays, Request { query: Query::Winding, ..request }, &mut sink, interrupt)?;
+            let band = WINDING_TERM_ERROR * cap.edge_count as f64 + WINDING_MARGIN;
+            return tiers::inside_by_crossings(scene, points, &odd, &cap_winding, band, out, interrupt);
+        }
         if scene.placements.len() == 1 {
             let mut sink = HitSink::default();
             sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut odd));
             self.trace(scene, &rays, Request { query: Query::Parity, ..request }, &mut sink, interrupt)?;
             parallel::install(|| {
                 out.par_iter_mut().zip(&odd).with_min_len(4096).for_each(|(inside, &count)| {
-                    *inside = u8::from(count & ON_SURFACE != 0 || count % 2 == 1);
+                    let count = Crossings(count);
+                    *inside = u8::from(count.on_surface() || count.odd());
                 })
             });
             return Ok(());
-        } else {
-            let all = self.gpu_all_hits::<ExactHit>(scene, &rays, request, usize::MAX, 0, interrupt)?.into_all_hits();
-            for (odd, pair) in odd.iter_mut().zip(all.offsets.windows(2)) {
-                *odd = i32::from(tiers::odd_crossings(
-                    &all.hits[pair[0] as usize..pair[1] as usize],
-                    scene.placements.len(),
-                ));
-            }
+        }
+        let all = self.gpu_all_hits::<ExactHit>(scene, &rays, request, usize::MAX, 0, interrupt)?.into_all_hits();
+        for (odd, pair) in odd.iter_mut().zip(all.offsets.windows(2)) {
+            *odd =
+                i32::from(tiers::odd_crossings(&all.hits[pair[0] as usize..pair[1] as usize], scene.placements.len()));
         }
         let _in_use = scene.hold_meshes();
         tiers::inside_by_counts(scene, points, &odd, out, interrupt)
@@ -707,6 +727,12 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
     }
     if request.query == Query::Parity && (!answerable || request.precision != Precision::Exact) {
         return Err(invalid_value("a parity query is answered at precision='exact', into one int32 a ray"));
+    }
+    let crossings_and_t = sink.outputs() == Field::Prim.bit() | Field::T.bit() && sink.position.is_none();
+    if request.query == Query::Winding && (!crossings_and_t || request.precision != Precision::Exact) {
+        return Err(invalid_value(
+            "a winding query is answered at precision='exact', into one int32 (prim_id) and one f64 (t) a ray",
+        ));
     }
     if scene.has_spheres() && request.precision != Precision::Fast {
         return Err(Error::Unsupported(
