@@ -41,9 +41,9 @@ const LEAN_CHUNK_POINTS: usize = 1 << 20;
 /// Cells per axis of the grid that orders each chunk's points (point_order.comp's GRID): 64³
 /// cells (1 MB of counters), a few points each at full chunks; points crowded near a surface
 /// then spread over enough cells that their counters' atomics do not queue.
-const ORDER_GRID: u32 = 64;
+const ORDER_GRID: u32 = crate::geometry::morton::POINT_GRID;
 /// Chunks of fewer points are searched as they come (ordering them would cost more than it buys).
-const ORDER_MIN_POINTS: usize = 4096;
+pub(super) const ORDER_MIN_POINTS: usize = 4096;
 
 /// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
 /// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
@@ -550,7 +550,7 @@ impl Tracer {
     /// a side; none for an empty scene, or where VKRAY_POINT_ORDER=input asks to search points as
     /// they come (to measure what the order buys).
     fn order_grid(&self, scene: &Scene) -> Result<Option<OrderGrid>> {
-        if std::env::var("VKRAY_POINT_ORDER").is_ok_and(|v| v == "input") {
+        if points_as_they_come() {
             return Ok(None);
         }
         let bounds = scene.bounds();
@@ -593,4 +593,16 @@ fn copy_parallel(dst: &mut [u8], src: &[u8]) {
     parallel::install(|| {
         dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))
     });
+}
+
+/// Whether VKRAY_POINT_ORDER=input asks for points searched (and their rays cast) as they come,
+/// to measure what the order buys.
+pub(super) fn points_as_they_come() -> bool {
+    std::env::var("VKRAY_POINT_ORDER").is_ok_and(|v| v == "input")
+}
+
+/// Whether VKRAY_POINT_ORDER=grid asks for points' rays cast in grid order even on a software
+/// device (where by default they are not: its cores gain less than the sort costs), for tests.
+pub(super) fn points_in_grid_order() -> bool {
+    std::env::var("VKRAY_POINT_ORDER").is_ok_and(|v| v == "grid")
 }

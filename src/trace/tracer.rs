@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use super::chunks::GpuJob;
-use super::closest::{WINDING_MARGIN, WINDING_TERM_ERROR};
+use super::closest::{points_as_they_come, points_in_grid_order, ORDER_MIN_POINTS, WINDING_MARGIN, WINDING_TERM_ERROR};
 use super::fields::{position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::profile::TraceProfile;
 use super::request::{Crossings, Precision, Query, Request, DEFAULT_THRESHOLD};
@@ -14,8 +14,9 @@ use super::staging::SlotPool;
 use super::tiers;
 use super::variants::{ray_flag_names, ray_flags, Stage, Variant, VariantKey, Variants};
 use crate::error::{invalid_value, try_vec, Error, Result};
-use crate::geometry::parallel;
+use crate::geometry::arrays::Vec3s;
 use crate::geometry::rays::Rays;
+use crate::geometry::{morton, parallel};
 use crate::gpu::context::{Backend, Context, Interrupt};
 use crate::gpu::memory::Buffer;
 use crate::gpu::records::{ExactHit, FastHit};
@@ -527,7 +528,7 @@ impl Tracer {
     pub fn closest_points(
         &self,
         scene: &Scene,
-        points: crate::geometry::arrays::Vec3s,
+        points: Vec3s,
         max_distance: f64,
         precision: Precision,
         sink: &mut HitSink,
@@ -561,7 +562,7 @@ impl Tracer {
     pub fn contains(
         &self,
         scene: &Scene,
-        points: crate::geometry::arrays::Vec3s,
+        points: Vec3s,
         precision: Precision,
         winding: bool,
         out: &mut [u8],
@@ -582,12 +583,12 @@ impl Tracer {
             return Ok(());
         }
         match precision {
-            Precision::Exact if !winding => self.contains_by_gpu_crossings(scene, points, None, out, interrupt),
+            Precision::Exact if !winding => self.contains_by_gpu_rays(scene, points, None, out, interrupt),
             Precision::Exact if self.ctx.info.shader_float64 => {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
                 match scene.winding_cap()? {
-                    Some(cap) => self.contains_by_gpu_crossings(scene, points, Some(&cap), out, interrupt),
+                    Some(cap) => self.contains_by_gpu_rays(scene, points, Some(&cap), out, interrupt),
                     None => self.gpu_contains_by_winding(scene, points, out, interrupt),
                 }
             }
@@ -605,6 +606,40 @@ impl Tracer {
         }
     }
 
+    /// `contains_by_gpu_crossings` with the rays of 4,096 points or more cast in grid order on a
+    /// hardware GPU (`morton::point_order`: neighbouring invocations then cross the same nodes,
+    /// 1.4–3× faster on an H100), each answer written to its point's own row. VKRAY_POINT_ORDER:
+    /// `input` casts them as they come, `grid` orders them on software devices too.
+    fn contains_by_gpu_rays(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        cap: Option<&WindingCap>,
+        out: &mut [u8],
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        let n = points.rows();
+        let bounds = scene.bounds();
+        let hardware = !self.ctx.info.is_software || points_in_grid_order();
+        let ordered = n >= ORDER_MIN_POINTS && hardware && !points_as_they_come();
+        if !ordered || !(bounds.min.is_finite() && bounds.max.is_finite()) {
+            return self.contains_by_gpu_crossings(scene, points, cap, out, interrupt);
+        }
+        let order = morton::point_order(points, bounds.min + scene.center, bounds.max + scene.center);
+        let mut sorted = try_vec(3 * n, 0.0f64, "the points in grid order")?;
+        let mut inside = try_vec(n, 0u8, "contains in grid order")?;
+        parallel::install(|| {
+            sorted.par_chunks_exact_mut(3).zip(&order).with_min_len(4096).for_each(|(row, &i)| {
+                row.copy_from_slice(&points.row_f64(i as usize));
+            })
+        });
+        self.contains_by_gpu_crossings(scene, Vec3s::F64(&sorted), cap, &mut inside, interrupt)?;
+        for (&i, &answer) in order.iter().zip(&inside) {
+            out[i as usize] = answer;
+        }
+        Ok(())
+    }
+
     /// `contains` from one ray a point on the GPU, its crossings counted exactly: by parity
     /// (`cap` None: the caller checked that every mesh is closed), or by the winding number of
     /// the scene's one mesh through its `cap` (its signed crossings plus the cap's winding number).
@@ -614,7 +649,7 @@ impl Tracer {
     fn contains_by_gpu_crossings(
         &self,
         scene: &Scene,
-        points: crate::geometry::arrays::Vec3s,
+        points: Vec3s,
         cap: Option<&WindingCap>,
         out: &mut [u8],
         interrupt: &dyn Interrupt,
@@ -622,7 +657,7 @@ impl Tracer {
         let direction = tiers::PARITY_DIRECTION.to_array();
         let rays = Rays {
             origins: points,
-            directions: crate::geometry::arrays::Vec3s::F64(&direction),
+            directions: Vec3s::F64(&direction),
             tmin: crate::geometry::rays::PerRay::All(0.0),
             tmax: crate::geometry::rays::PerRay::All(f64::INFINITY),
             mask: crate::geometry::rays::Masks::All(0xFF),
