@@ -622,7 +622,7 @@ impl Tracer {
         let bounds = scene.bounds();
         let hardware = !self.ctx.info.is_software || points_in_grid_order();
         let ordered = n >= ORDER_MIN_POINTS && hardware && !points_as_they_come();
-        if !ordered || !(bounds.min.is_finite() && bounds.max.is_finite()) {
+        if !(ordered && bounds.min.is_finite() && bounds.max.is_finite()) {
             return self.contains_by_gpu_crossings(scene, points, cap, out, interrupt);
         }
         let order = morton::point_order(points, bounds.min + scene.center, bounds.max + scene.center);
