@@ -166,6 +166,44 @@ def test_signed_distance_is_negative_inside(any_device, bunny):
     np.testing.assert_array_equal(signed[clear] < 0, winding[clear] > 0.5)
     with pytest.raises(ValueError, match="winding"):
         open_scene.signed_distance(probe, method="parity")
+    # Batches of any shape; the fast tier in float32; beyond max_distance, +-inf by the side.
+    whole = closed.signed_distance(points, precision="exact")
+    np.testing.assert_array_equal(closed.signed_distance(points.reshape(10, 200, 3)), whole.reshape(10, 200))
+    fast = closed.signed_distance(points, precision="fast")
+    assert fast.dtype == np.float32
+    np.testing.assert_allclose(fast, expected, atol=1e-6)
+    cut = closed.signed_distance(points, max_distance=0.25)
+    far = np.abs(expected) > 0.25 + 1e-9
+    assert far.sum() > 100 and np.isinf(cut[far]).all()
+    np.testing.assert_array_equal(np.sign(cut[far]), np.sign(expected[far]))
+    np.testing.assert_array_equal(cut[~far], whole[~far])
+    # Several threads at once, each tier: the same answers.
+    want = {tier: open_scene.signed_distance(probe, precision=tier) for tier in ("exact", "reference")}
+    results, errors = [], []
+
+    def work():
+        try:
+            for tier in ("exact", "reference"):
+                results.append((tier, open_scene.signed_distance(probe, precision=tier)))
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(results) == 8
+    for tier, got in results:
+        np.testing.assert_array_equal(got, want[tier])
+    with pytest.raises(ValueError, match="not finite"):
+        closed.signed_distance([[0.0, np.nan, 0.0]])
+    with pytest.raises(ValueError, match="max_distance"):
+        closed.signed_distance([[0.0, 0.0, 0.0]], max_distance=-1.0)
+    with pytest.raises(ValueError, match="method"):
+        closed.signed_distance([[0.0, 0.0, 0.0]], method="vote")
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        closed.signed_distance(np.zeros((4, 2)))
 
 
 def test_the_fast_tier_is_the_nearest_to_float32_rounding(device, bunny):
@@ -372,7 +410,7 @@ def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, m
     inside = scene.contains(points[:5000], method="winding")
     np.testing.assert_array_equal(inside, inside_as_they_come)
     np.testing.assert_array_equal(inside, scene.contains(points[:5000], method="winding", precision="reference"))
-    # contains' rays cast in grid order (the default on hardware GPUs): the same rows, by the
+    # contains' rays cast in grid order (the default on software devices): the same rows, by the
     # winding number through the cap and by parity in a closed mesh.
     monkeypatch.setenv("VKRAY_POINT_ORDER", "grid")
     np.testing.assert_array_equal(scene.contains(points[:5000], method="winding"), inside)

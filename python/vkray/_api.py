@@ -137,7 +137,9 @@ class Device:
         ``gpu_upload`` (staging → device copy), ``gpu_trace`` (the trace alone), ``gpu_readback``.
         ``host_f64``: the host's f64 work (refined and reference tiers). ``store``: all hits on
         the GPU, the storing pass (the host clock's phases are the counting pass's; ``gpu_*``,
-        ``chunks`` and ``total`` cover both). Plus ``rays`` and ``chunks``."""
+        ``chunks`` and ``total`` cover both). ``order``: ``contains`` in grid order, the host's sort of
+        the points and the scatter of the answers back (outside ``total``). Plus ``rays`` and
+        ``chunks``."""
         return dict(self._core.last_trace_profile)
 
     @property
@@ -1058,13 +1060,27 @@ class Scene:
         exact crossing count of one ray per point) or ``"winding"`` (the generalized winding
         number, for meshes with holes); ``None`` (default) takes parity where every mesh is closed
         (`Mesh.is_closed`), else the winding number. A point on the surface is at distance 0."""
-        distance = self.distance(points, max_distance=max_distance, precision=precision, progress=progress)
+        p = _arrays.real_coordinates("points", points)
+        if p.ndim == 0 or p.shape[-1] != 3:
+            raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+        limit = float(max_distance)
+        if not limit >= 0:
+            raise ValueError(f"max_distance must be >= 0 (or inf), got {max_distance}")
         if method is None:
             method = "parity" if all(x.mesh.is_closed for x in self.instances) else "winding"
+        if method not in ("parity", "winding"):
+            raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")
+        if method == "parity":
+            self._check_closed()
         tier: Precision = "reference" if precision == "reference" or not self.device.info.shader_float64 else "exact"
-        inside = self.contains(points, precision=tier, method=method)
-        signed: np.ndarray = np.where(inside, -distance, distance)
-        return signed
+        flat = np.ascontiguousarray(p.reshape(-1, 3))
+        signed: np.ndarray = _progress.call(
+            progress,
+            "signed_distance",
+            lambda bar: self._core.signed_distance(flat, limit, precision, tier, method == "winding", bar),
+        )
+        signed = signed.reshape(p.shape[:-1])
+        return signed.astype(np.float32) if precision == "fast" else signed
 
     def contains(
         self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
@@ -1096,12 +1112,7 @@ class Scene:
         if p.ndim == 0 or p.shape[-1] != 3:
             raise ValueError(f"points must have shape (..., 3), got {p.shape}")
         if method == "parity":
-            open_meshes = sorted({i for i, x in enumerate(self.instances) if not x.mesh.is_closed})
-            if open_meshes:
-                raise ValueError(
-                    f"instances {open_meshes} are not closed meshes (Mesh.is_closed), so the parity of "
-                    "crossings says nothing: use method='winding'"
-                )
+            self._check_closed()
         inside = _progress.call(
             progress,
             "contains",
@@ -1110,6 +1121,15 @@ class Scene:
             ),
         )
         return inside.reshape(p.shape[:-1])
+
+    def _check_closed(self) -> None:
+        """Parity needs closed meshes: ValueError naming the instances that are not."""
+        open_meshes = sorted({i for i, x in enumerate(self.instances) if not x.mesh.is_closed})
+        if open_meshes:
+            raise ValueError(
+                f"instances {open_meshes} are not closed meshes (Mesh.is_closed), so the parity of "
+                "crossings says nothing: use method='winding'"
+            )
 
     def __repr__(self) -> str:
         return f"<vkray.Scene {len(self.instances)} instances on {self.device.name!r}>"

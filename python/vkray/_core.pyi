@@ -226,6 +226,15 @@ class Scene:
         winding: bool = False,
         progress: Optional[Callable[[int, int], object]] = None,
     ) -> NDArray[np.bool_]: ...
+    def signed_distance(
+        self,
+        points: _Vec3s,
+        max_distance: float,
+        precision: Precision,
+        contains_precision: Precision,
+        winding: bool,
+        progress: Optional[Callable[[int, int], object]] = None,
+    ) -> NDArray[np.float64]: ...
 
 @final
 class CudaArray:

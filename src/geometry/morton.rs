@@ -53,29 +53,95 @@ pub fn morton_order(vertices: Vec3s, faces: Indices) -> Vec<u32> {
     keyed.into_iter().map(|(_, t)| t).collect()
 }
 
-/// Cells along each axis of `point_order`'s grid.
+/// Cells along each axis of the grid points are ordered by (here and in point_order.comp).
 pub const POINT_GRID: u32 = 64;
 
-/// The points sorted cell by cell of a `POINT_GRID`³ grid over the box [lo, hi], the cells along
-/// a Morton curve (points outside the box go to its border cells), in input order within a cell:
-/// new position -> caller's point. On all cores. Rays cast from neighbouring points in this
-/// order cross the same nodes, which a GPU runs side by side far faster (the host's version of
+/// Cells along each axis of the host's grid (`point_order`): a counting sort over 32³ cells
+/// keeps each thread's counters in its cache.
+const HOST_GRID: u32 = 32;
+
+/// An order of n points: new position -> caller's point, each point exactly once (only
+/// `point_order` makes one, which is what lets `scatter` write from several threads).
+pub struct Permutation(Vec<u32>);
+
+/// The points sorted cell by cell of a 32³ grid over the box [lo, hi], the cells along a Morton
+/// curve (points outside the box go to its border cells; NaN to the first), in input order within
+/// a cell. A counting sort on all cores. Rays cast from neighbouring points in this order cross
+/// the same nodes, which a GPU runs side by side far faster (the host's version of
 /// shaders/point_order.comp, for rays).
-pub fn point_order(points: Vec3s, lo: DVec3, hi: DVec3) -> Vec<u32> {
+pub fn point_order(points: Vec3s, lo: DVec3, hi: DVec3) -> Permutation {
+    const CELLS: usize = (HOST_GRID * HOST_GRID * HOST_GRID) as usize;
+    let n = points.rows();
     let extent = (hi - lo).max(DVec3::splat(f64::MIN_POSITIVE));
-    let scale = DVec3::splat(f64::from(POINT_GRID)) / extent;
-    let top = f64::from(POINT_GRID - 1);
+    let scale = DVec3::splat(f64::from(HOST_GRID)) / extent;
+    let top = DVec3::splat(f64::from(HOST_GRID - 1));
     let cell = |i: usize| {
-        let q = ((DVec3::from_array(points.row_f64(i)) - lo) * scale).clamp(DVec3::ZERO, DVec3::splat(top));
-        // NaN (never: contains refuses non-finite points) would go to cell 0.
-        spread_bits(q.x as u64) | spread_bits(q.y as u64) << 1 | spread_bits(q.z as u64) << 2
+        let q = ((DVec3::from_array(points.row_f64(i)) - lo) * scale).clamp(DVec3::ZERO, top);
+        (spread_bits(q.x as u64) | spread_bits(q.y as u64) << 1 | spread_bits(q.z as u64) << 2) as u32
     };
     parallel::install(|| {
-        let mut keyed: Vec<u64> =
-            (0..points.rows()).into_par_iter().with_min_len(4096).map(|i| cell(i) << 32 | i as u64).collect();
-        keyed.par_sort_unstable();
-        keyed.into_par_iter().with_min_len(4096).map(|k| k as u32).collect()
+        // One block of points a thread: each counts its points per cell.
+        let block = n.div_ceil(rayon::current_num_threads().max(1)).max(1 << 14);
+        let cells: Vec<u32> = (0..n).into_par_iter().with_min_len(4096).map(cell).collect();
+        let mut next: Vec<Vec<u32>> = cells
+            .par_chunks(block)
+            .map(|chunk| {
+                let mut counts = vec![0u32; CELLS];
+                for &c in chunk {
+                    counts[c as usize] += 1;
+                }
+                counts
+            })
+            .collect();
+        // Where each block's points of each cell start: cell by cell, block by block.
+        let mut total = 0u32;
+        for c in 0..CELLS {
+            for counts in next.iter_mut() {
+                let count = counts[c];
+                counts[c] = total;
+                total += count;
+            }
+        }
+        let mut order = vec![0u32; n];
+        let out = SharedOut(order.as_mut_ptr());
+        cells.par_chunks(block).zip(next.par_iter_mut()).enumerate().for_each(|(b, (chunk, next))| {
+            let out = &out;
+            for (k, &c) in chunk.iter().enumerate() {
+                let at = &mut next[c as usize];
+                // SAFETY: `at` runs over this block's own range of this cell's slots (the prefix
+                // sums above), so every slot of `order` (n of them) is written by one block once.
+                unsafe { out.0.add(*at as usize).write((b * block + k) as u32) };
+                *at += 1;
+            }
+        });
+        Permutation(order)
     })
+}
+
+/// A pointer the blocks of one scatter share, each writing its own slots.
+struct SharedOut<T>(*mut T);
+// SAFETY: the threads that share it write disjoint slots (see its uses).
+unsafe impl<T: Send> Sync for SharedOut<T> {}
+
+impl Permutation {
+    /// New position -> caller's point.
+    pub fn as_slice(&self) -> &[u32] {
+        &self.0
+    }
+
+    /// Writes `values[k]` to `out[self[k]]` for every k, on all cores.
+    pub fn scatter<T: Copy + Send + Sync>(&self, values: &[T], out: &mut [T]) {
+        assert!(values.len() == self.0.len() && out.len() == self.0.len(), "a permutation scatters its own length");
+        let shared = SharedOut(out.as_mut_ptr());
+        parallel::install(|| {
+            self.0.par_iter().zip(values).with_min_len(4096).for_each(|(&i, &v)| {
+                let shared = &shared;
+                // SAFETY: `self` is a permutation of 0..out.len() (point_order's): each slot is
+                // written once, by one thread, within bounds.
+                unsafe { shared.0.add(i as usize).write(v) };
+            })
+        });
+    }
 }
 
 #[cfg(test)]
@@ -100,13 +166,16 @@ mod tests {
     #[test]
     fn point_order_visits_cells_along_the_curve() {
         // Along x: cells 3, 0, 2, 0 (two in cell 0, kept in input order), and one far outside.
-        let step = 1.0 / f64::from(POINT_GRID);
+        let step = 1.0 / f64::from(HOST_GRID);
         let xs = [3.5 * step, 0.2 * step, 2.5 * step, 0.7 * step, -5.0];
         let v: Vec<f64> = xs.iter().flat_map(|&x| [x, 0.0, 0.0]).collect();
         let order = point_order(Vec3s::F64(&v), DVec3::ZERO, DVec3::ONE);
-        assert_eq!(order, vec![1, 3, 4, 2, 0]);
+        assert_eq!(order.as_slice(), [1, 3, 4, 2, 0]);
+        let mut back = [0.0; 5];
+        order.scatter(&[10.0, 11.0, 12.0, 13.0, 14.0], &mut back);
+        assert_eq!(back, [14.0, 10.0, 13.0, 11.0, 12.0]);
         // A step along y comes after the cells of x 0 and 1 (the curve's first square).
         let v = [0.0, 1.5 * step, 0.0, 1.5 * step, 0.0, 0.0, 2.5 * step, 0.0, 0.0];
-        assert_eq!(point_order(Vec3s::F64(&v), DVec3::ZERO, DVec3::ONE), vec![1, 0, 2]);
+        assert_eq!(point_order(Vec3s::F64(&v), DVec3::ZERO, DVec3::ONE).as_slice(), [1, 0, 2]);
     }
 }

@@ -131,6 +131,7 @@ impl PyDevice {
         d.set_item("gpu_readback", p.gpu_readback)?;
         d.set_item("host_f64", p.host_f64)?;
         d.set_item("store", p.store)?;
+        d.set_item("order", p.order)?;
         Ok(d)
     }
 

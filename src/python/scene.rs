@@ -480,6 +480,40 @@ impl PyScene {
         Ok(result)
     }
 
+    /// The distance from each point ((N, 3)) to the nearest surface, negative inside (f64).
+    #[pyo3(signature = (points, max_distance, precision, contains_precision, winding, progress=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn signed_distance<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        max_distance: f64,
+        precision: &str,
+        contains_precision: &str,
+        winding: bool,
+        progress: Option<Py<PyAny>>,
+    ) -> PyResult<Bound<'py, PyUntypedArray>> {
+        let (precision, contains_precision) = (Precision::parse(precision)?, Precision::parse(contains_precision)?);
+        let points = Vec3Array::extract("points", points)?;
+        let points = points.view()?;
+        let signed = empty(py, &[points.rows()], "float64")?;
+        let out: &mut [f64] = bytemuck::cast_slice_mut(bytes_of(&signed));
+        run_reporting(py, progress, |interrupt| {
+            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+            self.tracer.signed_distance(
+                &scene,
+                points,
+                max_distance,
+                precision,
+                contains_precision,
+                winding,
+                out,
+                interrupt,
+            )
+        })?;
+        Ok(signed)
+    }
+
     /// Whether each point ((N, 3)) is inside any instance: by parity or by winding number.
     #[pyo3(signature = (points, precision="exact", winding=false, progress=None))]
     fn contains<'py>(

@@ -601,8 +601,8 @@ pub(super) fn points_as_they_come() -> bool {
     std::env::var("VKRAY_POINT_ORDER").is_ok_and(|v| v == "input")
 }
 
-/// Whether VKRAY_POINT_ORDER=grid asks for points' rays cast in grid order even on a software
-/// device (where by default they are not: its cores gain less than the sort costs), for tests.
+/// Whether VKRAY_POINT_ORDER=grid asks for points' rays cast in grid order even on a hardware
+/// GPU (where by default they are not: the host's sort costs more than the trace gains).
 pub(super) fn points_in_grid_order() -> bool {
     std::env::var("VKRAY_POINT_ORDER").is_ok_and(|v| v == "grid")
 }

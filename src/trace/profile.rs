@@ -34,6 +34,9 @@ pub struct TraceProfile {
     /// All hits on the GPU: the storing pass (wall time; the fields above are the counting
     /// pass's, but `gpu_*`, `chunks` and `total` cover both).
     pub store: f64,
+    /// `contains` in grid order: the host's sort of the points, gathering them in that order and
+    /// scattering the answers back (outside `total`).
+    pub order: f64,
 }
 
 /// The phases of one chunk that timestamps separate: start, after upload, after trace, after
