@@ -403,8 +403,12 @@ def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, m
     as_they_come = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS, precision="exact")
     for field in vkray.CLOSEST_FIELDS:
         np.testing.assert_array_equal(getattr(ordered, field), getattr(as_they_come, field), err_msg=field)
-    np.testing.assert_array_equal(ordered.distance, reference.distance)
-    np.testing.assert_array_equal(ordered.position, reference.position)
+    if device.info.is_software:
+        np.testing.assert_array_equal(ordered.distance, reference.distance)
+        np.testing.assert_array_equal(ordered.position, reference.position)
+    else:  # a GPU's f64 division and square root may round otherwise (to an ulp)
+        np.testing.assert_allclose(ordered.distance, reference.distance, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(ordered.position, reference.position, rtol=1e-13, atol=1e-15)
     inside_as_they_come = scene.contains(points[:5000], method="winding")
     monkeypatch.delenv("VKRAY_POINT_ORDER")
     inside = scene.contains(points[:5000], method="winding")
@@ -430,4 +434,4 @@ def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, m
     for t in threads:
         t.join()
     for got in results:
-        np.testing.assert_array_equal(got, reference.distance)
+        np.testing.assert_array_equal(got, ordered.distance)
