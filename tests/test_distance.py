@@ -30,6 +30,28 @@ def world_triangles(vertices, faces, transform=None):
     return tri if transform is None else tri @ transform[:3, :3].T + transform[:3, 3]
 
 
+def check_tiers_in_threads(query, tiers=("reference", "exact"), threads=4):
+    """`query(tier)` for each tier in several threads at once gives each tier's answer alone."""
+    want = {tier: query(tier) for tier in tiers}
+    results, errors = [], []
+
+    def work():
+        try:
+            for tier in tiers:
+                results.append((tier, query(tier)))
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    started = [threading.Thread(target=work) for _ in range(threads)]
+    for t in started:
+        t.start()
+    for t in started:
+        t.join()
+    assert not errors and len(results) == threads * len(tiers)
+    for tier, got in results:
+        np.testing.assert_array_equal(got, want[tier])
+
+
 def check_against_brute_force(found, points, tri):
     """distance equals the brute-force minimum; position lies on the reported triangle at that
     distance, at the reported barycentrics."""
@@ -178,24 +200,7 @@ def test_signed_distance_is_negative_inside(any_device, bunny):
     np.testing.assert_array_equal(np.sign(cut[far]), np.sign(expected[far]))
     np.testing.assert_array_equal(cut[~far], whole[~far])
     # Several threads at once, each tier: the same answers.
-    want = {tier: open_scene.signed_distance(probe, precision=tier) for tier in ("exact", "reference")}
-    results, errors = [], []
-
-    def work():
-        try:
-            for tier in ("exact", "reference"):
-                results.append((tier, open_scene.signed_distance(probe, precision=tier)))
-        except Exception as e:  # noqa: BLE001 - reported below
-            errors.append(e)
-
-    threads = [threading.Thread(target=work) for _ in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert not errors and len(results) == 8
-    for tier, got in results:
-        np.testing.assert_array_equal(got, want[tier])
+    check_tiers_in_threads(lambda tier: open_scene.signed_distance(probe, precision=tier))
     with pytest.raises(ValueError, match="not finite"):
         closed.signed_distance([[0.0, np.nan, 0.0]])
     with pytest.raises(ValueError, match="max_distance"):
@@ -232,24 +237,7 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
     assert found.distance.shape == (2, 3, 4) and found.uv.shape == (2, 3, 4, 2) and found.position is None
     assert scene.closest_points(np.zeros((0, 3))).distance.shape == (0,)
     points = points_around(v, 3000, seed=7)
-    want = {tier: scene.distance(points, precision=tier) for tier in ("reference", "exact")}
-    results, errors = [], []
-
-    def work():
-        try:
-            for tier in ("reference", "exact"):
-                results.append((tier, scene.distance(points, precision=tier)))
-        except Exception as e:  # noqa: BLE001 - reported below
-            errors.append(e)
-
-    threads = [threading.Thread(target=work) for _ in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert not errors and len(results) == 8
-    for tier, got in results:
-        np.testing.assert_array_equal(got, want[tier])
+    check_tiers_in_threads(lambda tier: scene.distance(points, precision=tier))
     with pytest.raises(ValueError, match="not finite"):
         scene.closest_points([[0.0, np.nan, 0.0]])
     with pytest.raises(ValueError, match="max_distance"):

@@ -1014,12 +1014,7 @@ class Scene:
         shaderFloat64. Scenes with spheres raise `UnsupportedError`.
         """
         fields = _closest_outputs(outputs)
-        p = _arrays.real_coordinates("points", points)
-        if p.ndim == 0 or p.shape[-1] != 3:
-            raise ValueError(f"points must have shape (..., 3), got {p.shape}")
-        limit = float(max_distance)
-        if not limit >= 0:
-            raise ValueError(f"max_distance must be >= 0 (or inf), got {max_distance}")
+        p, limit = _points_within(points, max_distance)
         core_fields = ["t" if name == "distance" else name for name in fields]
         flat = np.ascontiguousarray(p.reshape(-1, 3))
         arrays = _progress.call(
@@ -1060,12 +1055,7 @@ class Scene:
         exact crossing count of one ray per point) or ``"winding"`` (the generalized winding
         number, for meshes with holes); ``None`` (default) takes parity where every mesh is closed
         (`Mesh.is_closed`), else the winding number. A point on the surface is at distance 0."""
-        p = _arrays.real_coordinates("points", points)
-        if p.ndim == 0 or p.shape[-1] != 3:
-            raise ValueError(f"points must have shape (..., 3), got {p.shape}")
-        limit = float(max_distance)
-        if not limit >= 0:
-            raise ValueError(f"max_distance must be >= 0 (or inf), got {max_distance}")
+        p, limit = _points_within(points, max_distance)
         if method is None:
             method = "parity" if all(x.mesh.is_closed for x in self.instances) else "winding"
         if method not in ("parity", "winding"):
@@ -1137,6 +1127,17 @@ class Scene:
     def _repr_html_(self) -> str:
         """A table for notebooks: instance, mesh and triangle counts, bounds, bytes, build flags."""
         return _pictures.scene_html(self)
+
+
+def _points_within(points: Any, max_distance: float) -> Tuple[np.ndarray, float]:
+    """A point query's points (real, of shape S + (3,)) and its max_distance (>= 0, or inf)."""
+    p = _arrays.real_coordinates("points", points)
+    if p.ndim == 0 or p.shape[-1] != 3:
+        raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+    limit = float(max_distance)
+    if not limit >= 0:
+        raise ValueError(f"max_distance must be >= 0 (or inf), got {max_distance}")
+    return p, limit
 
 
 # precision, cull, build, backend and vertex_format are checked by the core alone: its

@@ -416,25 +416,18 @@ pub fn inside_by_winding(
     out: &mut [u8],
     interrupt: &dyn Interrupt,
 ) -> Result<()> {
-    let tracer = scene.reference_tracer();
-    build_winding_trees(scene);
-    let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
-    in_blocks(out.len(), interrupt, |range| {
-        let start = range.start;
-        parallel::install(|| {
-            out[range].par_iter_mut().enumerate().with_min_len(256).for_each(|(k, inside)| {
-                let (w, p) = (winding[start + k], point(start + k));
-                *inside = u8::from(if w >= 0.5 + band {
-                    true
-                } else if w < 0.5 - band {
-                    tracer.on_surface(p, ON_SURFACE_ULPS)
-                } else {
-                    tracer.on_surface(p, ON_SURFACE_ULPS)
-                        || scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5)
-                });
-            })
-        });
-    })
+    parallel::install(|| {
+        out.par_iter_mut().zip(winding).with_min_len(4096).for_each(|(inside, &w)| {
+            *inside = if w >= 0.5 + band {
+                1
+            } else if w < 0.5 - band {
+                ONLY_ON_A_SURFACE
+            } else {
+                UNSURE
+            };
+        })
+    });
+    decide_on_the_cpu(scene, points, out, interrupt)
 }
 
 /// Whether each point lies inside the scene's one instance, from its winding query's answers
@@ -464,7 +457,19 @@ pub fn inside_by_crossings(
             };
         })
     });
-    if !parallel::install(|| out.par_iter().any(|&x| x == UNSURE)) {
+    decide_on_the_cpu(scene, points, out, interrupt)
+}
+
+/// A first pass's mark of a point whose winding number the GPU could not tell from 1/2: the CPU
+/// decides (on a surface, or its own winding number at least 1/2).
+const UNSURE: u8 = 2;
+/// A first pass's mark of a point outside unless it lies on a surface, which the CPU tests.
+const ONLY_ON_A_SURFACE: u8 = 3;
+
+/// Replaces the marks of a first pass (`UNSURE`, `ONLY_ON_A_SURFACE`) by the reference tier's
+/// answers, on all cores; the other points keep theirs.
+fn decide_on_the_cpu(scene: &Scene, points: Vec3s, out: &mut [u8], interrupt: &dyn Interrupt) -> Result<()> {
+    if !parallel::install(|| out.par_iter().any(|&x| x > 1)) {
         return Ok(());
     }
     let tracer = scene.reference_tracer();
@@ -473,21 +478,18 @@ pub fn inside_by_crossings(
     in_blocks(out.len(), interrupt, |range| {
         let start = range.start;
         parallel::install(|| {
-            out[range].par_iter_mut().enumerate().with_min_len(256).filter(|(_, x)| **x == UNSURE).for_each(
-                |(k, inside)| {
-                    let p = point(start + k);
-                    *inside = u8::from(
-                        tracer.on_surface(p, ON_SURFACE_ULPS)
-                            || scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5),
-                    );
-                },
-            )
+            out[range].par_iter_mut().enumerate().with_min_len(256).filter(|(_, x)| **x > 1).for_each(|(k, inside)| {
+                let p = point(start + k);
+                let mark = *inside;
+                *inside = u8::from(
+                    tracer.on_surface(p, ON_SURFACE_ULPS)
+                        || (mark == UNSURE
+                            && scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5)),
+                );
+            })
         });
     })
 }
-
-/// `inside_by_crossings`' mark of a point it leaves to the CPU.
-const UNSURE: u8 = 2;
 
 /// The surface point nearest to each point within `max_distance`, on the CPU in f64 (all cores):
 /// the reference tier of `closest_points`, and the others' oracle.
