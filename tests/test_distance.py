@@ -284,18 +284,7 @@ def test_winding_numbers_on_the_gpu_decide_as_the_cpu(device, bunny):
     w[2] *= -1  # a mirror turns its triangles inside out
     clear = np.abs(w.max(axis=0) - 0.5) > 1e-6
     np.testing.assert_array_equal(exact[:600][clear], (w.max(axis=0) >= 0.5)[clear])
-    results = [None] * 4
-
-    def work(k):
-        results[k] = scene.contains(points, method="winding", precision="exact")
-
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for r in results:
-        np.testing.assert_array_equal(r, exact)
+    check_tiers_in_threads(lambda tier: scene.contains(points, method="winding", precision=tier), ("exact",), 4)
 
 
 def boundary_edges(faces):
@@ -360,18 +349,7 @@ def test_winding_numbers_through_the_cap_decide_as_the_cpu(device, bunny, name):
     clear = (np.abs(w - 0.5) > 1e-6) & (oracle.surface_distance(world, f, points[some]) > 1e-9)
     assert clear.mean() > 0.9
     np.testing.assert_array_equal(exact[some][clear], (w >= 0.5)[clear])
-    results = [None] * 3
-
-    def work(k):
-        results[k] = scene.contains(points, method="winding", precision="exact")
-
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(3)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for r in results:
-        np.testing.assert_array_equal(r, exact)
+    check_tiers_in_threads(lambda tier: scene.contains(points, method="winding", precision=tier), ("exact",), 3)
 
 
 def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, monkeypatch):
@@ -411,15 +389,4 @@ def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, m
     np.testing.assert_array_equal(cube.contains(points), in_the_box)
     monkeypatch.delenv("VKRAY_POINT_ORDER")
     # Several threads at once, each with its own chunks in grid order: the same answers.
-    results = [None] * 3
-
-    def work(k):
-        results[k] = scene.distance(points, precision="exact")
-
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(3)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for got in results:
-        np.testing.assert_array_equal(got, ordered.distance)
+    check_tiers_in_threads(lambda tier: scene.distance(points, precision=tier), ("exact",), 3)
