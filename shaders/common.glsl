@@ -39,10 +39,12 @@ const uint QUERY_WINDING = 4u;
 layout(constant_id = 4) const uint CLOSED_EDGES = 0u;
 const int ON_SURFACE = 1;
 const int CROSSING = 2;
-// Where rays come from: the rays buffer, or a Sensor record the shaders generate them from.
+// Where rays come from: the rays buffer, or a Sensor record the shaders generate them from, or
+// (exact tier) a PointRays record: one ray from each point of the closest-point search's buffer.
 layout(constant_id = 5) const uint RAY_SOURCE = 0u;
 const uint RAYS_FROM_BUFFER = 0u;
 const uint RAYS_FROM_SENSOR = 1u;
+const uint RAYS_FROM_POINTS = 2u;
 // Triangles whose opacity is below this let rays through in every query but transmittance (which
 // multiplies 1 - opacity over them all); cut-outs (0) always do. Only scenes with opacity read it.
 layout(constant_id = 6) const float OPACITY_THRESHOLD = 0.5;

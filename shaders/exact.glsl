@@ -11,6 +11,7 @@ layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer Ex
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer DoubleOut { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer Ray64Buffer { dvec4 v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer PointRaysRecord { PointRays r; };
 
 // One ray in f64, in the scene's frame: origin and tmin, direction and tmax (64 bytes).
 struct Ray64 {
@@ -28,6 +29,14 @@ Ray64 load_ray64(uint i) {
     Ray r = sensor_ray(i);
     dvec3 shift = dvec3(packDouble2x32(s.shift[0]), packDouble2x32(s.shift[1]), packDouble2x32(s.shift[2]));
     return Ray64(dvec3(r.origin) - shift, packDouble2x32(s.tmin64), dvec3(r.direction), packDouble2x32(s.tmax64));
+  }
+  if (RAY_SOURCE == RAYS_FROM_POINTS) {
+    PointRays r = PointRaysRecord(params.rays).r;
+    Doubles points = Doubles(r.points);
+    dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]);
+    dvec3 shift = dvec3(packDouble2x32(r.shift[0]), packDouble2x32(r.shift[1]), packDouble2x32(r.shift[2]));
+    dvec3 d = dvec3(packDouble2x32(r.direction[0]), packDouble2x32(r.direction[1]), packDouble2x32(r.direction[2]));
+    return Ray64(p - shift, 0.0, d, 1.0 / 0.0);
   }
   Ray64Buffer rays = Ray64Buffer(params.rays);
   dvec4 a = rays.v[2u * i];

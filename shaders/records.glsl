@@ -289,6 +289,16 @@ struct Sensor {
   uvec2 tmax64;
   uvec2 shift[3];   // the exact tier: the scene frame's offset, f64 bits
 };
+// Rays cast from points (RAY_SOURCE = RAYS_FROM_POINTS: the sign of a signed distance): ray i
+// starts at point i of `points` (f64 xyz, the world's, as the closest-point search reads them)
+// moved into the scene's frame by `shift`, runs along `direction` (the scene's frame) from t = 0
+// to infinity. `params.rays` points at it. records.rs PointRays.
+struct PointRays {
+  uint64_t points;
+  uvec2 shift[3];       // f64 bits: scene frame = world - shift
+  uvec2 direction[3];   // f64 bits (trace::tiers::PARITY_DIRECTION)
+};
+
 const uint SENSOR_PINHOLE = 1u;
 const uint SENSOR_ORTHOGRAPHIC = 2u;
 const uint SENSOR_LIDAR = 3u;

@@ -352,6 +352,54 @@ def test_winding_numbers_through_the_cap_decide_as_the_cpu(device, bunny, name):
     check_tiers_in_threads(lambda tier: scene.contains(points, method="winding", precision=tier), ("exact",), 3)
 
 
+@pytest.mark.parametrize("name", ["closed box", "open box", "bunny"])
+def test_signed_distance_in_one_pass_equals_two_queries(device, bunny, name, monkeypatch):
+    """With one instance, signed_distance runs the distance search and the sign's rays (one exact
+    ray from each point, read from the search's own points buffer) in one pass of the GPU and
+    signs on the host. It must equal distance and contains asked apart
+    (VKRAY_SIGNED_DISTANCE=separate) bit for bit at each tier, and take its sign from the
+    reference tier's contains: over more than one chunk (262,144 points on a software device), on
+    vertices, edges and faces, on the cap over the holes (points the GPU leaves to the CPU), under
+    a mirroring stretch far from the origin; and in several threads at once."""
+    if name == "bunny":
+        v, f = bunny
+    else:
+        v, f = oracle.box()
+        if name == "open box":
+            f = f[~(v[f][:, :, 2] == 1.0).all(axis=1)]  # no lid: a hole of 4 edges
+    method = "parity" if name == "closed box" else "winding"
+    # The bunny mirrored by a uniform stretch (the search prunes a non-uniform one's boxes by
+    # its smallest stretch only: slow on a software device), the boxes stretched non-uniformly.
+    transform = np.diag([-1.5, 1.5, 1.5, 1.0] if name == "bunny" else [-1.5, 1.0, 0.5, 1.0])
+    transform[:3, 3] = [1e4, -2.0, 0.25]
+    scene = device.scene([vkray.Instance(device.mesh(v, f), transform)])
+    lo, hi = v.min(0), v.max(0)
+    rng = np.random.default_rng(21)
+    tri = v[f]
+    on_surface = np.vstack([v, 0.5 * (tri[:, 0] + tri[:, 1]), tri.mean(axis=1)])
+    count = 10_000 if name == "bunny" else 270_000
+    local = np.vstack([rng.uniform(lo - 0.3 * (hi - lo), hi + 0.3 * (hi - lo), (count, 3)), on_surface])
+    points = local @ transform[:3, :3].T + transform[:3, 3]
+    if method == "winding":
+        points = np.vstack([points, points_on_the_cap(v, f, transform, 300, seed=22)])
+    exact = scene.signed_distance(points, precision="exact")
+    fast = scene.signed_distance(points, precision="fast")
+    monkeypatch.setenv("VKRAY_SIGNED_DISTANCE", "separate")
+    np.testing.assert_array_equal(exact, scene.signed_distance(points, precision="exact"))
+    np.testing.assert_array_equal(fast, scene.signed_distance(points, precision="fast"))
+    monkeypatch.delenv("VKRAY_SIGNED_DISTANCE")
+    np.testing.assert_array_equal(np.abs(exact), scene.distance(points, precision="exact"))
+    # The sign is contains' (-0.0 on the surface, which is inside): checked on every point near
+    # a surface or on the cap, and on a sample of the others.
+    near = np.flatnonzero(np.abs(exact) < 1e-3 * float(np.abs(hi - lo).max()))
+    some = np.union1d(near, rng.choice(len(points), 4000, replace=False))
+    inside = scene.contains(points[some], method=method, precision="reference")
+    assert 0 < inside.sum() < len(some)
+    np.testing.assert_array_equal(np.signbit(exact[some]), inside)
+    np.testing.assert_array_equal(np.signbit(fast[some]), inside)
+    check_tiers_in_threads(lambda tier: scene.signed_distance(points[:5000], precision=tier), ("exact", "fast"), 3)
+
+
 def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, monkeypatch):
     """A chunk of 4,096 points or more is searched cell by cell of a grid over the scene
     (point_order.comp's counting sort on the GPU); each answer must still land in its own row:

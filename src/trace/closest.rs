@@ -16,6 +16,7 @@ use super::profile::{Stamp, Stamps, TraceProfile};
 use super::request::Precision;
 use super::tiers;
 use super::tracer::Tracer;
+use super::variants::Variant;
 use crate::error::{try_vec, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
@@ -25,7 +26,8 @@ use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::{Commands, Context, Interrupt};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{
-    PointHit, PointOrderParams, PointParams, POINT_ORDER_COUNT, POINT_ORDER_SCAN, POINT_ORDER_SCATTER,
+    Params, PointHit, PointOrderParams, PointParams, PointRays, POINT_ORDER_COUNT, POINT_ORDER_SCAN,
+    POINT_ORDER_SCATTER,
 };
 use crate::gpu::shaders;
 use crate::scene::{ClosestScene, Scene, WindingScene};
@@ -85,7 +87,7 @@ impl PointPipelines {
         })
     }
 
-    fn kernel(&self, shader: PointShader) -> &ComputeKernel {
+    pub(super) fn kernel(&self, shader: PointShader) -> &ComputeKernel {
         &self.kernels[(shader == PointShader::Winding) as usize]
     }
 
@@ -101,14 +103,15 @@ impl PointPipelines {
         }
     }
 
-    /// Two slots of at least `capacity` points with room for full outputs where `full`: idle
-    /// ones where they fit, new ones (allocated outside the lock) otherwise.
-    fn take_slots(&self, capacity: usize, full: bool) -> Result<[PointSlot; 2]> {
+    /// Two slots of at least `capacity` points with room for full outputs where `full` and for
+    /// the sign's crossings where `signs`: idle ones where they fit, new ones (allocated outside
+    /// the lock) otherwise.
+    pub(super) fn take_slots(&self, capacity: usize, full: bool, signs: bool) -> Result<[PointSlot; 2]> {
         let mut found: Vec<PointSlot> = {
             let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
             let mut found = Vec::new();
             while found.len() < 2 {
-                match idle.iter().position(|s| s.capacity >= capacity && (s.full || !full)) {
+                match idle.iter().position(|s| s.capacity >= capacity && (s.full || !full) && (s.signs || !signs)) {
                     Some(k) => found.push(idle.swap_remove(k)),
                     None => break,
                 }
@@ -116,13 +119,13 @@ impl PointPipelines {
             found
         };
         while found.len() < 2 {
-            found.push(PointSlot::new(&self.ctx, capacity, full)?);
+            found.push(PointSlot::new(&self.ctx, capacity, full, signs)?);
         }
         let second = found.pop().expect("two slots");
         Ok([found.pop().expect("two slots"), second])
     }
 
-    fn give_back(&self, slots: [PointSlot; 2]) {
+    pub(super) fn give_back(&self, slots: [PointSlot; 2]) {
         let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
         idle.extend(slots);
         let surplus = idle.len().saturating_sub(2);
@@ -131,25 +134,30 @@ impl PointPipelines {
 }
 
 /// Staging for one chunk of points in flight: the points (f64 xyz) in, the distances (and, for
-/// full outputs, a `PointHit` each) out; device copies on discrete GPUs.
-struct PointSlot {
+/// full outputs, a `PointHit` each; for signs, the crossings of each point's ray and the cap's
+/// winding number) out; device copies on discrete GPUs.
+pub(super) struct PointSlot {
     points_host: Buffer,
-    results_host: Buffer,
+    pub(super) results_host: Buffer,
     device: Option<(Buffer, Buffer)>,
     /// point_order.comp's cells (u32 each) and order (u32 per point).
     cells: Buffer,
     order: Buffer,
-    capacity: usize,
+    /// Signs: the `PointRays` record the sign's trace reads (device memory, written by the chunk's
+    /// commands).
+    rays_record: Option<Buffer>,
+    pub(super) capacity: usize,
     full: bool,
+    signs: bool,
     stamps: Option<Stamps>,
 }
 
 impl PointSlot {
-    fn new(ctx: &Arc<Context>, capacity: usize, full: bool) -> Result<PointSlot> {
+    fn new(ctx: &Arc<Context>, capacity: usize, full: bool, signs: bool) -> Result<PointSlot> {
         use vk::BufferUsageFlags as U;
         let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
         let points = (24 * capacity) as u64;
-        let results = PointSlot::results_bytes(capacity, full) as u64;
+        let results = PointSlot::layout(capacity, full, signs).total as u64;
         let (points_host, results_host, device) = if ctx.unified_memory {
             (
                 Buffer::new(ctx, points, storage, MemoryLocation::CpuToGpu, "points")?,
@@ -169,42 +177,104 @@ impl PointSlot {
         let cells = (4 * ORDER_GRID.pow(3)) as u64;
         let cells = Buffer::new(ctx, cells, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "point order cells")?;
         let order = Buffer::new(ctx, 4 * capacity as u64, storage, MemoryLocation::GpuOnly, "point order")?;
-        Ok(PointSlot { points_host, results_host, device, cells, order, capacity, full, stamps: Stamps::new(ctx)? })
+        let rays_record = match signs {
+            true => Some(Buffer::new(
+                ctx,
+                std::mem::size_of::<PointRays>() as u64,
+                storage | U::TRANSFER_DST,
+                MemoryLocation::GpuOnly,
+                "point rays",
+            )?),
+            false => None,
+        };
+        Ok(PointSlot {
+            points_host,
+            results_host,
+            device,
+            cells,
+            order,
+            rays_record,
+            capacity,
+            full,
+            signs,
+            stamps: Stamps::new(ctx)?,
+        })
     }
 
-    /// Distances (f64 each), then (full outputs) the `PointHit`s.
-    fn results_bytes(capacity: usize, full: bool) -> usize {
-        8 * capacity + if full { std::mem::size_of::<PointHit>() * capacity } else { 0 }
+    /// Where each output lies in the results buffer.
+    fn layout(capacity: usize, full: bool, signs: bool) -> ResultsLayout {
+        let hits = 8 * capacity;
+        let crossings = hits + if full { size_of_hit() * capacity } else { 0 };
+        // f64s: 8-byte aligned.
+        let cap_winding = crossings + if signs { 4 * capacity.next_multiple_of(2) } else { 0 };
+        let total = cap_winding + if signs { 8 * capacity } else { 0 };
+        ResultsLayout { hits, crossings, cap_winding, total }
     }
 
-    fn points_address(&self) -> u64 {
+    /// Where this slot's outputs lie in its results buffer.
+    pub(super) fn results_layout(&self) -> ResultsLayout {
+        PointSlot::layout(self.capacity, self.full, self.signs)
+    }
+
+    /// Signs: the `PointRays` record's buffer.
+    pub(super) fn rays_record(&self) -> Option<&Buffer> {
+        self.rays_record.as_ref()
+    }
+
+    pub(super) fn points_address(&self) -> u64 {
         self.device.as_ref().map_or(self.points_host.address(), |(points, _)| points.address())
     }
 
-    fn results_address(&self) -> u64 {
+    pub(super) fn results_address(&self) -> u64 {
         self.device.as_ref().map_or(self.results_host.address(), |(_, results)| results.address())
     }
 }
 
+/// Byte offsets of a point slot's outputs: the distances (f64 each) at 0, then the `PointHit`s
+/// (full outputs), then (signs) the crossings of each point's ray (`Crossings`, one i32 each) and
+/// the cap's winding numbers (f64 each).
+#[derive(Clone, Copy)]
+pub(super) struct ResultsLayout {
+    pub hits: usize,
+    pub crossings: usize,
+    pub cap_winding: usize,
+    pub total: usize,
+}
+
+/// The sign's trace of a signed distance (`signed.rs`), recorded after each chunk's search: one
+/// exact ray from each point (RAYS_FROM_POINTS), its crossings counted (`Query::Parity`, or
+/// `Query::Winding` through the cap).
+pub(super) struct SignTrace<'a> {
+    pub variant: &'a Variant,
+    /// The trace's push constants but for the chunk's own: the structures, the cap, the mask.
+    pub params: Params,
+    /// The rays' direction, in the scene's frame.
+    pub direction: [f64; 3],
+    /// The cap's winding numbers are written too (`Query::Winding`).
+    pub cap_winding: bool,
+}
+
 /// What the chunks of one query share.
-struct PointJob<'a> {
-    points: Vec3s<'a>,
-    structures: &'a ClosestScene,
+pub(super) struct PointJob<'a> {
+    pub(super) points: Vec3s<'a>,
+    pub(super) structures: &'a ClosestScene,
     /// Winding numbers' boundaries (winding.comp), or none (closest_point.comp).
-    boundaries: Option<&'a WindingScene>,
+    pub(super) boundaries: Option<&'a WindingScene>,
     /// The shader's kernel, and the pipeline specialized from it.
-    kernel: &'a ComputeKernel,
-    pipeline: vk::Pipeline,
-    center: DVec3,
-    max_distance: f64,
-    full: bool,
+    pub(super) kernel: &'a ComputeKernel,
+    pub(super) pipeline: vk::Pipeline,
+    pub(super) center: DVec3,
+    pub(super) max_distance: f64,
+    pub(super) full: bool,
     /// How point_order.comp orders the points, or none: as they come.
-    grid: Option<OrderGrid>,
+    pub(super) grid: Option<OrderGrid>,
+    /// The sign's trace after each chunk's search, or none.
+    pub(super) sign: Option<SignTrace<'a>>,
 }
 
 /// The grid point_order.comp orders a query's points by, and its pipeline.
 #[derive(Clone, Copy)]
-struct OrderGrid {
+pub(super) struct OrderGrid {
     /// World.
     corner: [f64; 3],
     /// Cells per unit along each axis.
@@ -242,19 +312,20 @@ impl Tracer {
             max_distance,
             full,
             grid: self.order_grid(scene)?,
+            sign: None,
         };
         let mut distances = sink.take(Field::T);
         let mut hits: Vec<PointHit> =
             if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
         let capacity = self.point_capacity(n, full);
-        let mut slots = self.points.take_slots(capacity, full)?;
+        let mut slots = self.points.take_slots(capacity, full, false)?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
             if let Some(out) = distances.as_deref_mut() {
                 copy_parallel(&mut out[8 * start..8 * (start + len)], &results[..8 * len]);
             }
             if full {
-                let from = 8 * slot.capacity;
+                let from = slot.results_layout().hits;
                 let records: &[PointHit] = bytemuck::cast_slice(&results[from..from + len * size_of_hit()]);
                 hits[start..start + len].copy_from_slice(records);
             }
@@ -306,10 +377,11 @@ impl Tracer {
             max_distance: 0.0,
             full: false,
             grid: self.order_grid(scene)?,
+            sign: None,
         };
         let mut winding = try_vec(n, 0.0f64, "winding numbers")?;
         let capacity = self.point_capacity(n, false);
-        let mut slots = self.points.take_slots(capacity, false)?;
+        let mut slots = self.points.take_slots(capacity, false, false)?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
             copy_parallel(bytemuck::cast_slice_mut(&mut winding[start..start + len]), &results[..8 * len]);
@@ -328,14 +400,14 @@ impl Tracer {
     }
 
     /// Points per chunk for a query of `n` points (with `full` outputs, or one f64 a point).
-    fn point_capacity(&self, n: usize, full: bool) -> usize {
+    pub(super) fn point_capacity(&self, n: usize, full: bool) -> usize {
         let most = if full || self.ctx.info.is_software { CHUNK_POINTS } else { LEAN_CHUNK_POINTS };
         most.min(self.points.kernels[0].max_invocations()).min(n).max(1)
     }
 
     /// Runs every chunk of `job` through the two `slots`, handing each finished one to `unpack`
     /// (its first point, its length, its slot); where the time went goes to `last_profile`.
-    fn closest_chunks(
+    pub(super) fn closest_chunks(
         &self,
         job: &PointJob,
         slots: &mut [PointSlot; 2],
@@ -439,7 +511,7 @@ impl Tracer {
         let params = PointParams {
             points: slot.points_address(),
             distances: results,
-            hits: if job.full { results + 8 * slot.capacity as u64 } else { 0 },
+            hits: if job.full { results + slot.results_layout().hits as u64 } else { 0 },
             nodes,
             triangles,
             instances,
@@ -467,25 +539,39 @@ impl Tracer {
             );
             device.cmd_dispatch(cmd, (len as u32).div_ceil(job.kernel.local_size), 1, 1);
         }
+        // The stages whose writes the readback waits for: the search's, and the sign's trace's.
+        let written = match &job.sign {
+            Some(sign) => compute | self.record_sign_trace(cmd, sign, slot, job.center, len),
+            None => compute,
+        };
         stamp(Stamp::Traced);
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
         let Some((_, results_device)) = &slot.device else {
-            memory_barrier(ctx, cmd, compute, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
+            memory_barrier(ctx, cmd, written, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
             stamp(Stamp::ReadBack);
             return;
         };
         memory_barrier(
             ctx,
             cmd,
-            compute,
+            written,
             vk::AccessFlags::SHADER_WRITE,
             vk::PipelineStageFlags::TRANSFER,
             vk::AccessFlags::TRANSFER_READ,
         );
-        let mut regions = vec![vk::BufferCopy::default().size(8 * len as u64)];
+        let layout = slot.results_layout();
+        let region = |at: usize, bytes: usize| {
+            vk::BufferCopy::default().src_offset(at as u64).dst_offset(at as u64).size((len * bytes) as u64)
+        };
+        let mut regions = vec![region(0, 8)];
         if job.full {
-            let at = 8 * slot.capacity as u64;
-            regions.push(vk::BufferCopy::default().src_offset(at).dst_offset(at).size((len * size_of_hit()) as u64));
+            regions.push(region(layout.hits, size_of_hit()));
+        }
+        if let Some(sign) = &job.sign {
+            regions.push(region(layout.crossings, 4));
+            if sign.cap_winding {
+                regions.push(region(layout.cap_winding, 8));
+            }
         }
         // SAFETY: `cmd` is recording; both buffers share one layout and hold `capacity` points.
         unsafe { device.cmd_copy_buffer(cmd, results_device.raw(), slot.results_host.raw(), &regions) };
@@ -549,7 +635,7 @@ impl Tracer {
     /// The grid point_order.comp sorts a scene's points by: its bounds (world), ORDER_GRID cells
     /// a side; none for an empty scene, or where VKRAY_POINT_ORDER=input asks to search points as
     /// they come (to measure what the order buys).
-    fn order_grid(&self, scene: &Scene) -> Result<Option<OrderGrid>> {
+    pub(super) fn order_grid(&self, scene: &Scene) -> Result<Option<OrderGrid>> {
         if points_as_they_come() {
             return Ok(None);
         }

@@ -1,6 +1,6 @@
 //! Queries: what they ask (`request`), the hit fields they write (`fields`), pipeline variants
 //! and their shader binding tables (`variants`), staging slots (`staging`), the chunk loop
-//! (`chunks`), rays the GPU packs itself (`device_rays`), closest points on the GPU (`closest`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
+//! (`chunks`), rays the GPU packs itself (`device_rays`), closest points on the GPU (`closest`), signed distances in one pass (`signed`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
 //! tiers (`tiers`), and the tracer that dispatches between them (`tracer`).
 
 mod all_hits;
@@ -13,6 +13,7 @@ mod probe;
 pub mod profile;
 pub mod request;
 mod sensor;
+mod signed;
 mod staging;
 pub mod tiers;
 pub mod tracer;

@@ -446,18 +446,30 @@ pub fn inside_by_crossings(
 ) -> Result<()> {
     parallel::install(|| {
         out.par_iter_mut().zip(counts.par_iter().zip(cap_winding)).with_min_len(4096).for_each(|(inside, (&c, &w))| {
-            let crossings = Crossings(c);
-            let w = f64::from(crossings.sum()) + w;
-            *inside = if crossings.on_surface() || w >= 0.5 + band {
-                1
-            } else if w < 0.5 - band {
-                0
-            } else {
-                UNSURE
-            };
+            *inside = mark_by_crossings(Crossings(c), w, band);
         })
     });
     decide_on_the_cpu(scene, points, out, interrupt)
+}
+
+/// The first pass's mark of a point from its winding query's answers (see `inside_by_crossings`):
+/// inside (1), outside (0), or `UNSURE`.
+pub fn mark_by_crossings(crossings: Crossings, cap_winding: f64, band: f64) -> u8 {
+    let w = f64::from(crossings.sum()) + cap_winding;
+    if crossings.on_surface() || w >= 0.5 + band {
+        1
+    } else if w < 0.5 - band {
+        0
+    } else {
+        // Also where the cap's winding number is NaN.
+        UNSURE
+    }
+}
+
+/// Whether a point lies inside a scene's one closed instance, from its parity query's answer:
+/// on a surface, or an odd number of crossings.
+pub fn inside_by_parity(crossings: Crossings) -> bool {
+    crossings.on_surface() || crossings.odd()
 }
 
 /// A first pass's mark of a point whose winding number the GPU could not tell from 1/2: the CPU
@@ -468,7 +480,7 @@ const ONLY_ON_A_SURFACE: u8 = 3;
 
 /// Replaces the marks of a first pass (`UNSURE`, `ONLY_ON_A_SURFACE`) by the reference tier's
 /// answers, on all cores; the other points keep theirs.
-fn decide_on_the_cpu(scene: &Scene, points: Vec3s, out: &mut [u8], interrupt: &dyn Interrupt) -> Result<()> {
+pub fn decide_on_the_cpu(scene: &Scene, points: Vec3s, out: &mut [u8], interrupt: &dyn Interrupt) -> Result<()> {
     if !parallel::install(|| out.par_iter().any(|&x| x > 1)) {
         return Ok(());
     }

@@ -12,7 +12,9 @@ use super::profile::TraceProfile;
 use super::request::{Crossings, Precision, Query, Request, DEFAULT_THRESHOLD};
 use super::staging::SlotPool;
 use super::tiers;
-use super::variants::{ray_flag_names, ray_flags, Stage, Variant, VariantKey, Variants};
+use super::variants::{
+    ray_flag_names, ray_flags, Stage, Variant, VariantKey, Variants, RAYS_FROM_BUFFER, RAYS_FROM_SENSOR,
+};
 use crate::error::{invalid_value, try_vec, Error, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::rays::Rays;
@@ -400,7 +402,7 @@ impl Tracer {
             closed_edges: request.contacts,
             opacity: scene.has_opacity() && !exact,
             threshold_bits: if scene.has_opacity() { request.opacity_threshold } else { DEFAULT_THRESHOLD }.to_bits(),
-            ray_source: sensor as u32,
+            ray_source: if sensor { RAYS_FROM_SENSOR } else { RAYS_FROM_BUFFER },
         }
     }
 
@@ -534,11 +536,7 @@ impl Tracer {
         sink: &mut HitSink,
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
-        self.check_every_hit_query(scene, "closest_points")?;
-        if max_distance.is_nan() || max_distance < 0.0 {
-            return Err(invalid_value(format!("max_distance must be >= 0 (or inf), got {max_distance}")));
-        }
-        crate::geometry::arrays::check_points("points", points)?;
+        self.check_point_query(scene, points, max_distance, "closest_points")?;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
         let hits =
@@ -557,6 +555,15 @@ impl Tracer {
         Ok(())
     }
 
+    /// The checks every query of distances makes: the scene's, `max_distance`, finite points.
+    fn check_point_query(&self, scene: &Scene, points: Vec3s, max_distance: f64, query: &str) -> Result<()> {
+        self.check_every_hit_query(scene, query)?;
+        if max_distance.is_nan() || max_distance < 0.0 {
+            return Err(invalid_value(format!("max_distance must be >= 0 (or inf), got {max_distance}")));
+        }
+        crate::geometry::arrays::check_points("points", points)
+    }
+
     /// The distance from each point to the nearest surface within `max_distance` (`closest_points`
     /// at `precision`), negative where `contains` (at `contains_precision`, by winding number or
     /// parity) puts the point inside, into `out` (f64 a point).
@@ -572,6 +579,26 @@ impl Tracer {
         out: &mut [f64],
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
+        if out.len() != points.rows() {
+            return Err(invalid_value(format!(
+                "signed_distance's output has {} entries for {} points",
+                out.len(),
+                points.rows()
+            )));
+        }
+        self.check_point_query(scene, points, max_distance, "signed_distance")?;
+        if self.signed_distance_in_one_pass(
+            scene,
+            points,
+            max_distance,
+            precision,
+            contains_precision,
+            winding,
+            out,
+            interrupt,
+        )? {
+            return Ok(());
+        }
         let mut sink = HitSink::default();
         sink.set(Field::T, bytemuck::cast_slice_mut(out));
         self.closest_points(scene, points, max_distance, precision, &mut sink, interrupt)?;
@@ -718,8 +745,7 @@ impl Tracer {
             self.trace(scene, &rays, Request { query: Query::Parity, ..request }, &mut sink, interrupt)?;
             parallel::install(|| {
                 out.par_iter_mut().zip(&odd).with_min_len(4096).for_each(|(inside, &count)| {
-                    let count = Crossings(count);
-                    *inside = u8::from(count.on_surface() || count.odd());
+                    *inside = u8::from(tiers::inside_by_parity(Crossings(count)));
                 })
             });
             return Ok(());

@@ -36,9 +36,17 @@ pub struct VariantKey {
     /// OPACITY_THRESHOLD's bits (f32); the default where the scene has no opacity, so that
     /// opaque scenes share one variant whatever the threshold asked.
     pub threshold_bits: u32,
-    /// RAY_SOURCE: rays from the rays buffer (0) or generated from a sensor (1).
+    /// RAY_SOURCE: `RAYS_FROM_BUFFER`, `RAYS_FROM_SENSOR` or `RAYS_FROM_POINTS`.
     pub ray_source: u32,
 }
+
+/// RAY_SOURCE: rays packed into the rays buffer.
+pub const RAYS_FROM_BUFFER: u32 = 0;
+/// RAY_SOURCE: rays the shaders generate from a `Sensor` record.
+pub const RAYS_FROM_SENSOR: u32 = 1;
+/// RAY_SOURCE (exact tier): one ray from each point of a closest-point search's buffer, described
+/// by a `PointRays` record (the sign of a signed distance).
+pub const RAYS_FROM_POINTS: u32 = 2;
 
 impl VariantKey {
     /// Whether the pipeline backend's triangles go through an any-hit stage, and which: every
