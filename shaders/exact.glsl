@@ -36,7 +36,7 @@ Ray64 load_ray64(uint i) {
     dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]);
     dvec3 shift = dvec3(packDouble2x32(r.shift[0]), packDouble2x32(r.shift[1]), packDouble2x32(r.shift[2]));
     dvec3 d = dvec3(packDouble2x32(r.direction[0]), packDouble2x32(r.direction[1]), packDouble2x32(r.direction[2]));
-    return Ray64(p - shift, 0.0, d, 1.0 / 0.0);
+    return Ray64(p - shift, packDouble2x32(r.tmin), d, packDouble2x32(r.tmax));
   }
   Ray64Buffer rays = Ray64Buffer(params.rays);
   dvec4 a = rays.v[2u * i];

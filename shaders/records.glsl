@@ -291,12 +291,15 @@ struct Sensor {
 };
 // Rays cast from points (RAY_SOURCE = RAYS_FROM_POINTS: the sign of a signed distance): ray i
 // starts at point i of `points` (f64 xyz, the world's, as the closest-point search reads them)
-// moved into the scene's frame by `shift`, runs along `direction` (the scene's frame) from t = 0
-// to infinity. `params.rays` points at it. records.rs PointRays.
+// moved into the scene's frame by `shift`, runs along `direction` (the scene's frame) over
+// [tmin, tmax]. `params.rays` points at it. records.rs PointRays. The interval comes from the
+// host: with a constant infinity (1.0 / 0.0) for tmax, the H100's rays met nothing.
 struct PointRays {
   uint64_t points;
   uvec2 shift[3];       // f64 bits: scene frame = world - shift
   uvec2 direction[3];   // f64 bits (trace::tiers::PARITY_DIRECTION)
+  uvec2 tmin;           // f64 bits
+  uvec2 tmax;
 };
 
 const uint SENSOR_PINHOLE = 1u;

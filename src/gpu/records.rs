@@ -246,7 +246,8 @@ pub const PACK_TMIN_F64: u32 = 4;
 pub const PACK_TMAX_F64: u32 = 8;
 
 /// Rays cast from points (`PointRays` in shaders/records.glsl; RAY_SOURCE = RAYS_FROM_POINTS):
-/// ray i from point i of `points` (f64 xyz, world) less `shift`, along `direction`, t in [0, inf).
+/// ray i from point i of `points` (f64 xyz, world) less `shift`, along `direction`, t in
+/// [`tmin`, `tmax`].
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct PointRays {
@@ -255,6 +256,8 @@ pub struct PointRays {
     pub shift: [f64; 3],
     /// In the scene's frame.
     pub direction: [f64; 3],
+    pub tmin: f64,
+    pub tmax: f64,
 }
 
 /// A query's frame for pack_rays.comp (`PackFrame` in shaders/records.glsl; `geometry::rays::Frame`),
@@ -403,7 +406,7 @@ layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, 
     first_row @ 84, formats @ 88, unused @ 92);
 layout!(PackFrame, size 88, shift @ 0, bounds_center @ 24, radius @ 48, far_squared @ 56, tmin @ 64, tmax @ 72,
     first_invalid @ 80, unused @ 84);
-layout!(PointRays, size 56, points @ 0, shift @ 8, direction @ 32);
+layout!(PointRays, size 72, points @ 0, shift @ 8, direction @ 32, tmin @ 56, tmax @ 64);
 layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
 layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
 layout!(BvhInstance, size 224, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
@@ -584,7 +587,7 @@ mod tests {
                     unused
                 ),
             ),
-            ("PointRays", size_of::<PointRays>(), members!(PointRays: points, shift, direction)),
+            ("PointRays", size_of::<PointRays>(), members!(PointRays: points, shift, direction, tmin, tmax)),
             ("BvhNode", size_of::<BvhNode>(), members!(BvhNode: lo, hi, first, count)),
             ("BvhTriangle", size_of::<BvhTriangle>(), members!(BvhTriangle: a, b, c, prim, unused)),
             (

@@ -136,7 +136,13 @@ impl Tracer {
             Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
         };
         let record_buffer = slot.rays_record().expect("a slot for signs has a rays record");
-        let record = PointRays { points: slot.points_address(), shift: center.to_array(), direction: sign.direction };
+        let record = PointRays {
+            points: slot.points_address(),
+            shift: center.to_array(),
+            direction: sign.direction,
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        };
         // SAFETY: `cmd` is recording outside a render pass; the buffer is TRANSFER_DST, holds one
         // record, and the record is a multiple of 4 bytes and at most 65,536.
         unsafe { ctx.device.cmd_update_buffer(cmd, record_buffer.raw(), 0, bytemuck::bytes_of(&record)) };
