@@ -21,6 +21,14 @@ struct Ray64 {
   double tmax;
 };
 
+// The ray (and output row) invocation `launch` serves: itself, or with rays from points in an
+// order, the point's own.
+uint ray_index(uint launch) {
+  if (RAY_SOURCE != RAYS_FROM_POINTS) return launch;
+  uint64_t order = PointRaysRecord(params.rays).r.order;
+  return order == 0ul ? launch : Words(order).v[launch];
+}
+
 Ray64 load_ray64(uint i) {
   if (RAY_SOURCE == RAYS_FROM_SENSOR) {
     // The sensor's f32 ray in the world, moved to the scene's frame in f64 (as the host moves the

@@ -293,9 +293,12 @@ struct Sensor {
 // starts at point i of `points` (f64 xyz, the world's, as the closest-point search reads them)
 // moved into the scene's frame by `shift`, runs along `direction` (the scene's frame) over
 // [tmin, tmax]. `params.rays` points at it. records.rs PointRays. The interval comes from the
-// host: with a constant infinity (1.0 / 0.0) for tmax, the H100's rays met nothing.
+// host: with a constant infinity (1.0 / 0.0) for tmax, the H100's rays met nothing. With an
+// `order` (point_order.comp's, for the search), invocation k casts the ray of point order[k] and
+// writes its outputs to that point's row: neighbours in space trace side by side.
 struct PointRays {
   uint64_t points;
+  uint64_t order;       // uint per point, or 0: as they come
   uvec2 shift[3];       // f64 bits: scene frame = world - shift
   uvec2 direction[3];   // f64 bits (trace::tiers::PARITY_DIRECTION)
   uvec2 tmin;           // f64 bits

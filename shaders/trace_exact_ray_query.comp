@@ -12,6 +12,7 @@ layout(local_size_x_id = 2) in;
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
+  i = ray_index(i);
   Ray64 ray = load_ray64(i);
   ExactBest best = exact_miss();
   int seen = 0;

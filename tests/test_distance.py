@@ -356,8 +356,9 @@ def test_winding_numbers_through_the_cap_decide_as_the_cpu(device, bunny, name):
 def test_signed_distance_in_one_pass_equals_two_queries(device, bunny, name, monkeypatch):
     """With one instance, signed_distance runs the distance search and the sign's rays (one exact
     ray from each point, read from the search's own points buffer) in one pass of the GPU and
-    signs on the host. It must equal distance and contains asked apart
-    (VKRAY_SIGNED_DISTANCE=separate) bit for bit at each tier, and take its sign from the
+    signs on the host, the rays cast in the search's grid order. It must equal distance and
+    contains asked apart (VKRAY_SIGNED_DISTANCE=separate) and itself with the points as they
+    come (VKRAY_POINT_ORDER=input) bit for bit at each tier, and take its sign from the
     reference tier's contains: over more than one chunk (262,144 points on a software device), on
     vertices, edges and faces, on the cap over the holes (points the GPU leaves to the CPU), under
     a mirroring stretch far from the origin; and in several threads at once."""
@@ -388,6 +389,10 @@ def test_signed_distance_in_one_pass_equals_two_queries(device, bunny, name, mon
     np.testing.assert_array_equal(exact, scene.signed_distance(points, precision="exact"))
     np.testing.assert_array_equal(fast, scene.signed_distance(points, precision="fast"))
     monkeypatch.delenv("VKRAY_SIGNED_DISTANCE")
+    # The sign's rays cast as the points come, not in the search's grid order: the same rows.
+    monkeypatch.setenv("VKRAY_POINT_ORDER", "input")
+    np.testing.assert_array_equal(exact, scene.signed_distance(points, precision="exact"))
+    monkeypatch.delenv("VKRAY_POINT_ORDER")
     np.testing.assert_array_equal(np.abs(exact), scene.distance(points, precision="exact"))
     # The sign is contains' (-0.0 on the surface, which is inside): checked on every point near
     # a surface or on the cap, and on a sample of the others.

@@ -247,11 +247,13 @@ pub const PACK_TMAX_F64: u32 = 8;
 
 /// Rays cast from points (`PointRays` in shaders/records.glsl; RAY_SOURCE = RAYS_FROM_POINTS):
 /// ray i from point i of `points` (f64 xyz, world) less `shift`, along `direction`, t in
-/// [`tmin`, `tmax`].
+/// [`tmin`, `tmax`]; invocation k casts ray `order[k]` where there is an order.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct PointRays {
     pub points: u64,
+    /// u32 per point (point_order.comp's), or 0: as they come.
+    pub order: u64,
     /// Scene frame = world - shift.
     pub shift: [f64; 3],
     /// In the scene's frame.
@@ -406,7 +408,7 @@ layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, 
     first_row @ 84, formats @ 88, unused @ 92);
 layout!(PackFrame, size 88, shift @ 0, bounds_center @ 24, radius @ 48, far_squared @ 56, tmin @ 64, tmax @ 72,
     first_invalid @ 80, unused @ 84);
-layout!(PointRays, size 72, points @ 0, shift @ 8, direction @ 32, tmin @ 56, tmax @ 64);
+layout!(PointRays, size 80, points @ 0, order @ 8, shift @ 16, direction @ 40, tmin @ 64, tmax @ 72);
 layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
 layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
 layout!(BvhInstance, size 224, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
@@ -587,7 +589,7 @@ mod tests {
                     unused
                 ),
             ),
-            ("PointRays", size_of::<PointRays>(), members!(PointRays: points, shift, direction, tmin, tmax)),
+            ("PointRays", size_of::<PointRays>(), members!(PointRays: points, order, shift, direction, tmin, tmax)),
             ("BvhNode", size_of::<BvhNode>(), members!(BvhNode: lo, hi, first, count)),
             ("BvhTriangle", size_of::<BvhTriangle>(), members!(BvhTriangle: a, b, c, prim, unused)),
             (

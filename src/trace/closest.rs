@@ -541,7 +541,7 @@ impl Tracer {
         }
         // The stages whose writes the readback waits for: the search's, and the sign's trace's.
         let written = match &job.sign {
-            Some(sign) => compute | self.record_sign_trace(cmd, sign, slot, job.center, len),
+            Some(sign) => compute | self.record_sign_trace(cmd, sign, slot, job.center, order, len),
             None => compute,
         };
         stamp(Stamp::Traced);

@@ -120,14 +120,15 @@ impl Tracer {
     }
 
     /// Records the sign's trace of a chunk after its search: the chunk's `PointRays` record,
-    /// then one ray from each of its `len` points. Returns the stage whose writes the readback
-    /// waits for.
+    /// then one ray from each of its `len` points, in the search's `order` (its address, or 0:
+    /// as they come). Returns the stage whose writes the readback waits for.
     pub(super) fn record_sign_trace(
         &self,
         cmd: vk::CommandBuffer,
         sign: &SignTrace,
         slot: &PointSlot,
         center: DVec3,
+        order: u64,
         len: usize,
     ) -> vk::PipelineStageFlags {
         let ctx = &self.ctx;
@@ -138,6 +139,7 @@ impl Tracer {
         let record_buffer = slot.rays_record().expect("a slot for signs has a rays record");
         let record = PointRays {
             points: slot.points_address(),
+            order,
             shift: center.to_array(),
             direction: sign.direction,
             tmin: 0.0,
@@ -146,12 +148,13 @@ impl Tracer {
         // SAFETY: `cmd` is recording outside a render pass; the buffer is TRANSFER_DST, holds one
         // record, and the record is a multiple of 4 bytes and at most 65,536.
         unsafe { ctx.device.cmd_update_buffer(cmd, record_buffer.raw(), 0, bytemuck::bytes_of(&record)) };
-        // The record (and, on discrete GPUs, the points' upload) before the rays read them.
+        // The record (and, on discrete GPUs, the points' upload; and the order) before the rays
+        // read them.
         memory_barrier(
             ctx,
             cmd,
-            vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::TRANSFER_WRITE,
+            vk::PipelineStageFlags::TRANSFER | vk::PipelineStageFlags::COMPUTE_SHADER,
+            vk::AccessFlags::TRANSFER_WRITE | vk::AccessFlags::SHADER_WRITE,
             stage,
             vk::AccessFlags::SHADER_READ,
         );
