@@ -1054,7 +1054,9 @@ class Scene:
         `contains`' answer, not a vote of jittered rays: ``method="parity"`` (closed meshes: the
         exact crossing count of one ray per point) or ``"winding"`` (the generalized winding
         number, for meshes with holes); ``None`` (default) takes parity where every mesh is closed
-        (`Mesh.is_closed`), else the winding number. A point on the surface is at distance 0."""
+        (`Mesh.is_closed`), else the winding number. A point on the surface is at distance 0.
+        With one instance, on the GPU, the distance search and the sign's rays (one exact ray
+        from each point) run in one pass; the answers are those of `distance` and `contains`."""
         p, limit = _points_within(points, max_distance)
         if method is None:
             method = "parity" if all(x.mesh.is_closed for x in self.instances) else "winding"
