@@ -2,11 +2,12 @@
 // Closest points on the GPU: one invocation per point searches the reference tier's own
 // hierarchies (src/scene/closest.rs uploads them) best first, as ReferenceTracer::closest_point
 // does on the CPU: the instances' hierarchy by box distance, each instance's mesh hierarchy by
-// box distance in the mesh's frame times its bound factor, the nearer child first, boxes farther
-// than the best distance so far skipped. Every triangle is measured in the scene's frame with
-// the CPU's operations in the CPU's order (point_triangle.glsl), squared distances compared as
-// computed, ties to the lower (instance, triangle): the same answer as the CPU's, whatever order
-// the search meets the triangles in. The fast tier measures each triangle in f32.
+// box gaps in the mesh's frame weighted per axis (lower bounds of scene distances), the nearer
+// child first, boxes farther than the best distance so far skipped. Every triangle is measured
+// in the scene's frame with the CPU's operations in the CPU's order (point_triangle.glsl),
+// squared distances compared as computed, ties to the lower (instance, triangle): the same
+// answer as the CPU's, whatever order the search meets the triangles in. The fast tier measures
+// each triangle in f32.
 #extension GL_EXT_buffer_reference : require
 #extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
 #define VKRAY_POINT_QUERY
@@ -34,6 +35,15 @@ double box_distance2(BvhNode node, dvec3 p) {
   dvec3 hi = dvec3(node.hi[0], node.hi[1], node.hi[2]);
   dvec3 gap = max(max(lo - p, p - hi), dvec3(0.0));
   return dot(gap, gap);
+}
+
+// As box_distance2, each axis's gap squared weighted (an instance's `weights`: a lower bound of
+// the squared scene distance from a local box).
+double weighted_box_distance2(BvhNode node, dvec3 p, dvec3 weights) {
+  dvec3 lo = dvec3(node.lo[0], node.lo[1], node.lo[2]);
+  dvec3 hi = dvec3(node.hi[0], node.hi[1], node.hi[2]);
+  dvec3 gap = max(max(lo - p, p - hi), dvec3(0.0));
+  return dot(gap * gap, weights);
 }
 
 // The search's state: the best squared distance, its triangle (index among all meshes'
@@ -84,15 +94,15 @@ void search_instance(inout Search s, dvec3 p, int instance) {
   BvhInstance x = BvhInstances(point_params.instances).x[instance];
   if ((x.mask & 0xFFu) == 0u) return;
   dvec3 local = map_point(x.to_local, p);
-  // A world distance d is at least d_local / |to_local|: local box distances bound world ones.
-  double factor = x.shrink * (1.0 - 1e-12);
-  factor *= factor;
+  // Local box gaps, weighted per axis, bound world distances from below (gap_weights).
+  double factor = (1.0 - 1e-12) * (1.0 - 1e-12);
+  dvec3 weights = dvec3(x.weights[0], x.weights[1], x.weights[2]) * factor;
   BvhNodes nodes = BvhNodes(point_params.nodes);
   uint stack[MESH_STACK];
   double bounds[MESH_STACK];
   int n = 0;
   stack[0] = 0u;
-  bounds[0] = box_distance2(nodes.n[x.nodes], local) * factor;
+  bounds[0] = weighted_box_distance2(nodes.n[x.nodes], local, weights);
   n = 1;
   while (n > 0) {
     --n;
@@ -102,8 +112,8 @@ void search_instance(inout Search s, dvec3 p, int instance) {
       for (uint k = 0u; k < node.count; ++k) measure(s, p, x, instance, x.triangles + node.first + k);
       continue;
     }
-    double left = box_distance2(nodes.n[x.nodes + node.first], local) * factor;
-    double right = box_distance2(nodes.n[x.nodes + node.first + 1u], local) * factor;
+    double left = weighted_box_distance2(nodes.n[x.nodes + node.first], local, weights);
+    double right = weighted_box_distance2(nodes.n[x.nodes + node.first + 1u], local, weights);
     // The nearer child is popped first.
     bool left_first = left <= right;
     stack[n] = left_first ? node.first + 1u : node.first;

@@ -145,14 +145,14 @@ struct BvhTriangle {
 };
 
 // Closest points, per instance: the f64 maps between the scene's frame and the mesh's (rows of
-// 3x4: xyz linear, w offset), the factor that turns the mesh's box distances into lower bounds of
-// scene distances (1 / the largest stretch of to_local, less a hair), where its mesh's nodes and
+// 3x4: xyz linear, w offset), the weights per local axis that turn the mesh's box gaps squared into
+// lower bounds of squared scene distances (geometry/reference.rs gap_weights), where its mesh's nodes and
 // triangles start, its mask, whether to_scene's linear part is the identity, its mesh's
-// triangle count, and whether to_scene mirrors (its determinant is negative). 224 bytes.
+// triangle count, and whether to_scene mirrors (its determinant is negative). 240 bytes.
 struct BvhInstance {
   double to_local[12];
   double to_scene[12];
-  double shrink;
+  double weights[3];
   uint nodes;
   uint triangles;
   uint mask;

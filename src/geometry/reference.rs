@@ -289,6 +289,33 @@ impl ReferenceHit {
     }
 }
 
+/// Weights w such that Σ wᵢ gᵢ² bounds from below the squared scene distance between two local
+/// points at least gᵢ apart along each local axis (a point and a box, g its gap), under
+/// `to_scene`'s linear part A. Where A's columns are nearly orthogonal (a rotation of a
+/// non-uniform scale: the bound is then tight), AᵀA's diagonal less its off-diagonal part O
+/// (|vᵀOv| ≤ ‖O‖_F |v|² ≤ ‖O‖_F/min dᵢ · Σ dᵢvᵢ²); else the smallest stretch squared on every
+/// axis (1 / `to_local`'s largest). A margin covers the rounding of AᵀA.
+pub fn gap_weights(to_scene: &Affine, to_local: &Affine) -> [f64; 3] {
+    let m = to_scene.linear;
+    let a = m.transpose() * m;
+    let diagonal = DVec3::new(a.x_axis.x, a.y_axis.y, a.z_axis.z);
+    // Each entry of AᵀA is within 3 ε max dᵢ of its value.
+    let rounding = 8.0 * f64::EPSILON * diagonal.max_element();
+    let off = (2.0 * (a.y_axis.x.powi(2) + a.z_axis.x.powi(2) + a.z_axis.y.powi(2))).sqrt() + rounding;
+    let smallest = diagonal.min_element();
+    if smallest.is_finite() && smallest > 0.0 && off <= 0.25 * smallest {
+        return (diagonal * ((1.0 - off / smallest) * (1.0 - 1e-9))).to_array();
+    }
+    let shrink = 1.0 / largest_stretch(to_local).max(f64::MIN_POSITIVE);
+    [shrink * shrink; 3]
+}
+
+/// Σ wᵢ gᵢ², g the gap from `b` to `p` (0 inside).
+pub fn weighted_gap(b: &Aabb, p: DVec3, weights: DVec3) -> f64 {
+    let gap = (b.min - p).max(p - b.max).max(DVec3::ZERO);
+    (gap * gap).dot(weights)
+}
+
 /// An affine map's largest stretch (the spectral norm of its linear part), from above: the square
 /// root of the largest eigenvalue of MᵀM (Smith's closed form for symmetric 3×3 matrices), with a
 /// margin for its rounding; never above the Frobenius norm, which bounds it too.
@@ -407,11 +434,10 @@ impl<'a> ReferenceTracer<'a> {
                     return;
                 }
                 let local = set.to_local.point(p);
-                // A world distance d is at least d_local / |to_local| (its largest stretch): local
-                // box distances bound world ones from below.
-                let shrink = 1.0 / largest_stretch(&set.to_local).max(f64::MIN_POSITIVE);
+                // Local box gaps, weighted per axis, bound world distances from below.
+                let weights = DVec3::from_array(gap_weights(&set.to_scene, &set.to_local));
                 set.triangles.bvh().nearest(
-                    |b| b.distance_to(local) * shrink * (1.0 - 1e-12),
+                    |b| weighted_gap(b, local, weights).sqrt() * (1.0 - 1e-12),
                     reach,
                     |prim, reach| {
                         let [a, b, c] = set.triangles.triangle(prim as usize).map(|v| set.to_scene.point(v));
@@ -505,6 +531,53 @@ pub(crate) fn grid_sheet(n: u32, side: f64, height: impl Fn(f64, f64) -> f64) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::DMat3;
+
+    /// The smallest scene distance squared from `p` (local) to points of `b` sampled on a grid
+    /// over it, its faces included: an upper bound of the true minimum.
+    fn sampled_min(a: DMat3, b: &Aabb, p: DVec3) -> f64 {
+        let steps = 24;
+        let mut best = f64::INFINITY;
+        for i in 0..=steps {
+            for j in 0..=steps {
+                for k in 0..=steps {
+                    let t = DVec3::new(i as f64, j as f64, k as f64) / steps as f64;
+                    let x = b.min + (b.max - b.min) * t;
+                    best = best.min((a * (x - p)).length_squared());
+                }
+            }
+        }
+        best
+    }
+
+    #[test]
+    fn gap_weights_bound_scene_distances_and_are_tight_for_scaled_rotations() {
+        let rotation = DMat3::from_axis_angle(DVec3::new(1.0, 2.0, 3.0).normalize(), 0.7);
+        let shear = DMat3::from_cols(DVec3::X, DVec3::new(0.9, 1.0, 0.0), DVec3::Z);
+        let maps = [
+            DMat3::IDENTITY,
+            DMat3::from_diagonal(DVec3::new(-1.5, 1.0, 0.5)),
+            rotation * DMat3::from_diagonal(DVec3::new(3.0, 0.2, 1.0)),
+            rotation * shear,
+        ];
+        let b = Aabb { min: DVec3::new(0.0, 0.0, 0.0), max: DVec3::new(1.0, 2.0, 0.5) };
+        for (k, &a) in maps.iter().enumerate() {
+            let to_scene = Affine { linear: a, offset: DVec3::new(1e4, -2.0, 0.25) };
+            let to_local = Affine { linear: a.inverse(), offset: DVec3::ZERO };
+            let w = DVec3::from_array(gap_weights(&to_scene, &to_local));
+            for p in [DVec3::new(3.0, 1.0, 0.2), DVec3::new(-1.0, -2.0, 2.0), DVec3::new(0.5, 5.0, -0.7)] {
+                let bound = weighted_gap(&b, p, w);
+                let sampled = sampled_min(a, &b, p);
+                assert!(bound <= sampled, "map {k}, {p}: {bound} > {sampled}");
+                if k < 3 {
+                    // A scaled rotation's nearest point of the box is p clamped to it: the bound is
+                    // its distance, to within the margin.
+                    let nearest = (a * (p.clamp(b.min, b.max) - p)).length_squared();
+                    assert!(bound <= nearest && bound >= nearest * (1.0 - 1e-6), "map {k}, {p}: {bound}, {nearest}");
+                }
+            }
+        }
+    }
 
     /// A grid of `n`×`n` unit squares (two triangles each) in the plane z = 0.
     fn grid(n: u32) -> TriangleSet {

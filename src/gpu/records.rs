@@ -312,8 +312,9 @@ pub struct BvhInstance {
     pub to_local: [f64; 12],
     /// Rows (3×4) of the map from the mesh's frame to the scene's.
     pub to_scene: [f64; 12],
-    /// Turns the mesh's box distances into lower bounds of the scene's.
-    pub shrink: f64,
+    /// Per local axis, turns the mesh's box gaps squared into lower bounds of the scene's
+    /// squared distances (`geometry::reference::gap_weights`).
+    pub weights: [f64; 3],
     /// The mesh's first node and first triangle among all meshes'.
     pub nodes: u32,
     pub triangles: u32,
@@ -411,8 +412,8 @@ layout!(PackFrame, size 88, shift @ 0, bounds_center @ 24, radius @ 48, far_squa
 layout!(PointRays, size 80, points @ 0, order @ 8, shift @ 16, direction @ 40, tmin @ 64, tmax @ 72);
 layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
 layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
-layout!(BvhInstance, size 224, to_local @ 0, to_scene @ 96, shrink @ 192, nodes @ 200, triangles @ 204, mask @ 208,
-    identity @ 212, triangle_count @ 216, mirrored @ 220);
+layout!(BvhInstance, size 240, to_local @ 0, to_scene @ 96, weights @ 192, nodes @ 216, triangles @ 220, mask @ 224,
+    identity @ 228, triangle_count @ 232, mirrored @ 236);
 layout!(WindingSpan, size 8, first @ 0, count @ 4);
 layout!(WindingEdge, size 48, a @ 0, b @ 24);
 layout!(WindingCapHeader, size 56, edge_count @ 0, mirrored @ 4, apex @ 8, apex_scene @ 32);
@@ -598,7 +599,7 @@ mod tests {
                 members!(
                     BvhInstance: to_local,
                     to_scene,
-                    shrink,
+                    weights,
                     nodes,
                     triangles,
                     mask,

@@ -9,7 +9,7 @@ use super::instance::Placement;
 use super::top_level::Scene;
 use crate::error::{Error, Result};
 use crate::geometry::precision::{Aabb, Affine};
-use crate::geometry::reference::{largest_stretch, Bvh, TriangleSet};
+use crate::geometry::reference::{gap_weights, Bvh, TriangleSet};
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 use crate::gpu::records::{
     BvhInstance, BvhNode, BvhTriangle, WindingCapEdge, WindingCapHeader, WindingEdge, WindingSpan,
@@ -213,11 +213,10 @@ fn node_record(node: &crate::geometry::reference::Node) -> BvhNode {
 /// An instance's record: its maps, its bound factor (ReferenceTracer::closest_point's), and
 /// where its set's nodes and triangles start.
 fn instance_record(p: &Placement, (nodes, triangles): (u32, u32)) -> BvhInstance {
-    let shrink = 1.0 / largest_stretch(&p.to_local).max(f64::MIN_POSITIVE);
     BvhInstance {
         to_local: rows(&p.to_local),
         to_scene: rows(&p.to_scene),
-        shrink,
+        weights: gap_weights(&p.to_scene, &p.to_local),
         nodes,
         triangles,
         mask: p.mask as u32,
