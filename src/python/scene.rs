@@ -23,7 +23,7 @@ use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
 use crate::trace::cuda_rays::CudaRays;
 use crate::trace::fields::{position_bytes_per_ray, FIELDS};
-use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, Tracer};
+use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, SignedDistance, Tracer};
 
 /// Instances under a top-level acceleration structure, ready for queries.
 #[pyclass(name = "Scene", module = "vkray._core", frozen)]
@@ -500,16 +500,8 @@ impl PyScene {
         let out: &mut [f64] = bytemuck::cast_slice_mut(bytes_of(&signed));
         run_reporting(py, progress, |interrupt| {
             let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
-            self.tracer.signed_distance(
-                &scene,
-                points,
-                max_distance,
-                precision,
-                contains_precision,
-                winding,
-                out,
-                interrupt,
-            )
+            let query = SignedDistance { max_distance, precision, contains_precision, winding };
+            self.tracer.signed_distance(&scene, points, query, out, interrupt)
         })?;
         Ok(signed)
     }

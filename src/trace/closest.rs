@@ -301,19 +301,7 @@ impl Tracer {
             || [Field::Prim, Field::Instance, Field::Custom, Field::Uv, Field::Normal, Field::Geometry]
                 .iter()
                 .any(|f| sink.field(*f).is_some());
-        let shader = if precision == Precision::Fast { PointShader::ClosestF32 } else { PointShader::Closest };
-        let job = PointJob {
-            points,
-            structures: &structures,
-            boundaries: None,
-            kernel: self.points.kernel(shader),
-            pipeline: self.points.pipeline(shader)?,
-            center: scene.center,
-            max_distance,
-            full,
-            grid: self.order_grid(scene)?,
-            sign: None,
-        };
+        let job = self.closest_job(scene, &structures, points, max_distance, precision, full)?;
         let mut distances = sink.take(Field::T);
         let mut hits: Vec<PointHit> =
             if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
@@ -351,6 +339,32 @@ impl Tracer {
             });
         }
         Ok(())
+    }
+
+    /// The closest-point search's job over `scene`'s `structures`: measured in f32 at
+    /// `Precision::Fast`, else in f64; `full` outputs or distances only; no sign's trace.
+    pub(super) fn closest_job<'a>(
+        &'a self,
+        scene: &Scene,
+        structures: &'a ClosestScene,
+        points: Vec3s<'a>,
+        max_distance: f64,
+        precision: Precision,
+        full: bool,
+    ) -> Result<PointJob<'a>> {
+        let shader = if precision == Precision::Fast { PointShader::ClosestF32 } else { PointShader::Closest };
+        Ok(PointJob {
+            points,
+            structures,
+            boundaries: None,
+            kernel: self.points.kernel(shader),
+            pipeline: self.points.pipeline(shader)?,
+            center: scene.center,
+            max_distance,
+            full,
+            grid: self.order_grid(scene)?,
+            sign: None,
+        })
     }
 
     /// `contains` by winding number with the GPU's help: each instance's winding number about

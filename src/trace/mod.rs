@@ -21,5 +21,5 @@ mod variants;
 
 pub use fields::{Field, HitSink};
 pub use profile::TraceProfile;
-pub use request::{Cull, Precision, Query, Request};
+pub use request::{Cull, Precision, Query, Request, SignedDistance};
 pub use tracer::Tracer;

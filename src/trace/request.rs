@@ -173,3 +173,13 @@ impl Precision {
         self != Precision::Fast
     }
 }
+
+/// What a signed distance asks: the distances' limit and tier, and how `contains` signs them (its
+/// tier; by winding number or by parity).
+#[derive(Clone, Copy, Debug)]
+pub struct SignedDistance {
+    pub max_distance: f64,
+    pub precision: Precision,
+    pub contains_precision: Precision,
+    pub winding: bool,
+}

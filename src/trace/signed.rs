@@ -10,9 +10,9 @@ use ash::vk;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::closest::{PointJob, PointShader, PointSlot, SignTrace, WINDING_MARGIN, WINDING_TERM_ERROR};
+use super::closest::{PointJob, PointSlot, SignTrace, WINDING_MARGIN, WINDING_TERM_ERROR};
 use super::fields::Field;
-use super::request::{Crossings, Cull, Precision, Query, Request};
+use super::request::{Crossings, Cull, Precision, Query, Request, SignedDistance};
 use super::tiers;
 use super::tracer::Tracer;
 use super::variants::{VariantKey, RAYS_FROM_POINTS};
@@ -40,18 +40,15 @@ impl Tracer {
     /// and for winding numbers a cap (`Scene::winding_cap`). Returns false, having written
     /// nothing, where it does not: the caller then asks two queries. The caller checked the
     /// points, `max_distance` and `out`'s length.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn signed_distance_in_one_pass(
         &self,
         scene: &Scene,
         points: Vec3s,
-        max_distance: f64,
-        precision: Precision,
-        contains_precision: Precision,
-        winding: bool,
+        query: SignedDistance,
         out: &mut [f64],
         interrupt: &dyn Interrupt,
     ) -> Result<bool> {
+        let SignedDistance { max_distance, precision, contains_precision, winding } = query;
         let one_pass = contains_precision == Precision::Exact
             && matches!(precision, Precision::Exact | Precision::Fast)
             && self.ctx.info.shader_float64
@@ -87,23 +84,14 @@ impl Tracer {
             ray_mask: 0xFF,
             ..Default::default()
         };
-        let shader = if precision == Precision::Fast { PointShader::ClosestF32 } else { PointShader::Closest };
         let job = PointJob {
-            points,
-            structures: &structures,
-            boundaries: None,
-            kernel: self.points.kernel(shader),
-            pipeline: self.points.pipeline(shader)?,
-            center: scene.center,
-            max_distance,
-            full: false,
-            grid: self.order_grid(scene)?,
             sign: Some(SignTrace {
                 variant: &variant,
                 params,
                 direction: tiers::PARITY_DIRECTION.to_array(),
                 cap_winding: cap.is_some(),
             }),
+            ..self.closest_job(scene, &structures, points, max_distance, precision, false)?
         };
         let band = cap.as_ref().map(|cap| WINDING_TERM_ERROR * cap.edge_count as f64 + WINDING_MARGIN);
         let capacity = self.point_capacity(points.rows(), false).min(self.max_dispatch_rays());

@@ -9,7 +9,7 @@ use super::chunks::GpuJob;
 use super::closest::{points_as_they_come, points_in_grid_order, ORDER_MIN_POINTS, WINDING_MARGIN, WINDING_TERM_ERROR};
 use super::fields::{position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::profile::TraceProfile;
-use super::request::{Crossings, Precision, Query, Request, DEFAULT_THRESHOLD};
+use super::request::{Crossings, Precision, Query, Request, SignedDistance, DEFAULT_THRESHOLD};
 use super::staging::SlotPool;
 use super::tiers;
 use super::variants::{
@@ -567,18 +567,15 @@ impl Tracer {
     /// The distance from each point to the nearest surface within `max_distance` (`closest_points`
     /// at `precision`), negative where `contains` (at `contains_precision`, by winding number or
     /// parity) puts the point inside, into `out` (f64 a point).
-    #[allow(clippy::too_many_arguments)]
     pub fn signed_distance(
         &self,
         scene: &Scene,
         points: Vec3s,
-        max_distance: f64,
-        precision: Precision,
-        contains_precision: Precision,
-        winding: bool,
+        query: SignedDistance,
         out: &mut [f64],
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
+        let SignedDistance { max_distance, precision, contains_precision, winding } = query;
         if out.len() != points.rows() {
             return Err(invalid_value(format!(
                 "signed_distance's output has {} entries for {} points",
@@ -587,16 +584,7 @@ impl Tracer {
             )));
         }
         self.check_point_query(scene, points, max_distance, "signed_distance")?;
-        if self.signed_distance_in_one_pass(
-            scene,
-            points,
-            max_distance,
-            precision,
-            contains_precision,
-            winding,
-            out,
-            interrupt,
-        )? {
+        if self.signed_distance_in_one_pass(scene, points, query, out, interrupt)? {
             return Ok(());
         }
         let mut sink = HitSink::default();
