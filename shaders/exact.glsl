@@ -350,9 +350,15 @@ int exact_crossing(Ray64 ray, int instance, int prim) {
   return origin_on_triangle(ray, instance, prim) ? count | ON_SURFACE : count;
 }
 
-// WINDING: the cap of instance 0 (WindingCapHeader, then its edges), at params.scratch.
-layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCap {
+// WINDING: the caps of instance 0 (a WindingCapHeader, its holes and their edges), at
+// params.scratch.
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCapHead {
   WindingCapHeader head;
+};
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCapHoles {
+  WindingCapHole h[];
+};
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCapEdges {
   WindingCapEdge e[];
 };
 
@@ -360,35 +366,111 @@ dvec3 dvec3_of(double v[3]) {
   return dvec3(v[0], v[1], v[2]);
 }
 
-// WINDING, after the mesh's crossings are in `count`: takes away the crossings of the cap (the
-// fan from its apex over each boundary edge a -> b) from it, tested as the mesh's triangles are
-// (the same sheared ray, the boundary's own vertices: a ray through a boundary edge meets either
-// the mesh or the cap), and writes the cap's winding number about the origin to out_t (NaN where
-// the origin lies within rounding of the cap). The mesh less the cap has no boundary: its
-// winding number is the integer count, and the mesh's is that plus the cap's.
-int add_cap(uint i, Ray64 ray, int count) {
-  WindingCap cap = WindingCap(params.scratch);
-  ShearedRay s = shear_ray(ExactInstances(params.instances).x[0], ray);
+// A hole's winding number whose bound (below) is at most this is not summed at first: the bounds
+// of those passed over are summed instead, and only where they could move the winding number
+// into the band about 1/2 is it summed after all. Most points' winding numbers lie near 0 or 1:
+// with up to 5 holes passed over (0.4), those never are.
+const double CAP_SKIP_BOUND = 0.08;
+
+// Whether the sheared ray may cross the fan of hole `h`: the fan lies within `radius` of its apex,
+// and shearing stretches lengths by at most sqrt(1 + sx² + sy²) (both shears are at most 1), so
+// its corners' sheared xy lie within that much of the apex's. The margin is far past the rounding
+// of the corners (relative 1e-16 of the coordinates), so that no crossing the watertight test
+// would find is passed over.
+bool may_cross_fan(ShearedRay s, WindingCapHoles holes, uint h) {
+  dvec3 apex = dvec3_of(holes.h[h].apex);
+  dvec3 c = sheared_corner(s, apex);
+  double reach = sqrt(1.0 + s.shear.x * s.shear.x + s.shear.y * s.shear.y) * holes.h[h].radius;
+  reach += 1e-6 * reach + 1e-9 * (length(apex) + length(s.origin));
+  return dot(c.xy, c.xy) <= reach * reach;
+}
+
+// A bound on the size of hole `h`'s winding number about `origin`: each point of the fan lies at
+// least (distance to the apex - radius) from it, so each triangle's solid angle is at most its
+// area over that squared (the integrand of the solid angle is at most 1 / r²). 1e300 where the
+// origin lies within the radius (not a constant infinity: records.glsl PointRays).
+double fan_winding_bound(dvec3 origin, WindingCapHoles holes, uint h) {
+  double gap = length(dvec3_of(holes.h[h].apex_scene) - origin) - holes.h[h].radius_scene;
+  return gap > 0.0 ? holes.h[h].area_scene / (FOUR_PI * gap * gap) : 1e300lf;
+}
+
+// What one hole's fan adds to a ray's winding query (add_fan).
+struct FanSum {
+  double twice_angle;  // twice the fan's solid angle about the origin
+  int count;           // its crossings, as exact_crossing counts them
+  bool unsure;         // the origin lies within rounding of the fan
+};
+
+// The fan of hole `h` from its apex over each of its boundary edges a -> b: where `crossings`, its
+// crossings, tested as the mesh's triangles are (the same sheared ray, the boundary's own
+// vertices: a ray through a boundary edge meets either the mesh or the fan); where `angles`, its
+// solid angle.
+FanSum add_fan(ShearedRay s, Ray64 ray, WindingCapHoles holes, uint h, WindingCapEdges edges, bool crossings,
+               bool angles) {
+  FanSum fan = FanSum(0.0, 0, false);
   dvec3 p[3];
-  p[0] = sheared_corner(s, dvec3_of(cap.head.apex));
-  dvec3 apex = dvec3_of(cap.head.apex_scene) - ray.origin;
-  double sum = 0.0;
-  bool unsure = false;
-  for (uint k = 0u; k < cap.head.edge_count; ++k) {
-    WindingCapEdge edge = cap.e[k];
-    p[1] = sheared_corner(s, dvec3_of(edge.a));
-    p[2] = sheared_corner(s, dvec3_of(edge.b));
-    dvec3 uvw;
-    double det;
-    double t;
-    if (watertight(p, uvw, det, t) && t >= ray.tmin && t <= ray.tmax) count -= det > 0.0 ? -CROSSING : CROSSING;
-    dvec3 a = dvec3_of(edge.a_scene) - ray.origin;
-    dvec3 b = dvec3_of(edge.b_scene) - ray.origin;
-    dvec2 pair = solid_angle_pair(apex, a, b);
-    unsure = unsure || near_inside(apex, a, b, pair);
-    sum += twice_solid_angle(pair);
+  p[0] = sheared_corner(s, dvec3_of(holes.h[h].apex));
+  dvec3 apex = dvec3_of(holes.h[h].apex_scene) - ray.origin;
+  uint first = holes.h[h].first;
+  uint end = first + holes.h[h].count;
+  for (uint k = first; k < end; ++k) {
+    if (crossings) {
+      p[1] = sheared_corner(s, dvec3_of(edges.e[k].a));
+      p[2] = sheared_corner(s, dvec3_of(edges.e[k].b));
+      dvec3 uvw;
+      double det;
+      double t;
+      if (watertight(p, uvw, det, t) && t >= ray.tmin && t <= ray.tmax) fan.count += det > 0.0 ? -CROSSING : CROSSING;
+    }
+    if (angles) {
+      dvec3 a = dvec3_of(edges.e[k].a_scene) - ray.origin;
+      dvec3 b = dvec3_of(edges.e[k].b_scene) - ray.origin;
+      dvec2 pair = solid_angle_pair(apex, a, b);
+      fan.unsure = fan.unsure || near_inside(apex, a, b, pair);
+      fan.twice_angle += twice_solid_angle(pair);
+    }
   }
-  double w = sum / FOUR_PI;
-  DoubleOut(params.out_t).v[i] = unsure ? 0.0 / 0.0 : (cap.head.mirrored != 0u ? -w : w);
+  return fan;
+}
+
+// WINDING, after the mesh's crossings are in `count`: takes away the crossings of the caps from
+// it, and writes the caps' winding number about the origin to out_t (NaN where the origin lies
+// within rounding of a cap). The mesh less the caps has no boundary: its winding number is the
+// integer count, and the mesh's is that plus the caps'. A ray passes over a hole's fan where it
+// cannot cross it and the fan's winding number is bounded by CAP_SKIP_BOUND; where the bounds of
+// those passed over could bring the sum within the band about 1/2, they are summed after all, so
+// the host's mark (trace::tiers::mark_by_crossings) is the one the whole sum would give.
+// Keep this shape (the holes' fields read through their buffer reference, one call of add_fan,
+// the caps added through memory in trace_exact_ray_query.comp): on other shapes, glslang
+// 2023.2's pass over precise values took minutes and gigabytes (a budget of bounds shared by the
+// holes, struct copies of a hole, or an inout count did). Time glslc after changing it.
+int add_cap(uint i, Ray64 ray, int count) {
+  WindingCapHead cap = WindingCapHead(params.scratch);
+  WindingCapHoles holes = WindingCapHoles(cap.head.holes);
+  WindingCapEdges edges = WindingCapEdges(cap.head.edges);
+  ShearedRay s = shear_ray(ExactInstances(params.instances).x[0], ray);
+  double sign = cap.head.mirrored != 0u ? -1.0 : 1.0;
+  double sum = 0.0;
+  double passed_over = 0.0;
+  bool unsure = false;
+  for (int pass = 0; pass < 2; ++pass) {
+    if (pass == 1) {
+      double near_half = abs(double(count >> 1) + sign * sum / FOUR_PI - 0.5);
+      if (passed_over == 0.0 || (count & ON_SURFACE) != 0 || near_half > cap.head.band + passed_over) break;
+    }
+    for (uint h = 0u; h < cap.head.hole_count; ++h) {
+      double bound = fan_winding_bound(ray.origin, holes, h);
+      bool crossings = pass == 0 && may_cross_fan(s, holes, h);
+      bool angles = pass == 0 ? bound > CAP_SKIP_BOUND : bound <= CAP_SKIP_BOUND;
+      if (pass == 0 && !angles) passed_over += bound;
+      if (crossings || angles) {
+        FanSum fan = add_fan(s, ray, holes, h, edges, crossings, angles);
+        sum += fan.twice_angle;
+        count -= fan.count;
+        unsure = unsure || fan.unsure;
+      }
+    }
+  }
+  DoubleOut(params.out_t).v[i] = unsure ? 0.0 / 0.0 : sign * sum / FOUR_PI;
   return count;
 }

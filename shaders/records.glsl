@@ -176,16 +176,31 @@ struct WindingEdge {
   double b[3];
 };
 
-// The exact tier's winding query (trace::Query::Winding, one instance): the cap that closes its
-// mesh's holes, the fan from `apex` over every boundary edge of the mesh (geometry/winding.rs,
-// the hierarchy's root), each corner in the mesh's frame (the crossing test's, the vertices' own
-// f64 values) and in the scene's (the solid angles'). A WindingCapHeader, then `edge_count`
-// WindingCapEdges. 56 bytes.
+// The exact tier's winding query (trace::Query::Winding, one instance): the caps that close its
+// mesh's holes, one fan per hole from the hole's apex over its boundary edges (geometry/winding.rs
+// boundary_loops over the hierarchy's root's boundary), each corner in the mesh's frame (the
+// crossing test's, the vertices' own f64 values) and in the scene's (the solid angles'). A
+// WindingCapHeader; its holes and edges follow it in one buffer, at the addresses it holds.
+// 32 bytes.
 struct WindingCapHeader {
-  uint edge_count;
+  uint hole_count;
   uint mirrored;          // the instance mirrors: its winding number is the negated sum
+  double band;            // winding numbers within this of 1/2 go to the CPU (the host's band)
+  uint64_t holes;         // hole_count WindingCapHoles
+  uint64_t edges;         // every hole's WindingCapEdges, each hole's together
+};
+
+// One hole's cap: the fan from `apex` over edges first .. first + count; every point of the fan
+// lies within `radius` of the apex (mesh frame; `radius_scene` in the scene's), and its
+// triangles' areas (scene frame) sum to `area_scene`. 80 bytes.
+struct WindingCapHole {
   double apex[3];
   double apex_scene[3];
+  double radius;
+  double radius_scene;
+  double area_scene;
+  uint first;
+  uint count;
 };
 
 // One boundary edge a -> b of the cap's mesh. 96 bytes.

@@ -129,6 +129,43 @@ impl WindingTree {
     }
 }
 
+/// A boundary's oriented edges (vertex indices) grouped into its loops: the edges of each
+/// connected component, in the order given. A boundary is a cycle (at each vertex as many edges
+/// arrive as leave), and so is each component, since every edge at a vertex lies in the vertex's
+/// component: a fan from any point over one group's edges has that group as its boundary, and so
+/// closes that hole alone.
+pub fn boundary_loops(edges: &[[u32; 2]]) -> Vec<Vec<[u32; 2]>> {
+    let mut parent: std::collections::HashMap<u32, u32> = std::collections::HashMap::new();
+    fn root(parent: &mut std::collections::HashMap<u32, u32>, mut v: u32) -> u32 {
+        while let Some(&up) = parent.get(&v).filter(|&&up| up != v) {
+            // Path halving keeps the trees shallow.
+            let grand = parent.get(&up).copied().unwrap_or(up);
+            parent.insert(v, grand);
+            v = grand;
+        }
+        v
+    }
+    for &[a, b] in edges {
+        parent.entry(a).or_insert(a);
+        parent.entry(b).or_insert(b);
+        let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
+        if ra != rb {
+            parent.insert(ra.max(rb), ra.min(rb));
+        }
+    }
+    let mut loops: Vec<Vec<[u32; 2]>> = Vec::new();
+    let mut index_of: std::collections::HashMap<u32, usize> = std::collections::HashMap::new();
+    for &edge in edges {
+        let r = root(&mut parent, edge[0]);
+        let k = *index_of.entry(r).or_insert_with(|| {
+            loops.push(Vec::new());
+            loops.len() - 1
+        });
+        loops[k].push(edge);
+    }
+    loops
+}
+
 /// Whether `p` lies outside `bounds` grown by its largest side over `CAP_MARGIN_DIVISOR`.
 pub fn beyond_margin(bounds: &Aabb, p: DVec3) -> bool {
     let margin = DVec3::splat(bounds.extent().max_element() / CAP_MARGIN_DIVISOR as f64);
@@ -242,6 +279,49 @@ mod tests {
             (state >> 11) as f64 / (1u64 << 53) as f64
         };
         (0..400).map(|_| DVec3::new(next(), next(), next()) * 3.0 - DVec3::splat(1.0)).collect()
+    }
+
+    #[test]
+    fn boundary_loops_are_the_components_and_each_is_a_cycle() {
+        // Two squares' boundaries, interleaved, and a vertex of degree 4 (a figure eight) in the third.
+        let edges = [
+            [0, 1],
+            [10, 11],
+            [1, 2],
+            [11, 12],
+            [2, 3],
+            [12, 10],
+            [3, 0],
+            [20, 21],
+            [21, 22],
+            [22, 20],
+            [20, 23],
+            [23, 24],
+            [24, 20],
+        ];
+        let loops = boundary_loops(&edges);
+        assert_eq!(
+            loops,
+            vec![
+                vec![[0, 1], [1, 2], [2, 3], [3, 0]],
+                vec![[10, 11], [11, 12], [12, 10]],
+                vec![[20, 21], [21, 22], [22, 20], [20, 23], [23, 24], [24, 20]],
+            ]
+        );
+        // The open cube's one hole, and a sheet's: one loop each, as many edges arriving as leaving.
+        for set in [cube(true), sheet(6)] {
+            let tree = WindingTree::build(&set);
+            let span = tree.spans()[0];
+            let root = &tree.edges()[span.first as usize..(span.first + span.count) as usize];
+            let loops = boundary_loops(root);
+            assert_eq!(loops.len(), 1);
+            let mut balance = std::collections::HashMap::new();
+            for &[a, b] in &loops[0] {
+                *balance.entry(a).or_insert(0) += 1;
+                *balance.entry(b).or_insert(0) -= 1;
+            }
+            assert!(balance.values().all(|&d| d == 0));
+        }
     }
 
     #[test]

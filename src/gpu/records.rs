@@ -346,17 +346,40 @@ pub struct WindingEdge {
     pub b: [f64; 3],
 }
 
-/// The head of the cap that closes one mesh's holes, for the exact tier's winding query
-/// (`WindingCapHeader` in shaders/records.glsl); its `WindingCapEdge`s follow it in one buffer.
+/// The head of the caps that close one mesh's holes, for the exact tier's winding query
+/// (`WindingCapHeader` in shaders/records.glsl): its `WindingCapHole`s and their
+/// `WindingCapEdge`s follow it in one buffer, at the addresses it holds.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct WindingCapHeader {
-    pub edge_count: u32,
+    pub hole_count: u32,
     /// 1 where the instance mirrors (its winding number is the negated sum).
     pub mirrored: u32,
-    /// The fan's apex in the mesh's frame, and in the scene's.
+    /// Winding numbers within this of 1/2 are decided on the CPU (the host's band): a ray whose
+    /// fans passed over could move its winding number into the band sums them after all.
+    pub band: f64,
+    /// `hole_count` WindingCapHoles.
+    pub holes: u64,
+    /// Every hole's WindingCapEdges, each hole's together.
+    pub edges: u64,
+}
+
+/// One hole's cap: the fan from `apex` over the hole's boundary edges `first..first + count`,
+/// with what lets a ray pass it over (`WindingCapHole` in shaders/records.glsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct WindingCapHole {
+    /// The fan's apex (the mean of the hole's corners) in the mesh's frame, and in the scene's.
     pub apex: [f64; 3],
     pub apex_scene: [f64; 3],
+    /// A radius about the apex holding the whole fan, in the mesh's frame (no ray passing
+    /// farther crosses it) and in the scene's.
+    pub radius: f64,
+    pub radius_scene: f64,
+    /// The sum of the fan's triangles' areas in the scene's frame (a bound on its solid angle).
+    pub area_scene: f64,
+    pub first: u32,
+    pub count: u32,
 }
 
 /// One boundary edge a -> b of a cap's mesh, in the mesh's frame and in the scene's
@@ -416,10 +439,13 @@ layout!(BvhInstance, size 240, to_local @ 0, to_scene @ 96, weights @ 192, nodes
     identity @ 228, triangle_count @ 232, mirrored @ 236);
 layout!(WindingSpan, size 8, first @ 0, count @ 4);
 layout!(WindingEdge, size 48, a @ 0, b @ 24);
-layout!(WindingCapHeader, size 56, edge_count @ 0, mirrored @ 4, apex @ 8, apex_scene @ 32);
+layout!(WindingCapHeader, size 32, hole_count @ 0, mirrored @ 4, band @ 8, holes @ 16, edges @ 24);
+layout!(WindingCapHole, size 80, apex @ 0, apex_scene @ 24, radius @ 48, radius_scene @ 56, area_scene @ 64, first @ 72,
+    count @ 76);
 layout!(WindingCapEdge, size 96, a @ 0, b @ 24, a_scene @ 48, b_scene @ 72);
-// The edges follow the header in one buffer: the header keeps their alignment.
-const _: () = assert!(std::mem::size_of::<WindingCapHeader>() % std::mem::align_of::<WindingCapEdge>() == 0);
+// The holes and the edges follow the header in one buffer: each record keeps the next's alignment.
+const _: () = assert!(std::mem::size_of::<WindingCapHeader>() % std::mem::align_of::<WindingCapHole>() == 0);
+const _: () = assert!(std::mem::size_of::<WindingCapHole>() % std::mem::align_of::<WindingCapEdge>() == 0);
 layout!(PointHit, size 48, position @ 0, u @ 24, v @ 32, instance @ 40, prim @ 44);
 layout!(HitList, size 8, first @ 0, capacity @ 4);
 layout!(FastHit, size 32, t @ 0, u @ 4, v @ 8, instance @ 12, geometry @ 16, prim @ 20, unused @ 24);
@@ -618,7 +644,12 @@ mod tests {
             (
                 "WindingCapHeader",
                 size_of::<WindingCapHeader>(),
-                members!(WindingCapHeader: edge_count, mirrored, apex, apex_scene),
+                members!(WindingCapHeader: hole_count, mirrored, band, holes, edges),
+            ),
+            (
+                "WindingCapHole",
+                size_of::<WindingCapHole>(),
+                members!(WindingCapHole: apex, apex_scene, radius, radius_scene, area_scene, first, count),
             ),
             ("WindingCapEdge", size_of::<WindingCapEdge>(), members!(WindingCapEdge: a, b, a_scene, b_scene)),
             ("PointHit", size_of::<PointHit>(), members!(PointHit: position, u, v, instance, prim)),

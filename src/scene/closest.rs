@@ -3,16 +3,20 @@
 //! shader searches best first, as `ReferenceTracer::closest_point` does on the CPU; and winding
 //! numbers' boundaries of those hierarchies' nodes.
 
+use std::mem::{size_of, size_of_val};
 use std::sync::Arc;
+
+use glam::DVec3;
 
 use super::instance::Placement;
 use super::top_level::Scene;
 use crate::error::{Error, Result};
 use crate::geometry::precision::{Aabb, Affine};
 use crate::geometry::reference::{gap_weights, Bvh, TriangleSet};
+use crate::geometry::winding::boundary_loops;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 use crate::gpu::records::{
-    BvhInstance, BvhNode, BvhTriangle, WindingCapEdge, WindingCapHeader, WindingEdge, WindingSpan,
+    BvhInstance, BvhNode, BvhTriangle, WindingCapEdge, WindingCapHeader, WindingCapHole, WindingEdge, WindingSpan,
 };
 
 /// The device's copy of every hierarchy closest points search.
@@ -121,18 +125,29 @@ impl WindingScene {
     }
 }
 
-/// The most boundary edges a cap may have: each ray of the exact tier's winding query tests
-/// and sums them all, where the hierarchy (`WindingScene`) sums a few nodes' boundaries.
+/// The most boundary edges a cap may have: a ray of the exact tier's winding query near every
+/// hole tests and sums them all, where the hierarchy (`WindingScene`) sums a few nodes' boundaries.
 pub const MAX_CAP_EDGES: usize = 4096;
 
-/// The cap that closes the holes of a one-instance scene's mesh, for the exact tier's winding
-/// query (trace::Query::Winding): the fan from the centre of the mesh's box over each edge of its
-/// boundary (the hierarchy's root's, geometry::winding), corners in the mesh's frame and the
-/// scene's. The mesh less the cap has no boundary, so its winding number about a point is the
-/// signed count of a ray's crossings, and the mesh's is that plus the cap's.
+/// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
+/// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
+pub const WINDING_TERM_ERROR: f64 = 2e-7;
+/// Added to the terms' bound: winding numbers on the GPU within this (and the terms' bound) of
+/// 1/2 are decided on the CPU.
+pub const WINDING_MARGIN: f64 = 1e-4;
+
+/// The caps that close the holes of a one-instance scene's mesh, for the exact tier's winding
+/// query (trace::Query::Winding): per hole (a loop of the hierarchy's root's boundary,
+/// geometry::winding::boundary_loops) the fan from the hole's mean corner over its edges, corners
+/// in the mesh's frame and the scene's. The mesh less the caps has no boundary, so its winding
+/// number about a point is the signed count of a ray's crossings, and the mesh's is that plus the
+/// caps'. A hole's own fan, rather than one fan from the mesh's centre over every edge, lets a ray
+/// pass it over: no ray passing beyond its bounding sphere crosses it, and seen from afar its
+/// winding number is bounded by its area over the squared distance (records.glsl WindingCapHole).
 pub struct WindingCap {
     buffer: Buffer,
     pub edge_count: usize,
+    pub hole_count: usize,
 }
 
 impl WindingCap {
@@ -145,42 +160,87 @@ impl WindingCap {
             return Ok(None);
         }
         let set = &placement.triangles;
-        let (tree, nodes) = (set.winding_tree(), set.bvh().nodes());
-        let Some((root, span)) = nodes.first().zip(tree.spans().first()) else { return Ok(None) };
+        let tree = set.winding_tree();
+        let Some(span) = tree.spans().first() else { return Ok(None) };
         if span.count == crate::geometry::winding::NO_CAP || span.count as usize > MAX_CAP_EDGES {
             return Ok(None);
         }
         let first = span.first as usize;
-        let edges = &tree.edges()[first..first + span.count as usize];
-        let in_scene = |v: glam::DVec3| placement.to_scene.point(v).to_array();
-        let apex = root.bounds.center();
-        let header = WindingCapHeader {
-            edge_count: edges.len() as u32,
-            mirrored: (placement.to_scene.linear.determinant() < 0.0) as u32,
-            apex: apex.to_array(),
-            apex_scene: in_scene(apex),
-        };
-        let mut bytes = bytemuck::bytes_of(&header).to_vec();
-        for &[u, v] in edges {
-            let (a, b) = (set.vertices[u as usize], set.vertices[v as usize]);
-            let edge = WindingCapEdge { a: a.to_array(), b: b.to_array(), a_scene: in_scene(a), b_scene: in_scene(b) };
-            bytes.extend_from_slice(bytemuck::bytes_of(&edge));
+        let loops = boundary_loops(&tree.edges()[first..first + span.count as usize]);
+        let in_scene = |v: DVec3| placement.to_scene.point(v);
+        let mut holes = Vec::with_capacity(loops.len());
+        let mut edges = Vec::with_capacity(span.count as usize);
+        for edge_loop in &loops {
+            let corners = |[u, v]: [u32; 2]| (set.vertices[u as usize], set.vertices[v as usize]);
+            let apex = edge_loop.iter().map(|&e| corners(e).0).sum::<DVec3>() / edge_loop.len() as f64;
+            let apex_scene = in_scene(apex);
+            let (mut radius, mut radius_scene, mut area_scene) = (0.0f64, 0.0f64, 0.0f64);
+            holes.push(WindingCapHole {
+                first: edges.len() as u32,
+                count: edge_loop.len() as u32,
+                ..Default::default()
+            });
+            for &e in edge_loop {
+                let (a, b) = corners(e);
+                let (a_scene, b_scene) = (in_scene(a), in_scene(b));
+                radius = radius.max(a.distance(apex)).max(b.distance(apex));
+                radius_scene = radius_scene.max(a_scene.distance(apex_scene)).max(b_scene.distance(apex_scene));
+                area_scene += 0.5 * (a_scene - apex_scene).cross(b_scene - apex_scene).length();
+                edges.push(WindingCapEdge {
+                    a: a.to_array(),
+                    b: b.to_array(),
+                    a_scene: a_scene.to_array(),
+                    b_scene: b_scene.to_array(),
+                });
+            }
+            // Grown past their rounding: the shader trusts them to skip a fan.
+            let grow = 1.0 + 1e-9;
+            let hole = holes.last_mut().expect("pushed");
+            hole.apex = apex.to_array();
+            hole.apex_scene = apex_scene.to_array();
+            (hole.radius, hole.radius_scene, hole.area_scene) = (radius * grow, radius_scene * grow, area_scene * grow);
         }
+        let edge_count = edges.len();
+        let band = band_of(edge_count);
+        let mirrored = (placement.to_scene.linear.determinant() < 0.0) as u32;
+        let holes_at = size_of::<WindingCapHeader>();
+        let edges_at = holes_at + size_of_val(holes.as_slice());
+        let size = edges_at + size_of_val(edges.as_slice());
         let ctx = scene.tlas.context();
         let mut uploads = Uploads::default();
-        let buffer = uploads
-            .buffer(ctx, bytes.len() as u64, GEOMETRY_INPUT, "winding cap", |out, _| out.copy_from_slice(&bytes))?;
+        let buffer = uploads.buffer(ctx, size as u64, GEOMETRY_INPUT, "winding cap", |out, address| {
+            let header = WindingCapHeader {
+                hole_count: holes.len() as u32,
+                mirrored,
+                band,
+                holes: address + holes_at as u64,
+                edges: address + edges_at as u64,
+            };
+            out[..holes_at].copy_from_slice(bytemuck::bytes_of(&header));
+            out[holes_at..edges_at].copy_from_slice(bytemuck::cast_slice(&holes));
+            out[edges_at..].copy_from_slice(bytemuck::cast_slice(&edges));
+        })?;
         ctx.run_commands(|cmd| {
             uploads.record(ctx, cmd);
             Ok(())
         })?;
-        Ok(Some(WindingCap { buffer, edge_count: edges.len() }))
+        Ok(Some(WindingCap { buffer, edge_count, hole_count: holes.len() }))
     }
 
-    /// The device address of the header (the edges follow it).
+    /// The device address of the header.
     pub fn address(&self) -> u64 {
         self.buffer.address()
     }
+
+    /// Winding numbers within this of 1/2 (the mesh's crossings plus the caps') are decided on the
+    /// CPU: the bound on the GPU's terms' error, and a margin.
+    pub fn band(&self) -> f64 {
+        band_of(self.edge_count)
+    }
+}
+
+fn band_of(edge_count: usize) -> f64 {
+    WINDING_TERM_ERROR * edge_count as f64 + WINDING_MARGIN
 }
 
 /// The scene's triangle sets, each once, in the order of their first placement: the order of

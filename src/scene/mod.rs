@@ -7,7 +7,7 @@ pub mod instance;
 pub mod mesh;
 pub mod top_level;
 
-pub use closest::{ClosestScene, WindingCap, WindingScene, MAX_CAP_EDGES};
+pub use closest::{ClosestScene, WindingCap, WindingScene, MAX_CAP_EDGES, WINDING_MARGIN, WINDING_TERM_ERROR};
 pub use exact::ExactScene;
 pub use instance::{Instance, InstanceFlags, Placement, IDENTITY, MAX_CUSTOM_INDEX};
 pub use mesh::{Mesh, MeshInput, MeshKind};

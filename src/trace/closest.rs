@@ -30,7 +30,7 @@ use crate::gpu::records::{
     POINT_ORDER_SCATTER,
 };
 use crate::gpu::shaders;
-use crate::scene::{ClosestScene, Scene, WindingScene};
+use crate::scene::{ClosestScene, Scene, WindingScene, WINDING_MARGIN, WINDING_TERM_ERROR};
 
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
@@ -46,13 +46,6 @@ const LEAN_CHUNK_POINTS: usize = 1 << 20;
 const ORDER_GRID: u32 = crate::geometry::morton::POINT_GRID;
 /// Chunks of fewer points are searched as they come (ordering them would cost more than it buys).
 pub(super) const ORDER_MIN_POINTS: usize = 4096;
-
-/// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
-/// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
-pub(super) const WINDING_TERM_ERROR: f64 = 2e-7;
-/// Added to the terms' bound: winding numbers on the GPU within this (and the terms' bound) of
-/// 1/2 are decided on the CPU.
-pub(super) const WINDING_MARGIN: f64 = 1e-4;
 
 /// The point queries' shaders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -416,6 +409,7 @@ impl Tracer {
     /// Points per chunk for a query of `n` points (with `full` outputs, or one f64 a point).
     pub(super) fn point_capacity(&self, n: usize, full: bool) -> usize {
         let most = if full || self.ctx.info.is_software { CHUNK_POINTS } else { LEAN_CHUNK_POINTS };
+        let most = chunk_points_asked().unwrap_or(most);
         most.min(self.points.kernels[0].max_invocations()).min(n).max(1)
     }
 
@@ -693,6 +687,11 @@ fn copy_parallel(dst: &mut [u8], src: &[u8]) {
     parallel::install(|| {
         dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))
     });
+}
+
+/// VKRAY_POINT_CHUNK: points per chunk asked for (to measure what the chunks' size buys).
+fn chunk_points_asked() -> Option<usize> {
+    std::env::var("VKRAY_POINT_CHUNK").ok()?.parse().ok().filter(|&n| n > 0)
 }
 
 /// Whether VKRAY_POINT_ORDER=input asks for points searched (and their rays cast) as they come,

@@ -10,7 +10,7 @@ use ash::vk;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::closest::{PointJob, PointSlot, SignTrace, WINDING_MARGIN, WINDING_TERM_ERROR};
+use super::closest::{PointJob, PointSlot, SignTrace};
 use super::fields::Field;
 use super::request::{Crossings, Cull, Precision, Query, Request, SignedDistance};
 use super::tiers;
@@ -93,7 +93,7 @@ impl Tracer {
             }),
             ..self.closest_job(scene, &structures, points, max_distance, precision, false)?
         };
-        let band = cap.as_ref().map(|cap| WINDING_TERM_ERROR * cap.edge_count as f64 + WINDING_MARGIN);
+        let band = cap.as_ref().map(|cap| cap.band());
         let capacity = self.point_capacity(points.rows(), false).min(self.max_dispatch_rays());
         let mut slots = self.points.take_slots(capacity, false, true)?;
         let mut unsure: Vec<Unsure> = Vec::new();

@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use super::chunks::GpuJob;
-use super::closest::{points_as_they_come, points_in_grid_order, ORDER_MIN_POINTS, WINDING_MARGIN, WINDING_TERM_ERROR};
+use super::closest::{points_as_they_come, points_in_grid_order, ORDER_MIN_POINTS};
 use super::fields::{position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::profile::TraceProfile;
 use super::request::{Crossings, Precision, Query, Request, SignedDistance, DEFAULT_THRESHOLD};
@@ -724,8 +724,7 @@ impl Tracer {
             sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut odd));
             sink.set(Field::T, bytemuck::cast_slice_mut(&mut cap_winding));
             self.trace(scene, &rays, Request { query: Query::Winding, ..request }, &mut sink, interrupt)?;
-            let band = WINDING_TERM_ERROR * cap.edge_count as f64 + WINDING_MARGIN;
-            return tiers::inside_by_crossings(scene, points, &odd, &cap_winding, band, out, interrupt);
+            return tiers::inside_by_crossings(scene, points, &odd, &cap_winding, cap.band(), out, interrupt);
         }
         if scene.placements.len() == 1 {
             let mut sink = HitSink::default();
