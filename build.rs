@@ -3,7 +3,8 @@
 //! their members by name) but no other debug information.
 
 use std::path::PathBuf;
-use std::process::Command;
+use std::process::{Command, ExitStatus};
+use std::time::{Duration, Instant};
 
 const SHADERS: &[&str] = &[
     "trace_ray_query.comp",
@@ -22,6 +23,28 @@ const SHADERS: &[&str] = &[
     "point_order.comp",
 ];
 
+/// How long glslc may take over one shader (each takes well under 5 s): some shapes of code with
+/// `precise` values send glslang 2023.2 into minutes and gigabytes (shaders/exact.glsl `add_cap`),
+/// which should fail the build with a name rather than hang it.
+const GLSLC_LIMIT: Duration = Duration::from_secs(120);
+
+/// Runs `command` to its end, or kills it after `limit`.
+fn run_within(command: &mut Command, limit: Duration) -> std::io::Result<ExitStatus> {
+    let mut child = command.spawn()?;
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait()? {
+            return Ok(status);
+        }
+        if started.elapsed() > limit {
+            child.kill()?;
+            child.wait()?;
+            return Err(std::io::Error::other(format!("no answer within {} s: killed", limit.as_secs())));
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 fn main() {
     let out = PathBuf::from(std::env::var("OUT_DIR").unwrap());
     let glslc = std::env::var("GLSLC").unwrap_or_else(|_| "glslc".into());
@@ -30,12 +53,13 @@ fn main() {
     for name in SHADERS {
         let source = PathBuf::from("shaders").join(name);
         let target = out.join(format!("{name}.spv"));
-        let status = Command::new(&glslc)
+        let mut command = Command::new(&glslc);
+        command
             .args(["--target-env=vulkan1.2", "--target-spv=spv1.4", "-O", "-g", "-Werror", "-o"])
             .arg(&target)
-            .arg(&source)
-            .status()
-            .unwrap_or_else(|e| panic!("could not run {glslc} (Debian package glslc): {e}"));
+            .arg(&source);
+        let status = run_within(&mut command, GLSLC_LIMIT)
+            .unwrap_or_else(|e| panic!("could not run {glslc} (Debian package glslc) on {}: {e}", source.display()));
         assert!(status.success(), "{glslc} failed on {}", source.display());
         let spirv = std::fs::read(&target).expect("glslc wrote its output");
         std::fs::write(&target, names_only(&spirv)).expect("target is writable");

@@ -1092,11 +1092,13 @@ class Scene:
         twice or not at all.
 
         On the GPU, the winding number of a scene of one instance comes from one ray a point too:
-        the mesh less the cap that closes its holes (the fan from the centre of its box over its
-        boundary edges, up to 4,096 of them) has no boundary, so its winding number is the signed
-        count of the ray's crossings with both, each exact; the cap's own winding number (a sum
-        over its few triangles) is added. Scenes of several instances sum each instance's
-        triangles over its hierarchy instead.
+        the mesh less the caps that close its holes (per hole, the fan from the mean of its
+        corners over its boundary edges; up to 4,096 edges in all) has no boundary, so its winding
+        number is the signed count of the ray's crossings with both, each exact; the caps' own
+        winding numbers (sums over their few triangles) are added. A ray passes over a cap it
+        cannot cross and whose winding number is bounded small, unless that bound could move the
+        sum near 1/2. Scenes of several instances sum each instance's triangles over its
+        hierarchy instead.
         """
         if method not in ("parity", "winding"):
             raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")
