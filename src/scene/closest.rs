@@ -146,8 +146,7 @@ pub const WINDING_MARGIN: f64 = 1e-4;
 /// winding number is bounded by its area over the squared distance (records.glsl WindingCapHole).
 pub struct WindingCap {
     buffer: Buffer,
-    pub edge_count: usize,
-    pub hole_count: usize,
+    edge_count: usize,
 }
 
 impl WindingCap {
@@ -224,7 +223,7 @@ impl WindingCap {
             uploads.record(ctx, cmd);
             Ok(())
         })?;
-        Ok(Some(WindingCap { buffer, edge_count, hole_count: holes.len() }))
+        Ok(Some(WindingCap { buffer, edge_count }))
     }
 
     /// The device address of the header.
