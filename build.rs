@@ -21,6 +21,7 @@ const SHADERS: &[&str] = &[
     "winding.comp",
     "pack_rays.comp",
     "point_order.comp",
+    "sign_points.comp",
 ];
 
 /// How long glslc may take over one shader (each takes well under 5 s): some shapes of code with

@@ -24,8 +24,9 @@ call on 16 points, its rate scaled). trimesh's signed distance is positive insid
 flipped here.
 
 Timing: one warm-up call on 256 points (it compiles pipelines, builds caches), then a call on the
-whole batch; where that took longer than --slow seconds it is the figure, else the best of
---repeat further calls.
+whole batch; where that took longer than --slow seconds it is the figure, else calls for one
+second more (the GPU's clocks rise only after 0.2-0.3 s of work) and then the best of --repeat
+further calls.
 
 Signs: vkray's sign is `Scene.contains`': parity of one exact ray per point for closed meshes
 (fandisk), the generalized winding number for open ones (the bunny). The winding number sums over
@@ -103,14 +104,22 @@ def make_grid(vertices, g):
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
 
 
-def timed(call, full, small, repeat, slow):
+def timed(call, full, small, repeat, slow, settle=1.0):
     """(seconds, answer, calls timed): a warm-up on `small`, a call on `full`, and where that took
-    at most `slow` seconds the best of `repeat` more."""
+    at most `slow` seconds, calls on `full` for `settle` seconds more and then the best of
+    `repeat` more. The settling is for the GPU's clocks: an H100 idle for 2 s or more (as it is
+    while the CPU tiers and the peers run) spends its first 0.2-0.3 s of work at 345 MHz, a
+    quarter of its speed (docs/benchmarks.md, issue 13, session 12), which six calls of 10 ms
+    fall inside entirely."""
     call(small)
     start = time.perf_counter()
     answer = call(full)
     times = [time.perf_counter() - start]
     if times[0] <= slow:
+        settled = time.perf_counter() + settle
+        while time.perf_counter() < settled:
+            call(full)
+        times = []
         for _ in range(repeat):
             start = time.perf_counter()
             answer = call(full)

@@ -62,6 +62,21 @@ layout(push_constant, std430) uniform PointOrderParams {
 const uint POINT_ORDER_COUNT = 0u;
 const uint POINT_ORDER_SCAN = 1u;
 const uint POINT_ORDER_SCATTER = 2u;
+#elif defined(VKRAY_SIGN_POINTS)
+// The push constants of sign_points.comp (records.rs SignPointsParams): one chunk of a signed
+// distance query, its distances signed in place from its sign's crossings (and cap's winding
+// numbers), the points the GPU cannot tell marked for the CPU.
+layout(push_constant, std430) uniform SignPointsParams {
+  uint64_t distances;    // double per point: in, the distances; out, negated where inside
+  uint64_t crossings;    // int per point (Crossings: the sum << 1 | on a surface)
+  uint64_t cap_winding;  // double per point, the cap's winding number; or 0: sign by parity
+  uint64_t unsure;       // uint per 32 points (cleared by the host): bit i & 31 of word i >> 5 set
+                         // where the winding number lies within the band about 1/2 (or is NaN)
+  double inside_from;    // winding numbers at least this are inside (1/2 + the band)
+  double outside_below;  // winding numbers below this are outside (1/2 - the band)
+  uint count;
+  uint unused;
+} sign_params;
 #elif !defined(VKRAY_POINT_QUERY)
 // The push constants of every query (records.rs Params, whose `outputs` array holds out_t ..
 // out_geometry in trace::Field order). QUERY_ALL writes no hit fields: out_t points at the

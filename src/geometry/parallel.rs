@@ -28,6 +28,16 @@ pub fn install<R: Send>(work: impl FnOnce() -> R + Send) -> R {
     }
 }
 
+/// `dst.copy_from_slice(src)` in pieces of a megabyte on all cores (host staging passes).
+pub fn copy(dst: &mut [u8], src: &[u8]) {
+    use rayon::prelude::*;
+    const PIECE_BYTES: usize = 1 << 20;
+    assert_eq!(dst.len(), src.len(), "a parallel copy's two sides differ in length");
+    install(|| {
+        dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))
+    });
+}
+
 /// This forked child's pool (made on first use); `None` if no thread can be started.
 fn child_pool(pid: u32) -> Option<Arc<ThreadPool>> {
     let mut held = CHILD_POOL.lock().unwrap_or_else(|e| e.into_inner());

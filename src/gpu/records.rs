@@ -202,6 +202,27 @@ pub struct PointOrderParams {
     pub pass: u32,
 }
 
+/// The push constants of sign_points.comp (`SignPointsParams` in shaders/records.glsl): one
+/// chunk of a signed distance query, signed in place on the GPU.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct SignPointsParams {
+    /// f64 per point: the distances in, signed out.
+    pub distances: u64,
+    /// i32 per point (`trace::Crossings`).
+    pub crossings: u64,
+    /// f64 per point, the cap's winding number; or 0: the sign by parity.
+    pub cap_winding: u64,
+    /// u32 per 32 points, cleared beforehand: the points the CPU decides.
+    pub unsure: u64,
+    /// Winding numbers at least this are inside (1/2 + the band) ...
+    pub inside_from: f64,
+    /// ... and below this outside (1/2 − the band); between, unsure.
+    pub outside_below: f64,
+    pub count: u32,
+    pub unused: u32,
+}
+
 /// `PointOrderParams::pass`: count each cell's points; scan the counts into first slots; write
 /// each point's index into its cell's next slot.
 pub const POINT_ORDER_COUNT: u32 = 0;
@@ -427,6 +448,8 @@ layout!(PointParams, size 128, points @ 0, distances @ 8, hits @ 16, nodes @ 24,
     top_nodes @ 48, top_items @ 56, spans @ 64, edges @ 72, order @ 80, center @ 88, max_distance @ 112, count @ 120,
     instance_count @ 124);
 layout!(PointOrderParams, size 80, points @ 0, cells @ 8, order @ 16, corner @ 24, scale @ 48, count @ 72, pass @ 76);
+layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
+    outside_below @ 40, count @ 48, unused @ 52);
 layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
     frame @ 48, t @ 56, origin_stride @ 64, direction_stride @ 68, tmin_stride @ 72, tmax_stride @ 76, count @ 80,
     first_row @ 84, formats @ 88, unused @ 92);
@@ -638,6 +661,20 @@ mod tests {
                 "PointOrderParams",
                 size_of::<PointOrderParams>(),
                 members!(PointOrderParams: points, cells, order, corner, scale, count, pass),
+            ),
+            (
+                "SignPointsParams",
+                size_of::<SignPointsParams>(),
+                members!(
+                    SignPointsParams: distances,
+                    crossings,
+                    cap_winding,
+                    unsure,
+                    inside_from,
+                    outside_below,
+                    count,
+                    unused
+                ),
             ),
             ("WindingSpan", size_of::<WindingSpan>(), members!(WindingSpan: first, count)),
             ("WindingEdge", size_of::<WindingEdge>(), members!(WindingEdge: a, b)),

@@ -20,6 +20,7 @@ pub const CLOSEST_POINT: &[u8] = spirv!("closest_point.comp");
 pub const WINDING: &[u8] = spirv!("winding.comp");
 pub const PACK_RAYS: &[u8] = spirv!("pack_rays.comp");
 pub const POINT_ORDER: &[u8] = spirv!("point_order.comp");
+pub const SIGN_POINTS: &[u8] = spirv!("sign_points.comp");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -37,6 +38,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("winding.comp", WINDING),
     ("pack_rays.comp", PACK_RAYS),
     ("point_order.comp", POINT_ORDER),
+    ("sign_points.comp", SIGN_POINTS),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

@@ -26,7 +26,7 @@ use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::{Commands, Context, Interrupt};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{
-    Params, PointHit, PointOrderParams, PointParams, PointRays, POINT_ORDER_COUNT, POINT_ORDER_SCAN,
+    Params, PointHit, PointOrderParams, PointParams, PointRays, SignPointsParams, POINT_ORDER_COUNT, POINT_ORDER_SCAN,
     POINT_ORDER_SCATTER,
 };
 use crate::gpu::shaders;
@@ -65,6 +65,8 @@ pub struct PointPipelines {
     kernels: [ComputeKernel; 2],
     /// point_order.comp.
     order: ComputeKernel,
+    /// sign_points.comp.
+    pub(super) sign: ComputeKernel,
     idle: Mutex<Vec<PointSlot>>,
 }
 
@@ -76,6 +78,7 @@ impl PointPipelines {
             ctx: ctx.clone(),
             kernels: [kernel(shaders::CLOSEST_POINT)?, kernel(shaders::WINDING)?],
             order: ComputeKernel::new(ctx, shaders::POINT_ORDER, std::mem::size_of::<PointOrderParams>(), Some(needs))?,
+            sign: ComputeKernel::new(ctx, shaders::SIGN_POINTS, std::mem::size_of::<SignPointsParams>(), Some(needs))?,
             idle: Mutex::new(Vec::new()),
         })
     }
@@ -127,8 +130,8 @@ impl PointPipelines {
 }
 
 /// Staging for one chunk of points in flight: the points (f64 xyz) in, the distances (and, for
-/// full outputs, a `PointHit` each; for signs, the crossings of each point's ray and the cap's
-/// winding number) out; device copies on discrete GPUs.
+/// full outputs, a `PointHit` each; for signs, a bit a point: unsure) out; device copies on
+/// discrete GPUs, where the signs' crossings and cap winding numbers stay.
 pub(super) struct PointSlot {
     points_host: Buffer,
     pub(super) results_host: Buffer,
@@ -154,7 +157,7 @@ impl PointSlot {
         let (points_host, results_host, device) = if ctx.unified_memory {
             (
                 Buffer::new(ctx, points, storage, MemoryLocation::CpuToGpu, "points")?,
-                Buffer::new(ctx, results, storage, MemoryLocation::GpuToCpu, "closest points")?,
+                Buffer::new(ctx, results, storage | U::TRANSFER_DST, MemoryLocation::GpuToCpu, "closest points")?,
                 None,
             )
         } else {
@@ -163,7 +166,13 @@ impl PointSlot {
                 Buffer::new(ctx, results, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "closest points readback")?,
                 Some((
                     Buffer::new(ctx, points, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "points")?,
-                    Buffer::new(ctx, results, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "closest points")?,
+                    Buffer::new(
+                        ctx,
+                        results,
+                        storage | U::TRANSFER_SRC | U::TRANSFER_DST,
+                        MemoryLocation::GpuOnly,
+                        "closest points",
+                    )?,
                 )),
             )
         };
@@ -200,8 +209,9 @@ impl PointSlot {
         let crossings = hits + if full { size_of_hit() * capacity } else { 0 };
         // f64s: 8-byte aligned.
         let cap_winding = crossings + if signs { 4 * capacity.next_multiple_of(2) } else { 0 };
-        let total = cap_winding + if signs { 8 * capacity } else { 0 };
-        ResultsLayout { hits, crossings, cap_winding, total }
+        let unsure = cap_winding + if signs { 8 * capacity } else { 0 };
+        let total = unsure + if signs { 4 * capacity.div_ceil(32) } else { 0 };
+        ResultsLayout { hits, crossings, cap_winding, unsure, total }
     }
 
     /// Where this slot's outputs lie in its results buffer.
@@ -218,19 +228,25 @@ impl PointSlot {
         self.device.as_ref().map_or(self.points_host.address(), |(points, _)| points.address())
     }
 
+    /// The buffer the device writes the results into, and their offset in it.
+    pub(super) fn results_buffer(&self) -> (vk::Buffer, u64) {
+        (self.device.as_ref().map_or(&self.results_host, |(_, results)| results).raw(), 0)
+    }
+
     pub(super) fn results_address(&self) -> u64 {
         self.device.as_ref().map_or(self.results_host.address(), |(_, results)| results.address())
     }
 }
 
 /// Byte offsets of a point slot's outputs: the distances (f64 each) at 0, then the `PointHit`s
-/// (full outputs), then (signs) the crossings of each point's ray (`Crossings`, one i32 each) and
-/// the cap's winding numbers (f64 each).
+/// (full outputs), then (signs) the crossings of each point's ray (`Crossings`, one i32 each),
+/// the cap's winding numbers (f64 each) and the unsure points' bits (u32 per 32 points).
 #[derive(Clone, Copy)]
 pub(super) struct ResultsLayout {
     pub hits: usize,
     pub crossings: usize,
     pub cap_winding: usize,
+    pub unsure: usize,
     pub total: usize,
 }
 
@@ -245,6 +261,9 @@ pub(super) struct SignTrace<'a> {
     pub direction: [f64; 3],
     /// The cap's winding numbers are written too (`Query::Winding`).
     pub cap_winding: bool,
+    /// sign_points.comp's pipeline, and the band about 1/2 its winding numbers leave unsure.
+    pub combine: vk::Pipeline,
+    pub band: f64,
 }
 
 /// What the chunks of one query share.
@@ -303,7 +322,7 @@ impl Tracer {
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
             if let Some(out) = distances.as_deref_mut() {
-                copy_parallel(&mut out[8 * start..8 * (start + len)], &results[..8 * len]);
+                parallel::copy(&mut out[8 * start..8 * (start + len)], &results[..8 * len]);
             }
             if full {
                 let from = slot.results_layout().hits;
@@ -391,7 +410,7 @@ impl Tracer {
         let mut slots = self.points.take_slots(capacity, false, false)?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
-            copy_parallel(bytemuck::cast_slice_mut(&mut winding[start..start + len]), &results[..8 * len]);
+            parallel::copy(bytemuck::cast_slice_mut(&mut winding[start..start + len]), &results[..8 * len]);
         });
         self.points.give_back(slots);
         result?;
@@ -575,11 +594,8 @@ impl Tracer {
         if job.full {
             regions.push(region(layout.hits, size_of_hit()));
         }
-        if let Some(sign) = &job.sign {
-            regions.push(region(layout.crossings, 4));
-            if sign.cap_winding {
-                regions.push(region(layout.cap_winding, 8));
-            }
+        if job.sign.is_some() {
+            regions.push(region(layout.unsure, 0).size(4 * len.div_ceil(32) as u64));
         }
         // SAFETY: `cmd` is recording; both buffers share one layout and hold `capacity` points.
         unsafe { device.cmd_copy_buffer(cmd, results_device.raw(), slot.results_host.raw(), &regions) };
@@ -671,7 +687,7 @@ fn pack_points(points: Vec3s, start: usize, len: usize, slot: &mut PointSlot) {
     let out: &mut [f64] = bytemuck::cast_slice_mut(&mut staging[..24 * len]);
     match points {
         Vec3s::F64(values) => {
-            copy_parallel(bytemuck::cast_slice_mut(out), bytemuck::cast_slice(&values[3 * start..3 * (start + len)]))
+            parallel::copy(bytemuck::cast_slice_mut(out), bytemuck::cast_slice(&values[3 * start..3 * (start + len)]))
         }
         Vec3s::F32(_) => parallel::install(|| {
             out.par_chunks_exact_mut(3).enumerate().with_min_len(4096).for_each(|(k, dst)| {
@@ -679,14 +695,6 @@ fn pack_points(points: Vec3s, start: usize, len: usize, slot: &mut PointSlot) {
             })
         }),
     }
-}
-
-/// `dst.copy_from_slice(src)` in pieces on all cores.
-fn copy_parallel(dst: &mut [u8], src: &[u8]) {
-    const PIECE_BYTES: usize = 1 << 20;
-    parallel::install(|| {
-        dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))
-    });
 }
 
 /// VKRAY_POINT_CHUNK: points per chunk asked for (to measure what the chunks' size buys).

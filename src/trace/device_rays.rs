@@ -6,8 +6,6 @@
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use rayon::prelude::*;
-
 use ash::vk;
 
 use super::fields::{Field, HitSink, FIELDS, FIELD_COUNT};
@@ -440,7 +438,7 @@ impl Shared {
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
         let mut buffer = Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::CpuToGpu, name)?;
         let staging = buffer.mapped_mut().expect("CpuToGpu memory is host-visible");
-        copy_in_parallel(&mut staging[..bytes.len()], bytes);
+        parallel::copy(&mut staging[..bytes.len()], bytes);
         Ok(Shared::Copied(buffer))
     }
 
@@ -466,17 +464,9 @@ impl Shared {
     fn finish(&self, out: &mut [u8]) {
         if let Shared::Copied(buffer) = self {
             let written = buffer.mapped().expect("GpuToCpu memory is host-visible");
-            copy_in_parallel(out, &written[..out.len()]);
+            parallel::copy(out, &written[..out.len()]);
         }
     }
-}
-
-/// `dst.copy_from_slice(src)` on all cores.
-fn copy_in_parallel(dst: &mut [u8], src: &[u8]) {
-    const PIECE_BYTES: usize = 1 << 20;
-    parallel::install(|| {
-        dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))
-    });
 }
 
 fn vec3_bytes<'a>(v: &Vec3s<'a>) -> (&'a [u8], bool) {

@@ -1,18 +1,19 @@
 //! Signed distances in one pass of the GPU a chunk: the chunk's points go up once, the
 //! closest-point search measures their distances (`closest.rs`), and in the same command buffer
 //! one exact ray from each point (RAY_SOURCE = RAYS_FROM_POINTS: read from the search's own
-//! points buffer) counts its crossings, by parity or through the winding cap. The host copies the
-//! distances out, negated where the crossings put the point inside, and decides on the CPU only
-//! the few points the GPU cannot tell (as `contains` does). Two queries instead (distances, then
-//! `contains`) would pack every point twice, 64 bytes of f64 ray each for the sign.
+//! points buffer) counts its crossings, by parity or through the winding cap; last,
+//! sign_points.comp negates the distances of the points inside and marks those it cannot tell.
+//! The host copies the signed distances out and decides on the CPU only the few points marked (as
+//! `contains` does). Two queries instead (distances, then `contains`) would pack every point
+//! twice, 64 bytes of f64 ray each for the sign; signing on the host would read back 20 bytes a
+//! point instead of 8 (and a bit).
 
 use ash::vk;
 use glam::DVec3;
-use rayon::prelude::*;
 
 use super::closest::{PointJob, PointSlot, SignTrace};
 use super::fields::Field;
-use super::request::{Crossings, Cull, Precision, Query, Request, SignedDistance};
+use super::request::{Cull, Precision, Query, Request, SignedDistance};
 use super::tiers;
 use super::tracer::Tracer;
 use super::variants::{VariantKey, RAYS_FROM_POINTS};
@@ -21,7 +22,7 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::gpu::context::{Backend, Interrupt};
 use crate::gpu::memory::memory_barrier;
-use crate::gpu::records::{Params, PointRays};
+use crate::gpu::records::{Params, PointRays, SignPointsParams};
 use crate::scene::Scene;
 
 /// Whether VKRAY_SIGNED_DISTANCE=separate asks for distances and signs as two queries (to measure
@@ -90,15 +91,16 @@ impl Tracer {
                 params,
                 direction: tiers::PARITY_DIRECTION.to_array(),
                 cap_winding: cap.is_some(),
+                combine: self.points.sign.pipeline(&[])?,
+                band: cap.as_ref().map_or(0.0, |cap| cap.band()),
             }),
             ..self.closest_job(scene, &structures, points, max_distance, precision, false)?
         };
-        let band = cap.as_ref().map(|cap| cap.band());
         let capacity = self.point_capacity(points.rows(), false).min(self.max_dispatch_rays());
         let mut slots = self.points.take_slots(capacity, false, true)?;
         let mut unsure: Vec<Unsure> = Vec::new();
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
-            let found = sign_chunk(slot, band, &mut out[start..start + len]);
+            let found = sign_chunk(slot, &mut out[start..start + len]);
             unsure.extend(found.into_iter().map(|(k, mark)| (start + k, mark)));
         });
         self.points.give_back(slots);
@@ -109,7 +111,8 @@ impl Tracer {
 
     /// Records the sign's trace of a chunk after its search: the chunk's `PointRays` record,
     /// then one ray from each of its `len` points, in the search's `order` (its address, or 0:
-    /// as they come). Returns the stage whose writes the readback waits for.
+    /// as they come), then sign_points.comp over the chunk. Returns the stage whose writes the
+    /// readback waits for.
     pub(super) fn record_sign_trace(
         &self,
         cmd: vk::CommandBuffer,
@@ -125,6 +128,20 @@ impl Tracer {
             Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
         };
         let record_buffer = slot.rays_record().expect("a slot for signs has a rays record");
+        let layout = slot.results_layout();
+        let results = slot.results_address();
+        let (results_buffer, results_offset) = slot.results_buffer();
+        // SAFETY: `cmd` is recording outside a render pass; the results buffer is TRANSFER_DST
+        // and holds the unsure bits' words at this 4-aligned offset (ResultsLayout).
+        unsafe {
+            ctx.device.cmd_fill_buffer(
+                cmd,
+                results_buffer,
+                results_offset + layout.unsure as u64,
+                4 * len.div_ceil(32) as u64,
+                0,
+            )
+        };
         let record = PointRays {
             points: slot.points_address(),
             order,
@@ -146,56 +163,85 @@ impl Tracer {
             stage,
             vk::AccessFlags::SHADER_READ,
         );
-        let layout = slot.results_layout();
-        let results = slot.results_address();
         let mut params = Params { rays: record_buffer.address(), count: len as u32, ..sign.params };
         params.outputs[Field::Prim as usize] = results + layout.crossings as u64;
         if sign.cap_winding {
             params.outputs[Field::T as usize] = results + layout.cap_winding as u64;
         }
         self.record_trace(cmd, sign.variant, &params, len);
-        stage
+        self.record_sign_points(cmd, sign, slot, stage, len);
+        vk::PipelineStageFlags::COMPUTE_SHADER
+    }
+
+    /// Records sign_points.comp over a chunk whose distances and crossings were written (by
+    /// `stage`'s shaders, and its unsure bits cleared by a copy).
+    fn record_sign_points(
+        &self,
+        cmd: vk::CommandBuffer,
+        sign: &SignTrace,
+        slot: &PointSlot,
+        stage: vk::PipelineStageFlags,
+        len: usize,
+    ) {
+        let ctx = &self.ctx;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        memory_barrier(
+            ctx,
+            cmd,
+            compute | stage | vk::PipelineStageFlags::TRANSFER,
+            vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE,
+            compute,
+            vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE,
+        );
+        let layout = slot.results_layout();
+        let results = slot.results_address();
+        let params = SignPointsParams {
+            distances: results,
+            crossings: results + layout.crossings as u64,
+            cap_winding: if sign.cap_winding { results + layout.cap_winding as u64 } else { 0 },
+            unsure: results + layout.unsure as u64,
+            // As tiers::mark_by_crossings computes them.
+            inside_from: 0.5 + sign.band,
+            outside_below: 0.5 - sign.band,
+            count: len as u32,
+            unused: 0,
+        };
+        let kernel = &self.points.sign;
+        // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
+        // cover exactly the layout's range; the group count is within maxComputeWorkGroupCount
+        // (the chunk's capacity is, `point_capacity`).
+        unsafe {
+            ctx.device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, sign.combine);
+            ctx.device.cmd_push_constants(
+                cmd,
+                kernel.layout(),
+                vk::ShaderStageFlags::COMPUTE,
+                0,
+                bytemuck::bytes_of(&params),
+            );
+            ctx.device.cmd_dispatch(cmd, (len as u32).div_ceil(kernel.local_size), 1, 1);
+        }
     }
 }
 
-/// Copies a finished chunk's distances into `out`, negated where its crossings (and the cap's
-/// winding number, with `band` its error) put the point inside. Returns the chunk's points the
-/// CPU must decide (their distances copied as they are).
-fn sign_chunk(slot: &PointSlot, band: Option<f64>, out: &mut [f64]) -> Vec<Unsure> {
-    const PIECE: usize = 4096;
+/// Copies a finished chunk's signed distances into `out`. Returns the chunk's points the CPU
+/// must decide (their distances copied as they are), from the unsure bits.
+fn sign_chunk(slot: &PointSlot, out: &mut [f64]) -> Vec<Unsure> {
     let len = out.len();
     let results = slot.results_host.mapped().expect("readback is host-visible");
     let layout = slot.results_layout();
-    let distances: &[f64] = bytemuck::cast_slice(&results[..8 * len]);
-    let crossings: &[i32] = bytemuck::cast_slice(&results[layout.crossings..layout.crossings + 4 * len]);
-    let cap_winding: &[f64] = match band {
-        Some(_) => bytemuck::cast_slice(&results[layout.cap_winding..layout.cap_winding + 8 * len]),
-        None => &[],
-    };
-    let mark = |i: usize| match band {
-        Some(band) => tiers::mark_by_crossings(Crossings(crossings[i]), cap_winding[i], band),
-        None => u8::from(tiers::inside_by_parity(Crossings(crossings[i]))),
-    };
-    parallel::install(|| {
-        out.par_chunks_mut(PIECE)
-            .enumerate()
-            .flat_map_iter(|(piece, out)| {
-                let first = piece * PIECE;
-                let mut unsure = Vec::new();
-                for (k, signed) in out.iter_mut().enumerate() {
-                    let i = first + k;
-                    let mark = mark(i);
-                    *signed = if mark == 1 { -distances[i] } else { distances[i] };
-                    if mark > 1 {
-                        unsure.push((i, mark));
-                    }
-                }
-                unsure
-            })
-            .collect()
-    })
+    parallel::copy(bytemuck::cast_slice_mut(out), &results[..8 * len]);
+    let words: &[u32] = bytemuck::cast_slice(&results[layout.unsure..layout.unsure + 4 * len.div_ceil(32)]);
+    let mut unsure = Vec::new();
+    for (w, &word) in words.iter().enumerate().filter(|(_, &word)| word != 0) {
+        let mut bits = word;
+        while bits != 0 {
+            unsure.push((32 * w + bits.trailing_zeros() as usize, tiers::UNSURE));
+            bits &= bits - 1;
+        }
+    }
+    unsure
 }
-
 /// Decides the `unsure` points on the CPU (`tiers::decide_on_the_cpu`) and negates the
 /// distances of those inside.
 fn decide_unsure(

@@ -474,7 +474,7 @@ pub fn inside_by_parity(crossings: Crossings) -> bool {
 
 /// A first pass's mark of a point whose winding number the GPU could not tell from 1/2: the CPU
 /// decides (on a surface, or its own winding number at least 1/2).
-const UNSURE: u8 = 2;
+pub(super) const UNSURE: u8 = 2;
 /// A first pass's mark of a point outside unless it lies on a surface, which the CPU tests.
 const ONLY_ON_A_SURFACE: u8 = 3;
 
