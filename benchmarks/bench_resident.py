@@ -3,13 +3,17 @@ Markdown table (issue 14's figures).
 
     python benchmarks/bench_resident.py --rays 1e6 16e6 --big            # vkray (torch and numpy) + Embree
     python benchmarks/bench_resident.py --rays 1e6 16e6 --big --only open3d   # Open3D, in its own venv
+    python benchmarks/bench_resident.py --rays 1e6 16e6 --big --only mitsuba  # Mitsuba 3 (cuda_ad_rgb)
 
 Per mesh (the bunny; with --big the bunny subdivided twice, 1.1M triangles) and rays (camera and
 random, the same seeds everywhere): vkray with torch CUDA tensors in and `vkray.CudaArray` out
 (read as torch tensors, timed to torch.cuda.synchronize()), vkray numpy in and out with the rays
 packed by the GPU (the default on GPUs) and by the host (VKRAY_PACK=host: the earlier path), each
 asking t and prim_id (lean) and the default fields; Embree in N processes; Open3D's
-RaycastingScene.cast_rays on numpy and on its own tensors. Best of --repeat after a warm-up.
+RaycastingScene.cast_rays on numpy and on its own tensors; Mitsuba 3 (OptiX, the cuda_ad_rgb
+variant) on rays it holds on the GPU, `ray_intersect_preliminary` (t and the primitive: lean) and
+`ray_intersect` (a whole surface interaction: default), evaluated and synchronized. Best of
+--repeat after a warm-up.
 """
 
 from __future__ import annotations
@@ -119,13 +123,51 @@ def open3d_rows(v, f, kind, n, repeat):
     return {"open3d numpy": best_of(repeat, from_numpy), "open3d tensors": best_of(repeat, lambda: scene.cast_rays(rays))}
 
 
+def mitsuba_rows(v, f, kind, n, repeat):
+    import drjit as dr
+    import mitsuba as mi
+
+    mi.set_variant("cuda_ad_rgb")
+    o, d = rays_for(v, kind, n)
+    mesh = mi.Mesh("mesh", vertex_count=len(v), face_count=len(f), has_vertex_normals=False,
+                   has_vertex_texcoords=False)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(v, np.float32).ravel())
+    params["faces"] = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
+    params.update()
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+
+    def vec(a, kind_of):
+        return kind_of(*(mi.Float(np.ascontiguousarray(a[:, k])) for k in range(3)))
+
+    ray = mi.Ray3f(o=vec(o, mi.Point3f), d=vec(d, mi.Vector3f))
+    dr.eval(ray)
+    dr.sync_thread()
+
+    def lean():
+        hit = scene.ray_intersect_preliminary(ray)
+        dr.eval(hit.t, hit.prim_index)
+        dr.sync_thread()
+        return hit
+
+    def default():
+        si = scene.ray_intersect(ray)
+        dr.eval(si.t, si.prim_index, si.p, si.uv, si.n, si.sh_frame.n)
+        dr.sync_thread()
+
+    rows = {"mitsuba lean": best_of(repeat, lean), "mitsuba default": best_of(repeat, default)}
+    t = lean().t.numpy()
+    print(f"|   | mitsuba hits | {int(np.isfinite(t).sum()):,} of {n:,} |", flush=True)
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rays", type=float, nargs="+", default=[1e6])
     parser.add_argument("--big", action="store_true")
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--embree-processes", type=int, default=0)
-    parser.add_argument("--only", choices=["vkray", "open3d"], default="vkray")
+    parser.add_argument("--only", choices=["vkray", "open3d", "mitsuba"], default="vkray")
     args = parser.parse_args()
     v, f = load_obj("stanford-bunny")
     meshes = [("bunny", v, f)] + ([("bunny x16 (subdivided)", *subdivided(v, f, 2))] if args.big else [])
@@ -134,6 +176,8 @@ def main():
             for n in (int(r) for r in args.rays):
                 if args.only == "open3d":
                     rows = open3d_rows(vv, ff, kind, n, args.repeat)
+                elif args.only == "mitsuba":
+                    rows = mitsuba_rows(vv, ff, kind, n, args.repeat)
                 else:
                     rows = vkray_rows(name, vv, ff, kind, n, args.repeat, args.embree_processes)
                 speeds = " | ".join(f"{k}: {n / s / 1e6:.0f}" for k, s in rows.items() if not k.startswith("profile"))

@@ -6,8 +6,6 @@ import os
 import pathlib
 
 import numpy as np
-from embreex import rtcore_scene as rtcs
-from embreex.mesh_construction import TriangleMesh
 
 # ../shared/meshes beside the checkout; VKRAY_MESHES points elsewhere (machines without it).
 MESH_DIR = pathlib.Path(
@@ -32,6 +30,10 @@ def load_obj(name: str):
 
 def embree(triangle_sets, origins, directions, tmax=None, query="INTERSECT"):
     """Embree's answer for rays against meshes given as (vertices, faces) pairs (geomID = order)."""
+    # Imported here: the benchmarks use this module's loaders and rays where embreex is absent.
+    from embreex import rtcore_scene as rtcs
+    from embreex.mesh_construction import TriangleMesh
+
     scene = rtcs.EmbreeScene()
     for vertices, faces in triangle_sets:
         TriangleMesh(scene, np.ascontiguousarray(vertices[faces], dtype=np.float32))

@@ -19,6 +19,17 @@ pub const GEOMETRY_INPUT: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
         | vk::BufferUsageFlags::STORAGE_BUFFER.as_raw(),
 );
 
+/// Where a discrete GPU's upload staging lives, the host writing it and a copy reading it:
+/// `CpuToGpu` (gpu-allocator's choice: device memory the host reaches through the PCIe BAR, where
+/// the device has it) unless VKRAY_STAGING=system asks for system memory (`GpuToCpu`: host
+/// memory, cached), which the copy then reads over the bus. A knob to measure which is faster.
+pub fn upload_staging() -> MemoryLocation {
+    match std::env::var("VKRAY_STAGING").as_deref() {
+        Ok("system") => MemoryLocation::GpuToCpu,
+        _ => MemoryLocation::CpuToGpu,
+    }
+}
+
 /// A Vulkan buffer with its own memory allocation; freed when dropped.
 pub struct Buffer {
     ctx: Arc<Context>,

@@ -393,7 +393,6 @@ fn finish_chunk(
 /// Copies a finished chunk's requested fields into the caller's arrays, on all cores, and adds
 /// back to `t` how far each far ray was advanced before tracing.
 fn unpack(slot: &Slot, done: &InFlight, outputs: u32, sink: &mut HitSink) {
-    const PIECE_BYTES: usize = 1 << 20;
     let InFlight { start, len, advances } = done;
     let (start, len) = (*start, *len);
     let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
@@ -405,11 +404,7 @@ fn unpack(slot: &Slot, done: &InFlight, outputs: u32, sink: &mut HitSink) {
         let from = slot.field_offset(field);
         let out = &mut out[start * width..(start + len) * width];
         let src = &hits[from..from + len * width];
-        parallel::install(|| {
-            out.par_chunks_mut(PIECE_BYTES)
-                .zip(src.par_chunks(PIECE_BYTES))
-                .for_each(|(dst, src)| dst.copy_from_slice(src))
-        });
+        parallel::copy(out, src);
         if field == Field::T && !slot.exact {
             let t: &mut [f32] = bytemuck::cast_slice_mut(out);
             for advance in advances {

@@ -24,7 +24,7 @@ use crate::geometry::reference::ReferenceHit;
 use crate::geometry::winding::CAP_MARGIN_DIVISOR;
 use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::{Commands, Context, Interrupt};
-use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
+use crate::gpu::memory::{memory_barrier, upload_staging, Buffer, MemoryLocation};
 use crate::gpu::records::{
     Params, PointHit, PointOrderParams, PointParams, PointRays, SignPointsParams, POINT_ORDER_COUNT, POINT_ORDER_SCAN,
     POINT_ORDER_SCATTER,
@@ -162,7 +162,7 @@ impl PointSlot {
             )
         } else {
             (
-                Buffer::new(ctx, points, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "points staging")?,
+                Buffer::new(ctx, points, U::TRANSFER_SRC, upload_staging(), "points staging")?,
                 Buffer::new(ctx, results, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "closest points readback")?,
                 Some((
                     Buffer::new(ctx, points, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "points")?,

@@ -11,7 +11,7 @@ use crate::error::Result;
 use crate::geometry::align_up;
 use crate::geometry::rays::RAY_FLOATS;
 use crate::gpu::context::Context;
-use crate::gpu::memory::{Buffer, MemoryLocation};
+use crate::gpu::memory::{upload_staging, Buffer, MemoryLocation};
 use crate::gpu::records::ExactBest;
 
 /// Host-visible staging for one chunk in flight (plus device copies on discrete GPUs). An exact
@@ -36,7 +36,7 @@ impl Slot {
             (rays, Buffer::new(ctx, hit_bytes, storage, MemoryLocation::GpuToCpu, "hits")?, None)
         } else {
             (
-                Buffer::new(ctx, ray_bytes, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "rays staging")?,
+                Buffer::new(ctx, ray_bytes, U::TRANSFER_SRC, upload_staging(), "rays staging")?,
                 Buffer::new(ctx, hit_bytes, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hits readback")?,
                 Some((
                     Buffer::new(ctx, ray_bytes, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "rays")?,
