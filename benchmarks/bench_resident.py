@@ -7,8 +7,9 @@ Markdown table (issue 14's figures).
 
 Per mesh (the bunny; with --big the bunny subdivided twice, 1.1M triangles) and rays (camera and
 random, the same seeds everywhere): vkray with torch CUDA tensors in and `vkray.CudaArray` out
-(read as torch tensors, timed to torch.cuda.synchronize()), vkray numpy in and out with the rays
-packed by the GPU (the default on GPUs) and by the host (VKRAY_PACK=host: the earlier path), each
+(read as torch tensors, timed to torch.cuda.synchronize()), vkray numpy in and out with the
+caller's arrays imported and the rays packed by the GPU (VKRAY_PACK=gpu) and packed by the host
+(the default), each
 asking t and prim_id (lean) and the default fields; Embree in N processes; Open3D's
 RaycastingScene.cast_rays on numpy and on its own tensors; Mitsuba 3 (OptiX, the cuda_ad_rgb
 variant) on rays it holds on the GPU, `ray_intersect_preliminary` (t and the primitive: lean) and
@@ -73,8 +74,9 @@ def vkray_rows(name, v, f, kind, n, repeat, processes):
 
     o, d = rays_for(v, kind, n)
     rows = {}
+    os.environ["VKRAY_PACK"] = "gpu"  # import the caller's arrays, the GPU packs (not the default)
     devices = {"gpu": vkray.Device()}
-    os.environ["VKRAY_PACK"] = "host"
+    os.environ["VKRAY_PACK"] = "host"  # the default
     devices["host"] = vkray.Device()
     del os.environ["VKRAY_PACK"]
     scenes = {k: dev.scene([dev.mesh(v, f)]) for k, dev in devices.items()}
