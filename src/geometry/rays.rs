@@ -257,44 +257,25 @@ impl Rays<'_> {
     /// numpy in, numpy out on a GPU; docs/benchmarks.md, issue 14).
     fn pack_plain(&self, plain: PlainRays, start: usize, out: &mut [f32], frame: &Frame) -> Result<Vec<Advance>> {
         let PlainRays { origins, shared_origin, directions, interval } = plain;
-        let shift = frame.shift;
-        let pieces: Vec<std::result::Result<Vec<Advance>, usize>> = parallel::install(|| {
-            out.par_chunks_mut(PACK_PIECE * RAY_FLOATS)
-                .enumerate()
-                .map(|(piece, out)| {
-                    let first = piece * PACK_PIECE;
-                    let mut advances = Vec::new();
-                    for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
-                        let i = start + first + k;
-                        let at = if shared_origin { 0 } else { 3 * i };
-                        let o: [f32; 3] = origins[at..at + 3].try_into().expect("three floats");
-                        let d: [f32; 3] = directions[3 * i..3 * i + 3].try_into().expect("three floats");
-                        let finite = o.iter().chain(&d).all(|c| c.is_finite());
-                        if !finite || d == [0.0; 3] {
-                            return Err(i);
-                        }
-                        let near = DVec3::new(f64::from(o[0]), f64::from(o[1]), f64::from(o[2])) - shift;
-                        if frame.is_far(near) {
-                            let (origin, tmin, tmax, advance) = self.advanced(i, frame);
-                            let [tmin, tmax] = widened(tmin, tmax);
-                            let o = origin.as_vec3();
-                            ray.copy_from_slice(&[o.x, o.y, o.z, tmin, d[0], d[1], d[2], tmax]);
-                            if let Some(t) = advance {
-                                advances.push(Advance { ray: first + k, t });
-                            }
-                        } else {
-                            let o = near.as_vec3();
-                            ray.copy_from_slice(&[o.x, o.y, o.z, interval[0], d[0], d[1], d[2], interval[1]]);
-                        }
-                    }
-                    Ok(advances)
-                })
-                .collect()
-        });
-        if let Some(i) = pieces.iter().filter_map(|p| p.as_ref().err()).min() {
-            return Err(self.invalid_ray(*i));
-        }
-        Ok(pieces.into_iter().flat_map(|p| p.unwrap_or_default()).collect())
+        self.pack_pieces(start, out, |i, ray| {
+            let at = if shared_origin { 0 } else { 3 * i };
+            let o: [f32; 3] = origins[at..at + 3].try_into().expect("three floats");
+            let d: [f32; 3] = directions[3 * i..3 * i + 3].try_into().expect("three floats");
+            if !o.iter().chain(&d).all(|c| c.is_finite()) || d == [0.0; 3] {
+                return Err(Invalid);
+            }
+            let near = DVec3::new(f64::from(o[0]), f64::from(o[1]), f64::from(o[2])) - frame.shift;
+            if !frame.is_far(near) {
+                let o = near.as_vec3();
+                ray.copy_from_slice(&[o.x, o.y, o.z, interval[0], d[0], d[1], d[2], interval[1]]);
+                return Ok(None);
+            }
+            let (origin, tmin, tmax, advance) = self.advanced(i, frame);
+            let [tmin, tmax] = widened(tmin, tmax);
+            let o = origin.as_vec3();
+            ray.copy_from_slice(&[o.x, o.y, o.z, tmin, d[0], d[1], d[2], tmax]);
+            Ok(advance)
+        })
     }
 
     /// A far ray's origin and interval after `Frame::advance`, and how far it moved.
@@ -327,6 +308,19 @@ impl Rays<'_> {
         out: &mut [T],
         write: impl Fn(usize, &mut [T]) -> Option<f64> + Sync,
     ) -> Result<Vec<Advance>> {
+        self.pack_pieces(start, out, |i, ray| if self.is_valid(i) { Ok(write(i, ray)) } else { Err(Invalid) })
+    }
+
+    /// Packs rays `start..` into `out` (`RAY_FLOATS` a ray) on all cores, in pieces, each ray by
+    /// `write` (how far it was advanced, if it was; `Invalid` for an invalid ray); the error
+    /// names the first invalid ray.
+    #[inline]
+    fn pack_pieces<T: Send>(
+        &self,
+        start: usize,
+        out: &mut [T],
+        write: impl Fn(usize, &mut [T]) -> std::result::Result<Option<f64>, Invalid> + Sync,
+    ) -> Result<Vec<Advance>> {
         let pieces: Vec<std::result::Result<Vec<Advance>, usize>> = parallel::install(|| {
             out.par_chunks_mut(PACK_PIECE * RAY_FLOATS)
                 .enumerate()
@@ -334,12 +328,10 @@ impl Rays<'_> {
                     let first = piece * PACK_PIECE;
                     let mut advances = Vec::new();
                     for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
-                        let i = start + first + k;
-                        if !self.is_valid(i) {
-                            return Err(i);
-                        }
-                        if let Some(t) = write(i, ray) {
-                            advances.push(Advance { ray: first + k, t });
+                        match write(start + first + k, ray) {
+                            Err(Invalid) => return Err(start + first + k),
+                            Ok(Some(t)) => advances.push(Advance { ray: first + k, t }),
+                            Ok(None) => {}
                         }
                     }
                     Ok(advances)
@@ -352,6 +344,9 @@ impl Rays<'_> {
         Ok(pieces.into_iter().flat_map(|p| p.unwrap_or_default()).collect())
     }
 }
+
+/// A ray `pack_pieces` found invalid.
+struct Invalid;
 
 /// Rays in the common shape, which `Rays::pack_plain` packs without asking per ray: f32 origins
 /// (one a ray, or one shared) and directions (one a ray), one valid interval for all, no sensor.
