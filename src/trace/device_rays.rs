@@ -417,7 +417,13 @@ fn pack_params(rays: &DeviceRays, start: usize, len: usize, scratch: &PackScratc
 /// costs more than the host's packing pass it saves, so the GPU packs only rays already on it
 /// (CUDA arrays) unless asked.
 pub(super) fn pack_on_gpu_by_default(_ctx: &Context) -> bool {
-    matches!(std::env::var("VKRAY_PACK").as_deref(), Ok("gpu"))
+    matches!(std::env::var("VKRAY_PACK").as_deref(), Ok("gpu" | "staged"))
+}
+
+/// VKRAY_PACK=staged: the GPU packs, from copies of the caller's arrays in vkray's own staging
+/// rather than imported (to measure what a raw copy costs against the host's packing pass).
+fn copy_rather_than_import() -> bool {
+    matches!(std::env::var("VKRAY_PACK").as_deref(), Ok("staged"))
 }
 
 /// Host memory the device reads or writes for one query: the caller's bytes imported in place,
@@ -430,10 +436,12 @@ enum Shared {
 impl Shared {
     /// The device's view of `bytes`, to read.
     fn input(ctx: &Arc<Context>, bytes: &[u8], name: &str) -> Result<Shared> {
-        // SAFETY: `bytes` is borrowed for the whole query, which waits for the device before the
-        // import is dropped; nothing writes it meanwhile (a shared borrow).
-        if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
-            return Ok(Shared::Imported(import));
+        if !copy_rather_than_import() {
+            // SAFETY: `bytes` is borrowed for the whole query, which waits for the device before the
+            // import is dropped; nothing writes it meanwhile (a shared borrow).
+            if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
+                return Ok(Shared::Imported(import));
+            }
         }
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
         let mut buffer = Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::CpuToGpu, name)?;
@@ -444,10 +452,12 @@ impl Shared {
 
     /// The device's view of `bytes`, to write (`finish` copies what it wrote into them).
     fn output(ctx: &Arc<Context>, bytes: &mut [u8], name: &str) -> Result<Shared> {
-        // SAFETY: `bytes` is borrowed mutably for the whole query, which waits for the device
-        // before the import is dropped; the host does not touch it meanwhile.
-        if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
-            return Ok(Shared::Imported(import));
+        if !copy_rather_than_import() {
+            // SAFETY: `bytes` is borrowed mutably for the whole query, which waits for the device
+            // before the import is dropped; the host does not touch it meanwhile.
+            if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
+                return Ok(Shared::Imported(import));
+            }
         }
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
         Ok(Shared::Copied(Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::GpuToCpu, name)?))
