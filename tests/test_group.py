@@ -91,6 +91,8 @@ def every_query(scene, precision, seed=0):
     return [
         ("intersect", lambda: scene.intersect(o, d, outputs=vkray.HIT_FIELDS, precision=precision)),
         ("intersect masked", lambda: scene.intersect(o, d, mask=0x4, tmax=tmax, precision=precision)),
+        ("intersect out=", lambda: scene.intersect(o, d, precision=precision, out=scene.intersect(
+            *rays(N, seed + 1), precision=precision))),
         ("occluded", lambda: scene.occluded(o, d, tmax=tmax, precision=precision)),
         ("intersect_all", lambda: scene.intersect_all(o, d, outputs=vkray.HIT_FIELDS, precision=precision)),
         ("intersect_all max_hits", lambda: scene.intersect_all(o, d, max_hits=2, precision=precision)),
@@ -139,6 +141,26 @@ def test_answers_copied_in_blocks_by_several_threads(monkeypatch):
     scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(device, vkray.Instance)]
     for (name, grouped), (_, single) in zip(*(every_query(s, group_precisions(group)[-1]) for s in scenes)):
         assert_same(grouped(), single(), name)
+
+
+@pytest.mark.parametrize("weights", [None, (0, 1)], ids=["split", "all-on-one"])
+def test_out_is_written_in_place_by_every_piece(weights):
+    """intersect(out=hits): split or whole, the answers land in out's own arrays (filled with junk
+    first), equal to one device's fresh answers."""
+    group = make_group(2, weights)
+    scene = mixed_scene(group, vkray.GroupInstance)
+    single = mixed_scene(group.devices[0], vkray.Instance)
+    o, d = rays(N, 5)
+    out = scene.intersect(*rays(N, 6), outputs=vkray.HIT_FIELDS)
+    for name in vkray.HIT_FIELDS:
+        array = getattr(out, name)
+        array[...] = -7 if array.dtype.kind == "i" else 1234.5
+    got = scene.intersect(o, d, outputs=vkray.HIT_FIELDS, out=out)
+    for name in vkray.HIT_FIELDS:
+        assert np.shares_memory(getattr(got, name), getattr(out, name)), name
+    assert_same(got, single.intersect(o, d, outputs=vkray.HIT_FIELDS))
+    with pytest.raises(ValueError, match="shape"):
+        scene.intersect(o[:-1], d[:-1], outputs=vkray.HIT_FIELDS, out=out)
 
 
 def test_the_split_follows_the_weights():

@@ -231,3 +231,80 @@ def test_discrete_gpu_staging_path_gives_the_same_hits(device, tmp_path):
     np.testing.assert_array_equal(staged["t"], hits.t)
     np.testing.assert_array_equal(staged["prim"], hits.prim_id)
     np.testing.assert_array_equal(staged["normal"], hits.normal)
+
+
+def test_out_writes_the_same_hits_into_the_callers_arrays(device):
+    """intersect(out=hits) writes every field into the earlier call's arrays (filled with junk
+    first: every element is written), equal to a fresh call's, which agrees with Embree."""
+    v, f = load_obj("spot")
+    scene = device.scene(device.mesh(v, f))
+    # Rays of shape (50, 100, 3): the arrays are reshaped views of out's, not copies.
+    o1, d1, o2, d2 = (a.astype(np.float32).reshape(50, 100, 3) for a in (*random_rays(v, 5000, seed=3),
+                                                                         *random_rays(v, 5000, seed=4)))
+    for fields in (vkray.HIT_FIELDS, ("t", "prim_id")):
+        previous = scene.intersect(o1, d1, outputs=fields)
+        for name in fields:
+            array = getattr(previous, name)
+            array[...] = -7 if array.dtype.kind == "i" else np.float32(1234.5)
+        fresh = scene.intersect(o2, d2, outputs=fields)
+        reused = scene.intersect(o2, d2, outputs=fields, out=previous)
+        for name in fields:
+            got = getattr(reused, name)
+            assert np.shares_memory(got, getattr(previous, name)), name
+            np.testing.assert_array_equal(got, getattr(fresh, name), err_msg=name)
+    reference = embree([(v, f)], o2.reshape(-1, 3), d2.reshape(-1, 3))
+    assert (reused.hit.reshape(-1) == (reference["primID"] >= 0)).mean() >= 0.999
+
+
+def test_out_is_refused_where_it_cannot_be_written(triangle_scene):
+    o = np.zeros((4, 3), np.float32)
+    d = np.tile(np.array([0.1, 0.1, 1.0], np.float32), (4, 1))
+    hits = triangle_scene.intersect(o, d, outputs=("t", "prim_id"))
+    with pytest.raises(TypeError, match="Hits"):
+        triangle_scene.intersect(o, d, out={"t": hits.t})
+    with pytest.raises(ValueError, match="shape"):
+        triangle_scene.intersect(o[:3], d[:3], outputs=("t", "prim_id"), out=hits)
+    with pytest.raises(ValueError, match="no uv"):
+        triangle_scene.intersect(o, d, outputs=("t", "uv"), out=hits)
+    with pytest.raises(ValueError, match="widths"):
+        triangle_scene.intersect(o, d, outputs=("t", "prim_id"), precision="reference", out=hits)
+    hits.t.flags.writeable = False
+    with pytest.raises(ValueError, match="writeable"):
+        triangle_scene.intersect(o, d, outputs=("t", "prim_id"), out=hits)
+    # An output sharing memory with the rays: numpy's borrow tracking refuses it in the core.
+    rays = np.zeros((4, 3), np.float32)
+    rays[:, 2] = 1.0
+    sharing = vkray.Hits((4,), {"t": rays.reshape(-1)[:4], "prim_id": np.empty(4, np.int32)}, "fast")
+    with pytest.raises(ValueError, match="sharing memory"):
+        triangle_scene.intersect(o, rays, outputs=("t", "prim_id"), out=sharing)
+    np.testing.assert_array_equal(rays[:, 2], 1.0)  # nothing was written into the rays
+    wrong_dtype = vkray.Hits((4,), {"t": np.empty(4, np.float64), "prim_id": np.empty(4, np.int32)}, "fast")
+    with pytest.raises(ValueError, match="float32"):
+        triangle_scene.intersect(o, d, outputs=("t", "prim_id"), out=wrong_dtype)
+
+
+def test_out_from_several_threads(device):
+    """Threads each looping over frames into their own out= arrays get a fresh call's answers."""
+    v, f = load_obj("spot")
+    scene = device.scene(device.mesh(v, f))
+    rays = [random_rays(v, 3001, seed=20 + k) for k in range(4)]
+    expected = [scene.intersect(o, d) for o, d in rays]
+    failures = []
+
+    def worker(k):
+        try:
+            hits = scene.intersect(*rays[(k + 1) % 4])
+            for frame in range(6):
+                hits = scene.intersect(*rays[(k + frame) % 4], out=hits)
+                want = expected[(k + frame) % 4]
+                for name in vkray.DEFAULT_FIELDS:
+                    np.testing.assert_array_equal(getattr(hits, name), getattr(want, name), err_msg=name)
+        except Exception as e:  # noqa: BLE001 - reported below
+            failures.append(e)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not failures, failures

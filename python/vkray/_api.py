@@ -610,6 +610,7 @@ class Scene:
         mask: Any = 0xFF,
         progress: bool = False,
         opacity_threshold: float = 0.5,
+        out: Optional[Hits] = None,
     ) -> Hits:
         """The closest hit of each ray within [tmin, tmax].
 
@@ -653,15 +654,27 @@ class Scene:
         opacity_threshold: in (0, 1]; a triangle whose opacity (`Device.mesh`) is below it lets
         rays through; 1 lets through all but fully opaque triangles. Instances made with
         ``opaque=True`` block everywhere. The same in `occluded`, `intersect_all` and `count`.
+        out: the `Hits` of an earlier call of the same shape, fields and precision, whose arrays
+        this call writes again instead of allocating new ones (as numpy's ``out=``): a loop over
+        frames then allocates nothing (each field's array must be writeable, C-contiguous, of the
+        query's dtype and shape, and share no memory with the rays; other threads must leave it
+        alone during the call). Returns Hits over those arrays. numpy rays only, one hit per ray.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
+        if out is not None and not isinstance(out, Hits):
+            raise TypeError(f"out must be the Hits of an earlier intersect, got {type(out).__name__}")
+        if out is not None and _arrays.on_cuda(origins, directions):
+            raise TypeError("out= takes numpy hits: CUDA rays' hits are new arrays vkray owns")
         if _arrays.on_cuda(origins, directions):
             cuda = self._trace_cuda(origins, directions, tmin, tmax, "closest", fields, precision, cull, mask, progress,
                                     opacity_threshold)
             return Hits(_cuda_shape(cuda), cuda, precision)
         batch = _RayBatch(origins, directions, tmin, tmax, mask)
         if batch.echoes > 1:
+            if out is not None:
+                raise ValueError("out= is for one hit per ray: a lidar's echoes come back as new arrays")
             return self._echoes(batch, fields, precision, cull, progress, opacity_threshold)
+        given = None if out is None else _out_arrays(out, batch.shape, fields, precision)
         arrays = _progress.call(
             progress,
             "intersect",
@@ -675,6 +688,7 @@ class Scene:
                 progress=bar,
                 opacity_threshold=opacity_threshold,
                 sensor=batch.sensor,
+                out=given,
             ),
         )
         return Hits(batch.shape, arrays, precision)
@@ -1146,6 +1160,27 @@ def _points_within(points: Any, max_distance: float) -> Tuple[np.ndarray, float]
 
 # precision, cull, build, backend and vertex_format are checked by the core alone: its
 # ValueError names the argument, the choices and the value given.
+
+
+def _out_arrays(
+    out: Hits, shape: Tuple[int, ...], fields: Iterable[str], precision: Precision
+) -> Dict[str, np.ndarray]:
+    """The arrays of ``out`` the core writes, flattened to one row per ray (views: each is
+    checked C-contiguous first). The core checks dtypes, shapes and overlaps again."""
+    if tuple(out.shape) != tuple(shape):
+        raise ValueError(f"out has shape {tuple(out.shape)}, the rays {tuple(shape)}")
+    if (out.precision == "fast") != (precision == "fast"):
+        raise ValueError(f"out holds {out.precision!r} hits; precision={precision!r} writes other widths")
+    n = int(np.prod(shape, dtype=np.int64))
+    arrays: Dict[str, np.ndarray] = {}
+    for name in fields:
+        array = getattr(out, name)
+        if not isinstance(array, np.ndarray):
+            raise ValueError(f"out has no {name} array (its call did not ask for it)")
+        if not array.flags.c_contiguous or not array.flags.writeable:
+            raise ValueError(f"out's {name} must be a writeable, C-contiguous array")
+        arrays[name] = array.reshape((n,) + array.shape[len(shape):])
+    return arrays
 
 
 class _RayBatch:

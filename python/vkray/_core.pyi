@@ -160,6 +160,7 @@ class Scene:
         progress: Optional[Callable[[int, int], object]] = None,
         opacity_threshold: float = 0.5,
         sensor: Optional[Dict[str, Any]] = None,
+        out: Optional[Dict[str, NDArray[Any]]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
     def trace_cuda(
         self,

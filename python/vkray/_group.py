@@ -37,6 +37,7 @@ import numpy as np
 from . import _arrays, _progress
 from ._api import (
     CLOSEST_FIELDS,
+    DEFAULT_FIELDS,
     HIT_FIELDS,
     AllHits,
     Backend,
@@ -52,6 +53,7 @@ from ._api import (
     VertexFormat,
     _check_outputs,
     _closest_outputs,
+    _out_arrays,
     devices,
 )
 from ._core import VkrayError
@@ -77,6 +79,7 @@ class SceneLike(Protocol):
         mask: Any = 0xFF,
         progress: bool = False,
         opacity_threshold: float = 0.5,
+        out: Optional[Hits] = None,
     ) -> Hits:
         """The closest hit of each ray (`Scene.intersect`)."""
 
@@ -831,10 +834,12 @@ class GroupScene:
         assembly: _Assembly[T],
         rays: Dict[str, Any],
         progress: bool,
+        out: Optional[Hits] = None,
         **options: Any,
     ) -> T:
         """``Scene.<query_name>(**rays, **options)`` over the rays: whole where they cannot be split
-        (or where one device takes them all), else in pieces put together by ``assembly``."""
+        (or where one device takes them all), else in pieces put together by ``assembly``; into
+        ``out``'s arrays where given (`Scene.intersect`'s ``out=``)."""
         kind = f"{query_name}/{options['precision']}"
 
         def query(scene: Scene, **arguments: Any) -> T:
@@ -842,7 +847,7 @@ class GroupScene:
             return result
 
         def unsplit(scene: Scene) -> T:
-            return query(scene, **rays)
+            return query(scene, **rays, **({} if out is None else {"out": out}))
 
         origins = rays["origins"]
         if isinstance(origins, Sensor):
@@ -856,8 +861,9 @@ class GroupScene:
         def piece(device: int, start: int, stop: int) -> T:
             return query(self.per_device[device], **batch.piece(start, stop))
 
+        into = None if out is None else _out_arrays(out, batch.shape, options["outputs"], options["precision"])
         pieces = self._pieces(kind, batch.count)
-        return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress)
+        return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress, into)
 
     def _points(
         self,
@@ -898,8 +904,10 @@ class GroupScene:
         assembly: _Assembly[T],
         shape: Tuple[int, ...],
         progress: bool,
+        into: Optional[Dict[str, np.ndarray]] = None,
     ) -> T:
-        """The batch's answer from ``piece(device, start, stop)`` of each of ``pieces``.
+        """The batch's answer from ``piece(device, start, stop)`` of each of ``pieces`` (per-ray
+        answers written into ``into``'s arrays, one row per ray, where given).
 
         One piece (one device takes every ray): that device's answer to the whole batch
         (``unsplit``), nothing to copy. Per-ray answers: each piece writes its rows into the
@@ -910,7 +918,7 @@ class GroupScene:
         if not assembly.in_place:
             parts = self._run(kind, pieces, piece, progress)
             return assembly.join(shape, parts, [start for _, start, _ in pieces])
-        rows = _Rows(int(np.prod(shape, dtype=np.int64)))
+        rows = _Rows(int(np.prod(shape, dtype=np.int64)), into)
 
         def write(device: int, start: int, stop: int) -> None:
             rows.put(start, assembly.arrays(piece(device, start, stop)))
@@ -931,9 +939,13 @@ class GroupScene:
         mask: Any = 0xFF,
         progress: bool = False,
         opacity_threshold: float = 0.5,
+        out: Optional[Hits] = None,
     ) -> Hits:
-        """`Scene.intersect`, the rays split over the devices."""
+        """`Scene.intersect`, the rays split over the devices (into ``out``'s arrays where given:
+        each piece writes its rows there)."""
         fields = None if outputs is None else _check_outputs(outputs)  # checked first, as Scene does
+        if out is not None and not isinstance(out, Hits):
+            raise TypeError(f"out must be the Hits of an earlier intersect, got {type(out).__name__}")
 
         def hits(shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> Hits:
             return Hits(shape, arrays, precision)
@@ -944,7 +956,8 @@ class GroupScene:
             _Fields(HIT_FIELDS, hits),
             rays,
             progress,
-            outputs=fields,
+            out,
+            outputs=fields if fields is not None or out is None else DEFAULT_FIELDS,
             precision=precision,
             cull=cull,
             opacity_threshold=opacity_threshold,
@@ -1188,11 +1201,12 @@ class _Rows:
     """A split query's per-ray arrays for the whole batch, written piece by piece: each piece
     copies its rows in from its device's thread as it finishes (numpy copies without holding the
     GIL), at once with the other pieces' work, rather than one thread concatenating every piece's
-    arrays after the last one. The first piece to finish makes them, of its arrays' dtypes."""
+    arrays after the last one. The first piece to finish makes them, of its arrays' dtypes, unless
+    the caller's are given (``out=``)."""
 
-    def __init__(self, count: int) -> None:
+    def __init__(self, count: int, into: Optional[Dict[str, np.ndarray]] = None) -> None:
         self._count = count
-        self._arrays: Optional[Dict[str, np.ndarray]] = None
+        self._arrays: Optional[Dict[str, np.ndarray]] = into
         self._lock = threading.Lock()
 
     def put(self, start: int, arrays: Dict[str, np.ndarray]) -> None:

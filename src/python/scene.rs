@@ -4,8 +4,8 @@
 use std::sync::RwLock;
 
 use numpy::{
-    PyArray1, PyArrayDescrMethods, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray3, PyUntypedArray,
-    PyUntypedArrayMethods,
+    PyArray1, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray3, PyReadwriteArrayDyn,
+    PyUntypedArray, PyUntypedArrayMethods,
 };
 use pyo3::exceptions::{PyMemoryError, PyValueError};
 use pyo3::prelude::*;
@@ -128,27 +128,81 @@ fn empty<'py>(py: Python<'py>, shape: &[usize], dtype: &str) -> PyResult<Bound<'
     Ok(array.downcast_into::<PyUntypedArray>()?)
 }
 
+/// A hit field's output: its field (None for `position`), its shape and dtype for `n` rays in
+/// the query's widths.
+fn output_layout(name: &str, n: usize, wide: bool) -> PyResult<(Option<Field>, Vec<usize>, &'static str)> {
+    let float = if wide { "float64" } else { "float32" };
+    if name == "position" {
+        return Ok((None, vec![n, 3], float));
+    }
+    let Some(field) = FIELDS.iter().copied().find(|f| f.name() == name) else {
+        return Err(PyValueError::new_err(format!("unknown hit field {name:?}")));
+    };
+    Ok(match field {
+        Field::T => (Some(field), vec![n], float),
+        Field::Uv => (Some(field), vec![n, 2], float),
+        Field::Normal => (Some(field), vec![n, 3], "float32"),
+        _ => (Some(field), vec![n], "int32"),
+    })
+}
+
 /// The numpy array of each field asked for, in the query's widths.
 fn allocate<'py>(py: Python<'py>, fields: &[String], n: usize, wide: bool) -> PyResult<Vec<(String, Output<'py>)>> {
-    let float = if wide { "float64" } else { "float32" };
     let mut arrays = Vec::with_capacity(fields.len());
     for name in fields {
-        if name == "position" {
-            arrays.push((name.clone(), (None, empty(py, &[n, 3], float)?)));
-            continue;
-        }
-        let Some(field) = FIELDS.iter().copied().find(|f| f.name() == name) else {
-            return Err(PyValueError::new_err(format!("unknown hit field {name:?}")));
-        };
-        let array = match field {
-            Field::T => empty(py, &[n], float)?,
-            Field::Uv => empty(py, &[n, 2], float)?,
-            Field::Normal => empty(py, &[n, 3], "float32")?,
-            _ => empty(py, &[n], "int32")?,
-        };
-        arrays.push((name.clone(), (Some(field), array)));
+        let (field, shape, dtype) = output_layout(name, n, wide)?;
+        arrays.push((name.clone(), (field, empty(py, &shape, dtype)?)));
     }
     Ok(arrays)
+}
+
+/// A caller's output array (`out=`), borrowed for writing for the whole call: numpy's borrow
+/// tracking refuses one that is read-only or shares memory with the rays (borrowed for reading
+/// first) or with another output.
+enum OutArray<'py> {
+    F32(PyReadwriteArrayDyn<'py, f32>),
+    F64(PyReadwriteArrayDyn<'py, f64>),
+    I32(PyReadwriteArrayDyn<'py, i32>),
+}
+
+impl<'py> OutArray<'py> {
+    /// `array` as field `name`'s output for `n` rays (its shape and dtype exactly).
+    fn borrow(name: &str, array: &Bound<'py, PyAny>, n: usize, wide: bool) -> PyResult<(Option<Field>, OutArray<'py>)> {
+        let (field, shape, dtype) = output_layout(name, n, wide)?;
+        let refused = |why: String| PyValueError::new_err(format!("out's {name} {why}"));
+        let borrowed = match dtype {
+            "float32" => array.downcast::<PyArrayDyn<f32>>().ok().map(|a| a.try_readwrite().map(OutArray::F32)),
+            "float64" => array.downcast::<PyArrayDyn<f64>>().ok().map(|a| a.try_readwrite().map(OutArray::F64)),
+            _ => array.downcast::<PyArrayDyn<i32>>().ok().map(|a| a.try_readwrite().map(OutArray::I32)),
+        };
+        let out = borrowed.ok_or_else(|| refused(format!("must be a numpy array of {dtype}")))?.map_err(|e| {
+            refused(format!(
+                "cannot be written by this call ({e}: read-only, or sharing memory with the rays or another output)"
+            ))
+        })?;
+        let (got, contiguous) = match &out {
+            OutArray::F32(a) => (a.shape().to_vec(), a.is_c_contiguous()),
+            OutArray::F64(a) => (a.shape().to_vec(), a.is_c_contiguous()),
+            OutArray::I32(a) => (a.shape().to_vec(), a.is_c_contiguous()),
+        };
+        if got != shape {
+            return Err(refused(format!("has shape {got:?}, the query writes {shape:?}")));
+        }
+        if !contiguous {
+            return Err(refused("must be C-contiguous".into()));
+        }
+        Ok((field, out))
+    }
+
+    /// The array's bytes (C-contiguous, checked when borrowed).
+    fn bytes(&mut self) -> PyResult<&mut [u8]> {
+        let not_contiguous = |e: numpy::NotContiguousError| PyValueError::new_err(e.to_string());
+        Ok(match self {
+            OutArray::F32(a) => bytemuck::cast_slice_mut(a.as_slice_mut().map_err(not_contiguous)?),
+            OutArray::F64(a) => bytemuck::cast_slice_mut(a.as_slice_mut().map_err(not_contiguous)?),
+            OutArray::I32(a) => bytemuck::cast_slice_mut(a.as_slice_mut().map_err(not_contiguous)?),
+        })
+    }
 }
 
 /// The bytes of a fresh numpy array this call made and nobody else holds yet.
@@ -206,7 +260,7 @@ impl PyScene {
     /// Traces rays; returns {field name: array} for the fields asked for.
     /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`;
     /// `contacts` (exact tier): closed triangles (see `Request::contacts`).
-    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None, contacts=false, progress=None, opacity_threshold=0.5, sensor=None))]
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, precision="fast", cull=None, mask=None, contacts=false, progress=None, opacity_threshold=0.5, sensor=None, out=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
@@ -224,6 +278,7 @@ impl PyScene {
         progress: Option<Py<PyAny>>,
         opacity_threshold: f32,
         sensor: Option<&Bound<'py, PyDict>>,
+        out: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let request = request(Query::parse(query)?, precision, cull, contacts, opacity_threshold)?;
         let wide = request.precision.is_f64();
@@ -231,12 +286,28 @@ impl PyScene {
         let rays = batch.rays()?;
         let n = rays.len();
         check_fits(&self.tracer, request, &fields, n)?;
-        let arrays = allocate(py, &fields, n, wide)?;
+        // The caller's arrays (`out=`), borrowed after the rays so that overlaps are refused.
+        let mut given: Vec<(String, Option<Field>, OutArray<'py>, Bound<'py, PyAny>)> = Vec::new();
+        for name in &fields {
+            if let Some(array) = out.map(|out| out.get_item(name)).transpose()?.flatten() {
+                let (field, borrowed) = OutArray::borrow(name, &array, n, wide)?;
+                given.push((name.clone(), field, borrowed, array));
+            }
+        }
+        let missing: Vec<String> = fields.iter().filter(|f| !given.iter().any(|g| &g.0 == *f)).cloned().collect();
+        let arrays = allocate(py, &missing, n, wide)?;
         let mut sink = HitSink::default();
         for (_, (field, array)) in &arrays {
             match field {
                 Some(field) => sink.set(*field, bytes_of(array)),
                 None => sink.position = Some(bytes_of(array)),
+            }
+        }
+        for (_, field, borrowed, _) in &mut given {
+            let bytes = borrowed.bytes()?;
+            match field {
+                Some(field) => sink.set(*field, bytes),
+                None => sink.position = Some(bytes),
             }
         }
         run_reporting(py, progress, |interrupt| {
@@ -245,6 +316,9 @@ impl PyScene {
         })?;
         let result = PyDict::new(py);
         for (name, (_, array)) in arrays {
+            result.set_item(name, array)?;
+        }
+        for (name, _, _, array) in given {
             result.set_item(name, array)?;
         }
         Ok(result)
