@@ -10,7 +10,8 @@ random, the same seeds everywhere): vkray with torch CUDA tensors in and `vkray.
 (read as torch tensors, timed to torch.cuda.synchronize()), vkray numpy in and out with the
 caller's arrays imported and the rays packed by the GPU (VKRAY_PACK=gpu) and packed by the host
 (the default), each
-asking t and prim_id (lean) and the default fields; Embree in N processes; Open3D's
+asking t and prim_id (lean) and the default fields, and the host path writing into the arrays
+of an earlier call (``out=``); Embree in N processes; Open3D's
 RaycastingScene.cast_rays on numpy and on its own tensors; Mitsuba 3 (OptiX, the cuda_ad_rgb
 variant) on rays it holds on the GPU, `ray_intersect_preliminary` (t and the primitive: lean) and
 `ray_intersect` (a whole surface interaction: default), evaluated and synchronized. Best of
@@ -93,6 +94,11 @@ def vkray_rows(name, v, f, kind, n, repeat, processes):
                 repeat, lambda: scenes[packing].intersect(o, d, outputs=fields))
             if label == "lean":
                 rows[f"profile {packing}"] = devices[packing].last_trace_profile
+        reused = scenes["host"].intersect(o, d, outputs=fields)
+        rows[f"numpy {label} (host packs, out=)"] = best_of(
+            repeat, lambda: scenes["host"].intersect(o, d, outputs=fields, out=reused))
+        if label == "lean":
+            rows["profile host out="] = devices["host"].last_trace_profile
     if processes:
         import bench_core
 
