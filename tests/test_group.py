@@ -161,6 +161,13 @@ def test_out_is_written_in_place_by_every_piece(weights):
     assert_same(got, single.intersect(o, d, outputs=vkray.HIT_FIELDS))
     with pytest.raises(ValueError, match="shape"):
         scene.intersect(o[:-1], d[:-1], outputs=vkray.HIT_FIELDS, out=out)
+    # Split or whole, the same refusals: one array for two fields, an array of another dtype.
+    ids = np.empty(len(o), np.int32)
+    with pytest.raises(ValueError, match="shares memory"):
+        scene.intersect(o, d, outputs=("prim_id", "instance_id"),
+                        out=vkray.Hits(out.shape, {"prim_id": ids, "instance_id": ids}))
+    with pytest.raises(ValueError, match="int32"):
+        scene.intersect(o, d, outputs=("prim_id",), out=vkray.Hits(out.shape, {"prim_id": ids.astype(np.int64)}))
 
 
 def test_the_split_follows_the_weights():

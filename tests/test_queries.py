@@ -275,8 +275,11 @@ def test_out_is_refused_where_it_cannot_be_written(triangle_scene):
     rays = np.zeros((4, 3), np.float32)
     rays[:, 2] = 1.0
     sharing = vkray.Hits((4,), {"t": rays.reshape(-1)[:4], "prim_id": np.empty(4, np.int32)}, "fast")
-    with pytest.raises(ValueError, match="sharing memory"):
+    with pytest.raises(ValueError, match="shares memory"):
         triangle_scene.intersect(o, rays, outputs=("t", "prim_id"), out=sharing)
+    # The core refuses it too (numpy's borrow tracking), whatever the Python layer checked.
+    with pytest.raises(ValueError, match="cannot be written by this call"):
+        triangle_scene._core.trace(o, rays, 0.0, np.inf, "closest", ["t", "prim_id"], out={"t": sharing.t})
     np.testing.assert_array_equal(rays[:, 2], 1.0)  # nothing was written into the rays
     wrong_dtype = vkray.Hits((4,), {"t": np.empty(4, np.float64), "prim_id": np.empty(4, np.int32)}, "fast")
     with pytest.raises(ValueError, match="float32"):
@@ -308,3 +311,31 @@ def test_out_from_several_threads(device):
     for t in threads:
         t.join()
     assert not failures, failures
+
+
+def test_an_array_being_written_is_refused_as_another_calls_input(device):
+    """While one call writes out='s arrays (its progress callback runs between chunks), another
+    call given one of them as input gets a ValueError, not a panic."""
+    scene = device.scene(device.mesh(*TRIANGLE))
+    n = 8000
+    o = np.zeros((n, 3))
+    d = np.tile([0.1, 0.1, 1.0], (n, 1))
+    hits = scene.intersect(o, d, outputs=("t", "prim_id"), precision="exact")  # t: float64, as tmax
+    seen = []
+
+    def progress(done, total):
+        try:
+            scene.intersect(o, d, tmax=hits.t, precision="exact")
+            seen.append("read")
+        except ValueError as e:
+            seen.append(str(e))
+
+    saved = device.chunk_rays
+    try:
+        device.chunk_rays = 1000
+        scene._core.trace(o, d, 0.0, np.inf, "closest", ["t", "prim_id"], "exact", progress=progress,
+                          out={"t": hits.t, "prim_id": hits.prim_id})
+    finally:
+        device.chunk_rays = saved
+    assert seen and all("another call is writing it" in m for m in seen), seen
+    np.testing.assert_array_equal(hits.prim_id, 0)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Iterable, List, Literal, Optional, Tuple, Union, cast, get_args
+from typing import Any, Dict, Iterable, List, Literal, Optional, Sequence, Tuple, Union, cast, get_args
 
 import numpy as np
 
@@ -674,7 +674,7 @@ class Scene:
             if out is not None:
                 raise ValueError("out= is for one hit per ray: a lidar's echoes come back as new arrays")
             return self._echoes(batch, fields, precision, cull, progress, opacity_threshold)
-        given = None if out is None else _out_arrays(out, batch.shape, fields, precision)
+        given = None if out is None else _out_arrays(out, batch.shape, fields, precision, (*batch.arrays, batch.mask))
         arrays = _progress.call(
             progress,
             "intersect",
@@ -1163,15 +1163,18 @@ def _points_within(points: Any, max_distance: float) -> Tuple[np.ndarray, float]
 
 
 def _out_arrays(
-    out: Hits, shape: Tuple[int, ...], fields: Iterable[str], precision: Precision
+    out: Hits, shape: Tuple[int, ...], fields: Iterable[str], precision: Precision, inputs: Sequence[Any] = ()
 ) -> Dict[str, np.ndarray]:
-    """The arrays of ``out`` the core writes, flattened to one row per ray (views: each is
-    checked C-contiguous first). The core checks dtypes, shapes and overlaps again."""
+    """The arrays of ``out`` a query writes, flattened to one row per ray (views: each is checked
+    C-contiguous first), checked against the query's dtypes and for memory shared with each other
+    or with the query's ``inputs`` (the core checks again where it writes them itself; a
+    `DeviceGroup` copies its pieces' rows into them)."""
     if tuple(out.shape) != tuple(shape):
         raise ValueError(f"out has shape {tuple(out.shape)}, the rays {tuple(shape)}")
     if (out.precision == "fast") != (precision == "fast"):
         raise ValueError(f"out holds {out.precision!r} hits; precision={precision!r} writes other widths")
     n = int(np.prod(shape, dtype=np.int64))
+    floats = np.float32 if precision == "fast" else np.float64
     arrays: Dict[str, np.ndarray] = {}
     for name in fields:
         array = getattr(out, name)
@@ -1179,7 +1182,13 @@ def _out_arrays(
             raise ValueError(f"out has no {name} array (its call did not ask for it)")
         if not array.flags.c_contiguous or not array.flags.writeable:
             raise ValueError(f"out's {name} must be a writeable, C-contiguous array")
-        arrays[name] = array.reshape((n,) + array.shape[len(shape):])
+        dtype = np.float32 if name == "normal" else (floats if name in ("t", "uv", "position") else np.int32)
+        if array.dtype != dtype:
+            raise ValueError(f"out's {name} must be {np.dtype(dtype).name}, got {array.dtype}")
+        others = [a for a in inputs if isinstance(a, np.ndarray)] + list(arrays.values())
+        if any(np.may_share_memory(array, other) for other in others):
+            raise ValueError(f"out's {name} shares memory with the rays or another output")
+        arrays[name] = array.reshape((n,) + array.shape[len(shape) :])
     return arrays
 
 

@@ -861,7 +861,8 @@ class GroupScene:
         def piece(device: int, start: int, stop: int) -> T:
             return query(self.per_device[device], **batch.piece(start, stop))
 
-        into = None if out is None else _out_arrays(out, batch.shape, options["outputs"], options["precision"])
+        inputs = (batch.origins, batch.directions, batch.tmin, batch.tmax, batch.mask)
+        into = None if out is None else _out_arrays(out, batch.shape, options["outputs"], options["precision"], inputs)
         pieces = self._pieces(kind, batch.count)
         return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress, into)
 

@@ -21,10 +21,10 @@ pub const GEOMETRY_INPUT: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
 
 /// Where a discrete GPU's upload staging lives, the host writing it and a copy reading it:
 /// `CpuToGpu` (gpu-allocator's choice: device memory the host reaches through the PCIe BAR, where
-/// the device has it) unless VKRAY_STAGING=system asks for system memory (`GpuToCpu`: host
+/// the device has it) unless VKRAY_UPLOAD_STAGING=system asks for system memory (`GpuToCpu`: host
 /// memory, cached), which the copy then reads over the bus. A knob to measure which is faster.
 pub fn upload_staging() -> MemoryLocation {
-    match std::env::var("VKRAY_STAGING").as_deref() {
+    match std::env::var("VKRAY_UPLOAD_STAGING").as_deref() {
         Ok("system") => MemoryLocation::GpuToCpu,
         _ => MemoryLocation::CpuToGpu,
     }

@@ -1,12 +1,26 @@
 //! Array intake: borrowed views of the numpy arrays the Python layer passes (C-contiguous, with
 //! an accepted dtype), read by the core without copies.
 
-use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    Element, PyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray, PyReadonlyArray1, PyReadonlyArray2,
+    PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
 use crate::geometry::arrays::{Indices, Vec3s};
 use crate::geometry::rays::{Masks, PerRay};
+
+/// `array` (the argument `name`) borrowed for reading; a ValueError, not a panic, where another
+/// call is writing it meanwhile (its `out=`).
+pub(super) fn read<'py, T: Element, D: numpy::ndarray::Dimension>(
+    name: &str,
+    array: &Bound<'py, PyArray<T, D>>,
+) -> PyResult<PyReadonlyArray<'py, T, D>> {
+    array.try_readonly().map_err(|e| {
+        PyValueError::new_err(format!("{name} cannot be read here: another call is writing it (out=): {e}"))
+    })
+}
 
 /// A borrowed (N, 3) float32/float64 C-contiguous array.
 pub(super) enum Vec3Array<'py> {
@@ -18,9 +32,9 @@ impl<'py> Vec3Array<'py> {
     pub(super) fn extract(name: &str, array: &Bound<'py, PyAny>) -> PyResult<Self> {
         let wrong = || PyTypeError::new_err(format!("{name} must be a float32 or float64 array of shape (N, 3)"));
         let borrowed = if let Ok(a) = array.downcast::<PyArray2<f32>>() {
-            Vec3Array::F32(a.readonly())
+            Vec3Array::F32(read(name, a)?)
         } else if let Ok(a) = array.downcast::<PyArray2<f64>>() {
-            Vec3Array::F64(a.readonly())
+            Vec3Array::F64(read(name, a)?)
         } else {
             return Err(wrong());
         };
@@ -53,13 +67,13 @@ pub(super) enum IndexArray<'py> {
 impl<'py> IndexArray<'py> {
     pub(super) fn extract(array: &Bound<'py, PyAny>) -> PyResult<Self> {
         let borrowed = if let Ok(a) = array.downcast::<PyArray2<u16>>() {
-            IndexArray::U16(a.readonly())
+            IndexArray::U16(read("faces", a)?)
         } else if let Ok(a) = array.downcast::<PyArray2<u32>>() {
-            IndexArray::U32(a.readonly())
+            IndexArray::U32(read("faces", a)?)
         } else if let Ok(a) = array.downcast::<PyArray2<i32>>() {
-            IndexArray::I32(a.readonly())
+            IndexArray::I32(read("faces", a)?)
         } else if let Ok(a) = array.downcast::<PyArray2<i64>>() {
-            IndexArray::I64(a.readonly())
+            IndexArray::I64(read("faces", a)?)
         } else {
             return Err(PyTypeError::new_err("faces must be an int32, int64, uint32 or uint16 array of shape (F, 3)"));
         };
@@ -88,7 +102,7 @@ pub(super) enum Bound1<'py> {
 impl<'py> Bound1<'py> {
     pub(super) fn extract(name: &str, value: &Bound<'py, PyAny>) -> PyResult<Self> {
         if let Ok(array) = value.downcast::<PyArray1<f64>>() {
-            return Ok(Bound1::Each(array.readonly()));
+            return Ok(Bound1::Each(read(name, array)?));
         }
         value
             .extract::<f64>()
@@ -113,7 +127,7 @@ pub(super) enum MaskArray<'py> {
 impl<'py> MaskArray<'py> {
     pub(super) fn extract(value: &Bound<'py, PyAny>) -> PyResult<Self> {
         if let Ok(array) = value.downcast::<PyArray1<u8>>() {
-            return Ok(MaskArray::Each(array.readonly()));
+            return Ok(MaskArray::Each(read("mask", array)?));
         }
         value
             .extract::<u8>()

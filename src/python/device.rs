@@ -2,7 +2,7 @@
 
 use std::sync::{Arc, RwLock};
 
-use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyUntypedArrayMethods};
+use numpy::{PyArray2, PyReadonlyArray1, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -262,7 +262,7 @@ impl PyDevice {
                         ))
                     })?;
                     let rows = t.shape()[0];
-                    let t = t.readonly();
+                    let t = super::arrays::read(&format!("instance {i}: transform"), t)?;
                     instance_transform(t.as_slice()?, rows).map_err(|e| match e {
                         Error::InvalidValue(m) => Error::InvalidValue(format!("instance {i}: {m}")),
                         Error::InvalidType(m) => Error::InvalidType(format!("instance {i}: {m}")),

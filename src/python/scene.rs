@@ -285,7 +285,6 @@ impl PyScene {
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask, sensor)?;
         let rays = batch.rays()?;
         let n = rays.len();
-        check_fits(&self.tracer, request, &fields, n)?;
         // The caller's arrays (`out=`), borrowed after the rays so that overlaps are refused.
         let mut given: Vec<(String, Option<Field>, OutArray<'py>, Bound<'py, PyAny>)> = Vec::new();
         for name in &fields {
@@ -295,6 +294,7 @@ impl PyScene {
             }
         }
         let missing: Vec<String> = fields.iter().filter(|f| !given.iter().any(|g| &g.0 == *f)).cloned().collect();
+        check_fits(&self.tracer, request, &missing, n)?;
         let arrays = allocate(py, &missing, n, wide)?;
         let mut sink = HitSink::default();
         for (_, (field, array)) in &arrays {
