@@ -190,3 +190,26 @@ def test_cupy_reads_the_hits(bunny):
     o, d = oracle.random_rays(v, 5000, seed=7)
     hits = scene.intersect(cupy.asarray(o), cupy.asarray(d))
     np.testing.assert_array_equal(cupy.from_dlpack(hits.prim_id).get(), scene.intersect(o, d).prim_id)
+
+
+def test_a_group_traces_cuda_rays_on_the_gpu_that_holds_them(bunny):
+    """A DeviceGroup of every device sharing memory with CUDA: rays on cuda:N are traced whole by
+    the member that is cuda:N, and the hits stay there, equal to numpy's; rays on a GPU outside
+    the group name it."""
+    v, _ = bunny
+    members = [d for d in vkray.devices() if vkray.Device(d.index).cuda_device is not None]
+    group = vkray.DeviceGroup([d.index for d in members])
+    scene = group.scene([group.mesh(v, oracle.load_obj("stanford-bunny")[1])])
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 50_000, seed=2))
+    expected = scene.intersect(o, d, outputs=EVERY)
+    for device in group.devices:
+        where = f"cuda:{device.cuda_device}"
+        hits = scene.intersect(torch.from_numpy(o).to(where), torch.from_numpy(d).to(where), outputs=EVERY)
+        assert torch.from_dlpack(hits.t).device == torch.device(where)
+        assert_same(hits, expected, EVERY)
+    if len(group.devices) > 1:
+        alone = vkray.DeviceGroup([members[0].index])
+        other = f"cuda:{group.devices[1].cuda_device}"
+        lone = alone.scene([alone.mesh(v, oracle.load_obj("stanford-bunny")[1])])
+        with pytest.raises(ValueError, match=f"the rays live on {other}, which is none of this group's devices"):
+            lone.intersect(torch.from_numpy(o).to(other), torch.from_numpy(d).to(other))

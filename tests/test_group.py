@@ -170,6 +170,25 @@ def test_out_is_written_in_place_by_every_piece(weights):
         scene.intersect(o, d, outputs=("prim_id",), out=vkray.Hits(out.shape, {"prim_id": ids.astype(np.int64)}))
 
 
+class _FakeCudaArray:
+    """Claims to be a CUDA array of cuda:7 (DLPack device type 2), as torch's would."""
+
+    shape = (10, 3)
+
+    def __dlpack__(self, stream=None):
+        raise AssertionError("never read: no device of the group is cuda:7")
+
+    def __dlpack_device__(self):
+        return (2, 7)
+
+
+def test_cuda_rays_of_a_gpu_outside_the_group_are_named():
+    group = make_group(2)
+    scene = mixed_scene(group, vkray.GroupInstance)
+    with pytest.raises(ValueError, match="the rays live on cuda:7, which is none of this group's devices"):
+        scene.intersect(_FakeCudaArray(), _FakeCudaArray())
+
+
 def test_the_split_follows_the_weights():
     """5 to 1 over 3001 rays: the second device traces rays 2501-3000, the first the rest."""
     group = make_group(2, (5, 1))

@@ -143,6 +143,13 @@ class Device:
         return dict(self._core.last_trace_profile)
 
     @property
+    def cuda_device(self) -> Optional[int]:
+        """CUDA's index of this GPU (the device id of its CUDA arrays in DLPack, ``cuda:N`` in
+        torch), or None where it is no CUDA device sharing memory with Vulkan: CUDA arrays of this
+        index are the rays this device traces without leaving the GPU."""
+        return self._core.cuda_device
+
+    @property
     def chunk_rays(self) -> int:
         """Rays traced per submission. Staging memory holds two chunks (72 bytes a ray each)."""
         return self._core.chunk_rays

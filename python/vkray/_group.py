@@ -696,6 +696,13 @@ class _RaysToSplit:
         }
 
 
+def _cuda_rows(*arrays: Any) -> int:
+    """Rays in a batch of CUDA arrays of shape S + (3,) (one of them may be a single row), for
+    the progress bar and the devices' speeds: 0 where their shapes do not say."""
+    rows = [int(np.prod(tuple(a.shape)[:-1], dtype=np.int64)) for a in arrays if hasattr(a, "shape")]
+    return max(rows, default=0)
+
+
 def _join(parts: Sequence[Optional[np.ndarray]]) -> Optional[np.ndarray]:
     """The pieces' arrays of one field end to end (None where the field was not asked)."""
     if parts[0] is None:
@@ -823,6 +830,19 @@ class GroupScene:
         device = self.group._least_busy(kind)
         return self._run(kind, [(device, 0, count)], lambda k, _start, _stop: call(self.per_device[k]), progress)[0]
 
+    def _cuda_member(self, *arrays: Any) -> int:
+        """The index of the group's device whose GPU holds these CUDA arrays."""
+        places = [_arrays.dlpack_device(a) for a in arrays]
+        ordinal = next(p[1] for p in places if p is not None and p[0] == _arrays.DLPACK_CUDA)
+        for k, device in enumerate(self.group.devices):
+            if device.cuda_device == ordinal:
+                return k
+        members = ", ".join(f"{d.name} (cuda:{d.cuda_device})" for d in self.group.devices)
+        raise ValueError(
+            f"the rays live on cuda:{ordinal}, which is none of this group's devices ({members}): pass them on one "
+            f"of those GPUs, or as numpy arrays to be split over all of them"
+        )
+
     def _pieces(self, kind: str, count: int) -> List[Tuple[int, int, int]]:
         """(device, start, stop) of each non-empty piece of ``count`` rays."""
         spans = split(count, self.group.weights(kind))
@@ -852,6 +872,12 @@ class GroupScene:
         origins = rays["origins"]
         if isinstance(origins, Sensor):
             return self._whole(kind, len(origins), unsplit, progress)
+        if _arrays.on_cuda(origins, rays["directions"]):
+            # CUDA rays stay on their GPU: the query runs whole on the device that is that GPU.
+            device = self._cuda_member(origins, rays["directions"])
+            count = _cuda_rows(origins, rays["directions"])
+            whole = [(device, 0, count)]
+            return self._run(kind, whole, lambda k, _start, _stop: unsplit(self.per_device[k]), progress)[0]
         if rays["directions"] is None:  # the device raises what it raises
             return self._whole(kind, 0, unsplit, progress)
         batch = _RaysToSplit(**rays)

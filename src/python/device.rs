@@ -135,6 +135,13 @@ impl PyDevice {
         Ok(d)
     }
 
+    /// CUDA's index of this device (DLPack's device id for its CUDA arrays), or None where it is
+    /// not a CUDA device that shares memory with Vulkan.
+    #[getter]
+    fn cuda_device(&self, py: Python<'_>) -> PyResult<Option<i32>> {
+        run(py, |_| Ok(self.tracer.cuda()?.map(|cuda| cuda.ordinal)))
+    }
+
     #[getter]
     fn get_chunk_rays(&self) -> usize {
         self.tracer.chunk_rays()
