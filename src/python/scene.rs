@@ -357,11 +357,15 @@ impl PyScene {
         let mut lease = tracer.cuda_lease()?;
         let stream = lease.stream_handle();
         let result = (|| -> PyResult<Bound<'py, PyDict>> {
+            // This GPU's context current while the producers export: torch refuses to export a
+            // tensor of cuda:N for a stream unless cuda:N is its current device.
+            let entered = cuda.enter()?;
             let o = dlpack::borrow(origins, "origins", 3, stream, cuda.ordinal)?;
             let d = dlpack::borrow(directions, "directions", 3, stream, cuda.ordinal)?;
             let mut held = Vec::new();
             let lo = dlpack::bound(tmin, "tmin", stream, cuda.ordinal, &mut held)?;
             let hi = dlpack::bound(tmax, "tmax", stream, cuda.ordinal, &mut held)?;
+            drop(entered);
             let leading = broadcast_rays(&o, &d, &held)?;
             let count = leading.iter().product();
             let rays = CudaRays { count, origins: o.array, directions: d.array, tmin: lo, tmax: hi, mask };
