@@ -7,6 +7,7 @@ to stderr as they happen, so that a run cut short shows where it stopped.
     python benchmarks/bench_scaling.py --rays 64e6 --json $OUT/scaling.json          # every GPU of the machine
     python benchmarks/bench_scaling.py --rays 256e6 --dask --gather --json $OUT/scaling-dask.json
     python benchmarks/bench_scaling.py --rays 2e5 --same-device 2 --dask --gather     # lavapipe smoke test
+    python benchmarks/bench_scaling.py --rays 64e6 --resident --json $OUT/resident.json  # torch CUDA rays
 
 Rays: the bunny (../shared/meshes). Queries: `intersect` with `outputs=["t", "prim_id"]` (8 bytes a
 ray out: the lean closest hit) and `occluded`.
@@ -32,7 +33,12 @@ occluded, through the network), compared whole. Until this revision the dask fig
 gathered one and included making the rays on the workers, in float64, each chunk twice (vkray.dask
 took each array's blocks from its own optimized graph): 20 s a computation for 64M rays on one
 worker of the 2-core test machine, in each of the 8 computations per device count.
-DeviceGroup does not split CUDA arrays (issue 14) yet: every figure is numpy in host memory.
+Resident (--resident, torch with CUDA): the group's rays as float32 CUDA tensors, each of k GPUs'
+share (contiguous, in proportion to equal weights) already on that GPU; one thread per GPU calls
+`GroupScene.intersect` (lean) or `occluded` on its share, which runs whole on that GPU (CUDA rays
+are not split), the hits left there; timed to `torch.cuda.synchronize` of every GPU. Every answer
+is compared with one `Scene`'s numpy answer on the same rays. A DeviceGroup does not split one
+CUDA array over its GPUs: rays already spread over the GPUs are what scales.
 """
 
 from __future__ import annotations
@@ -119,6 +125,55 @@ def bench_group(devices: List[Any], mesh: Any, o: np.ndarray, d: np.ndarray, rep
             log(f"{k} devices: {query}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), shares {shares}, "
                 f"answers {'equal' if ok else 'DIFFER FROM'} one Scene's")
             rows.append(dict(mode="DeviceGroup", devices=k, query=query, rays=n, seconds=seconds, same=ok, shares=shares))
+    return rows
+
+
+def bench_resident(devices: List[Any], mesh: Any, o: np.ndarray, d: np.ndarray, repeat: int) -> List[Dict[str, Any]]:
+    import threading
+
+    import torch
+
+    n = len(o)
+    log(f"building the Scene on device {devices[0]!r}")
+    first = vkray.Device(devices[0])
+    reference = {query: answer(first.scene(first.mesh(*mesh)), query, o, d) for query in QUERIES}
+    rows = []
+    for k in device_counts(len(devices)):
+        log(f"{k} devices: opening them, building the scene on each, the rays onto their GPUs")
+        group = vkray.DeviceGroup(devices[:k])
+        scene = group.scene(group.mesh(*mesh))
+        gpus = [f"cuda:{device.cuda_device}" for device in group.devices]
+        parts = np.array_split(np.arange(n), k)
+        shares = [(torch.from_numpy(o[p]).to(g), torch.from_numpy(d[p]).to(g)) for p, g in zip(parts, gpus)]
+
+        def run(query: str) -> List[Any]:
+            answers: List[Any] = [None] * k
+
+            def one(j: int) -> None:
+                answers[j] = answer(scene, query, *shares[j])
+
+            threads = [threading.Thread(target=one, args=(j,)) for j in range(k)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            for g in gpus:
+                torch.cuda.synchronize(g)
+            return answers
+
+        for query in QUERIES:
+            answers = run(query)  # warm-up: pipelines, CUDA leases
+            seconds = best_of(repeat, lambda: run(query))
+            got = {
+                name: np.concatenate([torch.from_dlpack(a[name]).cpu().numpy() for a in answers])
+                for name in answers[0]
+            }
+            if query == "occluded":  # CUDA rays: the blocking triangle, -1 where none
+                got["occluded"] = got["occluded"] >= 0
+            ok = same(got, reference[query])
+            log(f"{k} devices: resident {query}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), answers "
+                f"{'equal' if ok else 'DIFFER FROM'} one Scene's")
+            rows.append(dict(mode="DeviceGroup, CUDA rays", devices=k, query=query, rays=n, seconds=seconds, same=ok))
     return rows
 
 
@@ -283,6 +338,7 @@ def main() -> None:
     parser.add_argument("--devices", nargs="+", help="device indices or names (default: every hardware device)")
     parser.add_argument("--same-device", type=int, metavar="K", help="device 0, opened K times (lavapipe)")
     parser.add_argument("--dask", action="store_true", help="vkray.dask on a local cluster, instead of DeviceGroup")
+    parser.add_argument("--resident", action="store_true", help="torch CUDA rays, each GPU's share on it")
     parser.add_argument("--gather", action="store_true", help="with --dask: also time gathering the answers here")
     parser.add_argument("--chunk", type=float, default=4e6, help="rays per dask chunk")
     parser.add_argument("--repeat", type=int, default=3)
@@ -300,7 +356,8 @@ def main() -> None:
     else:
         log(f"making {n:,} rays (random_rays)")
         o, d = (a.astype(np.float32) for a in random_rays(mesh[0], n, seed=1))
-        rows = bench_group(devices, mesh, o, d, args.repeat)
+        bench = bench_resident if args.resident else bench_group
+        rows = bench(devices, mesh, o, d, args.repeat)
     log("done")
 
     names = [vkray.devices()[x].name if isinstance(x, int) else str(x) for x in devices]
