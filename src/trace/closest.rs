@@ -228,9 +228,9 @@ impl PointSlot {
         self.device.as_ref().map_or(self.points_host.address(), |(points, _)| points.address())
     }
 
-    /// The buffer the device writes the results into, and their offset in it.
-    pub(super) fn results_buffer(&self) -> (vk::Buffer, u64) {
-        (self.device.as_ref().map_or(&self.results_host, |(_, results)| results).raw(), 0)
+    /// The buffer the device writes the results into (`results_address`'s).
+    pub(super) fn results_buffer(&self) -> vk::Buffer {
+        self.device.as_ref().map_or(&self.results_host, |(_, results)| results).raw()
     }
 
     pub(super) fn results_address(&self) -> u64 {

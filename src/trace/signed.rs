@@ -130,17 +130,10 @@ impl Tracer {
         let record_buffer = slot.rays_record().expect("a slot for signs has a rays record");
         let layout = slot.results_layout();
         let results = slot.results_address();
-        let (results_buffer, results_offset) = slot.results_buffer();
         // SAFETY: `cmd` is recording outside a render pass; the results buffer is TRANSFER_DST
         // and holds the unsure bits' words at this 4-aligned offset (ResultsLayout).
         unsafe {
-            ctx.device.cmd_fill_buffer(
-                cmd,
-                results_buffer,
-                results_offset + layout.unsure as u64,
-                4 * len.div_ceil(32) as u64,
-                0,
-            )
+            ctx.device.cmd_fill_buffer(cmd, slot.results_buffer(), layout.unsure as u64, 4 * len.div_ceil(32) as u64, 0)
         };
         let record = PointRays {
             points: slot.points_address(),
