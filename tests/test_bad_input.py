@@ -229,6 +229,25 @@ _OUT_OF_RANGE = {
     "chunk_rays=True": (lambda d, s, m: setattr(d, "chunk_rays", True), TypeError, "chunk_rays must be an integer"),
     "chunk_rays=1000.0": (lambda d, s, m: setattr(d, "chunk_rays", 1000.0), TypeError, "chunk_rays must be an integer"),
     "chunk_rays='1000'": (lambda d, s, m: setattr(d, "chunk_rays", "1000"), TypeError, "chunk_rays must be an integer"),
+    "host_threads=0": (
+        lambda d, s, m: setattr(d, "host_threads", 0),
+        ValueError,
+        r"host_threads must be in \[1, 4096\], got 0",
+    ),
+    "host_threads=-2": (lambda d, s, m: setattr(d, "host_threads", -2), ValueError, "host_threads must be in"),
+    "host_threads=10**6": (lambda d, s, m: setattr(d, "host_threads", 10**6), ValueError, "host_threads must be in"),
+    "host_threads=True": (
+        lambda d, s, m: setattr(d, "host_threads", True),
+        TypeError,
+        "host_threads must be an integer",
+    ),
+    "host_threads=2.0": (lambda d, s, m: setattr(d, "host_threads", 2.0), TypeError, "host_threads must be an integer"),
+    "Device(host_threads=0)": (lambda d, s, m: vkray.Device(host_threads=0), ValueError, "host_threads must be in"),
+    "DeviceGroup(host_threads=0)": (
+        lambda d, s, m: vkray.DeviceGroup([0, 0], host_threads=0),
+        ValueError,
+        "host_threads must be in",
+    ),
     "budget_bytes=2**70": (
         lambda d, s, m: d.meshes([(V, F)], budget_bytes=2**70),
         ValueError,
@@ -276,6 +295,7 @@ def test_integers_out_of_range_name_the_argument_and_range(any_device, action, e
             action(any_device, scene, mesh)
     finally:
         any_device.chunk_rays = saved
+    assert any_device.host_threads is None
     assert scene.intersect(ORIGINS, DIRECTIONS).hit.all()
 
 

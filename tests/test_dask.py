@@ -22,6 +22,7 @@ import vkray.dask as vkray_dask  # noqa: E402
 from conftest import VALIDATION  # noqa: E402
 from oracle import box, triangle_soup  # noqa: E402
 from test_precision import tiers  # noqa: E402
+from vkray._group import usable_cores  # noqa: E402
 
 N = 4001
 UNEVEN = (700, 1300, 1, 999, 1001)  # chunks of the origins; directions are chunked otherwise
@@ -242,6 +243,14 @@ def test_rays_from_one_array_are_computed_once_per_chunk(client, any_device, tmp
     want = spec.build(any_device).intersect(o, d, outputs=["t", "prim_id"])
     assert_fields_equal(got, hits, want, ["t", "prim_id"])
     np.testing.assert_array_equal(got_blocked, want.hit)
+
+
+def test_local_clusters_share_the_cores(client):
+    """Each of local_cluster's workers runs its host passes on its share of the cores
+    (RAYON_NUM_THREADS), unless this process's environment chose for them."""
+    expected = os.environ.get("RAYON_NUM_THREADS", str(max(1, usable_cores() // 2)))
+    found = client.run(lambda: os.environ.get("RAYON_NUM_THREADS"))
+    assert len(found) == 2 and set(found.values()) == {expected}
 
 
 def test_local_clusters_share_the_machines_memory(client):

@@ -84,6 +84,9 @@ class Device:
     validation:
         Enable the Khronos validation layer; every message it reports becomes a
         `vkray.ValidationError`. ``VKRAY_VALIDATION=1`` turns it on as well.
+    host_threads:
+        Threads of this device's own for its queries' host passes (see `host_threads`); ``None``
+        (default): the process's shared pool, on every core.
     """
 
     def __init__(
@@ -92,6 +95,7 @@ class Device:
         backend: Optional[Backend] = None,
         *,
         validation: bool = False,
+        host_threads: Optional[int] = None,
     ) -> None:
         if (
             device is not None
@@ -103,6 +107,8 @@ class Device:
         self._core = _core.Device(selector, backend, bool(validation))  # the core checks backend
         info = self._core.info
         self.info = DeviceInfo(**info)
+        if host_threads is not None:
+            self.host_threads = host_threads
 
     @property
     def name(self) -> str:
@@ -138,8 +144,9 @@ class Device:
         ``host_f64``: the host's f64 work (refined and reference tiers). ``store``: all hits on
         the GPU, the storing pass (the host clock's phases are the counting pass's; ``gpu_*``,
         ``chunks`` and ``total`` cover both). ``order``: ``contains`` in grid order, the host's sort of
-        the points and the scatter of the answers back (outside ``total``). Plus ``rays`` and
-        ``chunks``."""
+        the points and the scatter of the answers back (outside ``total``). Plus ``rays``,
+        ``chunks`` and ``host_threads`` (the threads its host passes ran on: `host_threads`, or
+        the shared pool's)."""
         return dict(self._core.last_trace_profile)
 
     @property
@@ -157,6 +164,24 @@ class Device:
     @chunk_rays.setter
     def chunk_rays(self, rays: int) -> None:
         self._core.chunk_rays = _arrays.integer("chunk_rays", rays, 1, _arrays.U64_MAX)
+
+    @property
+    def host_threads(self) -> Optional[int]:
+        """How many threads of its own this device's queries use for their host passes (checking
+        and packing rays, copying hits into the result arrays), or ``None``: the process's
+        shared pool, on every core (the default).
+
+        Devices that trace at the same time each want cores of their own: in one shared pool
+        their passes queue behind each other, while each GPU's link could take its own (a
+        `DeviceGroup` gives every device it opens an equal share of the cores). Setting it
+        starts the threads; queries already under way finish on the threads they started with.
+        """
+        return self._core.host_threads
+
+    @host_threads.setter
+    def host_threads(self, threads: Optional[int]) -> None:
+        checked = None if threads is None else _arrays.integer("host_threads", threads, 1, 4096)
+        self._core.host_threads = checked
 
     def mesh(
         self,
@@ -1169,6 +1194,24 @@ def _points_within(points: Any, max_distance: float) -> Tuple[np.ndarray, float]
 # ValueError names the argument, the choices and the value given.
 
 
+#: Values a ray of each hit field has, beyond one (`Hits`' arrays are (n,) or (n, width)).
+_HIT_WIDTHS = {"uv": 2, "normal": 3, "position": 3}
+
+
+def _hit_dtype(name: str, precision: Precision) -> np.dtype[Any]:
+    """The dtype of a hit field's array in ``precision``'s hits."""
+    floats = np.float32 if precision == "fast" else np.float64
+    return np.dtype(np.float32 if name == "normal" else (floats if name in ("t", "uv", "position") else np.int32))
+
+
+def _new_hit_arrays(count: int, fields: Iterable[str], precision: Precision) -> Dict[str, np.ndarray]:
+    """Empty arrays for ``count`` rays' hits of ``fields`` (as the core makes them), to be filled."""
+    return {
+        name: np.empty((count, _HIT_WIDTHS[name]) if name in _HIT_WIDTHS else (count,), _hit_dtype(name, precision))
+        for name in fields
+    }
+
+
 def _out_arrays(
     out: Hits, shape: Tuple[int, ...], fields: Iterable[str], precision: Precision, inputs: Sequence[Any] = ()
 ) -> Dict[str, np.ndarray]:
@@ -1181,7 +1224,6 @@ def _out_arrays(
     if (out.precision == "fast") != (precision == "fast"):
         raise ValueError(f"out holds {out.precision!r} hits; precision={precision!r} writes other widths")
     n = int(np.prod(shape, dtype=np.int64))
-    floats = np.float32 if precision == "fast" else np.float64
     arrays: Dict[str, np.ndarray] = {}
     for name in fields:
         array = getattr(out, name)
@@ -1189,7 +1231,7 @@ def _out_arrays(
             raise ValueError(f"out has no {name} array (its call did not ask for it)")
         if not array.flags.c_contiguous or not array.flags.writeable:
             raise ValueError(f"out's {name} must be a writeable, C-contiguous array")
-        dtype = np.float32 if name == "normal" else (floats if name in ("t", "uv", "position") else np.int32)
+        dtype = _hit_dtype(name, precision)
         if array.dtype != dtype:
             raise ValueError(f"out's {name} must be {np.dtype(dtype).name}, got {array.dtype}")
         others = [a for a in inputs if isinstance(a, np.ndarray)] + list(arrays.values())

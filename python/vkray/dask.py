@@ -41,7 +41,7 @@ import numpy as np
 
 from . import _arrays
 from ._api import DEFAULT_FIELDS, PRECISIONS, Cull, Device, Instance, Precision, Scene, _check_outputs, _closest_outputs
-from ._group import default_devices, in_callers_rows
+from ._group import default_devices, in_callers_rows, usable_cores
 
 if importlib.util.find_spec("dask") is None:
     raise ImportError("vkray.dask needs Dask: pip install 'vkray[dask]'")
@@ -438,7 +438,10 @@ def local_cluster(
     memory_limit: Union[str, float, None] = "auto",
 ) -> SpecCluster:
     """A `dask.distributed` cluster on this machine with one worker process per device, each
-    with ``VKRAY_DEVICE`` set to its device (``env`` adds more variables to every worker).
+    with ``VKRAY_DEVICE`` set to its device and ``RAYON_NUM_THREADS`` to an equal share of the
+    cores for its host passes (unless this process's environment or ``env`` sets it: with every
+    worker's passes on every core, they crowd each other; docs/benchmarks.md, issue 15); ``env``
+    adds more variables to every worker.
 
     devices: indices or names as `vkray.Device` takes them; ``None``: every usable device, only
     the hardware ones where there are any (as `vkray.DeviceGroup` chooses). A device listed twice
@@ -454,12 +457,16 @@ def local_cluster(
 
     chosen = default_devices() if devices is None else list(devices)
     limit = 1 / max(len(chosen), 1) if memory_limit == "auto" else memory_limit
+    shared: Dict[str, str] = {}
+    if "RAYON_NUM_THREADS" not in os.environ:
+        shared["RAYON_NUM_THREADS"] = str(max(1, usable_cores() // max(len(chosen), 1)))
+    shared.update(env or {})
     workers = {
         f"vkray-{k}": {
             "cls": Nanny,
             "options": {
                 "nthreads": threads_per_worker,
-                "env": {**(env or {}), "VKRAY_DEVICE": str(device)},
+                "env": {**shared, "VKRAY_DEVICE": str(device)},
                 "memory_limit": limit,
                 "silence_logs": logging.WARN,
             },

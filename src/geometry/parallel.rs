@@ -1,7 +1,11 @@
 //! The thread pool host passes run on: rayon's global pool in the process that first used it,
 //! and a pool of its own in a forked child (whose copy of the parent's pool has no threads behind
-//! it, so work given to it would never run).
+//! it, so work given to it would never run); or, for a thread inside `with_pool`, the pool it
+//! names (a device's own threads: the host passes of several GPUs run side by side on threads of
+//! their own instead of queuing for one pool; docs/benchmarks.md, issue 15).
 
+use std::cell::RefCell;
+use std::mem::ManuallyDrop;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use rayon::{ThreadPool, ThreadPoolBuilder};
@@ -12,12 +16,75 @@ static GLOBAL_POOL_OWNER: OnceLock<u32> = OnceLock::new();
 /// A forked child's own pool, with the process it belongs to.
 static CHILD_POOL: Mutex<Option<(u32, Arc<ThreadPool>)>> = Mutex::new(None);
 
-/// Runs `work` where its parallel iterators find live threads: directly (rayon's global pool)
-/// in the process that owns it, in a pool of the child's own after a fork.
+thread_local! {
+    /// The pool this thread's parallel sections go to, while it runs `with_pool`'s work.
+    static CHOSEN: RefCell<Option<Arc<ThreadPool>>> = const { RefCell::new(None) };
+}
+
+/// A pool of threads of its own, for one device's host passes (`with_pool`).
+pub struct OwnPool {
+    pool: ManuallyDrop<Arc<ThreadPool>>,
+    threads: usize,
+    /// The process that started the threads: a forked child has none of them.
+    pid: u32,
+}
+
+impl OwnPool {
+    /// A pool of `threads` threads named `name-k`.
+    pub fn new(threads: usize, name: &str) -> Result<OwnPool, String> {
+        let name = name.to_string();
+        let pool = ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(move |k| format!("{name}-{k}"))
+            .build()
+            .map_err(|e| format!("cannot start {threads} host threads: {e}"))?;
+        Ok(OwnPool { pool: ManuallyDrop::new(Arc::new(pool)), threads, pid: std::process::id() })
+    }
+
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+}
+
+impl Drop for OwnPool {
+    fn drop(&mut self) {
+        // In a forked child the threads stayed behind: dropping the pool would signal threads
+        // that do not exist here (as `child_pool` does with a grandparent's pool).
+        if self.pid == std::process::id() {
+            // SAFETY: `pool` is dropped once, here, and not used after.
+            unsafe { ManuallyDrop::drop(&mut self.pool) }
+        }
+    }
+}
+
+/// Runs `work` on this thread, its parallel sections (`install`) on `pool`'s threads; with
+/// `None`, or in a forked child of the process that started the pool, as `install` would anyway.
+/// `work` may take locks and wait: only its parallel sections run on the pool.
+pub fn with_pool<R>(pool: Option<&OwnPool>, work: impl FnOnce() -> R) -> R {
+    let Some(own) = pool.filter(|own| own.pid == std::process::id()) else {
+        return work();
+    };
+    /// Puts back the thread's earlier choice, also when `work` panics.
+    struct Restore(Option<Arc<ThreadPool>>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            CHOSEN.with(|chosen| *chosen.borrow_mut() = self.0.take());
+        }
+    }
+    let _restore = Restore(CHOSEN.with(|chosen| chosen.borrow_mut().replace(Arc::clone(&own.pool))));
+    work()
+}
+
+/// Runs `work` where its parallel iterators find live threads: on the pool `with_pool` chose for
+/// this thread, if any; else directly (rayon's global pool) in the process that owns it, in a
+/// pool of the child's own after a fork.
 ///
 /// `work` must be pure computation: a pool thread waiting for its share of one call's work may
 /// run another call's, so nothing inside may take a lock or wait for the GPU.
 pub fn install<R: Send>(work: impl FnOnce() -> R + Send) -> R {
+    if let Some(pool) = CHOSEN.with(|chosen| chosen.borrow().clone()) {
+        return pool.install(work);
+    }
     let pid = std::process::id();
     if *GLOBAL_POOL_OWNER.get_or_init(|| pid) == pid {
         return work();
@@ -53,4 +120,35 @@ fn child_pool(pid: u32) -> Option<Arc<ThreadPool>> {
         std::mem::forget(inherited);
     }
     Some(pool)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parallel_sections_run_on_the_chosen_pool_and_only_inside_with_pool() {
+        let own = OwnPool::new(3, "test-pool").unwrap();
+        let inside = with_pool(Some(&own), || {
+            install(|| (rayon::current_num_threads(), std::thread::current().name().map(str::to_string)))
+        });
+        assert_eq!(inside.0, 3);
+        assert!(inside.1.unwrap().starts_with("test-pool-"));
+        let outside = install(|| std::thread::current().name().map(str::to_string));
+        assert!(!outside.unwrap_or_default().starts_with("test-pool-"));
+    }
+
+    #[test]
+    fn the_earlier_choice_comes_back_after_a_panic() {
+        let own = OwnPool::new(1, "panicking-pool").unwrap();
+        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| with_pool(Some(&own), || panic!("x"))));
+        assert!(caught.is_err());
+        assert!(CHOSEN.with(|chosen| chosen.borrow().is_none()));
+        let nested = OwnPool::new(2, "outer-pool").unwrap();
+        let threads = with_pool(Some(&nested), || {
+            with_pool(Some(&own), || ());
+            install(rayon::current_num_threads)
+        });
+        assert_eq!(threads, 2);
+    }
 }

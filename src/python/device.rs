@@ -132,6 +132,7 @@ impl PyDevice {
         d.set_item("host_f64", p.host_f64)?;
         d.set_item("store", p.store)?;
         d.set_item("order", p.order)?;
+        d.set_item("host_threads", p.host_threads)?;
         Ok(d)
     }
 
@@ -150,6 +151,16 @@ impl PyDevice {
     #[setter]
     fn set_chunk_rays(&self, rays: usize) -> PyResult<()> {
         Ok(self.tracer.set_chunk_rays(rays)?)
+    }
+
+    #[getter]
+    fn get_host_threads(&self) -> Option<usize> {
+        self.tracer.host_threads()
+    }
+
+    #[setter]
+    fn set_host_threads(&self, threads: Option<usize>) -> PyResult<()> {
+        Ok(self.tracer.set_host_threads(threads)?)
     }
 
     #[pyo3(signature = (vertices, faces, build="fast_trace", allow_update=false, compact=false, vertex_format="float32", opacity=None))]

@@ -19,6 +19,7 @@ use crate::error::try_vec;
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::rays::Rays;
 use crate::geometry::sensor::{SensorKind, SensorRays};
+use crate::gpu::context::Interrupt;
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
 use crate::trace::cuda_rays::CudaRays;
@@ -43,6 +44,19 @@ impl PyScene {
     /// Reads the scene for a moment (getters): waits for an update with the GIL released.
     fn with_scene<T: Send>(&self, py: Python<'_>, read: impl FnOnce(&Scene) -> T + Send) -> PyResult<T> {
         run(py, |_| Ok(read(&self.scene.read().unwrap_or_else(|e| e.into_inner()))))
+    }
+
+    /// Runs a query on the scene with the GIL released, reporting to `progress`; its host passes
+    /// run on the device's own threads where it has them (`Device.host_threads`).
+    fn query<T: Send>(
+        &self,
+        py: Python<'_>,
+        progress: Option<Py<PyAny>>,
+        work: impl FnOnce(&Scene, &dyn Interrupt) -> crate::Result<T> + Send,
+    ) -> PyResult<T> {
+        run_reporting(py, progress, |interrupt| {
+            self.tracer.on_host_threads(|| work(&self.scene.read().unwrap_or_else(|e| e.into_inner()), interrupt))
+        })
     }
 }
 
@@ -310,10 +324,7 @@ impl PyScene {
                 None => sink.position = Some(bytes),
             }
         }
-        run_reporting(py, progress, |interrupt| {
-            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
-            self.tracer.trace(&scene, &rays, request, &mut sink, interrupt)
-        })?;
+        self.query(py, progress, |scene, interrupt| self.tracer.trace(scene, &rays, request, &mut sink, interrupt))?;
         let result = PyDict::new(py);
         for (name, (_, array)) in arrays {
             result.set_item(name, array)?;
@@ -372,9 +383,8 @@ impl PyScene {
             let hits = if count == 0 {
                 None
             } else {
-                Some(run(py, |interrupt| {
-                    let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
-                    tracer.trace_cuda_rays(&scene, &mut lease, &rays, request, &wanted, interrupt)
+                Some(self.query(py, None, |scene, interrupt| {
+                    tracer.trace_cuda_rays(scene, &mut lease, &rays, request, &wanted, interrupt)
                 })?)
             };
             let result = PyDict::new(py);
@@ -423,10 +433,9 @@ impl PyScene {
             .sum::<usize>();
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask, sensor)?;
         let rays = batch.rays()?;
-        let (offsets, ray_index, columns) = run_reporting(py, progress, |interrupt| {
-            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+        let (offsets, ray_index, columns) = self.query(py, progress, |scene, interrupt| {
             let limit = max_hits.unwrap_or(usize::MAX);
-            let all = self.tracer.trace_all(&scene, &rays, request, limit, bytes_per_hit, interrupt)?;
+            let all = self.tracer.trace_all(scene, &rays, request, limit, bytes_per_hit, interrupt)?;
             let h = all.hits.len();
             let mut columns =
                 named.iter().map(|(_, f)| Column::new(*f, h, all.wide)).collect::<crate::Result<Vec<_>>>()?;
@@ -437,7 +446,7 @@ impl PyScene {
                     None => sink.position = Some(column.bytes()),
                 }
             }
-            self.tracer.write_all(&scene, &all, &mut sink);
+            self.tracer.write_all(scene, &all, &mut sink);
             let ray_index = crate::trace::tiers::ray_indices(&all.offsets)?;
             Ok((all.offsets, ray_index, columns))
         })?;
@@ -472,10 +481,7 @@ impl PyScene {
         let rays = batch.rays()?;
         let counts = empty(py, &[rays.len()], "int32")?;
         let out: &mut [i32] = bytemuck::cast_slice_mut(bytes_of(&counts));
-        run_reporting(py, progress, |interrupt| {
-            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
-            self.tracer.count(&scene, &rays, request, out, interrupt)
-        })?;
+        self.query(py, progress, |scene, interrupt| self.tracer.count(scene, &rays, request, out, interrupt))?;
         Ok(counts)
     }
 
@@ -547,9 +553,8 @@ impl PyScene {
                 None => sink.position = Some(bytes_of(array)),
             }
         }
-        run_reporting(py, progress, |interrupt| {
-            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
-            self.tracer.closest_points(&scene, points, max_distance, precision, &mut sink, interrupt)
+        self.query(py, progress, |scene, interrupt| {
+            self.tracer.closest_points(scene, points, max_distance, precision, &mut sink, interrupt)
         })?;
         let result = PyDict::new(py);
         for (name, (_, array)) in arrays {
@@ -576,10 +581,9 @@ impl PyScene {
         let points = points.view()?;
         let signed = empty(py, &[points.rows()], "float64")?;
         let out: &mut [f64] = bytemuck::cast_slice_mut(bytes_of(&signed));
-        run_reporting(py, progress, |interrupt| {
-            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
+        self.query(py, progress, |scene, interrupt| {
             let query = SignedDistance { max_distance, precision, contains_precision, winding };
-            self.tracer.signed_distance(&scene, points, query, out, interrupt)
+            self.tracer.signed_distance(scene, points, query, out, interrupt)
         })?;
         Ok(signed)
     }
@@ -599,9 +603,8 @@ impl PyScene {
         let points = points.view()?;
         let inside = empty(py, &[points.rows()], "bool")?;
         let out = bytes_of(&inside);
-        run_reporting(py, progress, |interrupt| {
-            let scene = self.scene.read().unwrap_or_else(|e| e.into_inner());
-            self.tracer.contains(&scene, points, precision, winding, out, interrupt)
+        self.query(py, progress, |scene, interrupt| {
+            self.tracer.contains(scene, points, precision, winding, out, interrupt)
         })?;
         Ok(inside)
     }

@@ -493,7 +493,7 @@ impl Tracer {
             lap(&mut profile.unpack);
         }
         profile.total = started.elapsed().as_secs_f64();
-        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
+        self.keep_profile(profile);
         Ok(())
     }
 

@@ -201,7 +201,7 @@ impl Tracer {
         let started = Instant::now();
         let invalid = self.trace_packed(scene, rays, request, outputs, order, interrupt, &mut profile)?;
         profile.total = started.elapsed().as_secs_f64();
-        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
+        self.keep_profile(profile);
         Ok(invalid)
     }
 

@@ -37,6 +37,8 @@ pub struct TraceProfile {
     /// `contains` in grid order: the host's sort of the points, gathering them in that order and
     /// scattering the answers back (outside `total`).
     pub order: f64,
+    /// The threads the host passes ran on (the device's own, or the shared pool's).
+    pub host_threads: usize,
 }
 
 /// The phases of one chunk that timestamps separate: start, after upload, after trace, after

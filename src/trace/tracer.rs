@@ -17,8 +17,9 @@ use super::variants::{
 };
 use crate::error::{invalid_value, try_vec, Error, Result};
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::morton;
+use crate::geometry::parallel::{self, OwnPool};
 use crate::geometry::rays::Rays;
-use crate::geometry::{morton, parallel};
 use crate::gpu::context::{Backend, Context, Interrupt};
 use crate::gpu::memory::Buffer;
 use crate::gpu::records::{ExactHit, FastHit};
@@ -48,6 +49,8 @@ pub struct Tracer {
     /// Whether queries on host arrays have the GPU pack their rays where they can
     /// (`device_rays::pack_on_gpu_by_default`).
     pub(super) pack_on_gpu: bool,
+    /// Threads of this device's own for its queries' host passes (`set_host_threads`).
+    host_pool: Mutex<Option<Arc<OwnPool>>>,
 }
 
 /// What `Tracer::explain` tells of a variant.
@@ -87,6 +90,7 @@ impl Tracer {
             last_profile: Mutex::new(TraceProfile::default()),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
             pack_on_gpu: super::device_rays::pack_on_gpu_by_default(ctx),
+            host_pool: Mutex::new(None),
         })
     }
 
@@ -100,6 +104,13 @@ impl Tracer {
         *self.last_profile.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// Keeps a finished trace's profile as the device's last, with the threads its host passes
+    /// had.
+    pub(super) fn keep_profile(&self, mut profile: TraceProfile) {
+        profile.host_threads = parallel::install(rayon::current_num_threads);
+        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
+    }
+
     /// Rays per chunk: staging holds two chunks of rays and hits (72 bytes a ray each).
     pub fn chunk_rays(&self) -> usize {
         self.chunk_rays.load(Ordering::Relaxed)
@@ -111,6 +122,35 @@ impl Tracer {
         }
         self.chunk_rays.store(rays, Ordering::Relaxed);
         Ok(())
+    }
+
+    /// How many threads of its own this device's host passes run on; `None`: the process's
+    /// shared pool, on every core.
+    pub fn host_threads(&self) -> Option<usize> {
+        self.host_pool.lock().unwrap_or_else(|e| e.into_inner()).as_ref().map(|own| own.threads())
+    }
+
+    /// Gives this device `threads` threads of its own for its queries' host passes (packing
+    /// rays, copying hits out), or (`None`) hands them back to the shared pool. Devices that
+    /// trace at once (a `DeviceGroup`'s) each on cores of their own run their passes side by
+    /// side, where in one pool they queue behind each other. Queries under way keep theirs.
+    pub fn set_host_threads(&self, threads: Option<usize>) -> Result<()> {
+        let pool = match threads {
+            Some(0) => return Err(invalid_value("host_threads must be at least 1 (or None: every core)")),
+            Some(n) => Some(Arc::new(OwnPool::new(n, "vkray-host").map_err(Error::Internal)?)),
+            None => None,
+        };
+        // Started outside the lock; the old pool ends when the last query using it does.
+        let old = std::mem::replace(&mut *self.host_pool.lock().unwrap_or_else(|e| e.into_inner()), pool);
+        drop(old);
+        Ok(())
+    }
+
+    /// Runs `work` (a query on this device) on this thread, its host passes on the device's own
+    /// threads if it has them (`set_host_threads`).
+    pub fn on_host_threads<R>(&self, work: impl FnOnce() -> R) -> R {
+        let pool = self.host_pool.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        parallel::with_pool(pool.as_deref(), work)
     }
 
     /// Most rays one dispatch may cover on this device.
@@ -230,7 +270,7 @@ impl Tracer {
             tiers::positions(scene, rays, &hits, out);
         }
         profile.total = started.elapsed().as_secs_f64();
-        *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
+        self.keep_profile(profile);
         self.ctx.check_validation()
     }
 
