@@ -17,7 +17,7 @@ import vkray
 from conftest import BACKENDS, VALIDATION, make_device
 from oracle import box, triangle_soup
 from test_precision import tiers
-from vkray._group import _MIN_TIMED_RAYS, _Speeds, split
+from vkray._group import _MIN_TIMED_RAYS, _Speeds, split, usable_cores
 
 N = 3001  # rays per batch: not a multiple of any group size
 ROTATE_SHIFT = np.array([[0.0, -1, 0, 0.6], [1, 0, 0, 0.2], [0, 0, 1, -0.3], [0, 0, 0, 1]])
@@ -141,6 +141,26 @@ def test_answers_copied_in_blocks_by_several_threads(monkeypatch):
     scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(device, vkray.Instance)]
     for (name, grouped), (_, single) in zip(*(every_query(s, group_precisions(group)[-1]) for s in scenes)):
         assert_same(grouped(), single(), name)
+
+
+def test_split_hits_are_written_by_the_devices_into_the_batch(monkeypatch):
+    """A split intersect's pieces write their hits straight into the batch's arrays (nothing is
+    copied after them), in every tier; occluded's pieces are still copied in. Answers are one
+    device's."""
+    copied = []
+    copy_rows = vkray._group._copy_rows
+    monkeypatch.setattr(vkray._group, "_copy_rows", lambda dst, src: (copied.append(len(src)), copy_rows(dst, src)))
+    group = make_group(3, (3, 1, 2))
+    device = group.devices[0]
+    scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(device, vkray.Instance)]
+    o, d = rays(N, 11)
+    for precision in tiers(device):
+        for outputs in (None, vkray.HIT_FIELDS, ["t"]):
+            got, want = (s.intersect(o, d, outputs=outputs, precision=precision) for s in scenes)
+            assert_same(got, want, f"{precision} {outputs}")
+    assert copied == []
+    assert_same(scenes[0].occluded(o, d), scenes[1].occluded(o, d))
+    assert len(copied) == 3 and sum(copied) == N
 
 
 @pytest.mark.parametrize("weights", [None, (0, 1)], ids=["split", "all-on-one"])
@@ -294,6 +314,68 @@ def test_several_threads_at_once():
     for answer, want in zip(answers, wanted):
         for (name, got), (_, expected) in zip(answer, want):
             assert_same(got, expected, name)
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_a_device_on_threads_of_its_own_answers_as_on_the_shared_pool(threads):
+    """Device(host_threads=k): every query kind, from three threads at once while a fourth
+    changes the device's threads under them, answers what the session's device answers."""
+    device = vkray.Device(backend=BACKENDS[0], validation=VALIDATION, host_threads=threads)
+    assert device.host_threads == threads
+    single = make_device(BACKENDS[0])
+    assert single.host_threads is None
+    scenes = [mixed_scene(device, vkray.Instance), mixed_scene(single, vkray.Instance)]
+    solids = [solids_scene(device, vkray.Instance), solids_scene(single, vkray.Instance)]
+
+    def run_all(k, seed):
+        return [(name, call()) for name, call in every_query(scenes[k], "fast", seed) + solid_queries(solids[k])]
+
+    wanted = [run_all(1, seed) for seed in range(3)]
+    stop = threading.Event()
+
+    def switch():
+        while not stop.is_set():
+            for choice in (2, None, threads):
+                device.host_threads = choice
+                time.sleep(0.01)
+
+    switcher = threading.Thread(target=switch)
+    switcher.start()
+    try:
+        with ThreadPoolExecutor(3) as pool:
+            answers = list(pool.map(run_all, [0] * 3, range(3)))
+    finally:
+        stop.set()
+        switcher.join()
+    for answer, want in zip(answers, wanted):
+        for (name, got), (_, expected) in zip(answer, want):
+            assert_same(got, expected, name)
+    o, d = rays(N, 9)
+    shared = single.last_trace_profile["host_threads"]  # the session device's: the shared pool
+    for choice, used in ((threads, threads), (None, shared), (threads + 1, threads + 1)):
+        device.host_threads = choice
+        assert device.host_threads == choice
+        for query in (scenes[0].intersect, scenes[0].occluded, scenes[0].intersect_all, scenes[0].count):
+            query(o, d)
+            assert device.last_trace_profile["host_threads"] == used, (query, choice)
+        scenes[0].closest_points(points(N, 9))
+        assert device.last_trace_profile["host_threads"] == used
+
+
+def test_devices_the_group_opens_share_the_cores():
+    """A group of k devices gives each device it opens 1/k of the cores for its host passes (or
+    host_threads each); devices it is given keep theirs; one device keeps the shared pool. Its
+    answers are one device's."""
+    group = vkray.DeviceGroup([0, 0], backend=BACKENDS[0], validation=VALIDATION)
+    share = max(1, usable_cores() // 2)
+    assert [d.host_threads for d in group.devices] == [share, share]
+    given = vkray.DeviceGroup([group.devices[0], 0], host_threads=3, backend=BACKENDS[0], validation=VALIDATION)
+    assert [d.host_threads for d in given.devices] == [share, 3]
+    assert vkray.DeviceGroup([0], backend=BACKENDS[0], validation=VALIDATION).devices[0].host_threads is None
+    single = make_device(BACKENDS[0])
+    scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(single, vkray.Instance)]
+    for (name, grouped), (_, one) in zip(*(every_query(s, "fast", seed=5) for s in scenes)):
+        assert_same(grouped(), one(), name)
 
 
 def test_builders_and_updates_match_one_device():

@@ -53,6 +53,7 @@ from ._api import (
     VertexFormat,
     _check_outputs,
     _closest_outputs,
+    _new_hit_arrays,
     _out_arrays,
     devices,
 )
@@ -293,6 +294,14 @@ def in_callers_rows(error: BaseException, start: int) -> BaseException:
     return type(error)(message).with_traceback(error.__traceback__)
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the platform tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 class DeviceGroup:
     """Several devices used as one: meshes and scenes are built on each, and each query's rays are
     split over them in proportion to their speed, traced at once and merged in the caller's order.
@@ -316,6 +325,12 @@ class DeviceGroup:
         or to choose the split). ``None`` (default) measures them: the first query of a kind is
         split equally; each piece's rays per second then update an exponential moving average per
         device and query kind (`speeds`), which sizes the next query's pieces.
+    host_threads:
+        Threads of its own for each device this group opens (`Device.host_threads`), for its
+        pieces' host passes (packing rays, copying hits out). ``None`` (default): the cores this
+        process may run on, shared out equally, when the group has more than one device, so that
+        the devices' passes run side by side instead of queuing in one pool (docs/benchmarks.md,
+        issue 15). Devices given already opened keep theirs.
     """
 
     def __init__(
@@ -325,11 +340,19 @@ class DeviceGroup:
         backend: Optional[Backend] = None,
         validation: bool = False,
         weights: Optional[Sequence[float]] = None,
+        host_threads: Optional[int] = None,
     ) -> None:
         chosen = default_devices() if devices is None else list(devices)
         if not chosen:
             raise ValueError("a DeviceGroup needs at least one device")
-        opened = [d if isinstance(d, Device) else Device(d, backend, validation=validation) for d in chosen]
+        if host_threads is not None:
+            host_threads = _arrays.integer("host_threads", host_threads, 1, 4096)
+        elif len(chosen) > 1:
+            host_threads = max(1, usable_cores() // len(chosen))
+        opened = [
+            d if isinstance(d, Device) else Device(d, backend, validation=validation, host_threads=host_threads)
+            for d in chosen
+        ]
         self.devices: Tuple[Device, ...] = tuple(opened)
         if weights is not None:
             weights = [float(w) for w in weights]
@@ -884,12 +907,20 @@ class GroupScene:
         if batch.count <= 1 or len(self.per_device) == 1:
             return self._whole(kind, batch.count, unsplit, progress)
 
-        def piece(device: int, start: int, stop: int) -> T:
-            return query(self.per_device[device], **batch.piece(start, stop))
-
         inputs = (batch.origins, batch.directions, batch.tmin, batch.tmax, batch.mask)
-        into = None if out is None else _out_arrays(out, batch.shape, options["outputs"], options["precision"], inputs)
+        precision = options["precision"]
+        into = None if out is None else _out_arrays(out, batch.shape, options["outputs"], precision, inputs)
         pieces = self._pieces(kind, batch.count)
+        if query_name == "intersect" and len(pieces) > 1:
+            # Each piece's hits written by its device straight into the batch's rows (Scene's
+            # out=): no arrays of the piece's own to fault in and copy over (docs/benchmarks.md).
+            fields = options["outputs"] if options["outputs"] is not None else DEFAULT_FIELDS
+            into = into if into is not None else _new_hit_arrays(batch.count, fields, precision)
+
+        def piece(device: int, start: int, stop: int) -> T:
+            rows = {} if into is None or start == stop else {"out": _piece_hits(into, start, stop, precision)}
+            return query(self.per_device[device], **batch.piece(start, stop), **rows)
+
         return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress, into)
 
     def _points(
@@ -1203,6 +1234,22 @@ _copiers: Optional[ThreadPoolExecutor] = None
 _copiers_lock = threading.Lock()
 
 
+def _piece_hits(whole: Dict[str, np.ndarray], start: int, stop: int, precision: Precision) -> Hits:
+    """`Hits` of rays ``start:stop`` whose arrays are those rows of the batch's (views), for a
+    piece's `Scene.intersect` to write into (``out=``)."""
+    return Hits((stop - start,), {name: array[start:stop] for name, array in whole.items()}, precision)
+
+
+def _same_view(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two arrays are the same memory seen the same way (nothing to copy)."""
+    return (
+        a.shape == b.shape
+        and a.dtype == b.dtype
+        and a.strides == b.strides
+        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
+    )
+
+
 def _copy_rows(dst: np.ndarray, src: np.ndarray) -> None:
     """``dst[...] = src`` (arrays of equal shape, rows along the first axis); big arrays by blocks
     of rows on up to 16 threads, as the core's own host passes use every core: one thread alone
@@ -1237,7 +1284,8 @@ class _Rows:
         self._lock = threading.Lock()
 
     def put(self, start: int, arrays: Dict[str, np.ndarray]) -> None:
-        """Writes a piece's arrays (its rays from ``start`` on) into the batch's."""
+        """Writes a piece's arrays (its rays from ``start`` on) into the batch's; those that are
+        already the batch's rows (the piece wrote them there itself) stay as they are."""
         with self._lock:
             if self._arrays is None:
                 self._arrays = {
@@ -1245,7 +1293,9 @@ class _Rows:
                 }
             whole = self._arrays
         for name, array in arrays.items():
-            _copy_rows(whole[name][start : start + len(array)], array)
+            rows = whole[name][start : start + len(array)]
+            if not _same_view(rows, array):
+                _copy_rows(rows, array)
 
     def arrays(self) -> Dict[str, np.ndarray]:
         """The batch's arrays, once every piece has put its own."""
