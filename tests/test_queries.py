@@ -2,6 +2,7 @@
 
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -61,6 +62,36 @@ def test_occluded_equals_intersect_hit(device):
     np.testing.assert_array_equal(blocked, hits.hit)
     assert 0.1 < blocked.mean() < 0.9
     np.testing.assert_array_equal(blocked, embree([(v, f)], origins, directions, tmax=tmax, query="OCCLUDED"))
+
+
+def test_the_core_makes_hit_bools_as_it_copies_hits_out(device):
+    """The core's "hit" output (a bool a ray, occluded's answer) is prim_id >= 0 of the same
+    trace, in every tier, beside prim_id or alone, from several threads at once; queries of other
+    kinds and out= refuse it."""
+    from test_precision import tiers
+
+    v, f = load_obj("stanford-bunny")
+    scene = device.scene(device.mesh(v, f))
+    origins, directions = random_rays(v, 20000, seed=8)
+    tmax = np.random.default_rng(8).uniform(0.2, 1.2, len(origins))
+    batch = vkray._api._RayBatch(origins, directions, 0.0, tmax, 0xFF)
+
+    def trace(query, fields, precision="fast", **kw):
+        return scene._core.trace(*batch.arrays, query, fields, precision, None, batch.mask, **kw)
+
+    for precision in tiers(device):
+        both = trace("closest", ["prim_id", "hit"], precision)
+        assert both["hit"].dtype == np.bool_ and both["hit"].shape == (len(origins),)
+        np.testing.assert_array_equal(both["hit"], both["prim_id"] >= 0, err_msg=precision)
+        assert 0.1 < both["hit"].mean() < 0.9
+        with ThreadPoolExecutor(3) as pool:
+            alone = list(pool.map(lambda tier: trace("occluded", ["hit"], tier)["hit"], [precision] * 3))
+        for answer in alone:
+            np.testing.assert_array_equal(answer, both["hit"], err_msg=precision)
+    with pytest.raises(ValueError, match="hit .* closest and occluded"):
+        trace("count", ["hit"])
+    with pytest.raises(ValueError, match="no output of out="):
+        trace("closest", ["hit"], out={"hit": np.zeros(len(origins), bool)})
 
 
 def test_outputs_select_fields(triangle_scene):

@@ -797,7 +797,7 @@ class Scene:
             lambda bar: self._core.trace(
                 *batch.arrays,
                 "occluded",
-                ["prim_id"],
+                ["hit"],  # bools made from the hit triangles as the core copies them out
                 precision,
                 cull,
                 batch.mask,
@@ -806,7 +806,7 @@ class Scene:
                 sensor=batch.sensor,
             ),
         )
-        return (arrays["prim_id"] >= 0).reshape(batch.shape)
+        return arrays["hit"].reshape(batch.shape)
 
     def _trace_cuda(
         self,

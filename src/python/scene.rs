@@ -37,8 +37,26 @@ pub(super) struct PyScene {
 /// passes it; flags: 1 cull_disable, 2 flip_facing, 4 force_opaque, 8 force_no_opaque.
 pub(super) type InstanceItem<'py> = (PyRef<'py, PyMesh>, Option<Bound<'py, PyAny>>, u32, u8, u8);
 
-/// One output array: its field (None for `position`) and the numpy array.
-type Output<'py> = (Option<Field>, Bound<'py, PyUntypedArray>);
+/// One output array: where the trace writes it, and the numpy array.
+type Output<'py> = (Target, Bound<'py, PyUntypedArray>);
+
+/// Where a trace's output array goes in its `HitSink`.
+#[derive(Clone, Copy)]
+enum Target {
+    Field(Field),
+    Position,
+    Hit,
+}
+
+impl Target {
+    fn attach<'a>(self, sink: &mut HitSink<'a>, bytes: &'a mut [u8]) {
+        match self {
+            Target::Field(field) => sink.set(field, bytes),
+            Target::Position => sink.position = Some(bytes),
+            Target::Hit => sink.hit = Some(bytes),
+        }
+    }
+}
 
 impl PyScene {
     /// Reads the scene for a moment (getters): waits for an update with the GIL released.
@@ -142,21 +160,24 @@ fn empty<'py>(py: Python<'py>, shape: &[usize], dtype: &str) -> PyResult<Bound<'
     Ok(array.downcast_into::<PyUntypedArray>()?)
 }
 
-/// A hit field's output: its field (None for `position`), its shape and dtype for `n` rays in
-/// the query's widths.
-fn output_layout(name: &str, n: usize, wide: bool) -> PyResult<(Option<Field>, Vec<usize>, &'static str)> {
+/// A hit field's output: where the trace writes it, its shape and dtype for `n` rays in the
+/// query's widths. `position` and `hit` (bool: whether the ray hit anything) are made from the
+/// fields on the host.
+fn output_layout(name: &str, n: usize, wide: bool) -> PyResult<(Target, Vec<usize>, &'static str)> {
     let float = if wide { "float64" } else { "float32" };
-    if name == "position" {
-        return Ok((None, vec![n, 3], float));
+    match name {
+        "position" => return Ok((Target::Position, vec![n, 3], float)),
+        "hit" => return Ok((Target::Hit, vec![n], "bool")),
+        _ => {}
     }
     let Some(field) = FIELDS.iter().copied().find(|f| f.name() == name) else {
         return Err(PyValueError::new_err(format!("unknown hit field {name:?}")));
     };
     Ok(match field {
-        Field::T => (Some(field), vec![n], float),
-        Field::Uv => (Some(field), vec![n, 2], float),
-        Field::Normal => (Some(field), vec![n, 3], "float32"),
-        _ => (Some(field), vec![n], "int32"),
+        Field::T => (Target::Field(field), vec![n], float),
+        Field::Uv => (Target::Field(field), vec![n, 2], float),
+        Field::Normal => (Target::Field(field), vec![n, 3], "float32"),
+        _ => (Target::Field(field), vec![n], "int32"),
     })
 }
 
@@ -181,13 +202,14 @@ enum OutArray<'py> {
 
 impl<'py> OutArray<'py> {
     /// `array` as field `name`'s output for `n` rays (its shape and dtype exactly).
-    fn borrow(name: &str, array: &Bound<'py, PyAny>, n: usize, wide: bool) -> PyResult<(Option<Field>, OutArray<'py>)> {
+    fn borrow(name: &str, array: &Bound<'py, PyAny>, n: usize, wide: bool) -> PyResult<(Target, OutArray<'py>)> {
         let (field, shape, dtype) = output_layout(name, n, wide)?;
         let refused = |why: String| PyValueError::new_err(format!("out's {name} {why}"));
         let borrowed = match dtype {
             "float32" => array.downcast::<PyArrayDyn<f32>>().ok().map(|a| a.try_readwrite().map(OutArray::F32)),
             "float64" => array.downcast::<PyArrayDyn<f64>>().ok().map(|a| a.try_readwrite().map(OutArray::F64)),
-            _ => array.downcast::<PyArrayDyn<i32>>().ok().map(|a| a.try_readwrite().map(OutArray::I32)),
+            "int32" => array.downcast::<PyArrayDyn<i32>>().ok().map(|a| a.try_readwrite().map(OutArray::I32)),
+            _ => return Err(refused("is no output of out= (intersect's out= takes hit fields)".into())),
         };
         let out = borrowed.ok_or_else(|| refused(format!("must be a numpy array of {dtype}")))?.map_err(|e| {
             refused(format!(
@@ -300,7 +322,7 @@ impl PyScene {
         let rays = batch.rays()?;
         let n = rays.len();
         // The caller's arrays (`out=`), borrowed after the rays so that overlaps are refused.
-        let mut given: Vec<(String, Option<Field>, OutArray<'py>, Bound<'py, PyAny>)> = Vec::new();
+        let mut given: Vec<(String, Target, OutArray<'py>, Bound<'py, PyAny>)> = Vec::new();
         for name in &fields {
             if let Some(array) = out.map(|out| out.get_item(name)).transpose()?.flatten() {
                 let (field, borrowed) = OutArray::borrow(name, &array, n, wide)?;
@@ -311,18 +333,11 @@ impl PyScene {
         check_fits(&self.tracer, request, &missing, n)?;
         let arrays = allocate(py, &missing, n, wide)?;
         let mut sink = HitSink::default();
-        for (_, (field, array)) in &arrays {
-            match field {
-                Some(field) => sink.set(*field, bytes_of(array)),
-                None => sink.position = Some(bytes_of(array)),
-            }
+        for (_, (target, array)) in &arrays {
+            target.attach(&mut sink, bytes_of(array));
         }
-        for (_, field, borrowed, _) in &mut given {
-            let bytes = borrowed.bytes()?;
-            match field {
-                Some(field) => sink.set(*field, bytes),
-                None => sink.position = Some(bytes),
-            }
+        for (_, target, borrowed, _) in &mut given {
+            target.attach(&mut sink, borrowed.bytes()?);
         }
         self.query(py, progress, |scene, interrupt| self.tracer.trace(scene, &rays, request, &mut sink, interrupt))?;
         let result = PyDict::new(py);
@@ -547,11 +562,8 @@ impl PyScene {
         let n = points.rows();
         let arrays = allocate(py, &fields, n, true)?;
         let mut sink = HitSink::default();
-        for (_, (field, array)) in &arrays {
-            match field {
-                Some(field) => sink.set(*field, bytes_of(array)),
-                None => sink.position = Some(bytes_of(array)),
-            }
+        for (_, (target, array)) in &arrays {
+            target.attach(&mut sink, bytes_of(array));
         }
         self.query(py, progress, |scene, interrupt| {
             self.tracer.closest_points(scene, points, max_distance, precision, &mut sink, interrupt)
@@ -720,6 +732,7 @@ fn check_fits(tracer: &Tracer, request: Request, fields: &[String], n: usize) ->
         .iter()
         .map(|name| match FIELDS.iter().find(|f| f.name() == name) {
             Some(field) => field.bytes_per_ray(wide),
+            None if name == "hit" => 1,
             None => position_bytes_per_ray(wide),
         })
         .sum();

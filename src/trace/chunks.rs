@@ -7,7 +7,7 @@ use std::time::Instant;
 use ash::vk;
 use rayon::prelude::*;
 
-use super::fields::{Field, HitSink, FIELDS};
+use super::fields::{hits_from_prims, Field, HitSink, FIELDS};
 use super::profile::{Stamp, TraceProfile};
 use super::staging::Slot;
 use super::tracer::Tracer;
@@ -414,5 +414,9 @@ fn unpack(slot: &Slot, done: &InFlight, outputs: u32, sink: &mut HitSink) {
                 }
             }
         }
+    }
+    if let Some(hit) = sink.hit.as_deref_mut() {
+        let from = slot.field_offset(Field::Prim);
+        hits_from_prims(&hits[from..from + 4 * len], &mut hit[start..start + len]);
     }
 }

@@ -56,6 +56,21 @@ impl Field {
     }
 }
 
+/// Writes whether each ray hit (1) or not (0) from its `prim_id` (native-endian i32, -1 where
+/// none), on all cores.
+pub fn hits_from_prims(prims: &[u8], hit: &mut [u8]) {
+    use rayon::prelude::*;
+    const PIECE: usize = 1 << 16;
+    assert_eq!(prims.len(), 4 * hit.len(), "one prim_id a ray");
+    crate::geometry::parallel::install(|| {
+        hit.par_chunks_mut(PIECE).zip(prims.par_chunks(4 * PIECE)).for_each(|(hit, prims)| {
+            for (h, p) in hit.iter_mut().zip(prims.chunks_exact(4)) {
+                *h = u8::from(i32::from_ne_bytes([p[0], p[1], p[2], p[3]]) >= 0);
+            }
+        })
+    });
+}
+
 /// Bytes of one ray's `position` (3 f32, or 3 f64 in the f64 tiers).
 pub fn position_bytes_per_ray(wide: bool) -> usize {
     if wide {
@@ -72,6 +87,9 @@ pub fn position_bytes_per_ray(wide: bool) -> usize {
 pub struct HitSink<'a> {
     fields: [Option<&'a mut [u8]>; FIELD_COUNT],
     pub position: Option<&'a mut [u8]>,
+    /// Whether each ray hit anything (a bool, one byte a ray): made from `prim_id` as the hits
+    /// are copied out, without an array of prim_id (`occluded`'s answer).
+    pub hit: Option<&'a mut [u8]>,
 }
 
 impl<'a> HitSink<'a> {
@@ -91,9 +109,10 @@ impl<'a> HitSink<'a> {
         self.fields[field as usize].take()
     }
 
-    /// The OUTPUTS bits of the fields asked for.
+    /// The OUTPUTS bits of the fields asked for (`prim_id`'s where `hit` is).
     pub fn outputs(&self) -> u32 {
-        FIELDS.iter().filter(|f| self.fields[**f as usize].is_some()).map(|f| f.bit()).sum()
+        let hit = if self.hit.is_some() { Field::Prim.bit() } else { 0 };
+        FIELDS.iter().filter(|f| self.fields[**f as usize].is_some()).map(|f| f.bit()).fold(hit, |a, b| a | b)
     }
 
     /// The fields asked for, with their arrays.

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use super::chunks::GpuJob;
 use super::closest::{points_as_they_come, points_in_grid_order, ORDER_MIN_POINTS};
-use super::fields::{position_bytes_per_ray, Field, HitSink, FIELDS};
+use super::fields::{hits_from_prims, position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::profile::TraceProfile;
 use super::request::{Crossings, Precision, Query, Request, SignedDistance, DEFAULT_THRESHOLD};
 use super::staging::SlotPool;
@@ -229,14 +229,19 @@ impl Tracer {
     ) -> Result<()> {
         let mut profile = TraceProfile { rays: rays.len(), ..Default::default() };
         let position = sink.position.take();
-        if rays.is_empty() || (sink.outputs() == 0 && position.is_none()) {
+        let mut hit = sink.hit.take();
+        if rays.is_empty() || (sink.outputs() == 0 && position.is_none() && hit.is_none()) {
             return Ok(());
         }
         let wide = request.precision.is_f64();
         let refine = request.precision == Precision::Refined && request.query == Query::Closest;
         // The host needs the hit triangles (and barycentrics, or t on spheres) of rays whose
-        // caller did not ask for them.
+        // caller did not ask for them; the host tier's `hit`, its prim_id.
+        let host_tier = request.precision == Precision::Reference;
         let mut needed = Vec::new();
+        if hit.is_some() && host_tier {
+            needed.push(Field::Prim);
+        }
         if refine || position.is_some() {
             needed.extend([Field::Prim, Field::Instance, Field::Geometry]);
         }
@@ -257,7 +262,14 @@ impl Tracer {
         for (field, temp) in temps.iter_mut() {
             work.set(*field, temp);
         }
+        if !host_tier {
+            // The GPU tiers' chunk loop writes it as it copies the hits out.
+            work.hit = hit.take();
+        }
         self.run_tier(scene, rays, request, &mut work, interrupt, &mut profile)?;
+        if let Some(out) = hit {
+            hits_from_prims(work.field(Field::Prim).unwrap_or_default(), out);
+        }
         if let Some(out) = position {
             let hits = tiers::HitTriangles {
                 prim: work.field(Field::Prim).unwrap_or_default(),
@@ -396,7 +408,9 @@ impl Tracer {
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<()> {
-        if !exact && self.trace_arrays_packed_on_gpu(scene, rays, request, sink, interrupt, profile)?.is_some() {
+        // The GPU packing path writes fields into the caller's arrays itself: not `hit`.
+        let packs_on_gpu = !exact && sink.hit.is_none();
+        if packs_on_gpu && self.trace_arrays_packed_on_gpu(scene, rays, request, sink, interrupt, profile)?.is_some() {
             return Ok(());
         }
         let outputs = sink.outputs();
@@ -834,6 +848,14 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
     if let Some(out) = &sink.position {
         if out.len() != n * position_bytes_per_ray(wide) {
             return Err(invalid_value(format!("output for position has {} bytes for {n} rays", out.len())));
+        }
+    }
+    if let Some(out) = &sink.hit {
+        if out.len() != n {
+            return Err(invalid_value(format!("output for hit has {} bytes for {n} rays", out.len())));
+        }
+        if !matches!(request.query, Query::Closest | Query::Occluded) {
+            return Err(invalid_value("hit (whether a ray hit anything) is an output of closest and occluded queries"));
         }
     }
     // Occlusion stops at any hit, so it knows only whether there was one; a count writes the
