@@ -66,8 +66,9 @@ def test_occluded_equals_intersect_hit(device):
 
 def test_the_core_makes_hit_bools_as_it_copies_hits_out(device):
     """The core's "hit" output (a bool a ray, occluded's answer) is prim_id >= 0 of the same
-    trace, in every tier, beside prim_id or alone, from several threads at once; queries of other
-    kinds and out= refuse it."""
+    trace, in every tier, beside prim_id or alone, from several threads at once, also where the
+    f64 tiers turn the GPU's hits into misses (tmax at each hit's f32 t); queries of other kinds,
+    closest_points and out= refuse it."""
     from test_precision import tiers
 
     v, f = load_obj("stanford-bunny")
@@ -88,8 +89,18 @@ def test_the_core_makes_hit_bools_as_it_copies_hits_out(device):
             alone = list(pool.map(lambda tier: trace("occluded", ["hit"], tier)["hit"], [precision] * 3))
         for answer in alone:
             np.testing.assert_array_equal(answer, both["hit"], err_msg=precision)
+    t = trace("closest", ["t"])["t"]
+    met = np.isfinite(t)
+    batch = vkray._api._RayBatch(origins, directions, 0.0, np.where(met, t, 1.0), 0xFF)
+    for precision in tiers(device):
+        both = trace("closest", ["prim_id", "hit"], precision)
+        np.testing.assert_array_equal(both["hit"], both["prim_id"] >= 0, err_msg=f"{precision}, tmax at t")
+        if precision != "fast":
+            assert (both["prim_id"][met] < 0).sum() > 100, precision  # the f64 tiers' misses at tmax
     with pytest.raises(ValueError, match="hit .* closest and occluded"):
         trace("count", ["hit"])
+    with pytest.raises(ValueError, match="not an output of closest_points"):
+        scene._core.closest_points(origins, ["hit"], np.inf, "exact")
     with pytest.raises(ValueError, match="no output of out="):
         trace("closest", ["hit"], out={"hit": np.zeros(len(origins), bool)})
 

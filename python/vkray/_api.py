@@ -103,6 +103,8 @@ class Device:
             or isinstance(device, (bool, np.bool_))
         ):
             raise TypeError(f"device must be an index, a name or None, got {device!r}")
+        if host_threads is not None:  # checked before the device is opened
+            host_threads = _arrays.integer("host_threads", host_threads, 1, 4096)
         selector = None if device is None else str(device)
         self._core = _core.Device(selector, backend, bool(validation))  # the core checks backend
         info = self._core.info

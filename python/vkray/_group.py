@@ -918,7 +918,7 @@ class GroupScene:
             into = into if into is not None else _new_hit_arrays(batch.count, fields, precision)
 
         def piece(device: int, start: int, stop: int) -> T:
-            rows = {} if into is None or start == stop else {"out": _piece_hits(into, start, stop, precision)}
+            rows = {} if into is None else {"out": _piece_hits(into, start, stop, precision)}
             return query(self.per_device[device], **batch.piece(start, stop), **rows)
 
         return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress, into)

@@ -732,7 +732,10 @@ fn check_fits(tracer: &Tracer, request: Request, fields: &[String], n: usize) ->
         .iter()
         .map(|name| match FIELDS.iter().find(|f| f.name() == name) {
             Some(field) => field.bytes_per_ray(wide),
-            None if name == "hit" => 1,
+            // A byte a ray, and a temporary prim_id where the host decides the hits.
+            None if name == "hit" => {
+                1 + if matches!(request.precision, Precision::Fast | Precision::Exact) { 0 } else { 4 }
+            }
             None => position_bytes_per_ray(wide),
         })
         .sum();

@@ -137,7 +137,10 @@ impl Tracer {
     pub fn set_host_threads(&self, threads: Option<usize>) -> Result<()> {
         let pool = match threads {
             Some(0) => return Err(invalid_value("host_threads must be at least 1 (or None: every core)")),
-            Some(n) => Some(Arc::new(OwnPool::new(n, "vkray-host").map_err(Error::Internal)?)),
+            Some(n) => {
+                let name = format!("vkray-device{}", self.ctx.info.index);
+                Some(Arc::new(OwnPool::new(n, &name).map_err(Error::Internal)?))
+            }
             None => None,
         };
         // Started outside the lock; the old pool ends when the last query using it does.
@@ -236,10 +239,11 @@ impl Tracer {
         let wide = request.precision.is_f64();
         let refine = request.precision == Precision::Refined && request.query == Query::Closest;
         // The host needs the hit triangles (and barycentrics, or t on spheres) of rays whose
-        // caller did not ask for them; the host tier's `hit`, its prim_id.
-        let host_tier = request.precision == Precision::Reference;
+        // caller did not ask for them; `hit`, where the host decides the hits (the reference
+        // tier, or refining, which may turn a hit into a miss), the final prim_id.
+        let hit_from_host = request.precision == Precision::Reference || refine;
         let mut needed = Vec::new();
-        if hit.is_some() && host_tier {
+        if hit.is_some() && hit_from_host {
             needed.push(Field::Prim);
         }
         if refine || position.is_some() {
@@ -262,7 +266,7 @@ impl Tracer {
         for (field, temp) in temps.iter_mut() {
             work.set(*field, temp);
         }
-        if !host_tier {
+        if !hit_from_host {
             // The GPU tiers' chunk loop writes it as it copies the hits out.
             work.hit = hit.take();
         }
@@ -604,6 +608,9 @@ impl Tracer {
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
         self.check_point_query(scene, points, max_distance, "closest_points")?;
+        if sink.hit.is_some() {
+            return Err(invalid_value("hit (whether a ray hit anything) is not an output of closest_points"));
+        }
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
         let hits =
