@@ -3,6 +3,7 @@
 #extension GL_EXT_ray_query : require
 #extension GL_EXT_ray_flags_primitive_culling : require
 #include "common.glsl"
+#include "rays.glsl"
 #define HIT_RECORD FastHit
 #include "hit_lists.glsl"
 
@@ -58,7 +59,7 @@ void trace_transmit(uint i, Ray ray) {
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
-  Ray ray = load_ray(i);
+  Ray ray = read_ray(i);
   if (QUERY == QUERY_ALL) {
     trace_all(i, ray);
     return;

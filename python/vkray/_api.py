@@ -147,8 +147,10 @@ class Device:
         the GPU, the storing pass (the host clock's phases are the counting pass's; ``gpu_*``,
         ``chunks`` and ``total`` cover both). ``order``: ``contains`` in grid order, the host's sort of
         the points and the scatter of the answers back (outside ``total``). Plus ``rays``,
-        ``chunks`` and ``host_threads`` (the threads its host passes ran on: `host_threads`, or
-        the shared pool's)."""
+        ``chunks``, ``host_threads`` (the threads its host passes ran on: `host_threads`, or the
+        shared pool's) and ``ray_bytes`` (the rays the host packed for the GPU, in bytes: 32 a
+        ray, 24 for float32 rays of one interval, 12 for those from one origin, each chunk of the
+        leaner two with 32 more; 64 a ray in the exact tier)."""
         return dict(self._core.last_trace_profile)
 
     @property

@@ -61,6 +61,38 @@ pub struct Rays<'a> {
 /// Floats one packed ray takes: origin, tmin, direction, tmax.
 pub const RAY_FLOATS: usize = 8;
 
+/// How a chunk's f32 rays lie in staging for the shaders (their RAY_SOURCE).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RayLayout {
+    /// `RAY_FLOATS` a ray: origin, tmin, direction, tmax.
+    Full,
+    /// A header of `RAY_HEADER_FLOATS` (the shared interval: tmin at 3, tmax at 7), then 6 f32 a
+    /// ray: origin, direction (rays of one interval: 24 bytes a ray written instead of 32).
+    Compact,
+    /// A header of `RAY_HEADER_FLOATS` (the shared origin at 0..3, tmin at 3, tmax at 7), then 3
+    /// f32 a ray: its direction (rays from one origin, a camera's: 12 bytes a ray).
+    Directions,
+}
+
+/// Floats of the header of the `Compact` and `Directions` layouts (two aligned vec4).
+pub const RAY_HEADER_FLOATS: usize = 8;
+
+impl RayLayout {
+    pub fn floats_per_ray(self) -> usize {
+        match self {
+            RayLayout::Full => RAY_FLOATS,
+            RayLayout::Compact => 6,
+            RayLayout::Directions => 3,
+        }
+    }
+
+    /// Bytes `n` rays take in this layout, with its header.
+    pub fn bytes(self, n: usize) -> usize {
+        let header = if self == RayLayout::Full { 0 } else { RAY_HEADER_FLOATS };
+        4 * (header + n * self.floats_per_ray())
+    }
+}
+
 /// Rays one thread checks and packs at a time: large enough to amortize scheduling, small enough
 /// to spread a chunk over every core.
 const PACK_PIECE: usize = 1 << 14;
@@ -278,6 +310,65 @@ impl Rays<'_> {
         })
     }
 
+    /// The leaner layout rays of the common shape (`PlainRays`) pack in (`pack_compact`):
+    /// `Directions` for rays from one origin that is not far from the scene, else `Compact`
+    /// (which a chunk holding a far ray gives up for `Full`); `None` for other rays.
+    pub fn compact_layout(&self, frame: &Frame) -> Option<RayLayout> {
+        let plain = PlainRays::of(self)?;
+        if !plain.shared_origin {
+            return Some(RayLayout::Compact);
+        }
+        let o = &plain.origins[..3];
+        let near = DVec3::new(f64::from(o[0]), f64::from(o[1]), f64::from(o[2])) - frame.shift;
+        (o.iter().all(|c| c.is_finite()) && !frame.is_far(near)).then_some(RayLayout::Directions)
+    }
+
+    /// Packs rays `start..` in `layout` (from `compact_layout`) into `out`, header first, as many
+    /// as fit after it; each ray's values are those `pack` writes, bit for bit. `None` where a ray
+    /// lies far from the scene (its origin is advanced, with an interval of its own): the chunk
+    /// is then packed by `pack` instead. The error names the first invalid ray.
+    pub fn pack_compact(&self, layout: RayLayout, start: usize, out: &mut [f32], frame: &Frame) -> Result<Option<()>> {
+        let plain = PlainRays::of(self).expect("compact layouts are for plain rays");
+        let PlainRays { origins, directions, interval, .. } = plain;
+        let (header, out) = out.split_at_mut(RAY_HEADER_FLOATS);
+        let o = match layout {
+            RayLayout::Directions => {
+                let near =
+                    DVec3::new(f64::from(origins[0]), f64::from(origins[1]), f64::from(origins[2])) - frame.shift;
+                near.as_vec3()
+            }
+            _ => glam::Vec3::ZERO,
+        };
+        header.copy_from_slice(&[o.x, o.y, o.z, interval[0], 0.0, 0.0, 0.0, interval[1]]);
+        let valid = |o: &[f32], d: &[f32; 3]| o.iter().chain(d).all(|c| c.is_finite()) && *d != [0.0; 3];
+        let packed = match layout {
+            RayLayout::Directions => self.pack_strided(start, out, 3, |i, ray| {
+                let d: [f32; 3] = directions[3 * i..3 * i + 3].try_into().expect("three floats");
+                if !valid(&origins[..3], &d) {
+                    return Err(Refused::Invalid);
+                }
+                ray.copy_from_slice(&d);
+                Ok(None)
+            }),
+            RayLayout::Compact => self.pack_strided(start, out, 6, |i, ray| {
+                let o: [f32; 3] = origins[3 * i..3 * i + 3].try_into().expect("three floats");
+                let d: [f32; 3] = directions[3 * i..3 * i + 3].try_into().expect("three floats");
+                if !valid(&o, &d) {
+                    return Err(Refused::Invalid);
+                }
+                let near = DVec3::new(f64::from(o[0]), f64::from(o[1]), f64::from(o[2])) - frame.shift;
+                if frame.is_far(near) {
+                    return Err(Refused::Far);
+                }
+                let o = near.as_vec3();
+                ray.copy_from_slice(&[o.x, o.y, o.z, d[0], d[1], d[2]]);
+                Ok(None)
+            }),
+            RayLayout::Full => unreachable!("the full layout packs by `pack`"),
+        }?;
+        Ok(packed.map(|_| ()))
+    }
+
     /// A far ray's origin and interval after `Frame::advance`, and how far it moved.
     #[cold]
     fn advanced(&self, i: usize, frame: &Frame) -> (DVec3, f64, f64, Option<f64>) {
@@ -321,15 +412,30 @@ impl Rays<'_> {
         out: &mut [T],
         write: impl Fn(usize, &mut [T]) -> std::result::Result<Option<f64>, Invalid> + Sync,
     ) -> Result<Vec<Advance>> {
-        let pieces: Vec<std::result::Result<Vec<Advance>, usize>> = parallel::install(|| {
-            out.par_chunks_mut(PACK_PIECE * RAY_FLOATS)
+        let packed =
+            self.pack_strided(start, out, RAY_FLOATS, |i, ray| write(i, ray).map_err(|Invalid| Refused::Invalid));
+        Ok(packed?.expect("the full layout takes every ray"))
+    }
+
+    /// `pack_pieces` for rays of `floats` values each; `None` where `write` refused a ray as
+    /// far (the layout cannot hold it), which wins over an invalid ray (the full layout's pass
+    /// names that one).
+    fn pack_strided<T: Send>(
+        &self,
+        start: usize,
+        out: &mut [T],
+        floats: usize,
+        write: impl Fn(usize, &mut [T]) -> std::result::Result<Option<f64>, Refused> + Sync,
+    ) -> Result<Option<Vec<Advance>>> {
+        let pieces: Vec<std::result::Result<Vec<Advance>, (Refused, usize)>> = parallel::install(|| {
+            out.par_chunks_mut(PACK_PIECE * floats)
                 .enumerate()
                 .map(|(piece, out)| {
                     let first = piece * PACK_PIECE;
                     let mut advances = Vec::new();
-                    for (k, ray) in out.chunks_exact_mut(RAY_FLOATS).enumerate() {
+                    for (k, ray) in out.chunks_exact_mut(floats).enumerate() {
                         match write(start + first + k, ray) {
-                            Err(Invalid) => return Err(start + first + k),
+                            Err(refused) => return Err((refused, start + first + k)),
                             Ok(Some(t)) => advances.push(Advance { ray: first + k, t }),
                             Ok(None) => {}
                         }
@@ -338,15 +444,27 @@ impl Rays<'_> {
                 })
                 .collect()
         });
-        if let Some(i) = pieces.iter().filter_map(|p| p.as_ref().err()).min() {
+        let refused = |kind| pieces.iter().filter_map(|p| p.as_ref().err()).filter(move |(r, _)| *r == kind);
+        if refused(Refused::Far).next().is_some() {
+            return Ok(None);
+        }
+        if let Some((_, i)) = refused(Refused::Invalid).min_by_key(|(_, i)| *i) {
             return Err(self.invalid_ray(*i));
         }
-        Ok(pieces.into_iter().flat_map(|p| p.unwrap_or_default()).collect())
+        Ok(Some(pieces.into_iter().flat_map(|p| p.unwrap_or_default()).collect()))
     }
 }
 
 /// A ray `pack_pieces` found invalid.
 struct Invalid;
+
+/// Why `pack_strided` could not pack a ray.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Refused {
+    Invalid,
+    /// Far from the scene: the layout has no room for its own interval.
+    Far,
+}
 
 /// Rays in the common shape, which `Rays::pack_plain` packs without asking per ray: f32 origins
 /// (one a ray, or one shared) and directions (one a ray), one valid interval for all, no sensor.
@@ -646,6 +764,55 @@ mod tests {
                 assert_eq!(bits(&a), bits(&b));
             }
         }
+    }
+
+    /// The compact layouts hold each ray's values as the full layout does, bit for bit (the
+    /// shared interval and origin in the header); a chunk with a far ray is refused, one with an
+    /// invalid ray names it.
+    #[test]
+    fn compact_layouts_pack_what_the_full_layout_packs() {
+        let frame = Frame::new(DVec3::new(0.3, -0.2, 0.1), DVec3::new(0.5, 0.0, 0.0), 1.0);
+        let n = 2 * PACK_PIECE + 7;
+        let value = |k: usize| ((k * 7919 % 1000) as f32 / 500.0 - 1.0) * if k % 3 == 0 { 3.0 } else { 1.0 };
+        let mut o: Vec<f32> = (0..3 * n).map(value).collect();
+        let d: Vec<f32> = (0..3 * n).map(|k| value(k + 11) + 0.01).collect();
+        for origins in [&o[..], &o[..3]] {
+            let plain = rays(origins, &d, PerRay::All(0.25), PerRay::All(7.5));
+            let layout = plain.compact_layout(&frame).unwrap();
+            assert_eq!(layout, if origins.len() == 3 { RayLayout::Directions } else { RayLayout::Compact });
+            let start = PACK_PIECE + 3;
+            let mut full = vec![0f32; (n - start) * RAY_FLOATS];
+            assert!(plain.pack(start, &mut full, &frame).unwrap().is_empty());
+            let mut compact = vec![0f32; layout.bytes(n - start) / 4];
+            plain.pack_compact(layout, start, &mut compact, &frame).unwrap().unwrap();
+            let (header, packed) = compact.split_at(RAY_HEADER_FLOATS);
+            let k = layout.floats_per_ray();
+            for (i, ray) in full.chunks_exact(RAY_FLOATS).enumerate() {
+                let p = &packed[k * i..k * i + k];
+                let origin = if k == 3 { &header[..3] } else { &p[..3] };
+                let expected = [origin, &header[3..4], &p[k - 3..], &header[7..8]].concat();
+                assert_eq!(
+                    ray.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                    expected.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                    "ray {i}"
+                );
+            }
+        }
+        // A far origin: per-ray origins give the chunk up; a shared one never takes a compact layout.
+        o[3 * (n - 5)] = 1e7;
+        let far = rays(&o, &d, PerRay::All(0.0), PerRay::All(f32::INFINITY as f64));
+        let mut out = vec![0f32; RayLayout::Compact.bytes(n) / 4];
+        assert!(far.pack_compact(RayLayout::Compact, 0, &mut out, &frame).unwrap().is_none());
+        assert!(rays(&o[3 * (n - 5)..3 * (n - 4)], &d, PerRay::All(0.0), PerRay::All(1.0))
+            .compact_layout(&frame)
+            .is_none());
+        // An invalid ray (zero direction) is named, as the full layout names it.
+        let mut zero = d.clone();
+        zero[3 * 40..3 * 41].fill(0.0);
+        let invalid = rays(&o[..3], &zero, PerRay::All(0.0), PerRay::All(1.0));
+        let mut out = vec![0f32; RayLayout::Directions.bytes(n) / 4];
+        let error = invalid.pack_compact(RayLayout::Directions, 0, &mut out, &frame).unwrap_err().to_string();
+        assert!(error.contains("40"), "{error}");
     }
 
     #[test]

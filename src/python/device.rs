@@ -133,6 +133,7 @@ impl PyDevice {
         d.set_item("store", p.store)?;
         d.set_item("order", p.order)?;
         d.set_item("host_threads", p.host_threads)?;
+        d.set_item("ray_bytes", p.ray_bytes)?;
         Ok(d)
     }
 

@@ -154,6 +154,7 @@ impl Tracer {
             exact: exact_scene.as_deref(),
             rays,
             variant: &variant,
+            compact: None,
             outputs,
             frame,
             all_hits: true,

@@ -14,7 +14,7 @@ use super::tracer::Tracer;
 use super::variants::{push_constant_stages, Variant};
 use crate::error::Result;
 use crate::geometry::parallel;
-use crate::geometry::rays::{Advance, Frame, Masks, Rays, RAY_FLOATS};
+use crate::geometry::rays::{Advance, Frame, Masks, RayLayout, Rays, RAY_FLOATS};
 use std::mem::size_of;
 use std::sync::Arc;
 
@@ -30,6 +30,9 @@ pub(super) struct GpuJob<'a> {
     pub exact: Option<&'a ExactScene>,
     pub rays: &'a Rays<'a>,
     pub variant: &'a Variant,
+    /// A leaner layout the rays pack in, and the variant that reads it (`Rays::compact_layout`);
+    /// a chunk it cannot hold (a far ray) takes the full layout and `variant`.
+    pub compact: Option<(RayLayout, &'a Variant)>,
     pub outputs: u32,
     pub frame: Frame,
     /// The variant meets every hit (QUERY_ALL: counts and all hits).
@@ -135,6 +138,9 @@ impl Tracer {
             }
             lap(&mut profile.unpack);
             let advances = pack_chunk(job, &mut slots[s], start, len)?;
+            if job.sensor.is_none() {
+                profile.ray_bytes += slots[s].packed_bytes(len);
+            }
             lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
@@ -186,7 +192,7 @@ impl Tracer {
             // Rays a sensor generates need no upload; the storing pass's lists always do.
             if job.sensor.is_none() {
                 let masks_at = slot.masks_offset() as u64;
-                let rays_region = vk::BufferCopy::default().size((len * Slot::ray_bytes(slot.exact)) as u64);
+                let rays_region = vk::BufferCopy::default().size(slot.packed_bytes(len) as u64);
                 let masks_region =
                     vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
                 let regions = match job.rays.mask {
@@ -223,7 +229,11 @@ impl Tracer {
             // QUERY_WINDING reads `scratch` as the cap.
             params.scratch = cap.address();
         }
-        self.record_trace(cmd, job.variant, &params, len);
+        let variant = match job.compact {
+            Some((layout, compact)) if slot.layout == layout => compact,
+            _ => job.variant,
+        };
+        self.record_trace(cmd, variant, &params, len);
         stamp(Stamp::Traced);
         record_readback(ctx, cmd, slot, job.outputs, len, lists, shader_stage);
         stamp(Stamp::ReadBack);
@@ -356,11 +366,20 @@ pub(super) fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize
     }
     let masks_at = slot.masks_offset();
     let exact = slot.exact;
+    slot.layout = RayLayout::Full;
     let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
     let (rays_bytes, masks_bytes) = packed.split_at_mut(masks_at);
+    let compact = job.compact.filter(|(layout, _)| layout.bytes(len) <= len * RAY_FLOATS * 4);
+    let mut packed_compact = false;
+    if let Some((layout, _)) = compact {
+        let out: &mut [f32] = bytemuck::cast_slice_mut(&mut rays_bytes[..layout.bytes(len)]);
+        packed_compact = job.rays.pack_compact(layout, start, out, &job.frame)?.is_some();
+    }
     let advances = if exact {
         let out: &mut [f64] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 8]);
         job.rays.pack_f64(start, out, job.frame.shift)?;
+        Vec::new()
+    } else if packed_compact {
         Vec::new()
     } else {
         let out: &mut [f32] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 4]);
@@ -371,6 +390,9 @@ pub(super) fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize
         parallel::install(|| {
             words.par_iter_mut().zip(&masks[start..start + len]).for_each(|(dst, m)| *dst = *m as u32)
         });
+    }
+    if let (true, Some((layout, _))) = (packed_compact, compact) {
+        slot.layout = layout;
     }
     Ok(advances)
 }

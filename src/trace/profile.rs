@@ -39,6 +39,9 @@ pub struct TraceProfile {
     pub order: f64,
     /// The threads the host passes ran on (the device's own, or the shared pool's).
     pub host_threads: usize,
+    /// Bytes of rays the host packed into staging (the layouts of `RayLayout`; f64 rays in the
+    /// exact tier), for the queries whose chunks it packs.
+    pub ray_bytes: usize,
 }
 
 /// The phases of one chunk that timestamps separate: start, after upload, after trace, after

@@ -9,7 +9,7 @@ use super::fields::{Field, FIELDS, FIELD_COUNT};
 use super::profile::Stamps;
 use crate::error::Result;
 use crate::geometry::align_up;
-use crate::geometry::rays::RAY_FLOATS;
+use crate::geometry::rays::{RayLayout, RAY_FLOATS};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{upload_staging, Buffer, MemoryLocation};
 use crate::gpu::records::ExactBest;
@@ -23,6 +23,8 @@ pub struct Slot {
     pub capacity: usize,
     pub exact: bool,
     pub stamps: Option<Stamps>,
+    /// How the chunk now in the slot lies in its ray staging (f32 rays; set as it is packed).
+    pub layout: RayLayout,
 }
 
 impl Slot {
@@ -44,7 +46,7 @@ impl Slot {
                 )),
             )
         };
-        Ok(Slot { rays_host, hits_host, device, capacity, exact, stamps: Stamps::new(ctx)? })
+        Ok(Slot { rays_host, hits_host, device, capacity, exact, stamps: Stamps::new(ctx)?, layout: RayLayout::Full })
     }
 
     /// Bytes of one packed ray; the rays buffer holds `capacity` of them, then one u32 mask each.
@@ -55,6 +57,15 @@ impl Slot {
     /// Host bytes a slot of `capacity` rays takes (its staging, not its device copies).
     pub fn host_bytes(capacity: usize, exact: bool) -> usize {
         capacity * (Slot::ray_bytes(exact) + 4) + Slot::layout(capacity, exact).1
+    }
+
+    /// Bytes of the chunk of `len` rays now in the slot's ray staging.
+    pub fn packed_bytes(&self, len: usize) -> usize {
+        if self.exact {
+            len * Slot::ray_bytes(true)
+        } else {
+            self.layout.bytes(len)
+        }
     }
 
     pub fn masks_offset(&self) -> usize {

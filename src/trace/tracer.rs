@@ -13,13 +13,13 @@ use super::request::{Crossings, Precision, Query, Request, SignedDistance, DEFAU
 use super::staging::SlotPool;
 use super::tiers;
 use super::variants::{
-    ray_flag_names, ray_flags, Stage, Variant, VariantKey, Variants, RAYS_FROM_BUFFER, RAYS_FROM_SENSOR,
+    ray_flag_names, ray_flags, ray_source, Stage, Variant, VariantKey, Variants, RAYS_FROM_BUFFER, RAYS_FROM_SENSOR,
 };
 use crate::error::{invalid_value, try_vec, Error, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::morton;
 use crate::geometry::parallel::{self, OwnPool};
-use crate::geometry::rays::Rays;
+use crate::geometry::rays::{RayLayout, Rays};
 use crate::gpu::context::{Backend, Context, Interrupt};
 use crate::gpu::memory::Buffer;
 use crate::gpu::records::{ExactHit, FastHit};
@@ -51,6 +51,9 @@ pub struct Tracer {
     pub(super) pack_on_gpu: bool,
     /// Threads of this device's own for its queries' host passes (`set_host_threads`).
     host_pool: Mutex<Option<Arc<OwnPool>>>,
+    /// Whether host-packed f32 rays of the common shape take the leaner layouts
+    /// (`Rays::compact_layout`); `VKRAY_PACK=full` keeps the full one (for measuring).
+    pack_compact: bool,
 }
 
 /// What `Tracer::explain` tells of a variant.
@@ -91,6 +94,7 @@ impl Tracer {
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
             pack_on_gpu: super::device_rays::pack_on_gpu_by_default(ctx),
             host_pool: Mutex::new(None),
+            pack_compact: std::env::var("VKRAY_PACK").as_deref() != Ok("full"),
         })
     }
 
@@ -433,7 +437,15 @@ impl Tracer {
             _ => None,
         };
         let (exact, cap) = (exact_scene.as_deref(), cap.as_deref());
-        let job = GpuJob { scene, exact, rays, variant: &variant, outputs, frame, all_hits, sensor, cap };
+        let compact_variant = match self.compact_layout(scene, rays, exact_scene.is_some() || sensor.is_some()) {
+            Some(layout) => {
+                let key = self.variant_key(scene, request, false, outputs, false);
+                Some((layout, self.variants.get(VariantKey { ray_source: ray_source(layout), ..key })?))
+            }
+            None => None,
+        };
+        let compact = compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant));
+        let job = GpuJob { scene, exact, rays, variant: &variant, compact, outputs, frame, all_hits, sensor, cap };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
         self.slots.give_back(slots);
         result
@@ -441,6 +453,15 @@ impl Tracer {
 }
 
 impl Tracer {
+    /// The leaner layout a GPU query's host-packed f32 rays take, if any (rays of the common
+    /// shape; not the exact tier's f64 rays, nor rays a sensor generates on the GPU).
+    fn compact_layout(&self, scene: &Scene, rays: &Rays, exact_or_sensor: bool) -> Option<RayLayout> {
+        if exact_or_sensor || !self.pack_compact {
+            return None;
+        }
+        rays.compact_layout(&scene.frame())
+    }
+
     /// The variant a GPU query runs (see `VariantKey`), and the sensor record its shaders
     /// generate the rays from where they can (rays of a sensor none of whose rays the host would
     /// advance).

@@ -10,6 +10,7 @@ use ash::vk;
 use super::request::{Cull, Query};
 use crate::error::{vulkan_error, Result, VkResultExt};
 use crate::geometry::align_up;
+use crate::geometry::rays::RayLayout;
 use crate::gpu::context::{Backend, Context};
 use crate::gpu::memory::{Buffer, Uploads};
 use crate::gpu::records::Params;
@@ -36,7 +37,8 @@ pub struct VariantKey {
     /// OPACITY_THRESHOLD's bits (f32); the default where the scene has no opacity, so that
     /// opaque scenes share one variant whatever the threshold asked.
     pub threshold_bits: u32,
-    /// RAY_SOURCE: `RAYS_FROM_BUFFER`, `RAYS_FROM_SENSOR` or `RAYS_FROM_POINTS`.
+    /// RAY_SOURCE: `RAYS_FROM_BUFFER` (or its leaner layouts, `ray_source`), `RAYS_FROM_SENSOR`
+    /// or `RAYS_FROM_POINTS`.
     pub ray_source: u32,
 }
 
@@ -47,6 +49,21 @@ pub const RAYS_FROM_SENSOR: u32 = 1;
 /// RAY_SOURCE (exact tier): one ray from each point of a closest-point search's buffer, described
 /// by a `PointRays` record (the sign of a signed distance).
 pub const RAYS_FROM_POINTS: u32 = 2;
+/// RAY_SOURCE: rays in the buffer as `RayLayout::Compact` lays them out (origin and direction a
+/// ray, the interval in a header).
+pub const RAYS_FROM_COMPACT: u32 = 3;
+/// RAY_SOURCE: rays in the buffer as `RayLayout::Directions` lays them out (a direction a ray,
+/// the origin and interval in a header).
+pub const RAYS_FROM_DIRECTIONS: u32 = 4;
+
+/// The RAY_SOURCE that reads rays packed in `layout`.
+pub fn ray_source(layout: RayLayout) -> u32 {
+    match layout {
+        RayLayout::Full => RAYS_FROM_BUFFER,
+        RayLayout::Compact => RAYS_FROM_COMPACT,
+        RayLayout::Directions => RAYS_FROM_DIRECTIONS,
+    }
+}
 
 impl VariantKey {
     /// Whether the pipeline backend's triangles go through an any-hit stage, and which: every
