@@ -42,7 +42,11 @@ def bunny_scenes(pair, shift=(0.0, 0.0, 0.0)):
 def queries(scene, o, d, **bounds):
     """Every query kind the chunk loop packs rays for, by name."""
     hits = scene.intersect(o, d, outputs=vkray.HIT_FIELDS, **bounds)
+    every = scene.intersect_all(o, d, outputs=["t", "prim_id"], **bounds)
     return {
+        "intersect_all offsets": every.offsets,
+        "intersect_all t": every.t,
+        "intersect_all prim_id": every.prim_id,
         **{f"intersect {name}": getattr(hits, name) for name in vkray.HIT_FIELDS},
         "occluded": scene.occluded(o, d, **bounds),
         "count": scene.count(o, d, **bounds),
@@ -122,6 +126,12 @@ def test_a_chunk_with_a_far_ray_takes_the_full_layout(pair):
         assert_bitwise(queries(lean, o, d), queries(full, o, d), "far ray")
         assert np.isfinite(lean.intersect(o, d).t[2500])
         assert packed_bytes(lean, o, d) == 4 * (24 * 1000 + HEADER) + 32 * 1000
+        # A far ray and an invalid one in one chunk: the invalid one is named, as in full.
+        bad = d.copy()
+        bad[2600] = 0.0
+        for scene in (lean, full):
+            with pytest.raises(ValueError, match="2600"):
+                scene.intersect(o, bad)
     finally:
         for device, rays in zip(devices, saved):
             device.chunk_rays = rays

@@ -135,6 +135,8 @@ impl Tracer {
         let outputs = Field::Prim.bit();
         let all = Request { query: Query::All, ..request };
         let (variant, sensor) = self.gpu_variant(scene, rays, all, exact, outputs)?;
+        // The counting pass's layouts (its rays reach traversal the same either way).
+        let compact_variant = self.compact_variant(scene, rays, all, outputs, exact || sensor.is_some())?;
         let offsets = &stored.offsets;
         let widest = offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0);
         let total = *offsets.last().unwrap_or(&0) as usize;
@@ -154,7 +156,7 @@ impl Tracer {
             exact: exact_scene.as_deref(),
             rays,
             variant: &variant,
-            compact: None,
+            compact: compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant)),
             outputs,
             frame,
             all_hits: true,

@@ -437,13 +437,8 @@ impl Tracer {
             _ => None,
         };
         let (exact, cap) = (exact_scene.as_deref(), cap.as_deref());
-        let compact_variant = match self.compact_layout(scene, rays, exact_scene.is_some() || sensor.is_some()) {
-            Some(layout) => {
-                let key = self.variant_key(scene, request, false, outputs, false);
-                Some((layout, self.variants.get(VariantKey { ray_source: ray_source(layout), ..key })?))
-            }
-            None => None,
-        };
+        let compact_variant =
+            self.compact_variant(scene, rays, request, outputs, exact_scene.is_some() || sensor.is_some())?;
         let compact = compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant));
         let job = GpuJob { scene, exact, rays, variant: &variant, compact, outputs, frame, all_hits, sensor, cap };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
@@ -454,12 +449,22 @@ impl Tracer {
 
 impl Tracer {
     /// The leaner layout a GPU query's host-packed f32 rays take, if any (rays of the common
-    /// shape; not the exact tier's f64 rays, nor rays a sensor generates on the GPU).
-    fn compact_layout(&self, scene: &Scene, rays: &Rays, exact_or_sensor: bool) -> Option<RayLayout> {
+    /// shape; not the exact tier's f64 rays, nor rays a sensor generates on the GPU), and the
+    /// variant of `request` that reads it.
+    pub(super) fn compact_variant(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        outputs: u32,
+        exact_or_sensor: bool,
+    ) -> Result<Option<(RayLayout, Arc<Variant>)>> {
         if exact_or_sensor || !self.pack_compact {
-            return None;
+            return Ok(None);
         }
-        rays.compact_layout(&scene.frame())
+        let Some(layout) = rays.compact_layout(&scene.frame()) else { return Ok(None) };
+        let key = self.variant_key(scene, request, false, outputs, false);
+        Ok(Some((layout, self.variants.get(VariantKey { ray_source: ray_source(layout), ..key })?)))
     }
 
     /// The variant a GPU query runs (see `VariantKey`), and the sensor record its shaders
