@@ -868,7 +868,9 @@ class Scene:
         by name), ``pipeline_flags`` (primitives the whole pipeline skips), ``outputs`` (the hit
         fields the GPU writes), ``specialization`` (the constants' values), ``device``,
         ``backend``, ``kind`` and ``precision``. The ``"reference"`` tier runs on the CPU: its
-        stages are empty.
+        stages are empty. ``RAY_SOURCE`` is shown for rays in the full layout (0) or a sensor's (1):
+        float32 rays of one interval run the same variant reading the leaner layouts (3: origin and
+        direction a ray; 4: from one origin, a direction a ray), which the rays decide.
         """
         kinds = {"closest": "closest", "occluded": "occluded", "all": "all", "count": "count"}
         kinds.update({"contains": "contains", "transmittance": "transmittance"})
