@@ -110,9 +110,9 @@ def test_leaner_layouts_answer_as_the_full_layout(pair, shift):
 
 
 def test_a_chunk_with_a_far_ray_takes_the_full_layout(pair):
-    """Chunks of 1000 rays, one of them holding a ray from 1e6 radii away (advanced towards the
-    scene before packing): that chunk is packed in full, the others lean; the answers (t of the
-    far ray included) are the full layout's."""
+    """Chunks of 1000 rays, the third holding a ray from 1e6 radii away (advanced towards the
+    scene before packing): that chunk and those after it are packed in full, the two before lean;
+    the answers (t of the far ray included) are the full layout's."""
     (lean, full), v = bunny_scenes(pair)
     o, d = (a.astype(np.float32) for a in oracle.random_rays(v, N, seed=5))
     centre, radius = oracle.bounds(v)
@@ -125,7 +125,7 @@ def test_a_chunk_with_a_far_ray_takes_the_full_layout(pair):
             device.chunk_rays = 1000
         assert_bitwise(queries(lean, o, d), queries(full, o, d), "far ray")
         assert np.isfinite(lean.intersect(o, d).t[2500])
-        assert packed_bytes(lean, o, d) == 4 * (24 * 1000 + HEADER) + 32 * 1000
+        assert packed_bytes(lean, o, d) == 2 * (24 * 1000 + HEADER) + 3 * 32 * 1000
         # A far ray and an invalid one in one chunk: the invalid one is named, as in full.
         bad = d.copy()
         bad[2600] = 0.0

@@ -157,6 +157,7 @@ impl Tracer {
             rays,
             variant: &variant,
             compact: compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant)),
+            compact_refused: Default::default(),
             outputs,
             frame,
             all_hits: true,

@@ -16,6 +16,7 @@ use crate::error::Result;
 use crate::geometry::parallel;
 use crate::geometry::rays::{Advance, Frame, Masks, RayLayout, Rays, RAY_FLOATS};
 use std::mem::size_of;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use crate::gpu::context::{Backend, Commands, Context, Interrupt};
@@ -31,8 +32,12 @@ pub(super) struct GpuJob<'a> {
     pub rays: &'a Rays<'a>,
     pub variant: &'a Variant,
     /// A leaner layout the rays pack in, and the variant that reads it (`Rays::compact_layout`);
-    /// a chunk it cannot hold (a far ray) takes the full layout and `variant`.
+    /// a chunk it cannot hold (a far ray) takes the full layout and `variant`, and so do the
+    /// chunks after it (`compact_refused`): rays far from the scene tend to come together.
     pub compact: Option<(RayLayout, &'a Variant)>,
+    /// A chunk of this job had a far ray: the rest pack in the full layout at once, rather than
+    /// each packing twice.
+    pub compact_refused: AtomicBool,
     pub outputs: u32,
     pub frame: Frame,
     /// The variant meets every hit (QUERY_ALL: counts and all hits).
@@ -369,11 +374,13 @@ pub(super) fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize
     slot.layout = RayLayout::Full;
     let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
     let (rays_bytes, masks_bytes) = packed.split_at_mut(masks_at);
-    let compact = job.compact.filter(|(layout, _)| layout.bytes(len) <= len * RAY_FLOATS * 4);
+    let refused = job.compact_refused.load(Ordering::Relaxed);
+    let compact = job.compact.filter(|(layout, _)| !refused && layout.bytes(len) <= len * RAY_FLOATS * 4);
     let mut packed_compact = false;
     if let Some((layout, _)) = compact {
         let out: &mut [f32] = bytemuck::cast_slice_mut(&mut rays_bytes[..layout.bytes(len)]);
         packed_compact = job.rays.pack_compact(layout, start, out, &job.frame)?.is_some();
+        job.compact_refused.store(!packed_compact, Ordering::Relaxed);
     }
     let advances = if exact {
         let out: &mut [f64] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 8]);

@@ -440,7 +440,20 @@ impl Tracer {
         let compact_variant =
             self.compact_variant(scene, rays, request, outputs, exact_scene.is_some() || sensor.is_some())?;
         let compact = compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant));
-        let job = GpuJob { scene, exact, rays, variant: &variant, compact, outputs, frame, all_hits, sensor, cap };
+        let compact_refused = Default::default();
+        let job = GpuJob {
+            scene,
+            exact,
+            rays,
+            variant: &variant,
+            compact,
+            compact_refused,
+            outputs,
+            frame,
+            all_hits,
+            sensor,
+            cap,
+        };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
         self.slots.give_back(slots);
         result
