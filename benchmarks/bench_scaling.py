@@ -35,10 +35,13 @@ took each array's blocks from its own optimized graph): 20 s a computation for 6
 worker of the 2-core test machine, in each of the 8 computations per device count.
 Resident (--resident, torch with CUDA): the group's rays as float32 CUDA tensors, each of k GPUs'
 share (contiguous, in proportion to equal weights) already on that GPU; one thread per GPU calls
-`GroupScene.intersect` (lean) or `occluded` on its share, which runs whole on that GPU (CUDA rays
-are not split), the hits left there; timed to `torch.cuda.synchronize` of every GPU. Every answer
-is compared with one `Scene`'s numpy answer on the same rays. A DeviceGroup does not split one
-CUDA array over its GPUs: rays already spread over the GPUs are what scales.
+`intersect` (lean) or `occluded` on its share through that GPU's member of the group
+(`GroupScene.per_device[j]`: rays already spread over the GPUs, nothing copied between them), the
+hits left there; timed to `torch.cuda.synchronize` of every GPU. Every answer
+is compared with one `Scene`'s numpy answer on the same rays. Then "on one GPU, split": all the
+rays as one tensor pair on the first GPU, one call of the group, which splits them (each member
+copies its rows over NVLink or PCIe and its hits back; shares by measured speed, the first call
+untimed), the hits on that GPU, timed to the synchronization of every GPU.
 """
 
 from __future__ import annotations
@@ -150,7 +153,7 @@ def bench_resident(devices: List[Any], mesh: Any, o: np.ndarray, d: np.ndarray, 
             answers: List[Any] = [None] * k
 
             def one(j: int) -> None:
-                answers[j] = answer(scene, query, *shares[j])
+                answers[j] = answer(scene.per_device[j], query, *shares[j])
 
             threads = [threading.Thread(target=one, args=(j,)) for j in range(k)]
             for t in threads:
@@ -174,6 +177,26 @@ def bench_resident(devices: List[Any], mesh: Any, o: np.ndarray, d: np.ndarray, 
             log(f"{k} devices: resident {query}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), answers "
                 f"{'equal' if ok else 'DIFFER FROM'} one Scene's")
             rows.append(dict(mode="DeviceGroup, CUDA rays", devices=k, query=query, rays=n, seconds=seconds, same=ok))
+        whole = (torch.from_numpy(o).to(gpus[0]), torch.from_numpy(d).to(gpus[0]))
+
+        def run_split(query: str) -> Dict[str, Any]:
+            result = answer(scene, query, *whole)
+            for g in gpus:
+                torch.cuda.synchronize(g)
+            return result
+
+        for query in QUERIES:
+            result = run_split(query)  # warm-up, and the first split by measured speeds
+            seconds = best_of(repeat, lambda: run_split(query))
+            got = {name: torch.from_dlpack(a).cpu().numpy() for name, a in result.items()}
+            if query == "occluded":
+                got["occluded"] = got["occluded"] >= 0
+            ok = same(got, reference[query])
+            shares = [round(w / sum(group.weights(f"{query}/cuda")), 3) for w in group.weights(f"{query}/cuda")]
+            log(f"{k} devices: one GPU's tensor split, {query}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), "
+                f"shares {shares}, answers {'equal' if ok else 'DIFFER FROM'} one Scene's")
+            rows.append(dict(mode="DeviceGroup, CUDA rays on one GPU, split", devices=k, query=query, rays=n,
+                             seconds=seconds, same=ok, shares=shares))
     return rows
 
 

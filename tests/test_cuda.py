@@ -192,24 +192,116 @@ def test_cupy_reads_the_hits(bunny):
     np.testing.assert_array_equal(cupy.from_dlpack(hits.prim_id).get(), scene.intersect(o, d).prim_id)
 
 
-def test_a_group_traces_cuda_rays_on_the_gpu_that_holds_them(bunny):
-    """A DeviceGroup of every device sharing memory with CUDA: rays on cuda:N are traced whole by
-    the member that is cuda:N, and the hits stay there, equal to numpy's; rays on a GPU outside
-    the group name it."""
+def cuda_groups(v, f):
+    """Groups to split CUDA rays over: the same GPU opened twice (copies within one CUDA
+    context), and every CUDA GPU where there are several (copies between GPUs), unequal weights."""
+    members = [d.index for d in vkray.devices() if vkray.Device(d.index).cuda_device is not None]
+    groups = [vkray.DeviceGroup([members[0], members[0]], weights=[1, 2])]
+    if len(members) > 1:
+        groups.append(vkray.DeviceGroup(members, weights=list(range(1, len(members) + 1))))
+    return [(g, g.scene([g.mesh(v, f)])) for g in groups]
+
+
+@pytest.fixture(scope="module")
+def groups(bunny):
+    v, _ = bunny
+    return cuda_groups(v, oracle.load_obj("stanford-bunny")[1])
+
+
+def test_a_group_splits_cuda_rays_and_hands_the_hits_back_on_their_gpu(bunny, groups):
+    """Rays on cuda:N through a DeviceGroup: every member traces its piece (copied from cuda:N)
+    and writes its hits back there; the hits equal numpy's on one Scene, for every field and
+    occluded, for float64 rays from one eye with per-ray bounds, and for strided tensors."""
+    v, scene = bunny
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 100_003, seed=2))
+    expected = scene.intersect(o, d, outputs=EVERY)
+    rng = np.random.default_rng(5)
+    eye = (v.mean(axis=0) + [0.0, 0.0, 1e5]).reshape(1, 3)
+    d64 = v[rng.integers(0, len(v), 70_001)] - eye
+    tmax = rng.uniform(0.5, 2.0, len(d64))
+    expected64 = scene.intersect(eye, d64, tmax=tmax, outputs=["t", "prim_id"])
+    assert expected64.hit.sum() > 1000
+    for group, group_scene in groups:
+        for device in group.devices:
+            where = f"cuda:{device.cuda_device}"
+            hits = group_scene.intersect(torch.from_numpy(o).to(where), torch.from_numpy(d).to(where), outputs=EVERY)
+            assert torch.from_dlpack(hits.t).device == torch.device(where)
+            assert hits.t.shape == (len(o),) and hits.normal.shape == (len(o), 3)
+            assert_same(hits, expected, EVERY)
+            blocked = group_scene.occluded(torch.from_numpy(o).to(where), torch.from_numpy(d).to(where))
+            np.testing.assert_array_equal(on_host(blocked) >= 0, expected.hit)
+            far = group_scene.intersect(torch.from_numpy(eye).to(where), torch.from_numpy(d64).to(where),
+                                        tmax=torch.from_numpy(tmax).to(where), outputs=["t", "prim_id"])
+            assert_same(far, expected64, ["t", "prim_id"])
+            both = torch.from_numpy(np.hstack([o, d])).to(where)  # rows 6 floats apart
+            transposed = torch.from_numpy(np.ascontiguousarray(d.T)).to(where).T  # columns n apart
+            assert_same(group_scene.intersect(both[:, :3], transposed, outputs=["t", "prim_id"]), expected,
+                        ["t", "prim_id"])
+        speeds = group.speeds
+        assert all(s is not None for s in speeds["intersect/cuda"]), speeds  # every member traced a piece
+        assert all(s is not None for s in speeds["occluded/cuda"]), speeds
+
+
+def test_a_split_of_cuda_rays_names_the_callers_row_and_outlives_the_rays(bunny, groups):
+    """An invalid ray in the last piece is named by the caller's row; the caller's tensors freed
+    (and their memory written over) right after the call leave the hits intact, which outlive
+    the group's scene."""
+    v, scene = bunny
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 60_000, seed=8))
+    expected = scene.intersect(o, d, outputs=["t", "prim_id"])
+    bad = d.copy()
+    bad[59_990] = 0.0
+    for _group, group_scene in groups:
+        with pytest.raises(ValueError, match="row 59990"):
+            group_scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(bad).cuda())
+        rays = [torch.from_numpy(a).cuda() for a in (o, d)]
+        hits = group_scene.intersect(*rays, outputs=["t", "prim_id"])
+        del rays
+        gc.collect()
+        litter = torch.full((len(o) * 6,), float("nan"), device="cuda")  # reuses the freed memory
+        assert_same(hits, expected, ["t", "prim_id"])
+        del litter
+    lone_group, lone_scene = cuda_groups(v, oracle.load_obj("stanford-bunny")[1])[0]
+    hits = lone_scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda(), outputs=["t"])
+    del lone_scene, lone_group
+    gc.collect()
+    np.testing.assert_array_equal(on_host(hits.t), expected.t)
+
+
+def test_a_group_splits_cuda_rays_from_several_threads(bunny, groups):
+    v, scene = bunny
+    batches = [[a.astype(np.float32) for a in oracle.random_rays(v, 40_000, seed=20 + k)] for k in range(4)]
+    expected = [scene.intersect(o, d).t for o, d in batches]
+    for _group, group_scene in groups:
+        found: list = [None] * len(batches)
+        errors: list = []
+
+        def work(k, group_scene=group_scene, found=found, errors=errors):
+            try:
+                o, d = (torch.from_numpy(a).cuda() for a in batches[k])
+                for _ in range(3):
+                    found[k] = on_host(group_scene.intersect(o, d).t)
+            except Exception as exc:  # reported below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=work, args=(k,)) for k in range(len(batches))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert not errors, errors
+        for a, b in zip(found, expected):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_cuda_rays_of_a_gpu_outside_the_group_are_named(bunny):
     v, _ = bunny
     members = [d for d in vkray.devices() if vkray.Device(d.index).cuda_device is not None]
-    group = vkray.DeviceGroup([d.index for d in members])
-    scene = group.scene([group.mesh(v, oracle.load_obj("stanford-bunny")[1])])
-    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 50_000, seed=2))
-    expected = scene.intersect(o, d, outputs=EVERY)
-    for device in group.devices:
-        where = f"cuda:{device.cuda_device}"
-        hits = scene.intersect(torch.from_numpy(o).to(where), torch.from_numpy(d).to(where), outputs=EVERY)
-        assert torch.from_dlpack(hits.t).device == torch.device(where)
-        assert_same(hits, expected, EVERY)
-    if len(group.devices) > 1:
-        alone = vkray.DeviceGroup([members[0].index])
-        other = f"cuda:{group.devices[1].cuda_device}"
-        lone = alone.scene([alone.mesh(v, oracle.load_obj("stanford-bunny")[1])])
-        with pytest.raises(ValueError, match=f"the rays live on {other}, which is none of this group's devices"):
-            lone.intersect(torch.from_numpy(o).to(other), torch.from_numpy(d).to(other))
+    if len(members) < 2:
+        pytest.skip("one CUDA GPU: no GPU outside a group of it")
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 1000, seed=2))
+    alone = vkray.DeviceGroup([members[0].index])
+    other = f"cuda:{vkray.Device(members[1].index).cuda_device}"
+    lone = alone.scene([alone.mesh(v, oracle.load_obj("stanford-bunny")[1])])
+    with pytest.raises(ValueError, match=f"the rays live on {other}, which is none of this group's devices"):
+        lone.intersect(torch.from_numpy(o).to(other), torch.from_numpy(d).to(other))

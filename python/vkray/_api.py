@@ -827,21 +827,25 @@ class Scene:
         opacity_threshold: float,
     ) -> Dict[str, Any]:
         """The GPU-resident path: rays in CUDA memory, hits left there (see `intersect`)."""
-        if precision != "fast":
-            raise _core.UnsupportedError(
-                f"precision={precision!r} is not available for CUDA rays: only 'fast' stays on the GPU; pass numpy "
-                f"arrays for the other tiers (e.g. tensor.cpu().numpy())"
-            )
-        if "position" in fields:
-            raise _core.UnsupportedError("'position' is computed on the host: not available for CUDA rays")
-        if progress:
-            raise _core.UnsupportedError("progress is not shown for CUDA rays (one submission, nothing to report)")
-        ray_mask = _arrays.integer("mask", mask, 0, 255, " (one mask for every CUDA ray)")
+        ray_mask = _check_cuda_query(fields, precision, progress, mask)
         return cast(
             Dict[str, Any],
             self._core.trace_cuda(origins, directions, tmin, tmax, query, list(fields), cull, ray_mask,
                                   opacity_threshold),
         )
+
+    def _cuda_batch(
+        self, origins: Any, directions: Any, tmin: Any, tmax: Any, fields: Iterable[str], precision: Precision,
+        mask: Any, progress: bool,
+    ) -> Any:
+        """A batch of CUDA rays on this device's GPU for several devices to trace in pieces
+        (`DeviceGroup`): `_core.CudaBatch`, checked as `_trace_cuda` checks a query."""
+        ray_mask = _check_cuda_query(fields, precision, progress, mask)
+        return self._core.cuda_batch(origins, directions, tmin, tmax, list(fields), ray_mask)
+
+    def _cuda_piece(self, batch: Any, start: int, stop: int, query: str, cull: Cull, opacity_threshold: float) -> None:
+        """Rows ``start:stop`` of ``batch`` traced on this device, their hits written into the batch."""
+        self._core.trace_cuda_piece(batch, start, stop, query, cull, opacity_threshold)
 
     def explain(
         self,
@@ -1279,6 +1283,21 @@ class _RayBatch:
         self.shape = shape
         self.arrays = (o, d, lo, hi)
         self.mask = _arrays.masks(mask, shape)
+
+
+def _check_cuda_query(fields: Iterable[str], precision: Precision, progress: bool, mask: Any) -> int:
+    """The one mask of a GPU-resident query, once its options are checked (only the fast tier and
+    the fields computed on the GPU, no progress bar)."""
+    if precision != "fast":
+        raise _core.UnsupportedError(
+            f"precision={precision!r} is not available for CUDA rays: only 'fast' stays on the GPU; pass numpy "
+            f"arrays for the other tiers (e.g. tensor.cpu().numpy())"
+        )
+    if "position" in fields:
+        raise _core.UnsupportedError("'position' is computed on the host: not available for CUDA rays")
+    if progress:
+        raise _core.UnsupportedError("progress is not shown for CUDA rays (one submission, nothing to report)")
+    return _arrays.integer("mask", mask, 0, 255, " (one mask for every CUDA ray)")
 
 
 def _cuda_shape(arrays: Dict[str, Any]) -> Tuple[int, ...]:

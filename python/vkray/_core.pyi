@@ -25,6 +25,7 @@ __all__ = [
     "ValidationError",
     "ForkedDeviceError",
     "CudaArray",
+    "CudaBatch",
 ]
 
 # (N, 3) float32 or float64.
@@ -180,6 +181,24 @@ class Scene:
         mask: int = 255,
         opacity_threshold: float = 0.5,
     ) -> Dict[str, CudaArray]: ...
+    def cuda_batch(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any,
+        tmax: Any,
+        fields: List[str],
+        mask: int = 255,
+    ) -> CudaBatch: ...
+    def trace_cuda_piece(
+        self,
+        batch: CudaBatch,
+        start: int,
+        stop: int,
+        query: str,
+        cull: Cull = None,
+        opacity_threshold: float = 0.5,
+    ) -> None: ...
     def trace_all(
         self,
         origins: _Vec3s,
@@ -242,6 +261,16 @@ class Scene:
         winding: bool,
         progress: Optional[Callable[[int, int], object]] = None,
     ) -> NDArray[np.float64]: ...
+
+@final
+class CudaBatch:
+    """A batch of CUDA rays traced in pieces by several devices (`DeviceGroup`), its hits
+    allocated on the GPU that holds the rays."""
+
+    def __len__(self) -> int: ...
+    @property
+    def shape(self) -> Tuple[int, ...]: ...
+    def finish(self) -> Dict[str, CudaArray]: ...
 
 @final
 class CudaArray:

@@ -30,6 +30,7 @@ from typing import (
     Tuple,
     TypeVar,
     Union,
+    cast,
 )
 
 import numpy as np
@@ -726,6 +727,16 @@ def _cuda_rows(*arrays: Any) -> int:
     return max(rows, default=0)
 
 
+def _cuda_fields(query_name: str, options: Dict[str, Any]) -> Optional[Tuple[str, ...]]:
+    """The fields a split query of CUDA rays writes (as `Scene` asks for them), or None where
+    the query is not split (it runs whole, where `Scene` raises what it raises)."""
+    if query_name == "occluded":
+        return ("prim_id",)
+    if query_name == "intersect":
+        return tuple(options["outputs"]) if options["outputs"] is not None else DEFAULT_FIELDS
+    return None
+
+
 def _join(parts: Sequence[Optional[np.ndarray]]) -> Optional[np.ndarray]:
     """The pieces' arrays of one field end to end (None where the field was not asked)."""
     if parts[0] is None:
@@ -896,11 +907,7 @@ class GroupScene:
         if isinstance(origins, Sensor):
             return self._whole(kind, len(origins), unsplit, progress)
         if _arrays.on_cuda(origins, rays["directions"]):
-            # CUDA rays stay on their GPU: the query runs whole on the device that is that GPU.
-            device = self._cuda_member(origins, rays["directions"])
-            count = _cuda_rows(origins, rays["directions"])
-            whole = [(device, 0, count)]
-            return self._run(kind, whole, lambda k, _start, _stop: unsplit(self.per_device[k]), progress)[0]
+            return self._trace_cuda(query_name, rays, progress, out, unsplit, options)
         if rays["directions"] is None:  # the device raises what it raises
             return self._whole(kind, 0, unsplit, progress)
         batch = _RaysToSplit(**rays)
@@ -922,6 +929,57 @@ class GroupScene:
             return query(self.per_device[device], **batch.piece(start, stop), **rows)
 
         return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress, into)
+
+    def _trace_cuda(
+        self,
+        query_name: str,
+        rays: Dict[str, Any],
+        progress: bool,
+        out: Optional[Hits],
+        unsplit: Callable[[Scene], T],
+        options: Dict[str, Any],
+    ) -> T:
+        """``Scene.<query_name>`` over CUDA rays, whose hits come back on the GPU that holds them.
+        `intersect` and `occluded` (the fast tier, every device a CUDA GPU) are split: each device
+        copies its rows from that GPU, traces them, and copies its hits into the batch's arrays
+        there, all in CUDA's stream order (over NVLink or PCIe, never through the host). Other
+        queries run whole on the device that is that GPU, which raises what `Scene` raises."""
+        origins, directions = rays["origins"], rays["directions"]
+        home = self._cuda_member(origins, directions)
+        kind = f"{query_name}/cuda"
+
+        def whole() -> T:
+            rows = _cuda_rows(origins, directions)
+            return self._run(kind, [(home, 0, rows)], lambda k, _start, _stop: unsplit(self.per_device[k]), progress)[0]
+
+        fields = _cuda_fields(query_name, options)
+        splittable = (
+            fields is not None
+            and out is None
+            and not progress
+            and options["precision"] == "fast"
+            and len(self.per_device) > 1
+            and all(d.cuda_device is not None for d in self.group.devices)
+        )
+        if not splittable or _cuda_rows(origins, directions) <= 1:
+            return whole()
+        assert fields is not None
+        scene = self.per_device[home]
+        batch = scene._cuda_batch(origins, directions, rays["tmin"], rays["tmax"], fields, "fast", rays["mask"], False)
+        pieces = self._pieces(kind, len(batch))
+        if len(pieces) == 1:
+            return whole()
+        core_query = "closest" if query_name == "intersect" else "occluded"
+        cull, threshold = options["cull"], options["opacity_threshold"]
+
+        def piece(device: int, start: int, stop: int) -> None:
+            self.per_device[device]._cuda_piece(batch, start, stop, core_query, cull, threshold)
+
+        self._run(kind, pieces, piece, progress)
+        arrays: Dict[str, Any] = batch.finish()
+        if query_name == "occluded":
+            return cast(T, arrays["prim_id"])
+        return cast(T, Hits(tuple(batch.shape), arrays, "fast"))
 
     def _points(
         self,

@@ -6,7 +6,7 @@
 use std::ffi::c_void;
 use std::mem::MaybeUninit;
 use std::os::fd::IntoRawFd;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use cudarc::driver::sys;
 
@@ -28,7 +28,16 @@ pub struct Cuda {
     context: sys::CUcontext,
     /// CUDA's index of the device (DLPack's device id).
     pub ordinal: i32,
+    /// The devices whose memory this context reaches directly (peer access enabled).
+    peers: Mutex<Vec<i32>>,
+    /// A memory pool of this device whose allocations other devices may write (`shared_pool`):
+    /// made on first use, with the devices granted access.
+    shared_pool: Mutex<Option<(SharedPool, Vec<i32>)>>,
 }
+
+/// A CUDA memory pool handle.
+#[derive(Clone, Copy)]
+struct SharedPool(sys::CUmemoryPool);
 
 // SAFETY: a CUDA context may be made current on any thread; the handles are plain values.
 unsafe impl Send for Cuda {}
@@ -63,7 +72,8 @@ impl Cuda {
             let mut context = std::ptr::null_mut();
             // SAFETY: `device` is valid; the retained context is released in `Drop`.
             check("cuDevicePrimaryCtxRetain", unsafe { sys::cuDevicePrimaryCtxRetain(&mut context, device) })?;
-            return Ok(Some(Arc::new(Cuda { device, context, ordinal })));
+            let (peers, shared_pool) = (Mutex::new(Vec::new()), Mutex::new(None));
+            return Ok(Some(Arc::new(Cuda { device, context, ordinal, peers, shared_pool })));
         }
         Ok(None)
     }
@@ -75,10 +85,106 @@ impl Cuda {
         check("cuCtxPushCurrent", unsafe { sys::cuCtxPushCurrent_v2(self.context) })?;
         Ok(Entered { _cuda: self })
     }
+
+    /// Whether `other` is the same CUDA device (the same context).
+    pub fn is(&self, other: &Cuda) -> bool {
+        self.context == other.context
+    }
+
+    /// Lets this device's copies read and write `peer`'s memory directly (over NVLink or PCIe)
+    /// where the hardware allows; elsewhere CUDA's peer copies pass through the host, slower but
+    /// as correct. Done once per pair; torch and cupy may have done it already.
+    pub fn reach(&self, peer: &Cuda) -> Result<()> {
+        let mut peers = self.peers.lock().unwrap_or_else(|e| e.into_inner());
+        if self.is(peer) || peers.contains(&peer.ordinal) {
+            return Ok(());
+        }
+        let mut possible = 0;
+        // SAFETY: both devices are valid; `possible` is writable.
+        check("cuDeviceCanAccessPeer", unsafe { sys::cuDeviceCanAccessPeer(&mut possible, self.device, peer.device) })?;
+        if possible != 0 {
+            let _current = self.enter()?;
+            // SAFETY: the current context is this device's; the peer's context is retained.
+            match unsafe { sys::cuCtxEnablePeerAccess(peer.context, 0) } {
+                sys::CUresult::CUDA_ERROR_PEER_ACCESS_ALREADY_ENABLED => {}
+                result => check("cuCtxEnablePeerAccess", result)?,
+            }
+        }
+        peers.push(peer.ordinal);
+        Ok(())
+    }
+
+    /// This device's pool for the hits vkray hands over, which `peers` may write too (a batch's
+    /// hits, which every device of a group copies its rows into): allocations of CUDA's default
+    /// pool are not reachable from other devices, and copies into them pass through the host
+    /// (6 ms more for 32M rays' hits between two H200s). Grants each peer access once (which
+    /// covers the pool's allocations made before, too).
+    fn shared_pool(&self, peers: &[&Cuda]) -> Result<sys::CUmemoryPool> {
+        let mut shared = self.shared_pool.lock().unwrap_or_else(|e| e.into_inner());
+        if shared.is_none() {
+            // SAFETY: zeroed is a valid bit pattern of this plain C struct (no handle types, no
+            // security attributes, no maximum size).
+            let mut props: sys::CUmemPoolProps = unsafe { std::mem::zeroed() };
+            props.allocType = sys::CUmemAllocationType::CU_MEM_ALLOCATION_TYPE_PINNED;
+            props.location =
+                sys::CUmemLocation { type_: sys::CUmemLocationType::CU_MEM_LOCATION_TYPE_DEVICE, id: self.ordinal };
+            let mut pool = std::ptr::null_mut();
+            // SAFETY: `props` describes a pool of this device's memory; `pool` is writable.
+            check("cuMemPoolCreate", unsafe { sys::cuMemPoolCreate(&mut pool, &props) })?;
+            // Freed memory stays in the pool up to a sixteenth of the GPU, instead of going back
+            // at every synchronization and being mapped again for the next batch (1-2 ms of a
+            // 64M-ray batch's 30 on an H200; docs/benchmarks.md).
+            let mut total = 0usize;
+            // SAFETY: the device is valid; `total` is writable.
+            check("cuDeviceTotalMem", unsafe { sys::cuDeviceTotalMem_v2(&mut total, self.device) })?;
+            let mut keep = (total / 16) as u64;
+            // SAFETY: the pool is live; the attribute takes a u64.
+            let kept = check("cuMemPoolSetAttribute", unsafe {
+                sys::cuMemPoolSetAttribute(
+                    pool,
+                    sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_RELEASE_THRESHOLD,
+                    &mut keep as *mut u64 as *mut c_void,
+                )
+            });
+            if let Err(e) = kept {
+                // SAFETY: made above, not used.
+                unsafe { sys::cuMemPoolDestroy(pool) };
+                return Err(e);
+            }
+            *shared = Some((SharedPool(pool), Vec::new()));
+        }
+        let (pool, granted) = shared.as_mut().expect("made above");
+        for peer in peers {
+            if self.is(peer) || granted.contains(&peer.ordinal) {
+                continue;
+            }
+            let access = sys::CUmemAccessDesc {
+                location: sys::CUmemLocation {
+                    type_: sys::CUmemLocationType::CU_MEM_LOCATION_TYPE_DEVICE,
+                    id: peer.ordinal,
+                },
+                flags: sys::CUmemAccess_flags::CU_MEM_ACCESS_FLAGS_PROT_READWRITE,
+            };
+            // SAFETY: the pool is live; one access descriptor.
+            check("cuMemPoolSetAccess", unsafe { sys::cuMemPoolSetAccess(pool.0, &access, 1) })?;
+            granted.push(peer.ordinal);
+        }
+        Ok(pool.0)
+    }
+
+    /// Lets `peer`'s copies write this device's pool (`CudaAllocation::new`).
+    pub fn share_with(&self, peer: &Cuda) -> Result<()> {
+        self.shared_pool(&[peer]).map(|_| ())
+    }
 }
 
 impl Drop for Cuda {
     fn drop(&mut self) {
+        if let Some((pool, _)) = self.shared_pool.get_mut().unwrap_or_else(|e| e.into_inner()).take() {
+            // SAFETY: made once by `shared_pool`; CUDA releases it once its last allocation's
+            // queued free is done.
+            unsafe { sys::cuMemPoolDestroy(pool.0) };
+        }
         // SAFETY: retained once in `open`; everything made in it holds an `Arc<Cuda>` and is gone.
         unsafe { sys::cuDevicePrimaryCtxRelease_v2(self.device) };
     }
@@ -159,6 +265,69 @@ impl Stream {
         };
         // SAFETY: the caller's contract; `copy` lives through the call.
         check("cuMemcpy2DAsync", unsafe { sys::cuMemcpy2DAsync_v2(&copy, self.raw) })
+    }
+
+    /// `copy_2d` between the memory of two CUDA devices (either may be this stream's): a peer
+    /// copy in this stream's order. This stream's context must be current.
+    ///
+    /// # Safety
+    /// `dst` must be device memory of `dst_cuda`'s context and `src` of `src_cuda`'s, both valid
+    /// until the copy runs.
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn copy_2d_between(
+        &self,
+        (dst_cuda, dst, dst_pitch): (&Cuda, u64, usize),
+        (src_cuda, src, src_pitch): (&Cuda, u64, usize),
+        width: usize,
+        rows: usize,
+    ) -> Result<()> {
+        if dst_cuda.is(src_cuda) {
+            // SAFETY: the caller's contract, within one context.
+            return unsafe { self.copy_2d(dst, dst_pitch, src, src_pitch, width, rows) };
+        }
+        if rows == 0 || width == 0 {
+            return Ok(());
+        }
+        if rows == 1 || (src_pitch == width && dst_pitch == width) {
+            // SAFETY: the caller's contract; one contiguous block.
+            return check("cuMemcpyPeerAsync", unsafe {
+                sys::cuMemcpyPeerAsync(dst, dst_cuda.context, src, src_cuda.context, width * rows, self.raw)
+            });
+        }
+        let copy = sys::CUDA_MEMCPY3D_PEER {
+            srcXInBytes: 0,
+            srcY: 0,
+            srcZ: 0,
+            srcLOD: 0,
+            srcMemoryType: sys::CUmemorytype::CU_MEMORYTYPE_DEVICE,
+            srcHost: std::ptr::null(),
+            srcDevice: src,
+            srcArray: std::ptr::null_mut(),
+            srcContext: src_cuda.context,
+            srcPitch: src_pitch,
+            srcHeight: rows,
+            dstXInBytes: 0,
+            dstY: 0,
+            dstZ: 0,
+            dstLOD: 0,
+            dstMemoryType: sys::CUmemorytype::CU_MEMORYTYPE_DEVICE,
+            dstHost: std::ptr::null_mut(),
+            dstDevice: dst,
+            dstArray: std::ptr::null_mut(),
+            dstContext: dst_cuda.context,
+            dstPitch: dst_pitch,
+            dstHeight: rows,
+            WidthInBytes: width,
+            Height: rows,
+            Depth: 1,
+        };
+        // SAFETY: the caller's contract; `copy` lives through the call.
+        check("cuMemcpy3DPeerAsync", unsafe { sys::cuMemcpy3DPeerAsync(&copy, self.raw) })
+    }
+
+    /// The CUDA device this stream runs on.
+    pub fn cuda(&self) -> &Arc<Cuda> {
+        &self.cuda
     }
 
     /// Makes this stream wait for `other`'s work queued so far (by an event).
@@ -374,15 +543,18 @@ unsafe impl Send for CudaAllocation {}
 unsafe impl Sync for CudaAllocation {}
 
 impl CudaAllocation {
-    /// `bytes` (at least 1) allocated in `stream`'s order. The context must be current.
+    /// `bytes` (at least 1) from the stream's device's pool (`Cuda::shared_pool`), which other
+    /// devices' copies reach directly once granted (`Cuda::share_with`), in `stream`'s order.
+    /// The context must be current.
     pub fn new(stream: &Stream, bytes: usize) -> Result<CudaAllocation> {
+        let pool = stream.cuda.shared_pool(&[])?;
         let mut pointer = 0;
-        // SAFETY: `pointer` is writable; the stream is live.
-        let result = unsafe { sys::cuMemAllocAsync(&mut pointer, bytes.max(1), stream.raw) };
+        // SAFETY: `pointer` is writable; the pool and the stream are live and of this device.
+        let result = unsafe { sys::cuMemAllocFromPoolAsync(&mut pointer, bytes.max(1), pool, stream.raw) };
         if result == sys::CUresult::CUDA_ERROR_OUT_OF_MEMORY {
             return Err(Error::OutOfMemory(format!("CUDA could not allocate {bytes} bytes for the hits")));
         }
-        check("cuMemAllocAsync", result)?;
+        check("cuMemAllocFromPoolAsync", result)?;
         Ok(CudaAllocation { cuda: stream.cuda.clone(), pointer, bytes })
     }
 

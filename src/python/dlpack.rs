@@ -64,6 +64,13 @@ pub(super) struct Borrowed<'py> {
     _capsule: Bound<'py, PyCapsule>,
 }
 
+impl Borrowed<'_> {
+    /// The capsule that keeps the array's memory alive, to hold beyond this call.
+    pub fn into_capsule(self) -> Py<PyCapsule> {
+        self._capsule.unbind()
+    }
+}
+
 /// `value`'s (device type, device id) if it is a DLPack array, else None.
 pub(super) fn dlpack_device(value: &Bound<'_, PyAny>) -> PyResult<Option<(i32, i32)>> {
     if !value.hasattr("__dlpack_device__")? {

@@ -6,6 +6,7 @@
 //! a thread holding the GIL; signals are checked between chunks; panics never cross into Python.
 
 mod arrays;
+mod cuda_batch;
 mod device;
 mod dlpack;
 mod mesh;
@@ -153,6 +154,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<mesh::PyMesh>()?;
     m.add_class::<scene::PyScene>()?;
     m.add_class::<dlpack::PyCudaArray>()?;
+    m.add_class::<cuda_batch::PyCudaBatch>()?;
     m.add("VkrayError", py.get_type::<VkrayError>())?;
     m.add("NoDeviceError", py.get_type::<NoDeviceError>())?;
     m.add("UnsupportedError", py.get_type::<UnsupportedError>())?;

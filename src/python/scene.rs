@@ -14,7 +14,7 @@ use pyo3::types::PyDict;
 use super::arrays::{Bound1, MaskArray, Vec3Array};
 use super::device::stats_dict;
 use super::mesh::PyMesh;
-use super::{dlpack, run, run_reporting};
+use super::{cuda_batch, dlpack, run, run_reporting};
 use crate::error::try_vec;
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::rays::Rays;
@@ -22,7 +22,6 @@ use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::context::Interrupt;
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
-use crate::trace::cuda_rays::CudaRays;
 use crate::trace::fields::{position_bytes_per_ray, FIELDS};
 use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, SignedDistance, Tracer};
 
@@ -370,49 +369,79 @@ impl PyScene {
         opacity_threshold: f32,
     ) -> PyResult<Bound<'py, PyDict>> {
         let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
-        let wanted: Vec<Field> = fields_named(&fields)?
-            .into_iter()
-            .map(|(name, field)| {
-                field.ok_or_else(|| PyValueError::new_err(format!("{name} is not computed for CUDA rays (fast tier)")))
-            })
-            .collect::<PyResult<_>>()?;
+        let wanted = cuda_fields(&fields)?;
         let tracer = &self.tracer;
         let Some(cuda) = tracer.cuda()? else {
             return Err(dlpack::unreadable(tracer.device_name(), [("origins", origins), ("directions", directions)]));
         };
         let mut lease = tracer.cuda_lease()?;
-        let stream = lease.stream_handle();
         let result = (|| -> PyResult<Bound<'py, PyDict>> {
-            // This GPU's context current while the producers export: torch refuses to export a
-            // tensor of cuda:N for a stream unless cuda:N is its current device.
-            let entered = cuda.enter()?;
-            let o = dlpack::borrow(origins, "origins", 3, stream, cuda.ordinal)?;
-            let d = dlpack::borrow(directions, "directions", 3, stream, cuda.ordinal)?;
-            let mut held = Vec::new();
-            let lo = dlpack::bound(tmin, "tmin", stream, cuda.ordinal, &mut held)?;
-            let hi = dlpack::bound(tmax, "tmax", stream, cuda.ordinal, &mut held)?;
-            drop(entered);
-            let leading = broadcast_rays(&o, &d, &held)?;
-            let count = leading.iter().product();
-            let rays = CudaRays { count, origins: o.array, directions: d.array, tmin: lo, tmax: hi, mask };
-            let hits = if count == 0 {
+            let borrowed =
+                cuda_batch::borrow_rays(&cuda, lease.stream_handle(), origins, directions, (tmin, tmax), mask)?;
+            let hits = if borrowed.rays.count == 0 {
                 None
             } else {
                 Some(self.query(py, None, |scene, interrupt| {
-                    tracer.trace_cuda_rays(scene, &mut lease, &rays, request, &wanted, interrupt)
+                    tracer.trace_cuda_rays(scene, &mut lease, &borrowed.rays, request, &wanted, interrupt)
                 })?)
             };
-            let result = PyDict::new(py);
-            if let Some(hits) = hits {
-                for (field, allocation) in hits.fields {
-                    let array = dlpack::PyCudaArray::new(field, allocation, hits.ready.clone(), &leading);
-                    result.set_item(field.name(), Py::new(py, array)?)?;
-                }
-            }
-            Ok(result)
+            cuda_batch::hits_dict(py, hits, &borrowed.leading)
         })();
         tracer.give_back_lease(lease);
         result
+    }
+
+    /// A batch of CUDA rays on this device's GPU to be traced in pieces by several devices
+    /// (`trace_cuda_piece` of each, then `CudaBatch.finish`): the rays borrowed, the hits of
+    /// `fields` allocated here. Arguments as `trace_cuda`'s.
+    #[pyo3(signature = (origins, directions, tmin, tmax, fields, mask=255))]
+    #[allow(clippy::too_many_arguments)]
+    fn cuda_batch(
+        &self,
+        origins: &Bound<'_, PyAny>,
+        directions: &Bound<'_, PyAny>,
+        tmin: &Bound<'_, PyAny>,
+        tmax: &Bound<'_, PyAny>,
+        fields: Vec<String>,
+        mask: u8,
+    ) -> PyResult<cuda_batch::PyCudaBatch> {
+        let Some(cuda) = self.tracer.cuda()? else {
+            return Err(dlpack::unreadable(
+                self.tracer.device_name(),
+                [("origins", origins), ("directions", directions)],
+            ));
+        };
+        cuda_batch::PyCudaBatch::new(&cuda, origins, directions, (tmin, tmax), &cuda_fields(&fields)?, mask)
+    }
+
+    /// Traces rows `start..stop` of `batch` (CUDA rays on this or another GPU) on this device in
+    /// the fast tier, writing their hits into the batch's rows. `query` as in `trace_cuda`.
+    #[pyo3(signature = (batch, start, stop, query, cull=None, opacity_threshold=0.5))]
+    #[allow(clippy::too_many_arguments)]
+    fn trace_cuda_piece(
+        &self,
+        py: Python<'_>,
+        batch: &cuda_batch::PyCudaBatch,
+        start: usize,
+        stop: usize,
+        query: &str,
+        cull: Option<&str>,
+        opacity_threshold: f32,
+    ) -> PyResult<()> {
+        let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
+        let tracer = &self.tracer;
+        if tracer.cuda()?.is_none() {
+            return Err(pyo3::exceptions::PyTypeError::new_err(format!(
+                "{} does not share memory with CUDA: it cannot trace a piece of CUDA rays",
+                tracer.device_name()
+            )));
+        }
+        let mut lease = tracer.cuda_lease()?;
+        let traced = self.query(py, None, |scene, interrupt| {
+            tracer.trace_cuda_piece(scene, &mut lease, batch.batch(), (start, stop), request, interrupt)
+        });
+        tracer.give_back_lease(lease);
+        traced
     }
 
     /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
@@ -622,27 +651,14 @@ impl PyScene {
     }
 }
 
-/// The rays' shape S from CUDA origins and directions of shapes S + (3,) (one may be a single
-/// row) and bounds of shape S.
-fn broadcast_rays(o: &dlpack::Borrowed, d: &dlpack::Borrowed, bounds: &[dlpack::Borrowed]) -> PyResult<Vec<usize>> {
-    let single = |b: &dlpack::Borrowed| b.array.rows == 1;
-    let leading = if single(o) && !single(d) { d.leading.clone() } else { o.leading.clone() };
-    let rows = |shape: &[usize]| shape.iter().product::<usize>();
-    if !single(o) && !single(d) && o.leading != d.leading {
-        return Err(PyValueError::new_err(format!(
-            "origins and directions must have the same shape S + (3,) (or one a single row), got {:?} and {:?}",
-            o.leading, d.leading
-        )));
-    }
-    for bound in bounds {
-        if bound.leading != leading && bound.array.rows != rows(&leading) {
-            return Err(PyValueError::new_err(format!(
-                "tmin and tmax arrays must have the rays' shape {leading:?}, got {:?}",
-                bound.leading
-            )));
-        }
-    }
-    Ok(leading)
+/// The hit fields named, each one the GPU-resident path computes.
+fn cuda_fields(names: &[String]) -> PyResult<Vec<Field>> {
+    fields_named(names)?
+        .into_iter()
+        .map(|(name, field)| {
+            field.ok_or_else(|| PyValueError::new_err(format!("{name} is not computed for CUDA rays (fast tier)")))
+        })
+        .collect()
 }
 
 /// A query's request from the option strings it was called with.

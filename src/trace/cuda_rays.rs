@@ -149,6 +149,51 @@ impl Tracer {
         fields: &[Field],
         interrupt: &dyn Interrupt,
     ) -> Result<CudaHits> {
+        let cuda = self.cuda()?.expect("a lease implies CUDA");
+        let places = CudaPlaces { home: &cuda, after: None, into: None };
+        self.trace_cuda_placed(scene, lease, rays, &places, request, fields, interrupt)
+    }
+
+    /// Traces rows `start..stop` of `batch` (rays on `batch.home`, maybe another GPU) on this
+    /// device, writing their hits into the batch's rows; returns once Vulkan's part is done, with
+    /// the copies of the hits queued (`batch.finish` orders the batch's readers after them).
+    pub fn trace_cuda_piece(
+        &self,
+        scene: &Scene,
+        lease: &mut CudaLease,
+        batch: &CudaBatch,
+        (start, stop): (usize, usize),
+        request: Request,
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        if start >= stop || stop > batch.rays.count {
+            return Err(invalid_value(format!("rows {start}..{stop} are not a piece of {} rays", batch.rays.count)));
+        }
+        let cuda = self.cuda()?.expect("a lease implies CUDA");
+        cuda.reach(&batch.home)?;
+        batch.home.share_with(&cuda)?;
+        let rays = batch.rays.rows(start, stop);
+        let into = batch.rows_at(start)?;
+        let places = CudaPlaces { home: &batch.home, after: Some(&batch.start), into: Some(&into) };
+        let hits = self.trace_cuda_placed(scene, lease, &rays, &places, request, &batch.fields, interrupt)?;
+        batch.written_after(hits.ready);
+        Ok(())
+    }
+
+    /// The GPU-resident path: the rays copied from `places.home` into memory this device shares
+    /// with CUDA, packed and traced by Vulkan, the hits copied to `places.into` (or into new
+    /// allocations); the host waits for Vulkan's part only.
+    #[allow(clippy::too_many_arguments)]
+    fn trace_cuda_placed(
+        &self,
+        scene: &Scene,
+        lease: &mut CudaLease,
+        rays: &CudaRays,
+        places: &CudaPlaces,
+        request: Request,
+        fields: &[Field],
+        interrupt: &dyn Interrupt,
+    ) -> Result<CudaHits> {
         if let Some(why) = super::device_rays::device_rays_refusal(request) {
             return Err(invalid_value(why));
         }
@@ -160,11 +205,14 @@ impl Tracer {
         grow(&self.ctx, &cuda, &lease.stream, &mut lease.output, output_bytes, "hits shared with CUDA")?;
         let (input, output) = (lease.input.as_ref().expect("grown"), lease.output.as_ref().expect("grown"));
         let _current = cuda.enter()?;
+        if let Some(event) = places.after {
+            lease.stream.wait_for(event)?;
+        }
         // The caller's rays into the shared buffer, tightly packed, in the stream's order.
         let mut at = 0u64;
         let mut placed = Vec::new();
         for array in &arrays {
-            copy_packed(&lease.stream, input.pointer + at, array)?;
+            copy_packed(&lease.stream, (&cuda, input.pointer + at), (places.home, array))?;
             placed.push(at);
             at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
         }
@@ -185,8 +233,17 @@ impl Tracer {
         // Right after Vulkan's submission: the stream waits for its hits and copies them out.
         let mut after_submit = || -> Result<()> {
             semaphore.wait(stream, signal)?;
-            for (field, offset) in fields.iter().zip(&offsets) {
+            for (k, (field, offset)) in fields.iter().zip(&offsets).enumerate() {
                 let bytes = rays.count * field.bytes_per_ray(false);
+                let src = (&*cuda, output.pointer + offset, bytes);
+                if let Some(into) = places.into {
+                    // SAFETY: `into[k]` has room for this piece's rows of the field in the home
+                    // device's memory (`CudaBatch::rows_at`), which outlives the copy (the batch
+                    // waits for it before it lets the memory go); the shared buffer stays in the
+                    // lease, whose later users queue on the same stream.
+                    unsafe { stream.copy_2d_between((places.home, into[k], bytes), src, bytes, 1)? };
+                    continue;
+                }
                 let allocation = CudaAllocation::new(stream, bytes)?;
                 // SAFETY: both are device memory of this context, live until the copy runs (the
                 // allocation is the caller's from now on, the shared buffer stays in the lease,
@@ -201,7 +258,7 @@ impl Tracer {
         let traced = self.trace_device_rays(scene, &device_rays, request, &outputs, Some(order), interrupt);
         let failure = match traced {
             Ok(None) => None,
-            Ok(Some(row)) => Some(invalid_ray(&lease.stream, rays, row)),
+            Ok(Some(row)) => Some(invalid_ray(places.home, rays, row)),
             Err(e) => Some(e),
         };
         if let Some(error) = failure {
@@ -212,6 +269,129 @@ impl Tracer {
         }
         let ready = Arc::new(lease.stream.record()?);
         Ok(CudaHits { fields: hits, ready })
+    }
+}
+
+/// Where a GPU-resident query's rays are read and its hits written.
+struct CudaPlaces<'a> {
+    /// The CUDA device whose memory holds the rays (and `into`): this device, or a peer.
+    home: &'a Arc<Cuda>,
+    /// What the lease's stream waits for before it reads the rays (a batch's start).
+    after: Option<&'a Event>,
+    /// Each field's destination in `home`'s memory; None: new allocations on this device.
+    into: Option<&'a [u64]>,
+}
+
+/// One batch of CUDA rays split over several devices (a `DeviceGroup`): the caller's rays and
+/// the hits' allocations on the GPU that holds the rays (`home`), written piece by piece by each
+/// device (`Tracer::trace_cuda_piece`, rows copied between GPUs), then handed over at once.
+pub struct CudaBatch {
+    pub home: Arc<Cuda>,
+    /// Orders the batch on the home GPU: the producer's writes before `start`, then the pieces'.
+    stream: Stream,
+    /// The whole batch's rays.
+    pub rays: CudaRays,
+    pub fields: Vec<Field>,
+    /// Each field's allocation (taken by `finish`).
+    allocations: Mutex<Option<Vec<CudaAllocation>>>,
+    /// Reached once the rays are written (the caller's producer) and the allocations exist.
+    start: Event,
+    /// One event per piece traced, after which its hits are written.
+    written: Mutex<Vec<Arc<Event>>>,
+}
+
+impl CudaBatch {
+    /// The batch of `rays` on `home`, its producer's writes ordered before `stream` (the caller
+    /// passed `stream`'s handle to `__dlpack__`): allocates the hits of `fields`.
+    pub fn new(stream: Stream, rays: CudaRays, fields: &[Field]) -> Result<CudaBatch> {
+        let home = stream.cuda().clone();
+        let current = home.enter()?;
+        let allocations = fields
+            .iter()
+            .map(|field| CudaAllocation::new(&stream, rays.count * field.bytes_per_ray(false)))
+            .collect::<Result<Vec<_>>>()?;
+        let start = stream.record()?;
+        drop(current);
+        Ok(CudaBatch {
+            home,
+            stream,
+            rays,
+            fields: fields.to_vec(),
+            allocations: Mutex::new(Some(allocations)),
+            start,
+            written: Mutex::new(Vec::new()),
+        })
+    }
+
+    /// The stream's handle, for DLPack's `__dlpack__(stream=...)`.
+    pub fn stream_handle(&self) -> usize {
+        self.stream.raw as usize
+    }
+
+    /// Each field's address of row `start` in the batch's allocations.
+    fn rows_at(&self, start: usize) -> Result<Vec<u64>> {
+        let allocations = self.allocations.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(allocations) = allocations.as_ref() else {
+            return Err(invalid_value("this batch of CUDA rays is finished: its hits were handed over".to_string()));
+        };
+        Ok(self
+            .fields
+            .iter()
+            .zip(allocations)
+            .map(|(field, allocation)| allocation.pointer + (start * field.bytes_per_ray(false)) as u64)
+            .collect())
+    }
+
+    fn written_after(&self, event: Arc<Event>) {
+        self.written.lock().unwrap_or_else(|e| e.into_inner()).push(event);
+    }
+
+    /// The batch's hits, readable by streams ordered after `ready` (every piece's copies).
+    pub fn finish(&self) -> Result<CudaHits> {
+        let Some(allocations) = self.allocations.lock().unwrap_or_else(|e| e.into_inner()).take() else {
+            return Err(invalid_value("this batch of CUDA rays is finished already".to_string()));
+        };
+        let _current = self.home.enter()?;
+        for event in self.written.lock().unwrap_or_else(|e| e.into_inner()).iter() {
+            self.stream.wait_for(event)?;
+        }
+        let ready = Arc::new(self.stream.record()?);
+        Ok(CudaHits { fields: self.fields.iter().copied().zip(allocations).collect(), ready })
+    }
+}
+
+impl Drop for CudaBatch {
+    fn drop(&mut self) {
+        // Unfinished (a piece failed): the pieces' copies into the allocations finish before
+        // they are freed.
+        for event in self.written.lock().unwrap_or_else(|e| e.into_inner()).iter() {
+            let _ = event.synchronize();
+        }
+    }
+}
+
+impl CudaRays {
+    /// Rows `start..stop` of these rays (arrays of one row, shared by every ray, stay whole).
+    pub fn rows(&self, start: usize, stop: usize) -> CudaRays {
+        let count = self.count;
+        let cut = |a: CudaArray| {
+            if a.rows != count || a.rows == 1 {
+                return a;
+            }
+            CudaArray { pointer: a.pointer + (start * a.row_stride) as u64, rows: stop - start, ..a }
+        };
+        let bound = |b: CudaBound| match b {
+            CudaBound::Each(a) => CudaBound::Each(cut(a)),
+            all => all,
+        };
+        CudaRays {
+            count: stop - start,
+            origins: cut(self.origins),
+            directions: cut(self.directions),
+            tmin: bound(self.tmin),
+            tmax: bound(self.tmax),
+            mask: self.mask,
+        }
     }
 }
 
@@ -252,26 +432,30 @@ fn grow(
     Ok(())
 }
 
-/// Queues the copy of `array` into `dst`, tightly packed (rows of `columns` numbers).
-fn copy_packed(stream: &Stream, dst: u64, array: &CudaArray) -> Result<()> {
+/// Queues the copy of `array` (memory of `src_cuda`, maybe another GPU) into `dst` (memory of
+/// `dst_cuda`, the stream's), tightly packed (rows of `columns` numbers).
+fn copy_packed(stream: &Stream, (dst_cuda, dst): (&Cuda, u64), (src_cuda, array): (&Cuda, &CudaArray)) -> Result<()> {
     let element = array.element_bytes();
     let row_bytes = array.columns * element;
     if array.column_stride == element || array.columns == 1 {
-        // SAFETY: the caller's array is CUDA memory of this context (DLPack's contract) of these
+        // SAFETY: the caller's array is CUDA memory of `src_cuda` (DLPack's contract) of these
         // rows and strides; `dst` has room for the packed copy (`grow`).
         return unsafe {
-            stream.copy_2d(dst, row_bytes, array.pointer, array.row_stride.max(row_bytes), row_bytes, array.rows)
+            stream.copy_2d_between(
+                (dst_cuda, dst, row_bytes),
+                (src_cuda, array.pointer, array.row_stride.max(row_bytes)),
+                row_bytes,
+                array.rows,
+            )
         };
     }
     for column in 0..array.columns {
         let src = array.pointer + (column * array.column_stride) as u64;
         // SAFETY: as above, one column at a time.
         unsafe {
-            stream.copy_2d(
-                dst + (column * element) as u64,
-                row_bytes,
-                src,
-                array.row_stride.max(element),
+            stream.copy_2d_between(
+                (dst_cuda, dst + (column * element) as u64, row_bytes),
+                (src_cuda, src, array.row_stride.max(element)),
                 element,
                 array.rows,
             )?
@@ -307,10 +491,11 @@ fn device_rays_in(rays: &CudaRays, base: u64, placed: &[u64]) -> DeviceRays {
 }
 
 /// Why ray `row` is invalid, from its values read back (the numpy path's message).
-fn invalid_ray(stream: &Stream, rays: &CudaRays, row: usize) -> Error {
+fn invalid_ray(home: &Cuda, rays: &CudaRays, row: usize) -> Error {
     let read = |array: &CudaArray| -> Result<Vec<f64>> {
         let row = if array.rows == 1 { 0 } else { row };
-        stream.synchronize()?;
+        // The rays were copied before Vulkan read them, so they are written by now.
+        let _current = home.enter()?;
         let mut values = Vec::new();
         for column in 0..array.columns {
             let at = array.pointer + (row * array.row_stride + column * array.column_stride) as u64;
