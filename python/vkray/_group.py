@@ -374,7 +374,8 @@ class DeviceGroup:
     @property
     def speeds(self) -> Dict[str, List[Optional[float]]]:
         """Measured rays (or points) per second of each device, by query kind (``"intersect/fast"``,
-        ``"count/exact"``, ...); ``None`` where a device has not been measured yet."""
+        ``"count/exact"``, ``"intersect/cuda"`` for CUDA rays, ...); ``None`` where a device has not
+        been measured yet."""
         return self._speeds.snapshot()
 
     @property
@@ -819,8 +820,10 @@ class GroupScene:
     traced at once and merged in the caller's order. A sensor (`vkray.PinholeCamera`, ...) is not
     split, since its rays are generated on the device: each sensor query runs whole on the least
     busy device, so that sensor queries from several threads spread over the devices. Batches of
-    at most one ray, and 0 rays, run on one device too. `progress=True` shows one bar for all
-    pieces; a piece's error stops the others and is raised as one device would raise it."""
+    at most one ray, and 0 rays, run on one device too. CUDA rays of `intersect` and `occluded`
+    are split from the GPU that holds them, and their hits come back there (`_trace_cuda`).
+    `progress=True` shows one bar for all pieces; a piece's error stops the others and is raised
+    as one device would raise it."""
 
     def __init__(self, group: DeviceGroup, per_device: Sequence[Scene], instances: Sequence[GroupInstance]) -> None:
         self.group = group
