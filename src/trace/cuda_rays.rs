@@ -363,9 +363,11 @@ impl CudaBatch {
 impl Drop for CudaBatch {
     fn drop(&mut self) {
         // Unfinished (a piece failed): the pieces' copies into the allocations finish before
-        // they are freed.
-        for event in self.written.lock().unwrap_or_else(|e| e.into_inner()).iter() {
-            let _ = event.synchronize();
+        // they are freed. Finished: the allocations are the caller's, freed after `ready`.
+        if self.allocations.get_mut().unwrap_or_else(|e| e.into_inner()).is_some() {
+            for event in self.written.get_mut().unwrap_or_else(|e| e.into_inner()).iter() {
+                let _ = event.synchronize();
+            }
         }
     }
 }
