@@ -198,7 +198,7 @@ def cuda_groups(v, f):
     members = [d.index for d in vkray.devices() if vkray.Device(d.index).cuda_device is not None]
     groups = [vkray.DeviceGroup([members[0], members[0]], weights=[1, 2])]
     if len(members) > 1:
-        groups.append(vkray.DeviceGroup(members, weights=list(range(1, len(members) + 1))))
+        groups.append(vkray.DeviceGroup(members, weights=[1 + k % 2 for k in range(len(members))]))
     return [(g, g.scene([g.mesh(v, f)])) for g in groups]
 
 
@@ -208,44 +208,118 @@ def groups(bunny):
     return cuda_groups(v, oracle.load_obj("stanford-bunny")[1])
 
 
-def test_a_group_splits_cuda_rays_and_hands_the_hits_back_on_their_gpu(bunny, groups):
+@pytest.fixture
+def pieces(monkeypatch):
+    """The devices that traced a piece of CUDA rays, call after call (cleared by the test)."""
+    traced: list = []
+    piece = vkray._api.Scene._cuda_piece
+
+    def counted(scene, batch, start, stop, *args):
+        traced.append((start, stop))
+        return piece(scene, batch, start, stop, *args)
+
+    monkeypatch.setattr(vkray._api.Scene, "_cuda_piece", counted)
+    return traced
+
+
+def split_over(group, pieces) -> None:
+    """The last call was split: one piece per device, covering the rays once."""
+    assert len(pieces) == len(group.devices), pieces
+    spans = sorted(pieces)
+    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:])) and spans[0][0] == 0, spans
+    pieces.clear()
+
+
+def test_a_group_splits_cuda_rays_and_hands_the_hits_back_on_their_gpu(bunny, groups, pieces):
     """Rays on cuda:N through a DeviceGroup: every member traces its piece (copied from cuda:N)
     and writes its hits back there; the hits equal numpy's on one Scene, for every field and
-    occluded, for float64 rays from one eye with per-ray bounds, and for strided tensors."""
+    occluded, for float64 rays from one eye with per-ray bounds, for strided and expanded tensors,
+    and with culling, masks and opacity thresholds."""
     v, scene = bunny
     o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 100_003, seed=2))
     expected = scene.intersect(o, d, outputs=EVERY)
     rng = np.random.default_rng(5)
     eye = (v.mean(axis=0) + [0.0, 0.0, 1e5]).reshape(1, 3)
     d64 = v[rng.integers(0, len(v), 70_001)] - eye
-    tmax = rng.uniform(0.5, 2.0, len(d64))
-    expected64 = scene.intersect(eye, d64, tmax=tmax, outputs=["t", "prim_id"])
+    tmin, tmax = rng.uniform(0.0, 0.3, len(d64)), rng.uniform(0.5, 2.0, len(d64))
+    expected64 = scene.intersect(eye, d64, tmin=tmin, tmax=tmax, outputs=["t", "prim_id"])
     assert expected64.hit.sum() > 1000
+    options = dict(cull="front", mask=0x3, opacity_threshold=0.25)
+    culled = scene.intersect(o, d, outputs=["t", "prim_id"], **options)  # the far side's faces
+    assert culled.hit.sum() > 10_000 and (culled.t[culled.hit] > expected.t[culled.hit]).mean() > 0.9
     for group, group_scene in groups:
         for device in group.devices:
             where = f"cuda:{device.cuda_device}"
-            hits = group_scene.intersect(torch.from_numpy(o).to(where), torch.from_numpy(d).to(where), outputs=EVERY)
+            rays = [torch.from_numpy(a).to(where) for a in (o, d)]
+            hits = group_scene.intersect(*rays, outputs=EVERY)
+            split_over(group, pieces)
             assert torch.from_dlpack(hits.t).device == torch.device(where)
             assert hits.t.shape == (len(o),) and hits.normal.shape == (len(o), 3)
             assert_same(hits, expected, EVERY)
-            blocked = group_scene.occluded(torch.from_numpy(o).to(where), torch.from_numpy(d).to(where))
-            np.testing.assert_array_equal(on_host(blocked) >= 0, expected.hit)
+            np.testing.assert_array_equal(on_host(group_scene.occluded(*rays)) >= 0, expected.hit)
+            split_over(group, pieces)
+            assert_same(group_scene.intersect(*rays, outputs=["t", "prim_id"], **options), culled, ["t", "prim_id"])
+            split_over(group, pieces)
             far = group_scene.intersect(torch.from_numpy(eye).to(where), torch.from_numpy(d64).to(where),
-                                        tmax=torch.from_numpy(tmax).to(where), outputs=["t", "prim_id"])
+                                        tmin=torch.from_numpy(tmin).to(where), tmax=torch.from_numpy(tmax).to(where),
+                                        outputs=["t", "prim_id"])
             assert_same(far, expected64, ["t", "prim_id"])
+            split_over(group, pieces)
+            expanded = torch.from_numpy(eye[0]).to(where).expand(len(d64), 3)  # one row, stride 0
+            far = group_scene.intersect(expanded, torch.from_numpy(d64).to(where),
+                                        tmin=torch.from_numpy(tmin).to(where), tmax=torch.from_numpy(tmax).to(where),
+                                        outputs=["t", "prim_id"])
+            assert_same(far, expected64, ["t", "prim_id"])
+            split_over(group, pieces)
             both = torch.from_numpy(np.hstack([o, d])).to(where)  # rows 6 floats apart
             transposed = torch.from_numpy(np.ascontiguousarray(d.T)).to(where).T  # columns n apart
             assert_same(group_scene.intersect(both[:, :3], transposed, outputs=["t", "prim_id"]), expected,
                         ["t", "prim_id"])
-        speeds = group.speeds
-        assert all(s is not None for s in speeds["intersect/cuda"]), speeds  # every member traced a piece
-        assert all(s is not None for s in speeds["occluded/cuda"]), speeds
+            split_over(group, pieces)
+
+
+def test_expanded_tensors_are_one_row(bunny):
+    v, scene = bunny
+    rng = np.random.default_rng(9)
+    eye = (v.mean(axis=0) + [0.0, 0.0, 0.3]).astype(np.float32)
+    d = (v[rng.integers(0, len(v), 5000)] - eye).astype(np.float32)
+    expected = scene.intersect(eye, d, tmax=1.5, outputs=["t", "prim_id"])
+    hits = scene.intersect(torch.from_numpy(eye).cuda().expand(len(d), 3), torch.from_numpy(d).cuda(),
+                           tmax=torch.tensor(1.5, device="cuda").expand(len(d)), outputs=["t", "prim_id"])
+    assert_same(hits, expected, ["t", "prim_id"])
+    with pytest.raises(ValueError, match="same shape"):
+        scene.intersect(torch.from_numpy(eye).cuda().expand(7, 3), torch.from_numpy(d).cuda())
+
+
+def test_a_group_splits_rays_written_on_a_side_stream(bunny, groups, pieces):
+    """Rays made on the caller's side stream and passed without a synchronization: DLPack orders
+    the split after their writes; the hits are read on another stream after the call."""
+    v, scene = bunny
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 300_000, seed=4))
+    expected = scene.intersect(o, d, outputs=["t", "prim_id"])
+    host = [torch.from_numpy(a).pin_memory() for a in (o, d)]
+    for group, group_scene in groups:
+        side = torch.cuda.Stream()
+        with torch.cuda.stream(side):
+            rays = [torch.full_like(h, float("nan"), device="cuda") for h in host]
+            for _ in range(20):  # keeps the side stream busy before the rays are written
+                torch.cuda._sleep(1_000_000)
+            for r, h in zip(rays, host):
+                r.copy_(h, non_blocking=True)
+            hits = group_scene.intersect(*rays, outputs=["t", "prim_id"])
+        split_over(group, pieces)
+        other = torch.cuda.Stream()
+        with torch.cuda.stream(other):
+            t = torch.from_dlpack(hits.t).clone()
+        other.synchronize()
+        np.testing.assert_array_equal(t.cpu().numpy(), expected.t)
+        assert_same(hits, expected, ["t", "prim_id"])
 
 
 def test_a_split_of_cuda_rays_names_the_callers_row_and_outlives_the_rays(bunny, groups):
     """An invalid ray in the last piece is named by the caller's row; the caller's tensors freed
     (and their memory written over) right after the call leave the hits intact, which outlive
-    the group's scene."""
+    the group's scene; a batch too small to split runs whole."""
     v, scene = bunny
     o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 60_000, seed=8))
     expected = scene.intersect(o, d, outputs=["t", "prim_id"])
@@ -256,9 +330,10 @@ def test_a_split_of_cuda_rays_names_the_callers_row_and_outlives_the_rays(bunny,
             group_scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(bad).cuda())
         rays = [torch.from_numpy(a).cuda() for a in (o, d)]
         hits = group_scene.intersect(*rays, outputs=["t", "prim_id"])
+        shapes = [r.shape for r in rays]
         del rays
         gc.collect()
-        litter = torch.full((len(o) * 6,), float("nan"), device="cuda")  # reuses the freed memory
+        litter = [torch.full(s, float("nan"), device="cuda") for s in shapes]  # the freed blocks again
         assert_same(hits, expected, ["t", "prim_id"])
         del litter
     lone_group, lone_scene = cuda_groups(v, oracle.load_obj("stanford-bunny")[1])[0]
@@ -266,19 +341,27 @@ def test_a_split_of_cuda_rays_names_the_callers_row_and_outlives_the_rays(bunny,
     del lone_scene, lone_group
     gc.collect()
     np.testing.assert_array_equal(on_host(hits.t), expected.t)
+    member = groups[0][0].devices[0]
+    uneven = vkray.DeviceGroup([member, member], weights=[1, 1000])
+    uneven_scene = uneven.scene([uneven.mesh(v, oracle.load_obj("stanford-bunny")[1])])
+    two = uneven_scene.intersect(torch.from_numpy(o[:2]).cuda(), torch.from_numpy(d[:2]).cuda(), outputs=["t"])
+    np.testing.assert_array_equal(on_host(two.t), expected.t[:2])
 
 
 def test_a_group_splits_cuda_rays_from_several_threads(bunny, groups):
+    """Four threads split batches at once, their rays on different GPUs where there are several."""
     v, scene = bunny
     batches = [[a.astype(np.float32) for a in oracle.random_rays(v, 40_000, seed=20 + k)] for k in range(4)]
     expected = [scene.intersect(o, d).t for o, d in batches]
-    for _group, group_scene in groups:
+    for group, group_scene in groups:
         found: list = [None] * len(batches)
         errors: list = []
+        gpus = [f"cuda:{device.cuda_device}" for device in group.devices]
 
-        def work(k, group_scene=group_scene, found=found, errors=errors):
+        def work(k, group_scene=group_scene, found=found, errors=errors, gpus=gpus):
             try:
-                o, d = (torch.from_numpy(a).cuda() for a in batches[k])
+                where = gpus[k % len(gpus)]
+                o, d = (torch.from_numpy(a).to(where) for a in batches[k])
                 for _ in range(3):
                     found[k] = on_host(group_scene.intersect(o, d).t)
             except Exception as exc:  # reported below

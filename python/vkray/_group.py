@@ -964,14 +964,15 @@ class GroupScene:
             and len(self.per_device) > 1
             and all(d.cuda_device is not None for d in self.group.devices)
         )
-        if not splittable or _cuda_rows(origins, directions) <= 1:
+        count = _cuda_rows(origins, directions)
+        pieces = self._pieces(kind, count) if splittable and count > 1 else []
+        if len(pieces) <= 1:
             return whole()
         assert fields is not None
         scene = self.per_device[home]
         batch = scene._cuda_batch(origins, directions, rays["tmin"], rays["tmax"], fields, "fast", rays["mask"], False)
-        pieces = self._pieces(kind, len(batch))
-        if len(pieces) == 1:
-            return whole()
+        if len(batch) != count:  # shapes the arrays' own do not say (the core checked them)
+            pieces = self._pieces(kind, len(batch))
         core_query = "closest" if query_name == "intersect" else "occluded"
         cull, threshold = options["cull"], options["opacity_threshold"]
 

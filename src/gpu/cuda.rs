@@ -6,7 +6,7 @@
 use std::ffi::c_void;
 use std::mem::MaybeUninit;
 use std::os::fd::IntoRawFd;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
 
 use cudarc::driver::sys;
 
@@ -46,8 +46,23 @@ unsafe impl Sync for Cuda {}
 
 impl Cuda {
     /// The CUDA device with Vulkan's `uuid`, or `None` where there is no CUDA driver or no such
-    /// device.
+    /// device. Devices opened on the same GPU share one (its pool among them).
     pub fn open(uuid: [u8; 16]) -> Result<Option<Arc<Cuda>>> {
+        static OPEN: Mutex<Vec<([u8; 16], Weak<Cuda>)>> = Mutex::new(Vec::new());
+        let mut open = OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        open.retain(|(_, cuda)| cuda.strong_count() > 0);
+        if let Some(cuda) = open.iter().find(|(id, _)| *id == uuid).and_then(|(_, cuda)| cuda.upgrade()) {
+            return Ok(Some(cuda));
+        }
+        let found = Self::find(uuid)?;
+        if let Some(cuda) = &found {
+            open.push((uuid, Arc::downgrade(cuda)));
+        }
+        Ok(found)
+    }
+
+    /// `open`'s search, without sharing.
+    fn find(uuid: [u8; 16]) -> Result<Option<Arc<Cuda>>> {
         // SAFETY: only probes whether the library loads.
         if !unsafe { sys::is_culib_present() } {
             return Ok(None);
@@ -131,13 +146,14 @@ impl Cuda {
             let mut pool = std::ptr::null_mut();
             // SAFETY: `props` describes a pool of this device's memory; `pool` is writable.
             check("cuMemPoolCreate", unsafe { sys::cuMemPoolCreate(&mut pool, &props) })?;
-            // Freed memory stays in the pool up to a sixteenth of the GPU, instead of going back
-            // at every synchronization and being mapped again for the next batch (1-2 ms of a
-            // 64M-ray batch's 30 on an H200; docs/benchmarks.md).
+            // Freed memory stays in the pool up to a 64th of the GPU (2.2 GB of an H200: the hits
+            // of 256M rays' lean intersect), instead of going back at every synchronization and
+            // being mapped again for the next batch (1-2 ms of a 64M-ray batch's 30 on an H200;
+            // docs/benchmarks.md). Allocations that fail trim it and try again.
             let mut total = 0usize;
             // SAFETY: the device is valid; `total` is writable.
             check("cuDeviceTotalMem", unsafe { sys::cuDeviceTotalMem_v2(&mut total, self.device) })?;
-            let mut keep = (total / 16) as u64;
+            let mut keep = (total / 64) as u64;
             // SAFETY: the pool is live; the attribute takes a u64.
             let kept = check("cuMemPoolSetAttribute", unsafe {
                 sys::cuMemPoolSetAttribute(
@@ -158,6 +174,15 @@ impl Cuda {
             if self.is(peer) || granted.contains(&peer.ordinal) {
                 continue;
             }
+            granted.push(peer.ordinal);
+            let mut possible = 0;
+            // SAFETY: both devices are valid; `possible` is writable.
+            check("cuDeviceCanAccessPeer", unsafe {
+                sys::cuDeviceCanAccessPeer(&mut possible, peer.device, self.device)
+            })?;
+            if possible == 0 {
+                continue; // its copies into the pool pass through the host
+            }
             let access = sys::CUmemAccessDesc {
                 location: sys::CUmemLocation {
                     type_: sys::CUmemLocationType::CU_MEM_LOCATION_TYPE_DEVICE,
@@ -167,7 +192,6 @@ impl Cuda {
             };
             // SAFETY: the pool is live; one access descriptor.
             check("cuMemPoolSetAccess", unsafe { sys::cuMemPoolSetAccess(pool.0, &access, 1) })?;
-            granted.push(peer.ordinal);
         }
         Ok(pool.0)
     }
@@ -550,7 +574,15 @@ impl CudaAllocation {
         let pool = stream.cuda.shared_pool(&[])?;
         let mut pointer = 0;
         // SAFETY: `pointer` is writable; the pool and the stream are live and of this device.
-        let result = unsafe { sys::cuMemAllocFromPoolAsync(&mut pointer, bytes.max(1), pool, stream.raw) };
+        let allocate =
+            |pointer: &mut u64| unsafe { sys::cuMemAllocFromPoolAsync(pointer, bytes.max(1), pool, stream.raw) };
+        let mut result = allocate(&mut pointer);
+        if result == sys::CUresult::CUDA_ERROR_OUT_OF_MEMORY {
+            // What the pool keeps goes back to the GPU first.
+            // SAFETY: the pool is live; trimming only releases memory no allocation holds.
+            unsafe { sys::cuMemPoolTrimTo(pool, 0) };
+            result = allocate(&mut pointer);
+        }
         if result == sys::CUresult::CUDA_ERROR_OUT_OF_MEMORY {
             return Err(Error::OutOfMemory(format!("CUDA could not allocate {bytes} bytes for the hits")));
         }

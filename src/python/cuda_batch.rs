@@ -52,9 +52,10 @@ pub(super) fn borrow_rays<'py>(
 /// The rays' shape S from CUDA origins and directions of shapes S + (3,) (one may be a single
 /// row) and bounds of shape S.
 fn broadcast_rays(o: &Borrowed, d: &Borrowed, bounds: &[Borrowed]) -> PyResult<Vec<usize>> {
-    let single = |b: &Borrowed| b.array.rows == 1;
-    let leading = if single(o) && !single(d) { d.leading.clone() } else { o.leading.clone() };
     let rows = |shape: &[usize]| shape.iter().product::<usize>();
+    // One row by its shape (an expanded array of shape S + (3,) has S's rows, read as one).
+    let single = |b: &Borrowed| rows(&b.leading) == 1;
+    let leading = if single(o) && !single(d) { d.leading.clone() } else { o.leading.clone() };
     if !single(o) && !single(d) && o.leading != d.leading {
         return Err(PyValueError::new_err(format!(
             "origins and directions must have the same shape S + (3,) (or one a single row), got {:?} and {:?}",

@@ -172,7 +172,8 @@ pub(super) fn borrow<'py>(
     if row_stride < 0 || column_stride < 0 {
         return Err(PyValueError::new_err(format!("{name} has negative strides: pass a contiguous array")));
     }
-    let rows = leading.iter().product::<usize>();
+    // Every row the same element (torch's `expand`): one row, shared by every ray.
+    let rows = if row_stride == 0 { 1 } else { leading.iter().product::<usize>() };
     let array = CudaArray {
         pointer: tensor.data as u64 + tensor.byte_offset,
         rows,

@@ -387,7 +387,7 @@ impl PyScene {
             };
             cuda_batch::hits_dict(py, hits, &borrowed.leading)
         })();
-        tracer.give_back_lease(lease);
+        py.detach(|| tracer.give_back_lease(lease)); // may wait for its stream
         result
     }
 
@@ -440,7 +440,7 @@ impl PyScene {
         let traced = self.query(py, None, |scene, interrupt| {
             tracer.trace_cuda_piece(scene, &mut lease, batch.batch(), (start, stop), request, interrupt)
         });
-        tracer.give_back_lease(lease);
+        py.detach(|| tracer.give_back_lease(lease)); // may wait for its stream
         traced
     }
 

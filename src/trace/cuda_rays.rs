@@ -87,6 +87,14 @@ impl CudaLease {
     }
 }
 
+impl Drop for CudaLease {
+    fn drop(&mut self) {
+        // Its stream's queued waits and copies use the semaphore and the shared buffers, which
+        // go with it.
+        let _ = self.stream.synchronize();
+    }
+}
+
 /// The CUDA side of a tracer: its device (looked up once) and idle leases.
 #[derive(Default)]
 pub struct CudaState {
@@ -134,7 +142,10 @@ impl Tracer {
         let mut idle = self.cuda.idle.lock().unwrap_or_else(|e| e.into_inner());
         if idle.len() < 4 {
             idle.push(lease);
+            return;
         }
+        drop(idle);
+        drop(lease); // waits for its stream's work, with no lock held
     }
 
     /// Traces `rays` (CUDA memory, ordered before `lease`'s stream by the caller's producer)
@@ -173,11 +184,11 @@ impl Tracer {
         cuda.reach(&batch.home)?;
         batch.home.share_with(&cuda)?;
         let rays = batch.rays.rows(start, stop);
-        let into = batch.rows_at(start)?;
+        let into = batch.rows_at(start)?; // counts the piece in flight until `written`
         let places = CudaPlaces { home: &batch.home, after: Some(&batch.start), into: Some(&into) };
-        let hits = self.trace_cuda_placed(scene, lease, &rays, &places, request, &batch.fields, interrupt)?;
-        batch.written_after(hits.ready);
-        Ok(())
+        let traced = self.trace_cuda_placed(scene, lease, &rays, &places, request, &batch.fields, interrupt);
+        batch.written(traced.as_ref().ok().map(|hits| hits.ready.clone()));
+        traced.map(|_| ())
     }
 
     /// The GPU-resident path: the rays copied from `places.home` into memory this device shares
@@ -205,20 +216,27 @@ impl Tracer {
         grow(&self.ctx, &cuda, &lease.stream, &mut lease.output, output_bytes, "hits shared with CUDA")?;
         let (input, output) = (lease.input.as_ref().expect("grown"), lease.output.as_ref().expect("grown"));
         let _current = cuda.enter()?;
-        if let Some(event) = places.after {
-            lease.stream.wait_for(event)?;
-        }
-        // The caller's rays into the shared buffer, tightly packed, in the stream's order.
-        let mut at = 0u64;
-        let mut placed = Vec::new();
-        for array in &arrays {
-            copy_packed(&lease.stream, (&cuda, input.pointer + at), (places.home, array))?;
-            placed.push(at);
-            at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
-        }
         let (wait, signal) = (lease.value + 1, lease.value + 2);
         lease.value = signal;
-        lease.semaphore.signal(&lease.stream, wait)?;
+        // The caller's rays into the shared buffer, tightly packed, in the stream's order.
+        let mut placed = Vec::new();
+        let copied = (|| -> Result<()> {
+            if let Some(event) = places.after {
+                lease.stream.wait_for(event)?;
+            }
+            let mut at = 0u64;
+            for array in &arrays {
+                copy_packed(&lease.stream, (&cuda, input.pointer + at), (places.home, array))?;
+                placed.push(at);
+                at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
+            }
+            lease.semaphore.signal(&lease.stream, wait)
+        })();
+        if let Err(error) = copied {
+            // Copies already queued read the caller's memory: done before the caller lets it go.
+            let _ = lease.stream.synchronize();
+            return Err(error);
+        }
         let device_rays = device_rays_in(rays, input.vulkan.address(), &placed);
         let mut outputs: DeviceOutputs = [0; FIELD_COUNT];
         let mut offsets = Vec::new();
@@ -296,8 +314,9 @@ pub struct CudaBatch {
     allocations: Mutex<Option<Vec<CudaAllocation>>>,
     /// Reached once the rays are written (the caller's producer) and the allocations exist.
     start: Event,
-    /// One event per piece traced, after which its hits are written.
-    written: Mutex<Vec<Arc<Event>>>,
+    /// One event per piece traced, after which its hits are written; and the pieces begun and
+    /// not yet done (their copies not yet queued).
+    written: Mutex<(Vec<Arc<Event>>, usize)>,
 }
 
 impl CudaBatch {
@@ -319,7 +338,7 @@ impl CudaBatch {
             fields: fields.to_vec(),
             allocations: Mutex::new(Some(allocations)),
             start,
-            written: Mutex::new(Vec::new()),
+            written: Mutex::new((Vec::new(), 0)),
         })
     }
 
@@ -328,12 +347,14 @@ impl CudaBatch {
         self.stream.raw as usize
     }
 
-    /// Each field's address of row `start` in the batch's allocations.
+    /// Each field's address of row `start` in the batch's allocations, for a piece that begins
+    /// (and reports `written` when done).
     fn rows_at(&self, start: usize) -> Result<Vec<u64>> {
         let allocations = self.allocations.lock().unwrap_or_else(|e| e.into_inner());
         let Some(allocations) = allocations.as_ref() else {
             return Err(invalid_value("this batch of CUDA rays is finished: its hits were handed over".to_string()));
         };
+        self.written.lock().unwrap_or_else(|e| e.into_inner()).1 += 1;
         Ok(self
             .fields
             .iter()
@@ -342,17 +363,29 @@ impl CudaBatch {
             .collect())
     }
 
-    fn written_after(&self, event: Arc<Event>) {
-        self.written.lock().unwrap_or_else(|e| e.into_inner()).push(event);
+    /// A piece begun by `rows_at` is done: its hits are written after `event` (None: it failed,
+    /// and nothing of it is queued).
+    fn written(&self, event: Option<Arc<Event>>) {
+        let mut written = self.written.lock().unwrap_or_else(|e| e.into_inner());
+        written.0.extend(event);
+        written.1 -= 1;
     }
 
     /// The batch's hits, readable by streams ordered after `ready` (every piece's copies).
     pub fn finish(&self) -> Result<CudaHits> {
-        let Some(allocations) = self.allocations.lock().unwrap_or_else(|e| e.into_inner()).take() else {
+        let mut allocations = self.allocations.lock().unwrap_or_else(|e| e.into_inner());
+        let written = self.written.lock().unwrap_or_else(|e| e.into_inner());
+        if written.1 > 0 {
+            return Err(invalid_value(format!(
+                "{} pieces of this batch of CUDA rays are still being traced",
+                written.1
+            )));
+        }
+        let Some(allocations) = allocations.take() else {
             return Err(invalid_value("this batch of CUDA rays is finished already".to_string()));
         };
         let _current = self.home.enter()?;
-        for event in self.written.lock().unwrap_or_else(|e| e.into_inner()).iter() {
+        for event in &written.0 {
             self.stream.wait_for(event)?;
         }
         let ready = Arc::new(self.stream.record()?);
@@ -365,7 +398,8 @@ impl Drop for CudaBatch {
         // Unfinished (a piece failed): the pieces' copies into the allocations finish before
         // they are freed. Finished: the allocations are the caller's, freed after `ready`.
         if self.allocations.get_mut().unwrap_or_else(|e| e.into_inner()).is_some() {
-            for event in self.written.get_mut().unwrap_or_else(|e| e.into_inner()).iter() {
+            let _ = self.stream.synchronize(); // the allocations are made in its order
+            for event in &self.written.get_mut().unwrap_or_else(|e| e.into_inner()).0 {
                 let _ = event.synchronize();
             }
         }
