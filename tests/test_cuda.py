@@ -278,6 +278,31 @@ def test_a_group_splits_cuda_rays_and_hands_the_hits_back_on_their_gpu(bunny, gr
             split_over(group, pieces)
 
 
+def test_cuda_rays_arrive_chunk_by_chunk(bunny):
+    """Copied chunk by chunk, each chunk traced once its rows are in place: chunks of 777 rays
+    (a device's `chunk_rays`), through one Scene and a split, with one-row eyes and per-ray
+    bounds, equal the numpy path's hits."""
+    v, scene = bunny
+    f = oracle.load_obj("stanford-bunny")[1]
+    rng = np.random.default_rng(11)
+    eye = (v.mean(axis=0) + [0.0, 0.0, 0.4]).reshape(1, 3)
+    d = v[rng.integers(0, len(v), 10_001)] - eye
+    tmax = rng.uniform(0.2, 2.0, len(d))
+    expected = scene.intersect(eye, d, tmax=tmax, outputs=["t", "prim_id"])
+    device = vkray.Device(DEVICE.info.index)
+    device.chunk_rays = 777
+    small = device.scene([device.mesh(v, f)])
+    group = vkray.DeviceGroup([device, device.info.index], weights=[1, 1])
+    group.chunk_rays = 777
+    split = group.scene([group.mesh(v, f)])
+    for target in (small, split):
+        hits = target.intersect(torch.from_numpy(eye).cuda(), torch.from_numpy(d).cuda(),
+                                tmax=torch.from_numpy(tmax).cuda(), outputs=["t", "prim_id"])
+        assert_same(hits, expected, ["t", "prim_id"])
+        # 10,001 rays: 13 chunks; each device's half (5,000 or 5,001): 7.
+        assert device.last_trace_profile["chunks"] == (13 if target is small else 7)
+
+
 def test_expanded_tensors_are_one_row(bunny):
     v, scene = bunny
     rng = np.random.default_rng(9)

@@ -39,7 +39,21 @@ impl CudaArray {
 
     /// Bytes of the array once copied tightly packed.
     fn packed_bytes(&self) -> usize {
-        self.rows * self.columns * self.element_bytes()
+        self.rows * self.packed_row_bytes()
+    }
+
+    /// Bytes of one row once copied tightly packed.
+    fn packed_row_bytes(&self) -> usize {
+        self.columns * self.element_bytes()
+    }
+
+    /// The part of this array rays `start..stop` of `count` read: those rows, or its one row
+    /// (shared by every ray) for the first chunk only; None where nothing is left to copy.
+    fn rows_of_chunk(&self, start: usize, stop: usize, count: usize) -> Option<CudaArray> {
+        if self.rows != count || self.rows == 1 {
+            return (start == 0).then_some(*self);
+        }
+        Some(CudaArray { pointer: self.pointer + (start * self.row_stride) as u64, rows: stop - start, ..*self })
     }
 }
 
@@ -216,21 +230,34 @@ impl Tracer {
         grow(&self.ctx, &cuda, &lease.stream, &mut lease.output, output_bytes, "hits shared with CUDA")?;
         let (input, output) = (lease.input.as_ref().expect("grown"), lease.output.as_ref().expect("grown"));
         let _current = cuda.enter()?;
-        let (wait, signal) = (lease.value + 1, lease.value + 2);
+        // The caller's rays into the shared buffer, tightly packed (each array in one place), in
+        // the stream's order, chunk by chunk as Vulkan traces them: chunk k waits for `wait + k`,
+        // so that tracing one chunk overlaps copying the next (over NVLink from another GPU).
+        let chunk_rays = self.device_chunk_capacity(rays.count);
+        let chunks = rays.count.div_ceil(chunk_rays).max(1) as u64;
+        let (wait, signal) = (lease.value + 1, lease.value + 1 + chunks);
         lease.value = signal;
-        // The caller's rays into the shared buffer, tightly packed, in the stream's order.
         let mut placed = Vec::new();
+        let mut at = 0u64;
+        for array in &arrays {
+            placed.push(at);
+            at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
+        }
         let copied = (|| -> Result<()> {
             if let Some(event) = places.after {
                 lease.stream.wait_for(event)?;
             }
-            let mut at = 0u64;
-            for array in &arrays {
-                copy_packed(&lease.stream, (&cuda, input.pointer + at), (places.home, array))?;
-                placed.push(at);
-                at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
+            for k in 0..chunks {
+                let start = k as usize * chunk_rays;
+                let stop = (start + chunk_rays).min(rays.count);
+                for (array, at) in arrays.iter().zip(&placed) {
+                    let Some(rows) = array.rows_of_chunk(start, stop, rays.count) else { continue };
+                    let dst = input.pointer + at + (start.min(array.rows - 1) * array.packed_row_bytes()) as u64;
+                    copy_packed(&lease.stream, (&cuda, dst), (places.home, &rows))?;
+                }
+                lease.semaphore.signal(&lease.stream, wait + k)?;
             }
-            lease.semaphore.signal(&lease.stream, wait)
+            Ok(())
         })();
         if let Err(error) = copied {
             // Copies already queued read the caller's memory: done before the caller lets it go.
@@ -272,7 +299,7 @@ impl Tracer {
             Ok(())
         };
         let timeline = Timeline { semaphore: semaphore.vulkan.semaphore, wait, signal: Some(signal) };
-        let order = Ordering { timeline, after_submit: &mut after_submit };
+        let order = Ordering { timeline, after_submit: &mut after_submit, chunk_rays: Some(chunk_rays) };
         let traced = self.trace_device_rays(scene, &device_rays, request, &outputs, Some(order), interrupt);
         let failure = match traced {
             Ok(None) => None,
@@ -412,9 +439,9 @@ impl CudaRays {
         let count = self.count;
         let cut = |a: CudaArray| {
             if a.rows != count || a.rows == 1 {
-                return a;
+                return a; // one row, shared by every ray
             }
-            CudaArray { pointer: a.pointer + (start * a.row_stride) as u64, rows: stop - start, ..a }
+            a.rows_of_chunk(start, stop, count).expect("rows of every ray")
         };
         let bound = |b: CudaBound| match b {
             CudaBound::Each(a) => CudaBound::Each(cut(a)),

@@ -205,6 +205,11 @@ impl Tracer {
         Ok(invalid)
     }
 
+    /// Rays per chunk (a submission) of a query on `count` device rays.
+    pub fn device_chunk_capacity(&self, count: usize) -> usize {
+        self.chunk_capacity(count).min(self.packing.max_rays())
+    }
+
     /// `trace_device_rays` for any tier whose GPU part traverses in f32 (the refined tier's too),
     /// its device times added to `profile`.
     #[allow(clippy::too_many_arguments)]
@@ -226,7 +231,10 @@ impl Tracer {
         let variant = self.variants.get(self.variant_key(scene, request, false, bits, false))?;
         let frame_buffer = self.pack_frame(scene, rays)?;
         // Chunks as the host path's (`Device.chunk_rays`): the interrupt is asked between them.
-        let capacity = self.chunk_capacity(rays.count).min(self.packing.max_rays());
+        let capacity = match order.as_ref().and_then(|o| o.chunk_rays) {
+            Some(rays) => rays.clamp(1, self.packing.max_rays()),
+            None => self.device_chunk_capacity(rays.count),
+        };
         let scratch = self.packing.take_scratch(capacity)?;
         let job =
             PackedJob { scene, rays, outputs, variant: &variant, scratch: &scratch, frame: frame_buffer.address() };
@@ -285,8 +293,14 @@ impl Tracer {
             memory_barrier(&self.ctx, cmd, all.0, all.1, host.0, host.1);
             stamp(Stamp::ReadBack);
             let last = start + len == count;
-            let timeline =
-                order.as_ref().map(|o| Timeline { signal: last.then_some(o.timeline.signal).flatten(), ..o.timeline });
+            // Arriving chunk by chunk: this one's rays are in place once the chunk holding its
+            // last ray is.
+            let arrived = |o: &Ordering| o.chunk_rays.map_or(0, |rays| ((start + len - 1) / rays.max(1)) as u64);
+            let timeline = order.as_ref().map(|o| Timeline {
+                wait: o.timeline.wait + arrived(o),
+                signal: last.then_some(o.timeline.signal).flatten(),
+                ..o.timeline
+            });
             commands.submit_ordered(timeline)?;
             if last {
                 if let Some(order) = order.as_mut() {
@@ -350,6 +364,10 @@ impl Tracer {
 pub struct Ordering<'a> {
     pub timeline: Timeline,
     pub after_submit: &'a mut dyn FnMut() -> Result<()>,
+    /// Rays arriving chunk by chunk: chunks of this many rays, chunk k waiting for
+    /// `timeline.wait + k` (so that tracing one chunk overlaps the copy of the next). None: every
+    /// chunk waits for `timeline.wait`, in chunks of `chunk_capacity`.
+    pub chunk_rays: Option<usize>,
 }
 
 /// What every chunk of a query on device rays shares.
