@@ -287,3 +287,27 @@ def triangle_soup(n: int, seed: int):
     centres = rng.uniform(0.0, 1.0, (n, 1, 3))
     corners = centres + rng.normal(size=(n, 3, 3)) * rng.uniform(0.02, 0.3, (n, 1, 1))
     return corners.reshape(-1, 3), np.arange(3 * n, dtype=np.int64).reshape(n, 3)
+
+
+def in_threads(count, work):
+    """``[work(0), ..., work(count - 1)]``, each called in a thread of its own, all at once; the
+    first error raised by any of them is raised here once all are done."""
+    import threading
+
+    results = [None] * count
+    errors = []
+
+    def run(k):
+        try:
+            results[k] = work(k)
+        except BaseException as exc:  # raised below, in the caller's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in range(count)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return results

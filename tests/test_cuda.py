@@ -7,7 +7,6 @@ must agree bit for bit."""
 from __future__ import annotations
 
 import gc
-import threading
 
 import numpy as np
 import pytest
@@ -163,25 +162,14 @@ def test_several_threads(bunny):
     v, scene = bunny
     batches = [oracle.random_rays(v, 20_000, seed=10 + k) for k in range(6)]
     expected = [scene.intersect(o.astype(np.float32), d.astype(np.float32)).t for o, d in batches]
-    found: list = [None] * len(batches)
-    errors = []
 
     def work(k):
-        try:
-            o, d = (torch.from_numpy(a.astype(np.float32)).cuda() for a in batches[k])
-            for _ in range(3):
-                found[k] = on_host(scene.intersect(o, d).t)
-        except Exception as exc:  # reported below
-            errors.append(exc)
+        o, d = (torch.from_numpy(a.astype(np.float32)).cuda() for a in batches[k])
+        return [on_host(scene.intersect(o, d).t) for _ in range(3)]
 
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(len(batches))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert not errors, errors
-    for a, b in zip(found, expected):
-        np.testing.assert_array_equal(a, b)
+    for runs, want in zip(oracle.in_threads(len(batches), work), expected):
+        for found in runs:
+            np.testing.assert_array_equal(found, want)
 
 
 def test_cupy_reads_the_hits(bunny):
@@ -379,27 +367,15 @@ def test_a_group_splits_cuda_rays_from_several_threads(bunny, groups):
     batches = [[a.astype(np.float32) for a in oracle.random_rays(v, 40_000, seed=20 + k)] for k in range(4)]
     expected = [scene.intersect(o, d).t for o, d in batches]
     for group, group_scene in groups:
-        found: list = [None] * len(batches)
-        errors: list = []
         gpus = [f"cuda:{device.cuda_device}" for device in group.devices]
 
-        def work(k, group_scene=group_scene, found=found, errors=errors, gpus=gpus):
-            try:
-                where = gpus[k % len(gpus)]
-                o, d = (torch.from_numpy(a).to(where) for a in batches[k])
-                for _ in range(3):
-                    found[k] = on_host(group_scene.intersect(o, d).t)
-            except Exception as exc:  # reported below
-                errors.append(exc)
+        def work(k, group_scene=group_scene, gpus=gpus):
+            o, d = (torch.from_numpy(a).to(gpus[k % len(gpus)]) for a in batches[k])
+            return [on_host(group_scene.intersect(o, d).t) for _ in range(3)]
 
-        threads = [threading.Thread(target=work, args=(k,)) for k in range(len(batches))]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        assert not errors, errors
-        for a, b in zip(found, expected):
-            np.testing.assert_array_equal(a, b)
+        for runs, want in zip(oracle.in_threads(len(batches), work), expected):
+            for found in runs:
+                np.testing.assert_array_equal(found, want)
 
 
 def test_cuda_rays_of_a_gpu_outside_the_group_are_named(bunny):

@@ -9,7 +9,6 @@ same row), spheres and instances; and several threads at once."""
 from __future__ import annotations
 
 import re
-import threading
 
 import numpy as np
 import pytest
@@ -139,21 +138,7 @@ def test_several_threads(pair):
     v, (host, gpu) = bunny_scenes(pair)
     batches = [oracle.random_rays(v, 4000, seed=10 + k) for k in range(6)]
     expected = [host.intersect(o, d) for o, d in batches]
-    found: list = [None] * len(batches)
-    errors = []
-
-    def work(k):
-        try:
-            found[k] = gpu.intersect(*batches[k])
-        except Exception as exc:  # reported below
-            errors.append(exc)
-
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(len(batches))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert not errors
+    found = oracle.in_threads(len(batches), lambda k: gpu.intersect(*batches[k]))
     for a, b in zip(found, expected):
         assert_same_hits(a, b)
 
