@@ -492,7 +492,15 @@ def test_bad_input_raises_what_one_device_raises():
         lambda s: s.contains(o, method="vote"),
         lambda s: s.distance(o[:, :2]),
         lambda s: s.transmittance(vkray.PinholeCamera(4, 4, fov_deg=60, eye=[0, 0, 1], target=[0, 0, 0]), d),
+        # One device checks every point before the tier: the piece without the bad point must not
+        # answer with the tier's error.
+        lambda s: s.closest_points(late_nan, precision="refined"),
+        lambda s: s.distance(late_nan, precision="refined"),
+        lambda s: s.contains(late_nan, method="winding", precision="fast"),
+        lambda s: s.contains(o.astype(complex), method="vote"),  # the method first, as one device
+        lambda s: s.intersect(o, d, outputs=["uv", "prim_id"], out=wide_uv),
     ]
+    wide_uv = vkray.Hits((N,), {"uv": np.zeros((N, 3), np.float32), "prim_id": np.zeros(N, np.int32)}, "fast")
     saved = group.chunk_rays
     group.chunk_rays = 256
     try:
@@ -589,8 +597,15 @@ def test_group_arguments():
     group = vkray.DeviceGroup([0, 0], backend=BACKENDS[0], validation=VALIDATION)
     assert len(group) == 2 and group.devices[0] is not group.devices[1]
     assert all(d.info.index == 0 for d in group.devices)
-    with pytest.raises(ValueError, match="weights must be 2 numbers"):
+    with pytest.raises(ValueError, match="weights must be 2 finite numbers"):
         vkray.DeviceGroup(group.devices, weights=[1, -1])
+    with pytest.raises(ValueError, match="weights must be 2 finite numbers"):
+        vkray.DeviceGroup(group.devices, weights=[np.inf, 1])
+    with pytest.raises(TypeError, match="weights must be a list of numbers"):
+        vkray.DeviceGroup(group.devices, weights="12")
+    for one in (0, "llvmpipe", group.devices[0]):
+        with pytest.raises(TypeError, match="devices must be a list"):
+            vkray.DeviceGroup(one)
     with pytest.raises(ValueError, match="at least one device"):
         vkray.DeviceGroup([])
     other = make_group(2)
@@ -602,3 +617,34 @@ def test_group_arguments():
         vkray.GroupInstance(group.mesh(*box()), custom_index=1.5)
     default = vkray.DeviceGroup()  # every usable device: here the one lavapipe
     assert [d.info.index for d in default.devices] == [d.index for d in vkray.devices()]
+
+
+def test_a_forked_child_is_refused_at_once():
+    """A group that ran a query, then a fork: in the child its next query raises
+    ForkedDeviceError at once (its devices' threads stay in the parent), as a Device does,
+    instead of waiting forever for them."""
+    group = make_group(2)
+    scene = mixed_scene(group, vkray.GroupInstance)
+    o, d = rays(N, 21)
+    scene.count(o, d)
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: report what the query raised, and leave at once
+        try:
+            signal.alarm(30)  # a hang ends the child, and the parent sees no answer
+            try:
+                scene.count(o, d)
+                answer = b"no error"
+            except vkray.ForkedDeviceError as exc:
+                answer = b"ForkedDeviceError: " + str(exc).encode()
+            except BaseException as exc:  # reported to the parent
+                answer = type(exc).__name__.encode()
+            os.write(write, answer)
+        finally:
+            os._exit(0)
+    os.close(write)
+    with os.fdopen(read, "rb") as pipe:
+        answer = pipe.read().decode()
+    os.waitpid(pid, 0)
+    assert answer.startswith("ForkedDeviceError: this DeviceGroup was opened in process"), answer
+    assert_same(scene.count(o, d), scene.per_device[0].count(o, d))  # the parent's group still answers

@@ -695,6 +695,7 @@ class Scene:
         frames then allocates nothing (each field's array must be writeable, C-contiguous, of the
         query's dtype and shape, and share no memory with the rays; other threads must leave it
         alone during the call). Returns Hits over those arrays. numpy rays only, one hit per ray.
+        A call that raises may have written some of out's rows.
         """
         fields = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
         if out is not None and not isinstance(out, Hits):
@@ -1241,6 +1242,9 @@ def _out_arrays(
             raise ValueError(f"out has no {name} array (its call did not ask for it)")
         if not array.flags.c_contiguous or not array.flags.writeable:
             raise ValueError(f"out's {name} must be a writeable, C-contiguous array")
+        want = tuple(shape) + ((_HIT_WIDTHS[name],) if name in _HIT_WIDTHS else ())
+        if array.shape != want:
+            raise ValueError(f"out's {name} has shape {list(array.shape)}, the query writes {list(want)}")
         dtype = _hit_dtype(name, precision)
         if array.dtype != dtype:
             raise ValueError(f"out's {name} must be {np.dtype(dtype).name}, got {array.dtype}")

@@ -10,6 +10,7 @@ share.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 import threading
@@ -58,7 +59,7 @@ from ._api import (
     _out_arrays,
     devices,
 )
-from ._core import VkrayError
+from ._core import ForkedDeviceError, VkrayError
 from .sensors import Sensor
 
 T = TypeVar("T")
@@ -343,6 +344,11 @@ class DeviceGroup:
         weights: Optional[Sequence[float]] = None,
         host_threads: Optional[int] = None,
     ) -> None:
+        if devices is not None and (isinstance(devices, (str, bytes, int, Device)) or not hasattr(devices, "__iter__")):
+            raise TypeError(
+                f"devices must be a list of device indices, names or Devices (or None for every GPU), got "
+                f"{type(devices).__name__} {devices!r}: e.g. DeviceGroup([{devices!r}])"
+            )
         chosen = default_devices() if devices is None else list(devices)
         if not chosen:
             raise ValueError("a DeviceGroup needs at least one device")
@@ -356,10 +362,14 @@ class DeviceGroup:
         ]
         self.devices: Tuple[Device, ...] = tuple(opened)
         if weights is not None:
+            if isinstance(weights, (str, bytes)) or not hasattr(weights, "__iter__"):
+                raise TypeError(f"weights must be a list of numbers, one per device, got {weights!r}")
             weights = [float(w) for w in weights]
-            if len(weights) != len(self.devices) or not all(w >= 0 for w in weights) or not sum(weights) > 0:
+            finite = all(math.isfinite(w) and w >= 0 for w in weights)
+            if len(weights) != len(self.devices) or not finite or not sum(weights) > 0:
                 raise ValueError(
-                    f"weights must be {len(self.devices)} numbers >= 0 (one per device), not all 0, got {weights}"
+                    f"weights must be {len(self.devices)} finite numbers >= 0 (one per device), not all 0, "
+                    f"got {weights}"
                 )
         self._weights = weights
         self._speeds = _Speeds(len(self.devices))
@@ -367,6 +377,18 @@ class DeviceGroup:
         self._threads = [ThreadPoolExecutor(1, thread_name_prefix=f"vkray-device-{k}") for k in range(len(opened))]
         self._busy = [0] * len(self.devices)
         self._busy_lock = threading.Lock()
+        # The threads above exist in this process only: a forked child is refused (as a Device is)
+        # instead of waiting forever for them.
+        self._pid = os.getpid()
+
+    def _check_process(self) -> None:
+        """Raises ForkedDeviceError in a forked child of the process that opened the group."""
+        if os.getpid() != self._pid:
+            raise ForkedDeviceError(
+                f"this DeviceGroup was opened in process {self._pid}, and process {os.getpid()} is a forked child of "
+                f"it: its devices and threads stay in the parent; open a new DeviceGroup in the child (or start it "
+                f"with multiprocessing's 'spawn' or 'forkserver')"
+            )
 
     def __len__(self) -> int:
         return len(self.devices)
@@ -511,6 +533,7 @@ class DeviceGroup:
         """``work(device)`` (or ``work(index, device)``) on every device at once, each in its
         device's thread; the results in device order. When any raises, all are waited for and the
         first device's error (in device order) is raised."""
+        self._check_process()
         futures = [
             thread.submit(work, *((k, d) if with_index else (d,)))
             for k, (thread, d) in enumerate(zip(self._threads, self.devices))
@@ -550,6 +573,7 @@ class DeviceGroup:
         A failing piece stops the pieces after it (at their next chunk), and Ctrl-C in the calling
         thread stops them all; every piece is waited for, then the earliest piece's error is
         raised, naming rows as the caller counts them (see `_Run`)."""
+        self._check_process()
         bar = _progress.Progress(kind.split("/")[0]) if progress else None
         run = _Run([stop - start for _, start, stop in pieces], bar)
         futures: List[Future[T]] = []
@@ -1013,7 +1037,27 @@ class GroupScene:
             return query(self.per_device[device], flat[start:stop])
 
         pieces = self._pieces(kind, len(flat))
-        return self._assemble(kind, pieces, piece, unsplit, assembly, p.shape[:-1], progress)
+        try:
+            return self._assemble(kind, pieces, piece, unsplit, assembly, p.shape[:-1], progress)
+        except (ValueError, TypeError, VkrayError) as error:
+            raise self._point_error(error, flat, query) from None
+
+    def _point_error(self, error: BaseException, flat: np.ndarray, query: Callable[[Scene, Any], Any]) -> BaseException:
+        """What one device raises for the whole batch of points, where the pieces raised ``error``.
+
+        One device checks every point before some of a query's options (a tier it does not
+        answer, spheres): a piece without bad points raises the option's error, where one device
+        would name the first non-finite point. Its error is then the one-point query's at that
+        point, its row counted in the caller's points (found only on this failing path)."""
+        bad = ~np.isfinite(flat).all(axis=1)
+        if not bad.any():
+            return error
+        row = int(np.argmax(bad))
+        try:
+            query(self.per_device[0], flat[row : row + 1])
+        except (ValueError, TypeError, VkrayError) as alone:
+            return in_callers_rows(alone, row)
+        return error
 
     def _assemble(
         self,
@@ -1226,6 +1270,8 @@ class GroupScene:
         self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
     ) -> np.ndarray:
         """`Scene.contains`, the points split over the devices."""
+        if method not in ("parity", "winding"):  # checked first, as Scene does
+            raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")
         return self._points("contains", _Array(), points, progress, precision=precision, method=method)
 
     def __repr__(self) -> str:
