@@ -74,6 +74,18 @@ def test_progress_true_draws_a_bar(small_chunks, capsys, monkeypatch):
         assert f"vkray {what}: 5000/5000" in err, what
 
 
+def test_a_bar_stopped_part_way_ends_its_line(capsys, monkeypatch):
+    monkeypatch.setattr(_progress.importlib, "import_module", _no_module)
+    bar = _progress.Progress("count")
+    bar(1500, 3001)
+    bar.close()
+    assert capsys.readouterr().err == "\rvkray count: 1500/3001\n"
+    bar = _progress.Progress("count")
+    bar(3001, 3001)
+    bar.close()  # done: the line is ended already
+    assert capsys.readouterr().err == "\rvkray count: 3001/3001\n"
+
+
 def test_progress_true_uses_tqdm(small_chunks, monkeypatch):
     scene, o, d = _scene_and_rays(small_chunks)
     bars = []

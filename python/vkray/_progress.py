@@ -21,6 +21,7 @@ class Progress:
         self._unit = unit
         self._bar: Any = None
         self._last = 0.0
+        self._line_open = False  # a line printed without its end (the fallback's)
         self._tqdm: Optional[Any] = None
         try:
             self._tqdm = importlib.import_module("tqdm.auto").tqdm
@@ -40,10 +41,14 @@ class Progress:
         if now - self._last >= 0.5 or done == total:
             self._last = now
             print(f"\rvkray {self._what}: {done}/{total}", end="\n" if done == total else "", file=sys.stderr)
+            self._line_open = done != total
 
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
+        if self._line_open:  # stopped part way (an error, Ctrl-C): the next output starts a line
+            print(file=sys.stderr)
+            self._line_open = False
 
 
 #: A callable the core calls with (done, total) between chunks, or raises from to stop the work.
