@@ -619,6 +619,7 @@ def test_group_arguments():
     assert [d.info.index for d in default.devices] == [d.index for d in vkray.devices()]
 
 
+@pytest.mark.filterwarnings("ignore:This process .* is multi-threaded, use of fork:DeprecationWarning")
 def test_a_forked_child_is_refused_at_once():
     """A group that ran a query, then a fork: in the child its next query raises
     ForkedDeviceError at once (its devices' threads stay in the parent), as a Device does,
