@@ -168,8 +168,25 @@ def test_errors_are_one_process_errors(client, any_device):
         vkray_dask.count(spec, da.zeros((10, 3)), da.zeros((9, 3)))
     with pytest.raises(ValueError, match="one per ray"):
         vkray_dask.count(spec, da.zeros((10, 3)), da.ones((10, 3)), tmax=np.ones(9))
-    with pytest.raises(ValueError, match="precision must be one of"):
-        vkray_dask.intersect(spec, da.zeros((10, 3)), da.ones((10, 3)), precision="nonsense")
+    single = spec.build(any_device)
+    for bad in ("nonsense", None):  # one device's error type and message
+        with pytest.raises((ValueError, TypeError)) as want:
+            single.intersect(np.zeros((10, 3)), np.ones((10, 3)), precision=bad)
+        with pytest.raises(type(want.value), match="precision") as got:
+            vkray_dask.intersect(spec, da.zeros((10, 3)), da.ones((10, 3)), precision=bad)
+        if bad is not None:
+            assert str(got.value) == str(want.value)
+    for ragged in ([[0, 0, 0], [1, 2]], np.array([["a", "b", "c"], ["d", "e", "f"]], dtype=object)):
+        with pytest.raises(TypeError) as want:
+            single.occluded(ragged, np.ones((2, 3)))
+        with pytest.raises(TypeError) as got:
+            vkray_dask.occluded(spec, ragged, np.ones((2, 3)))
+        assert str(got.value) == str(want.value)
+    masked = chunked(o, UNEVEN)[da.from_array(np.arange(N) % 3 == 0, chunks=UNEVEN)]
+    with pytest.raises(ValueError, match=r"unknown size .* origins.compute_chunk_sizes\(\)"):
+        vkray_dask.occluded(spec, masked, masked)
+    with pytest.raises(ValueError, match=r"points has chunks of unknown size"):
+        vkray_dask.closest_points(spec, masked)
     with pytest.raises(ValueError, match="unknown hit fields"):
         vkray_dask.intersect(spec, da.zeros((10, 3)), da.ones((10, 3)), outputs=["colour"])
     with pytest.raises(ValueError, match="unknown keys"):
@@ -178,6 +195,22 @@ def test_errors_are_one_process_errors(client, any_device):
         vkray_dask.SceneSpec([box()], [{"mesh": 1}])
     with pytest.raises(TypeError, match="SceneSpec or a builder"):
         vkray_dask.count(box(), da.zeros((10, 3)), da.ones((10, 3)))
+
+
+def test_a_spec_keeps_its_content_when_the_callers_arrays_change(client, any_device):
+    """The spec copies the meshes: changing the caller's arrays after neither changes the scene
+    its key names nor lets a stale scene answer for another spec of the same key."""
+    v, f = box()
+    moving = v.copy()
+    spec = vkray_dask.SceneSpec([(moving, f)])
+    moving += [0.4, 0.0, 0.0]
+    o, d = rays(N, 27)
+    want = vkray_dask.SceneSpec([(v.copy(), f)]).build(any_device).intersect(o, d, outputs=["t", "prim_id"])
+    (got,) = dask.compute(vkray_dask.intersect(spec, chunked(o, UNEVEN), chunked(d, UNEVEN), outputs=["t", "prim_id"]))
+    np.testing.assert_array_equal(got["t"], want.t)
+    assert spec.key == vkray_dask.SceneSpec([(v, f)]).key
+    with pytest.raises(ValueError, match="at least one device"):
+        vkray_dask.local_cluster([])
 
 
 def test_specs_are_named_by_their_content():

@@ -19,7 +19,10 @@ arrays of shape (N, 3) (or anything `dask.array.asarray` takes), chunked in any 
 second axis is made one chunk), and return dask arrays chunked as the rays are; `intersect` and
 `closest_points` return a dict of them, one per field. Each chunk's answer is `vkray.Scene`'s
 for those rays, so the computed arrays equal what one `Scene` answers in one process. Compute a
-dict's fields together (``dask.compute(hits)``): computed one at a time, each traces anew.
+dict's fields together (``dask.compute(hits)``): computed one at a time, each traces anew. Errors
+are one `Scene`'s, rows counted in the caller's rays; where several chunks hold bad rays, the
+error names the bad row of the chunk that failed first, not always the first bad row. Chunks of
+unknown size (after boolean indexing) are refused: call ``compute_chunk_sizes()`` first.
 
 The scene travels as a `SceneSpec`: meshes and instances as numpy arrays, or a picklable callable
 that builds the scene on a device. It is one key of the task graph on which every chunk's task
@@ -32,7 +35,9 @@ from __future__ import annotations
 import collections
 import hashlib
 import importlib.util
+import json
 import logging
+import math
 import os
 import threading
 from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
@@ -41,6 +46,7 @@ import numpy as np
 
 from . import _arrays
 from ._api import DEFAULT_FIELDS, PRECISIONS, Cull, Device, Instance, Precision, Scene, _check_outputs, _closest_outputs
+from ._core import NoDeviceError
 from ._group import default_devices, in_callers_rows, usable_cores
 
 if importlib.util.find_spec("dask") is None:
@@ -88,8 +94,10 @@ class SceneSpec:
     def __init__(
         self, meshes: Sequence[Tuple[Any, Any]], instances: Optional[Sequence[Mapping[str, Any]]] = None
     ) -> None:
+        # Copies, read-only: the key hashes the content now, and the scene must be built from
+        # that content (the caller may change its arrays after).
         self._meshes: List[Tuple[np.ndarray, np.ndarray]] = [
-            (_arrays.points("vertices", v), _arrays.faces(f)) for v, f in meshes
+            (_frozen(_arrays.points("vertices", v)), _frozen(_arrays.faces(f))) for v, f in meshes
         ]
         chosen = [{"mesh": k} for k in range(len(self._meshes))] if instances is None else instances
         self._instances = [_instance_arguments(k, x, len(self._meshes)) for k, x in enumerate(chosen)]
@@ -140,8 +148,15 @@ def _instance_arguments(k: int, instance: Mapping[str, Any], mesh_count: int) ->
     mesh = _arrays.integer(f"instance {k}'s mesh", instance.get("mesh"), 0, mesh_count - 1)
     arguments = {key: instance[key] for key in _INSTANCE_KEYS if key in instance}
     if arguments.get("transform") is not None:
-        arguments["transform"] = _arrays.transform(arguments["transform"])
+        arguments["transform"] = _frozen(_arrays.transform(arguments["transform"]))
     return {"mesh": mesh, "arguments": arguments}
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    """A read-only copy of ``array``."""
+    copy = np.array(array, copy=True)
+    copy.flags.writeable = False
+    return copy
 
 
 def _content_hash(meshes: Sequence[Tuple[np.ndarray, np.ndarray]], instances: Sequence[Dict[str, Any]]) -> str:
@@ -253,14 +268,35 @@ def _as_scene_spec(scene: Union[SceneSpec, Builder]) -> SceneSpec:
 
 
 def _check_precision(precision: str) -> None:
-    """Refused here, when the graph is made, rather than by every chunk's task."""
+    """Refused here, when the graph is made, rather than by every chunk's task (with one
+    device's error)."""
+    if not isinstance(precision, str):
+        raise TypeError(f"precision must be a string, one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
     if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        named = ", ".join(repr(p) for p in PRECISIONS[:-1]) + f" or {PRECISIONS[-1]!r}"
+        raise ValueError(f"precision must be {named}, got {json.dumps(precision)}")
+
+
+def _dask_array(name: str, value: Any, convert: Callable[[str, Any], np.ndarray] = _arrays._asarray) -> da.Array:
+    """``value`` as a dask array: other input read by ``convert`` (as one device reads it: ragged
+    lists and arrays of objects raise its errors); chunks of unknown size refused with the remedy
+    (tasks need each chunk's first row)."""
+    if not isinstance(value, da.Array):
+        host = convert(name, value)
+        if host.dtype == object:
+            raise TypeError(f"{name} must hold numbers, got an array of Python objects")
+        value = da.from_array(host)
+    if any(math.isnan(c) for c in value.chunks[0]):
+        raise ValueError(
+            f"{name} has chunks of unknown size (as after boolean indexing): call {name}.compute_chunk_sizes() "
+            f"first"
+        )
+    return value
 
 
 def _rows(name: str, value: Any) -> da.Array:
     """An (N, 3) dask array with its three columns in one chunk."""
-    array = da.asarray(value)
+    array = _dask_array(name, value, _arrays.real_coordinates)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {array.shape}")
     return array.rechunk({1: -1})
@@ -271,7 +307,7 @@ def _per_ray(name: str, value: Any, rays: da.Array) -> Optional[da.Array]:
     for one value for every ray (which the tasks take as it is)."""
     if np.ndim(value) == 0:
         return None
-    array = da.asarray(value)
+    array = _dask_array(name, value)
     if array.shape != rays.shape[:1]:
         raise ValueError(f"{name} must be one value or one per ray, shape {rays.shape[:1]}, got {array.shape}")
     return array.rechunk((rays.chunks[0],))
@@ -456,6 +492,10 @@ def local_cluster(
     from distributed import Nanny, Scheduler, SpecCluster
 
     chosen = default_devices() if devices is None else list(devices)
+    if not chosen:  # a cluster without workers would wait forever for one
+        if devices is None:
+            raise NoDeviceError("local_cluster found no usable device (vkray.devices() is empty)")
+        raise ValueError("local_cluster needs at least one device")
     limit = 1 / max(len(chosen), 1) if memory_limit == "auto" else memory_limit
     shared: Dict[str, str] = {}
     if "RAYON_NUM_THREADS" not in os.environ:
