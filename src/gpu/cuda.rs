@@ -137,37 +137,7 @@ impl Cuda {
     fn shared_pool(&self, peers: &[&Cuda]) -> Result<sys::CUmemoryPool> {
         let mut shared = self.shared_pool.lock().unwrap_or_else(|e| e.into_inner());
         if shared.is_none() {
-            // SAFETY: zeroed is a valid bit pattern of this plain C struct (no handle types, no
-            // security attributes, no maximum size).
-            let mut props: sys::CUmemPoolProps = unsafe { std::mem::zeroed() };
-            props.allocType = sys::CUmemAllocationType::CU_MEM_ALLOCATION_TYPE_PINNED;
-            props.location =
-                sys::CUmemLocation { type_: sys::CUmemLocationType::CU_MEM_LOCATION_TYPE_DEVICE, id: self.ordinal };
-            let mut pool = std::ptr::null_mut();
-            // SAFETY: `props` describes a pool of this device's memory; `pool` is writable.
-            check("cuMemPoolCreate", unsafe { sys::cuMemPoolCreate(&mut pool, &props) })?;
-            // Freed memory stays in the pool up to a 64th of the GPU (2.2 GB of an H200: the hits
-            // of 256M rays' lean intersect), instead of going back at every synchronization and
-            // being mapped again for the next batch (1-2 ms of a 64M-ray batch's 30 on an H200;
-            // docs/benchmarks.md). Allocations that fail trim it and try again.
-            let mut total = 0usize;
-            // SAFETY: the device is valid; `total` is writable.
-            check("cuDeviceTotalMem", unsafe { sys::cuDeviceTotalMem_v2(&mut total, self.device) })?;
-            let mut keep = (total / 64) as u64;
-            // SAFETY: the pool is live; the attribute takes a u64.
-            let kept = check("cuMemPoolSetAttribute", unsafe {
-                sys::cuMemPoolSetAttribute(
-                    pool,
-                    sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_RELEASE_THRESHOLD,
-                    &mut keep as *mut u64 as *mut c_void,
-                )
-            });
-            if let Err(e) = kept {
-                // SAFETY: made above, not used.
-                unsafe { sys::cuMemPoolDestroy(pool) };
-                return Err(e);
-            }
-            *shared = Some((SharedPool(pool), Vec::new()));
+            *shared = Some((SharedPool(self.new_pool()?), Vec::new()));
         }
         let (pool, granted) = shared.as_mut().expect("made above");
         for peer in peers {
@@ -194,6 +164,42 @@ impl Cuda {
             check("cuMemPoolSetAccess", unsafe { sys::cuMemPoolSetAccess(pool.0, &access, 1) })?;
         }
         Ok(pool.0)
+    }
+
+    /// A new memory pool of this device's memory that keeps freed memory up to a 64th of the GPU
+    /// (2.2 GB of an H200: the hits of 256M rays' lean intersect), instead of giving it back at
+    /// every synchronization and mapping it again for the next batch (1-2 ms of a 64M-ray batch's
+    /// 30 on an H200; docs/benchmarks.md). Allocations that fail trim it and try again.
+    fn new_pool(&self) -> Result<sys::CUmemoryPool> {
+        // SAFETY: zeroed is a valid bit pattern of this plain C struct (no handle types, no
+        // security attributes, no maximum size).
+        let mut props: sys::CUmemPoolProps = unsafe { std::mem::zeroed() };
+        props.allocType = sys::CUmemAllocationType::CU_MEM_ALLOCATION_TYPE_PINNED;
+        props.location =
+            sys::CUmemLocation { type_: sys::CUmemLocationType::CU_MEM_LOCATION_TYPE_DEVICE, id: self.ordinal };
+        let mut pool = std::ptr::null_mut();
+        // SAFETY: `props` describes a pool of this device's memory; `pool` is writable.
+        check("cuMemPoolCreate", unsafe { sys::cuMemPoolCreate(&mut pool, &props) })?;
+        let mut total = 0usize;
+        // SAFETY: the device is valid; `total` is writable.
+        let mut kept = check("cuDeviceTotalMem", unsafe { sys::cuDeviceTotalMem_v2(&mut total, self.device) });
+        if kept.is_ok() {
+            let mut keep = (total / 64) as u64;
+            // SAFETY: the pool is live; the attribute takes a u64.
+            kept = check("cuMemPoolSetAttribute", unsafe {
+                sys::cuMemPoolSetAttribute(
+                    pool,
+                    sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_RELEASE_THRESHOLD,
+                    &mut keep as *mut u64 as *mut c_void,
+                )
+            });
+        }
+        if let Err(e) = kept {
+            // SAFETY: made above, never used.
+            unsafe { sys::cuMemPoolDestroy(pool) };
+            return Err(e);
+        }
+        Ok(pool)
     }
 
     /// Lets `peer`'s copies write this device's pool (`CudaAllocation::new`).
