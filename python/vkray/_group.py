@@ -974,10 +974,11 @@ class GroupScene:
         origins, directions = rays["origins"], rays["directions"]
         home = self._cuda_member(origins, directions)
         kind = f"{query_name}/cuda"
+        count = _cuda_rows(origins, directions)
 
         def whole() -> T:
-            rows = _cuda_rows(origins, directions)
-            return self._run(kind, [(home, 0, rows)], lambda k, _start, _stop: unsplit(self.per_device[k]), progress)[0]
+            run = self._run(kind, [(home, 0, count)], lambda k, _start, _stop: unsplit(self.per_device[k]), progress)
+            return run[0]
 
         fields = _cuda_fields(query_name, options)
         splittable = (
@@ -988,7 +989,6 @@ class GroupScene:
             and len(self.per_device) > 1
             and all(d.cuda_device is not None for d in self.group.devices)
         )
-        count = _cuda_rows(origins, directions)
         pieces = self._pieces(kind, count) if splittable and count > 1 else []
         if len(pieces) <= 1:
             return whole()
