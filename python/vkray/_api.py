@@ -154,6 +154,24 @@ class Device:
         return dict(self._core.last_trace_profile)
 
     @property
+    def idle_memory(self) -> Dict[str, int]:
+        """The staging memory this device keeps between queries, so that the next query need not
+        allocate it (host-visible buffers for rays and hits, their device copies, packing
+        scratch, CUDA leases): ``bytes`` held now, ``kept`` (how many sets of buffers), and
+        ``made`` (how many its queries had to allocate so far, because none was idle).
+
+        A device keeps as many as its queries used at once (several threads querying it at the
+        same time each hold their own), up to eight queries' worth: a chunk's staging takes
+        about 72 bytes a ray (`chunk_rays`), twice over on discrete GPUs. `release_idle_memory`
+        frees them."""
+        return dict(self._core.idle_memory)
+
+    def release_idle_memory(self) -> None:
+        """Frees the staging memory kept between queries (`idle_memory`), e.g. after a burst of
+        queries from many threads; later queries allocate what they need again."""
+        self._core.release_idle_memory()
+
+    @property
     def cuda_device(self) -> Optional[int]:
         """CUDA's index of this GPU (the device id of its CUDA arrays in DLPack, ``cuda:N`` in
         torch), or None where it is no CUDA device sharing memory with Vulkan: CUDA arrays of this

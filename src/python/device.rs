@@ -137,6 +137,22 @@ impl PyDevice {
         Ok(d)
     }
 
+    /// The staging this device keeps idle between queries: ``bytes``, ``kept``, ``made``.
+    #[getter]
+    fn idle_memory<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let memory = self.tracer.idle_memory();
+        let d = PyDict::new(py);
+        d.set_item("bytes", memory.bytes)?;
+        d.set_item("kept", memory.items)?;
+        d.set_item("made", memory.made)?;
+        Ok(d)
+    }
+
+    /// Frees the idle staging (a CUDA lease's release waits for its stream: without the GIL).
+    fn release_idle_memory(&self, py: Python<'_>) {
+        py.detach(|| self.tracer.release_idle_memory());
+    }
+
     /// CUDA's index of this device (DLPack's device id for its CUDA arrays), or None where it is
     /// not a CUDA device that shares memory with Vulkan.
     #[getter]

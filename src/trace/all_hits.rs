@@ -147,7 +147,14 @@ impl Tracer {
         // One set of lists per chunk in flight: two, or one for a query of one chunk.
         let mut lists = Vec::new();
         for _ in 0..plan.len().min(2) {
-            lists.push(self.take_lists(ray_capacity, record_capacity * size_of::<R>())?);
+            match self.take_lists(ray_capacity, record_capacity * size_of::<R>()) {
+                Ok(taken) => lists.push(taken),
+                Err(error) => {
+                    self.slots.give_back(slots);
+                    self.give_back_lists(lists);
+                    return Err(error);
+                }
+            }
         }
         let frame = scene.frame();
         let sensor = sensor.as_ref();
@@ -218,30 +225,25 @@ impl Tracer {
     }
 }
 
-/// Idle lists kept between queries: at most two, of at most `IDLE_RECORD_BYTES` of records each.
-const IDLE_LISTS: usize = 2;
+/// Idle lists kept between queries: as many as were in use at once, at most eight, each of at
+/// most `IDLE_RECORD_BYTES` of records.
+pub(super) const IDLE_LISTS: usize = 8;
 const IDLE_RECORD_BYTES: usize = 64 << 20;
 
 impl Tracer {
     /// Lists for `rays` rays and `record_bytes` of records: idle ones where they fit, new ones
     /// (allocated outside the lock) otherwise.
     fn take_lists(&self, rays: usize, record_bytes: usize) -> Result<ListBuffers> {
-        let found = {
-            let mut idle = self.idle_lists.lock().unwrap_or_else(|e| e.into_inner());
-            let fits = idle.iter().position(|l| l.rays >= rays && l.record_bytes >= record_bytes);
-            fits.map(|k| idle.swap_remove(k))
-        };
-        match found {
-            Some(lists) => Ok(lists),
-            None => ListBuffers::new(&self.ctx, rays, record_bytes),
+        let fits = |l: &ListBuffers| l.rays >= rays && l.record_bytes >= record_bytes;
+        if let Some(lists) = self.idle_lists.take(1, fits, |_| true).pop() {
+            return Ok(lists);
         }
+        ListBuffers::new(&self.ctx, rays, record_bytes).inspect_err(|_| self.idle_lists.give_back(1, []))
     }
 
     fn give_back_lists(&self, lists: Vec<ListBuffers>) {
-        let mut idle = self.idle_lists.lock().unwrap_or_else(|e| e.into_inner());
-        idle.extend(lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
-        let surplus = idle.len().saturating_sub(IDLE_LISTS);
-        idle.drain(..surplus);
+        let returned = lists.len();
+        self.idle_lists.give_back(returned, lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
     }
 }
 

@@ -8,6 +8,7 @@ use ash::vk;
 use rayon::prelude::*;
 
 use super::fields::{hits_from_prims, Field, HitSink, FIELDS};
+use super::idle::{pair_bytes, Held};
 use super::profile::{Stamp, TraceProfile};
 use super::staging::Slot;
 use super::tracer::Tracer;
@@ -58,6 +59,12 @@ pub(super) struct ListBuffers {
     /// Lists, and bytes of records, they have room for.
     pub rays: usize,
     pub record_bytes: usize,
+}
+
+impl Held for ListBuffers {
+    fn bytes(&self) -> u64 {
+        self.lists_host.size() + self.records_host.size() + pair_bytes(&self.device)
+    }
 }
 
 impl ListBuffers {

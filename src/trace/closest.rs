@@ -4,7 +4,7 @@
 //! through in chunks, two in flight, as rays do (`chunks.rs`); only the distances travel back
 //! when only distances are asked.
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 use ash::vk;
@@ -12,6 +12,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::fields::{Field, HitSink};
+use super::idle::{pair_bytes, Held, IdleMemory, IdlePool};
 use super::profile::{Stamp, Stamps, TraceProfile};
 use super::request::Precision;
 use super::tiers;
@@ -58,6 +59,9 @@ pub(super) enum PointShader {
     Winding,
 }
 
+/// Two slots serve one query: keep up to eight queries' worth (as many as ran at once).
+const IDLE_POINT_SLOTS: usize = 16;
+
 /// The point queries' pipelines of one device (compiled on first use) and their staging.
 pub struct PointPipelines {
     ctx: Arc<Context>,
@@ -67,7 +71,7 @@ pub struct PointPipelines {
     order: ComputeKernel,
     /// sign_points.comp.
     pub(super) sign: ComputeKernel,
-    idle: Mutex<Vec<PointSlot>>,
+    idle: IdlePool<PointSlot>,
 }
 
 impl PointPipelines {
@@ -79,7 +83,7 @@ impl PointPipelines {
             kernels: [kernel(shaders::CLOSEST_POINT)?, kernel(shaders::WINDING)?],
             order: ComputeKernel::new(ctx, shaders::POINT_ORDER, std::mem::size_of::<PointOrderParams>(), Some(needs))?,
             sign: ComputeKernel::new(ctx, shaders::SIGN_POINTS, std::mem::size_of::<SignPointsParams>(), Some(needs))?,
-            idle: Mutex::new(Vec::new()),
+            idle: IdlePool::new(IDLE_POINT_SLOTS),
         })
     }
 
@@ -103,29 +107,31 @@ impl PointPipelines {
     /// the sign's crossings where `signs`: idle ones where they fit, new ones (allocated outside
     /// the lock) otherwise.
     pub(super) fn take_slots(&self, capacity: usize, full: bool, signs: bool) -> Result<[PointSlot; 2]> {
-        let mut found: Vec<PointSlot> = {
-            let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-            let mut found = Vec::new();
-            while found.len() < 2 {
-                match idle.iter().position(|s| s.capacity >= capacity && (s.full || !full) && (s.signs || !signs)) {
-                    Some(k) => found.push(idle.swap_remove(k)),
-                    None => break,
+        let fits = |s: &PointSlot| s.capacity >= capacity && (s.full || !full) && (s.signs || !signs);
+        let mut found = self.idle.take(2, fits, |_| true);
+        while found.len() < 2 {
+            match PointSlot::new(&self.ctx, capacity, full, signs) {
+                Ok(slot) => found.push(slot),
+                Err(error) => {
+                    self.idle.give_back(2, found);
+                    return Err(error);
                 }
             }
-            found
-        };
-        while found.len() < 2 {
-            found.push(PointSlot::new(&self.ctx, capacity, full, signs)?);
         }
         let second = found.pop().expect("two slots");
         Ok([found.pop().expect("two slots"), second])
     }
 
     pub(super) fn give_back(&self, slots: [PointSlot; 2]) {
-        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-        idle.extend(slots);
-        let surplus = idle.len().saturating_sub(2);
-        idle.drain(..surplus);
+        self.idle.give_back(2, slots);
+    }
+
+    pub(super) fn idle_memory(&self) -> IdleMemory {
+        self.idle.memory()
+    }
+
+    pub(super) fn release_idle(&self) {
+        self.idle.clear();
     }
 }
 
@@ -146,6 +152,14 @@ pub(super) struct PointSlot {
     full: bool,
     signs: bool,
     stamps: Option<Stamps>,
+}
+
+impl Held for PointSlot {
+    fn bytes(&self) -> u64 {
+        let own =
+            [&self.points_host, &self.results_host, &self.cells, &self.order].map(|b| b.size()).iter().sum::<u64>();
+        own + pair_bytes(&self.device) + self.rays_record.as_ref().map_or(0, Buffer::size)
+    }
 }
 
 impl PointSlot {

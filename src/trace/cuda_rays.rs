@@ -8,6 +8,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 
 use super::device_rays::{DeviceArray, DeviceBound, DeviceOutputs, DeviceRays, Ordering};
 use super::fields::{Field, FIELD_COUNT};
+use super::idle::{Held, IdleMemory, IdlePool};
 use super::request::Request;
 use super::tracer::Tracer;
 use crate::error::{invalid_value, Error, Result};
@@ -93,6 +94,12 @@ pub struct CudaLease {
     output: Option<SharedBuffer>,
 }
 
+impl Held for CudaLease {
+    fn bytes(&self) -> u64 {
+        [&self.input, &self.output].iter().filter_map(|b| b.as_ref()).map(|b| b.vulkan.size()).sum()
+    }
+}
+
 impl CudaLease {
     /// The stream's handle, for DLPack's `__dlpack__(stream=...)`: the caller's producer orders
     /// its pending writes before this stream's work.
@@ -110,10 +117,18 @@ impl Drop for CudaLease {
 }
 
 /// The CUDA side of a tracer: its device (looked up once) and idle leases.
-#[derive(Default)]
 pub struct CudaState {
     cuda: OnceLock<Option<Arc<Cuda>>>,
-    idle: Mutex<Vec<CudaLease>>,
+    idle: IdlePool<CudaLease>,
+}
+
+/// Idle leases kept: as many as queries used at once, at most eight.
+const IDLE_LEASES: usize = 8;
+
+impl Default for CudaState {
+    fn default() -> CudaState {
+        CudaState { cuda: OnceLock::new(), idle: IdlePool::new(IDLE_LEASES) }
+    }
 }
 
 /// Alignment of each array within the shared buffers.
@@ -136,9 +151,13 @@ impl Tracer {
 
     /// A lease for one GPU-resident query: an idle one, or a new one.
     pub fn cuda_lease(&self) -> Result<CudaLease> {
-        if let Some(lease) = self.cuda.idle.lock().unwrap_or_else(|e| e.into_inner()).pop() {
+        if let Some(lease) = self.cuda.idle.take(1, |_| true, |_| true).pop() {
             return Ok(lease);
         }
+        self.new_lease().inspect_err(|_| self.cuda.idle.give_back(1, []))
+    }
+
+    fn new_lease(&self) -> Result<CudaLease> {
         let Some(cuda) = self.cuda()? else {
             return Err(Error::Unsupported(format!(
                 "{} cannot share memory with CUDA (it is not an NVIDIA GPU with the CUDA driver and Vulkan's \
@@ -152,14 +171,18 @@ impl Tracer {
 
     /// Returns a lease for the next query (its stream's work may still be running: the next
     /// query queues after it on the same stream).
+    /// A lease beyond those kept is dropped, which waits for its stream's work, with no lock held.
     pub fn give_back_lease(&self, lease: CudaLease) {
-        let mut idle = self.cuda.idle.lock().unwrap_or_else(|e| e.into_inner());
-        if idle.len() < 4 {
-            idle.push(lease);
-            return;
-        }
-        drop(idle);
-        drop(lease); // waits for its stream's work, with no lock held
+        self.cuda.idle.give_back(1, [lease]);
+    }
+
+    pub(super) fn idle_leases(&self) -> IdleMemory {
+        self.cuda.idle.memory()
+    }
+
+    /// Drops the idle leases (each waits for its stream's work).
+    pub(super) fn release_idle_leases(&self) {
+        self.cuda.idle.clear();
     }
 
     /// Traces `rays` (CUDA memory, ordered before `lease`'s stream by the caller's producer)

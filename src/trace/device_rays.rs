@@ -3,12 +3,13 @@
 //! shaders/pack_rays.comp, traced, and their far rays' distances finished, all in one submission:
 //! no host pass over the rays or the hits. The fast tier's closest-hit and occlusion queries.
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 use ash::vk;
 
 use super::fields::{Field, HitSink, FIELDS, FIELD_COUNT};
+use super::idle::{Held, IdleMemory, IdlePool};
 use super::profile::{Stamp, Stamps, TraceProfile};
 use super::request::{Precision, Query, Request};
 use super::tracer::Tracer;
@@ -66,12 +67,15 @@ pub struct DeviceRays {
 /// requested), `t` and `uv` in f32.
 pub type DeviceOutputs = [u64; FIELD_COUNT];
 
+/// Idle packing scratch kept: as many as queries used at once, at most eight.
+const IDLE_SCRATCH: usize = 8;
+
 /// The packing shader's pipelines (compiled on first use) and idle scratch.
 pub struct PackPipelines {
     ctx: Arc<Context>,
     /// pack_rays.comp (it packs in f64: loaded only with shaderFloat64).
     kernel: ComputeKernel,
-    idle: Mutex<Vec<PackScratch>>,
+    idle: IdlePool<PackScratch>,
 }
 
 /// Device memory for one chunk of packed rays and their advances.
@@ -79,6 +83,12 @@ struct PackScratch {
     packed: Buffer,
     advances: Buffer,
     capacity: usize,
+}
+
+impl Held for PackScratch {
+    fn bytes(&self) -> u64 {
+        self.packed.size() + self.advances.size()
+    }
 }
 
 impl PackPipelines {
@@ -89,7 +99,7 @@ impl PackPipelines {
             std::mem::size_of::<PackParams>(),
             Some("packing rays on the GPU needs"),
         )?;
-        Ok(PackPipelines { ctx: ctx.clone(), kernel, idle: Mutex::new(Vec::new()) })
+        Ok(PackPipelines { ctx: ctx.clone(), kernel, idle: IdlePool::new(IDLE_SCRATCH) })
     }
 
     /// Most rays one packing dispatch may cover on this device.
@@ -110,29 +120,33 @@ impl PackPipelines {
     /// Scratch for `capacity` rays: an idle one where it fits, a new one (allocated outside the
     /// lock) otherwise.
     fn take_scratch(&self, capacity: usize) -> Result<PackScratch> {
-        let found = {
-            let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-            idle.iter().position(|s| s.capacity >= capacity).map(|k| idle.swap_remove(k))
-        };
-        if let Some(scratch) = found {
+        if let Some(scratch) = self.idle.take(1, |s| s.capacity >= capacity, |_| true).pop() {
             return Ok(scratch);
         }
         use vk::BufferUsageFlags as U;
         let usage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
         let ray_bytes = (capacity * RAY_FLOATS * 4) as u64;
-        Ok(PackScratch {
-            packed: Buffer::new(&self.ctx, ray_bytes, usage, MemoryLocation::GpuOnly, "packed rays")?,
-            advances: Buffer::new(&self.ctx, 8 * capacity as u64, usage, MemoryLocation::GpuOnly, "ray advances")?,
-            capacity,
-        })
+        let made = (|| {
+            Ok(PackScratch {
+                packed: Buffer::new(&self.ctx, ray_bytes, usage, MemoryLocation::GpuOnly, "packed rays")?,
+                advances: Buffer::new(&self.ctx, 8 * capacity as u64, usage, MemoryLocation::GpuOnly, "ray advances")?,
+                capacity,
+            })
+        })();
+        made.inspect_err(|_| self.idle.give_back(1, []))
     }
 
-    /// Keeps one scratch (the largest) for the next query.
+    /// Keeps the scratch for a later query (as many as were in use at once).
     fn give_back(&self, scratch: PackScratch) {
-        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-        idle.push(scratch);
-        idle.sort_by_key(|s| std::cmp::Reverse(s.capacity));
-        idle.truncate(1);
+        self.idle.give_back(1, [scratch]);
+    }
+
+    pub fn idle_memory(&self) -> IdleMemory {
+        self.idle.memory()
+    }
+
+    pub fn release_idle(&self) {
+        self.idle.clear();
     }
 
     /// Records the packing (or finishing) of one chunk.

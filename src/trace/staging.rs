@@ -1,13 +1,14 @@
 //! Staging for chunks in flight: host-visible rays and hits (plus device copies on discrete GPUs),
 //! each slot with its own timestamps; and the pool that keeps idle slots for the next query.
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use ash::vk;
 
 use super::fields::{Field, FIELDS, FIELD_COUNT};
+use super::idle::{pair_bytes, Held, IdleMemory, IdlePool};
 use super::profile::Stamps;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::geometry::align_up;
 use crate::geometry::rays::{RayLayout, RAY_FLOATS};
 use crate::gpu::context::Context;
@@ -25,6 +26,12 @@ pub struct Slot {
     pub stamps: Option<Stamps>,
     /// How the chunk now in the slot lies in its ray staging (f32 rays; set as it is packed).
     pub layout: RayLayout,
+}
+
+impl Held for Slot {
+    fn bytes(&self) -> u64 {
+        self.rays_host.size() + self.hits_host.size() + pair_bytes(&self.device)
+    }
 }
 
 impl Slot {
@@ -106,38 +113,40 @@ impl Slot {
     }
 }
 
-/// Idle slots kept between queries (allocating staging is slow on discrete GPUs). The lock is
-/// held only to take or return slots, never while anything waits.
+/// Idle slots kept between queries (allocating staging is slow on discrete GPUs).
 pub struct SlotPool {
     ctx: Arc<Context>,
-    idle: Mutex<Vec<Slot>>,
+    idle: IdlePool<Slot>,
 }
 
-/// Two slots serve one query; keep at most two queries' worth around.
-const IDLE_SLOTS: usize = 4;
+/// Two slots serve one query; keep at most eight queries' worth around (as many as ran at once).
+const IDLE_SLOTS: usize = 16;
 
 impl SlotPool {
     pub fn new(ctx: &Arc<Context>) -> SlotPool {
-        SlotPool { ctx: ctx.clone(), idle: Mutex::new(Vec::new()) }
+        SlotPool { ctx: ctx.clone(), idle: IdlePool::new(IDLE_SLOTS) }
     }
 
     /// Two slots of at least `capacity` rays for one query: idle ones where they fit, new ones
-    /// (allocated outside the lock) otherwise.
+    /// (allocated outside the lock) otherwise. Idle slots too small for it are dropped; where
+    /// the device's memory runs out, every idle slot is, and the allocation tried again.
     pub fn take(&self, capacity: usize, exact: bool) -> Result<[Slot; 2]> {
-        let mut found: Vec<Slot> = {
-            let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-            idle.retain(|s| s.capacity >= capacity || s.exact != exact);
-            let mut found = Vec::new();
-            while found.len() < 2 {
-                match idle.iter().position(|s| s.exact == exact) {
-                    Some(k) => found.push(idle.swap_remove(k)),
-                    None => break,
+        let mut found = self.idle.take(2, |s| s.exact == exact, |s| s.capacity >= capacity || s.exact != exact);
+        while found.len() < 2 {
+            let slot = match Slot::new(&self.ctx, capacity, exact) {
+                Err(Error::OutOfMemory(_)) => {
+                    self.idle.clear();
+                    Slot::new(&self.ctx, capacity, exact)
+                }
+                made => made,
+            };
+            match slot {
+                Ok(slot) => found.push(slot),
+                Err(error) => {
+                    self.idle.give_back(2, found);
+                    return Err(error);
                 }
             }
-            found
-        };
-        while found.len() < 2 {
-            found.push(Slot::new(&self.ctx, capacity, exact)?);
         }
         let second = found.pop().expect("two slots");
         let first = found.pop().expect("two slots");
@@ -145,9 +154,14 @@ impl SlotPool {
     }
 
     pub fn give_back(&self, slots: [Slot; 2]) {
-        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-        idle.extend(slots);
-        let surplus = idle.len().saturating_sub(IDLE_SLOTS);
-        idle.drain(..surplus);
+        self.idle.give_back(2, slots);
+    }
+
+    pub fn memory(&self) -> IdleMemory {
+        self.idle.memory()
+    }
+
+    pub fn clear(&self) {
+        self.idle.clear();
     }
 }

@@ -8,6 +8,7 @@ use std::time::Instant;
 use super::chunks::GpuJob;
 use super::closest::{points_as_they_come, points_in_grid_order, ORDER_MIN_POINTS};
 use super::fields::{hits_from_prims, position_bytes_per_ray, Field, HitSink, FIELDS};
+use super::idle::IdleMemory;
 use super::profile::TraceProfile;
 use super::request::{Crossings, Precision, Query, Request, SignedDistance, DEFAULT_THRESHOLD};
 use super::staging::SlotPool;
@@ -40,7 +41,7 @@ pub struct Tracer {
     /// The CUDA device that is this device, and the GPU-resident path's idle leases.
     pub(super) cuda: super::cuda_rays::CudaState,
     /// Idle lists and records of the all-hits storing pass (see `all_hits`).
-    pub(super) idle_lists: Mutex<Vec<super::chunks::ListBuffers>>,
+    pub(super) idle_lists: super::idle::IdlePool<super::chunks::ListBuffers>,
     /// Whether this driver runs the intersection shaders of each `Probe` path, once known.
     pub(super) probes: [OnceLock<bool>; 2],
     pub(super) last_profile: Mutex<TraceProfile>,
@@ -88,7 +89,7 @@ impl Tracer {
             points: super::closest::PointPipelines::new(ctx)?,
             packing: super::device_rays::PackPipelines::new(ctx)?,
             cuda: Default::default(),
-            idle_lists: Mutex::new(Vec::new()),
+            idle_lists: super::idle::IdlePool::new(super::all_hits::IDLE_LISTS),
             probes: [OnceLock::new(), OnceLock::new()],
             last_profile: Mutex::new(TraceProfile::default()),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
@@ -113,6 +114,25 @@ impl Tracer {
     pub(super) fn keep_profile(&self, mut profile: TraceProfile) {
         profile.host_threads = parallel::install(rayon::current_num_threads);
         *self.last_profile.lock().unwrap_or_else(|e| e.into_inner()) = profile;
+    }
+
+    /// The staging, scratch and leases this device keeps idle between queries (as many as its
+    /// queries used at once), and how many its queries had to make.
+    pub fn idle_memory(&self) -> IdleMemory {
+        self.slots.memory()
+            + self.points.idle_memory()
+            + self.packing.idle_memory()
+            + self.idle_lists.memory()
+            + self.idle_leases()
+    }
+
+    /// Frees what `idle_memory` counts; later queries make what they need again.
+    pub fn release_idle_memory(&self) {
+        self.slots.clear();
+        self.points.release_idle();
+        self.packing.release_idle();
+        self.idle_lists.clear();
+        self.release_idle_leases();
     }
 
     /// Rays per chunk: staging holds two chunks of rays and hits (72 bytes a ray each).

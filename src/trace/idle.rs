@@ -1,0 +1,171 @@
+//! Idle GPU resources kept between queries (staging slots, packing scratch, list buffers, CUDA
+//! leases): allocating them costs more than a chunk's trace on discrete GPUs, so a device keeps
+//! what its queries used, as many as were ever in use at once (up to a cap). A fixed number
+//! made every query beyond it allocate anew when more threads queried one device at once: with
+//! four threads, a 4M-ray call went from 7 to 45 ms on an H200 (docs/benchmarks.md, session 15).
+
+use std::sync::Mutex;
+
+/// What an idle item holds: the bytes of its buffers (host-visible staging and device copies).
+pub trait Held {
+    fn bytes(&self) -> u64;
+}
+
+/// Bytes of a pair of device copies, where there is one.
+pub fn pair_bytes(device: &Option<(crate::gpu::memory::Buffer, crate::gpu::memory::Buffer)>) -> u64 {
+    device.as_ref().map_or(0, |(a, b)| a.size() + b.size())
+}
+
+/// A device's idle resources, summed over its pools (`Tracer::idle_memory`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct IdleMemory {
+    /// Bytes the idle items hold.
+    pub bytes: u64,
+    /// Idle items.
+    pub items: usize,
+    /// Items the device's queries had to make because none was idle (over its lifetime).
+    pub made: u64,
+}
+
+impl std::ops::Add for IdleMemory {
+    type Output = IdleMemory;
+    fn add(self, other: IdleMemory) -> IdleMemory {
+        IdleMemory { bytes: self.bytes + other.bytes, items: self.items + other.items, made: self.made + other.made }
+    }
+}
+
+/// A pool of idle `T`s. The lock is held only to take or return items: making new ones and
+/// dropping surplus ones (a CUDA lease's drop waits for its stream) happen outside it.
+pub struct IdlePool<T> {
+    state: Mutex<State<T>>,
+    cap: usize,
+}
+
+struct State<T> {
+    /// Oldest first.
+    idle: Vec<T>,
+    /// Items taken and not yet given back (including those the takers made).
+    out: usize,
+    /// The most items ever out at once.
+    peak: usize,
+    /// Items takers had to make (asked for and not found idle).
+    made: u64,
+}
+
+impl<T: Held> IdlePool<T> {
+    /// A pool that keeps at most `cap` idle items.
+    pub fn new(cap: usize) -> IdlePool<T> {
+        IdlePool { state: Mutex::new(State { idle: Vec::new(), out: 0, peak: 0, made: 0 }), cap }
+    }
+
+    /// Counts `count` items out and takes up to that many idle ones for which `fits` holds (the
+    /// newest first); the taker makes the rest. Idle items for which `keep` fails are dropped
+    /// (after the lock is released).
+    pub fn take(&self, count: usize, fits: impl Fn(&T) -> bool, keep: impl Fn(&T) -> bool) -> Vec<T> {
+        let dropped: Vec<T>;
+        let found = {
+            let mut state = self.lock();
+            state.out += count;
+            state.peak = state.peak.max(state.out);
+            let (kept, unwanted): (Vec<T>, Vec<T>) = std::mem::take(&mut state.idle).into_iter().partition(&keep);
+            state.idle = kept;
+            dropped = unwanted;
+            let mut found = Vec::with_capacity(count);
+            while found.len() < count {
+                match state.idle.iter().rposition(&fits) {
+                    Some(k) => found.push(state.idle.remove(k)),
+                    None => break,
+                }
+            }
+            state.made += (count - found.len()) as u64;
+            found
+        };
+        drop(dropped);
+        found
+    }
+
+    /// Gives back `returned` items taken before (fewer where some were lost), of which `items`
+    /// are kept for later queries: at most as many as were ever out at once, and at most the
+    /// cap; the oldest go first.
+    pub fn give_back(&self, returned: usize, items: impl IntoIterator<Item = T>) {
+        let surplus: Vec<T> = {
+            let mut state = self.lock();
+            state.out = state.out.saturating_sub(returned);
+            state.idle.extend(items);
+            let keep = state.peak.min(self.cap);
+            let extra = state.idle.len().saturating_sub(keep);
+            state.idle.drain(..extra).collect()
+        };
+        drop(surplus);
+    }
+
+    /// Drops every idle item (after an allocation failed: the memory they hold may be what
+    /// the next one needs).
+    pub fn clear(&self) {
+        let idle = std::mem::take(&mut self.lock().idle);
+        drop(idle);
+    }
+
+    /// What the pool holds now, and how many items were made.
+    pub fn memory(&self) -> IdleMemory {
+        let state = self.lock();
+        IdleMemory { bytes: state.idle.iter().map(Held::bytes).sum(), items: state.idle.len(), made: state.made }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, State<T>> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Held, IdleMemory, IdlePool};
+
+    impl Held for u32 {
+        fn bytes(&self) -> u64 {
+            u64::from(*self)
+        }
+    }
+
+    #[test]
+    fn keeps_as_many_as_were_out_at_once_up_to_the_cap() {
+        let pool = IdlePool::<u32>::new(5);
+        // Three takers at once, two items each: six out at the peak; five kept (the cap).
+        let taken: Vec<Vec<u32>> = (0..3).map(|_| pool.take(2, |_| true, |_| true)).collect();
+        assert!(taken.iter().all(Vec::is_empty));
+        for k in 0..3 {
+            pool.give_back(2, [2 * k, 2 * k + 1]);
+        }
+        assert_eq!(pool.lock().idle, vec![1, 2, 3, 4, 5]);
+        // One taker at a time after that: still five kept.
+        assert_eq!(pool.take(2, |_| true, |_| true), vec![5, 4]);
+        pool.give_back(2, [7, 8]);
+        assert_eq!(pool.lock().idle, vec![1, 2, 3, 7, 8]);
+        assert_eq!(pool.memory(), IdleMemory { bytes: 21, items: 5, made: 6 });
+    }
+
+    #[test]
+    fn a_pool_used_by_one_taker_keeps_one_takers_worth() {
+        let pool = IdlePool::<u32>::new(16);
+        for round in 0..3 {
+            let found = pool.take(2, |_| true, |_| true);
+            assert_eq!(found.len(), if round == 0 { 0 } else { 2 });
+            pool.give_back(2, [10 * round, 10 * round + 1]);
+        }
+        assert_eq!(pool.lock().idle.len(), 2);
+    }
+
+    #[test]
+    fn takes_only_what_fits_and_drops_what_is_not_kept() {
+        let pool = IdlePool::<u32>::new(8);
+        let _ = pool.take(4, |_| true, |_| true);
+        pool.give_back(4, [1, 5, 9, 3]);
+        // Items under 3 are no longer wanted; of the rest, those over 4 fit.
+        assert_eq!(pool.take(2, |&x| x > 4, |&x| x >= 3), vec![9, 5]);
+        assert_eq!(pool.lock().idle, vec![3]);
+        pool.give_back(1, []); // one of the two was lost
+        pool.clear();
+        assert!(pool.lock().idle.is_empty());
+        assert_eq!(pool.lock().out, 1);
+    }
+}
