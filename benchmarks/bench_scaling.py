@@ -21,8 +21,9 @@ Every answer is compared with that `Scene`'s.
 
 Dask (--dask): the same kind of rays without random_rays' quarter of wild directions, drawn in
 float32, each chunk of --chunk rays from its own seed. For each k, a cluster of k worker processes
-(one thread each); the rays are made on the workers and kept there (`Client.persist`), outside the
-timing, so that no ray crosses the network and the figure is the tracing. "dask": the best of
+(--threads-per-worker threads each: 3 by default, as `local_cluster`'s); the rays are made on the
+workers and kept there (`Client.persist`), outside the timing, so that no ray crosses the network
+and the figure is the tracing. "dask": the best of
 --repeat of tracing every chunk where its rays are, the answers kept in the workers' memory
 (`Client.persist`, numpy out on the workers), after one warm-up (each worker builds its scene and
 compiles its pipelines); the answers' chunks are compared with one `Scene`'s in this process by
@@ -282,7 +283,9 @@ def forget(client: Any, collections: List[Any]) -> None:
         time.sleep(0.01)
 
 
-def bench_dask(devices: List[Any], mesh: Any, n: int, chunk: int, repeat: int, gather: bool) -> List[Dict[str, Any]]:
+def bench_dask(
+    devices: List[Any], mesh: Any, n: int, chunk: int, repeat: int, gather: bool, threads: int
+) -> List[Dict[str, Any]]:
     import dask
     from dask.distributed import Client, futures_of, wait
 
@@ -308,7 +311,7 @@ def bench_dask(devices: List[Any], mesh: Any, n: int, chunk: int, repeat: int, g
     rows = []
     for k in device_counts(len(devices)):
         log(f"{k} devices: starting a local cluster of {k} workers")
-        with vkray_dask.local_cluster(devices[:k]) as cluster, Client(cluster) as client:
+        with vkray_dask.local_cluster(devices[:k], threads_per_worker=threads) as cluster, Client(cluster) as client:
             client.wait_for_workers(k, timeout=300)
             limits = sorted({w["memory_limit"] for w in client.scheduler_info()["workers"].values()})
             log(f"{k} devices: {k} workers up (memory limit each: {[f'{x / 2**30:.0f} GiB' for x in limits]})")
@@ -338,7 +341,8 @@ def bench_dask(devices: List[Any], mesh: Any, n: int, chunk: int, repeat: int, g
                         ok = dask_digests(dict(zip(names, kept))) == reference[query][1]
                         log(f"{k} devices: {query} answers {'equal' if ok else 'DIFFER FROM'} one Scene's")
                     forget(client, kept)
-                rows.append(dict(mode="dask", devices=k, query=query, rays=n, seconds=min(times), same=ok, chunk=chunk))
+                rows.append(dict(mode="dask", devices=k, query=query, rays=n, seconds=min(times), same=ok, chunk=chunk,
+                                 threads_per_worker=threads))
                 if not gather:
                     continue
                 times = []
@@ -364,6 +368,7 @@ def main() -> None:
     parser.add_argument("--resident", action="store_true", help="torch CUDA rays, each GPU's share on it")
     parser.add_argument("--gather", action="store_true", help="with --dask: also time gathering the answers here")
     parser.add_argument("--chunk", type=float, default=4e6, help="rays per dask chunk")
+    parser.add_argument("--threads-per-worker", type=int, default=3, help="with --dask: each worker's threads")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--mesh", default="stanford-bunny")
     parser.add_argument("--json", type=pathlib.Path)
@@ -375,7 +380,7 @@ def main() -> None:
     n = int(args.rays)
     mesh = load_obj(args.mesh)
     if args.dask:
-        rows = bench_dask(devices, mesh, n, int(args.chunk), args.repeat, args.gather)
+        rows = bench_dask(devices, mesh, n, int(args.chunk), args.repeat, args.gather, args.threads_per_worker)
     else:
         log(f"making {n:,} rays (random_rays)")
         o, d = (a.astype(np.float32) for a in random_rays(mesh[0], n, seed=1))

@@ -1,5 +1,5 @@
-"""vkray.dask on a cluster of two worker processes (lavapipe twice, as two GPUs; one thread
-each, under the validation layer as the suite is): each function's computed arrays equal one
+"""vkray.dask on a cluster of two worker processes (lavapipe twice, as two GPUs; three threads
+each, `local_cluster`'s default, under the validation layer as the suite is): each function's computed arrays equal one
 process's `Scene` answer, whatever the chunking; the scene reaches each worker once per
 computation and is built once per worker; a worker killed in the middle of a computation is
 replaced, its tasks run again, and the result is still the same: nothing lost, nothing twice."""
@@ -31,7 +31,7 @@ SHIFT = np.array([[1.0, 0, 0, 0.4], [0, 1, 0, 0.3], [0, 0, 1, 0.2], [0, 0, 0, 1]
 
 @pytest.fixture(scope="module")
 def client():
-    """Two workers on device 0 (lavapipe), one thread each; the validation layer on in each, as
+    """Two workers on device 0 (lavapipe), three threads each; the validation layer on in each, as
     it is in this process, so that any message it reports fails the task and the test."""
     env = {"VKRAY_VALIDATION": "1"} if VALIDATION else {}
     with vkray_dask.local_cluster([0, 0], env=env) as cluster, Client(cluster) as client:
@@ -211,6 +211,10 @@ def test_a_spec_keeps_its_content_when_the_callers_arrays_change(client, any_dev
     assert spec.key == vkray_dask.SceneSpec([(v, f)]).key
     with pytest.raises(ValueError, match="at least one device"):
         vkray_dask.local_cluster([])
+    with pytest.raises(ValueError, match=r"threads_per_worker must be in \[1, 1024\], got 0"):
+        vkray_dask.local_cluster([0], threads_per_worker=0)
+    with pytest.raises(TypeError, match="threads_per_worker must be an integer"):
+        vkray_dask.local_cluster([0], threads_per_worker="2")
 
 
 def test_specs_are_named_by_their_content():
@@ -222,35 +226,44 @@ def test_specs_are_named_by_their_content():
 
 
 def test_a_worker_killed_mid_computation_is_replaced_and_nothing_is_lost(client, any_device, tmp_path):
-    """A task upstream of vkray's kills its worker process the first time it runs on a worker
-    that has traced a chunk of this scene (a marker file remembers): the chunks it traced are lost
-    with it. Dask replaces the worker, traces the lost chunks again, and the answers equal one
-    process's, each ray's once, in order."""
+    """The last chunk's directions wait for a gate (a file), so that the computation is under way
+    until the test opens it. Once a worker holds traced chunks, the test kills that worker's
+    process: the chunks it traced are lost with it. Dask replaces the worker, traces the lost
+    chunks again, and the answers equal one process's, each ray's once, in order."""
     spec = solids_spec(SHIFT + np.eye(4, k=3) * np.random.default_rng().uniform(0.2, 0.3))  # a new scene
     o, d = rays(N, 27)
-    marker = str(tmp_path / "killed")
-    pids = set(client.run(os.getpid).values())
+    gate = str(tmp_path / "open")
+    pids = client.run(os.getpid)
 
-    def kill_once_after_a_trace(block, spec_key=spec.key):
-        if spec_key in vkray_dask.cache_info()["scenes"] and not os.path.exists(marker):
-            open(marker, "w").close()
-            time.sleep(0.5)  # for the worker to tell the scheduler of the chunks it traced
-            os.kill(os.getpid(), signal.SIGKILL)
+    def wait_at_the_gate(block, block_info=None):
+        if block_info[None]["chunk-location"][0] == 9:
+            deadline = time.monotonic() + 120
+            while not os.path.exists(gate) and time.monotonic() < deadline:
+                time.sleep(0.01)
         return block
 
-    origins = chunked(o, 401).map_blocks(kill_once_after_a_trace, dtype=o.dtype)
-    assert origins.numblocks[0] == 10
+    directions = chunked(d, 401).map_blocks(wait_at_the_gate, dtype=d.dtype)
     fields = ("t", "prim_id", "instance_id")
-    hits = vkray_dask.intersect(spec, origins, chunked(d, 401), outputs=fields)
+    hits = vkray_dask.intersect(spec, chunked(o, 401), directions, outputs=fields)
+    assert directions.numblocks[0] == 10
     with get_task_stream(client) as stream:
-        (got,) = dask.compute(hits)
-    assert os.path.exists(marker)  # the worker was killed
+        futures = client.compute(hits)
+        victim = None
+        deadline = time.monotonic() + 120
+        while victim is None and time.monotonic() < deadline:
+            held = client.has_what()
+            victim = next((w for w, keys in held.items() if any("vkray-intersect" in str(k) for k in keys)), None)
+            time.sleep(0.01)
+        assert victim is not None, "no worker traced a chunk"
+        os.kill(pids[victim], signal.SIGKILL)
+        open(gate, "w").close()
+        got = futures.result()
     traced = [task["key"] for task in stream.data if "vkray-intersect" in str(task["key"])]
     assert len(traced) > 10 and len(set(traced)) == 10  # some chunks traced twice: lost, then traced again
     want = spec.build(any_device).intersect(o, d, outputs=fields)
     assert_fields_equal(got, hits, want, fields)
     client.wait_for_workers(2)
-    assert len(pids - set(client.run(os.getpid).values())) == 1  # one worker process was replaced
+    assert len(set(pids.values()) - set(client.run(os.getpid).values())) == 1  # one worker process was replaced
 
 
 def test_rays_from_one_array_are_computed_once_per_chunk(client, any_device, tmp_path):

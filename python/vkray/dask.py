@@ -469,7 +469,7 @@ def closest_points(
 def local_cluster(
     devices: Optional[Sequence[Union[int, str]]] = None,
     *,
-    threads_per_worker: int = 1,
+    threads_per_worker: int = 3,
     env: Optional[Mapping[str, str]] = None,
     memory_limit: Union[str, float, None] = "auto",
 ) -> SpecCluster:
@@ -482,6 +482,9 @@ def local_cluster(
     devices: indices or names as `vkray.Device` takes them; ``None``: every usable device, only
     the hardware ones where there are any (as `vkray.DeviceGroup` chooses). A device listed twice
     gets two workers. Use it as ``with local_cluster() as cluster, Client(cluster) as client:``.
+    threads_per_worker: chunks each worker traces at once on its device (3 by default: while one
+    chunk is on the GPU, the others' host passes and Dask's own work between tasks run; 1.5× one
+    thread's rays/s on an H200 at 4M-ray chunks, docs/benchmarks.md, session 15).
     memory_limit: each worker's, past which Dask spills its data to disk (60%), pauses it (80%)
     and restarts it (95%). ``"auto"`` (default): the machine's memory shared equally by the
     workers, as `distributed.LocalCluster` shares it (a `Nanny`'s own default gives a one-thread
@@ -491,6 +494,7 @@ def local_cluster(
     """
     from distributed import Nanny, Scheduler, SpecCluster
 
+    threads_per_worker = _arrays.integer("threads_per_worker", threads_per_worker, 1, 1024)
     chosen = default_devices() if devices is None else list(devices)
     if not chosen:  # a cluster without workers would wait forever for one
         if devices is None:
