@@ -141,6 +141,8 @@ class Device:
 
         Host clock: ``pack`` (checking rays and converting them into staging), ``submit``,
         ``wait`` (GPU time not hidden behind packing), ``unpack`` (copying hits out), ``total``.
+        A chunk's hits are copied out while the next chunk's rays are packed, so ``pack`` and
+        ``unpack`` (each side's own time) may add up to more than the time they took together.
         GPU timestamps, summed over chunks (``None`` where the queue has no timestamps):
         ``gpu_upload`` (staging → device copy), ``gpu_trace`` (the trace alone), ``gpu_readback``.
         ``host_f64``: the host's f64 work (refined and reference tiers). ``store``: all hits on

@@ -202,7 +202,7 @@ impl Tracer {
                 finish_stored(&slots[s], &lists[s], done, stored, profile)?;
                 interrupt.progress(finished, stored.seen.len());
             }
-            let advances = pack_chunk(job, &mut slots[s], start, end - start)?;
+            let advances = pack_chunk(job, slots[s].split().0, start, end - start)?;
             write_lists(&mut lists[s], &stored.offsets, max_hits, start, end);
             let bytes = (stored.offsets[end] - stored.offsets[start]) as usize * size_of::<R>();
             profile.chunks += 1;

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::fields::{hits_from_prims, Field, HitSink, FIELDS};
 use super::idle::{pair_bytes, Held};
 use super::profile::{Stamp, TraceProfile};
-use super::staging::Slot;
+use super::staging::{HitReadback, RayStaging, Slot};
 use super::tracer::Tracer;
 use super::variants::{push_constant_stages, Variant};
 use crate::error::Result;
@@ -143,17 +143,39 @@ impl Tracer {
             lap(&mut profile.submit);
             commands[s].wait()?;
             lap(&mut profile.wait);
-            if let Some(done) = in_flight[s].take() {
-                finish_chunk(&slots[s], &done, job.outputs, sink, profile)?;
-                finished += done.len;
+            let done = in_flight[s].take();
+            let (finished_chunk, packed) = {
+                // The slot's last chunk's hits are copied out while this chunk's rays are packed
+                // into its ray staging: the one pass reads host memory, the other writes the
+                // GPU's over the bus, and side by side they take less than one after the other.
+                let (staging, readback) = slots[s].split();
+                let outputs = job.outputs;
+                let unpack = || {
+                    let started = Instant::now();
+                    let finished = done
+                        .as_ref()
+                        .map_or(Ok(0), |done| finish_chunk(&readback, done, outputs, sink, profile).map(|()| done.len));
+                    (finished, started.elapsed().as_secs_f64())
+                };
+                let pack = || {
+                    let started = Instant::now();
+                    (pack_chunk(job, staging, start, len), started.elapsed().as_secs_f64())
+                };
+                parallel::install(|| rayon::join(unpack, pack))
+            };
+            let ((finished_rays, unpack_seconds), (advances, pack_seconds)) = (finished_chunk, packed);
+            // Each side's own time: side by side, they add up to more than the phase's.
+            lap(&mut 0.0);
+            (profile.unpack, profile.pack) = (profile.unpack + unpack_seconds, profile.pack + pack_seconds);
+            let finished_rays = finished_rays?;
+            if finished_rays > 0 {
+                finished += finished_rays;
                 interrupt.progress(finished, n);
             }
-            lap(&mut profile.unpack);
-            let advances = pack_chunk(job, &mut slots[s], start, len)?;
+            let advances = advances?;
             if job.sensor.is_none() {
                 profile.ray_bytes += slots[s].packed_bytes(len);
             }
-            lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
             self.record_chunk(commands[s].buffer, job, &slots[s], start, len, None);
@@ -165,7 +187,7 @@ impl Tracer {
             commands[s].wait()?;
             lap(&mut profile.wait);
             if let Some(done) = in_flight[s].take() {
-                finish_chunk(&slots[s], &done, job.outputs, sink, profile)?;
+                finish_chunk(&slots[s].split().1, &done, job.outputs, sink, profile)?;
                 finished += done.len;
                 interrupt.progress(finished, n);
             }
@@ -372,14 +394,13 @@ fn record_readback(
 
 /// Checks and packs rays `start..start + len` (and their masks) into the slot's staging; rays the
 /// shaders generate need nothing.
-pub(super) fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize) -> Result<Vec<Advance>> {
+pub(super) fn pack_chunk(job: &GpuJob, slot: RayStaging, start: usize, len: usize) -> Result<Vec<Advance>> {
     if job.sensor.is_some() {
         return Ok(Vec::new());
     }
-    let masks_at = slot.masks_offset();
-    let exact = slot.exact;
-    slot.layout = RayLayout::Full;
-    let packed = slot.rays_host.mapped_mut().expect("ray staging is host-visible");
+    let RayStaging { rays, layout: slot_layout, masks_at, exact } = slot;
+    *slot_layout = RayLayout::Full;
+    let packed = rays.mapped_mut().expect("ray staging is host-visible");
     let (rays_bytes, masks_bytes) = packed.split_at_mut(masks_at);
     let refused = job.compact_refused.load(Ordering::Relaxed);
     let compact = job.compact.filter(|(layout, _)| !refused && layout.bytes(len) <= len * RAY_FLOATS * 4);
@@ -406,20 +427,20 @@ pub(super) fn pack_chunk(job: &GpuJob, slot: &mut Slot, start: usize, len: usize
         });
     }
     if let (true, Some((layout, _))) = (packed_compact, compact) {
-        slot.layout = layout;
+        *slot_layout = layout;
     }
     Ok(advances)
 }
 
 /// A finished chunk: its timestamps into the profile, its hits into the caller's arrays.
 fn finish_chunk(
-    slot: &Slot,
+    slot: &HitReadback,
     done: &InFlight,
     outputs: u32,
     sink: &mut HitSink,
     profile: &mut TraceProfile,
 ) -> Result<()> {
-    if let Some(stamps) = &slot.stamps {
+    if let Some(stamps) = slot.stamps {
         stamps.add_to(profile)?;
     }
     unpack(slot, done, outputs, sink);
@@ -428,10 +449,10 @@ fn finish_chunk(
 
 /// Copies a finished chunk's requested fields into the caller's arrays, on all cores, and adds
 /// back to `t` how far each far ray was advanced before tracing.
-fn unpack(slot: &Slot, done: &InFlight, outputs: u32, sink: &mut HitSink) {
+fn unpack(slot: &HitReadback, done: &InFlight, outputs: u32, sink: &mut HitSink) {
     let InFlight { start, len, advances } = done;
     let (start, len) = (*start, *len);
-    let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
+    let hits = slot.hits.mapped().expect("hit readback is host-visible");
     for (field, out) in sink.iter_mut() {
         if outputs & field.bit() == 0 {
             continue;

@@ -20,7 +20,8 @@ pub struct TraceProfile {
     pub submit: f64,
     /// Waiting for the GPU.
     pub wait: f64,
-    /// Copying hit fields from readback memory into the result arrays.
+    /// Copying hit fields from readback memory into the result arrays (side by side with the
+    /// next chunk's `pack`: the two may add up to more than the time they took).
     pub unpack: f64,
     pub total: f64,
     /// GPU time copying rays from staging to device memory (0 on shared-memory devices).

@@ -28,6 +28,30 @@ pub struct Slot {
     pub layout: RayLayout,
 }
 
+/// Where a chunk's rays are packed: a slot's ray staging (`Slot::split`).
+pub struct RayStaging<'a> {
+    pub rays: &'a mut Buffer,
+    /// How the chunk lies in it (set as it is packed).
+    pub layout: &'a mut RayLayout,
+    pub masks_at: usize,
+    pub exact: bool,
+}
+
+/// Where a finished chunk's hits are read: a slot's readback and timestamps (`Slot::split`).
+pub struct HitReadback<'a> {
+    pub hits: &'a Buffer,
+    pub stamps: Option<&'a Stamps>,
+    pub capacity: usize,
+    pub exact: bool,
+}
+
+impl HitReadback<'_> {
+    /// Byte offset of a field's array within the readback.
+    pub fn field_offset(&self, field: Field) -> usize {
+        Slot::layout(self.capacity, self.exact).0[field as usize]
+    }
+}
+
 impl Held for Slot {
     fn bytes(&self) -> u64 {
         self.rays_host.size() + self.hits_host.size() + pair_bytes(&self.device)
@@ -54,6 +78,18 @@ impl Slot {
             )
         };
         Ok(Slot { rays_host, hits_host, device, capacity, exact, stamps: Stamps::new(ctx)?, layout: RayLayout::Full })
+    }
+
+    /// The slot's ray staging (which packing writes) and hit readback (which finishing reads),
+    /// borrowed apart: once the slot's chunk is done on the GPU, its hits are copied out while
+    /// the next chunk's rays are packed into the same slot.
+    pub fn split(&mut self) -> (RayStaging<'_>, HitReadback<'_>) {
+        let masks_at = self.masks_offset();
+        let Slot { rays_host, hits_host, capacity, exact, stamps, layout, .. } = self;
+        (
+            RayStaging { rays: rays_host, layout, masks_at, exact: *exact },
+            HitReadback { hits: hits_host, stamps: stamps.as_ref(), capacity: *capacity, exact: *exact },
+        )
     }
 
     /// Bytes of one packed ray; the rays buffer holds `capacity` of them, then one u32 mask each.
