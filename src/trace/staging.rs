@@ -164,10 +164,12 @@ impl SlotPool {
     }
 
     /// Two slots of at least `capacity` rays for one query: idle ones where they fit, new ones
-    /// (allocated outside the lock) otherwise. Idle slots too small for it are dropped; where
-    /// the device's memory runs out, every idle slot is, and the allocation tried again.
+    /// (allocated outside the lock) otherwise. Idle slots too small for it stay for smaller
+    /// queries (the pool drops the oldest beyond what it keeps); where the device's memory runs
+    /// out, every idle slot is dropped, and the allocation tried again.
     pub fn take(&self, capacity: usize, exact: bool) -> Result<[Slot; 2]> {
-        let mut found = self.idle.take(2, |s| s.exact == exact, |s| s.capacity >= capacity || s.exact != exact);
+        let fits = |s: &Slot| s.exact == exact && s.capacity >= capacity;
+        let mut found = self.idle.take(2, fits, |_| true);
         while found.len() < 2 {
             let slot = match Slot::new(&self.ctx, capacity, exact) {
                 Err(Error::OutOfMemory(_)) => {
