@@ -283,11 +283,30 @@ def forget(client: Any, collections: List[Any]) -> None:
         time.sleep(0.01)
 
 
+def task_times(tasks: List[Dict[str, Any]], query: str, threads: int) -> str:
+    """Where the workers' time went, from Dask's task stream: the vkray tasks' count and mean
+    compute time, and the share of each worker's threads' time from its first task's start to
+    its last task's end that the vkray tasks computed (``threads`` threads a worker; the rest:
+    Dask's work between tasks, the other tasks, idle threads)."""
+    traced = [t for t in tasks if f"vkray-{query}-" in str(t["key"])]
+    computed = [(t["worker"], ss["start"], ss["stop"]) for t in traced for ss in t["startstops"] if ss["action"] == "compute"]
+    if not computed:
+        return "no vkray tasks in the task stream"
+    busy = []
+    for worker in sorted({w for w, _, _ in computed}):
+        mine = [(a, b) for w, a, b in computed if w == worker]
+        span = max(b for _, b in mine) - min(a for a, _ in mine)
+        busy.append(sum(b - a for a, b in mine) / (span * threads) if span > 0 else 1.0)
+    mean = sum(b - a for _, a, b in computed) / len(computed)
+    shares = ", ".join(f"{x:.2f}" for x in busy)
+    return f"{len(computed)} vkray tasks, {mean * 1e3:.1f} ms each, computing {shares} of each worker's threads' span"
+
+
 def bench_dask(
     devices: List[Any], mesh: Any, n: int, chunk: int, repeat: int, gather: bool, threads: int
 ) -> List[Dict[str, Any]]:
     import dask
-    from dask.distributed import Client, futures_of, wait
+    from dask.distributed import Client, futures_of, get_task_stream, wait
 
     import vkray.dask as vkray_dask
 
@@ -329,12 +348,14 @@ def bench_dask(
                 names = sorted(graph)
                 times = []
                 for run in range(repeat + 1):  # run 0: each worker builds the scene, compiles its pipeline
-                    start = time.perf_counter()
-                    kept = client.persist([graph[name] for name in names])
-                    wait(futures_of(kept))
-                    seconds = time.perf_counter() - start
+                    with get_task_stream(client) as stream:
+                        start = time.perf_counter()
+                        kept = client.persist([graph[name] for name in names])
+                        wait(futures_of(kept))
+                        seconds = time.perf_counter() - start
                     what = "warm-up" if run == 0 else f"run {run}/{repeat}"
-                    log(f"{k} devices: {query} {what}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), answers kept")
+                    log(f"{k} devices: {query} {what}: {seconds:.3f} s ({n / seconds / 1e6:.1f} M rays/s), answers kept;"
+                        f" {task_times(stream.data, query, threads)}")
                     if run > 0:
                         times.append(seconds)
                     if run == repeat:
