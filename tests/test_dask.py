@@ -6,6 +6,7 @@ replaced, its tasks run again, and the result is still the same: nothing lost, n
 
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -247,22 +248,24 @@ def test_a_worker_killed_mid_computation_is_replaced_and_nothing_is_lost(client,
     hits = vkray_dask.intersect(spec, chunked(o, 401), directions, outputs=fields)
     assert directions.numblocks[0] == 10
     with get_task_stream(client) as stream:
+        started = time.time()
         futures = client.compute(hits)
         victim = None
         deadline = time.monotonic() + 120
         while victim is None and time.monotonic() < deadline:
-            held = client.has_what()
-            victim = next((w for w, keys in held.items() if any("vkray-intersect" in str(k) for k in keys)), None)
+            # A worker that traced a chunk: what came of it stays there until the gate opens.
+            done = client.get_task_stream(start=started)
+            victim = next((t["worker"] for t in done if "vkray-intersect" in str(t["key"])), None)
             time.sleep(0.01)
         assert victim is not None, "no worker traced a chunk"
         os.kill(pids[victim], signal.SIGKILL)
         open(gate, "w").close()
-        got = futures.result()
+        got = futures.result(timeout=120)
     traced = [task["key"] for task in stream.data if "vkray-intersect" in str(task["key"])]
     assert len(traced) > 10 and len(set(traced)) == 10  # some chunks traced twice: lost, then traced again
     want = spec.build(any_device).intersect(o, d, outputs=fields)
     assert_fields_equal(got, hits, want, fields)
-    client.wait_for_workers(2)
+    client.wait_for_workers(2, timeout=120)
     assert len(set(pids.values()) - set(client.run(os.getpid).values())) == 1  # one worker process was replaced
 
 
@@ -309,3 +312,50 @@ def test_local_clusters_share_the_machines_memory(client):
     with vkray_dask.local_cluster([0], memory_limit="1 GiB") as cluster, Client(cluster) as one:
         one.wait_for_workers(1)
         assert [w["memory_limit"] for w in one.scheduler_info()["workers"].values()] == [2**30]
+
+
+_RELEASE_SLOW_BUILD = threading.Event()
+
+
+def _slow_build(device):
+    """A builder (pickled by reference, as a function of this module) that waits to be let go."""
+    assert _RELEASE_SLOW_BUILD.wait(60)
+    return device.scene(device.mesh(*triangle_soup(10, seed=31)))
+
+
+def test_a_scene_being_built_holds_up_only_its_own_tasks(monkeypatch):
+    """A worker's threads (here, this process's): while one scene is built, a task of a scene
+    already built gets it at once and `cache_info` answers; other tasks of the scene being built
+    wait for that one build and share it."""
+    monkeypatch.setenv("VKRAY_VALIDATION", "1" if VALIDATION else "0")
+    built = vkray_dask.SceneSpec([box()])
+    release = _RELEASE_SLOW_BUILD
+    release.clear()
+    slow = vkray_dask.SceneSpec.from_builder(_slow_build)
+    first = vkray_dask._worker_scene(built)
+    builds = vkray_dask.cache_info()["builds"]
+    results = [None, None]
+
+    def get_slow(k):
+        results[k] = vkray_dask._worker_scene(slow)
+
+    waiting = [threading.Thread(target=get_slow, args=(k,)) for k in range(2)]
+    for t in waiting:
+        t.start()
+    try:
+        time.sleep(0.2)
+        meanwhile = []
+        def ask():
+            meanwhile.extend([vkray_dask._worker_scene(built), vkray_dask.cache_info()])
+
+        other = threading.Thread(target=ask)
+        other.start()
+        other.join(5)
+        assert meanwhile and meanwhile[0] is first, "a built scene's task waited for another scene's build"
+        assert slow.key not in meanwhile[1]["scenes"]
+    finally:
+        release.set()
+        for t in waiting:
+            t.join(60)
+    assert results[0] is results[1] is not None
+    assert vkray_dask.cache_info()["builds"] == builds + 1

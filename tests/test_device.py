@@ -6,6 +6,7 @@ import pytest
 import oracle
 import vkray
 from conftest import BACKENDS, VALIDATION
+from test_precision import tiers
 
 
 def test_devices_are_listed_best_first():
@@ -112,3 +113,22 @@ def test_a_device_keeps_staging_for_as_many_queries_as_ran_at_once(backend):
     assert device.idle_memory == {"bytes": 0, "kept": 0, "made": after["made"]}
     scene.intersect(o, d, outputs=["t", "prim_id"])
     assert device.idle_memory == {**alone, "made": after["made"] + alone["made"]}
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_queries_of_two_kinds_in_turn_find_their_staging_kept(backend):
+    """One thread, fast and exact queries in turn (their staging differs: f32 or f64 rays): after
+    the first of each, neither allocates again, though one query at a time is the peak."""
+    device = vkray.Device(backend=backend, validation=VALIDATION)
+    if "exact" not in tiers(device):
+        pytest.skip(f"{device.name} has no exact tier")
+    v, f, _ = oracle.heightfield(16, seed=5)
+    scene = device.scene(device.mesh(v, f))
+    o, d = oracle.random_rays(v, 5_000, seed=6)
+    made = []
+    for _ in range(4):
+        for precision in ("fast", "exact"):
+            scene.intersect(o, d, outputs=["t"], precision=precision)
+            made.append(device.idle_memory["made"])
+    assert made[1] > made[0] > 0
+    assert made[2:] == [made[1]] * 6, made

@@ -163,9 +163,10 @@ class Device:
         ``made`` (how many its queries had to allocate so far, because none was idle).
 
         A device keeps as many as its queries used at once (several threads querying it at the
-        same time each hold their own), up to eight queries' worth: a query's staging takes two
-        chunks (`chunk_rays`) of 76 bytes a ray, twice over on discrete GPUs (1.3 GB on an
-        H200). `release_idle_memory` frees them."""
+        same time each hold their own), at least two queries' worth and up to eight: a query's
+        staging takes two chunks (`chunk_rays`) of 76 bytes a ray, twice over on discrete GPUs
+        (1.3 GB on an H200). An allocation that runs out of memory frees them all and tries
+        again; `release_idle_memory` frees them at once."""
         return dict(self._core.idle_memory)
 
     def release_idle_memory(self) -> None:

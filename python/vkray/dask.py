@@ -186,6 +186,9 @@ def _pickled(builder: Builder) -> bytes:
 # The worker's side: its device and the scenes built on it, kept between tasks.
 
 _cache_lock = threading.Lock()
+# Held while a device is opened, and per scene key while that scene is built.
+_device_lock = threading.Lock()
+_building: Dict[Tuple[str, str], threading.Lock] = {}
 _worker_scenes: collections.OrderedDict[Tuple[str, str], Scene] = collections.OrderedDict()
 _worker_devices: Dict[str, Device] = {}
 _worker_counts = {"builds": 0, "specs_received": 0}
@@ -197,22 +200,46 @@ def _device_selection() -> str:
 
 
 def _worker_scene(spec: SceneSpec) -> Scene:
-    """The spec's scene on this process's device: built on first use, then kept."""
+    """The spec's scene on this process's device: built on first use, then kept. A build holds
+    only its own key's lock, so tasks of scenes already built (and `cache_info`, which runs on
+    the worker's event loop) do not wait for it; tasks of the same scene wait, and find it."""
     selection = _device_selection()
     key = (spec.key, selection)
     with _cache_lock:
-        scene = _worker_scenes.get(key)
+        scene = _cached(key)
         if scene is not None:
-            _worker_scenes.move_to_end(key)
             return scene
+        building = _building.setdefault(key, threading.Lock())
+    with building:
+        with _cache_lock:
+            scene = _cached(key)
+        if scene is not None:
+            return scene
+        scene = spec.build(_worker_device(selection))
+        with _cache_lock:
+            _worker_scenes[key] = scene
+            _building.pop(key, None)
+            _worker_counts["builds"] += 1
+            while len(_worker_scenes) > MAX_CACHED_SCENES:
+                _worker_scenes.popitem(last=False)
+        return scene
+
+
+def _cached(key: Tuple[str, str]) -> Optional[Scene]:
+    """A kept scene, marked as the most recently used (under `_cache_lock`)."""
+    scene = _worker_scenes.get(key)
+    if scene is not None:
+        _worker_scenes.move_to_end(key)
+    return scene
+
+
+def _worker_device(selection: str) -> Device:
+    """This process's device (``VKRAY_DEVICE``, ``VKRAY_BACKEND``), opened on first use."""
+    with _device_lock:
         device = _worker_devices.get(selection)
         if device is None:
             device = _worker_devices[selection] = Device()  # reads VKRAY_DEVICE and VKRAY_BACKEND
-        scene = _worker_scenes[key] = spec.build(device)
-        _worker_counts["builds"] += 1
-        while len(_worker_scenes) > MAX_CACHED_SCENES:
-            _worker_scenes.popitem(last=False)
-        return scene
+        return device
 
 
 def cache_info() -> Dict[str, Any]:
@@ -484,7 +511,9 @@ def local_cluster(
     gets two workers. Use it as ``with local_cluster() as cluster, Client(cluster) as client:``.
     threads_per_worker: chunks each worker traces at once on its device (3 by default: while one
     chunk is on the GPU, the others' host passes and Dask's own work between tasks run; 1.5× one
-    thread's rays/s on an H200 at 4M-ray chunks, docs/benchmarks.md, session 15).
+    thread's rays/s on an H200 at 4M-ray chunks, docs/benchmarks.md, session 15). Each thread's
+    query holds its own staging on the device, which the device keeps between queries
+    (`vkray.Device.idle_memory`: 1.3 GB a query at the default 4M-ray chunks on an H200).
     memory_limit: each worker's, past which Dask spills its data to disk (60%), pauses it (80%)
     and restarts it (95%). ``"auto"`` (default): the machine's memory shared equally by the
     workers, as `distributed.LocalCluster` shares it (a `Nanny`'s own default gives a one-thread

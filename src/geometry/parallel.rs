@@ -75,13 +75,17 @@ pub fn with_pool<R>(pool: Option<&OwnPool>, work: impl FnOnce() -> R) -> R {
     work()
 }
 
-/// Runs `work` where its parallel iterators find live threads: on the pool `with_pool` chose for
-/// this thread, if any; else directly (rayon's global pool) in the process that owns it, in a
-/// pool of the child's own after a fork.
+/// Runs `work` where its parallel iterators find live threads: on the pool this thread is a
+/// thread of, if any (work already running on a pool stays there); else on the pool
+/// `with_pool` chose for this thread, if any; else directly (rayon's global pool) in the process
+/// that owns it, in a pool of the child's own after a fork.
 ///
 /// `work` must be pure computation: a pool thread waiting for its share of one call's work may
 /// run another call's, so nothing inside may take a lock or wait for the GPU.
 pub fn install<R: Send>(work: impl FnOnce() -> R + Send) -> R {
+    if rayon::current_thread_index().is_some() {
+        return work();
+    }
     if let Some(pool) = CHOSEN.with(|chosen| chosen.borrow().clone()) {
         return pool.install(work);
     }

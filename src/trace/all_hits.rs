@@ -143,11 +143,11 @@ impl Tracer {
         let record_capacity = (record_budget(self.ctx.unified_memory) / size_of::<R>()).max(widest).min(total).max(1);
         let ray_capacity = self.chunk_capacity(rays.len());
         let plan = plan_chunks(offsets, ray_capacity, record_capacity);
-        let mut slots = self.slots.take(ray_capacity, exact)?;
+        let mut slots = self.with_memory(|| self.slots.take(ray_capacity, exact))?;
         // One set of lists per chunk in flight: two, or one for a query of one chunk.
         let mut lists = Vec::new();
         for _ in 0..plan.len().min(2) {
-            match self.take_lists(ray_capacity, record_capacity * size_of::<R>()) {
+            match self.with_memory(|| self.take_lists(ray_capacity, record_capacity * size_of::<R>())) {
                 Ok(taken) => lists.push(taken),
                 Err(error) => {
                     self.slots.give_back(slots);
@@ -225,9 +225,9 @@ impl Tracer {
     }
 }
 
-/// Idle lists kept between queries: as many as were in use at once, at most eight, each of at
-/// most `IDLE_RECORD_BYTES` of records.
-pub(super) const IDLE_LISTS: usize = 8;
+/// Idle lists kept between queries (two a query): as many as were in use at once, at least two
+/// and at most eight, each of at most `IDLE_RECORD_BYTES` of records.
+pub(super) const IDLE_LISTS: (usize, usize) = (2, 8);
 const IDLE_RECORD_BYTES: usize = 64 << 20;
 
 impl Tracer {

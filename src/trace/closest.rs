@@ -59,8 +59,9 @@ pub(super) enum PointShader {
     Winding,
 }
 
-/// Two slots serve one query: keep up to eight queries' worth (as many as ran at once).
-const IDLE_POINT_SLOTS: usize = 16;
+/// Two slots serve one query: keep as many as ran at once, at least two queries' worth (slots
+/// with and without full outputs or signs) and at most eight.
+const IDLE_POINT_SLOTS: (usize, usize) = (4, 16);
 
 /// The point queries' pipelines of one device (compiled on first use) and their staging.
 pub struct PointPipelines {
@@ -83,7 +84,7 @@ impl PointPipelines {
             kernels: [kernel(shaders::CLOSEST_POINT)?, kernel(shaders::WINDING)?],
             order: ComputeKernel::new(ctx, shaders::POINT_ORDER, std::mem::size_of::<PointOrderParams>(), Some(needs))?,
             sign: ComputeKernel::new(ctx, shaders::SIGN_POINTS, std::mem::size_of::<SignPointsParams>(), Some(needs))?,
-            idle: IdlePool::new(IDLE_POINT_SLOTS),
+            idle: IdlePool::new(IDLE_POINT_SLOTS.0, IDLE_POINT_SLOTS.1),
         })
     }
 
@@ -332,7 +333,7 @@ impl Tracer {
         let mut hits: Vec<PointHit> =
             if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
         let capacity = self.point_capacity(n, full);
-        let mut slots = self.points.take_slots(capacity, full, false)?;
+        let mut slots = self.with_memory(|| self.points.take_slots(capacity, full, false))?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
             if let Some(out) = distances.as_deref_mut() {
@@ -421,7 +422,7 @@ impl Tracer {
         };
         let mut winding = try_vec(n, 0.0f64, "winding numbers")?;
         let capacity = self.point_capacity(n, false);
-        let mut slots = self.points.take_slots(capacity, false, false)?;
+        let mut slots = self.with_memory(|| self.points.take_slots(capacity, false, false))?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
             parallel::copy(bytemuck::cast_slice_mut(&mut winding[start..start + len]), &results[..8 * len]);

@@ -122,12 +122,12 @@ pub struct CudaState {
     idle: IdlePool<CudaLease>,
 }
 
-/// Idle leases kept: as many as queries used at once, at most eight.
-const IDLE_LEASES: usize = 8;
+/// Idle leases kept: as many as queries used at once, at least four, at most eight.
+const IDLE_LEASES: (usize, usize) = (4, 8);
 
 impl Default for CudaState {
     fn default() -> CudaState {
-        CudaState { cuda: OnceLock::new(), idle: IdlePool::new(IDLE_LEASES) }
+        CudaState { cuda: OnceLock::new(), idle: IdlePool::new(IDLE_LEASES.0, IDLE_LEASES.1) }
     }
 }
 
@@ -154,7 +154,7 @@ impl Tracer {
         if let Some(lease) = self.cuda.idle.take(1, |_| true, |_| true).pop() {
             return Ok(lease);
         }
-        self.new_lease().inspect_err(|_| self.cuda.idle.give_back(1, []))
+        self.with_memory(|| self.new_lease()).inspect_err(|_| self.cuda.idle.give_back(1, []))
     }
 
     fn new_lease(&self) -> Result<CudaLease> {
@@ -249,8 +249,9 @@ impl Tracer {
         let arrays = arrays_of(rays);
         let input_bytes = layout_bytes(arrays.iter().map(|a| a.packed_bytes()));
         let output_bytes = layout_bytes(fields.iter().map(|f| rays.count * f.bytes_per_ray(false)));
-        grow(&self.ctx, &cuda, &lease.stream, &mut lease.input, input_bytes, "rays shared with CUDA")?;
-        grow(&self.ctx, &cuda, &lease.stream, &mut lease.output, output_bytes, "hits shared with CUDA")?;
+        let stream = &lease.stream;
+        self.with_memory(|| grow(&self.ctx, &cuda, stream, &mut lease.input, input_bytes, "rays shared with CUDA"))?;
+        self.with_memory(|| grow(&self.ctx, &cuda, stream, &mut lease.output, output_bytes, "hits shared with CUDA"))?;
         let (input, output) = (lease.input.as_ref().expect("grown"), lease.output.as_ref().expect("grown"));
         let _current = cuda.enter()?;
         // The caller's rays into the shared buffer, tightly packed (each array in one place), in

@@ -67,8 +67,8 @@ pub struct DeviceRays {
 /// requested), `t` and `uv` in f32.
 pub type DeviceOutputs = [u64; FIELD_COUNT];
 
-/// Idle packing scratch kept: as many as queries used at once, at most eight.
-const IDLE_SCRATCH: usize = 8;
+/// Idle packing scratch kept: as many as queries used at once, at least one, at most eight.
+const IDLE_SCRATCH: (usize, usize) = (1, 8);
 
 /// The packing shader's pipelines (compiled on first use) and idle scratch.
 pub struct PackPipelines {
@@ -99,7 +99,7 @@ impl PackPipelines {
             std::mem::size_of::<PackParams>(),
             Some("packing rays on the GPU needs"),
         )?;
-        Ok(PackPipelines { ctx: ctx.clone(), kernel, idle: IdlePool::new(IDLE_SCRATCH) })
+        Ok(PackPipelines { ctx: ctx.clone(), kernel, idle: IdlePool::new(IDLE_SCRATCH.0, IDLE_SCRATCH.1) })
     }
 
     /// Most rays one packing dispatch may cover on this device.
@@ -249,7 +249,7 @@ impl Tracer {
             Some(rays) => rays.clamp(1, self.packing.max_rays()),
             None => self.device_chunk_capacity(rays.count),
         };
-        let scratch = self.packing.take_scratch(capacity)?;
+        let scratch = self.with_memory(|| self.packing.take_scratch(capacity))?;
         let job =
             PackedJob { scene, rays, outputs, variant: &variant, scratch: &scratch, frame: frame_buffer.address() };
         let traced = self.trace_packed_chunks(&job, capacity, order, interrupt, profile);

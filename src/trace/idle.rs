@@ -38,6 +38,8 @@ impl std::ops::Add for IdleMemory {
 /// dropping surplus ones (a CUDA lease's drop waits for its stream) happen outside it.
 pub struct IdlePool<T> {
     state: Mutex<State<T>>,
+    /// Kept whatever the peak: a query of one kind between queries of another finds them.
+    floor: usize,
     cap: usize,
 }
 
@@ -53,9 +55,10 @@ struct State<T> {
 }
 
 impl<T: Held> IdlePool<T> {
-    /// A pool that keeps at most `cap` idle items.
-    pub fn new(cap: usize) -> IdlePool<T> {
-        IdlePool { state: Mutex::new(State { idle: Vec::new(), out: 0, peak: 0, made: 0 }), cap }
+    /// A pool that keeps as many idle items as were ever out at once, at least `floor` (for
+    /// items of several kinds, which one peak does not count apart) and at most `cap`.
+    pub fn new(floor: usize, cap: usize) -> IdlePool<T> {
+        IdlePool { state: Mutex::new(State { idle: Vec::new(), out: 0, peak: 0, made: 0 }), floor, cap }
     }
 
     /// Counts `count` items out and takes up to that many idle ones for which `fits` holds (the
@@ -85,14 +88,14 @@ impl<T: Held> IdlePool<T> {
     }
 
     /// Gives back `returned` items taken before (fewer where some were lost), of which `items`
-    /// are kept for later queries: at most as many as were ever out at once, and at most the
-    /// cap; the oldest go first.
+    /// are kept for later queries: as many as were ever out at once (at least the floor, at
+    /// most the cap); the oldest go first.
     pub fn give_back(&self, returned: usize, items: impl IntoIterator<Item = T>) {
         let surplus: Vec<T> = {
             let mut state = self.lock();
             state.out = state.out.saturating_sub(returned);
             state.idle.extend(items);
-            let keep = state.peak.min(self.cap);
+            let keep = state.peak.max(self.floor).min(self.cap);
             let extra = state.idle.len().saturating_sub(keep);
             state.idle.drain(..extra).collect()
         };
@@ -129,7 +132,7 @@ mod tests {
 
     #[test]
     fn keeps_as_many_as_were_out_at_once_up_to_the_cap() {
-        let pool = IdlePool::<u32>::new(5);
+        let pool = IdlePool::<u32>::new(0, 5);
         // Three takers at once, two items each: six out at the peak; five kept (the cap).
         let taken: Vec<Vec<u32>> = (0..3).map(|_| pool.take(2, |_| true, |_| true)).collect();
         assert!(taken.iter().all(Vec::is_empty));
@@ -146,7 +149,7 @@ mod tests {
 
     #[test]
     fn a_pool_used_by_one_taker_keeps_one_takers_worth() {
-        let pool = IdlePool::<u32>::new(16);
+        let pool = IdlePool::<u32>::new(0, 16);
         for round in 0..3 {
             let found = pool.take(2, |_| true, |_| true);
             assert_eq!(found.len(), if round == 0 { 0 } else { 2 });
@@ -156,8 +159,23 @@ mod tests {
     }
 
     #[test]
+    fn keeps_the_floor_for_items_of_another_kind() {
+        // One taker at a time, two items of one kind (even) then of another (odd): the peak is
+        // two, the floor four, so each kind finds its items after the other's query.
+        let pool = IdlePool::<u32>::new(4, 16);
+        for round in 0..4 {
+            let kind = round % 2;
+            let found = pool.take(2, |x| x % 2 == kind, |_| true);
+            assert_eq!(found.len(), if round < 2 { 0 } else { 2 }, "round {round}");
+            pool.give_back(2, [10 + kind, 20 + kind]);
+        }
+        assert_eq!(pool.memory().made, 4);
+        assert_eq!(pool.memory().items, 4);
+    }
+
+    #[test]
     fn takes_only_what_fits_and_drops_what_is_not_kept() {
-        let pool = IdlePool::<u32>::new(8);
+        let pool = IdlePool::<u32>::new(0, 8);
         let _ = pool.take(4, |_| true, |_| true);
         pool.give_back(4, [1, 5, 9, 3]);
         // Items under 3 are no longer wanted; of the rest, those over 4 fit.

@@ -97,7 +97,7 @@ impl Tracer {
             ..self.closest_job(scene, &structures, points, max_distance, precision, false)?
         };
         let capacity = self.point_capacity(points.rows(), false).min(self.max_dispatch_rays());
-        let mut slots = self.points.take_slots(capacity, false, true)?;
+        let mut slots = self.with_memory(|| self.points.take_slots(capacity, false, true))?;
         let mut unsure: Vec<Unsure> = Vec::new();
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let found = sign_chunk(slot, &mut out[start..start + len]);

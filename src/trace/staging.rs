@@ -8,7 +8,7 @@ use ash::vk;
 use super::fields::{Field, FIELDS, FIELD_COUNT};
 use super::idle::{pair_bytes, Held, IdleMemory, IdlePool};
 use super::profile::Stamps;
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::geometry::align_up;
 use crate::geometry::rays::{RayLayout, RAY_FLOATS};
 use crate::gpu::context::Context;
@@ -155,30 +155,23 @@ pub struct SlotPool {
     idle: IdlePool<Slot>,
 }
 
-/// Two slots serve one query; keep at most eight queries' worth around (as many as ran at once).
-const IDLE_SLOTS: usize = 16;
+/// Two slots serve one query: keep as many as ran at once, at least two queries' worth (a fast
+/// and an exact one take different slots) and at most eight.
+const IDLE_SLOTS: (usize, usize) = (4, 16);
 
 impl SlotPool {
     pub fn new(ctx: &Arc<Context>) -> SlotPool {
-        SlotPool { ctx: ctx.clone(), idle: IdlePool::new(IDLE_SLOTS) }
+        SlotPool { ctx: ctx.clone(), idle: IdlePool::new(IDLE_SLOTS.0, IDLE_SLOTS.1) }
     }
 
     /// Two slots of at least `capacity` rays for one query: idle ones where they fit, new ones
     /// (allocated outside the lock) otherwise. Idle slots too small for it stay for smaller
-    /// queries (the pool drops the oldest beyond what it keeps); where the device's memory runs
-    /// out, every idle slot is dropped, and the allocation tried again.
+    /// queries (the pool drops the oldest beyond what it keeps).
     pub fn take(&self, capacity: usize, exact: bool) -> Result<[Slot; 2]> {
         let fits = |s: &Slot| s.exact == exact && s.capacity >= capacity;
         let mut found = self.idle.take(2, fits, |_| true);
         while found.len() < 2 {
-            let slot = match Slot::new(&self.ctx, capacity, exact) {
-                Err(Error::OutOfMemory(_)) => {
-                    self.idle.clear();
-                    Slot::new(&self.ctx, capacity, exact)
-                }
-                made => made,
-            };
-            match slot {
+            match Slot::new(&self.ctx, capacity, exact) {
                 Ok(slot) => found.push(slot),
                 Err(error) => {
                     self.idle.give_back(2, found);

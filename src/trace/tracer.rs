@@ -89,7 +89,7 @@ impl Tracer {
             points: super::closest::PointPipelines::new(ctx)?,
             packing: super::device_rays::PackPipelines::new(ctx)?,
             cuda: Default::default(),
-            idle_lists: super::idle::IdlePool::new(super::all_hits::IDLE_LISTS),
+            idle_lists: super::idle::IdlePool::new(super::all_hits::IDLE_LISTS.0, super::all_hits::IDLE_LISTS.1),
             probes: [OnceLock::new(), OnceLock::new()],
             last_profile: Mutex::new(TraceProfile::default()),
             chunk_rays: AtomicUsize::new(default_chunk_rays(ctx)),
@@ -124,6 +124,19 @@ impl Tracer {
             + self.packing.idle_memory()
             + self.idle_lists.memory()
             + self.idle_leases()
+    }
+
+    /// `make` (an allocation for a query), tried once more after freeing every idle pool's
+    /// memory where it ran out: what the pools keep may be what it needs. No lock may be held
+    /// (idle CUDA leases wait for their streams as they go).
+    pub(super) fn with_memory<T>(&self, mut make: impl FnMut() -> Result<T>) -> Result<T> {
+        match make() {
+            Err(Error::OutOfMemory(_)) => {
+                self.release_idle_memory();
+                make()
+            }
+            made => made,
+        }
     }
 
     /// Frees what `idle_memory` counts; later queries make what they need again.
@@ -447,7 +460,6 @@ impl Tracer {
         let all_hits = request.query.counts_hits();
         let (variant, sensor) = self.gpu_variant(scene, rays, request, exact, outputs)?;
         let capacity = self.host_chunk_capacity(rays.len());
-        let mut slots = self.slots.take(capacity, exact)?;
         let frame = scene.frame();
         let sensor = sensor.as_ref();
         let cap = match request.query {
@@ -461,6 +473,8 @@ impl Tracer {
             self.compact_variant(scene, rays, request, outputs, exact_scene.is_some() || sensor.is_some())?;
         let compact = compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant));
         let compact_refused = Default::default();
+        // Taken last: nothing fails between here and their return.
+        let mut slots = self.with_memory(|| self.slots.take(capacity, exact.is_some()))?;
         let job = GpuJob {
             scene,
             exact,
