@@ -649,3 +649,15 @@ def test_a_forked_child_is_refused_at_once():
     os.waitpid(pid, 0)
     assert answer.startswith("ForkedDeviceError: this DeviceGroup was opened in process"), answer
     assert_same(scene.count(o, d), scene.per_device[0].count(o, d))  # the parent's group still answers
+
+
+def test_a_group_tells_and_frees_the_staging_its_devices_keep():
+    """After a split query each device keeps the staging it used; the group frees all of it."""
+    group = vkray.DeviceGroup([vkray.Device(backend=BACKENDS[0], validation=VALIDATION) for _ in range(2)])
+    scene = group.scene([vkray.GroupInstance(group.mesh(*box()))])
+    o, d = rays(N, 41)
+    scene.intersect(o, d, outputs=["t"])
+    kept = group.idle_memory
+    assert len(kept) == 2 and all(k["bytes"] > 0 and k["kept"] > 0 and k["made"] > 0 for k in kept), kept
+    group.release_idle_memory()
+    assert group.idle_memory == [{"bytes": 0, "kept": 0, "made": k["made"]} for k in kept]

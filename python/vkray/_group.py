@@ -410,6 +410,16 @@ class DeviceGroup:
         for d in self.devices:
             d.chunk_rays = rays
 
+    @property
+    def idle_memory(self) -> List[Dict[str, int]]:
+        """Each device's `Device.idle_memory`: the staging it keeps between queries."""
+        return [d.idle_memory for d in self.devices]
+
+    def release_idle_memory(self) -> None:
+        """Frees the staging every device keeps between queries (`Device.release_idle_memory`)."""
+        for d in self.devices:
+            d.release_idle_memory()
+
     def weights(self, kind: str) -> List[float]:
         """Each device's share of the next query of ``kind`` (see `speeds`), or the fixed weights."""
         return list(self._weights) if self._weights is not None else self._speeds.weights(kind)
