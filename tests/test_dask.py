@@ -359,3 +359,20 @@ def test_a_scene_being_built_holds_up_only_its_own_tasks(monkeypatch):
             t.join(60)
     assert results[0] is results[1] is not None
     assert vkray_dask.cache_info()["builds"] == builds + 1
+
+
+def test_each_chunk_is_one_task_and_one_more_per_field(client):
+    """A chunk's query is one task and each field one task taking it out of the answer: no alias
+    tasks (`da.from_delayed` and `da.concatenate` made two more per field, each a task the
+    workers ran)."""
+    spec = solids_spec()
+    o, d = rays(N, 29)
+    hits = vkray_dask.intersect(spec, chunked(o, UNEVEN), chunked(d, UNEVEN), outputs=["t", "prim_id"])
+    with get_task_stream(client) as stream:
+        dask.compute(hits)
+    ran = [str(t["key"]) for t in stream.data if "vkray-scene-" not in str(t["key"])]
+    chunks = len(UNEVEN)
+    queries = [k for k in ran if "vkray-intersect-" in k]
+    fields = [k for k in ran if "-of-intersect-" in k]
+    assert len(queries) == chunks and len(fields) == 2 * chunks, ran
+    assert not [k for k in ran if "from-value" in k or "concatenate" in k], ran

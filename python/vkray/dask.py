@@ -38,6 +38,7 @@ import importlib.util
 import json
 import logging
 import math
+import operator
 import os
 import threading
 from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
@@ -55,6 +56,7 @@ if importlib.util.find_spec("dask") is None:
 import dask.array as da  # noqa: E402
 from dask.base import tokenize  # noqa: E402
 from dask.delayed import delayed  # noqa: E402
+from dask.highlevelgraph import HighLevelGraph  # noqa: E402
 
 if TYPE_CHECKING:
     from distributed import SpecCluster
@@ -359,10 +361,9 @@ def _map_chunks(
     blocks = [arrays[name].to_delayed(optimize_graph=False).ravel() for name in names]
     lengths = arrays[names[0]].chunks[0]
     token = tokenize(spec.key, query, names, options, *arrays.values())
-    parts: Dict[str, List[da.Array]] = {name: [] for name in fields}
     starts = np.cumsum((0,) + lengths[:-1])
-    for k, (start, length) in enumerate(zip(starts, lengths)):
-        answer = delayed(_query_block, pure=True)(
+    answers = [
+        delayed(_query_block, pure=True)(
             spec_key,
             query,
             names,
@@ -371,9 +372,28 @@ def _map_chunks(
             *(b[k] for b in blocks),
             dask_key_name=f"vkray-{query}-{token}-{k}",
         )
-        for name, (dtype, tail) in fields.items():
-            parts[name].append(da.from_delayed(answer[name], shape=(length,) + tail, dtype=dtype))
-    return {name: da.concatenate(chunks) for name, chunks in parts.items()}
+        for k, start in enumerate(starts)
+    ]
+    return {name: _field_array(answers, name, query, token, lengths, kind) for name, kind in fields.items()}
+
+
+def _field_array(
+    answers: List[Any],
+    name: str,
+    query: str,
+    token: str,
+    lengths: Tuple[int, ...],
+    kind: Tuple[np.dtype[Any], Tuple[int, ...]],
+) -> da.Array:
+    """A field of the chunks' answers as a dask array: each chunk one task that takes the field
+    out of its chunk's answer (with `da.from_delayed` and `da.concatenate`, each chunk was three,
+    the two others aliases that workers run as tasks all the same)."""
+    dtype, tail = kind
+    array_name = f"vkray-{name}-of-{query}-{token}"  # not "vkray-{query}-": the answers' keys
+    corner = (0,) * len(tail)
+    layer: Dict[Any, Any] = {(array_name, k, *corner): (operator.getitem, a.key, name) for k, a in enumerate(answers)}
+    graph = HighLevelGraph.from_collections(array_name, layer, dependencies=answers)
+    return da.Array(graph, array_name, chunks=(lengths, *((size,) for size in tail)), dtype=dtype)
 
 
 def _trace(
