@@ -376,3 +376,22 @@ def test_each_chunk_is_one_task_and_one_more_per_field(client):
     fields = [k for k in ran if "-of-intersect-" in k]
     assert len(queries) == chunks and len(fields) == 2 * chunks, ran
     assert not [k for k in ran if "from-value" in k or "concatenate" in k], ran
+
+
+def _loaded(array):
+    return array
+
+
+def test_keys_of_the_callers_named_as_fields_are_not_taken_for_them(client, any_device):
+    """Rays that a caller's graph holds under the keys "result" and "t" (as a field is named):
+    the answers are still the fields, not those arrays."""
+    spec = solids_spec()
+    o, d = rays(N, 33)
+    origins = da.from_delayed(dask.delayed(_loaded)(o, dask_key_name="result"), shape=o.shape, dtype=o.dtype)
+    directions = da.from_delayed(dask.delayed(_loaded)(d, dask_key_name="t"), shape=d.shape, dtype=d.dtype)
+    blocked = vkray_dask.occluded(spec, origins, directions)
+    hits = vkray_dask.intersect(spec, origins, directions, outputs=["t", "prim_id"])
+    got_blocked, got_hits = dask.compute(blocked, hits)
+    scene = spec.build(any_device)
+    np.testing.assert_array_equal(got_blocked, scene.occluded(o, d))
+    assert_fields_equal(got_hits, hits, scene.intersect(o, d, outputs=["t", "prim_id"]), ("t", "prim_id"))

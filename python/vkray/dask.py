@@ -391,7 +391,10 @@ def _field_array(
     dtype, tail = kind
     array_name = f"vkray-{name}-of-{query}-{token}"  # not "vkray-{query}-": the answers' keys
     corner = (0,) * len(tail)
-    layer: Dict[Any, Any] = {(array_name, k, *corner): (operator.getitem, a.key, name) for k, a in enumerate(answers)}
+    # The field's name inside the callable: a literal in a task that equals a key of the graph
+    # (a user's "t" or "result") would be read as that key.
+    take = operator.itemgetter(name)
+    layer: Dict[Any, Any] = {(array_name, k, *corner): (take, a.key) for k, a in enumerate(answers)}
     graph = HighLevelGraph.from_collections(array_name, layer, dependencies=answers)
     return da.Array(graph, array_name, chunks=(lengths, *((size,) for size in tail)), dtype=dtype)
 

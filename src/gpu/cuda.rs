@@ -18,6 +18,7 @@ use crate::error::{Error, Result};
 fn check(call: &'static str, result: sys::CUresult) -> Result<()> {
     match result {
         sys::CUresult::CUDA_SUCCESS => Ok(()),
+        sys::CUresult::CUDA_ERROR_OUT_OF_MEMORY => Err(Error::OutOfMemory(format!("{call} ran out of GPU memory"))),
         error => Err(Error::Cuda { call, code: error as i32 }),
     }
 }

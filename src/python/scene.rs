@@ -374,7 +374,7 @@ impl PyScene {
         let Some(cuda) = tracer.cuda()? else {
             return Err(dlpack::unreadable(tracer.device_name(), [("origins", origins), ("directions", directions)]));
         };
-        let mut lease = tracer.cuda_lease()?;
+        let mut lease = py.detach(|| tracer.cuda_lease())?; // may free idle leases, which wait
         let result = (|| -> PyResult<Bound<'py, PyDict>> {
             let borrowed =
                 cuda_batch::borrow_rays(&cuda, lease.stream_handle(), origins, directions, (tmin, tmax), mask)?;
@@ -436,7 +436,7 @@ impl PyScene {
                 tracer.device_name()
             )));
         }
-        let mut lease = tracer.cuda_lease()?;
+        let mut lease = py.detach(|| tracer.cuda_lease())?; // may free idle leases, which wait
         let traced = self.query(py, None, |scene, interrupt| {
             tracer.trace_cuda_piece(scene, &mut lease, batch.batch(), (start, stop), request, interrupt)
         });

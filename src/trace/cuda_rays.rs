@@ -313,7 +313,7 @@ impl Tracer {
                     unsafe { stream.copy_2d_between((places.home, into[k], bytes), src, bytes, 1)? };
                     continue;
                 }
-                let allocation = CudaAllocation::new(stream, bytes)?;
+                let allocation = self.with_memory(|| CudaAllocation::new(stream, bytes))?;
                 // SAFETY: both are device memory of this context, live until the copy runs (the
                 // allocation is the caller's from now on, the shared buffer stays in the lease,
                 // whose later users queue on the same stream).

@@ -547,7 +547,7 @@ impl Tracer {
         let mut inputs = Vec::new();
         let mut array = |v: &Vec3s, name: &str| -> Result<DeviceArray> {
             let (bytes, wide) = vec3_bytes(v);
-            let shared = Shared::input(ctx, bytes, name)?;
+            let shared = self.with_memory(|| Shared::input(ctx, bytes, name))?;
             let stride = if v.rows() == 1 { 0 } else { 3 * if wide { 8 } else { 4 } };
             let array = DeviceArray { address: shared.address(), stride, wide };
             inputs.push(shared);
@@ -559,7 +559,7 @@ impl Tracer {
             Ok(match b {
                 PerRay::All(value) => DeviceBound::All(value),
                 PerRay::Each(values) => {
-                    let shared = Shared::input(ctx, bytemuck::cast_slice(values), name)?;
+                    let shared = self.with_memory(|| Shared::input(ctx, bytemuck::cast_slice(values), name))?;
                     let array = DeviceArray { address: shared.address(), stride: 8, wide: true };
                     inputs.push(shared);
                     DeviceBound::Each(array)
@@ -571,7 +571,7 @@ impl Tracer {
         let mut outputs: DeviceOutputs = [0; FIELD_COUNT];
         let mut shared_outputs = Vec::new();
         for (field, out) in sink.iter_mut() {
-            let shared = Shared::output(ctx, out, field.name())?;
+            let shared = self.with_memory(|| Shared::output(ctx, out, field.name()))?;
             outputs[field as usize] = shared.address();
             shared_outputs.push((field, shared));
         }

@@ -149,32 +149,35 @@ impl Slot {
     }
 }
 
-/// Idle slots kept between queries (allocating staging is slow on discrete GPUs).
+/// Idle slots kept between queries (allocating staging is slow on discrete GPUs), a pool for
+/// each kind (f32 rays, and the exact tier's f64 ones): a burst of one kind does not push the
+/// other kind's slots out.
 pub struct SlotPool {
     ctx: Arc<Context>,
-    idle: IdlePool<Slot>,
+    idle: [IdlePool<Slot>; 2],
 }
 
-/// Two slots serve one query: keep as many as ran at once, at least two queries' worth (a fast
-/// and an exact one take different slots) and at most eight.
-const IDLE_SLOTS: (usize, usize) = (4, 16);
+/// Two slots serve one query: keep as many as ran at once, at least one query's worth and at
+/// most eight, of each kind.
+const IDLE_SLOTS: (usize, usize) = (2, 16);
 
 impl SlotPool {
     pub fn new(ctx: &Arc<Context>) -> SlotPool {
-        SlotPool { ctx: ctx.clone(), idle: IdlePool::new(IDLE_SLOTS.0, IDLE_SLOTS.1) }
+        let pool = || IdlePool::new(IDLE_SLOTS.0, IDLE_SLOTS.1);
+        SlotPool { ctx: ctx.clone(), idle: [pool(), pool()] }
     }
 
     /// Two slots of at least `capacity` rays for one query: idle ones where they fit, new ones
     /// (allocated outside the lock) otherwise. Idle slots too small for it stay for smaller
     /// queries (the pool drops the oldest beyond what it keeps).
     pub fn take(&self, capacity: usize, exact: bool) -> Result<[Slot; 2]> {
-        let fits = |s: &Slot| s.exact == exact && s.capacity >= capacity;
-        let mut found = self.idle.take(2, fits, |_| true);
+        let idle = &self.idle[exact as usize];
+        let mut found = idle.take(2, |s| s.capacity >= capacity, |_| true);
         while found.len() < 2 {
             match Slot::new(&self.ctx, capacity, exact) {
                 Ok(slot) => found.push(slot),
                 Err(error) => {
-                    self.idle.give_back(2, found);
+                    idle.give_back(2, found);
                     return Err(error);
                 }
             }
@@ -185,14 +188,14 @@ impl SlotPool {
     }
 
     pub fn give_back(&self, slots: [Slot; 2]) {
-        self.idle.give_back(2, slots);
+        self.idle[slots[0].exact as usize].give_back(2, slots);
     }
 
     pub fn memory(&self) -> IdleMemory {
-        self.idle.memory()
+        self.idle[0].memory() + self.idle[1].memory()
     }
 
     pub fn clear(&self) {
-        self.idle.clear();
+        self.idle.iter().for_each(IdlePool::clear);
     }
 }
