@@ -362,19 +362,22 @@ def test_a_scene_being_built_holds_up_only_its_own_tasks(monkeypatch):
 
 
 def test_each_chunk_is_one_task_and_one_more_per_field(client):
-    """A chunk's query is one task and each field one task taking it out of the answer: no alias
-    tasks (`da.from_delayed` and `da.concatenate` made two more per field, each a task the
-    workers ran)."""
+    """A chunk's query is one task and each field one task taking it out of the answer; a query
+    that returns one array, one task a chunk. No alias tasks (`da.from_delayed` and
+    `da.concatenate` made two more per field, each a task the workers ran)."""
     spec = solids_spec()
     o, d = rays(N, 29)
-    hits = vkray_dask.intersect(spec, chunked(o, UNEVEN), chunked(d, UNEVEN), outputs=["t", "prim_id"])
+    origins, directions = chunked(o, UNEVEN), chunked(d, UNEVEN)
+    hits = vkray_dask.intersect(spec, origins, directions, outputs=["t", "prim_id"])
+    blocked = vkray_dask.occluded(spec, origins, directions)
     with get_task_stream(client) as stream:
-        dask.compute(hits)
+        dask.compute(hits, blocked)
     ran = [str(t["key"]) for t in stream.data if "vkray-scene-" not in str(t["key"])]
     chunks = len(UNEVEN)
     queries = [k for k in ran if "vkray-intersect-" in k]
     fields = [k for k in ran if "-of-intersect-" in k]
     assert len(queries) == chunks and len(fields) == 2 * chunks, ran
+    assert len([k for k in ran if "vkray-" in k]) == 4 * chunks, ran  # the occluded: one a chunk
     assert not [k for k in ran if "from-value" in k or "concatenate" in k], ran
 
 

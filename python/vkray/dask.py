@@ -33,6 +33,7 @@ process builds it once per device and keeps it, cached by the spec's content has
 from __future__ import annotations
 
 import collections
+import functools
 import hashlib
 import importlib.util
 import json
@@ -254,6 +255,10 @@ def cache_info() -> Dict[str, Any]:
         return {"device": _device_selection(), "scenes": scenes, **_worker_counts}
 
 
+# The one field of queries that return one array (occluded, count, contains).
+_ONE_ARRAY = "result"
+
+
 def _query_block(
     spec: SceneSpec, query: str, names: Tuple[str, ...], options: Dict[str, Any], start: int, *arrays: np.ndarray
 ) -> Dict[str, np.ndarray]:
@@ -266,7 +271,7 @@ def _query_block(
     except (ValueError, TypeError) as error:
         raise in_callers_rows(error, start) from None
     if isinstance(answer, np.ndarray):
-        return {"result": answer}
+        return {_ONE_ARRAY: answer}
     return {name: value for name, value in vars(answer).items() if isinstance(value, np.ndarray)}
 
 
@@ -362,6 +367,9 @@ def _map_chunks(
     lengths = arrays[names[0]].chunks[0]
     token = tokenize(spec.key, query, names, options, *arrays.values())
     starts = np.cumsum((0,) + lengths[:-1])
+    if list(fields) == [_ONE_ARRAY]:
+        dtype = fields[_ONE_ARRAY][0]
+        return {_ONE_ARRAY: _answer_array(spec_key, blocks, (query, names, options), starts, lengths, token, dtype)}
     answers = [
         delayed(_query_block, pure=True)(
             spec_key,
@@ -375,6 +383,43 @@ def _map_chunks(
         for k, start in enumerate(starts)
     ]
     return {name: _field_array(answers, name, query, token, lengths, kind) for name, kind in fields.items()}
+
+
+def _answer_array(
+    spec_key: Any,
+    blocks: List[Any],
+    call: Tuple[str, Tuple[str, ...], Dict[str, Any]],
+    starts: Any,
+    lengths: Tuple[int, ...],
+    token: str,
+    dtype: np.dtype[Any],
+) -> da.Array:
+    """The answers of a query that returns one array (``call``: the query, the names of the
+    blocks' arrays, its options), as a dask array whose chunks are the queries' tasks themselves:
+    one task a chunk. What is not a key is bound in a `functools.partial`, where Dask does not
+    look for keys (a literal that equals one, as a caller's key named "fast" might, would be read
+    as that key)."""
+    query = call[0]
+    array_name = f"vkray-{query}-{token}"
+
+    def keys(k: int) -> List[Any]:
+        return [b[k].key for b in blocks]
+
+    layer: Dict[Any, Any] = {
+        (array_name, k): (functools.partial(_one_array_block, *call, int(start)), spec_key.key, *keys(k))
+        for k, start in enumerate(starts)
+    }
+    dependencies = [spec_key, *(block for array_blocks in blocks for block in array_blocks)]
+    graph = HighLevelGraph.from_collections(array_name, layer, dependencies=dependencies)
+    return da.Array(graph, array_name, chunks=(lengths,), dtype=dtype)
+
+
+def _one_array_block(
+    query: str, names: Tuple[str, ...], options: Dict[str, Any], start: int, spec: SceneSpec, *arrays: np.ndarray
+) -> np.ndarray:
+    """`_query_block` of a query that returns one array, that array."""
+    answer: np.ndarray = _query_block(spec, query, names, options, start, *arrays)[_ONE_ARRAY]
+    return answer
 
 
 def _field_array(
@@ -464,8 +509,8 @@ def occluded(
     """`Scene.occluded` over dask arrays of rays: a bool dask array (N,), chunked as ``origins``."""
     options: Dict[str, Any] = {"precision": precision, "cull": cull, "opacity_threshold": opacity_threshold}
     per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
-    result = {"result": (np.dtype(bool), ())}
-    return _trace(scene, "occluded", origins, directions, per_ray, options, result)["result"]
+    result = {_ONE_ARRAY: (np.dtype(bool), ())}
+    return _trace(scene, "occluded", origins, directions, per_ray, options, result)[_ONE_ARRAY]
 
 
 def count(
@@ -483,8 +528,8 @@ def count(
     """`Scene.count` over dask arrays of rays: an int32 dask array (N,), chunked as ``origins``."""
     options: Dict[str, Any] = {"precision": precision, "cull": cull, "opacity_threshold": opacity_threshold}
     per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
-    result = {"result": (np.dtype(np.int32), ())}
-    return _trace(scene, "count", origins, directions, per_ray, options, result)["result"]
+    result = {_ONE_ARRAY: (np.dtype(np.int32), ())}
+    return _trace(scene, "count", origins, directions, per_ray, options, result)[_ONE_ARRAY]
 
 
 def contains(
@@ -494,8 +539,8 @@ def contains(
     spec = _as_scene_spec(scene)
     _check_precision(precision)
     options = {"precision": precision, "method": method}
-    result = {"result": (np.dtype(bool), ())}
-    return _map_chunks(spec, "contains", {"points": _rows("points", points)}, options, result)["result"]
+    result = {_ONE_ARRAY: (np.dtype(bool), ())}
+    return _map_chunks(spec, "contains", {"points": _rows("points", points)}, options, result)[_ONE_ARRAY]
 
 
 def closest_points(
