@@ -325,7 +325,7 @@ def main():
         bounds,
         box,
         heightfield,
-        load_obj,
+        load_mesh,
         random_rays,
         rays_through,
         shared_targets,
@@ -353,7 +353,7 @@ def main():
     repeat = args.repeat
 
     # ---- inputs -----------------------------------------------------------------------------
-    meshes = {name: load_obj(full) for name, full in (("bunny", "stanford-bunny"), ("fandisk", "fandisk"), ("spot", "spot"))}
+    meshes = {name: load_mesh(full) for name, full in (("bunny", "stanford-bunny"), ("fandisk", "fandisk"), ("spot", "spot"))}
     npz = {"repeat": np.array(repeat)}
     tasks = []
 

@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
-from oracle import camera_rays, load_obj, random_rays  # noqa: E402
+from oracle import camera_rays, load_mesh, random_rays  # noqa: E402
 
 _worker = {}
 
@@ -112,7 +112,7 @@ def main():
     args = parser.parse_args()
 
     device = vkray.Device()
-    bunny = load_obj("stanford-bunny")
+    bunny = load_mesh("stanford-bunny")
     meshes = [("bunny", *bunny)]
     if args.big:
         import trimesh.remesh

@@ -14,7 +14,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
-from oracle import load_obj, random_rays  # noqa: E402
+from oracle import load_mesh, random_rays  # noqa: E402
 
 
 def best(repeat: int, run):  # noqa: ANN001, ANN201
@@ -32,7 +32,7 @@ def main() -> None:
     print("| mesh | query | count | exact (GPU) M/s | reference (CPU) M/s | same answers |")
     print("|---|---|---|---|---|---|")
     for name in ("stanford-bunny", "fandisk"):
-        v, f = load_obj(name)
+        v, f = load_mesh(name)
         scene = device.scene(device.mesh(v, f))
         for n in (1_000_000, 4_000_000):
             o, d = random_rays(v, n, seed=5)

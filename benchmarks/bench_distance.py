@@ -57,25 +57,10 @@ import time
 import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-MESH_DIR = ROOT.parent / "shared" / "meshes"
 MESHES = ("stanford-bunny", "fandisk")
 KINDS = ("near", "box")
 GRID_MESH = "fandisk"
 WARM = 256
-
-
-def load_obj(path):
-    """(vertices float64 (V, 3), faces int64 (F, 3)) of an OBJ's v and f lines (polygons fanned)."""
-    vertices, faces = [], []
-    with open(path) as f:
-        for line in f:
-            if line.startswith("v "):
-                vertices.append([float(x) for x in line.split()[1:4]])
-            elif line.startswith("f "):
-                ids = [int(c.split("/")[0]) for c in line.split()[1:]]
-                ids = [i - 1 if i > 0 else len(vertices) + i for i in ids]
-                faces += [[ids[0], ids[k], ids[k + 1]] for k in range(1, len(ids) - 1)]
-    return np.array(vertices, dtype=np.float64), np.array(faces, dtype=np.int64)
 
 
 def grown_box(vertices, grow=0.1):
@@ -317,7 +302,7 @@ def main():
 
     meshes, diagonals, data, tasks, cases = {}, {}, {}, [], []
     for name in MESHES:
-        v, f = load_obj(MESH_DIR / f"{name}.obj")
+        v, f = vkray.data.load_mesh(name)
         data[f"{name}__v"], data[f"{name}__f"] = v, f
         meshes[name] = (v, f, {label: dev.scene(dev.mesh(v, f)) for label, _, dev in engines})
         diagonals[name] = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))

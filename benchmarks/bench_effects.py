@@ -73,7 +73,6 @@ import numpy as np
 import vkray
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-DEFAULT_MESH = ROOT.parent / "shared" / "meshes" / "stanford-bunny.obj"
 
 # Short names for Scene.explain's stages and ray-query branches (anything else is printed whole).
 STAGES = {
@@ -97,10 +96,13 @@ BRANCHES = {
 TIERS = ("fast", "refined", "exact", "reference")
 
 
-def load_obj(path):
-    """(vertices float64 (V, 3), faces int64 (F, 3)) of an OBJ's v and f lines (polygons fanned)."""
+def load_mesh(name_or_path):
+    """(vertices float64 (V, 3), faces int64 (F, 3)) of a shipped mesh's name (vkray.data), or of an
+    OBJ's v and f lines (polygons fanned)."""
+    if name_or_path in vkray.data.MESH_NAMES:
+        return vkray.data.load_mesh(name_or_path)
     vertices, faces = [], []
-    with open(path) as f:
+    with open(name_or_path) as f:
         for line in f:
             if line.startswith("v "):
                 vertices.append([float(x) for x in line.split()[1:4]])
@@ -585,7 +587,7 @@ def main():
     parser.add_argument("--repeat", type=int, default=5, help="timed rounds after the warm-up (median; use at least 5)")
     parser.add_argument("--backend", choices=("ray_query", "pipeline"), help="default: every backend the device has")
     parser.add_argument("--device", default=None, help="index or name substring (default: vkray's choice)")
-    parser.add_argument("--mesh", type=pathlib.Path, default=DEFAULT_MESH, help="an OBJ file (default: the bunny)")
+    parser.add_argument("--mesh", default="stanford-bunny", help="a shipped mesh's name or an OBJ file (default: the bunny)")
     parser.add_argument("--big", action="store_true", help="add the 4096x4096 depth image from a GPU camera")
     parser.add_argument("--big-size", type=int, default=4096, help="side of --big's image")
     parser.add_argument("--big-repeat", type=int, default=5)
@@ -606,7 +608,7 @@ def main():
         parser.error("--big belongs to the main rows, which --tiers-only leaves out")
     tiers = args.tiers or args.tiers_only
 
-    vertices, faces = load_obj(args.mesh)
+    vertices, faces = load_mesh(args.mesh)
     n = int(args.rays)
     side, o32, d32 = make_rays(vertices, n)
     rays = None if args.tiers_only else (o32, d32)
@@ -628,7 +630,7 @@ def main():
     print(f"Command: `python {' '.join(sys.argv)}`\n")
     if args.tiers_only:
         print(
-            f"Mesh {args.mesh.name}: {len(faces):,} triangles. Host: {host}; vkray {vkray.__version__}, "
+            f"Mesh {pathlib.Path(args.mesh).name}: {len(faces):,} triangles. Host: {host}; vkray {vkray.__version__}, "
             f"numpy {np.__version__}. Load average (1 min) before the run {fmt(load_before, '.2f')}, after "
             f"{fmt(load_after, '.2f')} (this run's own included).\n"
         )
@@ -657,7 +659,7 @@ def make_rays(vertices, n):
 
 def print_header(args, faces, o32, side, host, load_before, load_after):
     print(
-        f"Mesh {args.mesh.name}: {len(faces):,} triangles. Rays: {len(o32):,} ({side * side:,} camera, "
+        f"Mesh {pathlib.Path(args.mesh).name}: {len(faces):,} triangles. Rays: {len(o32):,} ({side * side:,} camera, "
         f"{len(o32) - side * side:,} random), float32, uploaded each call (but the GPU camera row). "
         f"Host: {host}; vkray {vkray.__version__}, numpy {np.__version__}. Median of {args.repeat} rounds after "
         "one warm-up call; × = time per ray over the vs row's (wall clock; GPU trace alone); "

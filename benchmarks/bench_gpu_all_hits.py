@@ -202,9 +202,9 @@ def field_sizes(hits):
 def setup():
     sys.path.insert(0, str(ROOT / "tests"))
     import vkray
-    from oracle import load_obj, random_rays
+    from oracle import load_mesh, random_rays
 
-    return vkray, load_obj, random_rays
+    return vkray, load_mesh, random_rays
 
 
 def header(device):
@@ -221,14 +221,14 @@ def rate(n, sec):
 
 
 def part_main(args, report):
-    vkray, load_obj, random_rays = setup()
+    vkray, load_mesh, random_rays = setup()
     device = vkray.Device()
     print(header(device) + "\n")
     report["device"] = header(device)
     rows, inputs, tasks, vk = [], {}, [], {}
     meshes = {}
     for name in dict.fromkeys(MESHES + CLOSED):
-        v, f = load_obj(name)
+        v, f = load_mesh(name)
         meshes[name] = (v, f, device.mesh(v, f))
         inputs[f"{name}__v"], inputs[f"{name}__f"] = v, f
 
@@ -443,12 +443,12 @@ def stacked(device, mesh, copies):
 
 
 def part_big(args, report):
-    vkray, load_obj, random_rays = setup()
+    vkray, load_mesh, random_rays = setup()
     device = vkray.Device()
     print(header(device) + "\n")
     avail = mem_available()
     print(f"MemAvailable at start: {avail / 1e9:.1f} GB; VmHWM reset allowed: {reset_peak()}\n")
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     mesh = device.mesh(v, f)
     scene = device.scene(mesh)
     out = report.setdefault("big", [])
@@ -504,10 +504,10 @@ def part_big(args, report):
 def part_scaling(args, report):
     """intersect_all's time against count's (its counting pass) as each ray's list grows, the hits
     held near constant: K identical instances of the bunny, rays / K rays."""
-    vkray, load_obj, random_rays = setup()
+    vkray, load_mesh, random_rays = setup()
     device = vkray.Device()
     print(header(device) + "\n")
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     mesh = device.mesh(v, f)
     out = report.setdefault("scaling", [])
     print(
@@ -551,11 +551,11 @@ def part_scaling(args, report):
 
 
 def part_oom(args, report):
-    vkray, load_obj, random_rays = setup()
+    vkray, load_mesh, random_rays = setup()
     device = vkray.Device()
     print(header(device) + "\n")
     avail = mem_available()
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     mesh = device.mesh(v, f)
     o, d = random_rays(v, args.stack_rays, seed=9)
     scene = device.scene(mesh)

@@ -1,14 +1,14 @@
 """Acceleration-structure lifecycle figures in one run; prints Markdown.
 
-    python benchmarks/bench_lifecycle.py                          # shared meshes, 1k..100k instances
+    python benchmarks/bench_lifecycle.py                          # the shipped meshes, 1k..100k instances
     python benchmarks/bench_lifecycle.py --big --instances 1000 100000 1000000   # the GPU run
 
 - BLAS build speed (Mtris/s) per build preference against Embree's scene build;
-- compaction: bytes before and after, on every shared mesh;
+- compaction: bytes before and after, on every shipped mesh (vkray.data);
 - trace speed per build preference (1M random rays, closest hit, t and prim_id);
 - refit (`Mesh.update`) against a rebuild of the same vertices;
 - TLAS build and refit (`Scene.update`) for many instances of the bunny;
-- quantized vertex formats: memory saved and accuracy lost against float32, on every shared mesh.
+- quantized vertex formats: memory saved and accuracy lost against float32, on every shipped mesh (vkray.data).
 Times are best of `--repeat`, wall clock around the Python call unless marked as the device's own.
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
-from oracle import MESH_NAMES, load_obj, random_rays  # noqa: E402
+from oracle import MESH_NAMES, load_mesh, random_rays  # noqa: E402
 
 BUILDS = ("fast_trace", "fast_build", "low_memory")
 
@@ -48,11 +48,11 @@ def embree_build(v, f):
 
 
 def meshes(big):
-    out = [(name, *load_obj(name)) for name in MESH_NAMES]
+    out = [(name, *load_mesh(name)) for name in MESH_NAMES]
     if big:
         import trimesh.remesh
 
-        v, f = load_obj("stanford-bunny")
+        v, f = load_mesh("stanford-bunny")
         for _ in range(2):
             v, f = trimesh.remesh.subdivide(v, f)
         out.append(("bunny x16 (subdivided)", v, f))
@@ -148,7 +148,7 @@ def main():
           "(`Scene.update(transforms=...)`), wall clock of the Python call and the device's build time:\n")
     print("| instances | build s (call) | TLAS build s (device) | refit s (call) | TLAS bytes |")
     print("|---|---|---|---|---|")
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     bunny = device.mesh(v, f)
     for n in args.instances:
         spread = 0.2 * n ** (1 / 3)

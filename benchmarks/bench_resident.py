@@ -30,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from oracle import camera_rays, load_obj, random_rays  # noqa: E402
+from oracle import camera_rays, load_mesh, random_rays  # noqa: E402
 
 LEAN = ["t", "prim_id"]
 
@@ -177,7 +177,7 @@ def main():
     parser.add_argument("--embree-processes", type=int, default=0)
     parser.add_argument("--only", choices=["vkray", "open3d", "mitsuba"], default="vkray")
     args = parser.parse_args()
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     meshes = [("bunny", v, f)] + ([("bunny x16 (subdivided)", *subdivided(v, f, 2))] if args.big else [])
     for name, vv, ff in meshes:
         for kind in ("camera", "random"):

@@ -9,7 +9,7 @@ to stderr as they happen, so that a run cut short shows where it stopped.
     python benchmarks/bench_scaling.py --rays 2e5 --same-device 2 --dask --gather     # lavapipe smoke test
     python benchmarks/bench_scaling.py --rays 64e6 --resident --json $OUT/resident.json  # torch CUDA rays
 
-Rays: the bunny (../shared/meshes). Queries: `intersect` with `outputs=["t", "prim_id"]` (8 bytes a
+Rays: the bunny (vkray.data). Queries: `intersect` with `outputs=["t", "prim_id"]` (8 bytes a
 ray out: the lean closest hit) and `occluded`.
 
 Group: float32 rays from a sphere of twice the bunny's bounding radius towards uniform points of its
@@ -62,7 +62,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
-from oracle import bounds, load_obj, random_rays  # noqa: E402
+from oracle import bounds, load_mesh, random_rays  # noqa: E402
 
 QUERIES = ("intersect", "occluded")
 LEAN = ["t", "prim_id"]
@@ -399,7 +399,7 @@ def main() -> None:
 
     devices: List[Any] = [0] * args.same_device if args.same_device else (args.devices or default_devices())
     n = int(args.rays)
-    mesh = load_obj(args.mesh)
+    mesh = load_mesh(args.mesh)
     if args.dask:
         rows = bench_dask(devices, mesh, n, int(args.chunk), args.repeat, args.gather, args.threads_per_worker)
     else:

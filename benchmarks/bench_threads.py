@@ -5,7 +5,7 @@ cost or gain on one GPU, without Dask; and what the device keeps between queries
 
     python benchmarks/bench_threads.py --rays 64e6 --chunk 4e6
 
-Bunny (../shared/meshes), float32 random rays (tests/oracle.py's random_rays, seed 1), lean
+Bunny (vkray.data), float32 random rays (tests/oracle.py's random_rays, seed 1), lean
 `intersect` (`t`, `prim_id`) and `occluded`; best of --repeat; each line also shows the device's
 `last_trace_profile` (milliseconds) and `idle_memory` after the run.
 """
@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
-from oracle import load_obj, random_rays  # noqa: E402
+from oracle import load_mesh, random_rays  # noqa: E402
 
 LEAN = ["t", "prim_id"]
 OPTIONS: Dict[str, Dict[str, Any]] = {"intersect": {"outputs": LEAN}, "occluded": {}}
@@ -69,7 +69,7 @@ def main() -> None:
     parser.add_argument("--device", default=None, help="index or name (default: vkray.Device()'s choice)")
     args = parser.parse_args()
     n, c = int(args.rays), int(args.chunk)
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     device = vkray.Device(args.device) if args.device is not None else vkray.Device()
     scene = device.scene(device.mesh(v, f))
     o, d = (a.astype(np.float32) for a in random_rays(v, n, seed=1))

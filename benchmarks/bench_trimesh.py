@@ -50,7 +50,7 @@ import trimesh
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
 import vkray.trimesh as vkt  # noqa: E402
-from oracle import load_obj, random_rays  # noqa: E402
+from oracle import load_mesh, random_rays  # noqa: E402
 
 CALLS = ("all hits", "first hit", "any", "contains")
 
@@ -144,7 +144,7 @@ def main() -> None:
     agree_rows: List[str] = []
     smallest = min(args.sizes)
     for mesh_name in args.meshes:
-        v, f = load_obj(mesh_name)
+        v, f = load_mesh(mesh_name)
         mesh = trimesh.Trimesh(v, f, process=False)
         closed = bool(mesh.is_watertight)
         eng = engines(mesh)

@@ -1,8 +1,8 @@
 """What accuracy costs in time: every precision tier, on every backend the device offers, against
 the f64 reference, with Embree (embreex, robust mode) measured the same way as a baseline.
 
-    python examples/accuracy_vs_time.py                 # updates docs/accuracy.md, writes docs/accuracy.png
-    python examples/accuracy_vs_time.py --out /tmp/acc  # elsewhere
+    python examples/accuracy_vs_time.py              # writes accuracy.md and accuracy.png here
+    python examples/accuracy_vs_time.py --out docs   # updates the project's docs/accuracy.md
 
 The measured table replaces what lies between the `<!-- SECTION -->` and `<!-- /SECTION -->`
 lines of accuracy.md (`--section`, default `measured`; the file is made if missing), so the
@@ -32,7 +32,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 import vkray  # noqa: E402
-from oracle import heightfield, load_obj, random_rays, rays_through, shared_targets  # noqa: E402
+from oracle import heightfield, load_mesh, random_rays, rays_through, shared_targets  # noqa: E402
 
 OFFSETS = (0.0, 1e3, 1e5, 1e7)
 COLORS = 18
@@ -123,7 +123,7 @@ def edges_workload(tracers, rows, n, offset):
 
 
 def bunny_workload(tracers, rows, rays, offset):
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     v = v + offset
     size = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
     origins, directions = random_rays(v, rays, seed=11)
@@ -200,7 +200,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rays", type=int, default=100_000, help="random rays through the bunny")
     parser.add_argument("--grid", type=int, default=24, help="heightfield vertices per side")
-    parser.add_argument("--out", type=pathlib.Path, default=ROOT / "docs")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("."), help="the folder for accuracy.md and its picture")
     parser.add_argument("--section", default="measured", help="which marked block of accuracy.md to replace")
     args = parser.parse_args()
 

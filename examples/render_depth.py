@@ -1,6 +1,10 @@
 """Render a depth image of a mesh with vkray camera rays, and time the same rays through Embree.
 
-    python examples/render_depth.py [MESH.obj] [--size 512] [--out depth.png]
+    python examples/render_depth.py [MESH] [--size 512] [--out depth.png]
+
+MESH is one of the meshes shipped with vkray (vkray.data.MESH_NAMES; default: stanford-bunny) or a
+mesh file trimesh reads (OBJ, PLY, STL, ...). The picture goes to the current folder unless --out
+names another path.
 """
 
 from __future__ import annotations
@@ -18,7 +22,13 @@ import trimesh  # noqa: E402
 
 import vkray  # noqa: E402
 
-DEFAULT_MESH = pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes" / "stanford-bunny.obj"
+
+def read_mesh(name_or_path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float64 (V, 3), faces int64 (F, 3)) of a shipped mesh's name or a mesh file."""
+    if name_or_path in vkray.data.MESH_NAMES:
+        return vkray.data.load_mesh(name_or_path)
+    loaded = trimesh.load(name_or_path, process=False, force="mesh")
+    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, dtype=np.int64)
 
 
 def camera(vertices: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -50,14 +60,12 @@ def embree_rays_per_second(vertices, faces, origin, directions) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("mesh", nargs="?", default=str(DEFAULT_MESH), help="an OBJ file (default: the Stanford bunny)")
+    parser.add_argument("mesh", nargs="?", default="stanford-bunny", help="a shipped mesh's name or a mesh file (default: stanford-bunny)")
     parser.add_argument("--size", type=int, default=512, help="image width and height in pixels")
     parser.add_argument("--out", default="depth.png", help="where to write the PNG")
     args = parser.parse_args()
 
-    loaded = trimesh.load(args.mesh, process=False, force="mesh")
-    vertices = np.asarray(loaded.vertices, dtype=np.float64)
-    faces = np.asarray(loaded.faces, dtype=np.int64)
+    vertices, faces = read_mesh(args.mesh)
 
     device = vkray.Device()
     start = time.perf_counter()
@@ -78,7 +86,7 @@ def main() -> None:
 
     print(f"device      {device.name} ({device.info.device_type}, driver {device.info.driver})")
     print(f"backend     {device.backend}")
-    print(f"mesh        {pathlib.Path(args.mesh).name}: {mesh.triangle_count} triangles")
+    print(f"mesh        {pathlib.Path(args.mesh).name.split('.')[0]}: {mesh.triangle_count} triangles")
     print(f"build       {build_seconds * 1e3:.1f} ms (BLAS + TLAS, upload included)")
     print(f"rays        {rays} camera rays, {int(hits.hit.sum())} hits")
     print(f"vkray       {rays / trace_seconds / 1e6:.2f} Mrays/s (numpy in, numpy out)")

@@ -2,7 +2,11 @@
 plane z = const through the middle of the bounding box, drawn with a diverging colormap (negative,
 inside: blue; positive, outside: red) and the zero level set (the surface's cut) in black.
 
-    python examples/sdf_slice.py [--mesh path.obj] [--size 512] [--z Z] [--out docs/sdf_slice.png]
+    python examples/sdf_slice.py [--mesh MESH] [--size 512] [--z Z] [--out sdf_slice.png]
+
+MESH: a mesh shipped with vkray (vkray.data.MESH_NAMES; default: fandisk) or an OBJ file. The
+picture goes to the current folder unless --out names another path (docs/sdf_slice.png is made
+with `--out docs/sdf_slice.png`).
 
 precision "exact" (the GPU, f64) where the device has shaderFloat64, else "reference" (the CPU).
 The sign comes from `Scene.contains`: parity for a closed mesh, the winding number for an open one.
@@ -22,12 +26,13 @@ import numpy as np  # noqa: E402
 
 import vkray  # noqa: E402
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-DEFAULT_MESH = ROOT.parent / "shared" / "meshes" / "fandisk.obj"
 
-
-def load_obj(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices float64 (V, 3), faces int64 (F, 3)) of an OBJ's v and f lines (polygons fanned)."""
+def read_mesh(name_or_path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float64 (V, 3), faces int64 (F, 3)) of a shipped mesh's name, or of an OBJ file's
+    v and f lines (polygons fanned)."""
+    if name_or_path in vkray.data.MESH_NAMES:
+        return vkray.data.load_mesh(name_or_path)
+    path = pathlib.Path(name_or_path)
     vertices, faces = [], []
     with open(path) as f:
         for line in f:
@@ -42,13 +47,14 @@ def load_obj(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--mesh", type=pathlib.Path, default=DEFAULT_MESH)
+    parser.add_argument("--mesh", default="fandisk", help="a shipped mesh's name or an OBJ file (default: fandisk)")
     parser.add_argument("--size", type=int, default=512, help="samples along the slice's longer side")
     parser.add_argument("--z", type=float, default=None, help="the slice's plane (default: the box's middle)")
-    parser.add_argument("--out", type=pathlib.Path, default=ROOT / "docs" / "sdf_slice.png")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("sdf_slice.png"))
     args = parser.parse_args()
 
-    vertices, faces = load_obj(args.mesh)
+    vertices, faces = read_mesh(args.mesh)
+    label = pathlib.Path(args.mesh).name.split(".")[0]
     device = vkray.Device()
     mesh = device.mesh(vertices, faces)
     scene = device.scene(mesh)
@@ -70,7 +76,7 @@ def main() -> None:
     seconds = time.perf_counter() - start
     sign = "parity" if mesh.is_closed else "winding number"
     print(
-        f"{args.mesh.name}: {len(faces):,} triangles, closed={mesh.is_closed}; {points.shape[1]}x{points.shape[0]} "
+        f"{label}: {len(faces):,} triangles, closed={mesh.is_closed}; {points.shape[1]}x{points.shape[0]} "
         f"points at z={z:.4g}: {seconds:.3f} s on {device.name} ({device.backend}), precision={precision!r}, "
         f"sign by {sign}; {int((sdf < 0).sum()):,} inside"
     )
@@ -86,7 +92,7 @@ def main() -> None:
     ax.contour(xs, ys, sdf, levels=np.sort(levels), colors="k", linewidths=0.3, alpha=0.35)
     ax.contour(xs, ys, sdf, levels=[0.0], colors="k", linewidths=1.2)
     fig.colorbar(image, ax=ax, shrink=0.8, label="signed distance (negative inside)")
-    ax.set_title(f"{args.mesh.stem}: signed distance at z = {z:.3g} ({precision}, sign by {sign})", fontsize=10)
+    ax.set_title(f"{label}: signed distance at z = {z:.3g} ({precision}, sign by {sign})", fontsize=10)
     ax.set_xlabel("x")
     ax.set_ylabel("y")
     ax.set_aspect("equal")

@@ -12,8 +12,6 @@ each at its first hit. The image is Lambert shading times visibility.
 from __future__ import annotations
 
 import argparse
-import pathlib
-import sys
 
 import matplotlib
 
@@ -21,9 +19,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
-from oracle import load_obj  # noqa: E402
+from vkray.data import load_mesh  # noqa: E402
 
 
 def main() -> None:
@@ -33,7 +30,7 @@ def main() -> None:
     args = parser.parse_args()
 
     device = vkray.Device()
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     low, high = v.min(axis=0), v.max(axis=0)
     size = np.linalg.norm(high - low)
     ground = np.array([[-1, low[1], -1], [1, low[1], -1], [1, low[1], 1], [-1, low[1], 1]], float) * [size, 1, size]

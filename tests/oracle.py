@@ -2,30 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import pathlib
-
 import numpy as np
 
-# ../shared/meshes beside the checkout; VKRAY_MESHES points elsewhere (machines without it).
-MESH_DIR = pathlib.Path(
-    os.environ.get("VKRAY_MESHES") or pathlib.Path(__file__).resolve().parents[2] / "shared" / "meshes"
-)
-MESH_NAMES = ("stanford-bunny", "fandisk", "spot", "cow", "teapot")
+from vkray.data import MESH_NAMES, load_mesh  # noqa: F401  (the tests' meshes, shipped with vkray)
 
 EMBREE_MISS_T = 1e37
-
-
-def load_obj(name: str):
-    """(vertices float64 (V, 3), faces int64 (F, 3)) of a v/f-only OBJ in ../shared/meshes."""
-    vertices, faces = [], []
-    with open(MESH_DIR / f"{name}.obj") as f:
-        for line in f:
-            if line.startswith("v "):
-                vertices.append(line.split()[1:4])
-            elif line.startswith("f "):
-                faces.append([c.split("/")[0] for c in line.split()[1:4]])
-    return np.array(vertices, dtype=np.float64), np.array(faces, dtype=np.int64) - 1
 
 
 def embree(triangle_sets, origins, directions, tmax=None, query="INTERSECT"):

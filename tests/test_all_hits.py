@@ -22,7 +22,7 @@ from oracle import (
     box,
     directed_edges_closed,
     heightfield,
-    load_obj,
+    load_mesh,
     random_rays,
     rays_through,
     shared_targets,
@@ -51,7 +51,7 @@ def tier(request, any_device):
 def _mesh_data(name):
     if name == "soup":
         return triangle_soup(150, seed=31)
-    return load_obj(name)
+    return load_mesh(name)
 
 
 def mesh_data(name):
@@ -986,9 +986,9 @@ def test_contains_batch_shapes(any_device, tier):
 
 @pytest.mark.parametrize("name, closed", [("fandisk", True), ("spot", True), ("cow", True),
                                           ("stanford-bunny", False), ("teapot", False)])
-def test_is_closed_on_shared_meshes(any_device, name, closed):
+def test_is_closed_on_shipped_meshes(any_device, name, closed):
     v, f = mesh_data(name)
-    assert directed_edges_closed(f) is closed  # what ../shared/README.md says of them
+    assert directed_edges_closed(f) is closed  # what vkray.data says of them
     value = any_device.mesh(v, f).is_closed
     assert isinstance(value, bool) and value is closed
 
@@ -1193,7 +1193,7 @@ def test_exact_count_on_the_gpu_equals_the_reference(device, name):
     mirrored instance, culling and per-ray intervals."""
     if not _exact_on(device):
         pytest.skip("this device does not answer precision='exact'")
-    v, f = load_obj(name)
+    v, f = load_mesh(name)
     mesh = device.mesh(v, f)
     mirror = np.diag([1.0, 1.0, -1.0, 1.0])
     scene = device.scene([vkray.Instance(mesh), vkray.Instance(mesh, mirror, custom_index=3)])
@@ -1230,7 +1230,7 @@ def test_exact_contains_equals_the_reference(device, name):
     mesh's own vertices and on its surface included."""
     if not _exact_on(device):
         pytest.skip("this device does not answer precision='exact'")
-    v, f = load_obj(name)
+    v, f = load_mesh(name)
     mesh = device.mesh(v, f)
     rng = np.random.default_rng(23)
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -1352,7 +1352,7 @@ def test_gpu_tells_points_on_the_surface(device, offset):
     agrees point for point."""
     if not _exact_on(device):
         pytest.skip("this device does not answer precision='exact'")
-    v, f = load_obj("fandisk")
+    v, f = load_mesh("fandisk")
     v = v + offset
     scene = device.scene(device.mesh(v, f))
     rng = np.random.default_rng(57)

@@ -22,7 +22,7 @@ DEVICE = vkray.Device()
 
 
 def cuda_scene_or_skip():
-    v, f = oracle.load_obj("stanford-bunny")
+    v, f = oracle.load_mesh("stanford-bunny")
     scene = DEVICE.scene([DEVICE.mesh(v, f)])
     try:
         scene.intersect(torch.zeros((1, 3), device="cuda"), torch.ones((1, 3), device="cuda"))
@@ -109,7 +109,7 @@ def test_lifetimes(bunny):
     outlive their Scene and Device."""
     v, _ = bunny
     device = vkray.Device()
-    vv, f = oracle.load_obj("stanford-bunny")
+    vv, f = oracle.load_mesh("stanford-bunny")
     scene = device.scene([device.mesh(vv, f)])
     o, d = oracle.random_rays(v, 100_000, seed=4)
     o32, d32 = o.astype(np.float32), d.astype(np.float32)
@@ -193,7 +193,7 @@ def cuda_groups(v, f):
 @pytest.fixture(scope="module")
 def groups(bunny):
     v, _ = bunny
-    return cuda_groups(v, oracle.load_obj("stanford-bunny")[1])
+    return cuda_groups(v, oracle.load_mesh("stanford-bunny")[1])
 
 
 @pytest.fixture
@@ -271,7 +271,7 @@ def test_cuda_rays_arrive_chunk_by_chunk(bunny):
     (a device's `chunk_rays`), through one Scene and a split, with one-row eyes and per-ray
     bounds, equal the numpy path's hits."""
     v, scene = bunny
-    f = oracle.load_obj("stanford-bunny")[1]
+    f = oracle.load_mesh("stanford-bunny")[1]
     rng = np.random.default_rng(11)
     eye = (v.mean(axis=0) + [0.0, 0.0, 0.4]).reshape(1, 3)
     d = v[rng.integers(0, len(v), 10_001)] - eye
@@ -349,14 +349,14 @@ def test_a_split_of_cuda_rays_names_the_callers_row_and_outlives_the_rays(bunny,
         litter = [torch.full(s, float("nan"), device="cuda") for s in shapes]  # the freed blocks again
         assert_same(hits, expected, ["t", "prim_id"])
         del litter
-    lone_group, lone_scene = cuda_groups(v, oracle.load_obj("stanford-bunny")[1])[0]
+    lone_group, lone_scene = cuda_groups(v, oracle.load_mesh("stanford-bunny")[1])[0]
     hits = lone_scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda(), outputs=["t"])
     del lone_scene, lone_group
     gc.collect()
     np.testing.assert_array_equal(on_host(hits.t), expected.t)
     member = groups[0][0].devices[0]
     uneven = vkray.DeviceGroup([member, member], weights=[1, 1000])
-    uneven_scene = uneven.scene([uneven.mesh(v, oracle.load_obj("stanford-bunny")[1])])
+    uneven_scene = uneven.scene([uneven.mesh(v, oracle.load_mesh("stanford-bunny")[1])])
     two = uneven_scene.intersect(torch.from_numpy(o[:2]).cuda(), torch.from_numpy(d[:2]).cuda(), outputs=["t"])
     np.testing.assert_array_equal(on_host(two.t), expected.t[:2])
 
@@ -386,6 +386,6 @@ def test_cuda_rays_of_a_gpu_outside_the_group_are_named(bunny):
     o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 1000, seed=2))
     alone = vkray.DeviceGroup([members[0].index])
     other = f"cuda:{vkray.Device(members[1].index).cuda_device}"
-    lone = alone.scene([alone.mesh(v, oracle.load_obj("stanford-bunny")[1])])
+    lone = alone.scene([alone.mesh(v, oracle.load_mesh("stanford-bunny")[1])])
     with pytest.raises(ValueError, match=f"the rays live on {other}, which is none of this group's devices"):
         lone.intersect(torch.from_numpy(o).to(other), torch.from_numpy(d).to(other))

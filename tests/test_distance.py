@@ -12,7 +12,7 @@ import vkray
 
 @pytest.fixture(scope="module")
 def bunny():
-    return oracle.load_obj("stanford-bunny")
+    return oracle.load_mesh("stanford-bunny")
 
 
 def points_around(vertices, n, seed, spread=0.3):
@@ -126,7 +126,7 @@ def test_points_on_the_surface_are_at_distance_zero_with_one_triangle_chosen(dev
 @pytest.mark.parametrize("precision", TIERS)
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_instances_rotated_stretched_and_mirrored_keep_world_distances(device, offset, precision):
-    v, f = oracle.load_obj("spot")
+    v, f = oracle.load_mesh("spot")
     v = 0.1 * (v - v.mean(0))
     mesh = device.mesh(v, f)
     angle = 0.7

@@ -41,7 +41,7 @@ class OnAnotherDevice:
 
 @pytest.fixture(scope="module")
 def bunny():
-    return oracle.load_obj("stanford-bunny")
+    return oracle.load_mesh("stanford-bunny")
 
 
 def rays_at(vertices, n, seed):

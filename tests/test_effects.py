@@ -17,7 +17,7 @@ ALL_TIERS = ("fast", "refined", "exact", "reference")
 
 @pytest.fixture(scope="module")
 def bunny():
-    return oracle.load_obj("stanford-bunny")
+    return oracle.load_mesh("stanford-bunny")
 
 
 def rays_at(vertices, n=3000, seed=0):

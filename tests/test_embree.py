@@ -10,7 +10,7 @@ from oracle import (
     bounds,
     camera_rays,
     embree,
-    load_obj,
+    load_mesh,
     random_rays,
     transform_points,
     triangle_normals,
@@ -21,7 +21,7 @@ _meshes = {}
 
 def mesh_data(name):
     if name not in _meshes:
-        _meshes[name] = load_obj(name)
+        _meshes[name] = load_mesh(name)
     return _meshes[name]
 
 

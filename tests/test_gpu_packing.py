@@ -46,7 +46,7 @@ def assert_same_hits(a: vkray.Hits, b: vkray.Hits) -> None:
 
 
 def bunny_scenes(pair):
-    v, f = oracle.load_obj("stanford-bunny")
+    v, f = oracle.load_mesh("stanford-bunny")
     return v, scenes(pair, lambda d: d.scene([d.mesh(v, f)]))
 
 
@@ -95,7 +95,7 @@ def test_far_rays_are_advanced_as_the_host_advances_them(pair, distance):
 def test_spheres_and_instances(pair):
     rng = np.random.default_rng(4)
     centers, radii = rng.uniform(-5, 5, (200, 3)), rng.uniform(0.1, 0.5, 200)
-    v, f = oracle.load_obj("stanford-bunny")
+    v, f = oracle.load_mesh("stanford-bunny")
 
     def build(device):
         bunny = device.mesh(v, f)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import vkray
-from oracle import load_obj, random_rays
+from oracle import load_mesh, random_rays
 from test_precision import tiers
 
 TRIANGLE = ([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])  # normal +z
@@ -48,7 +48,7 @@ def test_instance_flags_flip_and_exempt(device):
 
 
 def test_per_ray_masks_select_instances(device):
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     mesh = device.mesh(v, f)
     size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
     shifted = np.eye(4)
@@ -80,7 +80,7 @@ def test_non_opaque_instances_are_still_hit(device):
     """Forcing an instance non-opaque sends its triangles through the shader's candidate path
     (ray query) or the any-hit slot (pipeline); with no any-hit program they are accepted, so
     the hits are those of the opaque instance."""
-    v, f = load_obj("cow")
+    v, f = load_mesh("cow")
     mesh = device.mesh(v, f)
     origins, directions = random_rays(v, 5000, seed=53)
     opaque = device.scene(vkray.Instance(mesh, opaque=True)).intersect(origins, directions)
@@ -97,7 +97,7 @@ def test_parts_of_one_mesh_are_told_apart(device):
     """Three parts in one BLAS (spot, the cow moved by a transform, the teapot): each hit names
     its part (geometry_id) and its triangle within the part, as the same parts placed as three
     instances do, in every tier."""
-    parts = [load_obj("spot"), load_obj("cow"), load_obj("teapot")]
+    parts = [load_mesh("spot"), load_mesh("cow"), load_mesh("teapot")]
     sizes = [np.linalg.norm(v.max(axis=0) - v.min(axis=0)) for v, _ in parts]
     moves = [np.eye(4) for _ in parts]
     for k in (1, 2):

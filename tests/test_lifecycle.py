@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import vkray
-from oracle import load_obj, random_rays
+from oracle import load_mesh, random_rays
 
 
 def wobble(v, amount):
@@ -28,7 +28,7 @@ def assert_same_hits(a, b, exact):
 
 
 def test_refitted_mesh_traces_like_a_fresh_build(device):
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     mesh = device.mesh(v, f, allow_update=True)
     scene = device.scene(mesh, allow_update=True)
     moved = wobble(v, 0.02)
@@ -46,7 +46,7 @@ def test_refitted_mesh_traces_like_a_fresh_build(device):
 
 
 def test_refit_needs_allow_update_and_the_same_topology(any_device):
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     fixed = any_device.mesh(v, f)
     with pytest.raises(ValueError, match="allow_update=True"):
         fixed.update(v)
@@ -60,7 +60,7 @@ def test_refit_needs_allow_update_and_the_same_topology(any_device):
 def test_scene_without_allow_update_is_rebuilt_after_a_mesh_update(any_device):
     # The error chain must lead somewhere: a scene built without allow_update=True is rebuilt
     # (not refitted) by update(), and then traces the moved mesh.
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     mesh = any_device.mesh(v, f, allow_update=True)
     scene = any_device.scene(mesh)
     size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
@@ -79,7 +79,7 @@ def test_scene_without_allow_update_is_rebuilt_after_a_mesh_update(any_device):
 
 
 def test_scene_refit_moves_and_hides_instances(device):
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     mesh = device.mesh(v, f)
     size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
     start = [np.eye(4), np.eye(4)]
@@ -106,7 +106,7 @@ def test_scene_refit_moves_and_hides_instances(device):
 
 
 def test_exact_tier_follows_refits(device):
-    v, f = load_obj("fandisk")
+    v, f = load_mesh("fandisk")
     mesh = device.mesh(v, f, allow_update=True)
     scene = device.scene(mesh, allow_update=True)
     origins, directions = random_rays(v, 5000, seed=33)
@@ -125,7 +125,7 @@ def test_exact_tier_follows_refits(device):
 
 @pytest.mark.parametrize("name", ["stanford-bunny", "teapot"])
 def test_compaction_shrinks_and_keeps_hits(device, name):
-    v, f = load_obj(name)
+    v, f = load_mesh(name)
     plain = device.mesh(v, f)
     compacted = device.mesh(v, f, compact=True)
     # The driver's compacted size, never more than built (lavapipe reports no saving; NVIDIA's
@@ -144,7 +144,7 @@ def test_many_meshes_under_a_scratch_budget(device):
     holds about two builds' scratch, and every mesh traces as one built alone."""
     from oracle import MESH_NAMES
 
-    items = [load_obj(name) for name in MESH_NAMES]
+    items = [load_mesh(name) for name in MESH_NAMES]
     single = [device.mesh(v, f) for v, f in items]
     together = device.meshes(items)
     assert {m.stats["batch"] for m in together} == {0}
@@ -164,7 +164,7 @@ def test_many_meshes_under_a_scratch_budget(device):
 
 
 def test_many_meshes_reject_what_cannot_fit(any_device):
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     with pytest.raises(ValueError, match="structure 0 needs .* bytes of build scratch"):
         any_device.meshes([(v, f)], budget_bytes=1)
     with pytest.raises(ValueError, match="mesh 1: faces row 0"):
@@ -183,7 +183,7 @@ def test_quantized_vertices_save_memory_and_stay_close(device, vertex_format, to
     2^-11 of the half-size for float16, 2^-15 for snorm16 (`tolerance` of the size, p99)."""
     if vertex_format not in device.limits["vertex_formats"]:
         pytest.skip(f"{device.name} does not build from {vertex_format}")
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
     full = device.mesh(v, f)
     small = device.mesh(v, f, vertex_format=vertex_format, allow_update=True)

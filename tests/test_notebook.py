@@ -8,16 +8,12 @@ import pathlib
 import nbclient
 import nbformat
 
-import oracle
 from conftest import VALIDATION
 
 NOTEBOOK = pathlib.Path(__file__).resolve().parents[1] / "examples" / "tour.ipynb"
 
 
 def test_tour_runs_and_shows_its_pictures(monkeypatch):
-    # A missing meshes folder skips (fails under VKRAY_REQUIRE_MESHES=1) here, as everywhere.
-    open(oracle.MESH_DIR / "spot.obj").close()
-    monkeypatch.setenv("VKRAY_MESHES", str(oracle.MESH_DIR))  # the kernel inherits the environment
     if VALIDATION:
         monkeypatch.setenv("VKRAY_VALIDATION", "1")
     notebook = nbformat.read(NOTEBOOK, as_version=4)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import vkray
-from oracle import camera_rays, load_obj
+from oracle import camera_rays, load_mesh
 from vkray import _pictures
 
 W, H = 64, 48
@@ -124,7 +124,7 @@ def test_box_front_on(device):
 def test_depth_colours_are_monotone_in_t(device):
     """Nearer is lighter: sorted by t, the depth image's lightness never increases (beyond a
     level of rounding); the nearest hit is the colormap's top, the farthest its bottom."""
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     scene = device.scene(device.mesh(v, f))
     origin, directions = camera_rays(v, W, H)
     hits = scene.intersect(origin, directions.reshape(H, W, 3))
@@ -191,7 +191,7 @@ def test_html_summaries(any_device):
     name = html.escape(any_device.name)
     device_html = any_device._repr_html_()
     assert name in device_html and any_device.backend in device_html
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     mesh = any_device.mesh(v, f, compact=True)
     mesh_html = mesh._repr_html_()
     for text in (name, f"{len(f):,}", f"{len(v):,}", "compacted", f"{mesh.stats['bytes']:,} B"):
@@ -211,7 +211,7 @@ def test_html_summaries(any_device):
 
 
 def test_preview_frames_the_scene(device):
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     mesh = device.mesh(v, f)
     # Far from the origin, scaled up: the default camera finds it all the same.
     scene = device.scene(vkray.Instance(mesh, [[20, 0, 0, 1e3], [0, 20, 0, -500], [0, 0, 20, 40], [0, 0, 0, 1]]))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import vkray
-from oracle import heightfield, load_obj, random_rays, rays_through, shared_targets
+from oracle import heightfield, load_mesh, random_rays, rays_through, shared_targets
 
 _exact_support = {}
 
@@ -41,7 +41,7 @@ def test_pipeline_exact_is_answered_or_refused_clearly(device):
 @pytest.mark.parametrize("name", ["stanford-bunny", "fandisk"])
 def test_tiers_agree_with_the_reference_on_real_meshes(device, name):
     """Far from the origin (1e5), so that f32 would show its limits without re-centring."""
-    v, f = load_obj(name)
+    v, f = load_mesh(name)
     v = v + 1e5
     scene = device.scene(device.mesh(v, f))
     origins, directions = random_rays(v, 20000, seed=21)
@@ -264,7 +264,7 @@ def test_instance_translation_equals_baked_vertices(device):
     """Translating an instance by 1e6 and baking 1e6 into the vertices describe the same
     geometry up to the rounding of baking itself (an f64 ulp at 1e6 is 1.2e-10): the same
     triangles, and t and positions equal to 1e-9 in the f64 tiers."""
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     shift = np.array([1e6, -1e6, 1e6])
     baked = device.scene(device.mesh(v + shift, f))
     moved = np.eye(4)
@@ -301,7 +301,7 @@ def test_secondary_rays_never_hit_their_own_surface(device, offset, surface):
     """Shadow and bounce rays leaving a surface from `offset_origins` must not hit the triangle
     they leave (a flat triangle cannot be met again by a ray leaving it): zero self-hits."""
     if surface == "bunny":
-        v, f = load_obj("stanford-bunny")
+        v, f = load_mesh("stanford-bunny")
     else:  # an axis-aligned plane, the classic failure case
         g = np.linspace(-1, 1, 21)
         x, y = np.meshgrid(g, g)

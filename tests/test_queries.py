@@ -9,7 +9,7 @@ import pytest
 
 import vkray
 from conftest import BACKENDS, make_device
-from oracle import embree, load_obj, random_rays
+from oracle import embree, load_mesh, random_rays
 
 # One triangle in the plane z = 1 covering (0,0)-(1,0)-(0,1).
 TRIANGLE = (np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], np.float32), np.array([[0, 1, 2]], np.int32))
@@ -53,7 +53,7 @@ def test_rays_from_behind_and_missing(triangle_scene):
 
 
 def test_occluded_equals_intersect_hit(device):
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     scene = device.scene(device.mesh(v, f))
     origins, directions = random_rays(v, 50000, seed=5)
     tmax = np.random.default_rng(5).uniform(0.2, 1.2, len(origins))
@@ -71,7 +71,7 @@ def test_the_core_makes_hit_bools_as_it_copies_hits_out(device):
     closest_points and out= refuse it."""
     from test_precision import tiers
 
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     scene = device.scene(device.mesh(v, f))
     origins, directions = random_rays(v, 20000, seed=8)
     tmax = np.random.default_rng(8).uniform(0.2, 1.2, len(origins))
@@ -151,7 +151,7 @@ def test_mixed_dtypes_and_layouts_agree(triangle_scene):
 
 
 def test_chunk_boundaries_do_not_change_results(device):
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     scene = device.scene(device.mesh(v, f))
     origins, directions = random_rays(v, 10007, seed=7)
     whole = scene.intersect(origins, directions, outputs=vkray.HIT_FIELDS)
@@ -174,7 +174,7 @@ def test_chunk_boundaries_do_not_change_results(device):
 
 
 def test_profile_splits_host_and_gpu_time(device):
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     scene = device.scene(device.mesh(v, f))
     origins, directions = random_rays(v, 50_000, seed=3)
     scene.intersect(origins, directions)
@@ -216,7 +216,7 @@ def test_ten_million_rays(device):
 def test_gil_is_released_while_tracing(device):
     """While the GPU works (the profile's `wait`), other Python threads run. Packing and unpacking
     hold the GIL by design, so the ticks are measured against the wait time alone."""
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     scene = device.scene(device.mesh(v, f))
     origins, directions = random_rays(v, 400_000, seed=9)
     done = threading.Event()
@@ -235,7 +235,7 @@ def test_gil_is_released_while_tracing(device):
 @pytest.mark.skipif(len(BACKENDS) < 2, reason="the device offers one backend")
 @pytest.mark.parametrize("name", ["stanford-bunny", "fandisk", "spot", "cow", "teapot"])
 def test_backends_return_identical_hits(name):
-    v, f = load_obj(name)
+    v, f = load_mesh(name)
     origins, directions = random_rays(v, 30000, seed=10)
     results = []
     for backend in ("ray_query", "pipeline"):
@@ -255,7 +255,7 @@ def test_discrete_gpu_staging_path_gives_the_same_hits(device, tmp_path):
     import subprocess
     import sys
 
-    v, f = load_obj("cow")
+    v, f = load_mesh("cow")
     origins, directions = random_rays(v, 5000, seed=12)
     hits = device.scene(device.mesh(v, f)).intersect(origins, directions)
     np.savez(tmp_path / "rays.npz", v=v, f=f, o=origins, d=directions)
@@ -278,7 +278,7 @@ def test_discrete_gpu_staging_path_gives_the_same_hits(device, tmp_path):
 def test_out_writes_the_same_hits_into_the_callers_arrays(device):
     """intersect(out=hits) writes every field into the earlier call's arrays (filled with junk
     first: every element is written), equal to a fresh call's, which agrees with Embree."""
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     scene = device.scene(device.mesh(v, f))
     # Rays of shape (50, 100, 3): the arrays are reshaped views of out's, not copies.
     o1, d1, o2, d2 = (a.astype(np.float32).reshape(50, 100, 3) for a in (*random_rays(v, 5000, seed=3),
@@ -330,7 +330,7 @@ def test_out_is_refused_where_it_cannot_be_written(triangle_scene):
 
 def test_out_from_several_threads(device):
     """Threads each looping over frames into their own out= arrays get a fresh call's answers."""
-    v, f = load_obj("spot")
+    v, f = load_mesh("spot")
     scene = device.scene(device.mesh(v, f))
     rays = [random_rays(v, 3001, seed=20 + k) for k in range(4)]
     expected = [scene.intersect(o, d) for o, d in rays]

@@ -34,7 +34,7 @@ def pair(request):
 
 
 def bunny_scenes(pair, shift=(0.0, 0.0, 0.0)):
-    v, f = oracle.load_obj("stanford-bunny")
+    v, f = oracle.load_mesh("stanford-bunny")
     v = v + np.asarray(shift)
     return [device.scene(device.mesh(v, f)) for device in pair], v
 

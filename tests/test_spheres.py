@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import vkray
-from oracle import load_obj, random_rays
+from oracle import load_mesh, random_rays
 
 
 def analytic(centers, radii, origins, directions):
@@ -60,7 +60,7 @@ def test_small_far_spheres_stay_accurate(device):
 def test_spheres_mix_with_triangles_and_transforms(device):
     """The bunny and a sphere set (moved and scaled uniformly by an instance transform) in one
     scene: every ray reports the nearer of the two, as each alone would have it."""
-    v, f = load_obj("stanford-bunny")
+    v, f = load_mesh("stanford-bunny")
     rng = np.random.default_rng(62)
     centers = rng.uniform(v.min(axis=0), v.max(axis=0), (40, 3))
     radii = rng.uniform(0.002, 0.01, 40)

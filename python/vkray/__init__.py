@@ -7,6 +7,7 @@
 >>> hits = scene.intersect(origins, directions)  # (N, 3) rays -> Hits of numpy arrays
 """
 
+from . import data  # the meshes shipped with vkray: vkray.data.load_mesh
 from ._api import (
     CLOSEST_FIELDS,
     DEFAULT_FIELDS,
@@ -42,6 +43,7 @@ from ._secondary import offset_origins
 from .sensors import Lidar, OrthographicCamera, PinholeCamera, Sensor
 
 __all__ = [
+    "data",
     "AllHits",
     "CudaArray",
     "CLOSEST_FIELDS",

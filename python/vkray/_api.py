@@ -2,8 +2,22 @@
 
 from __future__ import annotations
 
+from collections import abc
 from dataclasses import dataclass
-from typing import Any, Dict, Iterable, List, Literal, Optional, Sequence, Tuple, Union, cast, get_args
+from typing import (
+    Any,
+    Dict,
+    Iterable,
+    List,
+    Literal,
+    Optional,
+    Protocol,
+    Sequence,
+    Tuple,
+    Union,
+    cast,
+    get_args,
+)
 
 import numpy as np
 
@@ -22,6 +36,17 @@ Build = Union[Literal["fast_trace"], Literal["fast_build"], Literal["low_memory"
 Backend = Union[Literal["ray_query"], Literal["pipeline"]]
 #: How a mesh's vertices are stored on the device.
 VertexFormat = Union[Literal["float32"], Literal["float16"], Literal["snorm16"]]
+
+
+class MeshObject(Protocol):
+    """Another library's triangle mesh, as `Device.mesh` and `Device.scene` take it: ``vertices``
+    (V, 3) and ``faces`` (F, 3) array-likes (a `trimesh.Trimesh`)."""
+
+    @property
+    def vertices(self) -> Any: ...
+
+    @property
+    def faces(self) -> Any: ...
 
 
 def _choices(option: object) -> Tuple[str, ...]:
@@ -358,7 +383,7 @@ class Device:
 
     def scene(
         self,
-        items: Union[Mesh, Instance, Iterable[Union[Mesh, Instance]]],
+        items: Union[Mesh, Instance, MeshObject, Iterable[Union[Mesh, Instance, MeshObject]]],
         *,
         build: Build = "fast_build",
         allow_update: bool = False,
@@ -366,17 +391,25 @@ class Device:
     ) -> Scene:
         """Builds a top-level acceleration structure over meshes and instances.
 
-        A bare `Mesh` is an instance with the identity transform. Instance ids (``Hits.instance_id``)
-        follow the order of `items`.
+        A bare `Mesh` is an instance with the identity transform; so is a mesh object with
+        ``.vertices`` and ``.faces`` (a `trimesh.Trimesh`), which `mesh` uploads first (with its
+        defaults). Instance ids (``Hits.instance_id``) follow the order of `items`.
         """
-        if isinstance(items, (Mesh, Instance)):
-            items = [items]
+        if isinstance(items, (Mesh, Instance)) or _is_mesh_object(items):
+            items = [cast(Union[Mesh, Instance, MeshObject], items)]
+        if not isinstance(items, abc.Iterable):
+            raise TypeError(f"scene() takes a Mesh, an Instance or a list of them, got {type(items).__name__}")
         instances = []
         for i, item in enumerate(items):
+            if _is_mesh_object(item):
+                item = self.mesh(item)
             if isinstance(item, Mesh):
                 item = Instance(item)
             if not isinstance(item, Instance):
-                raise TypeError(f"scene item {i} must be a Mesh or an Instance, got {type(item).__name__}")
+                raise TypeError(
+                    f"scene item {i} must be a Mesh, an Instance or a mesh object with .vertices and .faces, "
+                    f"got {type(item).__name__}"
+                )
             if item.mesh.device is not self:
                 raise ValueError(f"scene item {i} uses a mesh built on another Device")
             instances.append(item)
@@ -394,6 +427,12 @@ class Device:
     def _repr_html_(self) -> str:
         """A table for notebooks: the device, its backend, features and limits."""
         return _pictures.device_html(self)
+
+
+def _is_mesh_object(item: Any) -> bool:
+    """Whether `item` is another library's triangle mesh (``.vertices`` and ``.faces``: trimesh's
+    `Trimesh`), which `Device.mesh` takes as it is."""
+    return not isinstance(item, (Mesh, Instance)) and hasattr(item, "vertices") and hasattr(item, "faces")
 
 
 class Mesh:
