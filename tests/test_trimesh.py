@@ -96,7 +96,7 @@ def test_grazing_rays_touch_once_per_point(box):
     """Rays down the box's side faces (through a top edge, or down a vertical edge through a
     corner) cross nothing but touch it: they hit where they touch, once per point (the triangles
     sharing that edge or corner meet the ray there together), at the top and at the bottom."""
-    _, ray = box
+    mesh, ray = box
     o = np.array([[1, 0, 5], [-1, 0, 5], [0, 1, 5], [0, -1, 5], [1, 1, 5], [-1, -1, 5], [1, -1, 5], [-1, 1, 5]], float)
     d = np.tile([[0.0, 0.0, -1.0]], (len(o), 1))
     assert ray.intersects_any(o, d).all()
@@ -105,7 +105,7 @@ def test_grazing_rays_touch_once_per_point(box):
     tri, idx, loc = ray.intersects_id(o, d, return_locations=True)
     np.testing.assert_array_equal(np.bincount(idx, minlength=len(o)), 2)
     np.testing.assert_allclose(np.sort(loc[:, 2].reshape(-1, 2), axis=1), [[-1.0, 1.0]] * len(o))
-    np.testing.assert_allclose(loc[:, :2], o[idx, :2])
+    np.testing.assert_allclose(loc[:, :2], o[idx, :2], atol=4 * vt.GRAZE_TOLERANCE * mesh.scale)
     # One ray grazing, one crossing: the crossing ray reports its crossings only.
     tri, idx = ray.intersects_id([[1.0, 0.0, 5.0], [0.0, 0.0, 5.0]], [[0, 0, -1.0]] * 2)
     assert np.bincount(idx).tolist() == [2, 2]
@@ -193,6 +193,86 @@ def test_device_mesh_takes_a_trimesh(any_device):
     assert scene.intersect([0.0, 0.0, -5.0], [0.0, 0.0, 1.0]).t == pytest.approx(4.5)
     with pytest.raises(TypeError, match="faces"):
         any_device.mesh(np.eye(3))
+
+
+def test_device_scene_takes_trimeshes(any_device):
+    """Device.scene takes a trimesh mesh, or a list mixing them with vkray meshes and instances,
+    as Device.mesh takes one: instance ids in the list's order."""
+    box = trimesh.creation.box()  # faces at +-0.5
+    far = trimesh.creation.box().apply_translation([0.0, 0.0, 3.0])
+    assert any_device.scene(box).intersect([0.0, 0.0, -5.0], [0.0, 0.0, 1.0]).t == pytest.approx(4.5)
+    scene = any_device.scene([far, vkray.Instance(any_device.mesh(box), custom_index=7)])
+    hits = scene.count([0.0, 0.0, -5.0], [0.0, 0.0, 1.0], precision="reference")
+    assert int(hits) == 4
+    first = scene.intersect([0.0, 0.0, 5.0], [0.0, 0.0, -1.0])
+    assert (int(first.instance_id), float(first.t)) == (0, pytest.approx(1.5))
+    with pytest.raises(TypeError, match=r"scene item 1 must be a Mesh, an Instance or a mesh object"):
+        any_device.scene([box, "box"])
+    with pytest.raises(TypeError, match="scene\\(\\) takes a Mesh, an Instance or a list of them, got int"):
+        any_device.scene(3)
+
+
+def _touching_rays(mesh, rng):
+    """Rays that only touch a convex mesh: through each vertex and the midpoint of each edge
+    between faces that are not coplanar (a face's diagonal is no silhouette), in the plane
+    through it whose normal is a sum of the normals of the faces there (a supporting plane)."""
+    crease = mesh.face_adjacency_angles > 1e-3
+    points = np.vstack([mesh.vertices, mesh.vertices[mesh.face_adjacency_edges[crease]].mean(axis=1)])
+    outward = np.vstack([mesh.vertex_normals, mesh.face_normals[mesh.face_adjacency[crease]].sum(axis=1)])
+    along = np.cross(outward, rng.normal(size=points.shape))
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+    return points - 3 * along, along, points
+
+
+@pytest.mark.parametrize("precision", vkray.PRECISIONS)
+@pytest.mark.parametrize("name", ["icosphere", "box", "capsule"])
+def test_touching_rays_hit_where_trimesh_triangle_engine_says(any_device, name, precision):
+    """Rays aimed through vertices and edge midpoints of convex meshes, touching them only: in
+    every precision each hits (as trimesh's triangle engine answers, with its tolerance), where it
+    touches. On the float32 surface a touching ray may also cross it, entering and leaving close
+    by (a chord as long as the square root of float32's rounding allows): each hit is near the
+    touched point, one per point in the exact tiers (a chord's two ends at most); the f32 tiers
+    may meet each triangle around a vertex (README: precision tiers)."""
+    from trimesh.ray.ray_triangle import RayMeshIntersector as TriangleEngine
+
+    mesh = {"icosphere": lambda: trimesh.creation.icosphere(subdivisions=1),
+            "box": lambda: trimesh.creation.box(extents=[1.0, 2.0, 3.0]),
+            "capsule": lambda: trimesh.creation.capsule(height=1.0, radius=0.5, count=[6, 6])}[name]()
+    assert mesh.is_convex
+    o, d, touched = _touching_rays(mesh, np.random.default_rng(5))
+    theirs = TriangleEngine(mesh)
+    ours = vt.RayMeshIntersector(mesh, device=any_device, precision=precision)
+    assert theirs.intersects_any(o, d).all()
+    np.testing.assert_array_equal(ours.intersects_any(o, d), True)
+    near = 1e-3 * mesh.scale  # float32 chords: sqrt(6e-8) of the size, with room
+    tri, ray, loc = ours.intersects_id(o, d, multiple_hits=False, return_locations=True)
+    np.testing.assert_array_equal(ray, np.arange(len(o)))
+    assert np.linalg.norm(loc - touched, axis=1).max() < near
+    # The triangle named holds the point hit (trimesh's barycentric test, a float32 tolerance).
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
+    assert (bary > -1e-3).all()
+    tri, ray, loc = ours.intersects_id(o, d, multiple_hits=True, return_locations=True)
+    assert np.linalg.norm(loc - touched[ray], axis=1).max() < near
+    counts = np.bincount(ray, minlength=len(o))
+    assert counts.min() >= 1
+    if precision in ("exact", "reference"):
+        assert counts.max() <= 2
+
+
+def test_scale_to_box_is_accepted_and_changes_nothing(any_device):
+    """trimesh's embree engine's `scale_to_box` (positional or keyword): the same answers."""
+    mesh = trimesh.creation.icosphere(subdivisions=2).apply_scale(1e-3)
+    rng = np.random.default_rng(6)
+    o = rng.uniform(-2e-3, 2e-3, (200, 3))
+    d = -o + rng.normal(scale=1e-4, size=o.shape)
+    answers = [vt.RayMeshIntersector(mesh, *args, device=any_device, **kwargs).intersects_id(o, d)
+               for args, kwargs in (((), {}), ((False,), {}), ((), {"scale_to_box": True}))]
+    for a, b in zip(answers[0], answers[1]):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(answers[0], answers[2]):
+        np.testing.assert_array_equal(a, b)
+    assert len(answers[0][0]) > 100
+    assert copy.copy(vt.RayMeshIntersector(mesh, False))._scale_to_box is False
 
 
 def test_threads_share_an_intersector(any_device):

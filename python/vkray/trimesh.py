@@ -17,11 +17,13 @@ Choices where trimesh's two engines differ (tests/test_trimesh.py checks each):
   lost or repeated by re-casting from each hit (trimesh's embree engine re-casts with an offset,
   up to ``max_hits``). ``max_hits`` keeps the nearest per ray; None (the default) keeps all.
 - A ray that crosses nothing but touches the mesh (down a side face's plane, through a silhouette
-  edge or vertex) hits it where it touches, once per point, as trimesh's tests expect: such rays
-  are asked again with closed triangles (the exact tier's contacts). A ray that crosses the
-  surface somewhere reports its crossings only. Otherwise a ray in the plane of a face hits it
-  nowhere (the watertight test has no area to hit); a ray starting on a surface hits it at t = 0
-  or not at all (README: precision tiers).
+  edge or vertex) hits it where it touches, once per point, as trimesh's triangle engine answers and
+  trimesh's tests expect, in every precision: such rays are asked again against the triangles grown
+  by ``GRAZE_TOLERANCE`` times the mesh's size (``mesh.scale``) across every edge, so that a ray
+  aimed at a vertex or an edge touches it although the float32 geometry on the device rounds it
+  away. A ray that passes that close without touching counts as touching. A ray that crosses the
+  surface somewhere reports its crossings only; a ray starting on a surface hits it at t = 0 or not
+  at all (README: precision tiers).
 - ``contains_points``: the parity of one ray's crossings on closed meshes (``Mesh.is_closed``),
   exact; the generalized winding number (>= 1/2) on meshes with holes, which trimesh's ray
   parity cannot answer reliably. Points on the surface are inside.
@@ -43,7 +45,12 @@ from numpy.typing import NDArray
 from . import _api, _core
 from ._api import Precision
 
-__all__ = ["RayMeshIntersector", "default_device", "disable", "enable", "use"]
+__all__ = ["GRAZE_TOLERANCE", "RayMeshIntersector", "default_device", "disable", "enable", "use"]
+
+#: How close, as a fraction of the mesh's size (its bounding box's diagonal), a ray that crosses
+#: nothing must pass to an edge or vertex to touch it: far above the float32 rounding of vertices
+#: on the device (6e-8 of the size), far below any feature a mesh means to have.
+GRAZE_TOLERANCE = 1e-6
 
 T = TypeVar("T")
 IdsAndRays = Tuple[NDArray[np.int64], NDArray[np.int64]]
@@ -68,29 +75,61 @@ class RayMeshIntersector:
     the mesh changes (trimesh's cache tells: a mesh's hash changes with its data).
     """
 
-    def __init__(self, geometry: Any, *, device: Optional[_api.Device] = None, precision: Precision = "exact") -> None:
-        if precision not in ("fast", "refined", "exact", "reference"):
-            raise ValueError(f"precision must be 'fast', 'refined', 'exact' or 'reference', got {precision!r}")
+    def __init__(
+        self,
+        geometry: Any,
+        scale_to_box: bool = True,
+        *,
+        device: Optional[_api.Device] = None,
+        precision: Precision = "exact",
+    ) -> None:
+        """``geometry``: the ``trimesh.Trimesh``. ``scale_to_box``: trimesh's embree engine scales
+        meshes to a unit box for float32's sake; vkray re-centres every scene in float64 before
+        anything becomes float32, so it needs no scaling and answers the same either way (the
+        argument is kept so that code written for trimesh's engines runs unchanged).
+        ``device``: where to trace (default: `default_device`). ``precision``: vkray's tier."""
+        if precision not in _api.PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(map(repr, _api.PRECISIONS))}, got {precision!r}")
         self.mesh = geometry
         self.precision: Precision = precision
+        self._scale_to_box = bool(scale_to_box)
         self._device = device
         self._built: Optional[Tuple[Any, _api.Scene, bool]] = None
+        self._grown: Optional[Tuple[Any, _api.Scene, float]] = None
         # Set once the device refused the exact tier (no shaderFloat64, or a driver that does not
         # run the intersection shaders it needs): "reference" answers the same, on the CPU.
         self._exact_refused = False
 
     # --- the scene, rebuilt when the mesh changes ---------------------------------------------
 
+    def _device_or_default(self) -> _api.Device:
+        return self._device if self._device is not None else default_device()
+
     def _scene(self) -> Tuple[_api.Scene, bool]:
         """The mesh's scene and whether the mesh is closed, built for its current data."""
         key = self.mesh.__hash__()
         built = self._built
         if built is None or built[0] != key:
-            device = self._device if self._device is not None else default_device()
+            device = self._device_or_default()
             mesh = device.mesh(np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces, dtype=np.int64))
             built = (key, device.scene(mesh), mesh.is_closed)
             self._built = built
         return built[1], built[2]
+
+    def _grown_scene(self) -> Tuple[_api.Scene, float]:
+        """The scene of the mesh's triangles grown across every edge by the graze tolerance (each
+        on its own, scaled about its incentre), and that tolerance; built on first need."""
+        key = self.mesh.__hash__()
+        grown = self._grown
+        if grown is None or grown[0] != key:
+            vertices = np.asarray(self.mesh.vertices, dtype=np.float64)
+            tolerance = GRAZE_TOLERANCE * float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+            corners = _grown_triangles(vertices[np.asarray(self.mesh.faces, dtype=np.int64)], tolerance)
+            device = self._device_or_default()
+            mesh = device.mesh(corners.reshape(-1, 3), np.arange(len(corners) * 3).reshape(-1, 3))
+            grown = (key, device.scene(mesh), tolerance)
+            self._grown = grown
+        return grown[1], grown[2]
 
     def _run(self, query: Callable[[Precision], T]) -> T:
         """`query` at this intersector's precision (or "reference" where "exact" is refused)."""
@@ -133,45 +172,48 @@ class RayMeshIntersector:
             return tri, ray, np.asarray(loc, dtype=np.float64).reshape(-1, 3)
         return tri, ray
 
-    def _grazes(self) -> bool:
-        """Whether rays that cross nothing are asked again for contacts (the exact tier alone)."""
-        return self.precision == "exact" and not self._exact_refused
-
     def _first_hits(self, o: NDArray[np.float64], d: NDArray[np.float64], fields: List[str]) -> Dict[str, Any]:
-        """Each ray's first crossing, or where it crosses nothing, its first contact (a graze
-        along a silhouette edge or through a silhouette vertex)."""
+        """Each ray's first crossing, or where it crosses nothing, its first touch (a graze along a
+        side face or a silhouette edge, through a silhouette vertex: `_grown_scene`)."""
         scene, _ = self._scene()
         first = self._run(lambda tier: scene.intersect(o, d, outputs=fields, precision=tier))
         out = {name: np.array(getattr(first, name)) for name in fields}
         missed = np.nonzero(out["prim_id"] < 0)[0]
-        if len(missed) and self._grazes():
-            grazes = scene._core.trace(o[missed], d[missed], 0.0, np.inf, "closest", fields, "exact", None, None, True)
+        if len(missed):
+            grown, _ = self._grown_scene()
+            om, dm = o[missed], d[missed]
+            touches = self._run(lambda tier: grown.intersect(om, dm, outputs=fields, precision=tier))
             for name in fields:
-                out[name][missed] = grazes[name]
+                out[name][missed] = getattr(touches, name)
         return out
 
     def _every_hit(
         self, o: NDArray[np.float64], d: NDArray[np.float64], fields: List[str], max_hits: Optional[int]
     ) -> Tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
-        """Every crossing of each ray, in order along it; where a ray crosses nothing, its contacts
+        """Every crossing of each ray, in order along it; where a ray crosses nothing, its touches
         (one per point: the triangles that share a grazed edge or vertex meet it there at once)."""
         scene, _ = self._scene()
         hits = self._run(lambda tier: scene.intersect_all(o, d, max_hits=max_hits, outputs=fields, precision=tier))
         tri, ray = np.asarray(hits.prim_id).astype(np.int64), np.asarray(hits.ray_index)
         loc = hits.position if hits.position is not None else np.zeros((len(tri), 3))
         missed = np.nonzero(np.asarray(hits.counts).reshape(-1) == 0)[0]
-        if len(missed) == 0 or not self._grazes():
+        if len(missed) == 0:
             return tri, ray, loc
-        grazes = scene._core.trace_all(
-            o[missed], d[missed], 0.0, np.inf, [*fields, "t"], "exact", None, None, max_hits, True
+        grown, tolerance = self._grown_scene()
+        om, dm = o[missed], d[missed]
+        touches = self._run(
+            lambda tier: grown.intersect_all(om, dm, max_hits=max_hits, outputs=[*fields, "t"], precision=tier)
         )
-        g_ray, g_t = grazes["ray_index"], grazes["t"]
-        first_at_t = np.ones(len(g_ray), dtype=bool)
-        first_at_t[1:] = (g_ray[1:] != g_ray[:-1]) | (g_t[1:] != g_t[:-1])
-        g_loc = grazes["position"] if "position" in grazes else np.zeros((len(g_ray), 3))
-        tri = np.concatenate([tri, grazes["prim_id"][first_at_t].astype(np.int64)])
-        ray = np.concatenate([ray, missed[g_ray[first_at_t]]])
-        loc = np.concatenate([loc, g_loc[first_at_t]])
+        g_ray, g_t = np.asarray(touches.ray_index), np.asarray(touches.t, dtype=np.float64)
+        # Touches of one point (the grown triangles around a grazed vertex or edge overlap there)
+        # lie within a few tolerances of each other along the ray: the first of them stands for all.
+        step = np.abs(np.diff(g_t)) * np.linalg.norm(dm[g_ray[1:]], axis=1) if len(g_ray) > 1 else np.zeros(0)
+        first_at_point = np.ones(len(g_ray), dtype=bool)
+        first_at_point[1:] = (g_ray[1:] != g_ray[:-1]) | (step > 4 * tolerance)
+        g_loc = touches.position if touches.position is not None else np.zeros((len(g_ray), 3))
+        tri = np.concatenate([tri, np.asarray(touches.prim_id)[first_at_point].astype(np.int64)])
+        ray = np.concatenate([ray, missed[g_ray[first_at_point]]])
+        loc = np.concatenate([loc, np.asarray(g_loc)[first_at_point]])
         order = np.argsort(ray, kind="stable")
         return tri[order], ray[order], loc[order]
 
@@ -222,7 +264,7 @@ class RayMeshIntersector:
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
-        state["_built"] = None  # device objects stay in their process
+        state["_built"] = state["_grown"] = None  # device objects stay in their process
         state["_device"] = None
         return state
 
@@ -230,13 +272,29 @@ class RayMeshIntersector:
         self.__dict__.update(state)
 
     def __copy__(self) -> RayMeshIntersector:
-        return RayMeshIntersector(self.mesh, device=self._device, precision=self.precision)
+        return RayMeshIntersector(self.mesh, self._scale_to_box, device=self._device, precision=self.precision)
 
     def __deepcopy__(self, memo: Any) -> RayMeshIntersector:
         return self.__copy__()
 
     def __repr__(self) -> str:
         return f"<vkray.trimesh.RayMeshIntersector precision={self.precision!r} faces={len(self.mesh.faces)}>"
+
+
+def _grown_triangles(corners: NDArray[np.float64], tolerance: float) -> NDArray[np.float64]:
+    """Triangles ((F, 3, 3) corners) each scaled about its incentre so that every edge moves out by
+    `tolerance` (the inradius r becomes r + tolerance); triangles narrower than the tolerance (and
+    degenerate ones) stay as they are, as their neighbours' growth covers them."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    sides = np.stack([np.linalg.norm(b - c, axis=1), np.linalg.norm(c - a, axis=1), np.linalg.norm(a - b, axis=1)], 1)
+    perimeter = sides.sum(axis=1)
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)  # twice the area
+    with np.errstate(divide="ignore", invalid="ignore"):
+        incentre = np.einsum("fk,fkj->fj", sides, corners) / perimeter[:, None]
+        inradius = area2 / perimeter
+        scale = np.where(inradius > tolerance, (inradius + tolerance) / inradius, 1.0)
+    moved = incentre[:, None, :] + scale[:, None, None] * (corners - incentre[:, None, :])
+    return np.ascontiguousarray(np.where((scale > 1.0)[:, None, None], moved, corners))
 
 
 class _Rays:
@@ -273,8 +331,8 @@ def enable(*, device: Optional[_api.Device] = None, precision: Precision = "exac
     """Makes every ``trimesh.Trimesh`` created from now on use vkray for its ``.ray`` (whichever
     engine trimesh would have picked). `disable` undoes it; existing meshes keep their engine."""
 
-    def factory(geometry: Any, *args: Any, **kwargs: Any) -> RayMeshIntersector:
-        return RayMeshIntersector(geometry, device=device, precision=precision)
+    def factory(geometry: Any, scale_to_box: bool = True, **kwargs: Any) -> RayMeshIntersector:
+        return RayMeshIntersector(geometry, scale_to_box, device=device, precision=precision)
 
     with _lock:
         for name, module in _engine_modules().items():
