@@ -29,11 +29,12 @@ vkray's other queries take CUDA arrays). Open3D's own class runs on the CPU only
 Precision (``precision=None``, the default): `cast_rays` and `test_occlusions` run vkray's
 ``"fast"`` tier (float32 hardware traversal, as Embree's float32 answers); `count_intersections`
 and `list_intersections` the ``"exact"`` tier (each crossing of a surface once); closest points
-and distances the ``"exact"`` tier (float64, then float32 as Open3D returns them); occupancy and
-the signs of signed distances vkray's exact ``Scene.contains``. A device without shaderFloat64
-answers ``"exact"`` with ``"reference"`` (the same answers, on the CPU). ``precision="fast"``,
-``"refined"``, ``"exact"`` or ``"reference"`` makes every query that has tiers use that one
-(occupancy and signs stay exact).
+and distances the ``"fast"`` tier (the nearest point to float32's rounding, as Open3D's
+float32 search; ``precision="exact"`` measures in float64, then rounds to Open3D's float32);
+occupancy and the signs of signed distances vkray's exact ``Scene.contains`` whatever the tier.
+A device without shaderFloat64 answers the tiers that need it with ``"reference"`` (the same
+answers, on the CPU). ``precision="fast"``, ``"refined"``, ``"exact"`` or ``"reference"`` makes
+every query use that tier (``"refined"`` is ``"exact"`` for closest points and distances).
 
 Where Open3D's answers and these differ (tests/test_open3d.py checks each):
 
@@ -47,7 +48,8 @@ Where Open3D's answers and these differ (tests/test_open3d.py checks each):
   parity of one ray's crossings, each counted once (closed meshes), whatever ``nsamples`` (checked
   as Open3D checks it: odd and >= 1). Open3D votes with ``nsamples`` jittered rays, which may
   disagree with the exact answer near edges and vertices.
-- Points on the surface are inside: occupancy 1, signed distance 0. Open3D's jittered rays put
+- Points on the surface are inside: occupancy 1, signed distance 0 (to float32's rounding in the
+  default tier, never positive; exactly 0 with ``precision="exact"``). Open3D's jittered rays put
   them on either side.
 - Open meshes' signs: a scene with a mesh that is not closed (``vkray.Mesh.is_closed``) decides
   inside by the generalized winding number (>= 1/2), which means something for meshes with holes;
@@ -65,7 +67,10 @@ Where Open3D's answers and these differ (tests/test_open3d.py checks each):
 - ``nthreads`` is accepted everywhere and ignored: the device's threads do the host's share
   (``vkray.Device(host_threads=n)``, given as ``vkray_device``).
 - Bad input raises (indices out of range, non-finite vertices) where Open3D reads past its arrays.
-- Misses in `cast_rays`: t inf, ids ``INVALID_ID``, uvs and normals 0, as Open3D's.
+- Misses in `cast_rays`: t inf and ids ``INVALID_ID`` as Open3D's, but uvs and normals NaN
+  where Open3D writes 0: vkray's queries write NaN there, and making them 0 would cost a pass
+  over the results as long as the query itself (``np.nan_to_num(ans["primitive_normals"])`` gives
+  Open3D's zeros). Test for a hit with ``geometry_ids != INVALID_ID`` or a finite ``t_hit``.
 """
 
 from __future__ import annotations
@@ -275,18 +280,16 @@ class _Result:
         self.o3d: Any = _open3d() if target is not None else None
 
     def __call__(
-        self, value: Any, dtype: str, *, width: int = 0, zero_nan: bool = False, shape: Optional[Tuple[int, ...]] = None
+        self, value: Any, dtype: str, *, width: int = 0, shape: Optional[Tuple[int, ...]] = None
     ) -> Any:
         """``value`` as ``dtype`` ("float32", "uint32" (from int32: -1 is INVALID_ID), "int32" or
-        "bool"), NaN made 0 where ``zero_nan`` (misses' uvs and normals, as Open3D's), of the
-        leading shape and a last axis of ``width`` (0: none), or of ``shape``."""
+        "bool"), of the leading shape and a last axis of ``width`` (0: none), or of ``shape``.
+        Without copies where the dtype is already right (int32 ids are viewed as uint32)."""
         want = shape if shape is not None else self.shape + ((width,) if width else ())
         if not isinstance(value, np.ndarray) and self.target is None:
             value = np.asarray(value)  # a vkray.CudaArray asked for as numpy: copied to the host
         if isinstance(value, np.ndarray):
             array = _as_dtype(value, dtype)
-            if zero_nan:
-                np.copyto(array, 0, where=np.isnan(array))
             array = array.reshape(want)
             if self.target is None:
                 return array
@@ -301,8 +304,6 @@ class _Result:
                 tensor = tensor.to(core.uint32)  # -1 becomes INVALID_ID
             elif dtype == "float32" and tensor.dtype != core.float32:
                 tensor = tensor.to(core.float32)
-            if zero_nan:
-                tensor[tensor.isnan()] = 0.0
             tensor = tensor.reshape(list(want))
         if str(tensor.device) != self.target:
             tensor = tensor.to(self.o3d.core.Device(self.target))
@@ -363,8 +364,8 @@ class RaycastingScene:
         self._meshes: List[Tuple[int, Mesh]] = []
         self._geometries = 0
         self._built: Optional[Tuple[int, Scene, bool]] = None  # (geometries, scene, all closed)
-        # Set once the device refused the exact tier (no shaderFloat64): "reference" answers.
-        self._exact_refused = False
+        # Set once the device refused a tier for want of shaderFloat64: "reference" answers.
+        self._f64_refused = False
 
     @property
     def vkray_device(self) -> Device:
@@ -418,25 +419,32 @@ class RaycastingScene:
 
     # --- tiers --------------------------------------------------------------------------------
 
-    def _tier(self, default: Precision) -> Precision:
+    def _tier(self, default: Precision, points: bool = False) -> Precision:
+        """The tier a query runs: this scene's, else the query's ``default``; "refined" is
+        "exact" for point queries (they have no refined tier); "reference" for the tiers that
+        need shaderFloat64 ("exact", and the GPU's point queries) once the device refused them."""
         tier = self.precision if self.precision is not None else default
-        return "reference" if tier == "exact" and self._exact_refused else tier
+        if points and tier == "refined":
+            tier = "exact"
+        if self._f64_refused and (tier == "exact" or points and tier == "fast"):
+            return "reference"
+        return tier
 
-    def _run(self, default: Precision, query: Callable[[Precision], T]) -> T:
-        """``query`` at this scene's tier for it; where the device refuses "exact" (no
-        shaderFloat64), "reference" (the same answers, on the CPU) from then on."""
-        tier = self._tier(default)
+    def _run(self, default: Precision, query: Callable[[Precision], T], points: bool = False) -> T:
+        """``query`` at its tier (`_tier`); where the device refuses it for want of shaderFloat64,
+        "reference" (the same answers, on the CPU), from then on."""
+        tier = self._tier(default, points)
         try:
             return query(tier)
         except UnsupportedError:
-            if tier != "exact":
+            if tier == "reference" or not (tier == "exact" or points):
                 raise
-            self._exact_refused = True
+            self._f64_refused = True
             return query("reference")
 
     def _contains_tier(self) -> Precision:
         """Occupancy and signs: exact always (the f32 tiers cannot decide parity)."""
-        return "reference" if self.precision == "reference" or self._exact_refused else "exact"
+        return "reference" if self.precision == "reference" or self._f64_refused else "exact"
 
     def _input(self, name: str, value: Any, width: int, query: str, cuda: bool = True) -> _Input:
         """``value`` as `_Input`; CUDA arrays stay on the GPU for the queries of `_CUDA_QUERIES`
@@ -450,7 +458,7 @@ class RaycastingScene:
         (directions of any length: t is in units of it). Returns ``t_hit`` (float32, inf on a
         miss), ``geometry_ids`` and ``primitive_ids`` (uint32, `INVALID_ID` on a miss),
         ``primitive_uvs`` (float32 (..., 2): the barycentric weights of vertices 1 and 2) and
-        ``primitive_normals`` (float32 (..., 3): the unit geometric normal); 0 on a miss."""
+        ``primitive_normals`` (float32 (..., 3): the unit geometric normal); NaN on a miss (Open3D: 0)."""
         _threads(nthreads)
         # vkray's tiers other than "fast" read rays from the host.
         given = self._input("rays", rays, 6, "cast_rays", cuda=self._tier("fast") == "fast")
@@ -463,8 +471,8 @@ class RaycastingScene:
             "t_hit": out(hits.t, "float32"),
             "geometry_ids": out(hits.custom_index, "uint32"),
             "primitive_ids": out(hits.prim_id, "uint32"),
-            "primitive_uvs": out(hits.uv, "float32", width=2, zero_nan=True),
-            "primitive_normals": out(hits.normal, "float32", width=3, zero_nan=True),
+            "primitive_uvs": out(hits.uv, "float32", width=2),
+            "primitive_normals": out(hits.normal, "float32", width=3),
         }
 
     def test_occlusions(self, rays: Any, tnear: float = 0.0, tfar: float = math.inf, nthreads: int = 0) -> Any:
@@ -528,7 +536,7 @@ class RaycastingScene:
         scene, _ = self._scene()
         fields = ["position", "prim_id", "custom_index", "uv", "normal"]
         p = given.array
-        found = self._run("exact", lambda tier: scene.closest_points(p, outputs=fields, precision=tier))
+        found = self._run("fast", lambda tier: scene.closest_points(p, outputs=fields, precision=tier), points=True)
         out = _Result(given.target, given.shape)
         return {
             "points": out(found.position, "float32", width=3),
@@ -544,7 +552,7 @@ class RaycastingScene:
         given = self._input("query_points", query_points, 3, "compute_distance")
         scene, _ = self._scene()
         p = given.array
-        distance = self._run("exact", lambda tier: scene.distance(p, precision=tier))
+        distance = self._run("fast", lambda tier: scene.distance(p, precision=tier), points=True)
         return _Result(given.target, given.shape)(distance, "float32")
 
     def compute_signed_distance(self, query_points: Any, nthreads: int = 0, nsamples: int = 1) -> Any:
@@ -555,7 +563,7 @@ class RaycastingScene:
         given = self._input("query_points", query_points, 3, "compute_signed_distance")
         scene, _ = self._scene()
         p = given.array
-        signed = self._run("exact", lambda tier: scene.signed_distance(p, precision=tier))
+        signed = self._run("fast", lambda tier: scene.signed_distance(p, precision=tier), points=True)
         return _Result(given.target, given.shape)(signed, "float32")
 
     def compute_occupancy(self, query_points: Any, nthreads: int = 0, nsamples: int = 1) -> Any:
@@ -570,7 +578,7 @@ class RaycastingScene:
         try:
             inside = scene.contains(p, precision=self._contains_tier(), method=method)
         except UnsupportedError:
-            self._exact_refused = True
+            self._f64_refused = True
             inside = scene.contains(p, precision="reference", method=method)
         return _Result(given.target, given.shape)(inside, "float32")
 
