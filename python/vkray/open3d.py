@@ -19,9 +19,11 @@ open3d for Open3D tensors and meshes).
 
 Inputs and results. Open3D tensors (CPU or CUDA), numpy arrays, anything numpy can read, and
 DLPack arrays (torch, cupy) are taken, float32 or float64. Open3D tensors in give Open3D tensors
-out, on the input's device; other inputs give numpy arrays (``results="open3d"`` gives Open3D
-tensors for every input, as Open3D's class does: that is what `enable` installs). Host memory is
-shared, not copied, on the way in and out. CUDA rays stay on the GPU in `cast_rays` and
+out, on the input's device; other inputs give numpy arrays, also for CUDA arrays of other
+libraries (``results="open3d"`` gives Open3D tensors for every input, as Open3D's class does:
+that is what `enable` installs). The drop-in copies nothing in host memory: tensors are read and
+answered through shared memory, and ids are int32 viewed as Open3D's uint32 (vkray's own call
+then packs the rays, as when called directly). CUDA rays stay on the GPU in `cast_rays` and
 `test_occlusions` (the fast tier; their hits come back as Open3D tensors on the same GPU); the
 other queries copy CUDA inputs through the host for now (`_host`, the one place to change when
 vkray's other queries take CUDA arrays). Open3D's own class runs on the CPU only.
@@ -170,7 +172,8 @@ class _Open3DCuda:
 
 def _host(name: str, value: Any) -> NDArray[Any]:
     """CUDA memory copied into host memory: for the queries whose vkray call does not take CUDA
-    arrays yet (those not in `_CUDA_QUERIES`). The one place where inputs leave the GPU."""
+    arrays yet (those not in `_CUDA_QUERIES`), and meshes (built from the host). The one place
+    where inputs leave the GPU."""
     if _is_tensor(value):
         return np.asarray(value.cpu().numpy())
     try:
@@ -636,10 +639,10 @@ _Open3DResults.__name__ = _Open3DResults.__qualname__ = "RaycastingScene"
 def _host_array(name: str, value: Any) -> NDArray[Any]:
     """A mesh's array in host memory (Open3D tensors on a GPU are copied: meshes build from the
     host)."""
-    if _is_tensor(value):
-        return np.asarray((value.cpu() if value.is_cuda else value).numpy())
     if _dlpack_on_cuda(value):
         return _host(name, value)
+    if _is_tensor(value):
+        return np.asarray(value.numpy())
     if hasattr(value, "__dlpack__") and not isinstance(value, np.ndarray):
         return np.from_dlpack(value)
     try:
