@@ -84,7 +84,7 @@ def test_ray_queries_match_open3d(device):
     meshes[-1] = (meshes[-1][0] * 2.5, meshes[-1][1])
     theirs, ours = both(device, meshes)
     rays = scene_rays(3000, seed=1)
-    a, b = theirs.cast_rays(rays), ours.cast_rays(rays)
+    a, b = theirs.cast_rays(rays, nthreads=1), ours.cast_rays(rays, nthreads=3)  # nthreads: accepted
     assert set(a) == set(b)
     for key in a:
         assert b[key].dtype == numpy(a[key]).dtype and b[key].shape == tuple(a[key].shape), key
@@ -113,8 +113,8 @@ def test_ray_queries_match_open3d(device):
     counts = ours.count_intersections(rays)
     assert counts.dtype == np.int32
     np.testing.assert_array_equal(counts, numpy(theirs.count_intersections(rays)))
-    listed = ours.list_intersections(rays)
-    want = theirs.list_intersections(rays)
+    listed = ours.list_intersections(rays, nthreads=2)
+    want = theirs.list_intersections(rays, nthreads=2)
     assert {k: numpy(v).dtype for k, v in want.items()} == {k: v.dtype for k, v in listed.items()}
     np.testing.assert_array_equal(listed["ray_splits"], numpy(want["ray_splits"]))
     np.testing.assert_array_equal(listed["ray_ids"], numpy(want["ray_ids"]))
@@ -131,7 +131,7 @@ def test_ray_queries_match_open3d(device):
 def test_point_queries_match_open3d(any_device):
     theirs, ours = both(any_device, closed_meshes())
     points = scene_points(1500, seed=2)
-    a, b = theirs.compute_closest_points(points), ours.compute_closest_points(points)
+    a, b = theirs.compute_closest_points(points), ours.compute_closest_points(points, nthreads=4)
     assert set(a) == set(b)
     for key in a:
         assert b[key].dtype == numpy(a[key]).dtype and b[key].shape == tuple(a[key].shape), key
@@ -157,7 +157,7 @@ def test_point_queries_match_open3d(any_device):
     np.testing.assert_allclose(b["primitive_uvs"][inner], uv[inner], atol=1e-4)
     np.testing.assert_allclose(b["primitive_normals"][inner], numpy(a["primitive_normals"])[inner], atol=1e-5)
 
-    distance = ours.compute_distance(points)
+    distance = ours.compute_distance(points, nthreads=0)
     assert distance.dtype == np.float32
     np.testing.assert_allclose(distance, numpy(theirs.compute_distance(points)), rtol=1e-5, atol=1e-6)
     # Signs and occupancy: the same wherever a point is not within rounding of a surface.
