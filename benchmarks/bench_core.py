@@ -19,6 +19,7 @@ import sys
 import time
 
 import numpy as np
+from _timing import best_of
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
@@ -50,15 +51,6 @@ def _embree_part(job):
         return scene.run(o[lo:hi], d[lo:hi], query="OCCLUDED")
     result = scene.run(o[lo:hi], d[lo:hi], output=1)
     return result["tfar"], result["primID"]
-
-
-def best_of(repeat, fn):
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def bench_mesh(name, vertices, faces, device, ray_counts, processes, repeat, rows, splits, builds):

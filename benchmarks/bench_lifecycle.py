@@ -17,24 +17,15 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
-import time
 
 import numpy as np
+from _timing import best_run
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
 from oracle import MESH_NAMES, load_mesh, random_rays  # noqa: E402
 
 BUILDS = ("fast_trace", "fast_build", "low_memory")
-
-
-def best_of(repeat, fn):
-    best, result = np.inf, None
-    for _ in range(repeat):
-        start = time.perf_counter()
-        result = fn()
-        best = min(best, time.perf_counter() - start)
-    return best, result
 
 
 def embree_build(v, f):
@@ -90,14 +81,14 @@ def main():
     print("| mesh | triangles | build | BLAS build s | Mtris/s | Embree build s | Mtris/s | bytes | compacted bytes | saved | trace Mrays/s | trace alone Mrays/s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, v, f in meshes(args.big):
-        embree_s, _ = best_of(args.repeat, lambda: embree_build(v, f))
+        embree_s, _ = best_run(args.repeat, lambda: embree_build(v, f))
         origins, directions = random_rays(v, args.rays, seed=41)
         for build in BUILDS:
             seconds = min(device.mesh(v, f, build=build).stats["build_seconds"] for _ in range(args.repeat))
             compacted = device.mesh(v, f, build=build, compact=True)
             scene = device.scene(compacted)
             scene.intersect(origins[:10], directions[:10], outputs=["t", "prim_id"])
-            trace_s, _ = best_of(args.repeat, lambda: scene.intersect(origins, directions, outputs=["t", "prim_id"]))
+            trace_s, _ = best_run(args.repeat, lambda: scene.intersect(origins, directions, outputs=["t", "prim_id"]))
             gpu = device.last_trace_profile["gpu_trace"]
             s = compacted.stats
             print(f"| {name} | {len(f):,} | {build} | {seconds:.4f} | {len(f) / seconds / 1e6:.1f} | {embree_s:.4f} | "
@@ -112,15 +103,15 @@ def main():
     for name, v, f in meshes(args.big)[:1] + meshes(args.big)[-1:]:
         size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
         moved = v + 0.02 * size * np.sin(7 * v[:, [1, 2, 0]] / size)
-        rebuild_s, fresh = best_of(args.repeat, lambda: device.mesh(moved, f, allow_update=True))
+        rebuild_s, fresh = best_run(args.repeat, lambda: device.mesh(moved, f, allow_update=True))
         mesh = device.mesh(v, f, allow_update=True)
-        refit_s, _ = best_of(args.repeat, lambda: mesh.update(moved))
+        refit_s, _ = best_run(args.repeat, lambda: mesh.update(moved))
         origins, directions = random_rays(moved, args.rays, seed=42)
         times = []
         for m in (mesh, fresh):
             scene = device.scene(m)
             scene.intersect(origins[:10], directions[:10], outputs=["t"])
-            times.append(best_of(args.repeat, lambda: scene.intersect(origins, directions, outputs=["t"]))[0])
+            times.append(best_run(args.repeat, lambda: scene.intersect(origins, directions, outputs=["t"]))[0])
         print(f"| {name} | {len(f):,} | {rebuild_s:.4f} | {refit_s:.4f} | {refit_s / rebuild_s:.2f} | {times[0] / times[1]:.2f} |")
 
     print("\nQuantized vertices (`vertex_format=`): bytes of the vertex buffer and of the BLAS, and how far hits "
@@ -154,8 +145,8 @@ def main():
         spread = 0.2 * n ** (1 / 3)
         first, moved = random_transforms(n, spread, 1), random_transforms(n, spread, 2)
         instances = [vkray.Instance(bunny, t) for t in first]
-        build_s, scene = best_of(1, lambda: device.scene(instances, allow_update=True))
-        refit_s, _ = best_of(args.repeat, lambda: scene.update(transforms=moved))
+        build_s, scene = best_run(1, lambda: device.scene(instances, allow_update=True))
+        refit_s, _ = best_run(args.repeat, lambda: scene.update(transforms=moved))
         print(f"| {n:,} | {build_s:.3f} | {scene.stats['build_seconds']:.4f} | {refit_s:.3f} | {scene.stats['bytes']:,} |")
 
 

@@ -21,11 +21,12 @@ variant) on rays it holds on the GPU, `ray_intersect_preliminary` (t and the pri
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import pathlib
 import sys
-import time
 
+import _timing
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
@@ -35,14 +36,8 @@ from oracle import camera_rays, load_mesh, random_rays  # noqa: E402
 LEAN = ["t", "prim_id"]
 
 
-def best_of(repeat, fn):
-    fn()
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
+# Each timing runs its call once first, untimed (pipelines compiled, memory faulted in).
+best_of = functools.partial(_timing.best_of, warm=True)
 
 
 def subdivided(vertices, faces, times):

@@ -56,9 +56,10 @@ import platform
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable, Dict, List, Sequence
+from typing import Any, Dict, List, Sequence
 
 import numpy as np
+from _timing import best_of
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
@@ -72,15 +73,6 @@ STARTED = time.perf_counter()
 def log(message: str) -> None:
     """A progress line on stderr, at once: where a run that times out stopped."""
     print(f"[{time.perf_counter() - STARTED:7.1f} s] {message}", file=sys.stderr, flush=True)
-
-
-def best_of(repeat: int, run: Callable[[], Any]) -> float:
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def answer(scene: Any, query: str, o: np.ndarray, d: np.ndarray) -> Dict[str, np.ndarray]:
@@ -395,7 +387,7 @@ def main() -> None:
     parser.add_argument("--json", type=pathlib.Path)
     args = parser.parse_args()
 
-    from vkray._group import default_devices
+    from vkray._device_group import default_devices
 
     devices: List[Any] = [0] * args.same_device if args.same_device else (args.devices or default_devices())
     n = int(args.rays)

@@ -16,10 +16,10 @@ import argparse
 import pathlib
 import sys
 import threading
-import time
 from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
+from _timing import best_of
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
@@ -32,15 +32,6 @@ OPTIONS: Dict[str, Dict[str, Any]] = {"intersect": {"outputs": LEAN}, "occluded"
 def profile(device: vkray.Device) -> str:
     shown = {k: v for k, v in device.last_trace_profile.items() if v not in (None, 0, 0.0)}
     return " ".join(f"{k}={v * 1e3:.2f}" if isinstance(v, float) else f"{k}={v}" for k, v in shown.items())
-
-
-def best_of(repeat: int, run: Callable[[], None]) -> float:
-    best = float("inf")
-    for _ in range(repeat):
-        start = time.perf_counter()
-        run()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def in_threads(scene: vkray.Scene, query: str, chunks: List[Tuple[np.ndarray, np.ndarray]], k: int) -> Callable[[], None]:

@@ -200,13 +200,13 @@ def groups(bunny):
 def pieces(monkeypatch):
     """The devices that traced a piece of CUDA rays, call after call (cleared by the test)."""
     traced: list = []
-    piece = vkray._api.Scene._cuda_piece
+    piece = vkray.Scene.trace_cuda_rows
 
     def counted(scene, batch, start, stop, *args):
         traced.append((start, stop))
         return piece(scene, batch, start, stop, *args)
 
-    monkeypatch.setattr(vkray._api.Scene, "_cuda_piece", counted)
+    monkeypatch.setattr(vkray.Scene, "trace_cuda_rows", counted)
     return traced
 
 

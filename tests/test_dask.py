@@ -23,7 +23,7 @@ import vkray.dask as vkray_dask  # noqa: E402
 from conftest import VALIDATION  # noqa: E402
 from oracle import box, triangle_soup  # noqa: E402
 from test_precision import tiers  # noqa: E402
-from vkray._group import usable_cores  # noqa: E402
+from vkray._device_group import usable_cores  # noqa: E402
 
 N = 4001
 UNEVEN = (700, 1300, 1, 999, 1001)  # chunks of the origins; directions are chunked otherwise

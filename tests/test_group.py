@@ -17,7 +17,7 @@ import vkray
 from conftest import BACKENDS, VALIDATION, make_device
 from oracle import box, triangle_soup
 from test_precision import tiers
-from vkray._group import _MIN_TIMED_RAYS, _Speeds, split, usable_cores
+from vkray._device_group import _MIN_TIMED_RAYS, _Speeds, split, usable_cores
 
 N = 3001  # rays per batch: not a multiple of any group size
 ROTATE_SHIFT = np.array([[0.0, -1, 0, 0.6], [1, 0, 0, 0.2], [0, 0, 1, -0.3], [0, 0, 0, 1]])
@@ -135,7 +135,7 @@ def test_answers_copied_in_blocks_by_several_threads(monkeypatch):
     """The pieces' answers copied into the batch's arrays by blocks of a few rows on several
     threads (as big answers are: here blocks of 64 bytes, so that 3001 rays make many, the last
     one short): every query kind still answers what one device answers."""
-    monkeypatch.setattr(vkray._group, "_COPY_BLOCK_BYTES", 64)
+    monkeypatch.setattr(vkray._device_group, "_COPY_BLOCK_BYTES", 64)
     group = make_group(3, (3, 1, 2))
     device = group.devices[0]
     scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(device, vkray.Instance)]
@@ -148,8 +148,10 @@ def test_split_hits_are_written_by_the_devices_into_the_batch(monkeypatch):
     copied after them), in every tier; occluded's pieces are still copied in. Answers are one
     device's."""
     copied = []
-    copy_rows = vkray._group._copy_rows
-    monkeypatch.setattr(vkray._group, "_copy_rows", lambda dst, src: (copied.append(len(src)), copy_rows(dst, src)))
+    copy_rows = vkray._device_group._copy_rows
+    monkeypatch.setattr(
+        vkray._device_group, "_copy_rows", lambda dst, src: (copied.append(len(src)), copy_rows(dst, src))
+    )
     group = make_group(3, (3, 1, 2))
     device = group.devices[0]
     scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(device, vkray.Instance)]

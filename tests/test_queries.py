@@ -75,7 +75,7 @@ def test_the_core_makes_hit_bools_as_it_copies_hits_out(device):
     scene = device.scene(device.mesh(v, f))
     origins, directions = random_rays(v, 20000, seed=8)
     tmax = np.random.default_rng(8).uniform(0.2, 1.2, len(origins))
-    batch = vkray._api._RayBatch(origins, directions, 0.0, tmax, 0xFF)
+    batch = vkray._device._RayBatch(vkray.RayQuery("intersect", origins, directions, 0.0, tmax))
 
     def trace(query, fields, precision="fast", **kw):
         return scene._core.trace(*batch.arrays, query, fields, precision, None, batch.mask, **kw)
@@ -91,7 +91,7 @@ def test_the_core_makes_hit_bools_as_it_copies_hits_out(device):
             np.testing.assert_array_equal(answer, both["hit"], err_msg=precision)
     t = trace("closest", ["t"])["t"]
     met = np.isfinite(t)
-    batch = vkray._api._RayBatch(origins, directions, 0.0, np.where(met, t, 1.0), 0xFF)
+    batch = vkray._device._RayBatch(vkray.RayQuery("intersect", origins, directions, 0.0, np.where(met, t, 1.0)))
     for precision in tiers(device):
         both = trace("closest", ["prim_id", "hit"], precision)
         np.testing.assert_array_equal(both["hit"], both["prim_id"] >= 0, err_msg=f"{precision}, tmax at t")

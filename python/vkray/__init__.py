@@ -8,26 +8,6 @@
 """
 
 from . import data  # the meshes shipped with vkray: vkray.data.load_mesh
-from ._api import (
-    CLOSEST_FIELDS,
-    DEFAULT_FIELDS,
-    HIT_FIELDS,
-    PRECISIONS,
-    AllHits,
-    Backend,
-    Build,
-    Closest,
-    Cull,
-    Device,
-    DeviceInfo,
-    Hits,
-    Instance,
-    Mesh,
-    Precision,
-    Scene,
-    VertexFormat,
-    devices,
-)
 from ._core import (
     CudaArray,
     ForkedDeviceError,
@@ -37,8 +17,23 @@ from ._core import (
     VkrayError,
     VulkanError,
 )
-from ._group import DeviceGroup, GroupInstance, GroupMesh, GroupScene, SceneLike
-from ._pictures import Picture, preview
+from ._device import Device, DeviceInfo, Instance, Mesh, MeshObject, Scene, devices
+from ._device_group import DeviceGroup, GroupInstance, GroupMesh, GroupScene
+from ._options import (
+    CLOSEST_FIELDS,
+    DEFAULT_FIELDS,
+    HIT_FIELDS,
+    PRECISIONS,
+    Backend,
+    Build,
+    Cull,
+    Precision,
+    VertexFormat,
+)
+from ._pictures import Picture
+from ._preview import preview
+from ._queries import PointQuery, RayQuery, SceneLike
+from ._results import AllHits, Closest, Hits
 from ._secondary import offset_origins
 from .sensors import Lidar, OrthographicCamera, PinholeCamera, Sensor
 
@@ -70,6 +65,9 @@ __all__ = [
     "GroupMesh",
     "GroupScene",
     "SceneLike",
+    "RayQuery",
+    "PointQuery",
+    "MeshObject",
     "Hits",
     "Instance",
     "Mesh",

@@ -26,8 +26,9 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
-from ._api import PRECISIONS, Backend, Device, Precision, devices
 from ._core import UnsupportedError, VkrayError
+from ._device import Device, devices
+from ._options import PRECISIONS, Backend, Precision
 
 _BACKENDS: Tuple[Backend, ...] = ("ray_query", "pipeline")
 _VALIDATION_LAYER = "VK_LAYER_KHRONOS_validation"

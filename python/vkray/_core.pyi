@@ -9,7 +9,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union, 
 import numpy as np
 from numpy.typing import NDArray
 
-from ._api import Backend, Build, Cull, Precision, VertexFormat
+from ._options import Backend, Build, Cull, Precision, VertexFormat
 
 __all__ = [
     "devices",

@@ -7,7 +7,7 @@ from typing import Any, Optional
 import numpy as np
 
 from . import _arrays
-from ._api import PRECISIONS, Precision
+from ._options import Precision, check_precision
 
 # Wächter and Binder, "A Fast and Robust Method for Avoiding Self-Intersection" (Ray Tracing
 # Gems, ch. 6), for float32; for float64 the same rule, its absolute step scaled by the 2^29
@@ -66,10 +66,7 @@ def offset_origins(
     in absolute terms far from the origin (about 2 units at 1e5): there, trace secondary rays in
     an f64 tier from float64 positions, offset with that tier's ``precision``.
     """
-    if not isinstance(precision, str):
-        raise TypeError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
+    check_precision(precision)
     p = _vectors("points", points)
     n = _vectors("normals", normals).astype(np.float64)
     d = None if directions is None else _vectors("directions", directions).astype(np.float64)

@@ -33,23 +33,26 @@ process builds it once per device and keeps it, cached by the spec's content has
 from __future__ import annotations
 
 import collections
+import dataclasses
 import functools
 import hashlib
 import importlib.util
-import json
+import inspect
 import logging
 import math
 import operator
 import os
 import threading
-from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, TypeVar, Union, cast
 
 import numpy as np
 
 from . import _arrays
-from ._api import DEFAULT_FIELDS, PRECISIONS, Cull, Device, Instance, Precision, Scene, _check_outputs, _closest_outputs
 from ._core import NoDeviceError
-from ._group import default_devices, in_callers_rows, usable_cores
+from ._device import Device, Instance, Scene
+from ._device_group import default_devices, in_callers_rows, usable_cores
+from ._queries import PointQuery, Query, RayQuery, SceneLike
+from ._results import field_type
 
 if importlib.util.find_spec("dask") is None:
     raise ImportError("vkray.dask needs Dask: pip install 'vkray[dask]'")
@@ -61,6 +64,10 @@ from dask.highlevelgraph import HighLevelGraph  # noqa: E402
 
 if TYPE_CHECKING:
     from distributed import SpecCluster
+    from typing_extensions import Concatenate, ParamSpec
+
+    _P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 __all__ = [
     "SceneSpec",
@@ -69,6 +76,9 @@ __all__ = [
     "count",
     "contains",
     "closest_points",
+    "transmittance",
+    "distance",
+    "signed_distance",
     "local_cluster",
     "cache_info",
 ]
@@ -260,14 +270,15 @@ _ONE_ARRAY = "result"
 
 
 def _query_block(
-    spec: SceneSpec, query: str, names: Tuple[str, ...], options: Dict[str, Any], start: int, *arrays: np.ndarray
+    spec: SceneSpec, query: Query, names: Tuple[str, ...], start: int, *arrays: np.ndarray
 ) -> Dict[str, np.ndarray]:
-    """One chunk's answer on a worker: ``Scene.<query>`` with the chunk's arrays (named ``names``)
-    and ``options``, as a dict of arrays (one ``"result"`` for queries that return one array).
-    Errors name rows as the whole batch counts them (the chunk starts at row ``start``)."""
+    """One chunk's answer on a worker: ``query`` (a record without its arrays) of the chunk's
+    arrays (named ``names``, the record's fields), as a dict of arrays (one ``"result"`` for
+    queries that return one array). Errors name rows as the whole batch counts them (the chunk
+    starts at row ``start``)."""
     scene = _worker_scene(spec)  # its errors (a bad mesh) name the spec's rows, not the chunk's
     try:
-        answer = getattr(scene, query)(**dict(zip(names, arrays)), **options)
+        answer = scene.answer(_with_fields(query, dict(zip(names, arrays))))
     except (ValueError, TypeError) as error:
         raise in_callers_rows(error, start) from None
     if isinstance(answer, np.ndarray):
@@ -278,19 +289,6 @@ def _query_block(
 # --------------------------------------------------------------------------------------------------
 # The client's side: task graphs.
 
-# (dtype, trailing shape) of each field, by tier: float fields are float32 in the fast tier only.
-_FLOAT_FIELDS = ("t", "uv", "position", "distance")
-_TAILS = {"uv": (2,), "normal": (3,), "position": (3,)}
-
-
-def _field_type(name: str, precision: Precision) -> Tuple[np.dtype[Any], Tuple[int, ...]]:
-    """The dtype and trailing shape of a hit or closest-point field, as `Scene` returns it."""
-    if name in _FLOAT_FIELDS:
-        dtype: np.dtype[Any] = np.dtype(np.float32 if precision == "fast" else np.float64)
-    else:
-        dtype = np.dtype(np.float32 if name == "normal" else np.int32)
-    return dtype, _TAILS.get(name, ())
-
 
 def _as_scene_spec(scene: Union[SceneSpec, Builder]) -> SceneSpec:
     """A SceneSpec, or a builder wrapped in one."""
@@ -299,16 +297,6 @@ def _as_scene_spec(scene: Union[SceneSpec, Builder]) -> SceneSpec:
     if callable(scene):
         return SceneSpec.from_builder(scene)
     raise TypeError(f"scene must be a vkray.dask.SceneSpec or a builder (device -> Scene), got {type(scene).__name__}")
-
-
-def _check_precision(precision: str) -> None:
-    """Refused here, when the graph is made, rather than by every chunk's task (with one
-    device's error)."""
-    if not isinstance(precision, str):
-        raise TypeError(f"precision must be a string, one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
-    if precision not in PRECISIONS:
-        named = ", ".join(repr(p) for p in PRECISIONS[:-1]) + f" or {PRECISIONS[-1]!r}"
-        raise ValueError(f"precision must be {named}, got {json.dumps(precision)}")
 
 
 def _dask_array(name: str, value: Any, convert: Callable[[str, Any], np.ndarray] = _arrays._asarray) -> da.Array:
@@ -349,13 +337,13 @@ def _per_ray(name: str, value: Any, rays: da.Array) -> Optional[da.Array]:
 
 def _map_chunks(
     spec: SceneSpec,
-    query: str,
+    query: Query,
     arrays: Dict[str, da.Array],
-    options: Dict[str, Any],
     fields: Mapping[str, Tuple[np.dtype[Any], Tuple[int, ...]]],
 ) -> Dict[str, da.Array]:
-    """One task per chunk of the rays (or points) runs ``Scene.<query>`` on a worker; each of its
-    ``fields`` becomes a dask array chunked as the rays are.
+    """One task per chunk of the rays (or points) answers ``query`` (a record whose ``arrays``
+    fields each task fills with its chunk's) on a worker; each of its ``fields`` becomes a dask
+    array chunked as the rays are.
 
     The spec is one key of the graph (named by its content hash), on which every chunk's task
     depends: Dask sends it to a worker once, and other workers fetch it from there once."""
@@ -365,42 +353,41 @@ def _map_chunks(
     # and directions sliced from one array of rays) into each of them, which then runs twice.
     blocks = [arrays[name].to_delayed(optimize_graph=False).ravel() for name in names]
     lengths = arrays[names[0]].chunks[0]
-    token = tokenize(spec.key, query, names, options, *arrays.values())
+    query = _with_fields(query, {name: None for name in names})  # each task's are its chunk's
+    token = tokenize(spec.key, query, names, *arrays.values())
     starts = np.cumsum((0,) + lengths[:-1])
     if list(fields) == [_ONE_ARRAY]:
         dtype = fields[_ONE_ARRAY][0]
-        return {_ONE_ARRAY: _answer_array(spec_key, blocks, (query, names, options), starts, lengths, token, dtype)}
+        return {_ONE_ARRAY: _answer_array(spec_key, blocks, (query, names), starts, lengths, token, dtype)}
     answers = [
         delayed(_query_block, pure=True)(
             spec_key,
             query,
             names,
-            options,
             int(start),
             *(b[k] for b in blocks),
-            dask_key_name=f"vkray-{query}-{token}-{k}",
+            dask_key_name=f"vkray-{query.kind}-{token}-{k}",
         )
         for k, start in enumerate(starts)
     ]
-    return {name: _field_array(answers, name, query, token, lengths, kind) for name, kind in fields.items()}
+    return {name: _field_array(answers, name, query.kind, token, lengths, kind) for name, kind in fields.items()}
 
 
 def _answer_array(
     spec_key: Any,
     blocks: List[Any],
-    call: Tuple[str, Tuple[str, ...], Dict[str, Any]],
+    call: Tuple[Query, Tuple[str, ...]],
     starts: Any,
     lengths: Tuple[int, ...],
     token: str,
     dtype: np.dtype[Any],
 ) -> da.Array:
-    """The answers of a query that returns one array (``call``: the query, the names of the
-    blocks' arrays, its options), as a dask array whose chunks are the queries' tasks themselves:
+    """The answers of a query that returns one array (``call``: the query's record, the names of
+    the blocks' arrays), as a dask array whose chunks are the queries' tasks themselves:
     one task a chunk. What is not a key is bound in a `functools.partial`, where Dask does not
     look for keys (a literal that equals one, as a caller's key named "fast" might, would be read
     as that key)."""
-    query = call[0]
-    array_name = f"vkray-{query}-{token}"
+    array_name = f"vkray-{call[0].kind}-{token}"
 
     def keys(k: int) -> List[Any]:
         return [b[k].key for b in blocks]
@@ -415,10 +402,10 @@ def _answer_array(
 
 
 def _one_array_block(
-    query: str, names: Tuple[str, ...], options: Dict[str, Any], start: int, spec: SceneSpec, *arrays: np.ndarray
+    query: Query, names: Tuple[str, ...], start: int, spec: SceneSpec, *arrays: np.ndarray
 ) -> np.ndarray:
     """`_query_block` of a query that returns one array, that array."""
-    answer: np.ndarray = _query_block(spec, query, names, options, start, *arrays)[_ONE_ARRAY]
+    answer: np.ndarray = _query_block(spec, query, names, start, *arrays)[_ONE_ARRAY]
     return answer
 
 
@@ -444,121 +431,116 @@ def _field_array(
     return da.Array(graph, array_name, chunks=(lengths, *((size,) for size in tail)), dtype=dtype)
 
 
-def _trace(
-    scene: Union[SceneSpec, Builder],
-    query: str,
-    origins: Any,
-    directions: Any,
-    per_ray: Dict[str, Any],
-    options: Dict[str, Any],
-    fields: Mapping[str, Tuple[np.dtype[Any], Tuple[int, ...]]],
-) -> Dict[str, da.Array]:
-    """A ray query's graph: rays aligned to the origins' chunks, per-ray arguments to theirs."""
+class _Recorder(SceneLike):
+    """A scene that answers a query with its record: `SceneLike`'s query methods run here, on the
+    client, check their options as a scene does, and give the record the chunks' tasks answer."""
+
+    instances: Tuple[Any, ...] = ()
+
+    def answer(self, query: Query) -> Any:
+        return query
+
+    def update(self, transforms: Any = None, masks: Any = None) -> None:
+        raise TypeError("a record of queries has no instances to update")
+
+
+_RECORDER = _Recorder()
+
+
+def _ray_graph(scene: Union[SceneSpec, Builder], query: RayQuery) -> Dict[str, da.Array]:
+    """A ray query's graph: rays aligned to the origins' chunks, per-ray arguments to theirs
+    (one value for every ray stays in the record)."""
+    if query.progress or query.out is not None:
+        raise TypeError("vkray.dask answers in dask arrays: progress and out= are not for it")
     spec = _as_scene_spec(scene)
-    _check_precision(options["precision"])
-    o = _rows("origins", origins)
-    d = _rows("directions", directions)
+    o = _rows("origins", query.origins)
+    d = _rows("directions", query.directions)
     if d.shape != o.shape:
         raise ValueError(f"origins {o.shape} and directions {d.shape} must have the same shape (N, 3)")
     arrays = {"origins": o, "directions": d.rechunk(o.chunks)}
-    for name, value in per_ray.items():
-        aligned = _per_ray(name, value, o)
-        if aligned is None:
-            options[name] = value
-        else:
+    for name in ("tmin", "tmax", "mask"):
+        aligned = _per_ray(name, getattr(query, name), o)
+        if aligned is not None:
             arrays[name] = aligned
-    return _map_chunks(spec, query, arrays, options, fields)
+    return _map_chunks(spec, query, arrays, _answer_fields(query))
 
 
-def intersect(
-    scene: Union[SceneSpec, Builder],
-    origins: Any,
-    directions: Any,
-    *,
-    tmin: Any = 0.0,
-    tmax: Any = np.inf,
-    outputs: Optional[Sequence[str]] = None,
-    precision: Precision = "fast",
-    cull: Cull = None,
-    mask: Any = 0xFF,
-    opacity_threshold: float = 0.5,
-) -> Dict[str, da.Array]:
-    """`Scene.intersect` over dask arrays of rays: a dict of dask arrays, one per field asked
-    (``outputs``, as `Scene.intersect` takes it), chunked as ``origins``. ``tmin``, ``tmax`` and
-    ``mask`` are one value, or one per ray (dask or numpy arrays of shape (N,))."""
-    chosen = DEFAULT_FIELDS if outputs is None else _check_outputs(outputs)
-    options: Dict[str, Any] = {"outputs": chosen, "precision": precision, "cull": cull}
-    options["opacity_threshold"] = opacity_threshold
-    per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
-    types = {name: _field_type(name, precision) for name in chosen}
-    return _trace(scene, "intersect", origins, directions, per_ray, options, types)
-
-
-def occluded(
-    scene: Union[SceneSpec, Builder],
-    origins: Any,
-    directions: Any,
-    *,
-    tmin: Any = 0.0,
-    tmax: Any = np.inf,
-    precision: Precision = "fast",
-    cull: Cull = None,
-    mask: Any = 0xFF,
-    opacity_threshold: float = 0.5,
-) -> da.Array:
-    """`Scene.occluded` over dask arrays of rays: a bool dask array (N,), chunked as ``origins``."""
-    options: Dict[str, Any] = {"precision": precision, "cull": cull, "opacity_threshold": opacity_threshold}
-    per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
-    result = {_ONE_ARRAY: (np.dtype(bool), ())}
-    return _trace(scene, "occluded", origins, directions, per_ray, options, result)[_ONE_ARRAY]
-
-
-def count(
-    scene: Union[SceneSpec, Builder],
-    origins: Any,
-    directions: Any,
-    *,
-    tmin: Any = 0.0,
-    tmax: Any = np.inf,
-    precision: Precision = "fast",
-    cull: Cull = None,
-    mask: Any = 0xFF,
-    opacity_threshold: float = 0.5,
-) -> da.Array:
-    """`Scene.count` over dask arrays of rays: an int32 dask array (N,), chunked as ``origins``."""
-    options: Dict[str, Any] = {"precision": precision, "cull": cull, "opacity_threshold": opacity_threshold}
-    per_ray = {"tmin": tmin, "tmax": tmax, "mask": mask}
-    result = {_ONE_ARRAY: (np.dtype(np.int32), ())}
-    return _trace(scene, "count", origins, directions, per_ray, options, result)[_ONE_ARRAY]
-
-
-def contains(
-    scene: Union[SceneSpec, Builder], points: Any, *, precision: Precision = "exact", method: str = "parity"
-) -> da.Array:
-    """`Scene.contains` over a dask array of points (N, 3): a bool dask array (N,)."""
+def _point_graph(scene: Union[SceneSpec, Builder], query: PointQuery) -> Dict[str, da.Array]:
+    """A point query's graph: one task per chunk of the points."""
+    if query.progress:
+        raise TypeError("vkray.dask answers in dask arrays: progress is not for it")
     spec = _as_scene_spec(scene)
-    _check_precision(precision)
-    options = {"precision": precision, "method": method}
-    result = {_ONE_ARRAY: (np.dtype(bool), ())}
-    return _map_chunks(spec, "contains", {"points": _rows("points", points)}, options, result)[_ONE_ARRAY]
+    return _map_chunks(spec, query, {"points": _rows("points", query.points)}, _answer_fields(query))
 
 
-def closest_points(
-    scene: Union[SceneSpec, Builder],
-    points: Any,
-    *,
-    max_distance: float = np.inf,
-    outputs: Optional[Sequence[str]] = None,
-    precision: Precision = "reference",
-) -> Dict[str, da.Array]:
-    """`Scene.closest_points` over a dask array of points (N, 3): a dict of dask arrays, one per
-    field (``outputs``, as `Scene.closest_points` takes it, ``"distance"`` always among them)."""
-    spec = _as_scene_spec(scene)
-    _check_precision(precision)
-    fields = _closest_outputs(outputs)
-    options = {"max_distance": max_distance, "outputs": fields, "precision": precision}
-    types = {name: _field_type(name, precision) for name in fields}
-    return _map_chunks(spec, "closest_points", {"points": _rows("points", points)}, options, types)
+def _answer_fields(query: Query) -> Dict[str, Tuple[np.dtype[Any], Tuple[int, ...]]]:
+    """The (dtype, trailing shape) of each array of ``query``'s answer, by name (one
+    ``"result"`` for queries that answer with one array)."""
+    if query.kind in ("intersect", "closest_points"):
+        return {name: field_type(name, query.precision) for name in query.outputs}
+    one = {"occluded": np.dtype(bool), "count": np.dtype(np.int32), "contains": np.dtype(bool)}
+    if query.kind in one:
+        return {_ONE_ARRAY: (one[query.kind], ())}
+    return {_ONE_ARRAY: field_type("t", query.precision)}  # transmittance, distances: the tier's floats
+
+
+def _with_fields(query: Query, values: Dict[str, Any]) -> Query:
+    """``query`` with the fields ``values`` names (its arrays: a chunk's, or None) replaced."""
+    return cast(Query, dataclasses.replace(cast(Any, query), **values))
+
+
+def _one_array(arrays: Dict[str, da.Array]) -> da.Array:
+    """The answer of a query that answers with one array."""
+    return arrays[_ONE_ARRAY]
+
+
+def _fields(arrays: Dict[str, da.Array]) -> Dict[str, da.Array]:
+    """The answer of a query that answers with fields: one dask array each."""
+    return arrays
+
+
+def _over_chunks(
+    method: Callable[Concatenate[SceneLike, _P], Any],
+    graph: Callable[[Any, Any], Dict[str, da.Array]],
+    result: Callable[[Dict[str, da.Array]], _R],
+    doc: str,
+) -> Callable[Concatenate[Union[SceneSpec, Builder], _P], _R]:
+    """``method`` of `SceneLike` over dask arrays: the same arguments after the scene (so defined
+    once, there), checked by the method itself on the client; its record is answered chunk by
+    chunk on the workers (``graph``), and ``result`` picks the answer out of the arrays."""
+
+    def over_chunks(scene: Union[SceneSpec, Builder], /, *args: _P.args, **kwargs: _P.kwargs) -> _R:
+        return result(graph(scene, method(_RECORDER, *args, **kwargs)))
+
+    signature = inspect.signature(method)
+    scene_parameter = inspect.Parameter("scene", inspect.Parameter.POSITIONAL_ONLY, annotation="SceneSpec | Builder")
+    over_chunks.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=[scene_parameter, *list(signature.parameters.values())[1:]],
+        return_annotation=inspect.signature(result).return_annotation,
+    )
+    over_chunks.__name__ = over_chunks.__qualname__ = method.__name__
+    over_chunks.__doc__ = f"{doc}\n\nThe arguments after the scene: `Scene.{method.__name__}`'s (not progress, out=)."
+    return over_chunks
+
+
+intersect = _over_chunks(SceneLike.intersect, _ray_graph, _fields, """`Scene.intersect` over dask arrays of rays
+(N, 3): a dict of dask arrays, one per field asked (``outputs``), chunked as ``origins``. ``tmin``,
+``tmax`` and ``mask`` are one value, or one per ray (dask or numpy arrays of shape (N,)).""")
+occluded = _over_chunks(SceneLike.occluded, _ray_graph, _one_array, """`Scene.occluded` over dask arrays of rays
+(N, 3): a bool dask array (N,), chunked as ``origins``.""")
+transmittance = _over_chunks(SceneLike.transmittance, _ray_graph, _one_array, """`Scene.transmittance` over dask
+arrays of rays (N, 3): a float dask array (N,), chunked as ``origins``.""")
+count = _over_chunks(SceneLike.count, _ray_graph, _one_array, """`Scene.count` over dask arrays of rays (N, 3): an
+int32 dask array (N,), chunked as ``origins``.""")
+contains = _over_chunks(SceneLike.contains, _point_graph, _one_array, """`Scene.contains` over a dask array of
+points (N, 3): a bool dask array (N,).""")
+closest_points = _over_chunks(SceneLike.closest_points, _point_graph, _fields, """`Scene.closest_points` over a
+dask array of points (N, 3): a dict of dask arrays, one per field (``outputs``, ``"distance"`` always
+among them).""")
+distance = _over_chunks(SceneLike.distance, _point_graph, _one_array, """`Scene.distance` over a dask array of
+points (N, 3): a float dask array (N,).""")
+signed_distance = _over_chunks(SceneLike.signed_distance, _point_graph, _one_array, """`Scene.signed_distance` over
+a dask array of points (N, 3): a float dask array (N,).""")
 
 
 def local_cluster(

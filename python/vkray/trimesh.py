@@ -42,8 +42,7 @@ import numpy as np
 import trimesh as _trimesh
 from numpy.typing import NDArray
 
-from . import _api, _core
-from ._api import Precision
+from . import PRECISIONS, Device, Precision, Scene, UnsupportedError
 
 __all__ = ["GRAZE_TOLERANCE", "RayMeshIntersector", "default_device", "disable", "enable", "use"]
 
@@ -56,15 +55,15 @@ T = TypeVar("T")
 IdsAndRays = Tuple[NDArray[np.int64], NDArray[np.int64]]
 
 _lock = threading.Lock()
-_device: Optional[_api.Device] = None
+_device: Optional[Device] = None
 
 
-def default_device() -> _api.Device:
+def default_device() -> Device:
     """The device intersectors share unless given one: ``vkray.Device()``, opened once."""
     global _device
     with _lock:
         if _device is None:
-            _device = _api.Device()
+            _device = Device()
         return _device
 
 
@@ -80,7 +79,7 @@ class RayMeshIntersector:
         geometry: Any,
         scale_to_box: bool = True,
         *,
-        device: Optional[_api.Device] = None,
+        device: Optional[Device] = None,
         precision: Precision = "exact",
     ) -> None:
         """``geometry``: the ``trimesh.Trimesh``. ``scale_to_box``: trimesh's embree engine scales
@@ -88,24 +87,24 @@ class RayMeshIntersector:
         anything becomes float32, so it needs no scaling and answers the same either way (the
         argument is kept so that code written for trimesh's engines runs unchanged).
         ``device``: where to trace (default: `default_device`). ``precision``: vkray's tier."""
-        if precision not in _api.PRECISIONS:
-            raise ValueError(f"precision must be one of {', '.join(map(repr, _api.PRECISIONS))}, got {precision!r}")
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
         self.mesh = geometry
         self.precision: Precision = precision
         self._scale_to_box = bool(scale_to_box)
         self._device = device
-        self._built: Optional[Tuple[Any, _api.Scene, bool]] = None
-        self._grown: Optional[Tuple[Any, _api.Scene, float]] = None
+        self._built: Optional[Tuple[Any, Scene, bool]] = None
+        self._grown: Optional[Tuple[Any, Scene, float]] = None
         # Set once the device refused the exact tier (no shaderFloat64, or a driver that does not
         # run the intersection shaders it needs): "reference" answers the same, on the CPU.
         self._exact_refused = False
 
     # --- the scene, rebuilt when the mesh changes ---------------------------------------------
 
-    def _device_or_default(self) -> _api.Device:
+    def _device_or_default(self) -> Device:
         return self._device if self._device is not None else default_device()
 
-    def _scene(self) -> Tuple[_api.Scene, bool]:
+    def _scene(self) -> Tuple[Scene, bool]:
         """The mesh's scene and whether the mesh is closed, built for its current data."""
         key = self.mesh.__hash__()
         built = self._built
@@ -116,7 +115,7 @@ class RayMeshIntersector:
             self._built = built
         return built[1], built[2]
 
-    def _grown_scene(self) -> Tuple[_api.Scene, float]:
+    def _grown_scene(self) -> Tuple[Scene, float]:
         """The scene of the mesh's triangles grown across every edge by the graze tolerance (each
         on its own, scaled about its incentre), and that tolerance; built on first need."""
         key = self.mesh.__hash__()
@@ -136,7 +135,7 @@ class RayMeshIntersector:
         tier: Precision = "reference" if self.precision == "exact" and self._exact_refused else self.precision
         try:
             return query(tier)
-        except _core.UnsupportedError:
+        except UnsupportedError:
             if tier != "exact":
                 raise
             self._exact_refused = True
@@ -256,7 +255,7 @@ class RayMeshIntersector:
             if exact_or_reference == "exact" and self._exact_refused:
                 exact_or_reference = "reference"
             return scene.contains(p, precision=exact_or_reference, method=method)
-        except _core.UnsupportedError:
+        except UnsupportedError:
             self._exact_refused = True
             return scene.contains(p, precision="reference", method=method)
 
@@ -327,7 +326,7 @@ class _Rays:
 _originals: dict[str, Any] = {}
 
 
-def enable(*, device: Optional[_api.Device] = None, precision: Precision = "exact") -> None:
+def enable(*, device: Optional[Device] = None, precision: Precision = "exact") -> None:
     """Makes every ``trimesh.Trimesh`` created from now on use vkray for its ``.ray`` (whichever
     engine trimesh would have picked). `disable` undoes it; existing meshes keep their engine."""
 
@@ -348,7 +347,7 @@ def disable() -> None:
                 module.RayMeshIntersector = _originals.pop(name)
 
 
-def use(mesh: Any, *, device: Optional[_api.Device] = None, precision: Precision = "exact") -> Any:
+def use(mesh: Any, *, device: Optional[Device] = None, precision: Precision = "exact") -> Any:
     """Switches one ``trimesh.Trimesh`` to vkray (``mesh.ray``); returns the mesh."""
     mesh.ray = RayMeshIntersector(mesh, device=device, precision=precision)
     return mesh

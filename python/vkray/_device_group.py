@@ -3,13 +3,16 @@ splits each query's rays (or points) over them, in proportion to each device's m
 
 The pieces are contiguous runs of the caller's rays, traced at once by one thread per device (every
 core call releases the GIL) and put back together in the caller's order, so a `GroupScene` answers
-exactly what a `Scene` on any one of the devices answers. `SceneLike` is the query interface both
-share.
+exactly what a `Scene` on any one of the devices answers: both are `SceneLike`, whose query methods
+hand this module's `GroupScene.answer` the same records they hand `Scene.answer`.
 """
 
 from __future__ import annotations
 
+import collections.abc
 import contextlib
+import dataclasses
+import inspect
 import math
 import os
 import re
@@ -26,7 +29,6 @@ from typing import (
     Iterator,
     List,
     Optional,
-    Protocol,
     Sequence,
     Tuple,
     TypeVar,
@@ -37,150 +39,18 @@ from typing import (
 import numpy as np
 
 from . import _arrays, _progress
-from ._api import (
-    CLOSEST_FIELDS,
-    DEFAULT_FIELDS,
-    HIT_FIELDS,
-    AllHits,
-    Backend,
-    Build,
-    Closest,
-    Cull,
-    Device,
-    Hits,
-    Instance,
-    Mesh,
-    Precision,
-    Scene,
-    VertexFormat,
-    _check_outputs,
-    _closest_outputs,
-    _new_hit_arrays,
-    _out_arrays,
-    devices,
-)
 from ._core import ForkedDeviceError, VkrayError
+from ._device import Device, Instance, Mesh, Scene, devices
+from ._options import CLOSEST_FIELDS, HIT_FIELDS, Backend, Build, Cull, Precision, VertexFormat
+from ._queries import PointQuery, Query, RayQuery, SceneLike
+from ._results import AllHits, Closest, Hits, new_hit_arrays, out_arrays
 from .sensors import Sensor
 
 T = TypeVar("T")
+if TYPE_CHECKING:
+    from typing_extensions import Concatenate, ParamSpec
 
-
-class SceneLike(Protocol):
-    """The queries that `Scene` (one device) and `GroupScene` (several) both answer, with the same
-    arguments and the same results: code written against it runs on either."""
-
-    def intersect(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        outputs: Optional[Iterable[str]] = None,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-        out: Optional[Hits] = None,
-    ) -> Hits:
-        """The closest hit of each ray (`Scene.intersect`)."""
-
-    def occluded(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-    ) -> np.ndarray:
-        """Whether anything lies along each ray (`Scene.occluded`)."""
-
-    def transmittance(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-    ) -> np.ndarray:
-        """The light each ray keeps through translucent triangles (`Scene.transmittance`)."""
-
-    def intersect_all(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        max_hits: Optional[int] = None,
-        outputs: Optional[Iterable[str]] = None,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-    ) -> AllHits:
-        """Every hit of each ray, nearest first (`Scene.intersect_all`)."""
-
-    def count(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-    ) -> np.ndarray:
-        """The number of hits of each ray (`Scene.count`)."""
-
-    def closest_points(
-        self,
-        points: Any,
-        *,
-        max_distance: float = np.inf,
-        outputs: Optional[Iterable[str]] = None,
-        precision: Precision = "reference",
-        progress: bool = False,
-    ) -> Closest:
-        """The surface point nearest to each point (`Scene.closest_points`)."""
-
-    def distance(
-        self, points: Any, *, max_distance: float = np.inf, precision: Precision = "reference", progress: bool = False
-    ) -> np.ndarray:
-        """The distance from each point to the surface (`Scene.distance`)."""
-
-    def signed_distance(
-        self,
-        points: Any,
-        *,
-        max_distance: float = np.inf,
-        precision: Precision = "reference",
-        method: Optional[str] = None,
-        progress: bool = False,
-    ) -> np.ndarray:
-        """The distance, negative inside (`Scene.signed_distance`)."""
-
-    def contains(
-        self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
-    ) -> np.ndarray:
-        """Whether each point lies inside (`Scene.contains`)."""
-
-    def update(self, transforms: Any = None, masks: Any = None) -> None:
-        """Refits the scene's instances (`Scene.update`)."""
+    _P = ParamSpec("_P")
 
 
 # A device's speed is measured on pieces of at least this many rays: smaller ones take about the
@@ -304,6 +174,31 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+_SELF = inspect.Parameter("self", inspect.Parameter.POSITIONAL_ONLY)
+
+
+def _on_every_device(method: Callable[Concatenate[Device, _P], Mesh]) -> Callable[
+    Concatenate[DeviceGroup, _P], GroupMesh
+]:
+    """``Device.<method>`` as a `DeviceGroup` method: the same arguments, run on every device at
+    once (an iterator among them read once, into a list, for all), its meshes one `GroupMesh`."""
+
+    def on_every_device(group: DeviceGroup, /, *args: _P.args, **kwargs: _P.kwargs) -> GroupMesh:
+        listed = [list(a) if isinstance(a, collections.abc.Iterator) else a for a in args]
+        named = {k: list(v) if isinstance(v, collections.abc.Iterator) else v for k, v in kwargs.items()}
+        build: Callable[..., Mesh] = method
+        return GroupMesh(group, group.on_each(lambda d: build(d, *listed, **named)))
+
+    signature = inspect.signature(method)
+    on_every_device.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=[_SELF, *list(signature.parameters.values())[1:]],
+        return_annotation="GroupMesh",
+    )
+    on_every_device.__name__ = on_every_device.__qualname__ = method.__name__
+    on_every_device.__doc__ = f"`Device.{method.__name__}` on every device (at once): a `GroupMesh`."
+    return on_every_device
+
+
 class DeviceGroup:
     """Several devices used as one: meshes and scenes are built on each, and each query's rays are
     split over them in proportion to their speed, traced at once and merged in the caller's order.
@@ -424,61 +319,9 @@ class DeviceGroup:
         """Each device's share of the next query of ``kind`` (see `speeds`), or the fixed weights."""
         return list(self._weights) if self._weights is not None else self._speeds.weights(kind)
 
-    def mesh(
-        self,
-        vertices: Any,
-        faces: Any = None,
-        *,
-        build: Build = "fast_trace",
-        allow_update: bool = False,
-        compact: bool = False,
-        vertex_format: VertexFormat = "float32",
-        opacity: Any = None,
-    ) -> GroupMesh:
-        """`Device.mesh` on every device (at once)."""
-
-        def build_on(d: Device) -> Mesh:
-            return d.mesh(
-                vertices,
-                faces,
-                build=build,
-                allow_update=allow_update,
-                compact=compact,
-                vertex_format=vertex_format,
-                opacity=opacity,
-            )
-
-        return GroupMesh(self, self.on_each(build_on))
-
-    def spheres(self, centers: Any, radii: Any, *, build: Build = "fast_trace", compact: bool = False) -> GroupMesh:
-        """`Device.spheres` on every device (at once)."""
-        return GroupMesh(self, self.on_each(lambda d: d.spheres(centers, radii, build=build, compact=compact)))
-
-    def mesh_from_parts(
-        self,
-        parts: Iterable[Tuple[Any, ...]],
-        *,
-        build: Build = "fast_trace",
-        allow_update: bool = False,
-        compact: bool = False,
-        vertex_format: VertexFormat = "float32",
-        opacity: Optional[Iterable[Any]] = None,
-    ) -> GroupMesh:
-        """`Device.mesh_from_parts` on every device (at once)."""
-        parts = list(parts)  # read by every device
-        alphas = None if opacity is None else list(opacity)
-
-        def build_on(d: Device) -> Mesh:
-            return d.mesh_from_parts(
-                parts,
-                build=build,
-                allow_update=allow_update,
-                compact=compact,
-                vertex_format=vertex_format,
-                opacity=alphas,
-            )
-
-        return GroupMesh(self, self.on_each(build_on))
+    mesh = _on_every_device(Device.mesh)
+    spheres = _on_every_device(Device.spheres)
+    mesh_from_parts = _on_every_device(Device.mesh_from_parts)
 
     def meshes(
         self,
@@ -734,9 +577,11 @@ class _RaysToSplit:
     """A query's rays as `Scene` would read them (broadcast, flattened), cut into contiguous pieces
     that each device's `Scene` reads back as exactly those rays."""
 
-    def __init__(self, origins: Any, directions: Any, tmin: Any, tmax: Any, mask: Any) -> None:
-        self.shape, self.origins, self.directions, self.tmin, self.tmax = _arrays.rays(origins, directions, tmin, tmax)
-        self.mask = _arrays.masks(mask, self.shape)
+    def __init__(self, q: RayQuery) -> None:
+        self.shape, self.origins, self.directions, self.tmin, self.tmax = _arrays.rays(
+            q.origins, q.directions, q.tmin, q.tmax
+        )
+        self.mask = _arrays.masks(q.mask, self.shape)
         self.count = int(np.prod(self.shape, dtype=np.int64))
 
     def piece(self, start: int, stop: int) -> Dict[str, Any]:
@@ -760,16 +605,6 @@ def _cuda_rows(*arrays: Any) -> int:
     the progress bar and the devices' speeds: 0 where their shapes do not say."""
     rows = [int(np.prod(tuple(a.shape)[:-1], dtype=np.int64)) for a in arrays if hasattr(a, "shape")]
     return max(rows, default=0)
-
-
-def _cuda_fields(query_name: str, options: Dict[str, Any]) -> Optional[Tuple[str, ...]]:
-    """The fields a split query of CUDA rays writes (as `Scene` asks for them), or None where
-    the query is not split (it runs whole, where `Scene` raises what it raises)."""
-    if query_name == "occluded":
-        return ("prim_id",)
-    if query_name == "intersect":
-        return tuple(options["outputs"]) if options["outputs"] is not None else DEFAULT_FIELDS
-    return None
 
 
 def _join(parts: Sequence[Optional[np.ndarray]]) -> Optional[np.ndarray]:
@@ -846,11 +681,12 @@ class _UpdateLock:
                 self._condition.notify_all()
 
 
-class GroupScene:
+class GroupScene(SceneLike):
     """A scene built on every device of a `DeviceGroup` (`per_device[k]` is device k's `Scene`).
 
     Its queries are `Scene`'s, with the same arguments and results (`SceneLike`): the rays (or
-    points) are split into contiguous pieces, one per device, sized by `DeviceGroup.weights`,
+    points) of each query record (`answer`) are split into contiguous pieces, one per device,
+    sized by `DeviceGroup.weights`,
     traced at once and merged in the caller's order. A sensor (`vkray.PinholeCamera`, ...) is not
     split, since its rays are generated on the device: each sensor query runs whole on the least
     busy device, so that sensor queries from several threads spread over the devices. Batches of
@@ -888,6 +724,12 @@ class GroupScene:
             kind, outputs, precision, cull, opacity_threshold=opacity_threshold, sensor=sensor
         )
 
+    def answer(self, query: Query) -> Any:
+        """The answer to a `RayQuery` or `PointQuery`, split over the devices (`SceneLike.answer`)."""
+        if isinstance(query, RayQuery):
+            return self._trace(query, _assembly(query))
+        return self._points(query, _assembly(query))
+
     def _run(
         self, kind: str, pieces: Sequence[Tuple[int, int, int]], work: Callable[[int, int, int], T], progress: bool
     ) -> List[T]:
@@ -919,128 +761,91 @@ class GroupScene:
         spans = split(count, self.group.weights(kind))
         return [(k, start, stop) for k, (start, stop) in enumerate(spans) if stop > start]
 
-    def _trace(
-        self,
-        query_name: str,
-        assembly: _Assembly[T],
-        rays: Dict[str, Any],
-        progress: bool,
-        out: Optional[Hits] = None,
-        **options: Any,
-    ) -> T:
-        """``Scene.<query_name>(**rays, **options)`` over the rays: whole where they cannot be split
-        (or where one device takes them all), else in pieces put together by ``assembly``; into
-        ``out``'s arrays where given (`Scene.intersect`'s ``out=``)."""
-        kind = f"{query_name}/{options['precision']}"
-
-        def query(scene: Scene, **arguments: Any) -> T:
-            result: T = getattr(scene, query_name)(**arguments, **options, progress=False)
-            return result
+    def _trace(self, q: RayQuery, assembly: _Assembly[T]) -> T:
+        """The answer to ``q``: whole where its rays cannot be split (or where one device takes
+        them all), else in pieces put together by ``assembly``; into ``q.out``'s arrays where
+        given (`Scene.intersect`'s ``out=``)."""
+        kind = f"{q.kind}/{q.precision}"
 
         def unsplit(scene: Scene) -> T:
-            return query(scene, **rays, **({} if out is None else {"out": out}))
+            return cast(T, scene.answer(dataclasses.replace(q, progress=False)))
 
-        origins = rays["origins"]
-        if isinstance(origins, Sensor):
-            return self._whole(kind, len(origins), unsplit, progress)
-        if _arrays.on_cuda(origins, rays["directions"]):
-            return self._trace_cuda(query_name, rays, progress, out, unsplit, options)
-        if rays["directions"] is None:  # the device raises what it raises
-            return self._whole(kind, 0, unsplit, progress)
-        batch = _RaysToSplit(**rays)
+        if isinstance(q.origins, Sensor):
+            return self._whole(kind, len(q.origins), unsplit, q.progress)
+        if _arrays.on_cuda(q.origins, q.directions):
+            return self._trace_cuda(q, unsplit)
+        if q.directions is None:  # the device raises what it raises
+            return self._whole(kind, 0, unsplit, q.progress)
+        batch = _RaysToSplit(q)
         if batch.count <= 1 or len(self.per_device) == 1:
-            return self._whole(kind, batch.count, unsplit, progress)
+            return self._whole(kind, batch.count, unsplit, q.progress)
 
         inputs = (batch.origins, batch.directions, batch.tmin, batch.tmax, batch.mask)
-        precision = options["precision"]
-        into = None if out is None else _out_arrays(out, batch.shape, options["outputs"], precision, inputs)
+        into = None if q.out is None else out_arrays(q.out, batch.shape, q.outputs, q.precision, inputs)
         pieces = self._pieces(kind, batch.count)
-        if query_name == "intersect" and len(pieces) > 1:
+        if q.kind == "intersect" and len(pieces) > 1:
             # Each piece's hits written by its device straight into the batch's rows (Scene's
             # out=): no arrays of the piece's own to fault in and copy over (docs/benchmarks.md).
-            fields = options["outputs"] if options["outputs"] is not None else DEFAULT_FIELDS
-            into = into if into is not None else _new_hit_arrays(batch.count, fields, precision)
+            into = into if into is not None else new_hit_arrays(batch.count, q.outputs, q.precision)
 
         def piece(device: int, start: int, stop: int) -> T:
-            rows = {} if into is None else {"out": _piece_hits(into, start, stop, precision)}
-            return query(self.per_device[device], **batch.piece(start, stop), **rows)
+            rows = None if into is None else _piece_hits(into, start, stop, q.precision)
+            part = q.with_rays(**batch.piece(start, stop), progress=False, out=rows)
+            return cast(T, self.per_device[device].answer(part))
 
-        return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, progress, into)
+        return self._assemble(kind, pieces, piece, unsplit, assembly, batch.shape, q.progress, into)
 
-    def _trace_cuda(
-        self,
-        query_name: str,
-        rays: Dict[str, Any],
-        progress: bool,
-        out: Optional[Hits],
-        unsplit: Callable[[Scene], T],
-        options: Dict[str, Any],
-    ) -> T:
-        """``Scene.<query_name>`` over CUDA rays, whose hits come back on the GPU that holds them.
-        `intersect` and `occluded` (the fast tier, every device a CUDA GPU) are split: each device
-        copies its rows from that GPU, traces them, and copies its hits into the batch's arrays
-        there, all in CUDA's stream order (over NVLink or PCIe, never through the host). Other
-        queries run whole on the device that is that GPU, which raises what `Scene` raises."""
-        origins, directions = rays["origins"], rays["directions"]
-        home = self._cuda_member(origins, directions)
-        kind = f"{query_name}/cuda"
-        count = _cuda_rows(origins, directions)
+    def _trace_cuda(self, q: RayQuery, unsplit: Callable[[Scene], T]) -> T:
+        """``q`` of CUDA rays, whose hits come back on the GPU that holds them. `intersect` and
+        `occluded` (the fast tier, every device a CUDA GPU) are split: each device copies its rows
+        from that GPU, traces them, and copies its hits into the batch's arrays there, all in
+        CUDA's stream order (over NVLink or PCIe, never through the host). Other queries run whole
+        on the device that is that GPU, which raises what `Scene` raises."""
+        home = self._cuda_member(q.origins, q.directions)
+        kind = f"{q.kind}/cuda"
+        count = _cuda_rows(q.origins, q.directions)
 
         def whole() -> T:
-            run = self._run(kind, [(home, 0, count)], lambda k, _start, _stop: unsplit(self.per_device[k]), progress)
+            run = self._run(kind, [(home, 0, count)], lambda k, _start, _stop: unsplit(self.per_device[k]), q.progress)
             return run[0]
 
-        fields = _cuda_fields(query_name, options)
         splittable = (
-            fields is not None
-            and out is None
-            and not progress
-            and options["precision"] == "fast"
+            q.kind in ("intersect", "occluded")
+            and q.out is None
+            and not q.progress
+            and q.precision == "fast"
             and len(self.per_device) > 1
             and all(d.cuda_device is not None for d in self.group.devices)
         )
         pieces = self._pieces(kind, count) if splittable and count > 1 else []
         if len(pieces) <= 1:
             return whole()
-        assert fields is not None
-        scene = self.per_device[home]
-        batch = scene._cuda_batch(origins, directions, rays["tmin"], rays["tmax"], fields, "fast", rays["mask"], False)
+        batch = self.per_device[home].split_cuda_rays(q)
         if len(batch) != count:  # shapes the arrays' own do not say (the core checked them)
             pieces = self._pieces(kind, len(batch))
-        core_query = "closest" if query_name == "intersect" else "occluded"
-        cull, threshold = options["cull"], options["opacity_threshold"]
 
         def piece(device: int, start: int, stop: int) -> None:
-            self.per_device[device]._cuda_piece(batch, start, stop, core_query, cull, threshold)
+            self.per_device[device].trace_cuda_rows(batch, start, stop, q)
 
-        self._run(kind, pieces, piece, progress)
+        self._run(kind, pieces, piece, q.progress)
         arrays: Dict[str, Any] = batch.finish()
-        if query_name == "occluded":
+        if q.kind == "occluded":
             return cast(T, arrays["prim_id"])
         return cast(T, Hits(tuple(batch.shape), arrays, "fast"))
 
-    def _points(
-        self,
-        query_name: str,
-        assembly: _Assembly[T],
-        points: Any,
-        progress: bool,
-        **options: Any,
-    ) -> T:
-        """``Scene.<query_name>(points, **options)`` over points of shape ``S + (3,)``, split as
-        `_trace` splits rays."""
-        kind = f"{query_name}/{options['precision']}"
+    def _points(self, q: PointQuery, assembly: _Assembly[T]) -> T:
+        """The answer to ``q``, its points of shape ``S + (3,)`` split as `_trace` splits rays."""
+        kind = f"{q.kind}/{q.precision}"
 
         def query(scene: Scene, p: Any) -> T:
-            result: T = getattr(scene, query_name)(p, **options, progress=False)
-            return result
+            return cast(T, scene.answer(q.with_points(p, progress=False)))
 
         def unsplit(scene: Scene) -> T:
-            return query(scene, points)
+            return query(scene, q.points)
 
-        p = _arrays.real_coordinates("points", points)
+        p = _arrays.real_coordinates("points", q.points)
         if len(self.per_device) == 1 or p.ndim == 0 or p.shape[-1] != 3 or p.size <= 3:
-            return self._whole(kind, p.size // 3, unsplit, progress)
+            return self._whole(kind, p.size // 3, unsplit, q.progress)
         flat = p.reshape(-1, 3)
 
         def piece(device: int, start: int, stop: int) -> T:
@@ -1048,7 +853,7 @@ class GroupScene:
 
         pieces = self._pieces(kind, len(flat))
         try:
-            return self._assemble(kind, pieces, piece, unsplit, assembly, p.shape[:-1], progress)
+            return self._assemble(kind, pieces, piece, unsplit, assembly, p.shape[:-1], q.progress)
         except (ValueError, TypeError, VkrayError) as error:
             raise self._point_error(error, flat, query) from None
 
@@ -1100,192 +905,19 @@ class GroupScene:
         self._run(kind, pieces, write, progress)
         return assembly.whole(shape, rows.arrays())
 
-    def intersect(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        outputs: Optional[Iterable[str]] = None,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-        out: Optional[Hits] = None,
-    ) -> Hits:
-        """`Scene.intersect`, the rays split over the devices (into ``out``'s arrays where given:
-        each piece writes its rows there)."""
-        fields = None if outputs is None else _check_outputs(outputs)  # checked first, as Scene does
-        if out is not None and not isinstance(out, Hits):
-            raise TypeError(f"out must be the Hits of an earlier intersect, got {type(out).__name__}")
-
-        def hits(shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> Hits:
-            return Hits(shape, arrays, precision)
-
-        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
-        return self._trace(
-            "intersect",
-            _Fields(HIT_FIELDS, hits),
-            rays,
-            progress,
-            out,
-            outputs=fields if fields is not None or out is None else DEFAULT_FIELDS,
-            precision=precision,
-            cull=cull,
-            opacity_threshold=opacity_threshold,
-        )
-
-    def occluded(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-    ) -> np.ndarray:
-        """`Scene.occluded`, the rays split over the devices."""
-        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
-        return self._trace(
-            "occluded", _Array(), rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
-        )
-
-    def transmittance(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-    ) -> np.ndarray:
-        """`Scene.transmittance`, the rays split over the devices."""
-        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
-        return self._trace("transmittance", _Array(), rays, progress, precision=precision, cull=cull)
-
-    def intersect_all(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        max_hits: Optional[int] = None,
-        outputs: Optional[Iterable[str]] = None,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-    ) -> AllHits:
-        """`Scene.intersect_all`, the rays split over the devices (their lists of hits joined)."""
-        fields = None if outputs is None else _check_outputs(outputs)  # checked first, as Scene does
-        if max_hits is not None:
-            _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
-        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
-        return self._trace(
-            "intersect_all",
-            _Joined(_join_all_hits),
-            rays,
-            progress,
-            max_hits=max_hits,
-            outputs=fields,
-            precision=precision,
-            cull=cull,
-            opacity_threshold=opacity_threshold,
-        )
-
-    def count(
-        self,
-        origins: Any,
-        directions: Any = None,
-        *,
-        tmin: Any = 0.0,
-        tmax: Any = np.inf,
-        precision: Precision = "fast",
-        cull: Cull = None,
-        mask: Any = 0xFF,
-        progress: bool = False,
-        opacity_threshold: float = 0.5,
-    ) -> np.ndarray:
-        """`Scene.count`, the rays split over the devices."""
-        rays = dict(origins=origins, directions=directions, tmin=tmin, tmax=tmax, mask=mask)
-        return self._trace(
-            "count", _Array(), rays, progress, precision=precision, cull=cull, opacity_threshold=opacity_threshold
-        )
-
-    def closest_points(
-        self,
-        points: Any,
-        *,
-        max_distance: float = np.inf,
-        outputs: Optional[Iterable[str]] = None,
-        precision: Precision = "reference",
-        progress: bool = False,
-    ) -> Closest:
-        """`Scene.closest_points`, the points split over the devices."""
-        fields = _closest_outputs(outputs)  # checked first, as Scene does
-
-        def closest(shape: Tuple[int, ...], arrays: Dict[str, np.ndarray]) -> Closest:
-            return Closest(shape, arrays, precision)
-
-        return self._points(
-            "closest_points",
-            _Fields(CLOSEST_FIELDS, closest),
-            points,
-            progress,
-            max_distance=max_distance,
-            outputs=fields,
-            precision=precision,
-        )
-
-    def distance(
-        self, points: Any, *, max_distance: float = np.inf, precision: Precision = "reference", progress: bool = False
-    ) -> np.ndarray:
-        """`Scene.distance`, the points split over the devices."""
-        return self._points(
-            "distance", _Array(), points, progress, max_distance=max_distance, precision=precision
-        )
-
-    def signed_distance(
-        self,
-        points: Any,
-        *,
-        max_distance: float = np.inf,
-        precision: Precision = "reference",
-        method: Optional[str] = None,
-        progress: bool = False,
-    ) -> np.ndarray:
-        """`Scene.signed_distance`, the points split over the devices."""
-        return self._points(
-            "signed_distance",
-            _Array(),
-            points,
-            progress,
-            max_distance=max_distance,
-            precision=precision,
-            method=method,
-        )
-
-    def contains(
-        self, points: Any, *, precision: Precision = "exact", method: str = "parity", progress: bool = False
-    ) -> np.ndarray:
-        """`Scene.contains`, the points split over the devices."""
-        if method not in ("parity", "winding"):  # checked first, as Scene does
-            raise ValueError(f"method must be 'parity' or 'winding', got {method!r}")
-        return self._points("contains", _Array(), points, progress, precision=precision, method=method)
-
     def __repr__(self) -> str:
         return f"<vkray.GroupScene {len(self.instances)} instances on {len(self.per_device)} devices>"
+
+
+def _assembly(q: Query) -> _Assembly[Any]:
+    """How the answers to ``q``'s pieces make its answer."""
+    if q.kind == "intersect":
+        return _Fields(HIT_FIELDS, lambda shape, arrays: Hits(shape, arrays, q.precision))
+    if q.kind == "intersect_all":
+        return _Joined(_join_all_hits)
+    if q.kind == "closest_points":
+        return _Fields(CLOSEST_FIELDS, lambda shape, arrays: Closest(shape, arrays, q.precision))
+    return _Array()  # occluded, transmittance, count, distance, signed_distance, contains
 
 
 class _Assembly(Generic[T]):
@@ -1420,12 +1052,3 @@ class _Rows:
         if self._arrays is None:
             raise VkrayError("a split query finished without any piece's answer")
         return self._arrays
-
-
-if TYPE_CHECKING:
-    # mypy checks that both scenes answer every query of SceneLike, with its signatures.
-    def _scene_is_scene_like(scene: Scene) -> SceneLike:
-        return scene
-
-    def _group_scene_is_scene_like(scene: GroupScene) -> SceneLike:
-        return scene

@@ -1,0 +1,27 @@
+"""The benchmarks' one timer: the best of several runs of a call (imported as a sibling module, as
+the benchmarks run as scripts from this folder)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, Tuple
+
+
+def best_run(repeat: int, fn: Callable[[], Any], *, warm: bool = False) -> Tuple[float, Any]:
+    """(the fastest of ``repeat`` runs of ``fn`` in seconds, that run's result); ``warm`` runs it
+    once first, untimed (pipelines compiled, memory faulted in)."""
+    if warm:
+        fn()
+    best, result = float("inf"), None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        answer = fn()
+        seconds = time.perf_counter() - start
+        if seconds < best:
+            best, result = seconds, answer
+    return best, result
+
+
+def best_of(repeat: int, fn: Callable[[], Any], *, warm: bool = False) -> float:
+    """The fastest of ``repeat`` runs of ``fn``, in seconds (`best_run` without the result)."""
+    return best_run(repeat, fn, warm=warm)[0]
