@@ -17,7 +17,7 @@ use crate::geometry::vertex_format::VertexFormat;
 use crate::gpu::accel::{BuildOptions, BuildPreference, BuildStats};
 use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest};
 use crate::scene::{Instance, InstanceFlags, Mesh, MeshInput, Scene, IDENTITY};
-use crate::trace::Tracer;
+use crate::trace::{Tracer, VulkanEngine};
 
 pub(super) fn info_dict<'py>(py: Python<'py>, info: &DeviceInfo) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
@@ -59,7 +59,7 @@ fn build_options(build: &str, allow_update: bool, compact: bool) -> Result<Build
 #[pyclass(name = "Device", module = "vkray._core", frozen)]
 pub(super) struct PyDevice {
     ctx: Arc<Context>,
-    tracer: Arc<Tracer>,
+    tracer: Arc<Tracer<VulkanEngine>>,
 }
 
 #[pymethods]
@@ -71,7 +71,7 @@ impl PyDevice {
             .with_environment()?;
         let (ctx, tracer) = run(py, |_| -> Result<_> {
             let ctx = Context::new(&request)?;
-            let tracer = Arc::new(Tracer::new(&ctx)?);
+            let tracer = Arc::new(Tracer::new(VulkanEngine::new(&ctx)?));
             Ok((ctx, tracer))
         })?;
         Ok(PyDevice { ctx, tracer })
@@ -157,7 +157,7 @@ impl PyDevice {
     /// not a CUDA device that shares memory with Vulkan.
     #[getter]
     fn cuda_device(&self, py: Python<'_>) -> PyResult<Option<i32>> {
-        run(py, |_| Ok(self.tracer.cuda()?.map(|cuda| cuda.ordinal)))
+        run(py, |_| Ok(self.tracer.engine().cuda.cuda()?.map(|cuda| cuda.ordinal)))
     }
 
     #[getter]

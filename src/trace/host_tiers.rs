@@ -4,7 +4,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::fields::{Field, HitSink};
+use super::hit_fields::{Field, HitSink};
 use super::request::Crossings;
 use crate::error::{try_vec, Error, Result};
 use crate::geometry::arrays::Vec3s;

@@ -7,7 +7,6 @@ use std::sync::{Arc, Mutex};
 
 use ash::vk;
 
-use super::request::{Cull, Query};
 use crate::error::{vulkan_error, Result, VkResultExt};
 use crate::geometry::align_up;
 use crate::geometry::rays::RayLayout;
@@ -15,6 +14,7 @@ use crate::gpu::context::{Backend, Context};
 use crate::gpu::memory::{Buffer, Uploads};
 use crate::gpu::records::Params;
 use crate::gpu::shaders;
+use crate::trace::request::{Cull, Query};
 
 /// What a variant is specialized to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -279,6 +279,39 @@ pub struct Variants {
     /// Compute workgroup size (ray-query backend).
     pub local_size: u32,
     cache: Mutex<HashMap<VariantKey, Arc<Variant>>>,
+}
+
+impl Variants {
+    /// Records the trace of `len` rays (within the device's dispatch limits) by `variant`.
+    pub fn record_trace(&self, cmd: vk::CommandBuffer, variant: &Variant, params: &Params, len: usize) {
+        let ctx = &self.ctx;
+        let bind_point = match ctx.backend {
+            Backend::RayQuery => vk::PipelineBindPoint::COMPUTE,
+            Backend::Pipeline => vk::PipelineBindPoint::RAY_TRACING_KHR,
+        };
+        // SAFETY: `cmd` is recording; the pipeline and its layout are live, and the push
+        // constants cover exactly the range the layout declares.
+        unsafe {
+            ctx.device.cmd_bind_pipeline(cmd, bind_point, variant.pipeline);
+            ctx.device.cmd_push_constants(
+                cmd,
+                self.layout,
+                push_constant_stages(ctx.backend),
+                0,
+                bytemuck::bytes_of(params),
+            );
+        }
+        match (&variant.sbt, ctx.pipeline_ext.as_ref()) {
+            // SAFETY: the SBT regions were laid out from this device's handle size and alignments
+            // and `len` is within the device's dispatch limits (`Shared::max_dispatch_rays`).
+            (Some(sbt), Some(rt)) => unsafe {
+                let callable = vk::StridedDeviceAddressRegionKHR::default();
+                rt.cmd_trace_rays(cmd, &sbt.raygen, &sbt.miss, &sbt.hit, &callable, len as u32, 1, 1);
+            },
+            // SAFETY: as above, for the compute dispatch's group count.
+            _ => unsafe { ctx.device.cmd_dispatch(cmd, (len as u32).div_ceil(self.local_size), 1, 1) },
+        }
+    }
 }
 
 /// Threads per compute workgroup, within the device's limits.
