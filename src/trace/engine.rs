@@ -5,8 +5,8 @@
 
 use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
 use crate::geometry::rays::Rays;
-use crate::gpu::context::Interrupt;
 use crate::scene::Scene;
 use crate::trace::hit_fields::HitSink;
 use crate::trace::host_tiers::AllHits;

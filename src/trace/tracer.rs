@@ -14,11 +14,12 @@ use super::host_tiers::{self, AllHits};
 use super::idle::IdleMemory;
 use super::profile::TraceProfile;
 use super::request::{Precision, Query, Request, SignedDistance};
-use crate::error::{invalid_value, try_vec, Error, Result};
+use crate::error::{invalid_value, Error, Result};
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
+use crate::geometry::parallel::try_vec;
 use crate::geometry::parallel::{self, OwnPool};
 use crate::geometry::rays::Rays;
-use crate::gpu::context::Interrupt;
 use crate::scene::Scene;
 
 /// Dispatches queries on one device to its engine `E` and the host tiers. Any number of threads

@@ -15,13 +15,15 @@ use super::shared::Shared;
 use super::staging::pair_bytes;
 use super::timestamps::{Stamp, Stamps};
 use super::variants::Variant;
-use crate::error::{try_vec, Result};
+use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
+use crate::geometry::parallel::try_vec;
 use crate::geometry::reference::ReferenceHit;
 use crate::geometry::winding::CAP_MARGIN_DIVISOR;
 use crate::gpu::compute::ComputeKernel;
-use crate::gpu::context::{Backend, Commands, Context, Interrupt};
+use crate::gpu::context::{Backend, Commands, Context};
 use crate::gpu::memory::{memory_barrier, upload_staging, Buffer, MemoryLocation};
 use crate::gpu::records::{
     Params, PointHit, PointOrderParams, PointParams, PointRays, SignPointsParams, POINT_ORDER_COUNT, POINT_ORDER_SCAN,

@@ -14,10 +14,11 @@ use super::timestamps::{Stamp, Stamps};
 use super::variants::Variant;
 use crate::error::{invalid_value, Result};
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
 use crate::geometry::rays::{Masks, PerRay, Rays, RAY_FLOATS};
 use crate::gpu::compute::ComputeKernel;
-use crate::gpu::context::{Backend, Commands, Context, Interrupt, Timeline};
+use crate::gpu::context::{Backend, Commands, Context, Timeline};
 use crate::gpu::external::HostImport;
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{

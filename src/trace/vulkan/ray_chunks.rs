@@ -23,7 +23,8 @@ use std::mem::size_of;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use crate::gpu::context::{Backend, Commands, Context, Interrupt};
+use crate::geometry::interrupt::Interrupt;
+use crate::gpu::context::{Backend, Commands, Context};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{HitList, Params};
 use crate::scene::{ExactScene, Scene, WindingCap};

@@ -7,7 +7,7 @@ use ash::vk;
 
 use super::timestamps::Stamps;
 use crate::error::Result;
-use crate::geometry::align_up;
+use crate::geometry::align::align_up;
 use crate::geometry::rays::{RayLayout, RAY_FLOATS};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{upload_staging, Buffer, MemoryLocation};

@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex};
 use ash::vk;
 
 use crate::error::{vulkan_error, Result, VkResultExt};
-use crate::geometry::align_up;
+use crate::geometry::align::align_up;
 use crate::geometry::rays::RayLayout;
 use crate::gpu::context::{Backend, Context};
 use crate::gpu::memory::{Buffer, Uploads};

@@ -7,14 +7,14 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::arrays::{Bound1, IndexArray, Vec3Array};
-use super::mesh::PyMesh;
-use super::scene::{InstanceItem, PyScene};
-use super::{run, run_reporting};
+use super::calls::{run, run_reporting};
+use super::mesh_binding::PyMesh;
+use super::numpy_views::{Bound1, IndexArray, Vec3Array};
+use super::scene_binding::{InstanceItem, PyScene};
 use crate::error::{Error, Result};
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::vertex_format::VertexFormat;
-use crate::gpu::accel::{BuildOptions, BuildPreference, BuildStats};
+use crate::gpu::accel::{BuildOptions, BuildPreference};
 use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest};
 use crate::scene::{Instance, InstanceFlags, Mesh, MeshInput, Scene, IDENTITY};
 use crate::trace::{Tracer, VulkanEngine};
@@ -30,24 +30,6 @@ pub(super) fn info_dict<'py>(py: Python<'py>, info: &DeviceInfo) -> PyResult<Bou
     d.set_item("ray_query", info.ray_query)?;
     d.set_item("ray_tracing_pipeline", info.ray_tracing_pipeline)?;
     d.set_item("shader_float64", info.shader_float64)?;
-    Ok(d)
-}
-
-pub(super) fn stats_dict<'py>(
-    py: Python<'py>,
-    stats: &BuildStats,
-    options: &BuildOptions,
-) -> PyResult<Bound<'py, PyDict>> {
-    let d = PyDict::new(py);
-    d.set_item("build", options.preference.name())?;
-    d.set_item("allow_update", options.allow_update)?;
-    d.set_item("compacted", options.compact)?;
-    d.set_item("built_bytes", stats.built_size)?;
-    d.set_item("bytes", stats.size)?;
-    d.set_item("scratch_bytes", stats.scratch_size)?;
-    d.set_item("update_scratch_bytes", stats.update_scratch_size)?;
-    d.set_item("build_seconds", stats.build_seconds)?;
-    d.set_item("batch", stats.batch)?;
     Ok(d)
 }
 
@@ -297,7 +279,7 @@ impl PyDevice {
                         ))
                     })?;
                     let rows = t.shape()[0];
-                    let t = super::arrays::read(&format!("instance {i}: transform"), t)?;
+                    let t = super::numpy_views::read(&format!("instance {i}: transform"), t)?;
                     instance_transform(t.as_slice()?, rows).map_err(|e| match e {
                         Error::InvalidValue(m) => Error::InvalidValue(format!("instance {i}: {m}")),
                         Error::InvalidType(m) => Error::InvalidType(format!("instance {i}: {m}")),
