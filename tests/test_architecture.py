@@ -195,7 +195,8 @@ class RustFile:
                 depth += {"{": 1, "}": -1}.get(self.code[i], 0)
                 i += 1
             self.inline.append((match.start(), i, match.group(1)))
-        self.mods = [m.group(1) for m in re.finditer(r"^\s*(?:pub(?:\([\w:\s]+\))?\s+)?mod\s+(\w+)\s*;", self.code, re.M)]
+        declared = re.finditer(r"^\s*(?:pub(?:\([\w:\s]+\))?\s+)?mod\s+(\w+)\s*;", self.code, re.M)
+        self.mods = [m.group(1) for m in declared]
         self.uses: List[Tuple[int, List[str], str, bool]] = []  # (offset, path, bound name, pub)
         spans = []
         for match in re.finditer(r"(\bpub(?:\([\w:\s]+\))?\s+)?\buse\s+([^;]+);", self.code):
@@ -293,7 +294,8 @@ def test_the_reader_sees_imports():
     graph = rust_graph()
     assert "lib.rs" in graph and len(graph) > 30
     assert sum(len(t) for t in graph.values()) > 100
-    assert expand_use_tree("a::{b::{c as d, self}, e}") == [(["a", "b", "c"], "d"), (["a", "b"], "b"), (["a", "e"], "e")]
+    expected = [(["a", "b", "c"], "d"), (["a", "b"], "b"), (["a", "e"], "e")]
+    assert expand_use_tree("a::{b::{c as d, self}, e}") == expected
     toy = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert cycles(toy) == [["a", "b", "c"]]
     assert upward_imports(toy, lambda n: {"a": 0, "b": 0, "c": 1, "d": 2}[n]) == [("b", "c")]
