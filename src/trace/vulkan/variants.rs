@@ -630,3 +630,43 @@ mod tests {
         assert_eq!(nvidia.total, 192);
     }
 }
+
+#[cfg(test)]
+mod flag_tests {
+    use super::*;
+    use crate::gpu::context::Backend;
+    use crate::gpu::records::Params;
+    use crate::trace::request::{Cull, Query};
+
+    #[test]
+    fn params_fit_every_device_push_constants() {
+        // Vulkan guarantees 128 bytes of push constants.
+        assert!(std::mem::size_of::<Params>() <= 128);
+    }
+
+    #[test]
+    fn occlusion_flags_terminate_on_first_hit() {
+        for backend in [Backend::RayQuery, Backend::Pipeline] {
+            for exact in [false, true] {
+                let flags = |query| ray_flags(query, Cull::None, backend, exact, true, false);
+                assert_ne!(flags(Query::Occluded) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                assert_eq!(flags(Query::Closest) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                // The exact tier's structures are all AABBs.
+                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, true, true, false) & RAY_FLAG_SKIP_AABBS, 0);
+                // Spheres are boxes too.
+                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, false, true, true) & RAY_FLAG_SKIP_AABBS, 0);
+            }
+        }
+        let pipeline = |query, cull, all_opaque| ray_flags(query, cull, Backend::Pipeline, false, all_opaque, false);
+        assert_ne!(
+            ray_flags(Query::Closest, Cull::None, Backend::RayQuery, false, true, false) & RAY_FLAG_SKIP_AABBS,
+            0
+        );
+        assert_ne!(pipeline(Query::Occluded, Cull::None, true) & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, 0);
+        assert_eq!(pipeline(Query::Closest, Cull::None, true) & RAY_FLAG_SKIP_AABBS, 0);
+        // Non-opaque instances must not be culled; culling follows the query.
+        assert_eq!(pipeline(Query::Closest, Cull::None, false) & RAY_FLAG_CULL_NO_OPAQUE, 0);
+        assert_ne!(pipeline(Query::Closest, Cull::Back, true) & RAY_FLAG_CULL_BACK_FACING_TRIANGLES, 0);
+        assert_ne!(pipeline(Query::Closest, Cull::Front, true) & RAY_FLAG_CULL_FRONT_FACING_TRIANGLES, 0);
+    }
+}
