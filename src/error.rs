@@ -77,27 +77,6 @@ impl From<gpu_allocator::AllocationError> for Error {
     }
 }
 
-/// A vector of `len` copies of `value`, or `OutOfMemory` where the host cannot give the memory
-/// (a plain `vec!` aborts the process instead).
-pub fn try_vec<T: Clone + Send + Sync>(len: usize, value: T, what: &str) -> Result<Vec<T>> {
-    let mut v = Vec::new();
-    v.try_reserve_exact(len).map_err(|_| {
-        Error::OutOfMemory(format!(
-            "{what} needs {} bytes of host memory, which could not be allocated",
-            len.saturating_mul(std::mem::size_of::<T>())
-        ))
-    })?;
-    // Large vectors are filled on all cores: the first touch of fresh pages costs more than the
-    // writing (a quarter of a second per GiB on the H100 machine).
-    if len >= 1 << 16 {
-        use rayon::prelude::*;
-        crate::geometry::parallel::install(|| v.par_extend(rayon::iter::repeat_n(value, len)));
-    } else {
-        v.resize(len, value);
-    }
-    Ok(v)
-}
-
 pub(crate) fn invalid_value(message: impl Into<String>) -> Error {
     Error::InvalidValue(message.into())
 }

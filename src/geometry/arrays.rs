@@ -78,7 +78,7 @@ impl Indices<'_> {
     /// Bytes the device copy takes (16-bit indices padded to whole 32-bit words for shader reads).
     pub fn device_bytes(&self) -> u64 {
         if self.is_u16() {
-            crate::gpu::memory::align_up(2 * self.len() as u64, 4)
+            crate::geometry::align::align_up(2 * self.len() as u64, 4)
         } else {
             4 * self.len() as u64
         }

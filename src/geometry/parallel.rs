@@ -10,6 +10,8 @@ use std::sync::{Arc, Mutex, OnceLock};
 
 use rayon::{ThreadPool, ThreadPoolBuilder};
 
+use crate::error::Error;
+
 /// The process whose threads rayon's global pool has (the first to run parallel work here).
 static GLOBAL_POOL_OWNER: OnceLock<u32> = OnceLock::new();
 
@@ -124,6 +126,27 @@ fn child_pool(pid: u32) -> Option<Arc<ThreadPool>> {
         std::mem::forget(inherited);
     }
     Some(pool)
+}
+
+/// A vector of `len` copies of `value`, or `OutOfMemory` where the host cannot give the memory
+/// (a plain `vec!` aborts the process instead).
+pub fn try_vec<T: Clone + Send + Sync>(len: usize, value: T, what: &str) -> crate::error::Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| {
+        Error::OutOfMemory(format!(
+            "{what} needs {} bytes of host memory, which could not be allocated",
+            len.saturating_mul(std::mem::size_of::<T>())
+        ))
+    })?;
+    // Large vectors are filled on all cores: the first touch of fresh pages costs more than the
+    // writing (a quarter of a second per GiB on the H100 machine).
+    if len >= 1 << 16 {
+        use rayon::prelude::*;
+        install(|| v.par_extend(rayon::iter::repeat_n(value, len)));
+    } else {
+        v.resize(len, value);
+    }
+    Ok(v)
 }
 
 #[cfg(test)]

@@ -5,12 +5,13 @@ use std::ops::Range;
 use std::sync::Arc;
 use std::time::Instant;
 
-use crate::geometry::vertex_format::VertexFormat;
 use ash::vk;
 
 use crate::error::{invalid_value, Result, VkResultExt};
-use crate::gpu::context::{Context, Interrupt, NoInterrupt};
-use crate::gpu::memory::{align_up, memory_barrier, Buffer, MemoryLocation, Uploads};
+use crate::geometry::align::align_up;
+use crate::geometry::interrupt::{Interrupt, NoInterrupt};
+use crate::gpu::context::Context;
+use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation, Uploads};
 
 /// What a build optimizes for (the `VK_BUILD_ACCELERATION_STRUCTURE_PREFER_*` flags).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -575,15 +576,6 @@ pub fn aabbs_geometry(address: u64) -> vk::AccelerationStructureGeometryKHR<'sta
 }
 
 const _: () = assert!(std::mem::size_of::<vk::AabbPositionsKHR>() == std::mem::size_of::<[f32; 6]>());
-
-/// The Vulkan format of a vertex buffer in `format`.
-pub fn vulkan_vertex_format(format: VertexFormat) -> vk::Format {
-    match format {
-        VertexFormat::F32 => vk::Format::R32G32B32_SFLOAT,
-        VertexFormat::F16 => vk::Format::R16G16B16A16_SFLOAT,
-        VertexFormat::Snorm16 => vk::Format::R16G16B16A16_SNORM,
-    }
-}
 
 #[cfg(test)]
 mod tests {

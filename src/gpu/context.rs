@@ -118,26 +118,6 @@ impl DeviceRequest {
     }
 }
 
-/// Asked between pieces of long work (chunks of rays, blocks of host work) whether the caller
-/// wants it stopped: the Python binding checks for signals there, so Ctrl-C stops a query within
-/// a chunk's time. An error it returns ends the work; the device stays usable.
-pub trait Interrupt: Sync {
-    fn check(&self) -> Result<()>;
-
-    /// Hears how far the work got: `done` of `total` items (rays, points). Called between the
-    /// same pieces as `check`; by default nobody listens.
-    fn progress(&self, _done: usize, _total: usize) {}
-}
-
-/// Work that nobody interrupts.
-pub struct NoInterrupt;
-
-impl Interrupt for NoInterrupt {
-    fn check(&self) -> Result<()> {
-        Ok(())
-    }
-}
-
 /// The process that last opened a device with a driver that cannot be used again in a forked
 /// child (NVIDIA's: a new instance there hangs), shifted left by one, with bit 0 set for such a
 /// driver; 0 while none was opened.
@@ -542,9 +522,8 @@ fn vertex_formats(instance: &ash::Instance, physical: vk::PhysicalDevice) -> Vec
         .into_iter()
         .filter(|f| {
             // SAFETY: `physical` belongs to the live `instance`.
-            let properties = unsafe {
-                instance.get_physical_device_format_properties(physical, crate::gpu::accel::vulkan_vertex_format(*f))
-            };
+            let properties =
+                unsafe { instance.get_physical_device_format_properties(physical, vulkan_vertex_format(*f)) };
             properties.buffer_features.contains(vk::FormatFeatureFlags::ACCELERATION_STRUCTURE_VERTEX_BUFFER_KHR)
         })
         .collect()
@@ -1020,6 +999,15 @@ impl Drop for Commands<'_> {
             }
             self.ctx.device.destroy_command_pool(self.pool, None);
         }
+    }
+}
+
+/// The Vulkan format of a vertex buffer in `format`.
+pub fn vulkan_vertex_format(format: VertexFormat) -> vk::Format {
+    match format {
+        VertexFormat::F32 => vk::Format::R32G32B32_SFLOAT,
+        VertexFormat::F16 => vk::Format::R16G16B16A16_SFLOAT,
+        VertexFormat::Snorm16 => vk::Format::R16G16B16A16_SNORM,
     }
 }
 

@@ -112,7 +112,7 @@ impl HostImport {
             return Ok(None);
         }
         let start = ptr as u64 & !(alignment - 1);
-        let end = crate::geometry::align_up(ptr as u64 + len as u64, alignment);
+        let end = crate::geometry::align::align_up(ptr as u64 + len as u64, alignment);
         let handle_type = vk::ExternalMemoryHandleTypeFlags::HOST_ALLOCATION_EXT;
         let mut properties = vk::MemoryHostPointerPropertiesEXT::default();
         // SAFETY: `start` is aligned as the device asks and lies in the caller's allocation's

@@ -8,7 +8,7 @@ use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 pub use gpu_allocator::MemoryLocation;
 
 use crate::error::{Error, Result, VkResultExt};
-pub use crate::geometry::align_up;
+pub use crate::geometry::align::align_up;
 use crate::gpu::context::Context;
 
 /// Usage of buffers that acceleration-structure builds and shaders read (vertices, indices, boxes,

@@ -11,7 +11,7 @@ use pyo3::types::{PyCapsule, PyDict, PyTuple};
 
 use super::dlpack::{self, Borrowed, PyCudaArray};
 use crate::gpu::cuda::{Cuda, Stream};
-use crate::trace::cuda_rays::{CudaBatch, CudaHits, CudaRays};
+use crate::trace::vulkan::cuda_rays::{CudaBatch, CudaHits, CudaRays};
 use crate::trace::Field;
 
 /// The caller's CUDA rays, borrowed (their capsules held) for as long as this lives.

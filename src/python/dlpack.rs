@@ -11,7 +11,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyCapsule, PyTuple};
 
 use crate::gpu::cuda::{CudaAllocation, Event};
-use crate::trace::cuda_rays::{CudaArray, CudaBound};
+use crate::trace::vulkan::cuda_rays::{CudaArray, CudaBound};
 use crate::trace::Field;
 
 /// DLPack's device type of CUDA memory (dlpack.h kDLCUDA).

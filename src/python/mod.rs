@@ -5,127 +5,30 @@
 //! are borrowed slices, outputs preallocated numpy arrays), so no core lock is ever waited for by
 //! a thread holding the GIL; signals are checked between chunks; panics never cross into Python.
 
-mod arrays;
-mod cuda_batch;
-mod device;
+mod calls;
+
+mod numpy_views;
+
 mod dlpack;
-mod mesh;
-mod scene;
 
-use std::panic::AssertUnwindSafe;
-use std::sync::Mutex;
+mod cuda_batch;
 
-use pyo3::create_exception;
-use pyo3::exceptions::{PyKeyboardInterrupt, PyMemoryError, PyRuntimeError, PyTypeError, PyValueError};
+mod mesh_binding;
+
+mod scene_binding;
+
+mod device_binding;
+
+use calls::{run, ForkedDeviceError, NoDeviceError, UnsupportedError, ValidationError, VkrayError, VulkanError};
+
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-
-use crate::error::{Error, Result};
-use crate::gpu::context::Interrupt;
-
-create_exception!(_core, VkrayError, PyRuntimeError, "Base class of vkray's own errors.");
-create_exception!(_core, NoDeviceError, VkrayError, "No usable Vulkan device (or loader) was found.");
-create_exception!(_core, UnsupportedError, VkrayError, "The device lacks something the request needs.");
-create_exception!(_core, VulkanError, VkrayError, "A Vulkan call failed.");
-create_exception!(_core, ValidationError, VkrayError, "The Khronos validation layer reported a problem.");
-create_exception!(
-    _core,
-    ForkedDeviceError,
-    VkrayError,
-    "A Device was used in a forked child of the process that opened it."
-);
-
-impl From<Error> for PyErr {
-    fn from(error: Error) -> PyErr {
-        let message = error.to_string();
-        match error {
-            Error::InvalidValue(_) => PyValueError::new_err(message),
-            Error::InvalidType(_) => PyTypeError::new_err(message),
-            Error::NoDevice(_) => NoDeviceError::new_err(message),
-            Error::Unsupported(_) => UnsupportedError::new_err(message),
-            Error::Vulkan { .. } | Error::Allocation(_) => VulkanError::new_err(message),
-            Error::OutOfMemory(_) => PyMemoryError::new_err(message),
-            Error::Forked(_) => ForkedDeviceError::new_err(message),
-            Error::Interrupted => PyKeyboardInterrupt::new_err(()),
-            Error::Internal(_) | Error::Cuda { .. } => VkrayError::new_err(message),
-            Error::Validation(_) => ValidationError::new_err(message),
-        }
-    }
-}
-
-/// Checks for signals (Ctrl-C) with the GIL taken back for a moment; keeps what the handler
-/// raised, for `run` to raise.
-struct Signals {
-    raised: Mutex<Option<PyErr>>,
-    /// Called with (done, total) as the work goes (a progress bar's update).
-    progress: Option<Py<PyAny>>,
-}
-
-impl Signals {
-    fn raise(&self, error: PyErr) {
-        self.raised.lock().unwrap_or_else(|e| e.into_inner()).get_or_insert(error);
-    }
-}
-
-impl Interrupt for Signals {
-    fn check(&self) -> Result<()> {
-        // An exception from the progress callback stops the work as a signal's does.
-        if self.raised.lock().unwrap_or_else(|e| e.into_inner()).is_some() {
-            return Err(Error::Interrupted);
-        }
-        Python::attach(|py| py.check_signals()).map_err(|raised| {
-            self.raise(raised);
-            Error::Interrupted
-        })
-    }
-
-    fn progress(&self, done: usize, total: usize) {
-        if let Some(callback) = &self.progress {
-            if let Err(error) = Python::attach(|py| callback.call1(py, (done, total)).map(drop)) {
-                self.raise(error);
-            }
-        }
-    }
-}
-
-/// Runs core work with the GIL released, interruptible between its pieces; a panic becomes
-/// `VkrayError`, never pyo3's `PanicException`.
-fn run<T: Send>(py: Python<'_>, work: impl FnOnce(&dyn Interrupt) -> Result<T> + Send) -> PyResult<T> {
-    run_reporting(py, None, work)
-}
-
-/// `run`, telling `progress` (a callable, if any) how far the work got: (done, total).
-fn run_reporting<T: Send>(
-    py: Python<'_>,
-    progress: Option<Py<PyAny>>,
-    work: impl FnOnce(&dyn Interrupt) -> Result<T> + Send,
-) -> PyResult<T> {
-    let signals = Signals { raised: Mutex::new(None), progress };
-    // Runs on this thread, not in the thread pool: the work takes locks and waits, which a pool
-    // thread must never do (waiting for its own parallel work, it may pick up another call's
-    // job that needs a lock this thread holds). Parallel sections enter the pool themselves.
-    let outcome = py.detach(|| std::panic::catch_unwind(AssertUnwindSafe(|| work(&signals))));
-    let result = outcome.unwrap_or_else(|panic| {
-        let message = panic
-            .downcast_ref::<String>()
-            .map(String::as_str)
-            .or_else(|| panic.downcast_ref::<&str>().copied())
-            .unwrap_or("a panic without a message");
-        Err(Error::Internal(message.to_string()))
-    });
-    result.map_err(|error| match error {
-        Error::Interrupted => {
-            signals.raised.lock().unwrap_or_else(|e| e.into_inner()).take().unwrap_or_else(|| error.into())
-        }
-        error => error.into(),
-    })
-}
 
 /// The usable devices, best first.
 #[pyfunction]
 fn devices(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
     let infos = run(py, |_| crate::gpu::context::list_devices())?;
-    infos.iter().map(|info| device::info_dict(py, info)).collect()
+    infos.iter().map(|info| device_binding::info_dict(py, info)).collect()
 }
 
 /// The SPIR-V modules embedded in this build, by source name (for `spirv-val` in the tests).
@@ -150,9 +53,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(devices, m)?)?;
     m.add_function(wrap_pyfunction!(spirv_modules, m)?)?;
     m.add_function(wrap_pyfunction!(host_memory_available, m)?)?;
-    m.add_class::<device::PyDevice>()?;
-    m.add_class::<mesh::PyMesh>()?;
-    m.add_class::<scene::PyScene>()?;
+    m.add_class::<device_binding::PyDevice>()?;
+    m.add_class::<mesh_binding::PyMesh>()?;
+    m.add_class::<scene_binding::PyScene>()?;
     m.add_class::<dlpack::PyCudaArray>()?;
     m.add_class::<cuda_batch::PyCudaBatch>()?;
     m.add("VkrayError", py.get_type::<VkrayError>())?;

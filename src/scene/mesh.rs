@@ -10,13 +10,14 @@ use glam::DVec3;
 
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::arrays::{check_faces, check_vertices, Indices, Vec3s};
+use crate::geometry::interrupt::{Interrupt, NoInterrupt};
 use crate::geometry::morton::morton_order;
 use crate::geometry::precision::Aabb;
 use crate::geometry::rays::PerRay;
 use crate::geometry::reference::TriangleSet;
 use crate::geometry::vertex_format::VertexFormat;
-use crate::gpu::accel::{self, vulkan_vertex_format, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
-use crate::gpu::context::{Context, Interrupt, NoInterrupt};
+use crate::gpu::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
+use crate::gpu::context::{vulkan_vertex_format, Context};
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 use crate::gpu::records::{GeometrySource, SPHERE_SOURCE};
 

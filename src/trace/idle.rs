@@ -11,12 +11,26 @@ pub trait Held {
     fn bytes(&self) -> u64;
 }
 
-/// Bytes of a pair of device copies, where there is one.
-pub fn pair_bytes(device: &Option<(crate::gpu::memory::Buffer, crate::gpu::memory::Buffer)>) -> u64 {
-    device.as_ref().map_or(0, |(a, b)| a.size() + b.size())
+/// A pool of idle resources as the memory retry and `release_idle_memory` see it, whatever it
+/// holds: an engine sums and frees all of its pools through this.
+pub trait Idle: Send + Sync {
+    /// What the pool holds now, and how many items were made.
+    fn memory(&self) -> IdleMemory;
+    /// Drops every idle item.
+    fn clear(&self);
 }
 
-/// A device's idle resources, summed over its pools (`Tracer::idle_memory`).
+impl<T: Held + Send> Idle for IdlePool<T> {
+    fn memory(&self) -> IdleMemory {
+        IdlePool::memory(self)
+    }
+
+    fn clear(&self) {
+        IdlePool::clear(self)
+    }
+}
+
+/// A device's idle resources, summed over its pools (`Engine::idle_memory`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct IdleMemory {
     /// Bytes the idle items hold.

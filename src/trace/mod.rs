@@ -1,27 +1,30 @@
-//! Queries: what they ask (`request`), the hit fields they write (`fields`), pipeline variants
-//! and their shader binding tables (`variants`), staging slots (`staging`) and the pool of idle resources (`idle`), the chunk loop
-//! (`chunks`), rays the GPU packs itself (`device_rays`), closest points on the GPU (`closest`), signed distances in one pass (`signed`), time profiles (`profile`), intersection-shader probes (`probe`), the host's f64
-//! tiers (`tiers`), and the tracer that dispatches between them (`tracer`).
+//! Queries. Its files, lowest first (each imports only files above it in this list): what a
+//! query asks (`request`), the hit fields it writes (`hit_fields`), where its time went
+//! (`profile`), the pools of idle resources (`idle`), the host's f64 tiers (`host_tiers`), the
+//! engine seam (`engine`: what a query needs from the device that runs it), the Vulkan engine
+//! (`vulkan`), and the dispatcher that picks a tier and hands the batch to an engine or the host
+//! tiers (`tracer`).
 
-mod all_hits;
-mod chunks;
-mod closest;
-pub mod cuda_rays;
-pub mod device_rays;
-pub mod fields;
-pub mod idle;
-mod probe;
-pub mod profile;
 pub mod request;
-mod sensor;
-mod signed;
-mod staging;
-pub mod tiers;
-pub mod tracer;
-mod variants;
 
-pub use fields::{Field, HitSink};
+pub mod hit_fields;
+
+pub mod profile;
+
+pub mod idle;
+
+pub mod host_tiers;
+
+pub mod engine;
+
+pub mod vulkan;
+
+pub mod tracer;
+
+pub use engine::{Engine, EngineLimits};
+pub use hit_fields::{Field, HitSink};
 pub use idle::IdleMemory;
 pub use profile::TraceProfile;
 pub use request::{Cull, Precision, Query, Request, SignedDistance};
 pub use tracer::Tracer;
+pub use vulkan::VulkanEngine;

@@ -5,15 +5,20 @@ use std::sync::Arc;
 
 use ash::vk;
 
-use super::fields::{Field, FIELDS, FIELD_COUNT};
-use super::idle::{pair_bytes, Held, IdleMemory, IdlePool};
-use super::profile::Stamps;
+use super::timestamps::Stamps;
 use crate::error::Result;
-use crate::geometry::align_up;
+use crate::geometry::align::align_up;
 use crate::geometry::rays::{RayLayout, RAY_FLOATS};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{upload_staging, Buffer, MemoryLocation};
 use crate::gpu::records::ExactBest;
+use crate::trace::hit_fields::{Field, FIELDS, FIELD_COUNT};
+use crate::trace::idle::{Held, IdleMemory, IdlePool};
+
+/// Bytes of a pair of device copies, where there is one.
+pub fn pair_bytes(device: &Option<(Buffer, Buffer)>) -> u64 {
+    device.as_ref().map_or(0, |(a, b)| a.size() + b.size())
+}
 
 /// Host-visible staging for one chunk in flight (plus device copies on discrete GPUs). An exact
 /// slot holds f64 rays, f64 `t`/`uv` and the pipeline's scratch records.

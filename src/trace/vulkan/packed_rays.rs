@@ -8,18 +8,17 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::fields::{Field, HitSink, FIELDS, FIELD_COUNT};
-use super::idle::{Held, IdleMemory, IdlePool};
-use super::profile::{Stamp, Stamps, TraceProfile};
-use super::request::{Precision, Query, Request};
-use super::tracer::Tracer;
+use super::probes::Probes;
+use super::shared::Shared;
+use super::timestamps::{Stamp, Stamps};
 use super::variants::Variant;
 use crate::error::{invalid_value, Result};
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
 use crate::geometry::rays::{Masks, PerRay, Rays, RAY_FLOATS};
 use crate::gpu::compute::ComputeKernel;
-use crate::gpu::context::{Backend, Commands, Context, Interrupt, Timeline};
+use crate::gpu::context::{Backend, Commands, Context, Timeline};
 use crate::gpu::external::HostImport;
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{
@@ -27,6 +26,10 @@ use crate::gpu::records::{
 };
 use crate::gpu::shaders;
 use crate::scene::Scene;
+use crate::trace::hit_fields::{Field, HitSink, FIELDS, FIELD_COUNT};
+use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
+use crate::trace::profile::TraceProfile;
+use crate::trace::request::{Precision, Query, Request};
 
 /// One array of the caller's rays on the device: rows of 3 (origins, directions) or 1 (bounds)
 /// numbers, f32 or f64 (`wide`), `stride` bytes apart (0: row 0 for every ray).
@@ -76,6 +79,16 @@ pub struct PackPipelines {
     /// pack_rays.comp (it packs in f64: loaded only with shaderFloat64).
     kernel: ComputeKernel,
     idle: IdlePool<PackScratch>,
+}
+
+impl Idle for PackPipelines {
+    fn memory(&self) -> IdleMemory {
+        self.idle.memory()
+    }
+
+    fn clear(&self) {
+        self.idle.clear();
+    }
 }
 
 /// Device memory for one chunk of packed rays and their advances.
@@ -141,14 +154,6 @@ impl PackPipelines {
         self.idle.give_back(1, [scratch]);
     }
 
-    pub fn idle_memory(&self) -> IdleMemory {
-        self.idle.memory()
-    }
-
-    pub fn release_idle(&self) {
-        self.idle.clear();
-    }
-
     /// Records the packing (or finishing) of one chunk.
     fn record(&self, cmd: vk::CommandBuffer, pipeline: vk::Pipeline, params: &PackParams) {
         let device = &self.ctx.device;
@@ -181,7 +186,23 @@ pub fn device_rays_refusal(request: Request) -> Option<&'static str> {
     None
 }
 
-impl Tracer {
+/// The GPU-packed rays path: the caller's arrays read where they lie, packed, traced and finished
+/// on the device. Owns the packing pipelines and their idle scratch.
+pub struct PackedRays {
+    shared: Arc<Shared>,
+    probes: Arc<Probes>,
+    packing: Arc<PackPipelines>,
+    /// Whether queries on host arrays have the GPU pack their rays where they can
+    /// (`pack_on_gpu_by_default`).
+    pack_on_gpu: bool,
+}
+
+impl PackedRays {
+    pub fn new(shared: &Arc<Shared>, probes: &Arc<Probes>, packing: &Arc<PackPipelines>) -> PackedRays {
+        let pack_on_gpu = pack_on_gpu_by_default(&shared.ctx);
+        PackedRays { shared: shared.clone(), probes: probes.clone(), packing: packing.clone(), pack_on_gpu }
+    }
+
     /// Whether queries on this device may have the GPU pack their rays.
     pub fn packs_rays(&self) -> bool {
         self.packing.available()
@@ -210,18 +231,18 @@ impl Tracer {
         // trace through `run_gpu`.
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
-        self.check_paths(scene, false)?;
+        self.probes.check_paths(scene, false)?;
         let mut profile = TraceProfile { rays: rays.count, ..Default::default() };
         let started = Instant::now();
         let invalid = self.trace_packed(scene, rays, request, outputs, order, interrupt, &mut profile)?;
         profile.total = started.elapsed().as_secs_f64();
-        self.keep_profile(profile);
+        self.shared.keep_profile(profile);
         Ok(invalid)
     }
 
     /// Rays per chunk (a submission) of a query on `count` device rays.
     pub fn device_chunk_capacity(&self, count: usize) -> usize {
-        self.chunk_capacity(count).min(self.packing.max_rays())
+        self.shared.chunk_capacity(count).min(self.packing.max_rays())
     }
 
     /// `trace_device_rays` for any tier whose GPU part traverses in f32 (the refined tier's too),
@@ -240,22 +261,22 @@ impl Tracer {
         if rays.count >= u32::MAX as usize {
             return Err(invalid_value("at most 2^32 - 2 rays a query when the GPU packs them"));
         }
-        self.ctx.check_usable()?;
+        self.shared.ctx.check_usable()?;
         let bits = FIELDS.iter().filter(|f| outputs[**f as usize] != 0).fold(0, |b, f| b | f.bit());
-        let variant = self.variants.get(self.variant_key(scene, request, false, bits, false))?;
+        let variant = self.shared.variants.get(self.shared.variant_key(scene, request, false, bits, false))?;
         let frame_buffer = self.pack_frame(scene, rays)?;
         // Chunks as the host path's (`Device.chunk_rays`): the interrupt is asked between them.
         let capacity = match order.as_ref().and_then(|o| o.chunk_rays) {
             Some(rays) => rays.clamp(1, self.packing.max_rays()),
             None => self.device_chunk_capacity(rays.count),
         };
-        let scratch = self.with_memory(|| self.packing.take_scratch(capacity))?;
+        let scratch = self.shared.with_memory(|| self.packing.take_scratch(capacity))?;
         let job =
             PackedJob { scene, rays, outputs, variant: &variant, scratch: &scratch, frame: frame_buffer.address() };
         let traced = self.trace_packed_chunks(&job, capacity, order, interrupt, profile);
         self.packing.give_back(scratch);
         traced?;
-        self.ctx.check_validation()?;
+        self.shared.ctx.check_validation()?;
         let frame: PackFrame =
             *bytemuck::from_bytes(&frame_buffer.mapped().expect("the frame is host-visible")[..size_of::<PackFrame>()]);
         Ok((frame.first_invalid != u32::MAX).then_some(frame.first_invalid as usize))
@@ -273,8 +294,8 @@ impl Tracer {
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let (pack, finish) = (self.packing.pipeline(false)?, self.packing.pipeline(true)?);
-        let stamps = Stamps::new(&self.ctx)?;
-        let mut commands = Commands::new(&self.ctx)?;
+        let stamps = Stamps::new(&self.shared.ctx)?;
+        let mut commands = Commands::new(&self.shared.ctx)?;
         let count = job.rays.count;
         for start in (0..count).step_by(capacity) {
             interrupt.check()?;
@@ -295,7 +316,7 @@ impl Tracer {
             self.barrier(cmd, vk::PipelineStageFlags::COMPUTE_SHADER, self.trace_stage());
             stamp(Stamp::Uploaded);
             let params = job.trace_params(start, len);
-            self.record_trace(cmd, job.variant, &params, len);
+            self.shared.record_trace(cmd, job.variant, &params, len);
             stamp(Stamp::Traced);
             if params.outputs[Field::T as usize] != 0 {
                 self.barrier(cmd, self.trace_stage(), vk::PipelineStageFlags::COMPUTE_SHADER);
@@ -304,7 +325,7 @@ impl Tracer {
             }
             let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
             let all = (vk::PipelineStageFlags::ALL_COMMANDS, vk::AccessFlags::MEMORY_WRITE);
-            memory_barrier(&self.ctx, cmd, all.0, all.1, host.0, host.1);
+            memory_barrier(&self.shared.ctx, cmd, all.0, all.1, host.0, host.1);
             stamp(Stamp::ReadBack);
             let last = start + len == count;
             // Arriving chunk by chunk: this one's rays are in place once the chunk holding its
@@ -333,7 +354,7 @@ impl Tracer {
 
     /// The shader stage tracing runs in on this device.
     fn trace_stage(&self) -> vk::PipelineStageFlags {
-        match self.ctx.backend {
+        match self.shared.ctx.backend {
             Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
             Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
         }
@@ -342,7 +363,14 @@ impl Tracer {
     /// A barrier from shader writes in `src` to shader reads and writes in `dst`.
     fn barrier(&self, cmd: vk::CommandBuffer, src: vk::PipelineStageFlags, dst: vk::PipelineStageFlags) {
         use vk::AccessFlags as A;
-        memory_barrier(&self.ctx, cmd, src, A::SHADER_WRITE | A::SHADER_READ, dst, A::SHADER_READ | A::SHADER_WRITE);
+        memory_barrier(
+            &self.shared.ctx,
+            cmd,
+            src,
+            A::SHADER_WRITE | A::SHADER_READ,
+            dst,
+            A::SHADER_READ | A::SHADER_WRITE,
+        );
     }
 
     /// The query's `PackFrame`, host-visible (the shader reports the first invalid ray in it).
@@ -364,7 +392,7 @@ impl Tracer {
         };
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
         let size = size_of::<PackFrame>() as u64;
-        let mut buffer = Buffer::new(&self.ctx, size, usage, MemoryLocation::CpuToGpu, "pack frame")?;
+        let mut buffer = Buffer::new(&self.shared.ctx, size, usage, MemoryLocation::CpuToGpu, "pack frame")?;
         buffer.mapped_mut().expect("CpuToGpu memory is host-visible")[..size as usize]
             .copy_from_slice(bytemuck::bytes_of(&record));
         Ok(buffer)
@@ -448,7 +476,7 @@ fn pack_params(rays: &DeviceRays, start: usize, len: usize, scratch: &PackScratc
 /// benchmarks.md, issue 14): importing 16M rays' host memory pins it at about 13 GB/s, which
 /// costs more than the host's packing pass it saves, so the GPU packs only rays already on it
 /// (CUDA arrays) unless asked.
-pub(super) fn pack_on_gpu_by_default(_ctx: &Context) -> bool {
+fn pack_on_gpu_by_default(_ctx: &Context) -> bool {
     matches!(std::env::var("VKRAY_PACK").as_deref(), Ok("gpu" | "staged"))
 }
 
@@ -460,51 +488,51 @@ fn copy_rather_than_import() -> bool {
 
 /// Host memory the device reads or writes for one query: the caller's bytes imported in place,
 /// or a buffer of its own the bytes are copied into (inputs) or out of (outputs).
-enum Shared {
+enum HostMemory {
     Imported(HostImport),
     Copied(Buffer),
 }
 
-impl Shared {
+impl HostMemory {
     /// The device's view of `bytes`, to read.
-    fn input(ctx: &Arc<Context>, bytes: &[u8], name: &str) -> Result<Shared> {
+    fn input(ctx: &Arc<Context>, bytes: &[u8], name: &str) -> Result<HostMemory> {
         if !copy_rather_than_import() {
             // SAFETY: `bytes` is borrowed for the whole query, which waits for the device before the
             // import is dropped; nothing writes it meanwhile (a shared borrow).
             if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
-                return Ok(Shared::Imported(import));
+                return Ok(HostMemory::Imported(import));
             }
         }
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
         let mut buffer = Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::CpuToGpu, name)?;
         let staging = buffer.mapped_mut().expect("CpuToGpu memory is host-visible");
         parallel::copy(&mut staging[..bytes.len()], bytes);
-        Ok(Shared::Copied(buffer))
+        Ok(HostMemory::Copied(buffer))
     }
 
     /// The device's view of `bytes`, to write (`finish` copies what it wrote into them).
-    fn output(ctx: &Arc<Context>, bytes: &mut [u8], name: &str) -> Result<Shared> {
+    fn output(ctx: &Arc<Context>, bytes: &mut [u8], name: &str) -> Result<HostMemory> {
         if !copy_rather_than_import() {
             // SAFETY: `bytes` is borrowed mutably for the whole query, which waits for the device
             // before the import is dropped; the host does not touch it meanwhile.
             if let Some(import) = unsafe { HostImport::new(ctx, bytes.as_ptr(), bytes.len()) }? {
-                return Ok(Shared::Imported(import));
+                return Ok(HostMemory::Imported(import));
             }
         }
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS;
-        Ok(Shared::Copied(Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::GpuToCpu, name)?))
+        Ok(HostMemory::Copied(Buffer::new(ctx, bytes.len() as u64, usage, MemoryLocation::GpuToCpu, name)?))
     }
 
     fn address(&self) -> u64 {
         match self {
-            Shared::Imported(import) => import.address(),
-            Shared::Copied(buffer) => buffer.address(),
+            HostMemory::Imported(import) => import.address(),
+            HostMemory::Copied(buffer) => buffer.address(),
         }
     }
 
     /// After the device wrote an output: its bytes into the caller's array, unless in place.
     fn finish(&self, out: &mut [u8]) {
-        if let Shared::Copied(buffer) = self {
+        if let HostMemory::Copied(buffer) = self {
             let written = buffer.mapped().expect("GpuToCpu memory is host-visible");
             parallel::copy(out, &written[..out.len()]);
         }
@@ -518,13 +546,13 @@ fn vec3_bytes<'a>(v: &Vec3s<'a>) -> (&'a [u8], bool) {
     }
 }
 
-impl Tracer {
+impl PackedRays {
     /// The GPU part of a query on host arrays with the rays packed by the GPU: the arrays are
     /// imported in place where the device can (else copied once), and the hits written straight
     /// into the caller's arrays (else copied out once). `None` where this query cannot go this
     /// way (rays of a sensor, per-ray masks, every-hit queries, the exact tier, a policy of
     /// packing on the host): the caller packs on the host instead.
-    pub(super) fn trace_arrays_packed_on_gpu(
+    pub fn trace_arrays_packed_on_gpu(
         &self,
         scene: &Scene,
         rays: &Rays,
@@ -542,12 +570,12 @@ impl Tracer {
         if !eligible {
             return Ok(None);
         }
-        let ctx = &self.ctx;
+        let ctx = &self.shared.ctx;
         let clock = Instant::now();
         let mut inputs = Vec::new();
         let mut array = |v: &Vec3s, name: &str| -> Result<DeviceArray> {
             let (bytes, wide) = vec3_bytes(v);
-            let shared = self.with_memory(|| Shared::input(ctx, bytes, name))?;
+            let shared = self.shared.with_memory(|| HostMemory::input(ctx, bytes, name))?;
             let stride = if v.rows() == 1 { 0 } else { 3 * if wide { 8 } else { 4 } };
             let array = DeviceArray { address: shared.address(), stride, wide };
             inputs.push(shared);
@@ -559,7 +587,8 @@ impl Tracer {
             Ok(match b {
                 PerRay::All(value) => DeviceBound::All(value),
                 PerRay::Each(values) => {
-                    let shared = self.with_memory(|| Shared::input(ctx, bytemuck::cast_slice(values), name))?;
+                    let shared =
+                        self.shared.with_memory(|| HostMemory::input(ctx, bytemuck::cast_slice(values), name))?;
                     let array = DeviceArray { address: shared.address(), stride: 8, wide: true };
                     inputs.push(shared);
                     DeviceBound::Each(array)
@@ -571,7 +600,7 @@ impl Tracer {
         let mut outputs: DeviceOutputs = [0; FIELD_COUNT];
         let mut shared_outputs = Vec::new();
         for (field, out) in sink.iter_mut() {
-            let shared = self.with_memory(|| Shared::output(ctx, out, field.name()))?;
+            let shared = self.shared.with_memory(|| HostMemory::output(ctx, out, field.name()))?;
             outputs[field as usize] = shared.address();
             shared_outputs.push((field, shared));
         }

@@ -11,27 +11,32 @@ use std::time::Instant;
 use bytemuck::Pod;
 use rayon::prelude::*;
 
-use super::chunks::{pack_chunk, GpuJob, ListBuffers};
-use super::fields::{Field, HitSink};
-use super::profile::TraceProfile;
-use super::request::{Precision, Query, Request};
+use super::gpu_rays::GpuRays;
+use super::ray_chunks::{pack_chunk, GpuJob, ListBuffers};
+use super::shared::Shared;
 use super::staging::Slot;
-use super::tiers::AllHits;
-use super::tracer::Tracer;
-use crate::error::{try_vec, Error, Result};
+use crate::error::{Error, Result};
+use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
+use crate::geometry::parallel::try_vec;
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::ReferenceHit;
-use crate::gpu::context::{Commands, Interrupt};
+use crate::gpu::context::Commands;
 use crate::gpu::memory::host_memory_available;
 use crate::gpu::records::{ExactHit, FastHit, HitList, HIT_LIST_APPEND};
 use crate::scene::Scene;
+use crate::trace::hit_fields::{Field, HitSink};
+use crate::trace::host_tiers::AllHits;
+use crate::trace::idle::IdlePool;
+use crate::trace::profile::TraceProfile;
+use crate::trace::request::{Precision, Query, Request};
+use std::sync::Arc;
 
 /// What the storing pass found: ray i's hits are `records[offsets[i]..offsets[i + 1]]`, of which
 /// the first `seen[i]` are written where `seen[i]` is smaller (a primitive traversal reported
 /// twice, kept once); `advances` holds (ray, t) for far rays packed from nearer origins (fast
 /// tier), whose records' `t` is short by `t`.
-pub(super) struct StoredHits<R> {
+pub struct StoredHits<R> {
     pub offsets: Vec<i64>,
     pub records: Vec<R>,
     pub seen: Vec<i32>,
@@ -47,11 +52,23 @@ fn record_budget(unified_memory: bool) -> usize {
     }
 }
 
-impl Tracer {
+/// The all-hits path: a counting pass sizes each ray's list, a storing pass fills them. Owns
+/// the idle lists and records of the storing pass.
+pub struct AllHitsPath {
+    shared: Arc<Shared>,
+    rays: Arc<GpuRays>,
+    lists: Arc<IdlePool<ListBuffers>>,
+}
+
+impl AllHitsPath {
+    pub fn new(shared: &Arc<Shared>, rays: &Arc<GpuRays>, lists: &Arc<IdlePool<ListBuffers>>) -> AllHitsPath {
+        AllHitsPath { shared: shared.clone(), rays: rays.clone(), lists: lists.clone() }
+    }
+
     /// Every hit of every ray (the nearest `max_hits` of each) as the GPU tier `request` names
     /// (fast: `R` = `FastHit`; exact: `ExactHit`). `host_bytes_per_hit`: what the caller will
     /// need per hit besides the records, for checking that the result fits before storing it.
-    pub(super) fn gpu_all_hits<R: HitRecord>(
+    pub fn gpu_all_hits<R: HitRecord>(
         &self,
         scene: &Scene,
         rays: &Rays,
@@ -61,18 +78,30 @@ impl Tracer {
         interrupt: &dyn Interrupt,
     ) -> Result<StoredHits<R>> {
         let started = Instant::now();
-        self.ctx.check_usable()?;
+        self.shared.ctx.check_usable()?;
         rays.check_shapes()?;
         let n = rays.len();
         // Held across both passes, so that the lists the first sizes are the second's.
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
         let mut seen = try_vec(n, 0i32, "the hits' counts")?;
-        {
+        if n > 0 {
             let mut sink = HitSink::default();
             sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut seen));
             let count = Request { query: Query::Count, ..request };
-            self.trace_held(scene, rays, count, &mut sink, interrupt, started)?;
+            let mut profile = TraceProfile { rays: n, ..Default::default() };
+            self.rays.run(
+                scene,
+                rays,
+                count,
+                request.precision == Precision::Exact,
+                &mut sink,
+                interrupt,
+                &mut profile,
+            )?;
+            profile.total = started.elapsed().as_secs_f64();
+            self.shared.keep_profile(profile);
+            self.shared.ctx.check_validation()?;
         }
         let mut offsets = try_vec(n + 1, 0i64, "the hits' offsets")?;
         for i in 0..n {
@@ -105,7 +134,7 @@ impl Tracer {
             )));
         }
         stored.settle(max_hits);
-        let mut last = self.last_profile.lock().unwrap_or_else(|e| e.into_inner());
+        let mut last = self.shared.profile_mut();
         last.store = storing.elapsed().as_secs_f64();
         last.total = started.elapsed().as_secs_f64();
         last.chunks += profile.chunks;
@@ -114,7 +143,7 @@ impl Tracer {
         last.gpu_trace = add(last.gpu_trace, profile.gpu_trace);
         last.gpu_readback = add(last.gpu_readback, profile.gpu_readback);
         drop(last);
-        self.ctx.check_validation()?;
+        self.shared.ctx.check_validation()?;
         Ok(stored)
     }
 
@@ -134,23 +163,24 @@ impl Tracer {
         let exact_scene = if exact { Some(scene.exact()?) } else { None };
         let outputs = Field::Prim.bit();
         let all = Request { query: Query::All, ..request };
-        let (variant, sensor) = self.gpu_variant(scene, rays, all, exact, outputs)?;
+        let (variant, sensor) = self.shared.gpu_variant(scene, rays, all, exact, outputs)?;
         // The counting pass's layouts (its rays reach traversal the same either way).
-        let compact_variant = self.compact_variant(scene, rays, all, outputs, exact || sensor.is_some())?;
+        let compact_variant = self.shared.compact_variant(scene, rays, all, outputs, exact || sensor.is_some())?;
         let offsets = &stored.offsets;
         let widest = offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0);
         let total = *offsets.last().unwrap_or(&0) as usize;
-        let record_capacity = (record_budget(self.ctx.unified_memory) / size_of::<R>()).max(widest).min(total).max(1);
-        let ray_capacity = self.chunk_capacity(rays.len());
+        let record_capacity =
+            (record_budget(self.shared.ctx.unified_memory) / size_of::<R>()).max(widest).min(total).max(1);
+        let ray_capacity = self.shared.chunk_capacity(rays.len());
         let plan = plan_chunks(offsets, ray_capacity, record_capacity);
-        let mut slots = self.with_memory(|| self.slots.take(ray_capacity, exact))?;
+        let mut slots = self.shared.with_memory(|| self.shared.slots.take(ray_capacity, exact))?;
         // One set of lists per chunk in flight: two, or one for a query of one chunk.
         let mut lists = Vec::new();
         for _ in 0..plan.len().min(2) {
-            match self.with_memory(|| self.take_lists(ray_capacity, record_capacity * size_of::<R>())) {
+            match self.shared.with_memory(|| self.take_lists(ray_capacity, record_capacity * size_of::<R>())) {
                 Ok(taken) => lists.push(taken),
                 Err(error) => {
-                    self.slots.give_back(slots);
+                    self.shared.slots.give_back(slots);
                     self.give_back_lists(lists);
                     return Err(error);
                 }
@@ -172,7 +202,7 @@ impl Tracer {
             cap: None,
         };
         let result = self.store_chunks(&job, &plan, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
-        self.slots.give_back(slots);
+        self.shared.slots.give_back(slots);
         self.give_back_lists(lists);
         result
     }
@@ -190,7 +220,7 @@ impl Tracer {
         profile: &mut TraceProfile,
     ) -> Result<()> {
         // Dropping these on an error waits for the chunks in flight before their memory goes.
-        let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
+        let mut commands = [Commands::new(&self.shared.ctx)?, Commands::new(&self.shared.ctx)?];
         let mut in_flight: [Option<(usize, usize, Vec<crate::geometry::rays::Advance>)>; 2] = [None, None];
         let mut finished = 0;
         for (chunk, &(start, end)) in plan.iter().enumerate() {
@@ -207,7 +237,14 @@ impl Tracer {
             let bytes = (stored.offsets[end] - stored.offsets[start]) as usize * size_of::<R>();
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_chunk(commands[s].buffer, job, &slots[s], start, end - start, Some((&lists[s], bytes)));
+            self.rays.chunks.record_chunk(
+                commands[s].buffer,
+                job,
+                &slots[s],
+                start,
+                end - start,
+                Some((&lists[s], bytes)),
+            );
             commands[s].submit()?;
             in_flight[s] = Some((start, end, advances));
         }
@@ -227,23 +264,23 @@ impl Tracer {
 
 /// Idle lists kept between queries (two a query): as many as were in use at once, at least two
 /// and at most eight, each of at most `IDLE_RECORD_BYTES` of records.
-pub(super) const IDLE_LISTS: (usize, usize) = (2, 8);
+pub const IDLE_LISTS: (usize, usize) = (2, 8);
 const IDLE_RECORD_BYTES: usize = 64 << 20;
 
-impl Tracer {
+impl AllHitsPath {
     /// Lists for `rays` rays and `record_bytes` of records: idle ones where they fit, new ones
     /// (allocated outside the lock) otherwise.
     fn take_lists(&self, rays: usize, record_bytes: usize) -> Result<ListBuffers> {
         let fits = |l: &ListBuffers| l.rays >= rays && l.record_bytes >= record_bytes;
-        if let Some(lists) = self.idle_lists.take(1, fits, |_| true).pop() {
+        if let Some(lists) = self.lists.take(1, fits, |_| true).pop() {
             return Ok(lists);
         }
-        ListBuffers::new(&self.ctx, rays, record_bytes).inspect_err(|_| self.idle_lists.give_back(1, []))
+        ListBuffers::new(&self.shared.ctx, rays, record_bytes).inspect_err(|_| self.lists.give_back(1, []))
     }
 
     fn give_back_lists(&self, lists: Vec<ListBuffers>) {
         let returned = lists.len();
-        self.idle_lists.give_back(returned, lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
+        self.lists.give_back(returned, lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
     }
 }
 
@@ -319,7 +356,7 @@ fn finish_stored<R: HitRecord>(
 
 /// A stored hit record: the order of a ray's hits (the shaders' `is_before`; `Equal`: the same
 /// hit, met twice).
-pub(super) trait HitRecord: Pod + Send + Sync {
+pub trait HitRecord: Pod + Send + Sync {
     fn order(&self, other: &Self) -> Ordering;
 }
 
@@ -402,7 +439,7 @@ impl<R: HitRecord> StoredHits<R> {
 
 impl StoredHits<ExactHit> {
     /// The exact tier's hits as the CPU tracer's (the same record).
-    pub(super) fn into_all_hits(self) -> AllHits {
+    pub fn into_all_hits(self) -> AllHits {
         AllHits { offsets: self.offsets, hits: self.records, wide: true }
     }
 }
@@ -410,7 +447,7 @@ impl StoredHits<ExactHit> {
 impl StoredHits<FastHit> {
     /// The fast tier's hits with their triangles counted among all parts of their mesh and far
     /// rays' `t` measured from their own origin.
-    pub(super) fn into_all_hits(mut self, scene: &Scene) -> Result<AllHits> {
+    pub fn into_all_hits(mut self, scene: &Scene) -> Result<AllHits> {
         parallel::install(|| {
             self.records.par_iter_mut().with_min_len(4096).for_each(|record| {
                 let r = *record;

@@ -7,17 +7,17 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::arrays::{Bound1, IndexArray, Vec3Array};
-use super::mesh::PyMesh;
-use super::scene::{InstanceItem, PyScene};
-use super::{run, run_reporting};
+use super::calls::{run, run_reporting};
+use super::mesh_binding::PyMesh;
+use super::numpy_views::{Bound1, IndexArray, Vec3Array};
+use super::scene_binding::{InstanceItem, PyScene};
 use crate::error::{Error, Result};
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::vertex_format::VertexFormat;
-use crate::gpu::accel::{BuildOptions, BuildPreference, BuildStats};
+use crate::gpu::accel::{BuildOptions, BuildPreference};
 use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest};
 use crate::scene::{Instance, InstanceFlags, Mesh, MeshInput, Scene, IDENTITY};
-use crate::trace::Tracer;
+use crate::trace::{Tracer, VulkanEngine};
 
 pub(super) fn info_dict<'py>(py: Python<'py>, info: &DeviceInfo) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
@@ -33,24 +33,6 @@ pub(super) fn info_dict<'py>(py: Python<'py>, info: &DeviceInfo) -> PyResult<Bou
     Ok(d)
 }
 
-pub(super) fn stats_dict<'py>(
-    py: Python<'py>,
-    stats: &BuildStats,
-    options: &BuildOptions,
-) -> PyResult<Bound<'py, PyDict>> {
-    let d = PyDict::new(py);
-    d.set_item("build", options.preference.name())?;
-    d.set_item("allow_update", options.allow_update)?;
-    d.set_item("compacted", options.compact)?;
-    d.set_item("built_bytes", stats.built_size)?;
-    d.set_item("bytes", stats.size)?;
-    d.set_item("scratch_bytes", stats.scratch_size)?;
-    d.set_item("update_scratch_bytes", stats.update_scratch_size)?;
-    d.set_item("build_seconds", stats.build_seconds)?;
-    d.set_item("batch", stats.batch)?;
-    Ok(d)
-}
-
 fn build_options(build: &str, allow_update: bool, compact: bool) -> Result<BuildOptions> {
     Ok(BuildOptions { preference: BuildPreference::parse(build)?, allow_update, compact })
 }
@@ -59,7 +41,7 @@ fn build_options(build: &str, allow_update: bool, compact: bool) -> Result<Build
 #[pyclass(name = "Device", module = "vkray._core", frozen)]
 pub(super) struct PyDevice {
     ctx: Arc<Context>,
-    tracer: Arc<Tracer>,
+    tracer: Arc<Tracer<VulkanEngine>>,
 }
 
 #[pymethods]
@@ -71,7 +53,7 @@ impl PyDevice {
             .with_environment()?;
         let (ctx, tracer) = run(py, |_| -> Result<_> {
             let ctx = Context::new(&request)?;
-            let tracer = Arc::new(Tracer::new(&ctx)?);
+            let tracer = Arc::new(Tracer::new(VulkanEngine::new(&ctx)?));
             Ok((ctx, tracer))
         })?;
         Ok(PyDevice { ctx, tracer })
@@ -157,7 +139,7 @@ impl PyDevice {
     /// not a CUDA device that shares memory with Vulkan.
     #[getter]
     fn cuda_device(&self, py: Python<'_>) -> PyResult<Option<i32>> {
-        run(py, |_| Ok(self.tracer.cuda()?.map(|cuda| cuda.ordinal)))
+        run(py, |_| Ok(self.tracer.engine().cuda.cuda()?.map(|cuda| cuda.ordinal)))
     }
 
     #[getter]
@@ -297,7 +279,7 @@ impl PyDevice {
                         ))
                     })?;
                     let rows = t.shape()[0];
-                    let t = super::arrays::read(&format!("instance {i}: transform"), t)?;
+                    let t = super::numpy_views::read(&format!("instance {i}: transform"), t)?;
                     instance_transform(t.as_slice()?, rows).map_err(|e| match e {
                         Error::InvalidValue(m) => Error::InvalidValue(format!("instance {i}: {m}")),
                         Error::InvalidType(m) => Error::InvalidType(format!("instance {i}: {m}")),

@@ -11,20 +11,19 @@ use ash::vk;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::fields::{Field, HitSink};
-use super::idle::{pair_bytes, Held, IdleMemory, IdlePool};
-use super::profile::{Stamp, Stamps, TraceProfile};
-use super::request::Precision;
-use super::tiers;
-use super::tracer::Tracer;
+use super::shared::Shared;
+use super::staging::pair_bytes;
+use super::timestamps::{Stamp, Stamps};
 use super::variants::Variant;
-use crate::error::{try_vec, Result};
+use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
+use crate::geometry::parallel::try_vec;
 use crate::geometry::reference::ReferenceHit;
 use crate::geometry::winding::CAP_MARGIN_DIVISOR;
 use crate::gpu::compute::ComputeKernel;
-use crate::gpu::context::{Commands, Context, Interrupt};
+use crate::gpu::context::{Backend, Commands, Context};
 use crate::gpu::memory::{memory_barrier, upload_staging, Buffer, MemoryLocation};
 use crate::gpu::records::{
     Params, PointHit, PointOrderParams, PointParams, PointRays, SignPointsParams, POINT_ORDER_COUNT, POINT_ORDER_SCAN,
@@ -32,6 +31,11 @@ use crate::gpu::records::{
 };
 use crate::gpu::shaders;
 use crate::scene::{ClosestScene, Scene, WindingScene, WINDING_MARGIN, WINDING_TERM_ERROR};
+use crate::trace::hit_fields::{Field, HitSink};
+use crate::trace::host_tiers;
+use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
+use crate::trace::profile::TraceProfile;
+use crate::trace::request::Precision;
 
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
@@ -126,12 +130,14 @@ impl PointPipelines {
     pub(super) fn give_back(&self, slots: [PointSlot; 2]) {
         self.idle.give_back(2, slots);
     }
+}
 
-    pub(super) fn idle_memory(&self) -> IdleMemory {
+impl Idle for PointPipelines {
+    fn memory(&self) -> IdleMemory {
         self.idle.memory()
     }
 
-    pub(super) fn release_idle(&self) {
+    fn clear(&self) {
         self.idle.clear();
     }
 }
@@ -309,11 +315,27 @@ pub(super) struct OrderGrid {
     pipeline: vk::Pipeline,
 }
 
-impl Tracer {
+/// The closest-points path: the point kernels (closest points in f32 or f64, winding numbers,
+/// signs, grid order) and their idle staging.
+pub struct ClosestPoints {
+    shared: Arc<Shared>,
+    points: Arc<PointPipelines>,
+}
+
+impl ClosestPoints {
+    pub fn new(shared: &Arc<Shared>, points: &Arc<PointPipelines>) -> ClosestPoints {
+        ClosestPoints { shared: shared.clone(), points: points.clone() }
+    }
+
+    /// The point kernels and their idle staging.
+    pub(super) fn pipelines(&self) -> &PointPipelines {
+        &self.points
+    }
+
     /// The surface point nearest to each point within `max_distance`, on the GPU, its fields
     /// written into `sink`: measured in f64 (`Precision::Exact`, the reference tier's answers) or
     /// in f32 (`Fast`).
-    pub(super) fn gpu_closest_points(
+    pub fn run(
         &self,
         scene: &Scene,
         points: Vec3s,
@@ -333,7 +355,7 @@ impl Tracer {
         let mut hits: Vec<PointHit> =
             if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
         let capacity = self.point_capacity(n, full);
-        let mut slots = self.with_memory(|| self.points.take_slots(capacity, full, false))?;
+        let mut slots = self.shared.with_memory(|| self.points.take_slots(capacity, full, false))?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
             if let Some(out) = distances.as_deref_mut() {
@@ -355,7 +377,7 @@ impl Tracer {
                 Some(bytes) => bytemuck::cast_slice::<u8, f64>(bytes).to_vec(),
                 None => Vec::new(),
             };
-            tiers::write_closest(scene, sink, |i| {
+            host_tiers::write_closest(scene, sink, |i| {
                 let h = &hits[i];
                 (h.instance >= 0).then(|| {
                     let distance = t.get(i).copied().unwrap_or(0.0);
@@ -398,7 +420,7 @@ impl Tracer {
     /// each point on the GPU (f64 terms, f32 arctangents), decided on the host: inside at 1/2 or
     /// more; points whose number lies within the GPU's error of 1/2, on the CPU in f64; points
     /// outside, unless on a surface (the CPU's test). The reference tier's answers.
-    pub(super) fn gpu_contains_by_winding(
+    pub fn contains_by_winding(
         &self,
         scene: &Scene,
         points: Vec3s,
@@ -422,7 +444,7 @@ impl Tracer {
         };
         let mut winding = try_vec(n, 0.0f64, "winding numbers")?;
         let capacity = self.point_capacity(n, false);
-        let mut slots = self.with_memory(|| self.points.take_slots(capacity, false, false))?;
+        let mut slots = self.shared.with_memory(|| self.points.take_slots(capacity, false, false))?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
             parallel::copy(bytemuck::cast_slice_mut(&mut winding[start..start + len]), &results[..8 * len]);
@@ -430,7 +452,7 @@ impl Tracer {
         self.points.give_back(slots);
         result?;
         let most = scene.placements.iter().map(|p| p.triangles.faces.len()).max().unwrap_or(0);
-        tiers::inside_by_winding(
+        host_tiers::inside_by_winding(
             scene,
             points,
             &winding,
@@ -442,7 +464,7 @@ impl Tracer {
 
     /// Points per chunk for a query of `n` points (with `full` outputs, or one f64 a point).
     pub(super) fn point_capacity(&self, n: usize, full: bool) -> usize {
-        let most = if full || self.ctx.info.is_software { CHUNK_POINTS } else { LEAN_CHUNK_POINTS };
+        let most = if full || self.shared.ctx.info.is_software { CHUNK_POINTS } else { LEAN_CHUNK_POINTS };
         let most = chunk_points_asked().unwrap_or(most);
         most.min(self.points.kernels[0].max_invocations()).min(n).max(1)
     }
@@ -467,7 +489,7 @@ impl Tracer {
             clock = now;
         };
         // Dropping these on an error waits for the chunks in flight before their memory goes.
-        let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
+        let mut commands = [Commands::new(&self.shared.ctx)?, Commands::new(&self.shared.ctx)?];
         let mut in_flight: [Option<(usize, usize)>; 2] = [None, None];
         let mut finished = 0;
         let mut finish = |slot: &PointSlot, (start, len): (usize, usize), profile: &mut TraceProfile| -> Result<()> {
@@ -508,13 +530,13 @@ impl Tracer {
             lap(&mut profile.unpack);
         }
         profile.total = started.elapsed().as_secs_f64();
-        self.keep_profile(profile);
+        self.shared.keep_profile(profile);
         Ok(())
     }
 
     /// Records one chunk: its upload (discrete GPUs), the search, its readback.
     fn record_points(&self, cmd: vk::CommandBuffer, job: &PointJob, slot: &PointSlot, len: usize) {
-        let ctx = &self.ctx;
+        let ctx = &self.shared.ctx;
         let device = &ctx.device;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         let stamp = |k| {
@@ -617,13 +639,119 @@ impl Tracer {
         memory_barrier(ctx, cmd, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE, host.0, host.1);
         stamp(Stamp::ReadBack);
     }
+    /// Records the sign's trace of a chunk after its search: the chunk's `PointRays` record,
+    /// then one ray from each of its `len` points, in the search's `order` (its address, or 0:
+    /// as they come), then sign_points.comp over the chunk. Returns the stage whose writes the
+    /// readback waits for.
+    pub(super) fn record_sign_trace(
+        &self,
+        cmd: vk::CommandBuffer,
+        sign: &SignTrace,
+        slot: &PointSlot,
+        center: DVec3,
+        order: u64,
+        len: usize,
+    ) -> vk::PipelineStageFlags {
+        let ctx = &self.shared.ctx;
+        let stage = match ctx.backend {
+            Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
+            Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
+        };
+        let record_buffer = slot.rays_record().expect("a slot for signs has a rays record");
+        let layout = slot.results_layout();
+        let results = slot.results_address();
+        // SAFETY: `cmd` is recording outside a render pass; the results buffer is TRANSFER_DST
+        // and holds the unsure bits' words at this 4-aligned offset (ResultsLayout).
+        unsafe {
+            ctx.device.cmd_fill_buffer(cmd, slot.results_buffer(), layout.unsure as u64, 4 * len.div_ceil(32) as u64, 0)
+        };
+        let record = PointRays {
+            points: slot.points_address(),
+            order,
+            shift: center.to_array(),
+            direction: sign.direction,
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        };
+        // SAFETY: `cmd` is recording outside a render pass; the buffer is TRANSFER_DST, holds one
+        // record, and the record is a multiple of 4 bytes and at most 65,536.
+        unsafe { ctx.device.cmd_update_buffer(cmd, record_buffer.raw(), 0, bytemuck::bytes_of(&record)) };
+        // The record (and, on discrete GPUs, the points' upload; and the order) before the rays
+        // read them.
+        memory_barrier(
+            ctx,
+            cmd,
+            vk::PipelineStageFlags::TRANSFER | vk::PipelineStageFlags::COMPUTE_SHADER,
+            vk::AccessFlags::TRANSFER_WRITE | vk::AccessFlags::SHADER_WRITE,
+            stage,
+            vk::AccessFlags::SHADER_READ,
+        );
+        let mut params = Params { rays: record_buffer.address(), count: len as u32, ..sign.params };
+        params.outputs[Field::Prim as usize] = results + layout.crossings as u64;
+        if sign.cap_winding {
+            params.outputs[Field::T as usize] = results + layout.cap_winding as u64;
+        }
+        self.shared.record_trace(cmd, sign.variant, &params, len);
+        self.record_sign_points(cmd, sign, slot, stage, len);
+        vk::PipelineStageFlags::COMPUTE_SHADER
+    }
+
+    /// Records sign_points.comp over a chunk whose distances and crossings were written (by
+    /// `stage`'s shaders, and its unsure bits cleared by a copy).
+    fn record_sign_points(
+        &self,
+        cmd: vk::CommandBuffer,
+        sign: &SignTrace,
+        slot: &PointSlot,
+        stage: vk::PipelineStageFlags,
+        len: usize,
+    ) {
+        let ctx = &self.shared.ctx;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        memory_barrier(
+            ctx,
+            cmd,
+            compute | stage | vk::PipelineStageFlags::TRANSFER,
+            vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE,
+            compute,
+            vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE,
+        );
+        let layout = slot.results_layout();
+        let results = slot.results_address();
+        let params = SignPointsParams {
+            distances: results,
+            crossings: results + layout.crossings as u64,
+            cap_winding: if sign.cap_winding { results + layout.cap_winding as u64 } else { 0 },
+            unsure: results + layout.unsure as u64,
+            // As host_tiers::mark_by_crossings computes them.
+            inside_from: 0.5 + sign.band,
+            outside_below: 0.5 - sign.band,
+            count: len as u32,
+            unused: 0,
+        };
+        let kernel = &self.points.sign;
+        // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
+        // cover exactly the layout's range; the group count is within maxComputeWorkGroupCount
+        // (the chunk's capacity is, `point_capacity`).
+        unsafe {
+            ctx.device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, sign.combine);
+            ctx.device.cmd_push_constants(
+                cmd,
+                kernel.layout(),
+                vk::ShaderStageFlags::COMPUTE,
+                0,
+                bytemuck::bytes_of(&params),
+            );
+            ctx.device.cmd_dispatch(cmd, (len as u32).div_ceil(kernel.local_size), 1, 1);
+        }
+    }
 }
 
-impl Tracer {
+impl ClosestPoints {
     /// Records point_order.comp's three passes over a chunk's points (already on the device):
     /// the slot's `order` then lists them cell by cell along a Morton curve over `grid`.
     fn record_order(&self, cmd: vk::CommandBuffer, slot: &PointSlot, len: usize, grid: OrderGrid) {
-        let ctx = &self.ctx;
+        let ctx = &self.shared.ctx;
         let kernel = &self.points.order;
         let OrderGrid { corner, scale, pipeline } = grid;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;

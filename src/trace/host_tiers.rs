@@ -4,15 +4,16 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::fields::{Field, HitSink};
+use super::hit_fields::{Field, HitSink};
 use super::request::Crossings;
-use crate::error::{try_vec, Error, Result};
+use crate::error::{Error, Result};
 use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
+use crate::geometry::parallel::try_vec;
 use crate::geometry::precision::{plane_hit, world_normal, Cull, Ray64};
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::{ClosestHit, Filter, ReferenceHit};
-use crate::gpu::context::Interrupt;
 use crate::scene::{MeshKind, Scene};
 
 /// Writes one field for every ray, on all cores: `value(i, out)` fills ray i's bytes.

@@ -1,4 +1,5 @@
-//! The chunk loop: rays go through in chunks that fit the device's dispatch limits and the
+//! The closest-hit path (`RayChunks`): every GPU ray query whose rays the host packs goes through
+//! the chunk loop: rays go through in chunks that fit the device's dispatch limits and the
 //! staging slots, two chunks in flight so that packing the next overlaps tracing the current one.
 //! Between chunks the caller may interrupt (Ctrl-C); chunks in flight finish first.
 
@@ -7,20 +8,23 @@ use std::time::Instant;
 use ash::vk;
 use rayon::prelude::*;
 
-use super::fields::{hits_from_prims, Field, HitSink, FIELDS};
-use super::idle::{pair_bytes, Held};
-use super::profile::{Stamp, TraceProfile};
-use super::staging::{HitReadback, RayStaging, Slot};
-use super::tracer::Tracer;
-use super::variants::{push_constant_stages, Variant};
-use crate::error::Result;
+use super::shared::Shared;
+use super::staging::{pair_bytes, HitReadback, RayStaging, Slot};
+use super::timestamps::Stamp;
+use super::variants::Variant;
+use crate::error::{invalid_value, Result};
 use crate::geometry::parallel;
 use crate::geometry::rays::{Advance, Frame, Masks, RayLayout, Rays, RAY_FLOATS};
+use crate::trace::hit_fields::{hits_from_prims, Field, HitSink, FIELDS};
+use crate::trace::idle::Held;
+use crate::trace::profile::TraceProfile;
+use crate::trace::request::{Query, Request};
 use std::mem::size_of;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use crate::gpu::context::{Backend, Commands, Context, Interrupt};
+use crate::geometry::interrupt::Interrupt;
+use crate::gpu::context::{Backend, Commands, Context};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{HitList, Params};
 use crate::scene::{ExactScene, Scene, WindingCap};
@@ -51,7 +55,7 @@ pub(super) struct GpuJob<'a> {
 
 /// The storing pass of all hits, per chunk in flight: each ray's `HitList` (uploaded with the
 /// rays) and the hit records the shaders keep in them (read back with the counts).
-pub(super) struct ListBuffers {
+pub struct ListBuffers {
     pub lists_host: Buffer,
     pub records_host: Buffer,
     /// Device copies (discrete GPUs): lists, records.
@@ -112,10 +116,74 @@ struct InFlight {
     advances: Vec<Advance>,
 }
 
-impl Tracer {
+/// The closest-hit path: rays the host packs into staging, traced two chunks in flight. It owns
+/// nothing of its own: staging and variants are the shared value's.
+#[derive(Clone)]
+pub struct RayChunks {
+    shared: Arc<Shared>,
+}
+
+impl RayChunks {
+    pub fn new(shared: &Arc<Shared>) -> RayChunks {
+        RayChunks { shared: shared.clone() }
+    }
+
+    /// The GPU's part of a query on rays the host packs: traversal in f32 (`exact`: through the
+    /// scene's per-triangle boxes, each candidate decided by the f64 test).
+    #[allow(clippy::too_many_arguments)]
+    pub fn run(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        exact: bool,
+        sink: &mut HitSink,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let shared = &*self.shared;
+        let outputs = sink.outputs();
+        // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
+        let exact_scene = if exact { Some(scene.exact()?) } else { None };
+        let all_hits = request.query.counts_hits();
+        let (variant, sensor) = shared.gpu_variant(scene, rays, request, exact, outputs)?;
+        let capacity = shared.host_chunk_capacity(rays.len());
+        let frame = scene.frame();
+        let sensor = sensor.as_ref();
+        let cap = match request.query {
+            Query::Winding => Some(scene.winding_cap()?.ok_or_else(|| {
+                invalid_value("a winding query needs a scene of one instance whose mesh has a cap (WindingCap)")
+            })?),
+            _ => None,
+        };
+        let (exact, cap) = (exact_scene.as_deref(), cap.as_deref());
+        let compact_variant =
+            shared.compact_variant(scene, rays, request, outputs, exact_scene.is_some() || sensor.is_some())?;
+        let compact = compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant));
+        let compact_refused = Default::default();
+        // Taken last: nothing fails between here and their return.
+        let mut slots = shared.with_memory(|| shared.slots.take(capacity, exact.is_some()))?;
+        let job = GpuJob {
+            scene,
+            exact,
+            rays,
+            variant: &variant,
+            compact,
+            compact_refused,
+            outputs,
+            frame,
+            all_hits,
+            sensor,
+            cap,
+        };
+        let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
+        shared.slots.give_back(slots);
+        result
+    }
+
     /// Traces every ray of `job` through the two `slots` of `capacity` rays each, unpacking each
     /// finished chunk into `sink`.
-    pub(super) fn trace_chunks(
+    fn trace_chunks(
         &self,
         job: &GpuJob,
         sink: &mut HitSink,
@@ -132,7 +200,7 @@ impl Tracer {
             clock = now;
         };
         // Dropping these on an error waits for the chunks in flight before their memory goes.
-        let mut commands = [Commands::new(&self.ctx)?, Commands::new(&self.ctx)?];
+        let mut commands = [Commands::new(&self.shared.ctx)?, Commands::new(&self.shared.ctx)?];
         let mut in_flight: [Option<InFlight>; 2] = [None, None];
         // Rays whose chunk finished, for `Interrupt::progress` (chunks finish out of order at the end).
         let mut finished = 0;
@@ -207,7 +275,7 @@ impl Tracer {
         len: usize,
         lists: ChunkLists,
     ) {
-        let ctx = &self.ctx;
+        let ctx = &self.shared.ctx;
         let device = &ctx.device;
         let stamp = |k| {
             if let Some(stamps) = &slot.stamps {
@@ -267,43 +335,10 @@ impl Tracer {
             Some((layout, compact)) if slot.layout == layout => compact,
             _ => job.variant,
         };
-        self.record_trace(cmd, variant, &params, len);
+        self.shared.record_trace(cmd, variant, &params, len);
         stamp(Stamp::Traced);
         record_readback(ctx, cmd, slot, job.outputs, len, lists, shader_stage);
         stamp(Stamp::ReadBack);
-    }
-}
-
-impl Tracer {
-    /// Records the trace of `len` rays (within the device's dispatch limits) by `variant`.
-    pub(super) fn record_trace(&self, cmd: vk::CommandBuffer, variant: &Variant, params: &Params, len: usize) {
-        let ctx = &self.ctx;
-        let bind_point = match ctx.backend {
-            Backend::RayQuery => vk::PipelineBindPoint::COMPUTE,
-            Backend::Pipeline => vk::PipelineBindPoint::RAY_TRACING_KHR,
-        };
-        // SAFETY: `cmd` is recording; the pipeline and its layout are live, and the push
-        // constants cover exactly the range the layout declares.
-        unsafe {
-            ctx.device.cmd_bind_pipeline(cmd, bind_point, variant.pipeline);
-            ctx.device.cmd_push_constants(
-                cmd,
-                self.variants.layout,
-                push_constant_stages(ctx.backend),
-                0,
-                bytemuck::bytes_of(params),
-            );
-        }
-        match (&variant.sbt, ctx.pipeline_ext.as_ref()) {
-            // SAFETY: the SBT regions were laid out from this device's handle size and alignments
-            // and `len` is within the device's dispatch limits (`Tracer::max_dispatch_rays`).
-            (Some(sbt), Some(rt)) => unsafe {
-                let callable = vk::StridedDeviceAddressRegionKHR::default();
-                rt.cmd_trace_rays(cmd, &sbt.raygen, &sbt.miss, &sbt.hit, &callable, len as u32, 1, 1);
-            },
-            // SAFETY: as above, for the compute dispatch's group count.
-            _ => unsafe { ctx.device.cmd_dispatch(cmd, (len as u32).div_ceil(self.variants.local_size), 1, 1) },
-        }
     }
 }
 

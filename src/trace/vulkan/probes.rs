@@ -2,19 +2,21 @@
 //! the driver runs them (lavapipe lost the exact tier's scratch stores until they were made
 //! volatile: every ray missed). A driver that fails gets a clear error instead of wrong answers.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
-use super::fields::{Field, HitSink};
-use super::profile::TraceProfile;
-use super::request::{Cull, Precision, Query, Request};
-use super::tracer::Tracer;
+use super::ray_chunks::RayChunks;
+use super::shared::Shared;
 use crate::error::{Error, Result};
 use crate::geometry::arrays::{Indices, Vec3s};
+use crate::geometry::interrupt::NoInterrupt;
 use crate::geometry::rays::{Masks, PerRay, Rays};
 use crate::geometry::vertex_format::VertexFormat;
 use crate::gpu::accel::{BuildOptions, BuildPreference};
-use crate::gpu::context::{Backend, NoInterrupt};
+use crate::gpu::context::Backend;
 use crate::scene::{Instance, Mesh, Scene, IDENTITY};
+use crate::trace::hit_fields::{Field, HitSink};
+use crate::trace::profile::TraceProfile;
+use crate::trace::request::{Cull, Precision, Query, Request};
 
 /// The two paths through intersection shaders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -23,14 +25,38 @@ pub enum Probe {
     Spheres = 1,
 }
 
-impl Tracer {
+/// The probes' answers, once known, and the path they run down.
+pub struct Probes {
+    shared: Arc<Shared>,
+    chunks: RayChunks,
+    /// Whether this driver runs the intersection shaders of each `Probe` path, once known.
+    runs: [OnceLock<bool>; 2],
+}
+
+impl Probes {
+    pub fn new(shared: &Arc<Shared>, chunks: &RayChunks) -> Probes {
+        Probes { shared: shared.clone(), chunks: chunks.clone(), runs: [OnceLock::new(), OnceLock::new()] }
+    }
+
+    /// Fails where this driver does not run the intersection shaders a GPU query on `scene`
+    /// needs (`exact`: the f64 test through per-triangle boxes; spheres).
+    pub fn check_paths(&self, scene: &Scene, exact: bool) -> Result<()> {
+        if exact {
+            self.check_intersection_shaders(Probe::Exact)?;
+        }
+        if scene.has_spheres() {
+            self.check_intersection_shaders(Probe::Spheres)?;
+        }
+        Ok(())
+    }
+
     /// Fails where this device's pipeline backend does not run `probe`'s intersection shaders.
     /// The answer is computed once, without holding any lock (two threads may both probe).
-    pub(super) fn check_intersection_shaders(&self, probe: Probe) -> Result<()> {
-        if self.ctx.backend != Backend::Pipeline {
+    fn check_intersection_shaders(&self, probe: Probe) -> Result<()> {
+        if self.shared.ctx.backend != Backend::Pipeline {
             return Ok(());
         }
-        let cell = &self.probes[probe as usize];
+        let cell = &self.runs[probe as usize];
         let runs = match cell.get() {
             Some(runs) => *runs,
             None => {
@@ -47,7 +73,7 @@ impl Tracer {
         };
         Err(Error::Unsupported(format!(
             "{} ({}) does not run the intersection shaders of {what} in ray-tracing pipelines; use backend='ray_query'{instead}",
-            self.ctx.info.name, self.ctx.info.driver
+            self.shared.ctx.info.name, self.shared.ctx.info.driver
         )))
     }
 
@@ -56,10 +82,14 @@ impl Tracer {
         let options = BuildOptions { preference: BuildPreference::FastBuild, allow_update: false, compact: false };
         let triangle = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
         let mesh = match probe {
-            Probe::Exact => {
-                Mesh::build(&self.ctx, Vec3s::F64(&triangle), Indices::U32(&[0, 1, 2]), options, VertexFormat::F32)?
-            }
-            Probe::Spheres => Mesh::spheres(&self.ctx, Vec3s::F64(&[0.0; 3]), PerRay::All(1.0), options)?,
+            Probe::Exact => Mesh::build(
+                &self.shared.ctx,
+                Vec3s::F64(&triangle),
+                Indices::U32(&[0, 1, 2]),
+                options,
+                VertexFormat::F32,
+            )?,
+            Probe::Spheres => Mesh::spheres(&self.shared.ctx, Vec3s::F64(&[0.0; 3]), PerRay::All(1.0), options)?,
         };
         let instance = Instance {
             mesh: Arc::new(mesh),
@@ -68,7 +98,7 @@ impl Tracer {
             mask: 0xFF,
             flags: Default::default(),
         };
-        let scene = Scene::build(&self.ctx, &[instance], options)?;
+        let scene = Scene::build(&self.shared.ctx, &[instance], options)?;
         let rays = Rays {
             origins: Vec3s::F64(&[0.25, 0.25, 5.0]),
             directions: Vec3s::F64(&[0.0, 0.0, -1.0]),
@@ -83,7 +113,7 @@ impl Tracer {
         let exact = probe == Probe::Exact;
         let precision = if exact { Precision::Exact } else { Precision::Fast };
         let request = Request::new(Query::Closest, precision, Cull::None);
-        self.run_gpu(&scene, &rays, request, exact, &mut sink, &NoInterrupt, &mut TraceProfile::default())?;
+        self.chunks.run(&scene, &rays, request, exact, &mut sink, &NoInterrupt, &mut TraceProfile::default())?;
         Ok(i32::from_ne_bytes(prim) == 0)
     }
 }

@@ -7,14 +7,14 @@ use std::sync::{Arc, Mutex};
 
 use ash::vk;
 
-use super::request::{Cull, Query};
 use crate::error::{vulkan_error, Result, VkResultExt};
-use crate::geometry::align_up;
+use crate::geometry::align::align_up;
 use crate::geometry::rays::RayLayout;
 use crate::gpu::context::{Backend, Context};
 use crate::gpu::memory::{Buffer, Uploads};
 use crate::gpu::records::Params;
 use crate::gpu::shaders;
+use crate::trace::request::{Cull, Query};
 
 /// What a variant is specialized to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -279,6 +279,39 @@ pub struct Variants {
     /// Compute workgroup size (ray-query backend).
     pub local_size: u32,
     cache: Mutex<HashMap<VariantKey, Arc<Variant>>>,
+}
+
+impl Variants {
+    /// Records the trace of `len` rays (within the device's dispatch limits) by `variant`.
+    pub fn record_trace(&self, cmd: vk::CommandBuffer, variant: &Variant, params: &Params, len: usize) {
+        let ctx = &self.ctx;
+        let bind_point = match ctx.backend {
+            Backend::RayQuery => vk::PipelineBindPoint::COMPUTE,
+            Backend::Pipeline => vk::PipelineBindPoint::RAY_TRACING_KHR,
+        };
+        // SAFETY: `cmd` is recording; the pipeline and its layout are live, and the push
+        // constants cover exactly the range the layout declares.
+        unsafe {
+            ctx.device.cmd_bind_pipeline(cmd, bind_point, variant.pipeline);
+            ctx.device.cmd_push_constants(
+                cmd,
+                self.layout,
+                push_constant_stages(ctx.backend),
+                0,
+                bytemuck::bytes_of(params),
+            );
+        }
+        match (&variant.sbt, ctx.pipeline_ext.as_ref()) {
+            // SAFETY: the SBT regions were laid out from this device's handle size and alignments
+            // and `len` is within the device's dispatch limits (`Shared::max_dispatch_rays`).
+            (Some(sbt), Some(rt)) => unsafe {
+                let callable = vk::StridedDeviceAddressRegionKHR::default();
+                rt.cmd_trace_rays(cmd, &sbt.raygen, &sbt.miss, &sbt.hit, &callable, len as u32, 1, 1);
+            },
+            // SAFETY: as above, for the compute dispatch's group count.
+            _ => unsafe { ctx.device.cmd_dispatch(cmd, (len as u32).div_ceil(self.local_size), 1, 1) },
+        }
+    }
 }
 
 /// Threads per compute workgroup, within the device's limits.
@@ -595,5 +628,45 @@ mod tests {
             assert_eq!(offset % 64, 0);
         }
         assert_eq!(nvidia.total, 192);
+    }
+}
+
+#[cfg(test)]
+mod flag_tests {
+    use super::*;
+    use crate::gpu::context::Backend;
+    use crate::gpu::records::Params;
+    use crate::trace::request::{Cull, Query};
+
+    #[test]
+    fn params_fit_every_device_push_constants() {
+        // Vulkan guarantees 128 bytes of push constants.
+        assert!(std::mem::size_of::<Params>() <= 128);
+    }
+
+    #[test]
+    fn occlusion_flags_terminate_on_first_hit() {
+        for backend in [Backend::RayQuery, Backend::Pipeline] {
+            for exact in [false, true] {
+                let flags = |query| ray_flags(query, Cull::None, backend, exact, true, false);
+                assert_ne!(flags(Query::Occluded) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                assert_eq!(flags(Query::Closest) & RAY_FLAG_TERMINATE_ON_FIRST_HIT, 0);
+                // The exact tier's structures are all AABBs.
+                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, true, true, false) & RAY_FLAG_SKIP_AABBS, 0);
+                // Spheres are boxes too.
+                assert_eq!(ray_flags(Query::Closest, Cull::None, backend, false, true, true) & RAY_FLAG_SKIP_AABBS, 0);
+            }
+        }
+        let pipeline = |query, cull, all_opaque| ray_flags(query, cull, Backend::Pipeline, false, all_opaque, false);
+        assert_ne!(
+            ray_flags(Query::Closest, Cull::None, Backend::RayQuery, false, true, false) & RAY_FLAG_SKIP_AABBS,
+            0
+        );
+        assert_ne!(pipeline(Query::Occluded, Cull::None, true) & RAY_FLAG_SKIP_CLOSEST_HIT_SHADER, 0);
+        assert_eq!(pipeline(Query::Closest, Cull::None, true) & RAY_FLAG_SKIP_AABBS, 0);
+        // Non-opaque instances must not be culled; culling follows the query.
+        assert_eq!(pipeline(Query::Closest, Cull::None, false) & RAY_FLAG_CULL_NO_OPAQUE, 0);
+        assert_ne!(pipeline(Query::Closest, Cull::Back, true) & RAY_FLAG_CULL_BACK_FACING_TRIANGLES, 0);
+        assert_ne!(pipeline(Query::Closest, Cull::Front, true) & RAY_FLAG_CULL_FRONT_FACING_TRIANGLES, 0);
     }
 }

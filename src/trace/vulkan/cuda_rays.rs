@@ -6,16 +6,17 @@
 
 use std::sync::{Arc, Mutex, OnceLock};
 
-use super::device_rays::{DeviceArray, DeviceBound, DeviceOutputs, DeviceRays, Ordering};
-use super::fields::{Field, FIELD_COUNT};
-use super::idle::{Held, IdleMemory, IdlePool};
-use super::request::Request;
-use super::tracer::Tracer;
+use super::packed_rays::{DeviceArray, DeviceBound, DeviceOutputs, DeviceRays, Ordering, PackedRays};
+use super::shared::Shared;
 use crate::error::{invalid_value, Error, Result};
-use crate::gpu::context::{Interrupt, Timeline};
+use crate::geometry::align::align_up;
+use crate::geometry::interrupt::Interrupt;
+use crate::gpu::context::Timeline;
 use crate::gpu::cuda::{Cuda, CudaAllocation, Event, SharedBuffer, SharedSemaphore, Stream};
-use crate::gpu::memory::align_up;
 use crate::scene::Scene;
+use crate::trace::hit_fields::{Field, FIELD_COUNT};
+use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
+use crate::trace::request::Request;
 
 /// One of the caller's CUDA arrays: `rows` rows of `columns` numbers (f32, or f64 where `wide`),
 /// with byte strides between rows and between a row's numbers (a stride of 0 repeats one row).
@@ -125,6 +126,17 @@ pub struct CudaState {
 /// Idle leases kept: as many as queries used at once, at least four, at most eight.
 const IDLE_LEASES: (usize, usize) = (4, 8);
 
+impl Idle for CudaState {
+    fn memory(&self) -> IdleMemory {
+        self.idle.memory()
+    }
+
+    /// Drops the idle leases (each waits for its stream's work).
+    fn clear(&self) {
+        self.idle.clear();
+    }
+}
+
 impl Default for CudaState {
     fn default() -> CudaState {
         CudaState { cuda: OnceLock::new(), idle: IdlePool::new(IDLE_LEASES.0, IDLE_LEASES.1) }
@@ -134,15 +146,28 @@ impl Default for CudaState {
 /// Alignment of each array within the shared buffers.
 const SHARED_ALIGN: u64 = 256;
 
-impl Tracer {
+/// The CUDA rays path: rays and hits in memory shared with CUDA, packed and traced by the
+/// GPU-packed rays path, ordered against the caller's CUDA streams. Owns the CUDA device and its
+/// idle leases.
+pub struct CudaRaysPath {
+    shared: Arc<Shared>,
+    packed: Arc<PackedRays>,
+    cuda: Arc<CudaState>,
+}
+
+impl CudaRaysPath {
+    pub fn new(shared: &Arc<Shared>, packed: &Arc<PackedRays>, cuda: &Arc<CudaState>) -> CudaRaysPath {
+        CudaRaysPath { shared: shared.clone(), packed: packed.clone(), cuda: cuda.clone() }
+    }
+
     /// The CUDA device that is this Vulkan device, where there is one (an NVIDIA GPU with the
     /// CUDA driver, and Vulkan able to share memory and semaphores with it).
     pub fn cuda(&self) -> Result<Option<Arc<Cuda>>> {
         if let Some(found) = self.cuda.cuda.get() {
             return Ok(found.clone());
         }
-        let found = if self.ctx.interop.export_fd && self.packs_rays() {
-            Cuda::open(self.ctx.interop.device_uuid)?
+        let found = if self.shared.ctx.interop.export_fd && self.packed.packs_rays() {
+            Cuda::open(self.shared.ctx.interop.device_uuid)?
         } else {
             None
         };
@@ -154,7 +179,7 @@ impl Tracer {
         if let Some(lease) = self.cuda.idle.take(1, |_| true, |_| true).pop() {
             return Ok(lease);
         }
-        self.with_memory(|| self.new_lease()).inspect_err(|_| self.cuda.idle.give_back(1, []))
+        self.shared.with_memory(|| self.new_lease()).inspect_err(|_| self.cuda.idle.give_back(1, []))
     }
 
     fn new_lease(&self) -> Result<CudaLease> {
@@ -162,10 +187,10 @@ impl Tracer {
             return Err(Error::Unsupported(format!(
                 "{} cannot share memory with CUDA (it is not an NVIDIA GPU with the CUDA driver and Vulkan's \
                  external memory and semaphore extensions)",
-                self.ctx.info.name
+                self.shared.ctx.info.name
             )));
         };
-        let semaphore = SharedSemaphore::new(&self.ctx, &cuda)?;
+        let semaphore = SharedSemaphore::new(&self.shared.ctx, &cuda)?;
         Ok(CudaLease { stream: Stream::new(&cuda)?, semaphore, value: 0, input: None, output: None })
     }
 
@@ -174,15 +199,6 @@ impl Tracer {
     /// A lease beyond those kept is dropped, which waits for its stream's work, with no lock held.
     pub fn give_back_lease(&self, lease: CudaLease) {
         self.cuda.idle.give_back(1, [lease]);
-    }
-
-    pub(super) fn idle_leases(&self) -> IdleMemory {
-        self.cuda.idle.memory()
-    }
-
-    /// Drops the idle leases (each waits for its stream's work).
-    pub(super) fn release_idle_leases(&self) {
-        self.cuda.idle.clear();
     }
 
     /// Traces `rays` (CUDA memory, ordered before `lease`'s stream by the caller's producer)
@@ -242,7 +258,7 @@ impl Tracer {
         fields: &[Field],
         interrupt: &dyn Interrupt,
     ) -> Result<CudaHits> {
-        if let Some(why) = super::device_rays::device_rays_refusal(request) {
+        if let Some(why) = super::packed_rays::device_rays_refusal(request) {
             return Err(invalid_value(why));
         }
         let cuda = self.cuda()?.expect("a lease implies CUDA");
@@ -250,14 +266,18 @@ impl Tracer {
         let input_bytes = layout_bytes(arrays.iter().map(|a| a.packed_bytes()));
         let output_bytes = layout_bytes(fields.iter().map(|f| rays.count * f.bytes_per_ray(false)));
         let stream = &lease.stream;
-        self.with_memory(|| grow(&self.ctx, &cuda, stream, &mut lease.input, input_bytes, "rays shared with CUDA"))?;
-        self.with_memory(|| grow(&self.ctx, &cuda, stream, &mut lease.output, output_bytes, "hits shared with CUDA"))?;
+        self.shared.with_memory(|| {
+            grow(&self.shared.ctx, &cuda, stream, &mut lease.input, input_bytes, "rays shared with CUDA")
+        })?;
+        self.shared.with_memory(|| {
+            grow(&self.shared.ctx, &cuda, stream, &mut lease.output, output_bytes, "hits shared with CUDA")
+        })?;
         let (input, output) = (lease.input.as_ref().expect("grown"), lease.output.as_ref().expect("grown"));
         let _current = cuda.enter()?;
         // The caller's rays into the shared buffer, tightly packed (each array in one place), in
         // the stream's order, chunk by chunk as Vulkan traces them: chunk k waits for `wait + k`,
         // so that tracing one chunk overlaps copying the next (over NVLink from another GPU).
-        let chunk_rays = self.device_chunk_capacity(rays.count);
+        let chunk_rays = self.packed.device_chunk_capacity(rays.count);
         let chunks = rays.count.div_ceil(chunk_rays).max(1) as u64;
         let (wait, signal) = (lease.value + 1, lease.value + 1 + chunks);
         lease.value = signal;
@@ -313,7 +333,7 @@ impl Tracer {
                     unsafe { stream.copy_2d_between((places.home, into[k], bytes), src, bytes, 1)? };
                     continue;
                 }
-                let allocation = self.with_memory(|| CudaAllocation::new(stream, bytes))?;
+                let allocation = self.shared.with_memory(|| CudaAllocation::new(stream, bytes))?;
                 // SAFETY: both are device memory of this context, live until the copy runs (the
                 // allocation is the caller's from now on, the shared buffer stays in the lease,
                 // whose later users queue on the same stream).
@@ -324,7 +344,7 @@ impl Tracer {
         };
         let timeline = Timeline { semaphore: semaphore.vulkan.semaphore, wait, signal: Some(signal) };
         let order = Ordering { timeline, after_submit: &mut after_submit, chunk_rays: Some(chunk_rays) };
-        let traced = self.trace_device_rays(scene, &device_rays, request, &outputs, Some(order), interrupt);
+        let traced = self.packed.trace_device_rays(scene, &device_rays, request, &outputs, Some(order), interrupt);
         let failure = match traced {
             Ok(None) => None,
             Ok(Some(row)) => Some(invalid_ray(places.home, rays, row)),

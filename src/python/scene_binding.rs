@@ -11,25 +11,26 @@ use pyo3::exceptions::{PyMemoryError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::arrays::{Bound1, MaskArray, Vec3Array};
-use super::device::stats_dict;
-use super::mesh::PyMesh;
-use super::{cuda_batch, dlpack, run, run_reporting};
-use crate::error::try_vec;
+use super::calls::{run, run_reporting};
+use super::mesh_binding::stats_dict;
+use super::mesh_binding::PyMesh;
+use super::numpy_views::{Bound1, MaskArray, Vec3Array};
+use super::{cuda_batch, dlpack};
 use crate::geometry::arrays::instance_transform;
+use crate::geometry::interrupt::Interrupt;
+use crate::geometry::parallel::try_vec;
 use crate::geometry::rays::Rays;
 use crate::geometry::sensor::{SensorKind, SensorRays};
-use crate::gpu::context::Interrupt;
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
-use crate::trace::fields::{position_bytes_per_ray, FIELDS};
-use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, SignedDistance, Tracer};
+use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
+use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, SignedDistance, Tracer, VulkanEngine};
 
 /// Instances under a top-level acceleration structure, ready for queries.
 #[pyclass(name = "Scene", module = "vkray._core", frozen)]
 pub(super) struct PyScene {
     pub(super) scene: RwLock<Scene>,
-    pub(super) tracer: std::sync::Arc<Tracer>,
+    pub(super) tracer: std::sync::Arc<Tracer<VulkanEngine>>,
 }
 
 /// (mesh, transform or None, custom_index, mask, flags) of one instance, as the Python layer
@@ -371,10 +372,10 @@ impl PyScene {
         let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
         let wanted = cuda_fields(&fields)?;
         let tracer = &self.tracer;
-        let Some(cuda) = tracer.cuda()? else {
+        let Some(cuda) = tracer.engine().cuda.cuda()? else {
             return Err(dlpack::unreadable(tracer.device_name(), [("origins", origins), ("directions", directions)]));
         };
-        let mut lease = py.detach(|| tracer.cuda_lease())?; // may free idle leases, which wait
+        let mut lease = py.detach(|| tracer.engine().cuda.cuda_lease())?; // may free idle leases, which wait
         let result = (|| -> PyResult<Bound<'py, PyDict>> {
             let borrowed =
                 cuda_batch::borrow_rays(&cuda, lease.stream_handle(), origins, directions, (tmin, tmax), mask)?;
@@ -382,12 +383,12 @@ impl PyScene {
                 None
             } else {
                 Some(self.query(py, None, |scene, interrupt| {
-                    tracer.trace_cuda_rays(scene, &mut lease, &borrowed.rays, request, &wanted, interrupt)
+                    tracer.engine().cuda.trace_cuda_rays(scene, &mut lease, &borrowed.rays, request, &wanted, interrupt)
                 })?)
             };
             cuda_batch::hits_dict(py, hits, &borrowed.leading)
         })();
-        py.detach(|| tracer.give_back_lease(lease)); // may wait for its stream
+        py.detach(|| tracer.engine().cuda.give_back_lease(lease)); // may wait for its stream
         result
     }
 
@@ -405,7 +406,7 @@ impl PyScene {
         fields: Vec<String>,
         mask: u8,
     ) -> PyResult<cuda_batch::PyCudaBatch> {
-        let Some(cuda) = self.tracer.cuda()? else {
+        let Some(cuda) = self.tracer.engine().cuda.cuda()? else {
             return Err(dlpack::unreadable(
                 self.tracer.device_name(),
                 [("origins", origins), ("directions", directions)],
@@ -430,17 +431,17 @@ impl PyScene {
     ) -> PyResult<()> {
         let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
         let tracer = &self.tracer;
-        if tracer.cuda()?.is_none() {
+        if tracer.engine().cuda.cuda()?.is_none() {
             return Err(pyo3::exceptions::PyTypeError::new_err(format!(
                 "{} does not share memory with CUDA: it cannot trace a piece of CUDA rays",
                 tracer.device_name()
             )));
         }
-        let mut lease = py.detach(|| tracer.cuda_lease())?; // may free idle leases, which wait
+        let mut lease = py.detach(|| tracer.engine().cuda.cuda_lease())?; // may free idle leases, which wait
         let traced = self.query(py, None, |scene, interrupt| {
-            tracer.trace_cuda_piece(scene, &mut lease, batch.batch(), (start, stop), request, interrupt)
+            tracer.engine().cuda.trace_cuda_piece(scene, &mut lease, batch.batch(), (start, stop), request, interrupt)
         });
-        py.detach(|| tracer.give_back_lease(lease)); // may wait for its stream
+        py.detach(|| tracer.engine().cuda.give_back_lease(lease)); // may wait for its stream
         traced
     }
 
@@ -491,7 +492,7 @@ impl PyScene {
                 }
             }
             self.tracer.write_all(scene, &all, &mut sink);
-            let ray_index = crate::trace::tiers::ray_indices(&all.offsets)?;
+            let ray_index = crate::trace::host_tiers::ray_indices(&all.offsets)?;
             Ok((all.offsets, ray_index, columns))
         })?;
         let result = PyDict::new(py);
@@ -553,7 +554,7 @@ impl PyScene {
                 None => Field::Prim.bit() | Field::Instance.bit() | Field::Geometry.bit() | Field::Uv.bit(),
             };
         }
-        let explained = self.with_scene(py, |scene| self.tracer.explain(scene, request, outputs, sensor))?;
+        let explained = self.with_scene(py, |scene| self.tracer.engine().explain(scene, request, outputs, sensor))?;
         let Some(e) = explained else { return Ok(None) };
         let d = PyDict::new(py);
         d.set_item("stages", e.stages)?;
@@ -742,7 +743,7 @@ fn fields_named(names: &[String]) -> PyResult<Vec<(String, Option<Field>)>> {
 
 /// Refuses a query whose outputs and working memory exceed the host memory available, before
 /// anything is allocated (rather than growing until the system's OOM killer ends the process).
-fn check_fits(tracer: &Tracer, request: Request, fields: &[String], n: usize) -> PyResult<()> {
+fn check_fits(tracer: &Tracer<VulkanEngine>, request: Request, fields: &[String], n: usize) -> PyResult<()> {
     let wide = request.precision.is_f64();
     let per_ray: usize = fields
         .iter()

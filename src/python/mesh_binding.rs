@@ -5,9 +5,9 @@ use std::sync::Arc;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::arrays::Vec3Array;
-use super::device::stats_dict;
-use super::run;
+use super::calls::run;
+use super::numpy_views::Vec3Array;
+use crate::gpu::accel::{BuildOptions, BuildStats};
 use crate::scene::{Mesh, MeshKind};
 
 /// A triangle mesh and its bottom-level acceleration structure.
@@ -63,4 +63,22 @@ impl PyMesh {
         let vertices = vertices.view()?;
         run(py, |_| self.mesh.update(vertices))
     }
+}
+
+pub(super) fn stats_dict<'py>(
+    py: Python<'py>,
+    stats: &BuildStats,
+    options: &BuildOptions,
+) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("build", options.preference.name())?;
+    d.set_item("allow_update", options.allow_update)?;
+    d.set_item("compacted", options.compact)?;
+    d.set_item("built_bytes", stats.built_size)?;
+    d.set_item("bytes", stats.size)?;
+    d.set_item("scratch_bytes", stats.scratch_size)?;
+    d.set_item("update_scratch_bytes", stats.update_scratch_size)?;
+    d.set_item("build_seconds", stats.build_seconds)?;
+    d.set_item("batch", stats.batch)?;
+    Ok(d)
 }

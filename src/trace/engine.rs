@@ -1,0 +1,116 @@
+//! The engine seam: what a query needs from the device that runs it. The dispatcher (`Tracer`)
+//! picks a tier and a query kind and hands the batch to an `Engine`; the host tiers
+//! (`host_tiers`) sit beside it, usable with any engine. Nothing here names Vulkan: the Vulkan
+//! engine (`vulkan`) implements it today; a CPU engine can implement it without a device.
+
+use crate::error::Result;
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
+use crate::geometry::rays::Rays;
+use crate::scene::Scene;
+use crate::trace::hit_fields::HitSink;
+use crate::trace::host_tiers::AllHits;
+use crate::trace::idle::IdleMemory;
+use crate::trace::profile::TraceProfile;
+use crate::trace::request::{Precision, Request, SignedDistance};
+
+/// What an engine can do, for the dispatcher's choice of tier.
+#[derive(Clone, Copy, Debug)]
+pub struct EngineLimits {
+    /// Whether the engine runs the exact tier's f64 tests (and winding numbers) itself; without
+    /// them the exact tier's winding numbers are the reference tier's, on the host.
+    pub f64_tests: bool,
+}
+
+/// A device that runs queries' batches. Every method may be called by any number of threads at
+/// once; the caller has checked the request and its arrays' shapes; the engine holds the scene's
+/// meshes (`Scene::hold_meshes`) where it reads them.
+pub trait Engine: Send + Sync {
+    /// The device's name, for messages.
+    fn name(&self) -> &str;
+    /// The device's index among the usable ones (names its threads).
+    fn index(&self) -> usize;
+    fn limits(&self) -> EngineLimits;
+    /// Fails where the device can no longer be used (lost, or opened before a fork).
+    fn check_usable(&self) -> Result<()>;
+    /// Fails with what the device's own checks reported during the last calls (the Vulkan
+    /// validation layer's messages), if anything.
+    fn check_reported(&self) -> Result<()>;
+
+    /// What the engine keeps idle between queries (staging, scratch, leases).
+    fn idle_memory(&self) -> IdleMemory;
+    /// Frees what `idle_memory` counts.
+    fn release_idle_memory(&self);
+    /// Rays per chunk: what bounds a query's working memory.
+    fn chunk_rays(&self) -> usize;
+    fn set_chunk_rays(&self, rays: usize) -> Result<()>;
+    /// Host bytes the engine's staging takes for a query of `rays` rays (`exact`: f64 rays).
+    fn staging_bytes(&self, rays: usize, exact: bool) -> usize;
+    /// Where the time went in the device's last query (of any thread).
+    fn last_profile(&self) -> TraceProfile;
+    /// Keeps `profile` as the device's last.
+    fn keep_profile(&self, profile: TraceProfile);
+
+    /// Traces `rays` in one of the device's tiers (`exact`: the exact tier's f64 test, else the
+    /// fast tier), writing every field `sink` asks for (`hit` too).
+    #[allow(clippy::too_many_arguments)]
+    fn trace_rays(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        exact: bool,
+        sink: &mut HitSink,
+        interrupt: &dyn Interrupt,
+        profile: &mut TraceProfile,
+    ) -> Result<()>;
+
+    /// Every hit of every ray (the nearest `max_hits` of each), at `request.precision`: `Exact`
+    /// (f64 hits) or otherwise the fast tier's (f32 hits, which the dispatcher may refine).
+    /// `host_bytes_per_hit`: what the caller will need per hit, for refusing a result that cannot
+    /// fit before it is stored.
+    fn all_hits(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        max_hits: usize,
+        host_bytes_per_hit: usize,
+        interrupt: &dyn Interrupt,
+    ) -> Result<AllHits>;
+
+    /// The surface point nearest each point within `max_distance`, measured at `precision`
+    /// (`Exact`: f64; `Fast`: f32), its fields written into `sink`.
+    fn closest_points(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        max_distance: f64,
+        precision: Precision,
+        sink: &mut HitSink,
+        interrupt: &dyn Interrupt,
+    ) -> Result<()>;
+
+    /// Whether each point is inside any instance (1) or not (0), exactly: by parity (the caller
+    /// checked that every mesh is closed) or by winding number. Called only where
+    /// `limits().f64_tests` holds, or for parity.
+    fn contains(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        winding: bool,
+        out: &mut [u8],
+        interrupt: &dyn Interrupt,
+    ) -> Result<()>;
+
+    /// Signed distances in one pass, where the engine has one for `query`: true, `out` written;
+    /// false, nothing written (the dispatcher then asks `closest_points` and `contains`).
+    fn signed_distance(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        query: SignedDistance,
+        out: &mut [f64],
+        interrupt: &dyn Interrupt,
+    ) -> Result<bool>;
+}

@@ -1,0 +1,167 @@
+//! Signed distances in one pass of the GPU a chunk: the chunk's points go up once, the
+//! closest-point search measures their distances (`closest.rs`), and in the same command buffer
+//! one exact ray from each point (RAY_SOURCE = RAYS_FROM_POINTS: read from the search's own
+//! points buffer) counts its crossings, by parity or through the winding cap; last,
+//! sign_points.comp negates the distances of the points inside and marks those it cannot tell.
+//! The host copies the signed distances out and decides on the CPU only the few points marked (as
+//! `contains` does). Two queries instead (distances, then `contains`) would pack every point
+//! twice, 64 bytes of f64 ray each for the sign; signing on the host would read back 20 bytes a
+//! point instead of 8 (and a bit).
+
+use std::sync::Arc;
+
+use super::closest_points::{ClosestPoints, PointJob, PointSlot, SignTrace};
+use super::probes::Probes;
+use super::shared::Shared;
+use super::variants::{VariantKey, RAYS_FROM_POINTS};
+use crate::error::Result;
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
+use crate::geometry::parallel;
+use crate::gpu::records::Params;
+use crate::scene::Scene;
+use crate::trace::hit_fields::Field;
+use crate::trace::host_tiers;
+use crate::trace::request::{Cull, Precision, Query, Request, SignedDistance};
+
+/// Whether VKRAY_SIGNED_DISTANCE=separate asks for distances and signs as two queries (to measure
+/// what one pass buys, and as the tests' second path).
+fn signs_separately() -> bool {
+    std::env::var("VKRAY_SIGNED_DISTANCE").is_ok_and(|v| v == "separate")
+}
+
+/// A point whose sign the GPU could not tell: its index, and the first pass's mark
+/// (`host_tiers::decide_on_the_cpu`).
+type Unsure = (usize, u8);
+
+/// The signed-distance path: the closest-points path's search and an exact ray a point, in one
+/// command buffer a chunk. Owns nothing of its own.
+pub struct SignedDistancePath {
+    shared: Arc<Shared>,
+    points: Arc<ClosestPoints>,
+    probes: Arc<Probes>,
+}
+
+impl SignedDistancePath {
+    pub fn new(shared: &Arc<Shared>, points: &Arc<ClosestPoints>, probes: &Arc<Probes>) -> SignedDistancePath {
+        SignedDistancePath { shared: shared.clone(), points: points.clone(), probes: probes.clone() }
+    }
+
+    /// Signed distances in one pass (see the module), into `out`, where the query allows it:
+    /// `contains` at the exact tier, one instance, f64 shaders, distances at `exact` or `fast`,
+    /// and for winding numbers a cap (`Scene::winding_cap`). Returns false, having written
+    /// nothing, where it does not: the caller then asks two queries. The caller checked the
+    /// points, `max_distance` and `out`'s length.
+    pub fn run(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        query: SignedDistance,
+        out: &mut [f64],
+        interrupt: &dyn Interrupt,
+    ) -> Result<bool> {
+        let SignedDistance { max_distance, precision, contains_precision, winding } = query;
+        let one_pass = contains_precision == Precision::Exact
+            && matches!(precision, Precision::Exact | Precision::Fast)
+            && self.shared.ctx.info.shader_float64
+            && scene.placements.len() == 1
+            && !signs_separately();
+        if !one_pass || out.is_empty() {
+            return Ok(false);
+        }
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        let cap = match winding {
+            true => match scene.winding_cap()? {
+                Some(cap) => Some(cap),
+                None => return Ok(false),
+            },
+            false => None,
+        };
+        self.probes.check_paths(scene, true)?;
+        let exact = scene.exact()?;
+        let structures = scene.closest()?;
+        let query = if cap.is_some() { Query::Winding } else { Query::Parity };
+        // Every triangle counts, whatever its opacity: inside is a question of the surface.
+        let request = Request { opacity_threshold: 0.0, ..Request::new(query, Precision::Exact, Cull::None) };
+        let outputs = Field::Prim.bit() | if cap.is_some() { Field::T.bit() } else { 0 };
+        let key = VariantKey {
+            ray_source: RAYS_FROM_POINTS,
+            ..self.shared.variant_key(scene, request, true, outputs, false)
+        };
+        let variant = self.shared.variants.get(key)?;
+        let params = Params {
+            instances: exact.instances_address(),
+            tlas: exact.tlas_address(),
+            bounds: exact.bounds_f32(),
+            // QUERY_WINDING reads `scratch` as the cap.
+            scratch: cap.as_ref().map_or(0, |cap| cap.address()),
+            ray_mask: 0xFF,
+            ..Default::default()
+        };
+        let job = PointJob {
+            sign: Some(SignTrace {
+                variant: &variant,
+                params,
+                direction: host_tiers::PARITY_DIRECTION.to_array(),
+                cap_winding: cap.is_some(),
+                combine: self.points.pipelines().sign.pipeline(&[])?,
+                band: cap.as_ref().map_or(0.0, |cap| cap.band()),
+            }),
+            ..self.points.closest_job(scene, &structures, points, max_distance, precision, false)?
+        };
+        let capacity = self.points.point_capacity(points.rows(), false).min(self.shared.max_dispatch_rays());
+        let pipelines = self.points.pipelines();
+        let mut slots = self.shared.with_memory(|| pipelines.take_slots(capacity, false, true))?;
+        let mut unsure: Vec<Unsure> = Vec::new();
+        let result = self.points.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
+            let found = sign_chunk(slot, &mut out[start..start + len]);
+            unsure.extend(found.into_iter().map(|(k, mark)| (start + k, mark)));
+        });
+        pipelines.give_back(slots);
+        result?;
+        decide_unsure(scene, points, &unsure, out, interrupt)?;
+        Ok(true)
+    }
+}
+
+/// Copies a finished chunk's signed distances into `out`. Returns the chunk's points the CPU
+/// must decide (their distances copied as they are), from the unsure bits.
+fn sign_chunk(slot: &PointSlot, out: &mut [f64]) -> Vec<Unsure> {
+    let len = out.len();
+    let results = slot.results_host.mapped().expect("readback is host-visible");
+    let layout = slot.results_layout();
+    parallel::copy(bytemuck::cast_slice_mut(out), &results[..8 * len]);
+    let words: &[u32] = bytemuck::cast_slice(&results[layout.unsure..layout.unsure + 4 * len.div_ceil(32)]);
+    let mut unsure = Vec::new();
+    for (w, &word) in words.iter().enumerate().filter(|(_, &word)| word != 0) {
+        let mut bits = word;
+        while bits != 0 {
+            unsure.push((32 * w + bits.trailing_zeros() as usize, host_tiers::UNSURE));
+            bits &= bits - 1;
+        }
+    }
+    unsure
+}
+/// Decides the `unsure` points on the CPU (`host_tiers::decide_on_the_cpu`) and negates the
+/// distances of those inside.
+fn decide_unsure(
+    scene: &Scene,
+    points: Vec3s,
+    unsure: &[Unsure],
+    out: &mut [f64],
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
+    if unsure.is_empty() {
+        return Ok(());
+    }
+    let rows: Vec<f64> = unsure.iter().flat_map(|&(i, _)| points.row_f64(i)).collect();
+    let mut marks: Vec<u8> = unsure.iter().map(|&(_, mark)| mark).collect();
+    host_tiers::decide_on_the_cpu(scene, Vec3s::F64(&rows), &mut marks, interrupt)?;
+    for (&(i, _), &mark) in unsure.iter().zip(&marks) {
+        if mark == 1 {
+            out[i] = -out[i];
+        }
+    }
+    Ok(())
+}
