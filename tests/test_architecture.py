@@ -323,3 +323,118 @@ def test_rust_file_names_are_unique():
 def test_every_rust_file_says_its_job():
     missing = [f.rel for f in rust_files().values() if not (SRC / f.rel).read_text().lstrip().startswith("//!")]
     assert missing == []
+
+
+# ---------------------------------------------------------------- the Python layer (python/vkray)
+
+PYTHON = ROOT / "python" / "vkray"
+
+# python/vkray's modules, lowest first: a module imports only modules before it (imports under
+# TYPE_CHECKING and inside functions count too). `vkray` is the package's __init__; the modules
+# after it are the optional front ends, which use the package's public names.
+PYTHON_ORDER: List[str] = [
+    "_core",
+    "_arrays",
+    "_progress",
+    "data",
+    "sensors",
+    "_options",
+    "_pictures",
+    "_results",
+    "_queries",
+    "_secondary",
+    "_device",
+    "_device_group",
+    "_preview",
+    "vkray",
+    "_cli",
+    "__main__",
+    "dask",
+    "trimesh",
+    "open3d",
+]
+
+
+def python_modules(root: pathlib.Path = PYTHON) -> Dict[str, pathlib.Path]:
+    """python/vkray's modules by name (a package by its folder's name; vkray's own __init__ is
+    "vkray")."""
+    modules: Dict[str, pathlib.Path] = {}
+    for path in sorted(root.rglob("*.py")):
+        rel = path.relative_to(root)
+        name = rel.parent.as_posix() if rel.name == "__init__.py" else rel.with_suffix("").as_posix()
+        modules["vkray" if name == "." else name.replace("/", ".")] = path
+    return modules
+
+
+def _is_python_module(name: str) -> bool:
+    """Whether vkray has a module (a .py file, the core's stub, or a package) of this name."""
+    return any((PYTHON / f"{name}{suffix}").exists() for suffix in (".py", ".pyi")) or (PYTHON / name).is_dir()
+
+
+def python_imports(path: pathlib.Path, package: str) -> List[Tuple[str, List[str]]]:
+    """(module imported, names taken from it) of every import in a module of ``package`` (the
+    module's own package, relative to vkray: "" at the top), at any depth."""
+    import ast
+
+    found: List[Tuple[str, List[str]]] = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level > 0:
+            parts = [p for p in package.split(".") if p][: max(0, len(package.split(".")) - (node.level - 1))]
+            base = ".".join(parts + ([node.module] if node.module else []))
+            names = [alias.name for alias in node.names]
+            if base:
+                found.append((base, names))
+            else:  # `from . import x`: a module of vkray, or a name of its __init__
+                found.extend((name, []) if _is_python_module(name) else ("vkray", [name]) for name in names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "vkray":
+            rest = node.module.split(".", 1)
+            found.append((rest[1] if len(rest) > 1 else "vkray", [alias.name for alias in node.names]))
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.split(".")[0] == "vkray":
+                    rest = alias.name.split(".", 1)
+                    found.append((rest[1] if len(rest) > 1 else "vkray", []))
+    return found
+
+
+def python_graph(root: pathlib.Path = PYTHON) -> Graph:
+    """Module -> the vkray modules it imports (an import of a submodule of `data` counts as `data`)."""
+    graph: Graph = {}
+    for name, path in python_modules(root).items():
+        package = name if path.name == "__init__.py" and name != "vkray" else name.rpartition(".")[0]
+        targets = {target.split(".")[0] for target, _ in python_imports(path, package)}
+        graph[name.split(".")[0]] = graph.get(name.split(".")[0], set()) | (targets - {name.split(".")[0]})
+    return graph
+
+
+def test_the_python_reader_sees_imports():
+    graph = python_graph()
+    assert {"_device", "_queries", "_results", "vkray", "dask", "trimesh"} <= set(graph)
+    assert {"_queries", "_results", "_options"} <= graph["_device"]
+    assert "vkray" in graph["trimesh"] and "_device" in graph["vkray"]
+
+
+def test_python_modules_import_without_cycles():
+    assert cycles(python_graph()) == []
+
+
+def test_python_modules_import_only_downward():
+    """Each module imports only modules listed before it in PYTHON_ORDER (which lists them all)."""
+    graph = python_graph()
+    assert sorted(set(graph) - set(PYTHON_ORDER)) == []
+    assert out_of_order(graph, PYTHON_ORDER) == []
+
+
+def test_no_python_module_reaches_another_modules_private_names():
+    """`from .x import _name` (or `vkray._x._name`) of another module's private name: none. The
+    private modules' public names (`_device.Scene`) are the house's internal interfaces."""
+    reaches = []
+    for name, path in python_modules().items():
+        package = name if path.name == "__init__.py" and name != "vkray" else name.rpartition(".")[0]
+        for target, names in python_imports(path, package):
+            private = [n for n in names if n.startswith("_") and not n.startswith("__")]
+            reaches += [f"{name}: {target}.{n}" for n in private if target != "_core"]
+        text = path.read_text()
+        reaches += [f"{name}: {m.group(0)}" for m in re.finditer(r"\b(?:vkray\.)?_[a-z_]+\._[a-z][A-Za-z_]*\b", text)
+                    if not m.group(0).startswith("_core.")]
+    assert reaches == []

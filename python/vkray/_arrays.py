@@ -132,7 +132,7 @@ def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarra
     )
 
 
-def _asarray(name: str, value: object) -> np.ndarray:
+def host_array(name: str, value: object) -> np.ndarray:
     device = dlpack_device(value)
     if device is not None:
         return _native(_from_dlpack(name, value, device))
@@ -145,7 +145,7 @@ def _asarray(name: str, value: object) -> np.ndarray:
 
 def real_coordinates(name: str, value: object) -> np.ndarray:
     """float32 and float64 pass as they are; other real numbers become float64."""
-    array = _asarray(name, value)
+    array = host_array(name, value)
     if array.dtype.type in _FLOATS:
         return array
     if array.dtype.kind in "iuf":
@@ -168,7 +168,7 @@ def points(name: str, value: object) -> np.ndarray:
 
 def faces(value: object) -> np.ndarray:
     """An (F, 3) C-contiguous index array; int32/int64/uint32/uint16 pass without widening."""
-    array = _asarray("faces", value)
+    array = host_array("faces", value)
     if _big_integers(array):  # Python ints as objects (numpy's way with ints beyond 64 bits)
         rows = array.reshape(-1, array.shape[-1] if array.ndim else 1).tolist()
         bad = next((i for i, row in enumerate(rows) if any(abs(int(x)) >= 1 << 63 for x in row)), None)
@@ -250,7 +250,7 @@ def masks(value: object, shape: Tuple[int, ...], name: str = "mask") -> Union[in
         if not 0 <= int(value) <= 0xFF:  # checked before numpy, which holds ints past 64 bits as objects
             raise ValueError(f"{name} values must be in [0, 255] (8 bits), got {int(value)}")
         return int(value)
-    array = _asarray(name, value)
+    array = host_array(name, value)
     if array.dtype.kind not in "iu" and not _big_integers(array):
         raise TypeError(f"{name} must hold integers in [0, 255] (8 bits), got dtype {array.dtype}")
     if array.size and (array.min() < 0 or array.max() > 0xFF):
@@ -269,7 +269,7 @@ def optional_masks(value: object, count: int) -> Optional[np.ndarray]:
     """`Scene.update`'s masks: None, or uint8 (count,) from ``count`` integers in [0, 255]."""
     if value is None:
         return None
-    array = _asarray("masks", value)
+    array = host_array("masks", value)
     if array.dtype.kind not in "iu" and not _big_integers(array):
         raise TypeError(f"masks must hold integers in [0, 255] (8 bits), got dtype {array.dtype}")
     if array.shape != (count,):

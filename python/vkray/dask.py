@@ -299,7 +299,7 @@ def _as_scene_spec(scene: Union[SceneSpec, Builder]) -> SceneSpec:
     raise TypeError(f"scene must be a vkray.dask.SceneSpec or a builder (device -> Scene), got {type(scene).__name__}")
 
 
-def _dask_array(name: str, value: Any, convert: Callable[[str, Any], np.ndarray] = _arrays._asarray) -> da.Array:
+def _dask_array(name: str, value: Any, convert: Callable[[str, Any], np.ndarray] = _arrays.host_array) -> da.Array:
     """``value`` as a dask array: other input read by ``convert`` (as one device reads it: ragged
     lists and arrays of objects raise its errors); chunks of unknown size refused with the remedy
     (tasks need each chunk's first row)."""
