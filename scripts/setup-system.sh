@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # Installs the system packages vkray needs to build and to trace on a CPU-only machine:
 # a Vulkan loader, Mesa's lavapipe (>= 24.1, the first with acceleration structures and ray
-# queries), glslc/spirv-tools for the shaders and the Khronos validation layers for the tests.
+# queries), glslc/spirv-tools for the shaders, the Khronos validation layers for the tests, and
+# libusb (Open3D's wheel links it: the oracle of vkray.open3d's tests).
 # Debian bookworm ships Mesa 22.3, so there the newer Mesa comes from bookworm-backports.
 # An installed GPU driver is left alone: Mesa's ICDs are installed beside it, never instead.
 set -euo pipefail
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
-packages=(libvulkan1 glslc spirv-tools vulkan-validationlayers vulkan-tools)
+packages=(libvulkan1 glslc spirv-tools vulkan-validationlayers vulkan-tools libusb-1.0-0)
 . /etc/os-release
 if [ "${ID:-}" = debian ] && [ "${VERSION_CODENAME:-}" = bookworm ]; then
   list=/etc/apt/sources.list.d/vkray-bookworm-backports.list

@@ -134,3 +134,36 @@ def test_torch_cpu_tensors(any_device, bunny):
     np.testing.assert_array_equal(scene.intersect(transposed, td).prim_id, expected.prim_id)
     back = torch.from_dlpack(hits.t)
     assert back.data_ptr() == hits.t.ctypes.data
+
+
+class _DeviceTypeEnum:
+    """A DLPack device type as Open3D gives it: an enum object with a ``value``, which ``int()``
+    refuses (pybind11's enums of Open3D's DLDeviceType)."""
+
+    def __init__(self, value: int):
+        self.value = value
+
+    def __int__(self):
+        raise TypeError("int() argument must be a string, a bytes-like object or a real number, not 'DLDeviceType'")
+
+
+class EnumDevice(DLPackOnly):
+    """A host array whose ``__dlpack_device__`` names its device type with such an enum."""
+
+    def __dlpack_device__(self):
+        kind, index = self._array.__dlpack_device__()
+        return (_DeviceTypeEnum(int(kind)), index)
+
+
+def test_device_types_given_as_enums_are_read(any_device, bunny):
+    """Open3D's tensors name their device type with an enum: read as its value, in the Python
+    layer and in the core, and the answer is numpy's."""
+    v, f = bunny
+    scene = any_device.scene(any_device.mesh(v, f))
+    o, d = rays_at(v, 500, seed=7)
+    want = scene.intersect(o, d, outputs=["t", "prim_id"])
+    got = scene.intersect(EnumDevice(o), EnumDevice(d), outputs=["t", "prim_id"])
+    np.testing.assert_array_equal(got.prim_id, want.prim_id)
+    np.testing.assert_array_equal(got.t, want.t)
+    assert _arrays.dlpack_device(EnumDevice(o)) == (1, 0)
+    np.testing.assert_array_equal(scene.count(EnumDevice(o), d), scene.count(o, d))

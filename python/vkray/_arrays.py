@@ -99,7 +99,13 @@ def dlpack_device(value: object) -> Optional[Tuple[int, int]]:
     if device_of is None:
         return None
     kind, index = device_of()
-    return int(kind), int(index)
+    return _dlpack_number(kind), _dlpack_number(index)
+
+
+def _dlpack_number(value: Any) -> int:
+    """A device type or index as ``__dlpack_device__`` gives it: an int, or an enum whose
+    ``value`` is one (Open3D's DLDeviceType, which ``int()`` refuses)."""
+    return int(getattr(value, "value", value))
 
 
 #: DLPack's device type of CUDA memory.

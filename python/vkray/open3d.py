@@ -296,11 +296,11 @@ class _Result:
             array = array.reshape(want)
             if self.target is None:
                 return array
-            tensor = self.o3d.core.Tensor.from_dlpack(array)
+            tensor = _tensor_from_dlpack(self.o3d.core, array)
         else:
             # A vkray.CudaArray (rays from CUDA), read without a copy through DLPack.
             core = self.o3d.core
-            tensor = core.Tensor.from_dlpack(value)
+            tensor = _tensor_from_dlpack(core, value)
             if dtype == "bool":
                 tensor = tensor.ge(0)  # occluded's CUDA answer is the hit triangle, -1 where none
             elif dtype == "uint32":
@@ -634,6 +634,15 @@ _Open3DResults.__name__ = _Open3DResults.__qualname__ = "RaycastingScene"
 
 
 # --- arrays ------------------------------------------------------------------------------------
+
+
+def _tensor_from_dlpack(core: Any, value: Any) -> Any:
+    """An Open3D tensor over ``value``'s memory (no copy): Open3D >= 0.20 takes any object that
+    speaks DLPack, 0.19 only the capsule its ``__dlpack__`` gives."""
+    try:
+        return core.Tensor.from_dlpack(value)
+    except TypeError:
+        return core.Tensor.from_dlpack(value.__dlpack__())
 
 
 def _host_array(name: str, value: Any) -> NDArray[Any]:

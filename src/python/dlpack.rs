@@ -76,7 +76,20 @@ pub(super) fn dlpack_device(value: &Bound<'_, PyAny>) -> PyResult<Option<(i32, i
     if !value.hasattr("__dlpack_device__")? {
         return Ok(None);
     }
-    Ok(Some(value.call_method0("__dlpack_device__")?.extract()?))
+    let (kind, id): (Bound<'_, PyAny>, Bound<'_, PyAny>) = value.call_method0("__dlpack_device__")?.extract()?;
+    Ok(Some((dlpack_number(&kind)?, dlpack_number(&id)?)))
+}
+
+/// A device type or id as `__dlpack_device__` gives it: an int, or an enum whose `value` is one
+/// (Open3D's `DLDeviceType`, which is no int).
+fn dlpack_number(value: &Bound<'_, PyAny>) -> PyResult<i32> {
+    match value.extract() {
+        Ok(number) => Ok(number),
+        Err(not_int) => match value.getattr("value") {
+            Ok(inner) => inner.extract(),
+            Err(_) => Err(not_int),
+        },
+    }
 }
 
 /// The error for CUDA arrays on a device that is not their GPU (or not one CUDA shares with):
