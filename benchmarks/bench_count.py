@@ -8,22 +8,13 @@ from __future__ import annotations
 
 import pathlib
 import sys
-import time
 
 import numpy as np
+from _timing import best_run as best
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
 from oracle import load_mesh, random_rays  # noqa: E402
-
-
-def best(repeat: int, run):  # noqa: ANN001, ANN201
-    times, answer = [], None
-    for _ in range(repeat):
-        start = time.perf_counter()
-        answer = run()
-        times.append(time.perf_counter() - start)
-    return min(times), answer
 
 
 def main() -> None:

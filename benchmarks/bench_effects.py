@@ -72,6 +72,10 @@ import numpy as np
 
 import vkray
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
+from oracle import bounds  # noqa: E402
+from oracle import camera_rays as oracle_camera_rays  # noqa: E402
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 # Short names for Scene.explain's stages and ray-query branches (anything else is printed whole).
@@ -97,40 +101,17 @@ TIERS = ("fast", "refined", "exact", "reference")
 
 
 def load_mesh(name_or_path):
-    """(vertices float64 (V, 3), faces int64 (F, 3)) of a shipped mesh's name (vkray.data), or of an
-    OBJ's v and f lines (polygons fanned)."""
+    """(vertices float64 (V, 3), faces int64 (F, 3)) of a shipped mesh's name (vkray.data), or of a
+    mesh file trimesh reads."""
     if name_or_path in vkray.data.MESH_NAMES:
         return vkray.data.load_mesh(name_or_path)
-    vertices, faces = [], []
-    with open(name_or_path) as f:
-        for line in f:
-            if line.startswith("v "):
-                vertices.append([float(x) for x in line.split()[1:4]])
-            elif line.startswith("f "):
-                ids = [int(c.split("/")[0]) for c in line.split()[1:]]
-                ids = [i - 1 if i > 0 else len(vertices) + i for i in ids]
-                faces += [[ids[0], ids[k], ids[k + 1]] for k in range(1, len(ids) - 1)]
-    return np.array(vertices, dtype=np.float64), np.array(faces, dtype=np.int64)
+    import trimesh
 
-
-def bounds(vertices):
-    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-    return (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+    loaded = trimesh.load(name_or_path, process=False, force="mesh")
+    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, dtype=np.int64)
 
 
 FORWARD = np.array([0.3, -0.4, -1.0]) / np.linalg.norm([0.3, -0.4, -1.0])
-
-
-def camera_rays(vertices, width, height):
-    """tests/oracle.py's camera_rays: (origin (3,), directions (H*W, 3)), 2.5 radii away."""
-    centre, radius = bounds(vertices)
-    origin = centre - 2.5 * radius * FORWARD
-    right = np.cross(FORWARD, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, FORWARD)
-    ys, xs = np.meshgrid(np.linspace(0.5, -0.5, height), np.linspace(-0.5, 0.5, width), indexing="ij")
-    dirs = FORWARD + xs[..., None] * right + ys[..., None] * up
-    return origin, dirs.reshape(-1, 3)
 
 
 def random_rays(vertices, n, seed):
@@ -650,7 +631,7 @@ def main():
 def make_rays(vertices, n):
     """(camera side, origins, directions) float32: half camera_rays, half random_rays (seed 11)."""
     side = max(1, int(round(math.sqrt(n / 2))))
-    origin, cam = camera_rays(vertices, side, side)
+    origin, cam = oracle_camera_rays(vertices, side, side, FORWARD)
     ro, rd = random_rays(vertices, n - side * side, seed=11)
     o32 = np.ascontiguousarray(np.concatenate([np.broadcast_to(origin, cam.shape), ro]), dtype=np.float32)
     d32 = np.ascontiguousarray(np.concatenate([cam, rd]), dtype=np.float32)

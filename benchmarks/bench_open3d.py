@@ -49,6 +49,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import open3d as o3d
+from _report import Report
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
@@ -165,11 +166,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="also write the report here")
     args = parser.parse_args()
 
-    lines: List[str] = []
-
-    def emit(line: str = "") -> None:
-        print(line, flush=True)
-        lines.append(line)
+    emit = Report()
 
     device = vkray.Device()
     gpu = None
@@ -269,8 +266,7 @@ def main() -> None:
     emit(rule + "---|")
     for row in rows:
         emit(row)
-    if args.out:
-        pathlib.Path(args.out).write_text("\n".join(lines) + "\n")
+    emit.save(args.out)
 
 
 if __name__ == "__main__":

@@ -41,11 +41,12 @@ import importlib.util
 import pathlib
 import platform
 import sys
-import time
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import trimesh
+from _report import Report
+from _timing import best_run as best
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
@@ -53,15 +54,6 @@ import vkray.trimesh as vkt  # noqa: E402
 from oracle import load_mesh, random_rays  # noqa: E402
 
 CALLS = ("all hits", "first hit", "any", "contains")
-
-
-def best(repeat: int, run: Callable[[], Any]) -> Tuple[float, Any]:
-    times, answer = [], None
-    for _ in range(repeat):
-        start = time.perf_counter()
-        answer = run()
-        times.append(time.perf_counter() - start)
-    return min(times), answer
 
 
 def engines(mesh: trimesh.Trimesh) -> Dict[str, Any]:
@@ -125,11 +117,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="also write the report here")
     args = parser.parse_args()
 
-    lines: List[str] = []
-
-    def emit(line: str = "") -> None:
-        print(line, flush=True)
-        lines.append(line)
+    emit = Report()
 
     device = vkt.default_device()
     emit(
@@ -266,8 +254,7 @@ def main() -> None:
             cells.append(f"{int((counts < 2).sum())} / {int((counts > 2).sum())} / {misses}")
         emit(f"| {label} | {len(o):,} | " + " | ".join(cells) + " |")
 
-    if args.out:
-        pathlib.Path(args.out).write_text("\n".join(lines) + "\n")
+    emit.save(args.out)
 
 
 if __name__ == "__main__":
