@@ -177,31 +177,6 @@ def o3d_worker(inp, outp):
     np.savez(outp, **out)
 
 
-# ------------------------------------------------------------------------------------------------
-# Test geometry (as tests/test_all_hits.py builds it).
-
-
-def fan(offset, seed=49, k=11):
-    """A closed fan: k triangles around a centre vertex, an irregular ring (tests/test_all_hits.py)."""
-    rng = np.random.default_rng(seed)
-    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.2, 0.2, k)
-    ring = np.column_stack([np.cos(angles), np.sin(angles), rng.uniform(-0.2, 0.2, k)])
-    v = np.vstack([[0.0, 0.0, 0.3], ring]) + offset
-    f = np.array([[0, 1 + i, 1 + (i + 1) % k] for i in range(k)])
-    return v, f
-
-
-def bipyramid(offset, seed=51, k=9):
-    """A closed convex solid: two fans on one irregular ring, apexes above and below."""
-    rng = np.random.default_rng(seed)
-    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.25, 0.25, k)
-    ring = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(k)])
-    v = np.vstack([[0.0, 0.0, 1.0], [0.0, 0.0, -0.8], ring]) + offset
-    top = [[0, 2 + i, 2 + (i + 1) % k] for i in range(k)]
-    bottom = [[1, 2 + (i + 1) % k, 2 + i] for i in range(k)]
-    return v, np.array(top + bottom)
-
-
 def edges_of(f):
     return sorted({tuple(sorted(e)) for tri in f.tolist() for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))})
 
@@ -286,7 +261,6 @@ def classify_rays(all_hits_brute, crossings, v, f, o, d, target_t, expected, rad
     return keep, touch & ~close, why
 
 
-
 class Table:
     def __init__(self, *header):
         self.rows = [list(header), ["---"] * len(header)]
@@ -322,8 +296,10 @@ def main():
     import vkray
     from oracle import (
         all_hits_brute,
+        bipyramid,
         bounds,
         box,
+        fan,
         heightfield,
         load_mesh,
         random_rays,

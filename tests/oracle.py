@@ -292,3 +292,24 @@ def in_threads(count, work):
     if errors:
         raise errors[0]
     return results
+
+
+def fan(offset, seed=49, k=11):
+    """A closed fan: k triangles around a centre vertex, an irregular ring."""
+    rng = np.random.default_rng(seed)
+    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.2, 0.2, k)
+    ring = np.column_stack([np.cos(angles), np.sin(angles), rng.uniform(-0.2, 0.2, k)])
+    v = np.vstack([[0.0, 0.0, 0.3], ring]) + offset
+    f = np.array([[0, 1 + i, 1 + (i + 1) % k] for i in range(k)])
+    return v, f
+
+
+def bipyramid(offset, seed=51, k=9):
+    """A closed convex solid: two fans on one irregular ring, apexes above and below."""
+    rng = np.random.default_rng(seed)
+    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.25, 0.25, k)
+    ring = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(k)])
+    v = np.vstack([[0.0, 0.0, 1.0], [0.0, 0.0, -0.8], ring]) + offset
+    top = [[0, 2 + i, 2 + (i + 1) % k] for i in range(k)]
+    bottom = [[1, 2 + (i + 1) % k, 2 + i] for i in range(k)]
+    return v, np.array(top + bottom)

@@ -18,9 +18,11 @@ import pytest
 import vkray
 from oracle import (
     all_hits_brute,
+    bipyramid,
     bounds,
     box,
     directed_edges_closed,
+    fan,
     heightfield,
     load_mesh,
     random_rays,
@@ -390,20 +392,11 @@ def test_heightfield_vertices_and_edges_are_crossed_once(any_device, tier, offse
     assert (np.abs(hits.t - 1.0) <= 1e-9 + _ray_rounding(offset, directions)).all()
 
 
-def _fan(offset, seed=49, k=11):
-    rng = np.random.default_rng(seed)
-    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.2, 0.2, k)
-    ring = np.column_stack([np.cos(angles), np.sin(angles), rng.uniform(-0.2, 0.2, k)])
-    v = np.vstack([[0.0, 0.0, 0.3], ring]) + offset
-    f = np.array([[0, 1 + i, 1 + (i + 1) % k] for i in range(k)])
-    return v, f
-
-
 @pytest.mark.parametrize("offset", OFFSETS)
 def test_closed_fans_are_crossed_once(any_device, tier, offset):
     """A closed fan (as in test_precision.py), rays through its centre and every spoke's midpoint
     from random directions above: one hit each."""
-    v, f = _fan(offset)
+    v, f = fan(offset)
     targets = np.repeat(np.vstack([v[0], 0.5 * (v[0] + v[1:])]), 20, axis=0)
     origins, directions = rays_through(targets, seed=50)
     scene = any_device.scene(any_device.mesh(v, f))
@@ -413,22 +406,11 @@ def test_closed_fans_are_crossed_once(any_device, tier, offset):
     np.testing.assert_array_equal(scene.count(origins, directions, precision=tier), 1)
 
 
-def _bipyramid(offset, seed=51, k=9):
-    """A closed convex solid: two fans on one irregular ring, apexes above and below."""
-    rng = np.random.default_rng(seed)
-    angles = 2 * np.pi * np.arange(k) / k + rng.uniform(-0.25, 0.25, k)
-    ring = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(k)])
-    v = np.vstack([[0.0, 0.0, 1.0], [0.0, 0.0, -0.8], ring]) + offset
-    top = [[0, 2 + i, 2 + (i + 1) % k] for i in range(k)]
-    bottom = [[1, 2 + (i + 1) % k, 2 + i] for i in range(k)]
-    return v, np.array(top + bottom)
-
-
 @pytest.mark.parametrize("offset", OFFSETS)
 def test_closed_solid_entered_through_vertices_and_edges(any_device, tier, offset):
     """Rays from outside a closed convex solid through its vertices and the midpoints of its edges,
     aimed at random points inside: they enter once (at t = 1) and leave once: exactly two hits."""
-    v, f = _bipyramid(offset)
+    v, f = bipyramid(offset)
     assert directed_edges_closed(f)
     edges = {tuple(sorted(e)) for tri in f.tolist() for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))}
     targets = np.vstack([v, [0.5 * (v[a] + v[b]) for a, b in sorted(edges)]])

@@ -17,7 +17,7 @@ from ._core import (
     VkrayError,
     VulkanError,
 )
-from ._device import Device, DeviceInfo, Instance, Mesh, MeshObject, Scene, devices
+from ._device import Device, DeviceInfo, Instance, Mesh, MeshObject, Scene, default_device, devices
 from ._device_group import DeviceGroup, GroupInstance, GroupMesh, GroupScene
 from ._options import (
     CLOSEST_FIELDS,
@@ -73,6 +73,7 @@ __all__ = [
     "Mesh",
     "Scene",
     "devices",
+    "default_device",
     "VkrayError",
     "ForkedDeviceError",
     "NoDeviceError",

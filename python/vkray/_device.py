@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections import abc
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Iterable, List, Optional, Protocol, Tuple, Union, cast
@@ -383,6 +384,21 @@ class Device:
     def _repr_html_(self) -> str:
         """A table for notebooks: the device, its backend, features and limits."""
         return _pictures.device_html(self)
+
+
+_default_lock = threading.Lock()
+_default: Optional[Device] = None
+
+
+def default_device() -> Device:
+    """The process's shared device: ``vkray.Device()`` (the best device, or ``VKRAY_DEVICE``'s),
+    opened on first use and kept. vkray.trimesh's intersectors and vkray.open3d's scenes use it
+    unless given a device."""
+    global _default
+    with _default_lock:
+        if _default is None:
+            _default = Device()
+        return _default
 
 
 def is_mesh_object(item: Any) -> bool:

@@ -87,6 +87,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import Device, Instance, Mesh, Precision, Scene, UnsupportedError
+from . import default_device as vkray_default_device
 
 __all__ = ["INVALID_ID", "RaycastingScene", "default_device", "disable", "enable", "enabled"]
 
@@ -111,17 +112,10 @@ _CUDA_QUERIES = frozenset({"cast_rays", "test_occlusions"})
 
 _DLPACK_CUDA = 2
 
-_lock = threading.Lock()
-_device: Optional[Device] = None
+#: The device these share unless given one: `vkray.default_device` (opened once a process).
+default_device = vkray_default_device
 
-
-def default_device() -> Device:
-    """The device scenes share unless given one: ``vkray.Device()``, opened once."""
-    global _device
-    with _lock:
-        if _device is None:
-            _device = Device()
-        return _device
+_lock = threading.Lock()  # enable() and disable()
 
 
 def _open3d() -> Any:

@@ -43,6 +43,7 @@ import trimesh as _trimesh
 from numpy.typing import NDArray
 
 from . import PRECISIONS, Device, Precision, Scene, UnsupportedError
+from . import default_device as vkray_default_device
 
 __all__ = ["GRAZE_TOLERANCE", "RayMeshIntersector", "default_device", "disable", "enable", "use"]
 
@@ -54,17 +55,10 @@ GRAZE_TOLERANCE = 1e-6
 T = TypeVar("T")
 IdsAndRays = Tuple[NDArray[np.int64], NDArray[np.int64]]
 
-_lock = threading.Lock()
-_device: Optional[Device] = None
+#: The device these share unless given one: `vkray.default_device` (opened once a process).
+default_device = vkray_default_device
 
-
-def default_device() -> Device:
-    """The device intersectors share unless given one: ``vkray.Device()``, opened once."""
-    global _device
-    with _lock:
-        if _device is None:
-            _device = Device()
-        return _device
+_lock = threading.Lock()  # enable() and disable()
 
 
 class RayMeshIntersector:
