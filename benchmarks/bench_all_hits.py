@@ -293,21 +293,8 @@ def main():
     import trimesh
     from trimesh.ray import ray_pyembree
 
+    import oracle  # tests/oracle.py: the geometry and the references the tests use too
     import vkray
-    from oracle import (
-        all_hits_brute,
-        bipyramid,
-        bounds,
-        box,
-        fan,
-        heightfield,
-        load_mesh,
-        random_rays,
-        rays_through,
-        shared_targets,
-        surface_distance,
-        winding_numbers,
-    )
 
     try:
         import rtree  # noqa: F401
@@ -329,7 +316,7 @@ def main():
     repeat = args.repeat
 
     # ---- inputs -----------------------------------------------------------------------------
-    meshes = {name: load_mesh(full) for name, full in (("bunny", "stanford-bunny"), ("fandisk", "fandisk"), ("spot", "spot"))}
+    meshes = {name: oracle.load_mesh(full) for name, full in (("bunny", "stanford-bunny"), ("fandisk", "fandisk"), ("spot", "spot"))}
     npz = {"repeat": np.array(repeat)}
     tasks = []
 
@@ -342,7 +329,7 @@ def main():
     speed_rays = {}
     for key in ("bunny", "fandisk"):
         v, _ = meshes[key]
-        o, d = random_rays(v, args.rays, seed=7)
+        o, d = oracle.random_rays(v, args.rays, seed=7)
         speed_rays[key] = (o, d)
         npz[f"speed_{key}__o"], npz[f"speed_{key}__d"] = o, d
         tasks.append({"id": f"speed_{key}", "kind": "rays", "mesh": key, "rays": f"speed_{key}", "time": True})
@@ -359,7 +346,7 @@ def main():
 
     # (a) rays through shared vertices and edges, at every offset of HARD_OFFSETS
     hard_rays = []  # (label, offset, key, v, f, o, d, expected crossings, t of the crossing aimed at, radius, kinds)
-    cube_v, cube_f = box()
+    cube_v, cube_f = oracle.box()
     # The cube's face diagonals: the edges its coplanar triangle pairs share.
     face_normals = np.cross(cube_v[cube_f[:, 1]] - cube_v[cube_f[:, 0]], cube_v[cube_f[:, 2]] - cube_v[cube_f[:, 0]])
     diagonals = []
@@ -369,29 +356,29 @@ def main():
             diagonals.append((a, b, face_normals[tris[0]] / np.linalg.norm(face_normals[tris[0]])))
     for offset in HARD_OFFSETS:
         n = 16
-        v, f, _ = heightfield(n, seed=47, offset=offset)
+        v, f, _ = oracle.heightfield(n, seed=47, offset=offset)
         key = f"hf_{offset:g}"
         add_mesh(key, v, f)
-        targets = shared_targets(v, f, n)
+        targets = oracle.shared_targets(v, f, n)
         kinds = np.array(["vertex (6 triangles)"] * (n - 2) ** 2 + ["axis-aligned edge"] * (2 * (n - 2) * (n - 3))
                          + ["diagonal edge"] * (n - 3) ** 2)
-        radius = bounds(v)[1]
+        radius = oracle.bounds(v)[1]
         for sign, label in ((-1.0, "heightfield, vertical rays down"), (1.0, "heightfield, vertical rays up")):
             o = targets.copy()
             o[:, 2] = offset + 5.0 if sign < 0 else offset - 5.0
             d = np.broadcast_to([0.0, 0.0, sign], o.shape).copy()
             hard_rays.append((label, offset, key, v, f, o, d, 1, np.abs(o[:, 2] - targets[:, 2]), radius, kinds))
-        o, d = rays_through(targets, seed=48)
+        o, d = oracle.rays_through(targets, seed=48)
         hard_rays.append(("heightfield, tilted rays", offset, key, v, f, o, d, 1, np.ones(len(o)), radius, kinds))
-        v, f = fan(offset)
+        v, f = oracle.fan(offset)
         key = f"fan_{offset:g}"
         add_mesh(key, v, f)
         targets = np.repeat(np.vstack([v[0], 0.5 * (v[0] + v[1:])]), 100, axis=0)
         kinds = np.array(["centre vertex (11 triangles)"] * 100 + ["spoke (edge)"] * (len(targets) - 100))
-        o, d = rays_through(targets, seed=50)
+        o, d = oracle.rays_through(targets, seed=50)
         hard_rays.append(("closed fan (11 triangles), centre and spokes", offset, key, v, f, o, d, 1, np.ones(len(o)),
-                          bounds(v)[1], kinds))
-        v, f = bipyramid(offset)
+                          oracle.bounds(v)[1], kinds))
+        v, f = oracle.bipyramid(offset)
         key = f"bip_{offset:g}"
         add_mesh(key, v, f)
         targets = np.vstack([v, [0.5 * (v[a] + v[b]) for a, b in edges_of(f)]])
@@ -403,7 +390,7 @@ def main():
         d *= 2.0 / np.linalg.norm(d, axis=1, keepdims=True)
         o = targets - d
         hard_rays.append(("closed bipyramid, entered through vertices and edges", offset, key, v, f, o, d, 2,
-                          np.ones(len(o)), bounds(v)[1], kinds))
+                          np.ones(len(o)), oracle.bounds(v)[1], kinds))
         # The unit cube entered through its faces' diagonals (the edge each face's two triangles
         # share): rays perpendicular to the face, and tilted towards random points inside. A convex
         # solid: every ray through its interior crosses it twice.
@@ -422,7 +409,7 @@ def main():
         d = 2.0 * dirs.reshape(-1, 3)
         o = targets - d
         hard_rays.append(("unit cube (12 triangles), entered through its faces' diagonals", offset, key, v, cube_f, o, d,
-                          2, np.ones(len(o)), bounds(v)[1], kinds))
+                          2, np.ones(len(o)), oracle.bounds(v)[1], kinds))
     for i, case in enumerate(hard_rays):
         npz[f"hard{i}__o"], npz[f"hard{i}__d"] = case[5], case[6]
         tasks.append({"id": f"hard{i}", "kind": "rays", "mesh": case[2], "rays": f"hard{i}"})
@@ -436,7 +423,7 @@ def main():
     def lattice(values):
         return np.array(np.meshgrid(values, values, values, indexing="ij")).reshape(3, -1).T
 
-    cube_v, cube_f = box()
+    cube_v, cube_f = oracle.box()
     cube_targets = np.vstack(
         [cube_v]
         + [cube_v[a] + w * (cube_v[b] - cube_v[a]) for a, b in edges_of(cube_f)
@@ -464,7 +451,7 @@ def main():
         hard_points.append((f"unit cube at offset {offset:g}", key, cube_v + offset, cube_f, cube_local + offset,
                             inside, inside & ~interior))
     fv, ff = meshes["fandisk"]
-    f_radius = bounds(fv)[1]
+    f_radius = oracle.bounds(fv)[1]
     rng = np.random.default_rng(9)
     fedges = np.array(edges_of(ff))
     ftargets = np.vstack([fv[rng.choice(len(fv), 150, replace=False)],
@@ -662,11 +649,11 @@ def main():
 
         # Who is right where the engines disagree: the brute-force f64 oracle on those rays, hits
         # at one point (t within 1e-9 radii: a shared edge or vertex) merged into one crossing.
-        radius = bounds(v)[1]
+        radius = oracle.bounds(v)[1]
         rays = np.unique(np.concatenate([x for (kk, _), x in disagreements.items() if kk == key] or [np.zeros(0, int)]))
         rays = rays[:300]
         if len(rays):
-            ref = all_hits_brute(v[f], o[rays], d[rays])
+            ref = oracle.all_hits_brute(v[f], o[rays], d[rays])
             length = np.linalg.norm(d[rays], axis=1)
             _, brute = crossings(ref["ray"], ref["t"] * length[ref["ray"]], len(rays), 1e-9 * radius)
             ambiguous = np.zeros(len(rays), bool)
@@ -776,7 +763,7 @@ def main():
         # Disagreements, judged by the generalized winding number in numpy (oracle.winding_numbers).
         bad = np.unique(np.concatenate([np.nonzero(a != inside)[0] for a in answers.values()] or [np.zeros(0, int)]))
         if len(bad):
-            wn = winding_numbers(v, f, p[bad])
+            wn = oracle.winding_numbers(v, f, p[bad])
             truth = wn >= 0.5
             notes = [f"vkray parity right on {int(np.sum(inside[bad] == truth))} of {len(bad)}"]
             for label, a in answers.items():
@@ -888,7 +875,7 @@ def main():
             if label.startswith("unit cube"):  # convex: two crossings for every ray through the interior
                 classes[label] = (np.ones(built, bool), np.zeros(built, bool), "none (convex solid)")
             else:
-                classes[label] = classify_rays(all_hits_brute, crossings, v, f, o, d, target_t, expected, radius)
+                classes[label] = classify_rays(oracle.all_hits_brute, crossings, v, f, o, d, target_t, expected, radius)
         keep, touch, why = classes[label]
         length = np.linalg.norm(d, axis=1)
         tol = 0.02 * radius
@@ -1052,12 +1039,12 @@ def main():
         if expected is None:  # fandisk: vkray's winding number is the reference
             expected = ans["vkray winding"]
             bad = np.unique(np.concatenate([np.nonzero(a != expected)[0] for a in ans.values()]))
-            dist = surface_distance(v, f, p[bad]) if len(bad) else np.zeros(0)
+            dist = oracle.surface_distance(v, f, p[bad]) if len(bad) else np.zeros(0)
             near = bad[dist < 1e-6 * f_radius]
             on_surface = np.zeros(n, bool)
             on_surface[near] = True
             if len(bad):
-                wn = winding_numbers(v, f, p[bad])
+                wn = oracle.winding_numbers(v, f, p[bad])
                 agree = int(np.sum((wn >= 0.5) == expected[bad]))
                 fandisk_note = (f"Fandisk: {len(bad)} points where some engine differs from the reference; there the "
                                 f"numpy winding number agrees with vkray's on {agree} of {len(bad)} "

@@ -68,11 +68,11 @@ def out_arrays(
     return arrays
 
 
-class _HitFields:
-    """The hit fields `Hits` (one entry a ray) and `AllHits` (one entry a hit) hold: None where
-    the query did not ask for them."""
+class _SurfaceFields:
+    """What a query says of a point on the surface: its triangle (``prim_id``, ``instance_id``,
+    ``custom_index``, ``geometry_id``), ``uv``, ``normal`` and ``position``; None where the query
+    did not ask for them."""
 
-    t: Optional[np.ndarray]
     prim_id: Optional[np.ndarray]
     instance_id: Optional[np.ndarray]
     custom_index: Optional[np.ndarray]
@@ -80,6 +80,13 @@ class _HitFields:
     normal: Optional[np.ndarray]
     geometry_id: Optional[np.ndarray]
     position: Optional[np.ndarray]
+
+
+class _HitFields(_SurfaceFields):
+    """The hit fields `Hits` (one entry a ray) and `AllHits` (one entry a hit) hold: the surface's,
+    and ``t``."""
+
+    t: Optional[np.ndarray]
 
 
 class Hits(_HitFields):
@@ -196,7 +203,7 @@ class AllHits(_HitFields):
         return f"<vkray.AllHits rays={len(self)} hits={len(self.ray_index)} precision={self.precision!r}>"
 
 
-class Closest:
+class Closest(_SurfaceFields):
     """The surface point nearest to each query point, from `Scene.closest_points`.
 
     Each field has the points' batch shape ``S`` (plus a last axis for position, uv and normal):
@@ -207,13 +214,6 @@ class Closest:
     """
 
     distance: Optional[np.ndarray]
-    position: Optional[np.ndarray]
-    prim_id: Optional[np.ndarray]
-    instance_id: Optional[np.ndarray]
-    custom_index: Optional[np.ndarray]
-    geometry_id: Optional[np.ndarray]
-    uv: Optional[np.ndarray]
-    normal: Optional[np.ndarray]
 
     def __init__(self, shape: Tuple[int, ...], arrays: Dict[str, np.ndarray], precision: Precision) -> None:
         self.shape = shape
