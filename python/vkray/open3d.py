@@ -546,22 +546,23 @@ class RaycastingScene:
     def compute_distance(self, query_points: Any, nthreads: int = 0) -> Any:
         """float32 (...): each point's distance to the nearest surface."""
         _threads(nthreads)
-        given = self._input("query_points", query_points, 3, "compute_distance")
-        scene, _ = self._scene()
-        p = given.array
-        distance = self._run("fast", lambda tier: scene.distance(p, precision=tier), points=True)
-        return _Result(given.target, given.shape)(distance, "float32")
+        return self._distances("compute_distance", query_points, signed=False)
 
     def compute_signed_distance(self, query_points: Any, nthreads: int = 0, nsamples: int = 1) -> Any:
         """float32 (...): `compute_distance`, negative inside (exact: see the module; ``nsamples``
         is checked and not needed)."""
         _threads(nthreads)
         _samples(nsamples)
-        given = self._input("query_points", query_points, 3, "compute_signed_distance")
+        return self._distances("compute_signed_distance", query_points, signed=True)
+
+    def _distances(self, method: str, query_points: Any, signed: bool) -> Any:
+        """`compute_distance` or (``signed``) `compute_signed_distance` of checked arguments."""
+        given = self._input("query_points", query_points, 3, method)
         scene, _ = self._scene()
         p = given.array
-        signed = self._run("fast", lambda tier: scene.signed_distance(p, precision=tier), points=True)
-        return _Result(given.target, given.shape)(signed, "float32")
+        query = scene.signed_distance if signed else scene.distance
+        distance = self._run("fast", lambda tier: query(p, precision=tier), points=True)
+        return _Result(given.target, given.shape)(distance, "float32")
 
     def compute_occupancy(self, query_points: Any, nthreads: int = 0, nsamples: int = 1) -> Any:
         """float32 (...): 1 where a point is inside (or on) a surface, 0 outside: exact, whatever
