@@ -35,7 +35,7 @@ use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers;
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::Precision;
+use crate::trace::request::{PointBatch, Precision};
 
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
@@ -335,15 +335,8 @@ impl ClosestPoints {
     /// The surface point nearest to each point within `max_distance`, on the GPU, its fields
     /// written into `sink`: measured in f64 (`Precision::Exact`, the reference tier's answers) or
     /// in f32 (`Fast`).
-    pub fn run(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        max_distance: f64,
-        precision: Precision,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-    ) -> Result<()> {
+    pub fn run(&self, batch: PointBatch, max_distance: f64, precision: Precision, sink: &mut HitSink) -> Result<()> {
+        let PointBatch { scene, points, interrupt } = batch;
         let n = points.rows();
         let structures = scene.closest()?;
         let full = sink.position.is_some()
@@ -420,13 +413,8 @@ impl ClosestPoints {
     /// each point on the GPU (f64 terms, f32 arctangents), decided on the host: inside at 1/2 or
     /// more; points whose number lies within the GPU's error of 1/2, on the CPU in f64; points
     /// outside, unless on a surface (the CPU's test). The reference tier's answers.
-    pub fn contains_by_winding(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        out: &mut [u8],
-        interrupt: &dyn Interrupt,
-    ) -> Result<()> {
+    pub fn contains_by_winding(&self, batch: PointBatch, out: &mut [u8]) -> Result<()> {
+        let PointBatch { scene, points, interrupt } = batch;
         let n = points.rows();
         let structures = scene.closest()?;
         let boundaries = scene.winding()?;

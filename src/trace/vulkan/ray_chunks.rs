@@ -18,7 +18,7 @@ use crate::geometry::rays::{Advance, Frame, Masks, RayLayout, Rays, RAY_FLOATS};
 use crate::trace::hit_fields::{hits_from_prims, Field, HitSink, FIELDS};
 use crate::trace::idle::Held;
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Query, Request};
+use crate::trace::request::{Query, RayBatch};
 use std::mem::size_of;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -130,17 +130,8 @@ impl RayChunks {
 
     /// The GPU's part of a query on rays the host packs: traversal in f32 (`exact`: through the
     /// scene's per-triangle boxes, each candidate decided by the f64 test).
-    #[allow(clippy::too_many_arguments)]
-    pub fn run(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        exact: bool,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()> {
+    pub fn run(&self, batch: RayBatch, exact: bool, sink: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
+        let RayBatch { scene, rays, request, interrupt } = batch;
         let shared = &*self.shared;
         let outputs = sink.outputs();
         // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
