@@ -447,10 +447,11 @@ fn structures_written(ctx: &Context, cmd: vk::CommandBuffer) {
     memory_barrier(
         ctx,
         cmd,
-        vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
-        vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
-        vk::PipelineStageFlags::ALL_COMMANDS,
-        vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+        (vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR),
+        (
+            vk::PipelineStageFlags::ALL_COMMANDS,
+            vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+        ),
     );
 }
 

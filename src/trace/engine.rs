@@ -57,15 +57,9 @@ pub trait Engine: Send + Sync {
     /// fit before it is stored.
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits>;
 
-    /// The surface point nearest each point within `max_distance`, measured at `precision`
+    /// The surface point nearest each point within distance `within`, measured at `precision`
     /// (`Exact`: f64; `Fast`: f32), its fields written into `sink`.
-    fn closest_points(
-        &self,
-        batch: PointBatch,
-        max_distance: f64,
-        precision: Precision,
-        sink: &mut HitSink,
-    ) -> Result<()>;
+    fn closest_points(&self, batch: PointBatch, within: f64, precision: Precision, sink: &mut HitSink) -> Result<()>;
 
     /// Whether each point is inside any instance (1) or not (0), exactly: by parity (the caller
     /// checked that every mesh is closed) or by winding number. Called only where

@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::shared::Shared;
 use super::staging::pair_bytes;
-use super::timestamps::{Stamp, Stamps};
+use super::timestamps::{start_stamps, Stamp, Stamps};
 use super::variants::Variant;
 use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
@@ -527,15 +527,7 @@ impl ClosestPoints {
         let ctx = &self.shared.ctx;
         let device = &ctx.device;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
-        let stamp = |k| {
-            if let Some(stamps) = &slot.stamps {
-                stamps.write(cmd, k);
-            }
-        };
-        if let Some(stamps) = &slot.stamps {
-            stamps.reset(cmd);
-        }
-        stamp(Stamp::Start);
+        let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         if let Some((points_device, _)) = &slot.device {
             let region = [vk::BufferCopy::default().size(24 * len as u64)];
             // SAFETY: `cmd` is recording; both buffers hold `capacity` points.
@@ -543,10 +535,8 @@ impl ClosestPoints {
             memory_barrier(
                 ctx,
                 cmd,
-                vk::PipelineStageFlags::TRANSFER,
-                vk::AccessFlags::TRANSFER_WRITE,
-                compute,
-                vk::AccessFlags::SHADER_READ,
+                (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+                (compute, vk::AccessFlags::SHADER_READ),
             );
         }
         let order = match job.grid {
@@ -599,17 +589,15 @@ impl ClosestPoints {
         stamp(Stamp::Traced);
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
         let Some((_, results_device)) = &slot.device else {
-            memory_barrier(ctx, cmd, written, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
+            memory_barrier(ctx, cmd, (written, vk::AccessFlags::SHADER_WRITE), host);
             stamp(Stamp::ReadBack);
             return;
         };
         memory_barrier(
             ctx,
             cmd,
-            written,
-            vk::AccessFlags::SHADER_WRITE,
-            vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::TRANSFER_READ,
+            (written, vk::AccessFlags::SHADER_WRITE),
+            (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_READ),
         );
         let layout = slot.results_layout();
         let region = |at: usize, bytes: usize| {
@@ -624,7 +612,7 @@ impl ClosestPoints {
         }
         // SAFETY: `cmd` is recording; both buffers share one layout and hold `capacity` points.
         unsafe { device.cmd_copy_buffer(cmd, results_device.raw(), slot.results_host.raw(), &regions) };
-        memory_barrier(ctx, cmd, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE, host.0, host.1);
+        memory_barrier(ctx, cmd, (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE), host);
         stamp(Stamp::ReadBack);
     }
     /// Records the sign's trace of a chunk after its search: the chunk's `PointRays` record,
@@ -669,10 +657,11 @@ impl ClosestPoints {
         memory_barrier(
             ctx,
             cmd,
-            vk::PipelineStageFlags::TRANSFER | vk::PipelineStageFlags::COMPUTE_SHADER,
-            vk::AccessFlags::TRANSFER_WRITE | vk::AccessFlags::SHADER_WRITE,
-            stage,
-            vk::AccessFlags::SHADER_READ,
+            (
+                vk::PipelineStageFlags::TRANSFER | vk::PipelineStageFlags::COMPUTE_SHADER,
+                vk::AccessFlags::TRANSFER_WRITE | vk::AccessFlags::SHADER_WRITE,
+            ),
+            (stage, vk::AccessFlags::SHADER_READ),
         );
         let mut params = Params { rays: record_buffer.address(), count: len as u32, ..sign.params };
         params.outputs[Field::Prim as usize] = results + layout.crossings as u64;
@@ -699,10 +688,11 @@ impl ClosestPoints {
         memory_barrier(
             ctx,
             cmd,
-            compute | stage | vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE,
-            compute,
-            vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE,
+            (
+                compute | stage | vk::PipelineStageFlags::TRANSFER,
+                vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE,
+            ),
+            (compute, vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE),
         );
         let layout = slot.results_layout();
         let results = slot.results_address();
@@ -749,10 +739,8 @@ impl ClosestPoints {
         memory_barrier(
             ctx,
             cmd,
-            vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::TRANSFER_WRITE,
-            compute,
-            read_write,
+            (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+            (compute, read_write),
         );
         let points_address = slot.points_address();
         let pass = |pass: u32, groups: u32| {
@@ -779,7 +767,7 @@ impl ClosestPoints {
                 );
                 ctx.device.cmd_dispatch(cmd, groups, 1, 1);
             }
-            memory_barrier(ctx, cmd, compute, vk::AccessFlags::SHADER_WRITE, compute, read_write);
+            memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), (compute, read_write));
         };
         let groups = (len as u32).div_ceil(kernel.local_size);
         pass(POINT_ORDER_COUNT, groups);

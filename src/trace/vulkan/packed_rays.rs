@@ -10,7 +10,7 @@ use ash::vk;
 
 use super::probes::Probes;
 use super::shared::Shared;
-use super::timestamps::{Stamp, Stamps};
+use super::timestamps::{start_stamps, Stamp, Stamps};
 use super::variants::Variant;
 use crate::error::{invalid_value, Result};
 use crate::geometry::arrays::Vec3s;
@@ -297,15 +297,7 @@ impl PackedRays {
             let len = capacity.min(count - start);
             commands.begin()?;
             let cmd = commands.buffer;
-            let stamp = |k| {
-                if let Some(stamps) = &stamps {
-                    stamps.write(cmd, k);
-                }
-            };
-            if let Some(stamps) = &stamps {
-                stamps.reset(cmd);
-            }
-            stamp(Stamp::Start);
+            let stamp = start_stamps(stamps.as_ref(), cmd);
             let mut pack_params = pack_params(job.rays, start, len, job.scratch, job.frame);
             self.packing.record(cmd, pack, &pack_params);
             self.barrier(cmd, vk::PipelineStageFlags::COMPUTE_SHADER, self.trace_stage());
@@ -320,7 +312,7 @@ impl PackedRays {
             }
             let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
             let all = (vk::PipelineStageFlags::ALL_COMMANDS, vk::AccessFlags::MEMORY_WRITE);
-            memory_barrier(&self.shared.ctx, cmd, all.0, all.1, host.0, host.1);
+            memory_barrier(&self.shared.ctx, cmd, all, host);
             stamp(Stamp::ReadBack);
             let last = start + len == count;
             // Arriving chunk by chunk: this one's rays are in place once the chunk holding its
@@ -361,10 +353,8 @@ impl PackedRays {
         memory_barrier(
             &self.shared.ctx,
             cmd,
-            src,
-            A::SHADER_WRITE | A::SHADER_READ,
-            dst,
-            A::SHADER_READ | A::SHADER_WRITE,
+            (src, A::SHADER_WRITE | A::SHADER_READ),
+            (dst, A::SHADER_READ | A::SHADER_WRITE),
         );
     }
 

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 
 use super::shared::Shared;
 use super::staging::{pair_bytes, HitReadback, RayStaging, Slot};
-use super::timestamps::Stamp;
+use super::timestamps::{start_stamps, Stamp};
 use super::variants::Variant;
 use crate::error::{invalid_value, Result};
 use crate::geometry::parallel;
@@ -268,15 +268,7 @@ impl RayChunks {
     ) {
         let ctx = &self.shared.ctx;
         let device = &ctx.device;
-        let stamp = |k| {
-            if let Some(stamps) = &slot.stamps {
-                stamps.write(cmd, k);
-            }
-        };
-        if let Some(stamps) = &slot.stamps {
-            stamps.reset(cmd);
-        }
-        stamp(Stamp::Start);
+        let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         let shader_stage = match ctx.backend {
             Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
             Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
@@ -303,10 +295,8 @@ impl RayChunks {
             memory_barrier(
                 ctx,
                 cmd,
-                vk::PipelineStageFlags::TRANSFER,
-                vk::AccessFlags::TRANSFER_WRITE,
-                shader_stage,
-                vk::AccessFlags::SHADER_READ,
+                (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+                (shader_stage, vk::AccessFlags::SHADER_READ),
             );
         }
         stamp(Stamp::Uploaded);
@@ -377,16 +367,14 @@ fn record_readback(
 ) {
     let Some((_, hits_device)) = &slot.device else {
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
-        memory_barrier(ctx, cmd, shader_stage, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
+        memory_barrier(ctx, cmd, (shader_stage, vk::AccessFlags::SHADER_WRITE), host);
         return;
     };
     memory_barrier(
         ctx,
         cmd,
-        shader_stage,
-        vk::AccessFlags::SHADER_WRITE,
-        vk::PipelineStageFlags::TRANSFER,
-        vk::AccessFlags::TRANSFER_READ,
+        (shader_stage, vk::AccessFlags::SHADER_WRITE),
+        (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_READ),
     );
     let regions: Vec<vk::BufferCopy> = FIELDS
         .iter()
@@ -411,10 +399,8 @@ fn record_readback(
     memory_barrier(
         ctx,
         cmd,
-        vk::PipelineStageFlags::TRANSFER,
-        vk::AccessFlags::TRANSFER_WRITE,
-        vk::PipelineStageFlags::HOST,
-        vk::AccessFlags::HOST_READ,
+        (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+        (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ),
     );
 }
 

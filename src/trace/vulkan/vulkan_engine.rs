@@ -177,14 +177,8 @@ impl Engine for VulkanEngine {
         stored.into_all_hits(batch.scene)
     }
 
-    fn closest_points(
-        &self,
-        batch: PointBatch,
-        max_distance: f64,
-        precision: Precision,
-        sink: &mut HitSink,
-    ) -> Result<()> {
-        self.points.run(batch, max_distance, precision, sink)
+    fn closest_points(&self, batch: PointBatch, within: f64, precision: Precision, sink: &mut HitSink) -> Result<()> {
+        self.points.run(batch, within, precision, sink)
     }
 
     fn contains(&self, batch: PointBatch, winding: bool, out: &mut [u8]) -> Result<()> {
