@@ -14,6 +14,10 @@ pub mod sensor;
 
 pub mod arrays;
 
+pub mod bvh;
+
+pub mod winding;
+
 pub mod reference;
 
 pub mod morton;
@@ -21,5 +25,3 @@ pub mod morton;
 pub mod rays;
 
 pub mod vertex_format;
-
-pub mod winding;

@@ -7,144 +7,11 @@ use std::sync::OnceLock;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::bvh::Bvh;
 use super::parallel;
-use super::winding::WindingTree;
+use super::winding::{Triangles, WindingTree};
 
 use crate::geometry::precision::{closest_point_on_triangle, watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
-
-/// Items one leaf holds at most.
-const LEAF_ITEMS: usize = 4;
-
-pub struct Node {
-    pub bounds: Aabb,
-    /// Leaf: first item in `Bvh::items`; inner node: index of the left child (the right follows).
-    pub first: u32,
-    /// Items of a leaf; 0 for an inner node.
-    pub count: u32,
-}
-
-/// A binary BVH over boxes, split at the median centroid along the widest axis.
-pub struct Bvh {
-    nodes: Vec<Node>,
-    items: Vec<u32>,
-}
-
-impl Bvh {
-    /// `boxes` must be conservative: the traversal trusts them to hold every hit.
-    pub fn build(boxes: &[Aabb]) -> Bvh {
-        let mut bvh = Bvh { nodes: Vec::with_capacity(2 * boxes.len() / LEAF_ITEMS + 1), items: Vec::new() };
-        let mut items: Vec<u32> = (0..boxes.len() as u32).collect();
-        if boxes.is_empty() {
-            return bvh;
-        }
-        bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
-        // (node, range of `items`) still to split.
-        let mut todo = vec![(0usize, 0usize, items.len())];
-        while let Some((node, lo, hi)) = todo.pop() {
-            let slice = &mut items[lo..hi];
-            let bounds = slice.iter().fold(Aabb::EMPTY, |b, &i| b.union(&boxes[i as usize]));
-            bvh.nodes[node].bounds = bounds;
-            if slice.len() <= LEAF_ITEMS {
-                bvh.nodes[node].first = lo as u32;
-                bvh.nodes[node].count = slice.len() as u32;
-                continue;
-            }
-            let centroids = Aabb::of_points(slice.iter().map(|&i| boxes[i as usize].center()));
-            let extent = centroids.extent();
-            let axis = if extent.x >= extent.y && extent.x >= extent.z {
-                0
-            } else if extent.y >= extent.z {
-                1
-            } else {
-                2
-            };
-            let mid = slice.len() / 2;
-            slice.select_nth_unstable_by(mid, |&a, &b| {
-                boxes[a as usize].center()[axis].total_cmp(&boxes[b as usize].center()[axis])
-            });
-            let left = bvh.nodes.len();
-            bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
-            bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
-            bvh.nodes[node].first = left as u32;
-            todo.push((left, lo, lo + mid));
-            todo.push((left + 1, lo + mid, hi));
-        }
-        bvh.items = items;
-        bvh
-    }
-
-    /// Calls `visit` with every item whose box may hold something nearer than `*best`, by
-    /// `lower_bound` of its box (a distance no item in the box can beat), nearer boxes first;
-    /// `visit` may lower `*best`.
-    pub fn nearest(&self, lower_bound: impl Fn(&Aabb) -> f64, best: &mut f64, mut visit: impl FnMut(u32, &mut f64)) {
-        if self.nodes.is_empty() {
-            return;
-        }
-        let mut stack = Vec::with_capacity(64);
-        stack.push((0u32, lower_bound(&self.nodes[0].bounds)));
-        while let Some((index, bound)) = stack.pop() {
-            if bound > *best {
-                continue;
-            }
-            let node = &self.nodes[index as usize];
-            if node.count > 0 {
-                for &item in &self.items[node.first as usize..(node.first + node.count) as usize] {
-                    visit(item, best);
-                }
-                continue;
-            }
-            let (left, right) = (node.first, node.first + 1);
-            let (lb, rb) =
-                (lower_bound(&self.nodes[left as usize].bounds), lower_bound(&self.nodes[right as usize].bounds));
-            // The nearer child is popped first.
-            if lb <= rb {
-                stack.push((right, rb));
-                stack.push((left, lb));
-            } else {
-                stack.push((left, lb));
-                stack.push((right, rb));
-            }
-        }
-    }
-
-    /// The nodes, the root first (none for no boxes).
-    pub fn nodes(&self) -> &[Node] {
-        &self.nodes
-    }
-
-    /// The boxes' indices in leaf order: a leaf holds `items[first..first + count]`.
-    pub fn items(&self) -> &[u32] {
-        &self.items
-    }
-
-    /// Calls `visit` with every item whose box the ray enters before `*tmax`; `visit` may lower
-    /// `*tmax` (a closer hit) or return false to stop (an occlusion query's first hit).
-    pub fn traverse(&self, ray: &Ray64, tmax: &mut f64, mut visit: impl FnMut(u32, &mut f64) -> bool) {
-        if self.nodes.is_empty() {
-            return;
-        }
-        let inverse_direction = ray.direction.recip();
-        let mut stack = Vec::with_capacity(64);
-        stack.push(0u32);
-        while let Some(index) = stack.pop() {
-            let node = &self.nodes[index as usize];
-            let bounded = Ray64 { tmax: *tmax, ..*ray };
-            if node.bounds.entry(&bounded, inverse_direction).is_none() {
-                continue;
-            }
-            if node.count > 0 {
-                for &item in &self.items[node.first as usize..(node.first + node.count) as usize] {
-                    if !visit(item, tmax) {
-                        return;
-                    }
-                }
-            } else {
-                stack.push(node.first);
-                stack.push(node.first + 1);
-            }
-        }
-    }
-}
 
 /// Triangles of one mesh in its own (re-centred) frame, in f64, with their hierarchy (built on
 /// first use: only the reference tier needs it).
@@ -191,7 +58,14 @@ impl TriangleSet {
 
     /// The boundaries of the hierarchy's nodes, for winding numbers (built on first use).
     pub fn winding_tree(&self) -> &WindingTree {
-        self.winding.get_or_init(|| WindingTree::build(self))
+        self.winding.get_or_init(|| WindingTree::build(self.bvh(), &self.faces))
+    }
+
+    /// The winding number about `p` (scene frame; `local`: the same point in the set's frame) of
+    /// the set's triangles placed by `to_scene`, unsigned by any mirroring (`WindingTree`).
+    pub fn winding_number(&self, to_scene: &Affine, p: DVec3, local: DVec3) -> f64 {
+        let triangles = Triangles { bvh: self.bvh(), vertices: &self.vertices, faces: &self.faces };
+        self.winding_tree().winding_number(triangles, to_scene, p, local)
     }
 
     pub fn triangle(&self, prim: usize) -> [DVec3; 3] {
@@ -505,29 +379,6 @@ impl<'a> ReferenceTracer<'a> {
     }
 }
 
-/// A sheet of `n`×`n` squares of side `side` (two triangles each, counter-clockwise seen from +z)
-/// at heights `height(x, y)`: the tests' open meshes.
-#[cfg(test)]
-pub(crate) fn grid_sheet(n: u32, side: f64, height: impl Fn(f64, f64) -> f64) -> TriangleSet {
-    let mut vertices = Vec::new();
-    for y in 0..=n {
-        for x in 0..=n {
-            let (fx, fy) = (x as f64 * side, y as f64 * side);
-            vertices.push(DVec3::new(fx, fy, height(fx, fy)));
-        }
-    }
-    let at = |x: u32, y: u32| y * (n + 1) + x;
-    let mut faces = Vec::new();
-    for y in 0..n {
-        for x in 0..n {
-            faces.push([at(x, y), at(x + 1, y), at(x + 1, y + 1)]);
-            faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
-        }
-    }
-    let count = faces.len() as u32;
-    TriangleSet::new(vertices, faces, vec![0, count])
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -581,7 +432,9 @@ mod tests {
 
     /// A grid of `n`×`n` unit squares (two triangles each) in the plane z = 0.
     fn grid(n: u32) -> TriangleSet {
-        grid_sheet(n, 1.0, |_, _| 0.0)
+        let (vertices, faces) = crate::geometry::winding::grid_sheet(n, 1.0, |_, _| 0.0);
+        let count = faces.len() as u32;
+        TriangleSet::new(vertices, faces, vec![0, count])
     }
 
     #[test]

@@ -13,8 +13,8 @@
 
 use glam::DVec3;
 
+use super::bvh::Bvh;
 use super::precision::{Aabb, Affine};
-use super::reference::TriangleSet;
 
 /// A node's boundary among `WindingTree::edges`; `count == NO_CAP`: none kept (sum below it).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -31,7 +31,16 @@ pub const NO_CAP: u32 = u32::MAX;
 /// point, and their solid angles are well conditioned. winding.comp's specialization constant.
 pub const CAP_MARGIN_DIVISOR: u32 = 8;
 
-/// The boundaries of every node of a triangle set's hierarchy (`TriangleSet::bvh`).
+/// A mesh's triangles as winding numbers read them: `faces` over `vertices`, and the hierarchy
+/// over the faces' boxes.
+#[derive(Clone, Copy)]
+pub struct Triangles<'a> {
+    pub bvh: &'a Bvh,
+    pub vertices: &'a [DVec3],
+    pub faces: &'a [[u32; 3]],
+}
+
+/// The boundaries of every node of a mesh's hierarchy (`TriangleSet::bvh`).
 pub struct WindingTree {
     /// Per node of the hierarchy.
     spans: Vec<Span>,
@@ -44,8 +53,8 @@ pub struct WindingTree {
 type NetEdge = (u32, u32, i32);
 
 impl WindingTree {
-    pub fn build(set: &TriangleSet) -> WindingTree {
-        let bvh = set.bvh();
+    /// `bvh`: the hierarchy over `faces`' boxes.
+    pub fn build(bvh: &Bvh, faces: &[[u32; 3]]) -> WindingTree {
         let (nodes, items) = (bvh.nodes(), bvh.items());
         let mut boundaries: Vec<Vec<NetEdge>> = (0..nodes.len()).map(|_| Vec::new()).collect();
         let mut triangles = vec![0usize; nodes.len()];
@@ -59,7 +68,7 @@ impl WindingTree {
                 triangles[i] = node.count as usize;
                 let mut own = Vec::with_capacity(3 * node.count as usize);
                 for &prim in &items[first..first + node.count as usize] {
-                    let [a, b, c] = set.faces[prim as usize];
+                    let [a, b, c] = faces[prim as usize];
                     own.extend([net_edge(a, b), net_edge(b, c), net_edge(c, a)]);
                 }
                 own.sort_unstable();
@@ -93,16 +102,17 @@ impl WindingTree {
         &self.edges
     }
 
-    /// The winding number about `p` (scene frame; `local`: the same point in the set's frame) of
-    /// the set's triangles placed by `to_scene`, unsigned by any mirroring.
-    pub fn winding_number(&self, set: &TriangleSet, to_scene: &Affine, p: DVec3, local: DVec3) -> f64 {
-        let bvh = set.bvh();
+    /// The winding number about `p` (scene frame; `local`: the same point in the mesh's frame) of
+    /// the triangles (`faces` over `vertices`, under `bvh`, the hierarchy this tree was built
+    /// over) placed by `to_scene`, unsigned by any mirroring.
+    pub fn winding_number(&self, triangles: Triangles, to_scene: &Affine, p: DVec3, local: DVec3) -> f64 {
+        let Triangles { bvh, vertices, faces } = triangles;
         let (nodes, items) = (bvh.nodes(), bvh.items());
         if nodes.is_empty() {
             return 0.0;
         }
         let corner = |v: DVec3| to_scene.point(v) - p;
-        let vertex = |i: u32| corner(set.vertices[i as usize]);
+        let vertex = |i: u32| corner(vertices[i as usize]);
         let mut sum = 0.0;
         let mut stack = Vec::with_capacity(64);
         stack.push(0usize);
@@ -117,7 +127,7 @@ impl WindingTree {
                 }
             } else if node.count > 0 {
                 for &prim in &items[node.first as usize..(node.first + node.count) as usize] {
-                    let [a, b, c] = set.faces[prim as usize].map(vertex);
+                    let [a, b, c] = faces[prim as usize].map(vertex);
                     sum += twice_solid_angle(a, b, c);
                 }
             } else {
@@ -226,12 +236,60 @@ fn merge(left: Vec<NetEdge>, right: Vec<NetEdge>) -> Vec<NetEdge> {
     cancel(both)
 }
 
+/// A sheet of `n`×`n` squares of side `side` (two triangles each, counter-clockwise seen from +z)
+/// at heights `height(x, y)`: the tests' open meshes.
+#[cfg(test)]
+pub(crate) fn grid_sheet(n: u32, side: f64, height: impl Fn(f64, f64) -> f64) -> (Vec<DVec3>, Vec<[u32; 3]>) {
+    let mut vertices = Vec::new();
+    for y in 0..=n {
+        for x in 0..=n {
+            let (fx, fy) = (x as f64 * side, y as f64 * side);
+            vertices.push(DVec3::new(fx, fy, height(fx, fy)));
+        }
+    }
+    let at = |x: u32, y: u32| y * (n + 1) + x;
+    let mut faces = Vec::new();
+    for y in 0..n {
+        for x in 0..n {
+            faces.push([at(x, y), at(x + 1, y), at(x + 1, y + 1)]);
+            faces.push([at(x, y), at(x + 1, y + 1), at(x, y + 1)]);
+        }
+    }
+    (vertices, faces)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// A mesh with its hierarchy, as `reference::TriangleSet` holds them.
+    struct TestMesh {
+        vertices: Vec<DVec3>,
+        faces: Vec<[u32; 3]>,
+        bvh: Bvh,
+    }
+
+    impl TestMesh {
+        fn new(vertices: Vec<DVec3>, faces: Vec<[u32; 3]>) -> TestMesh {
+            let boxes: Vec<Aabb> = faces.iter().map(|f| Aabb::of_points(f.map(|i| vertices[i as usize]))).collect();
+            TestMesh { bvh: Bvh::build(&boxes), vertices, faces }
+        }
+
+        fn triangles(&self) -> Triangles<'_> {
+            Triangles { bvh: &self.bvh, vertices: &self.vertices, faces: &self.faces }
+        }
+
+        fn tree(&self) -> WindingTree {
+            WindingTree::build(&self.bvh, &self.faces)
+        }
+
+        fn triangle(&self, t: usize) -> [DVec3; 3] {
+            self.faces[t].map(|i| self.vertices[i as usize])
+        }
+    }
+
     /// A unit cube's 12 triangles (outward), with the two on the top face left out when `open`.
-    fn cube(open: bool) -> TriangleSet {
+    fn cube(open: bool) -> TestMesh {
         let vertices: Vec<DVec3> =
             (0..8).map(|k| DVec3::new((k & 1) as f64, ((k >> 1) & 1) as f64, ((k >> 2) & 1) as f64)).collect();
         let mut faces = vec![
@@ -249,17 +307,17 @@ mod tests {
         if !open {
             faces.extend([[4, 5, 7], [4, 7, 6]]);
         }
-        let count = faces.len() as u32;
-        TriangleSet::new(vertices, faces, vec![0, count])
+        TestMesh::new(vertices, faces)
     }
 
     /// A wavy open sheet of `n`×`n` squares over the unit square: many nodes, each with a
     /// boundary.
-    fn sheet(n: u32) -> TriangleSet {
-        crate::geometry::reference::grid_sheet(n, 1.0 / n as f64, |x, y| 0.2 * (6.0 * x).sin() * (5.0 * y).cos())
+    fn sheet(n: u32) -> TestMesh {
+        let (vertices, faces) = grid_sheet(n, 1.0 / n as f64, |x, y| 0.2 * (6.0 * x).sin() * (5.0 * y).cos());
+        TestMesh::new(vertices, faces)
     }
 
-    fn brute_force(set: &TriangleSet, to_scene: &Affine, p: DVec3) -> f64 {
+    fn brute_force(set: &TestMesh, to_scene: &Affine, p: DVec3) -> f64 {
         let total: f64 = (0..set.faces.len())
             .map(|t| {
                 let [a, b, c] = set.triangle(t).map(|v| to_scene.point(v) - p);
@@ -310,7 +368,7 @@ mod tests {
         );
         // The open cube's one hole, and a sheet's: one loop each, as many edges arriving as leaving.
         for set in [cube(true), sheet(6)] {
-            let tree = WindingTree::build(&set);
+            let tree = set.tree();
             let span = tree.spans()[0];
             let root = &tree.edges()[span.first as usize..(span.first + span.count) as usize];
             let loops = boundary_loops(root);
@@ -327,17 +385,19 @@ mod tests {
     #[test]
     fn a_closed_part_adds_nothing_and_the_tree_matches_brute_force() {
         for set in [cube(false), cube(true), sheet(24)] {
-            let tree = WindingTree::build(&set);
+            let tree = set.tree();
             for p in points() {
-                let (fast, brute) =
-                    (tree.winding_number(&set, &Affine::IDENTITY, p, p), brute_force(&set, &Affine::IDENTITY, p));
+                let (fast, brute) = (
+                    tree.winding_number(set.triangles(), &Affine::IDENTITY, p, p),
+                    brute_force(&set, &Affine::IDENTITY, p),
+                );
                 assert!((fast - brute).abs() < 1e-12, "{p}: {fast} against {brute}");
             }
         }
         // Inside and outside the closed cube: 1 and 0.
         let closed = cube(false);
-        let tree = WindingTree::build(&closed);
-        let w = |p: DVec3| tree.winding_number(&closed, &Affine::IDENTITY, p, p);
+        let tree = closed.tree();
+        let w = |p: DVec3| tree.winding_number(closed.triangles(), &Affine::IDENTITY, p, p);
         assert!((w(DVec3::splat(0.5)) - 1.0).abs() < 1e-12);
         assert!(w(DVec3::splat(3.0)).abs() < 1e-12);
         // The closed cube's root has an empty boundary: a far point sums no term at all.
@@ -347,7 +407,7 @@ mod tests {
     #[test]
     fn large_sheets_keep_boundaries_shorter_than_their_triangles() {
         let set = sheet(64);
-        let tree = WindingTree::build(&set);
+        let tree = set.tree();
         let root = tree.spans()[0];
         assert_ne!(root.count, NO_CAP);
         // The sheet's rim: 4 · 64 edges, against 8192 triangles.
@@ -356,7 +416,7 @@ mod tests {
         let to_local = placed.inverse().expect("invertible");
         for p in points() {
             let scene = placed.point(p);
-            let fast = tree.winding_number(&set, &placed, scene, to_local.point(scene));
+            let fast = tree.winding_number(set.triangles(), &placed, scene, to_local.point(scene));
             let brute = brute_force(&set, &placed, scene);
             assert!((fast - brute).abs() < 1e-11, "{p}: {fast} against {brute}");
         }

@@ -11,7 +11,7 @@ use crate::error::{invalid_value, Result, VkResultExt};
 use crate::geometry::align::align_up;
 use crate::geometry::interrupt::{Interrupt, NoInterrupt};
 use crate::gpu::context::Context;
-use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation, Uploads};
+use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation, Uploads, GEOMETRY_INPUT};
 
 /// What a build optimizes for (the `VK_BUILD_ACCELERATION_STRUCTURE_PREFER_*` flags).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -447,10 +447,11 @@ fn structures_written(ctx: &Context, cmd: vk::CommandBuffer) {
     memory_barrier(
         ctx,
         cmd,
-        vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
-        vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR,
-        vk::PipelineStageFlags::ALL_COMMANDS,
-        vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+        (vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR),
+        (
+            vk::PipelineStageFlags::ALL_COMMANDS,
+            vk::AccessFlags::MEMORY_READ | vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR,
+        ),
     );
 }
 
@@ -576,6 +577,35 @@ pub fn aabbs_geometry(address: u64) -> vk::AccelerationStructureGeometryKHR<'sta
 }
 
 const _: () = assert!(std::mem::size_of::<vk::AabbPositionsKHR>() == std::mem::size_of::<[f32; 6]>());
+
+/// A buffer of TLAS instance records, recorded for upload.
+pub fn upload_instances(
+    ctx: &Arc<Context>,
+    uploads: &mut Uploads,
+    records: &[vk::AccelerationStructureInstanceKHR],
+    name: &str,
+) -> Result<Buffer> {
+    let bytes = instance_bytes(records);
+    let buffer = uploads.buffer(ctx, bytes.len() as u64, GEOMETRY_INPUT, name, |out, _| out.copy_from_slice(bytes))?;
+    debug_assert_eq!(buffer.address() % 16, 0, "Vulkan wants instance data 16-byte aligned");
+    Ok(buffer)
+}
+
+/// The build input of a TLAS over `count` instance records at `address`.
+pub fn instances_input(address: u64, count: usize) -> BuildInput<'static> {
+    let data = vk::AccelerationStructureGeometryInstancesDataKHR::default()
+        .array_of_pointers(false)
+        .data(vk::DeviceOrHostAddressConstKHR { device_address: address });
+    let geometry = vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::INSTANCES)
+        .geometry(vk::AccelerationStructureGeometryDataKHR { instances: data });
+    BuildInput {
+        ty: vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+        geometries: vec![geometry],
+        primitive_counts: vec![count as u32],
+        name: "scene TLAS",
+    }
+}
 
 #[cfg(test)]
 mod tests {

@@ -226,23 +226,18 @@ impl Uploads {
         memory_barrier(
             ctx,
             cmd,
-            vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::TRANSFER_WRITE,
-            vk::PipelineStageFlags::ALL_COMMANDS,
-            vk::AccessFlags::MEMORY_READ,
+            (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+            (vk::PipelineStageFlags::ALL_COMMANDS, vk::AccessFlags::MEMORY_READ),
         );
     }
 }
 
-/// A global memory barrier between two stages.
-pub fn memory_barrier(
-    ctx: &Context,
-    cmd: vk::CommandBuffer,
-    src_stage: vk::PipelineStageFlags,
-    src_access: vk::AccessFlags,
-    dst_stage: vk::PipelineStageFlags,
-    dst_access: vk::AccessFlags,
-) {
+/// A pipeline stage and the memory access in it that a barrier orders.
+pub type StageAccess = (vk::PipelineStageFlags, vk::AccessFlags);
+
+/// A global memory barrier between two stages: what `from` wrote before what `to` reads.
+pub fn memory_barrier(ctx: &Context, cmd: vk::CommandBuffer, from: StageAccess, to: StageAccess) {
+    let ((src_stage, src_access), (dst_stage, dst_access)) = (from, to);
     let barrier = [vk::MemoryBarrier::default().src_access_mask(src_access).dst_access_mask(dst_access)];
     // SAFETY: `cmd` is recording; a global memory barrier names no objects.
     unsafe {

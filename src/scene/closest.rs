@@ -9,11 +9,12 @@ use std::sync::Arc;
 use glam::DVec3;
 
 use super::instance::Placement;
-use super::top_level::Scene;
 use crate::error::{Error, Result};
+use crate::geometry::bvh::{Bvh, Node};
 use crate::geometry::precision::{Aabb, Affine};
-use crate::geometry::reference::{gap_weights, Bvh, TriangleSet};
+use crate::geometry::reference::{gap_weights, TriangleSet};
 use crate::geometry::winding::boundary_loops;
+use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 use crate::gpu::records::{
     BvhInstance, BvhNode, BvhTriangle, WindingCapEdge, WindingCapHeader, WindingCapHole, WindingEdge, WindingSpan,
@@ -30,8 +31,7 @@ pub struct ClosestScene {
 }
 
 impl ClosestScene {
-    pub(super) fn build(scene: &Scene) -> Result<ClosestScene> {
-        let ctx = scene.tlas.context();
+    pub(super) fn build(ctx: &Arc<Context>, placements: &[Placement]) -> Result<ClosestScene> {
         if !ctx.info.shader_float64 {
             return Err(Error::Unsupported(format!(
                 "{} has no shaderFloat64, which closest points on the GPU need; precision='reference' gives the same \
@@ -39,7 +39,7 @@ impl ClosestScene {
                 ctx.info.name
             )));
         }
-        let sets = unique_sets(scene);
+        let sets = unique_sets(placements);
         let (mut nodes, mut triangles) = (Vec::new(), Vec::new());
         // Where each set's nodes and triangles start.
         let mut starts: Vec<(u32, u32)> = Vec::new();
@@ -47,15 +47,14 @@ impl ClosestScene {
             starts.push((count_u32(nodes.len(), "nodes")?, count_u32(triangles.len(), "triangles")?));
             flatten(set, &mut nodes, &mut triangles);
         }
-        let instances: Vec<BvhInstance> = scene
-            .placements
+        let instances: Vec<BvhInstance> = placements
             .iter()
             .map(|p| {
                 let set = sets.iter().position(|s| Arc::ptr_eq(s, &p.triangles)).expect("placed set");
                 instance_record(p, starts[set])
             })
             .collect();
-        let boxes: Vec<Aabb> = scene.placements.iter().map(|p| p.bounds).collect();
+        let boxes: Vec<Aabb> = placements.iter().map(|p| p.bounds).collect();
         let top = Bvh::build(&boxes);
         let top_nodes: Vec<BvhNode> = top.nodes().iter().map(node_record).collect();
         let mut uploads = Uploads::default();
@@ -71,7 +70,7 @@ impl ClosestScene {
                 GEOMETRY_INPUT,
                 "closest-point top",
             )?,
-            instance_count: scene.placements.len() as u32,
+            instance_count: placements.len() as u32,
         };
         ctx.run_commands(|cmd| {
             uploads.record(ctx, cmd);
@@ -94,10 +93,9 @@ pub struct WindingScene {
 }
 
 impl WindingScene {
-    pub(super) fn build(scene: &Scene) -> Result<WindingScene> {
-        let ctx = scene.tlas.context();
+    pub(super) fn build(ctx: &Arc<Context>, placements: &[Placement]) -> Result<WindingScene> {
         let (mut spans, mut edges) = (Vec::new(), Vec::new());
-        for set in unique_sets(scene) {
+        for set in unique_sets(placements) {
             let tree = set.winding_tree();
             let first = count_u32(edges.len(), "boundary edges")?;
             count_u32(edges.len() + tree.edges().len(), "boundary edges")?;
@@ -153,8 +151,8 @@ impl WindingCap {
     /// The cap of the scene's one instance, or None: several instances (a ray's crossings would
     /// need telling apart), an instance no ray meets (mask 0), or a boundary of more than
     /// `MAX_CAP_EDGES` edges (the root keeps none, or too many to sum per ray).
-    pub(super) fn build(scene: &Scene) -> Result<Option<WindingCap>> {
-        let [placement] = scene.placements.as_slice() else { return Ok(None) };
+    pub(super) fn build(ctx: &Arc<Context>, placements: &[Placement]) -> Result<Option<WindingCap>> {
+        let [placement] = placements else { return Ok(None) };
         if placement.mask == 0 {
             return Ok(None);
         }
@@ -205,7 +203,6 @@ impl WindingCap {
         let holes_at = size_of::<WindingCapHeader>();
         let edges_at = holes_at + size_of_val(holes.as_slice());
         let size = edges_at + size_of_val(edges.as_slice());
-        let ctx = scene.tlas.context();
         let mut uploads = Uploads::default();
         let buffer = uploads.buffer(ctx, size as u64, GEOMETRY_INPUT, "winding cap", |out, address| {
             let header = WindingCapHeader {
@@ -244,9 +241,9 @@ fn band_of(edge_count: usize) -> f64 {
 
 /// The scene's triangle sets, each once, in the order of their first placement: the order of
 /// both views' records.
-fn unique_sets(scene: &Scene) -> Vec<&Arc<TriangleSet>> {
+fn unique_sets(placements: &[Placement]) -> Vec<&Arc<TriangleSet>> {
     let mut sets: Vec<&Arc<TriangleSet>> = Vec::new();
-    for placement in &scene.placements {
+    for placement in placements {
         if !sets.iter().any(|s| Arc::ptr_eq(s, &placement.triangles)) {
             sets.push(&placement.triangles);
         }
@@ -265,7 +262,7 @@ fn flatten(set: &TriangleSet, nodes: &mut Vec<BvhNode>, triangles: &mut Vec<BvhT
     }));
 }
 
-fn node_record(node: &crate::geometry::reference::Node) -> BvhNode {
+fn node_record(node: &Node) -> BvhNode {
     BvhNode { lo: node.bounds.min.to_array(), hi: node.bounds.max.to_array(), first: node.first, count: node.count }
 }
 

@@ -7,11 +7,14 @@ use glam::DVec3;
 
 use super::instance::Placement;
 use super::mesh::Mesh;
-use super::top_level::{instances_input, upload_instances, Scene};
 use crate::error::{Error, Result};
 use crate::geometry::precision::Aabb;
 use crate::geometry::reference::TriangleSet;
-use crate::gpu::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildPreference, InstanceBits};
+use crate::gpu::accel::{
+    self, instances_input, upload_instances, AccelerationStructure, BuildInput, BuildOptions, BuildPreference,
+    InstanceBits,
+};
+use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 use crate::gpu::records::{ExactInstance, EXACT_CULL_DISABLE, EXACT_FLIP_FACING};
 
@@ -49,25 +52,31 @@ struct ExactMesh {
 }
 
 impl ExactScene {
-    /// The exact tier's structures over `scene`, every box padded by its slack.
-    pub(super) fn build(scene: &Scene) -> Result<ExactScene> {
-        let ctx = scene.tlas.context();
+    /// The exact tier's structures over a scene's `placements` of its `meshes` (each once), every
+    /// box padded by its slack; the TLAS built with the scene's `options`.
+    pub(super) fn build(
+        ctx: &Arc<Context>,
+        placements: &[Placement],
+        meshes: &[Arc<Mesh>],
+        options: BuildOptions,
+    ) -> Result<ExactScene> {
         if !ctx.info.shader_float64 {
             return Err(Error::Unsupported(format!(
                 "{} has no shaderFloat64, which precision='exact' needs; precision='reference' gives the same answers on the CPU",
                 ctx.info.name
             )));
         }
-        let scene_bounds = scene.placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds));
+        let scene_bounds = placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds));
         let world_slack = EXACT_SLACK * scene_bounds.extent().max_element();
-        let meshes =
-            scene.meshes.iter().map(|mesh| ExactMesh::build(scene, mesh, world_slack)).collect::<Result<Vec<_>>>()?;
+        let exact_meshes = meshes
+            .iter()
+            .map(|mesh| ExactMesh::build(ctx, placements, mesh, world_slack))
+            .collect::<Result<Vec<_>>>()?;
         let mesh_of =
-            |p: &Placement| &meshes[scene.meshes.iter().position(|m| Arc::ptr_eq(m, &p.mesh)).expect("scene mesh")];
+            |p: &Placement| &exact_meshes[meshes.iter().position(|m| Arc::ptr_eq(m, &p.mesh)).expect("scene mesh")];
         let mut uploads = Uploads::default();
-        let n = scene.placements.len();
-        let records: Vec<_> = scene
-            .placements
+        let n = placements.len();
+        let records: Vec<_> = placements
             .iter()
             .map(|p| {
                 // Boxes only: facing, culling and opacity are the exact shader's.
@@ -76,17 +85,17 @@ impl ExactScene {
             })
             .collect();
         let records = upload_instances(ctx, &mut uploads, &records, "exact instances")?;
-        let mut data: Vec<ExactInstance> = scene.placements.iter().map(|p| mesh_of(p).instance(p)).collect();
+        let mut data: Vec<ExactInstance> = placements.iter().map(|p| mesh_of(p).instance(p)).collect();
         if data.is_empty() {
             // An empty scene still hands the shaders one (zeroed) record's worth of buffer.
             data.push(ExactInstance::default());
         }
         let instances = uploads.records(ctx, &data, GEOMETRY_INPUT, "exact instance data")?;
         let input = instances_input(records.address(), n);
-        let (tlas, _) = accel::build(ctx, &input, scene.options, &uploads)?;
+        let (tlas, _) = accel::build(ctx, &input, options, &uploads)?;
         let padded =
             if n == 0 { Aabb { min: DVec3::ZERO, max: DVec3::ZERO } } else { scene_bounds.padded(world_slack) };
-        Ok(ExactScene { tlas, instances, bounds: padded.outward_f32(), _records: records, _meshes: meshes })
+        Ok(ExactScene { tlas, instances, bounds: padded.outward_f32(), _records: records, _meshes: exact_meshes })
     }
 
     pub fn tlas_address(&self) -> u64 {
@@ -103,11 +112,11 @@ impl ExactScene {
 }
 
 impl ExactMesh {
-    /// The exact tier's copy of `mesh`, as `scene` placed it: its boxes are padded by the scene's
-    /// slack (`world_slack`, in the scene's frame) as seen in the mesh's frame, and by the mesh's own.
-    fn build(scene: &Scene, mesh: &Arc<Mesh>, world_slack: f64) -> Result<ExactMesh> {
-        let ctx = scene.tlas.context();
-        let placements = || scene.placements.iter().filter(|p| Arc::ptr_eq(&p.mesh, mesh));
+    /// The exact tier's copy of `mesh`, as a scene's `placements` placed it: its boxes are padded by
+    /// the scene's slack (`world_slack`, in the scene's frame) as seen in the mesh's frame, and by
+    /// the mesh's own.
+    fn build(ctx: &Arc<Context>, placements: &[Placement], mesh: &Arc<Mesh>, world_slack: f64) -> Result<ExactMesh> {
+        let placements = || placements.iter().filter(|p| Arc::ptr_eq(&p.mesh, mesh));
         let triangles = &placements().next().expect("placed mesh").triangles;
         // How far the world's slack reaches in this mesh's frame: the most any placement of
         // it stretches a vector (the max-row-sum norm of its world-to-mesh map).

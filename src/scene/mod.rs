@@ -1,10 +1,14 @@
 //! What users build: meshes (BLAS), instances and scenes (TLAS), and the exact tier's view of a
 //! scene.
 
-pub mod closest;
-pub mod exact;
-pub mod instance;
 pub mod mesh;
+
+pub mod instance;
+
+pub mod closest;
+
+pub mod exact;
+
 pub mod top_level;
 
 pub use closest::{ClosestScene, WindingCap, WindingScene, MAX_CAP_EDGES, WINDING_MARGIN, WINDING_TERM_ERROR};

@@ -14,7 +14,7 @@ use crate::error::{invalid_value, Error, Result};
 use crate::geometry::precision::Aabb;
 use crate::geometry::rays::Frame;
 use crate::geometry::reference::{PlacedSet, ReferenceTracer};
-use crate::gpu::accel::{self, AccelerationStructure, BuildInput, BuildOptions, BuildStats};
+use crate::gpu::accel::{self, instances_input, upload_instances, AccelerationStructure, BuildOptions, BuildStats};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 
@@ -191,7 +191,7 @@ impl Scene {
         if let Some(exact) = self.exact.get() {
             return Ok(exact.clone());
         }
-        let built = Arc::new(ExactScene::build(self)?);
+        let built = Arc::new(ExactScene::build(self.tlas.context(), &self.placements, &self.meshes, self.options)?);
         Ok(self.exact.get_or_init(|| built).clone())
     }
 
@@ -206,7 +206,7 @@ impl Scene {
         if let Some(closest) = self.closest.get() {
             return Ok(closest.clone());
         }
-        let built = Arc::new(ClosestScene::build(self)?);
+        let built = Arc::new(ClosestScene::build(self.tlas.context(), &self.placements)?);
         Ok(self.closest.get_or_init(|| built).clone())
     }
 
@@ -216,7 +216,7 @@ impl Scene {
         if let Some(winding) = self.winding.get() {
             return Ok(winding.clone());
         }
-        let built = Arc::new(WindingScene::build(self)?);
+        let built = Arc::new(WindingScene::build(self.tlas.context(), &self.placements)?);
         Ok(self.winding.get_or_init(|| built).clone())
     }
 
@@ -227,7 +227,7 @@ impl Scene {
         if let Some(cap) = self.winding_cap.get() {
             return Ok(cap.clone());
         }
-        let built = WindingCap::build(self)?.map(Arc::new);
+        let built = WindingCap::build(self.tlas.context(), &self.placements)?.map(Arc::new);
         Ok(self.winding_cap.get_or_init(|| built).clone())
     }
 
@@ -278,33 +278,4 @@ fn instance_records(placements: &[Placement]) -> Vec<vk::AccelerationStructureIn
         .iter()
         .map(|p| accel::instance_record(&p.to_scene.to_rows_f32(), p.bits(), p.mesh.blas_address()))
         .collect()
-}
-
-/// A buffer of TLAS instance records, recorded for upload.
-pub(crate) fn upload_instances(
-    ctx: &Arc<Context>,
-    uploads: &mut Uploads,
-    records: &[vk::AccelerationStructureInstanceKHR],
-    name: &str,
-) -> Result<Buffer> {
-    let bytes = accel::instance_bytes(records);
-    let buffer = uploads.buffer(ctx, bytes.len() as u64, GEOMETRY_INPUT, name, |out, _| out.copy_from_slice(bytes))?;
-    debug_assert_eq!(buffer.address() % 16, 0, "Vulkan wants instance data 16-byte aligned");
-    Ok(buffer)
-}
-
-/// The build input of a TLAS over `count` instance records at `address`.
-pub(crate) fn instances_input(address: u64, count: usize) -> BuildInput<'static> {
-    let data = vk::AccelerationStructureGeometryInstancesDataKHR::default()
-        .array_of_pointers(false)
-        .data(vk::DeviceOrHostAddressConstKHR { device_address: address });
-    let geometry = vk::AccelerationStructureGeometryKHR::default()
-        .geometry_type(vk::GeometryTypeKHR::INSTANCES)
-        .geometry(vk::AccelerationStructureGeometryDataKHR { instances: data });
-    BuildInput {
-        ty: vk::AccelerationStructureTypeKHR::TOP_LEVEL,
-        geometries: vec![geometry],
-        primitive_counts: vec![count as u32],
-        name: "scene TLAS",
-    }
 }

@@ -4,15 +4,11 @@
 //! engine (`vulkan`) implements it today; a CPU engine can implement it without a device.
 
 use crate::error::Result;
-use crate::geometry::arrays::Vec3s;
-use crate::geometry::interrupt::Interrupt;
-use crate::geometry::rays::Rays;
-use crate::scene::Scene;
 use crate::trace::hit_fields::HitSink;
 use crate::trace::host_tiers::AllHits;
 use crate::trace::idle::IdleMemory;
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Precision, Request, SignedDistance};
+use crate::trace::request::{PointBatch, Precision, RayBatch, SignedDistance};
 
 /// What an engine can do, for the dispatcher's choice of tier.
 #[derive(Clone, Copy, Debug)]
@@ -51,66 +47,26 @@ pub trait Engine: Send + Sync {
     /// Keeps `profile` as the device's last.
     fn keep_profile(&self, profile: TraceProfile);
 
-    /// Traces `rays` in one of the device's tiers (`exact`: the exact tier's f64 test, else the
-    /// fast tier), writing every field `sink` asks for (`hit` too).
-    #[allow(clippy::too_many_arguments)]
-    fn trace_rays(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        exact: bool,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()>;
+    /// Traces the batch's rays in one of the device's tiers (`exact`: the exact tier's f64 test,
+    /// else the fast tier), writing every field `sink` asks for (`hit` too).
+    fn trace_rays(&self, batch: RayBatch, exact: bool, sink: &mut HitSink, profile: &mut TraceProfile) -> Result<()>;
 
-    /// Every hit of every ray (the nearest `max_hits` of each), at `request.precision`: `Exact`
-    /// (f64 hits) or otherwise the fast tier's (f32 hits, which the dispatcher may refine).
+    /// Every hit of every ray (the nearest `max_hits` of each), at `batch.request.precision`:
+    /// `Exact` (f64 hits) or otherwise the fast tier's (f32 hits, which the dispatcher may refine).
     /// `host_bytes_per_hit`: what the caller will need per hit, for refusing a result that cannot
     /// fit before it is stored.
-    fn all_hits(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        max_hits: usize,
-        host_bytes_per_hit: usize,
-        interrupt: &dyn Interrupt,
-    ) -> Result<AllHits>;
+    fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits>;
 
-    /// The surface point nearest each point within `max_distance`, measured at `precision`
+    /// The surface point nearest each point within distance `within`, measured at `precision`
     /// (`Exact`: f64; `Fast`: f32), its fields written into `sink`.
-    fn closest_points(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        max_distance: f64,
-        precision: Precision,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-    ) -> Result<()>;
+    fn closest_points(&self, batch: PointBatch, within: f64, precision: Precision, sink: &mut HitSink) -> Result<()>;
 
     /// Whether each point is inside any instance (1) or not (0), exactly: by parity (the caller
     /// checked that every mesh is closed) or by winding number. Called only where
     /// `limits().f64_tests` holds, or for parity.
-    fn contains(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        winding: bool,
-        out: &mut [u8],
-        interrupt: &dyn Interrupt,
-    ) -> Result<()>;
+    fn contains(&self, batch: PointBatch, winding: bool, out: &mut [u8]) -> Result<()>;
 
     /// Signed distances in one pass, where the engine has one for `query`: true, `out` written;
     /// false, nothing written (the dispatcher then asks `closest_points` and `contains`).
-    fn signed_distance(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        query: SignedDistance,
-        out: &mut [f64],
-        interrupt: &dyn Interrupt,
-    ) -> Result<bool>;
+    fn signed_distance(&self, batch: PointBatch, query: SignedDistance, out: &mut [f64]) -> Result<bool>;
 }

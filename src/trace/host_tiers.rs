@@ -588,7 +588,7 @@ pub fn odd_crossings(hits: &[ReferenceHit], instances: usize) -> bool {
 /// is negated.
 fn winding_number(placement: &crate::scene::Placement, p: DVec3) -> f64 {
     let set = &placement.triangles;
-    let w = set.winding_tree().winding_number(set, &placement.to_scene, p, placement.to_local.point(p));
+    let w = set.winding_number(&placement.to_scene, p, placement.to_local.point(p));
     let mirrored = placement.to_scene.linear.determinant() < 0.0;
     if mirrored {
         -w

@@ -1,6 +1,12 @@
-//! What a query asks: which question, at which precision tier, culling which side.
+//! What a query asks: which question, at which precision tier, culling which side; and the batch
+//! of rays or points it asks it of, as the dispatcher, an engine and its paths pass it on.
 
 pub use crate::geometry::precision::Cull;
+
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
+use crate::geometry::rays::Rays;
+use crate::scene::Scene;
 
 /// What a query asks of each ray.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -182,4 +188,29 @@ pub struct SignedDistance {
     pub precision: Precision,
     pub contains_precision: Precision,
     pub winding: bool,
+}
+
+/// A ray query's batch: the scene, the rays, what is asked of them, and what may stop it (asked
+/// between chunks).
+#[derive(Clone, Copy)]
+pub struct RayBatch<'a> {
+    pub scene: &'a Scene,
+    pub rays: &'a Rays<'a>,
+    pub request: Request,
+    pub interrupt: &'a dyn Interrupt,
+}
+
+impl<'a> RayBatch<'a> {
+    /// The same rays and scene, asked `request`.
+    pub fn asking(self, request: Request) -> RayBatch<'a> {
+        RayBatch { request, ..self }
+    }
+}
+
+/// A point query's batch: the scene, the points (f64 or f32 rows of three), and what may stop it.
+#[derive(Clone, Copy)]
+pub struct PointBatch<'a> {
+    pub scene: &'a Scene,
+    pub points: Vec3s<'a>,
+    pub interrupt: &'a dyn Interrupt,
 }

@@ -13,7 +13,7 @@ use super::hit_fields::{hits_from_prims, position_bytes_per_ray, Field, HitSink,
 use super::host_tiers::{self, AllHits};
 use super::idle::IdleMemory;
 use super::profile::TraceProfile;
-use super::request::{Precision, Query, Request, SignedDistance};
+use super::request::{PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
@@ -134,19 +134,12 @@ impl<E: Engine> Tracer<E> {
         check_request(scene, rays, request, sink)?;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
-        self.trace_held(scene, rays, request, sink, interrupt, started)
+        self.trace_held(RayBatch { scene, rays, request, interrupt }, sink, started)
     }
 
     /// `trace` once its request is checked and the scene's meshes are held.
-    fn trace_held(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        started: Instant,
-    ) -> Result<()> {
+    fn trace_held(&self, batch: RayBatch, sink: &mut HitSink, started: Instant) -> Result<()> {
+        let RayBatch { scene, rays, request, .. } = batch;
         let mut profile = TraceProfile { rays: rays.len(), ..Default::default() };
         let position = sink.position.take();
         let mut hit = sink.hit.take();
@@ -187,7 +180,7 @@ impl<E: Engine> Tracer<E> {
             // The GPU tiers' chunk loop writes it as it copies the hits out.
             work.hit = hit.take();
         }
-        self.run_tier(scene, rays, request, &mut work, interrupt, &mut profile)?;
+        self.run_tier(batch, &mut work, &mut profile)?;
         if let Some(out) = hit {
             hits_from_prims(work.field(Field::Prim).unwrap_or_default(), out);
         }
@@ -208,25 +201,18 @@ impl<E: Engine> Tracer<E> {
     }
 
     /// Runs the query in its tier, writing every field `work` asks for.
-    fn run_tier(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        work: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()> {
+    fn run_tier(&self, batch: RayBatch, work: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
+        let RayBatch { scene, rays, request, interrupt } = batch;
         let refine = request.precision == Precision::Refined && request.query == Query::Closest;
         if request.query == Query::Transmit && !scene.has_opacity() {
             // Where every triangle is opaque, light is kept (1) or not (0): an occlusion query.
-            return self.transmit_by_occlusion(scene, rays, request, work, interrupt, profile);
+            return self.transmit_by_occlusion(batch, work, profile);
         }
         if request.query == Query::Transmit && !matches!(request.precision, Precision::Fast | Precision::Exact) {
             // The host's tiers multiply over the f64 hits of every crossing.
             let every = Request { query: Query::All, opacity_threshold: 0.0, ..request };
             let started = Instant::now();
-            let all = self.trace_all(scene, rays, every, usize::MAX, 0, interrupt)?;
+            let all = self.all_hits(batch.asking(every), usize::MAX, 0)?;
             let out: &mut [f64] = bytemuck::cast_slice_mut(work.field_mut(Field::T).expect("transmittance writes t"));
             host_tiers::transmittance(scene, &all, out);
             if request.precision == Precision::Refined {
@@ -238,7 +224,7 @@ impl<E: Engine> Tracer<E> {
             return Ok(());
         }
         match request.precision {
-            Precision::Exact => self.engine.trace_rays(scene, rays, request, true, work, interrupt, profile),
+            Precision::Exact => self.engine.trace_rays(batch, true, work, profile),
             Precision::Refined if refine => {
                 // The GPU finds which triangle; the host recomputes where, in f64.
                 let mut host_fields = HitSink::default();
@@ -247,7 +233,7 @@ impl<E: Engine> Tracer<E> {
                         host_fields.set(field, out);
                     }
                 }
-                self.engine.trace_rays(scene, rays, request, false, work, interrupt, profile)?;
+                self.engine.trace_rays(batch, false, work, profile)?;
                 for field in [Field::T, Field::Uv, Field::Normal] {
                     if let Some(out) = host_fields.take(field) {
                         work.set(field, out);
@@ -258,9 +244,7 @@ impl<E: Engine> Tracer<E> {
                 profile.host_f64 = host.elapsed().as_secs_f64();
                 Ok(())
             }
-            Precision::Fast | Precision::Refined => {
-                self.engine.trace_rays(scene, rays, request, false, work, interrupt, profile)
-            }
+            Precision::Fast | Precision::Refined => self.engine.trace_rays(batch, false, work, profile),
             Precision::Reference => {
                 rays.check()?;
                 let host = Instant::now();
@@ -279,19 +263,12 @@ impl<E: Engine> Tracer<E> {
     }
 
     /// Transmittance in a scene without opacity: 1 where a ray is not occluded, else 0.
-    fn transmit_by_occlusion(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        work: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()> {
+    fn transmit_by_occlusion(&self, batch: RayBatch, work: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
+        let (rays, request) = (batch.rays, batch.request);
         let mut blocked = try_vec(rays.len(), 0i32, "the rays' occlusion")?;
         let mut sink = HitSink::default();
         sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut blocked));
-        self.run_tier(scene, rays, Request { query: Query::Occluded, ..request }, &mut sink, interrupt, profile)?;
+        self.run_tier(batch.asking(Request { query: Query::Occluded, ..request }), &mut sink, profile)?;
         let out = work.field_mut(Field::T).expect("transmittance writes t");
         let left = |b: &i32| if *b >= 0 { 0.0 } else { 1.0 };
         parallel::install(|| {
@@ -319,12 +296,18 @@ impl<E: Engine> Tracer<E> {
         host_bytes_per_hit: usize,
         interrupt: &dyn Interrupt,
     ) -> Result<AllHits> {
+        self.all_hits(RayBatch { scene, rays, request, interrupt }, max_hits, host_bytes_per_hit)
+    }
+
+    /// `trace_all` of a batch.
+    fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
+        let RayBatch { scene, rays, request, interrupt } = batch;
         self.check_every_hit_query(scene, "intersect_all")?;
         check_contacts(request)?;
         match request.precision {
-            Precision::Exact => self.engine.all_hits(scene, rays, request, max_hits, host_bytes_per_hit, interrupt),
+            Precision::Exact => self.engine.all_hits(batch, max_hits, host_bytes_per_hit),
             Precision::Fast | Precision::Refined => {
-                let fast = self.engine.all_hits(scene, rays, request, max_hits, host_bytes_per_hit, interrupt)?;
+                let fast = self.engine.all_hits(batch, max_hits, host_bytes_per_hit)?;
                 if request.precision == Precision::Fast {
                     return Ok(fast);
                 }
@@ -403,7 +386,8 @@ impl<E: Engine> Tracer<E> {
             match precision {
                 Precision::Reference => host_tiers::closest_points(scene, points, max_distance, interrupt)?,
                 Precision::Exact | Precision::Fast => {
-                    return self.engine.closest_points(scene, points, max_distance, precision, sink, interrupt);
+                    let batch = PointBatch { scene, points, interrupt };
+                    return self.engine.closest_points(batch, max_distance, precision, sink);
                 }
                 Precision::Refined => return Err(Error::Unsupported(
                     "closest points are answered at precision='fast' (f32 on the GPU), 'exact' (f64 on the GPU) or \
@@ -444,7 +428,7 @@ impl<E: Engine> Tracer<E> {
             )));
         }
         self.check_point_query(scene, points, max_distance, "signed_distance")?;
-        if self.engine.signed_distance(scene, points, query, out, interrupt)? {
+        if self.engine.signed_distance(PointBatch { scene, points, interrupt }, query, out)? {
             return Ok(());
         }
         let mut sink = HitSink::default();
@@ -487,7 +471,7 @@ impl<E: Engine> Tracer<E> {
         }
         match precision {
             Precision::Exact if !winding || self.engine.limits().f64_tests => {
-                self.engine.contains(scene, points, winding, out, interrupt)
+                self.engine.contains(PointBatch { scene, points, interrupt }, winding, out)
             }
             // Without f64 shaders, the exact tier's winding numbers are the reference tier's.
             Precision::Exact | Precision::Reference => {

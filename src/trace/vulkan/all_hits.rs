@@ -19,7 +19,6 @@ use crate::error::{Error, Result};
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
 use crate::geometry::parallel::try_vec;
-use crate::geometry::rays::Rays;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::Commands;
 use crate::gpu::memory::host_memory_available;
@@ -29,7 +28,7 @@ use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::AllHits;
 use crate::trace::idle::IdlePool;
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Precision, Query, Request};
+use crate::trace::request::{Precision, Query, RayBatch, Request};
 use std::sync::Arc;
 
 /// What the storing pass found: ray i's hits are `records[offsets[i]..offsets[i + 1]]`, of which
@@ -70,13 +69,11 @@ impl AllHitsPath {
     /// need per hit besides the records, for checking that the result fits before storing it.
     pub fn gpu_all_hits<R: HitRecord>(
         &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
+        batch: RayBatch,
         max_hits: usize,
         host_bytes_per_hit: usize,
-        interrupt: &dyn Interrupt,
     ) -> Result<StoredHits<R>> {
+        let RayBatch { scene, rays, request, .. } = batch;
         let started = Instant::now();
         self.shared.ctx.check_usable()?;
         rays.check_shapes()?;
@@ -88,20 +85,9 @@ impl AllHitsPath {
         if n > 0 {
             let mut sink = HitSink::default();
             sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut seen));
-            let count = Request { query: Query::Count, ..request };
-            let mut profile = TraceProfile { rays: n, ..Default::default() };
-            self.rays.run(
-                scene,
-                rays,
-                count,
-                request.precision == Precision::Exact,
-                &mut sink,
-                interrupt,
-                &mut profile,
-            )?;
-            profile.total = started.elapsed().as_secs_f64();
-            self.shared.keep_profile(profile);
-            self.shared.ctx.check_validation()?;
+            let count = batch.asking(Request { query: Query::Count, ..request });
+            let exact = request.precision == Precision::Exact;
+            self.shared.profiled(n, started, |profile| self.rays.run(count, exact, &mut sink, profile))?;
         }
         let mut offsets = try_vec(n + 1, 0i64, "the hits' offsets")?;
         for i in 0..n {
@@ -117,7 +103,7 @@ impl AllHitsPath {
         let mut stored = StoredHits { offsets, records, seen, advances: Vec::new() };
         let mut profile = TraceProfile { rays: n, ..Default::default() };
         if total > 0 {
-            self.store_pass(scene, rays, request, max_hits, &mut stored, interrupt, &mut profile)?;
+            self.store_pass(batch, max_hits, &mut stored, &mut profile)?;
         }
         let (offsets, seen) = (&stored.offsets, &stored.seen);
         let overflowed = parallel::install(|| {
@@ -148,17 +134,14 @@ impl AllHitsPath {
     }
 
     /// The storing pass: each chunk's rays with their lists, two chunks in flight.
-    #[allow(clippy::too_many_arguments)]
     fn store_pass<R: HitRecord>(
         &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
+        batch: RayBatch,
         max_hits: usize,
         stored: &mut StoredHits<R>,
-        interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<()> {
+        let RayBatch { scene, rays, request, interrupt } = batch;
         let exact = request.precision == Precision::Exact;
         let exact_scene = if exact { Some(scene.exact()?) } else { None };
         let outputs = Field::Prim.bit();

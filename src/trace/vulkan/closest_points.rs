@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::shared::Shared;
 use super::staging::pair_bytes;
-use super::timestamps::{Stamp, Stamps};
+use super::timestamps::{start_stamps, Stamp, Stamps};
 use super::variants::Variant;
 use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
@@ -35,7 +35,7 @@ use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers;
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::Precision;
+use crate::trace::request::{PointBatch, Precision};
 
 /// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
 /// other): 2 × 20 MB of staging at full outputs.
@@ -335,15 +335,8 @@ impl ClosestPoints {
     /// The surface point nearest to each point within `max_distance`, on the GPU, its fields
     /// written into `sink`: measured in f64 (`Precision::Exact`, the reference tier's answers) or
     /// in f32 (`Fast`).
-    pub fn run(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        max_distance: f64,
-        precision: Precision,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-    ) -> Result<()> {
+    pub fn run(&self, batch: PointBatch, max_distance: f64, precision: Precision, sink: &mut HitSink) -> Result<()> {
+        let PointBatch { scene, points, interrupt } = batch;
         let n = points.rows();
         let structures = scene.closest()?;
         let full = sink.position.is_some()
@@ -420,13 +413,8 @@ impl ClosestPoints {
     /// each point on the GPU (f64 terms, f32 arctangents), decided on the host: inside at 1/2 or
     /// more; points whose number lies within the GPU's error of 1/2, on the CPU in f64; points
     /// outside, unless on a surface (the CPU's test). The reference tier's answers.
-    pub fn contains_by_winding(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        out: &mut [u8],
-        interrupt: &dyn Interrupt,
-    ) -> Result<()> {
+    pub fn contains_by_winding(&self, batch: PointBatch, out: &mut [u8]) -> Result<()> {
+        let PointBatch { scene, points, interrupt } = batch;
         let n = points.rows();
         let structures = scene.closest()?;
         let boundaries = scene.winding()?;
@@ -539,15 +527,7 @@ impl ClosestPoints {
         let ctx = &self.shared.ctx;
         let device = &ctx.device;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
-        let stamp = |k| {
-            if let Some(stamps) = &slot.stamps {
-                stamps.write(cmd, k);
-            }
-        };
-        if let Some(stamps) = &slot.stamps {
-            stamps.reset(cmd);
-        }
-        stamp(Stamp::Start);
+        let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         if let Some((points_device, _)) = &slot.device {
             let region = [vk::BufferCopy::default().size(24 * len as u64)];
             // SAFETY: `cmd` is recording; both buffers hold `capacity` points.
@@ -555,10 +535,8 @@ impl ClosestPoints {
             memory_barrier(
                 ctx,
                 cmd,
-                vk::PipelineStageFlags::TRANSFER,
-                vk::AccessFlags::TRANSFER_WRITE,
-                compute,
-                vk::AccessFlags::SHADER_READ,
+                (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+                (compute, vk::AccessFlags::SHADER_READ),
             );
         }
         let order = match job.grid {
@@ -611,17 +589,15 @@ impl ClosestPoints {
         stamp(Stamp::Traced);
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
         let Some((_, results_device)) = &slot.device else {
-            memory_barrier(ctx, cmd, written, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
+            memory_barrier(ctx, cmd, (written, vk::AccessFlags::SHADER_WRITE), host);
             stamp(Stamp::ReadBack);
             return;
         };
         memory_barrier(
             ctx,
             cmd,
-            written,
-            vk::AccessFlags::SHADER_WRITE,
-            vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::TRANSFER_READ,
+            (written, vk::AccessFlags::SHADER_WRITE),
+            (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_READ),
         );
         let layout = slot.results_layout();
         let region = |at: usize, bytes: usize| {
@@ -636,7 +612,7 @@ impl ClosestPoints {
         }
         // SAFETY: `cmd` is recording; both buffers share one layout and hold `capacity` points.
         unsafe { device.cmd_copy_buffer(cmd, results_device.raw(), slot.results_host.raw(), &regions) };
-        memory_barrier(ctx, cmd, vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE, host.0, host.1);
+        memory_barrier(ctx, cmd, (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE), host);
         stamp(Stamp::ReadBack);
     }
     /// Records the sign's trace of a chunk after its search: the chunk's `PointRays` record,
@@ -681,10 +657,11 @@ impl ClosestPoints {
         memory_barrier(
             ctx,
             cmd,
-            vk::PipelineStageFlags::TRANSFER | vk::PipelineStageFlags::COMPUTE_SHADER,
-            vk::AccessFlags::TRANSFER_WRITE | vk::AccessFlags::SHADER_WRITE,
-            stage,
-            vk::AccessFlags::SHADER_READ,
+            (
+                vk::PipelineStageFlags::TRANSFER | vk::PipelineStageFlags::COMPUTE_SHADER,
+                vk::AccessFlags::TRANSFER_WRITE | vk::AccessFlags::SHADER_WRITE,
+            ),
+            (stage, vk::AccessFlags::SHADER_READ),
         );
         let mut params = Params { rays: record_buffer.address(), count: len as u32, ..sign.params };
         params.outputs[Field::Prim as usize] = results + layout.crossings as u64;
@@ -711,10 +688,11 @@ impl ClosestPoints {
         memory_barrier(
             ctx,
             cmd,
-            compute | stage | vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE,
-            compute,
-            vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE,
+            (
+                compute | stage | vk::PipelineStageFlags::TRANSFER,
+                vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE,
+            ),
+            (compute, vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE),
         );
         let layout = slot.results_layout();
         let results = slot.results_address();
@@ -761,10 +739,8 @@ impl ClosestPoints {
         memory_barrier(
             ctx,
             cmd,
-            vk::PipelineStageFlags::TRANSFER,
-            vk::AccessFlags::TRANSFER_WRITE,
-            compute,
-            read_write,
+            (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+            (compute, read_write),
         );
         let points_address = slot.points_address();
         let pass = |pass: u32, groups: u32| {
@@ -791,7 +767,7 @@ impl ClosestPoints {
                 );
                 ctx.device.cmd_dispatch(cmd, groups, 1, 1);
             }
-            memory_barrier(ctx, cmd, compute, vk::AccessFlags::SHADER_WRITE, compute, read_write);
+            memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), (compute, read_write));
         };
         let groups = (len as u32).div_ceil(kernel.local_size);
         pass(POINT_ORDER_COUNT, groups);

@@ -6,7 +6,7 @@
 
 use std::sync::{Arc, Mutex, OnceLock};
 
-use super::packed_rays::{DeviceArray, DeviceBound, DeviceOutputs, DeviceRays, Ordering, PackedRays};
+use super::packed_rays::{DeviceArray, DeviceBound, DeviceOutputs, DeviceQuery, DeviceRays, Ordering, PackedRays};
 use super::shared::Shared;
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::align::align_up;
@@ -344,7 +344,8 @@ impl CudaRaysPath {
         };
         let timeline = Timeline { semaphore: semaphore.vulkan.semaphore, wait, signal: Some(signal) };
         let order = Ordering { timeline, after_submit: &mut after_submit, chunk_rays: Some(chunk_rays) };
-        let traced = self.packed.trace_device_rays(scene, &device_rays, request, &outputs, Some(order), interrupt);
+        let query = DeviceQuery { scene, rays: &device_rays, request, outputs: &outputs };
+        let traced = self.packed.trace_device_rays(query, Some(order), interrupt);
         let failure = match traced {
             Ok(None) => None,
             Ok(Some(row)) => Some(invalid_ray(places.home, rays, row)),

@@ -8,12 +8,9 @@ use super::packed_rays::PackedRays;
 use super::probes::Probes;
 use super::ray_chunks::RayChunks;
 use crate::error::Result;
-use crate::geometry::interrupt::Interrupt;
-use crate::geometry::rays::Rays;
-use crate::scene::Scene;
 use crate::trace::hit_fields::HitSink;
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::Request;
+use crate::trace::request::RayBatch;
 
 /// The ray paths of the GPU tiers, and the probes that guard them.
 pub struct GpuRays {
@@ -23,27 +20,15 @@ pub struct GpuRays {
 }
 
 impl GpuRays {
-    /// Traces `rays` on the GPU (`exact`: through the scene's per-triangle boxes, each candidate
-    /// decided by the f64 test), writing every field `sink` asks for.
-    #[allow(clippy::too_many_arguments)]
-    pub fn run(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        exact: bool,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()> {
-        self.probes.check_paths(scene, exact)?;
+    /// Traces the batch's rays on the GPU (`exact`: through the scene's per-triangle boxes, each
+    /// candidate decided by the f64 test), writing every field `sink` asks for.
+    pub fn run(&self, batch: RayBatch, exact: bool, sink: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
+        self.probes.check_paths(batch.scene, exact)?;
         // The GPU packing path writes fields into the caller's arrays itself: not `hit`.
         let packs_on_gpu = !exact && sink.hit.is_none();
-        if packs_on_gpu
-            && self.packed.trace_arrays_packed_on_gpu(scene, rays, request, sink, interrupt, profile)?.is_some()
-        {
+        if packs_on_gpu && self.packed.trace_arrays_packed_on_gpu(batch, sink, profile)?.is_some() {
             return Ok(());
         }
-        self.chunks.run(scene, rays, request, exact, sink, interrupt, profile)
+        self.chunks.run(batch, exact, sink, profile)
     }
 }

@@ -10,13 +10,13 @@ use ash::vk;
 
 use super::probes::Probes;
 use super::shared::Shared;
-use super::timestamps::{Stamp, Stamps};
+use super::timestamps::{start_stamps, Stamp, Stamps};
 use super::variants::Variant;
 use crate::error::{invalid_value, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
-use crate::geometry::rays::{Masks, PerRay, Rays, RAY_FLOATS};
+use crate::geometry::rays::{Masks, PerRay, RAY_FLOATS};
 use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::{Backend, Commands, Context, Timeline};
 use crate::gpu::external::HostImport;
@@ -29,7 +29,7 @@ use crate::scene::Scene;
 use crate::trace::hit_fields::{Field, HitSink, FIELDS, FIELD_COUNT};
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Precision, Query, Request};
+use crate::trace::request::{Precision, Query, RayBatch, Request};
 
 /// One array of the caller's rays on the device: rows of 3 (origins, directions) or 1 (bounds)
 /// numbers, f32 or f64 (`wide`), `stride` bytes apart (0: row 0 for every ray).
@@ -216,13 +216,11 @@ impl PackedRays {
     /// The caller makes sure the arrays stay valid until this returns.
     pub fn trace_device_rays(
         &self,
-        scene: &Scene,
-        rays: &DeviceRays,
-        request: Request,
-        outputs: &DeviceOutputs,
+        query: DeviceQuery,
         order: Option<Ordering>,
         interrupt: &dyn Interrupt,
     ) -> Result<Option<usize>> {
+        let DeviceQuery { scene, rays, request, .. } = query;
         if let Some(why) = device_rays_refusal(request) {
             return Err(invalid_value(why));
         }
@@ -234,7 +232,7 @@ impl PackedRays {
         self.probes.check_paths(scene, false)?;
         let mut profile = TraceProfile { rays: rays.count, ..Default::default() };
         let started = Instant::now();
-        let invalid = self.trace_packed(scene, rays, request, outputs, order, interrupt, &mut profile)?;
+        let invalid = self.trace_packed(query, order, interrupt, &mut profile)?;
         profile.total = started.elapsed().as_secs_f64();
         self.shared.keep_profile(profile);
         Ok(invalid)
@@ -247,17 +245,14 @@ impl PackedRays {
 
     /// `trace_device_rays` for any tier whose GPU part traverses in f32 (the refined tier's too),
     /// its device times added to `profile`.
-    #[allow(clippy::too_many_arguments)]
     fn trace_packed(
         &self,
-        scene: &Scene,
-        rays: &DeviceRays,
-        request: Request,
-        outputs: &DeviceOutputs,
+        query: DeviceQuery,
         order: Option<Ordering>,
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<Option<usize>> {
+        let DeviceQuery { scene, rays, request, outputs } = query;
         if rays.count >= u32::MAX as usize {
             return Err(invalid_value("at most 2^32 - 2 rays a query when the GPU packs them"));
         }
@@ -302,15 +297,7 @@ impl PackedRays {
             let len = capacity.min(count - start);
             commands.begin()?;
             let cmd = commands.buffer;
-            let stamp = |k| {
-                if let Some(stamps) = &stamps {
-                    stamps.write(cmd, k);
-                }
-            };
-            if let Some(stamps) = &stamps {
-                stamps.reset(cmd);
-            }
-            stamp(Stamp::Start);
+            let stamp = start_stamps(stamps.as_ref(), cmd);
             let mut pack_params = pack_params(job.rays, start, len, job.scratch, job.frame);
             self.packing.record(cmd, pack, &pack_params);
             self.barrier(cmd, vk::PipelineStageFlags::COMPUTE_SHADER, self.trace_stage());
@@ -325,7 +312,7 @@ impl PackedRays {
             }
             let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
             let all = (vk::PipelineStageFlags::ALL_COMMANDS, vk::AccessFlags::MEMORY_WRITE);
-            memory_barrier(&self.shared.ctx, cmd, all.0, all.1, host.0, host.1);
+            memory_barrier(&self.shared.ctx, cmd, all, host);
             stamp(Stamp::ReadBack);
             let last = start + len == count;
             // Arriving chunk by chunk: this one's rays are in place once the chunk holding its
@@ -366,10 +353,8 @@ impl PackedRays {
         memory_barrier(
             &self.shared.ctx,
             cmd,
-            src,
-            A::SHADER_WRITE | A::SHADER_READ,
-            dst,
-            A::SHADER_READ | A::SHADER_WRITE,
+            (src, A::SHADER_WRITE | A::SHADER_READ),
+            (dst, A::SHADER_READ | A::SHADER_WRITE),
         );
     }
 
@@ -410,6 +395,16 @@ pub struct Ordering<'a> {
     /// `timeline.wait + k` (so that tracing one chunk overlaps the copy of the next). None: every
     /// chunk waits for `timeline.wait`, in chunks of `chunk_capacity`.
     pub chunk_rays: Option<usize>,
+}
+
+/// A query on rays on the device: the scene, the rays, what is asked, and the device addresses
+/// of its outputs (per field; 0: not written).
+#[derive(Clone, Copy)]
+pub struct DeviceQuery<'a> {
+    pub scene: &'a Scene,
+    pub rays: &'a DeviceRays,
+    pub request: Request,
+    pub outputs: &'a DeviceOutputs,
 }
 
 /// What every chunk of a query on device rays shares.
@@ -554,13 +549,11 @@ impl PackedRays {
     /// packing on the host): the caller packs on the host instead.
     pub fn trace_arrays_packed_on_gpu(
         &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
+        batch: RayBatch,
         sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<Option<()>> {
+        let RayBatch { scene, rays, request, interrupt } = batch;
         let Masks::All(mask) = rays.mask else { return Ok(None) };
         let eligible = self.pack_on_gpu
             && self.packing.available()
@@ -606,7 +599,8 @@ impl PackedRays {
         }
         profile.pack += clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let invalid = self.trace_packed(scene, &device_rays, request, &outputs, None, interrupt, profile)?;
+        let query = DeviceQuery { scene, rays: &device_rays, request, outputs: &outputs };
+        let invalid = self.trace_packed(query, None, interrupt, profile)?;
         profile.wait += clock.elapsed().as_secs_f64();
         if let Some(row) = invalid {
             return Err(rays.invalid_ray(row));

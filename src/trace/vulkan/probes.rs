@@ -16,7 +16,7 @@ use crate::gpu::context::Backend;
 use crate::scene::{Instance, Mesh, Scene, IDENTITY};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Cull, Precision, Query, Request};
+use crate::trace::request::{Cull, Precision, Query, RayBatch, Request};
 
 /// The two paths through intersection shaders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -113,7 +113,8 @@ impl Probes {
         let exact = probe == Probe::Exact;
         let precision = if exact { Precision::Exact } else { Precision::Fast };
         let request = Request::new(Query::Closest, precision, Cull::None);
-        self.chunks.run(&scene, &rays, request, exact, &mut sink, &NoInterrupt, &mut TraceProfile::default())?;
+        let batch = RayBatch { scene: &scene, rays: &rays, request, interrupt: &NoInterrupt };
+        self.chunks.run(batch, exact, &mut sink, &mut TraceProfile::default())?;
         Ok(i32::from_ne_bytes(prim) == 0)
     }
 }

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 
 use super::shared::Shared;
 use super::staging::{pair_bytes, HitReadback, RayStaging, Slot};
-use super::timestamps::Stamp;
+use super::timestamps::{start_stamps, Stamp};
 use super::variants::Variant;
 use crate::error::{invalid_value, Result};
 use crate::geometry::parallel;
@@ -18,7 +18,7 @@ use crate::geometry::rays::{Advance, Frame, Masks, RayLayout, Rays, RAY_FLOATS};
 use crate::trace::hit_fields::{hits_from_prims, Field, HitSink, FIELDS};
 use crate::trace::idle::Held;
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Query, Request};
+use crate::trace::request::{Query, RayBatch};
 use std::mem::size_of;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -130,17 +130,8 @@ impl RayChunks {
 
     /// The GPU's part of a query on rays the host packs: traversal in f32 (`exact`: through the
     /// scene's per-triangle boxes, each candidate decided by the f64 test).
-    #[allow(clippy::too_many_arguments)]
-    pub fn run(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        exact: bool,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()> {
+    pub fn run(&self, batch: RayBatch, exact: bool, sink: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
+        let RayBatch { scene, rays, request, interrupt } = batch;
         let shared = &*self.shared;
         let outputs = sink.outputs();
         // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
@@ -277,15 +268,7 @@ impl RayChunks {
     ) {
         let ctx = &self.shared.ctx;
         let device = &ctx.device;
-        let stamp = |k| {
-            if let Some(stamps) = &slot.stamps {
-                stamps.write(cmd, k);
-            }
-        };
-        if let Some(stamps) = &slot.stamps {
-            stamps.reset(cmd);
-        }
-        stamp(Stamp::Start);
+        let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         let shader_stage = match ctx.backend {
             Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
             Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
@@ -312,10 +295,8 @@ impl RayChunks {
             memory_barrier(
                 ctx,
                 cmd,
-                vk::PipelineStageFlags::TRANSFER,
-                vk::AccessFlags::TRANSFER_WRITE,
-                shader_stage,
-                vk::AccessFlags::SHADER_READ,
+                (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+                (shader_stage, vk::AccessFlags::SHADER_READ),
             );
         }
         stamp(Stamp::Uploaded);
@@ -386,16 +367,14 @@ fn record_readback(
 ) {
     let Some((_, hits_device)) = &slot.device else {
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
-        memory_barrier(ctx, cmd, shader_stage, vk::AccessFlags::SHADER_WRITE, host.0, host.1);
+        memory_barrier(ctx, cmd, (shader_stage, vk::AccessFlags::SHADER_WRITE), host);
         return;
     };
     memory_barrier(
         ctx,
         cmd,
-        shader_stage,
-        vk::AccessFlags::SHADER_WRITE,
-        vk::PipelineStageFlags::TRANSFER,
-        vk::AccessFlags::TRANSFER_READ,
+        (shader_stage, vk::AccessFlags::SHADER_WRITE),
+        (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_READ),
     );
     let regions: Vec<vk::BufferCopy> = FIELDS
         .iter()
@@ -420,10 +399,8 @@ fn record_readback(
     memory_barrier(
         ctx,
         cmd,
-        vk::PipelineStageFlags::TRANSFER,
-        vk::AccessFlags::TRANSFER_WRITE,
-        vk::PipelineStageFlags::HOST,
-        vk::AccessFlags::HOST_READ,
+        (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+        (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ),
     );
 }
 

@@ -4,6 +4,7 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use ash::vk;
 
@@ -77,6 +78,22 @@ impl Shared {
     pub fn keep_profile(&self, mut profile: TraceProfile) {
         profile.host_threads = parallel::install(rayon::current_num_threads);
         *self.profile_mut() = profile;
+    }
+
+    /// Runs `trace` (a query's GPU part) with a fresh profile of `rays` rays, keeps that profile
+    /// (timed from `started`) as the device's last, then fails with what the validation layer
+    /// reported, if anything.
+    pub fn profiled(
+        &self,
+        rays: usize,
+        started: Instant,
+        trace: impl FnOnce(&mut TraceProfile) -> Result<()>,
+    ) -> Result<()> {
+        let mut profile = TraceProfile { rays, ..Default::default() };
+        trace(&mut profile)?;
+        profile.total = started.elapsed().as_secs_f64();
+        self.keep_profile(profile);
+        self.ctx.check_validation()
     }
 
     /// The staging, scratch and leases this device keeps idle between queries.

@@ -16,13 +16,11 @@ use super::shared::Shared;
 use super::variants::{VariantKey, RAYS_FROM_POINTS};
 use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
-use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
 use crate::gpu::records::Params;
-use crate::scene::Scene;
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers;
-use crate::trace::request::{Cull, Precision, Query, Request, SignedDistance};
+use crate::trace::request::{Cull, PointBatch, Precision, Query, Request, SignedDistance};
 
 /// Whether VKRAY_SIGNED_DISTANCE=separate asks for distances and signs as two queries (to measure
 /// what one pass buys, and as the tests' second path).
@@ -52,14 +50,8 @@ impl SignedDistancePath {
     /// and for winding numbers a cap (`Scene::winding_cap`). Returns false, having written
     /// nothing, where it does not: the caller then asks two queries. The caller checked the
     /// points, `max_distance` and `out`'s length.
-    pub fn run(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        query: SignedDistance,
-        out: &mut [f64],
-        interrupt: &dyn Interrupt,
-    ) -> Result<bool> {
+    pub fn run(&self, batch: PointBatch, query: SignedDistance, out: &mut [f64]) -> Result<bool> {
+        let PointBatch { scene, points, interrupt } = batch;
         let SignedDistance { max_distance, precision, contains_precision, winding } = query;
         let one_pass = contains_precision == Precision::Exact
             && matches!(precision, Precision::Exact | Precision::Fast)
@@ -120,7 +112,7 @@ impl SignedDistancePath {
         });
         pipelines.give_back(slots);
         result?;
-        decide_unsure(scene, points, &unsure, out, interrupt)?;
+        decide_unsure(batch, &unsure, out)?;
         Ok(true)
     }
 }
@@ -145,13 +137,8 @@ fn sign_chunk(slot: &PointSlot, out: &mut [f64]) -> Vec<Unsure> {
 }
 /// Decides the `unsure` points on the CPU (`host_tiers::decide_on_the_cpu`) and negates the
 /// distances of those inside.
-fn decide_unsure(
-    scene: &Scene,
-    points: Vec3s,
-    unsure: &[Unsure],
-    out: &mut [f64],
-    interrupt: &dyn Interrupt,
-) -> Result<()> {
+fn decide_unsure(batch: PointBatch, unsure: &[Unsure], out: &mut [f64]) -> Result<()> {
+    let PointBatch { scene, points, interrupt } = batch;
     if unsure.is_empty() {
         return Ok(());
     }

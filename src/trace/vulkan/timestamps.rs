@@ -82,6 +82,20 @@ impl Stamps {
     }
 }
 
+/// Resets a chunk's `stamps` (where the device has them) and writes `Stamp::Start`; the returned
+/// closure writes the chunk's later stamps.
+pub fn start_stamps(stamps: Option<&Stamps>, cmd: vk::CommandBuffer) -> impl Fn(Stamp) + '_ {
+    if let Some(stamps) = stamps {
+        stamps.reset(cmd);
+        stamps.write(cmd, Stamp::Start);
+    }
+    move |stamp| {
+        if let Some(stamps) = stamps {
+            stamps.write(cmd, stamp);
+        }
+    }
+}
+
 impl Drop for Stamps {
     fn drop(&mut self) {
         if self.ctx.forked() {

@@ -17,9 +17,6 @@ use super::signed_distance::SignedDistancePath;
 use super::staging::Slot;
 use super::variants::{ray_flag_names, Stage, VariantKey};
 use crate::error::Result;
-use crate::geometry::arrays::Vec3s;
-use crate::geometry::interrupt::Interrupt;
-use crate::geometry::rays::Rays;
 use crate::gpu::context::{Backend, Context};
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::Scene;
@@ -28,7 +25,7 @@ use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::AllHits;
 use crate::trace::idle::{Idle, IdleMemory, IdlePool};
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Precision, Query, Request, SignedDistance};
+use crate::trace::request::{PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
 
 /// What `VulkanEngine::explain` tells of a variant.
 pub struct Explanation {
@@ -167,75 +164,28 @@ impl Engine for VulkanEngine {
         self.shared.keep_profile(profile)
     }
 
-    fn trace_rays(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        exact: bool,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-        profile: &mut TraceProfile,
-    ) -> Result<()> {
-        self.rays.run(scene, rays, request, exact, sink, interrupt, profile)
+    fn trace_rays(&self, batch: RayBatch, exact: bool, sink: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
+        self.rays.run(batch, exact, sink, profile)
     }
 
-    fn all_hits(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        request: Request,
-        max_hits: usize,
-        host_bytes_per_hit: usize,
-        interrupt: &dyn Interrupt,
-    ) -> Result<AllHits> {
-        if request.precision == Precision::Exact {
-            let stored = self.all_hits.gpu_all_hits::<ExactHit>(
-                scene,
-                rays,
-                request,
-                max_hits,
-                host_bytes_per_hit,
-                interrupt,
-            )?;
+    fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
+        if batch.request.precision == Precision::Exact {
+            let stored = self.all_hits.gpu_all_hits::<ExactHit>(batch, max_hits, host_bytes_per_hit)?;
             return Ok(stored.into_all_hits());
         }
-        let stored =
-            self.all_hits.gpu_all_hits::<FastHit>(scene, rays, request, max_hits, host_bytes_per_hit, interrupt)?;
-        stored.into_all_hits(scene)
+        let stored = self.all_hits.gpu_all_hits::<FastHit>(batch, max_hits, host_bytes_per_hit)?;
+        stored.into_all_hits(batch.scene)
     }
 
-    fn closest_points(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        max_distance: f64,
-        precision: Precision,
-        sink: &mut HitSink,
-        interrupt: &dyn Interrupt,
-    ) -> Result<()> {
-        self.points.run(scene, points, max_distance, precision, sink, interrupt)
+    fn closest_points(&self, batch: PointBatch, within: f64, precision: Precision, sink: &mut HitSink) -> Result<()> {
+        self.points.run(batch, within, precision, sink)
     }
 
-    fn contains(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        winding: bool,
-        out: &mut [u8],
-        interrupt: &dyn Interrupt,
-    ) -> Result<()> {
-        self.containment.run(scene, points, winding, out, interrupt)
+    fn contains(&self, batch: PointBatch, winding: bool, out: &mut [u8]) -> Result<()> {
+        self.containment.run(batch, winding, out)
     }
 
-    fn signed_distance(
-        &self,
-        scene: &Scene,
-        points: Vec3s,
-        query: SignedDistance,
-        out: &mut [f64],
-        interrupt: &dyn Interrupt,
-    ) -> Result<bool> {
-        self.signed.run(scene, points, query, out, interrupt)
+    fn signed_distance(&self, batch: PointBatch, query: SignedDistance, out: &mut [f64]) -> Result<bool> {
+        self.signed.run(batch, query, out)
     }
 }
