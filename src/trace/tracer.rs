@@ -772,6 +772,9 @@ impl Tracer {
         if out.is_empty() {
             return Ok(());
         }
+        // A point beyond f32's range (which rays cannot start from) outside the scene is outside.
+        let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
+        let points = moved.as_deref().map_or(points, Vec3s::F64);
         match precision {
             Precision::Exact if !winding => self.contains_by_gpu_rays(scene, points, None, out, interrupt),
             Precision::Exact if self.ctx.info.shader_float64 => {
