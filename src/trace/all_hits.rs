@@ -248,7 +248,7 @@ impl Tracer {
 }
 
 /// Refuses a result of `hits` hits that would not fit in the host's memory, before storing any.
-fn check_hits_fit(hits: usize, bytes_per_hit: usize) -> Result<()> {
+pub(super) fn check_hits_fit(hits: usize, bytes_per_hit: usize) -> Result<()> {
     let needed = hits as u128 * bytes_per_hit as u128;
     match host_memory_available() {
         Some(available) if needed > available as u128 => Err(Error::OutOfMemory(format!(

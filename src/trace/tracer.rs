@@ -623,7 +623,7 @@ impl Tracer {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
                 rays.check()?;
-                tiers::all_hits(scene, rays, request.filter(), max_hits, interrupt)
+                tiers::all_hits(scene, rays, request.filter(), max_hits, host_bytes_per_hit, interrupt)
             }
         }
     }
