@@ -71,19 +71,25 @@ impl Borrowed<'_> {
     }
 }
 
-/// `value`'s (device type, device id) if it is a DLPack array, else None.
-pub(super) fn dlpack_device(value: &Bound<'_, PyAny>) -> PyResult<Option<(i32, i32)>> {
+/// `value`'s (device type, device id) if it is a DLPack array, else None; a `__dlpack_device__`
+/// that raises or answers no pair of ints is a TypeError naming the argument (`name`).
+pub(super) fn dlpack_device(value: &Bound<'_, PyAny>, name: &str) -> PyResult<Option<(i32, i32)>> {
     if !value.hasattr("__dlpack_device__")? {
         return Ok(None);
     }
-    Ok(Some(value.call_method0("__dlpack_device__")?.extract()?))
+    let device = value.call_method0("__dlpack_device__").and_then(|d| d.extract::<(i32, i32)>());
+    device.map(Some).map_err(|e| {
+        let error = PyTypeError::new_err(format!("{name}: its __dlpack_device__() failed: {e}"));
+        error.set_cause(value.py(), Some(e));
+        error
+    })
 }
 
 /// The error for CUDA arrays on a device that is not their GPU (or not one CUDA shares with):
 /// a TypeError naming the first such array and where it lives.
 pub(super) fn unreadable(device: &str, arrays: [(&str, &Bound<'_, PyAny>); 2]) -> PyErr {
     for (name, value) in arrays {
-        if let Ok(Some((kind, id))) = dlpack_device(value) {
+        if let Ok(Some((kind, id))) = dlpack_device(value, name) {
             if kind == DLPACK_CUDA {
                 return PyTypeError::new_err(format!(
                     "{name} lives on cuda:{id} (DLPack device type {kind}), which vkray cannot read here: {device} \
@@ -105,7 +111,7 @@ pub(super) fn borrow<'py>(
     stream: usize,
     ordinal: i32,
 ) -> PyResult<Borrowed<'py>> {
-    match dlpack_device(value)? {
+    match dlpack_device(value, name)? {
         Some((DLPACK_CUDA, id)) if id == ordinal => {}
         Some((1, _)) => {
             return Err(PyTypeError::new_err(format!(
