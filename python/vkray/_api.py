@@ -1131,7 +1131,7 @@ class Scene:
         shaderFloat64. Scenes with spheres raise `UnsupportedError`.
         """
         fields = _closest_outputs(outputs)
-        p, limit = _points_within(points, max_distance)
+        p, limit = _points_within(points, max_distance, precision)
         core_fields = ["t" if name == "distance" else name for name in fields]
         flat = np.ascontiguousarray(p.reshape(-1, 3))
         arrays = _progress.call(
@@ -1174,7 +1174,7 @@ class Scene:
         (`Mesh.is_closed`), else the winding number. A point on the surface is at distance 0.
         With one instance, on the GPU, the distance search and the sign's rays (one exact ray
         from each point) run in one pass; the answers are those of `distance` and `contains`."""
-        p, limit = _points_within(points, max_distance)
+        p, limit = _points_within(points, max_distance, precision)
         if method is None:
             method = "parity" if all(x.mesh.is_closed for x in self.instances) else "winding"
         if method not in ("parity", "winding"):
@@ -1250,11 +1250,21 @@ class Scene:
         return _pictures.scene_html(self)
 
 
-def _points_within(points: Any, max_distance: float) -> Tuple[np.ndarray, float]:
-    """A point query's points (real, of shape S + (3,)) and its max_distance (>= 0, or inf)."""
+def _points_within(points: Any, max_distance: float, precision: object = None) -> Tuple[np.ndarray, float]:
+    """A point query's points (real, of shape S + (3,)) and its max_distance (>= 0, or inf). The
+    fast tier answers in float32: a point beyond its range (whose distance float32 cannot hold)
+    is refused there, naming the row, rather than answered inf and unhit."""
     p = _arrays.real_coordinates("points", points)
     if p.ndim == 0 or p.shape[-1] != 3:
         raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+    if precision == "fast" and p.dtype == np.float64:
+        far = (np.isfinite(p) & (np.abs(p) > np.finfo(np.float32).max)).any(axis=-1).reshape(-1)
+        if far.any():
+            row = int(np.argmax(far))
+            raise ValueError(
+                f"points row {row} is beyond float32's range, in which precision='fast' answers: "
+                f"{p.reshape(-1, 3)[row].tolist()}; precision='exact' or 'reference' answers in float64"
+            )
     limit = float(max_distance)
     if not limit >= 0:
         raise ValueError(f"max_distance must be >= 0 (or inf), got {max_distance}")
