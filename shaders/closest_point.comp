@@ -30,26 +30,32 @@ const double TOP_FACTOR2 = 1.0 - 4e-12;
 // search compares squared bounds with squared distances (no square roots), each bound scaled by
 // a factor a hair below 1 (squared): rounding can then never skip a box holding a triangle as
 // near as the best.
-double box_distance2(BvhNode node, dvec3 p) {
+double box_distance2(BvhNode node, dvec3 p, double scale) {
   dvec3 lo = dvec3(node.lo[0], node.lo[1], node.lo[2]);
   dvec3 hi = dvec3(node.hi[0], node.hi[1], node.hi[2]);
-  dvec3 gap = max(max(lo - p, p - hi), dvec3(0.0));
+  dvec3 gap = max(max(lo - p, p - hi), dvec3(0.0)) * scale;
   return dot(gap, gap);
 }
 
 // As box_distance2, each axis's gap squared weighted (an instance's `weights`: a lower bound of
 // the squared scene distance from a local box).
-double weighted_box_distance2(BvhNode node, dvec3 p, dvec3 weights) {
+double weighted_box_distance2(BvhNode node, dvec3 p, dvec3 weights, double scale) {
   dvec3 lo = dvec3(node.lo[0], node.lo[1], node.lo[2]);
   dvec3 hi = dvec3(node.hi[0], node.hi[1], node.hi[2]);
-  dvec3 gap = max(max(lo - p, p - hi), dvec3(0.0));
+  dvec3 gap = max(max(lo - p, p - hi), dvec3(0.0)) * scale;
   return dot(gap * gap, weights);
 }
 
 // The search's state: the best squared distance, its triangle (index among all meshes'
 // triangles) and instance (-1: none yet), its nearest point, and the reach (the best squared
-// distance, or max_distance squared before any: boxes beyond it are skipped).
+// distance, or max_distance squared before any: boxes beyond it are skipped). Lengths are
+// scaled by `scale` (a power of two: ReferenceTracer::search_scale) before they are squared, so
+// that far points and tiny scenes neither overflow nor underflow; `f32`: the fast tier measures
+// this point in f32 (not where its coordinates or the scene's pass 2^60, or all lie within 2^-60,
+// whose squares f32 cannot hold: there it measures in f64).
 struct Search {
+  double scale;
+  bool f32;
   double d2;
   double reach2;
   double limit;
@@ -67,14 +73,14 @@ void measure(inout Search s, dvec3 p, BvhInstance x, int instance, uint triangle
   dvec3 c = corner_in_scene(x, t.c);
   double d2;
   dvec3 q;
-  if (DISTANCE_F32 != 0u) {
+  if (s.f32) {
     vec3 qf = closest_point_on_triangle_f32(vec3(p), vec3(a), vec3(b), vec3(c));
     vec3 gap = qf - vec3(p);
     d2 = double(dot(gap, gap));
     q = dvec3(qf);
   } else {
     q = closest_point_on_triangle(p, a, b, c);
-    d2 = squared_length(q - p);
+    d2 = squared_length((q - p) * s.scale);
   }
   // NaN (a degenerate triangle's) is never kept, as on the CPU.
   if (!(d2 <= s.limit)) return;
@@ -102,7 +108,7 @@ void search_instance(inout Search s, dvec3 p, int instance) {
   double bounds[MESH_STACK];
   int n = 0;
   stack[0] = 0u;
-  bounds[0] = weighted_box_distance2(nodes.n[x.nodes], local, weights);
+  bounds[0] = weighted_box_distance2(nodes.n[x.nodes], local, weights, s.scale);
   n = 1;
   while (n > 0) {
     --n;
@@ -112,8 +118,8 @@ void search_instance(inout Search s, dvec3 p, int instance) {
       for (uint k = 0u; k < node.count; ++k) measure(s, p, x, instance, x.triangles + node.first + k);
       continue;
     }
-    double left = weighted_box_distance2(nodes.n[x.nodes + node.first], local, weights);
-    double right = weighted_box_distance2(nodes.n[x.nodes + node.first + 1u], local, weights);
+    double left = weighted_box_distance2(nodes.n[x.nodes + node.first], local, weights, s.scale);
+    double right = weighted_box_distance2(nodes.n[x.nodes + node.first + 1u], local, weights, s.scale);
     // The nearer child is popped first.
     bool left_first = left <= right;
     stack[n] = left_first ? node.first + 1u : node.first;
@@ -133,7 +139,15 @@ void main() {
   dvec3 center = dvec3(point_params.center[0], point_params.center[1], point_params.center[2]);
   precise dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]) - center;
   Search s;
-  precise double limit = point_params.max_distance * point_params.max_distance;
+  double extent = max_abs3(p);
+  if (point_params.instance_count > 0u) {
+    BvhNode root = BvhNodes(point_params.top_nodes).n[0];
+    extent = max(extent, max(max_abs3(dvec3(root.lo[0], root.lo[1], root.lo[2])), max_abs3(dvec3(root.hi[0], root.hi[1], root.hi[2]))));
+  }
+  s.scale = length_scale(extent);
+  s.f32 = DISTANCE_F32 != 0u && s.scale == 1.0 && extent <= 1152921504606846976.0lf && extent >= 8.673617379884035e-19lf;  // 2^±60
+  precise double reach = point_params.max_distance * s.scale;
+  precise double limit = reach * reach;
   s.limit = limit;
   s.reach2 = limit;
   s.d2 = 0.0;
@@ -147,7 +161,7 @@ void main() {
     uint stack[TOP_STACK];
     double bounds[TOP_STACK];
     stack[0] = 0u;
-    bounds[0] = box_distance2(top.n[0], p) * TOP_FACTOR2;
+    bounds[0] = box_distance2(top.n[0], p, s.scale) * TOP_FACTOR2;
     int n = 1;
     while (n > 0) {
       --n;
@@ -157,8 +171,8 @@ void main() {
         for (uint k = 0u; k < node.count; ++k) search_instance(s, p, int(items.v[node.first + k]));
         continue;
       }
-      double left = box_distance2(top.n[node.first], p) * TOP_FACTOR2;
-      double right = box_distance2(top.n[node.first + 1u], p) * TOP_FACTOR2;
+      double left = box_distance2(top.n[node.first], p, s.scale) * TOP_FACTOR2;
+      double right = box_distance2(top.n[node.first + 1u], p, s.scale) * TOP_FACTOR2;
       bool left_first = left <= right;
       stack[n] = left_first ? node.first + 1u : node.first;
       bounds[n] = left_first ? right : left;
@@ -168,7 +182,7 @@ void main() {
     }
   }
   bool found = s.instance >= 0;
-  double distance = DISTANCE_F32 != 0u ? double(sqrt(float(s.d2))) : sqrt(s.d2);
+  double distance = s.f32 ? double(sqrt(float(s.d2))) : sqrt(s.d2) / s.scale;
   DoubleOut(point_params.distances).v[i] = found ? distance : 1.0 / 0.0;
   if (point_params.hits == 0ul) return;
   double nan = 0.0 / 0.0;
@@ -180,7 +194,7 @@ void main() {
     dvec3 b = corner_in_scene(x, t.b);
     dvec3 c = corner_in_scene(x, t.c);
     dvec2 uv;
-    if (DISTANCE_F32 != 0u) {
+    if (s.f32) {
       uv = dvec2(barycentrics_f32(vec3(s.q), vec3(a), vec3(b), vec3(c)));
     } else {
       uv = barycentrics_of(s.q, a, b, c);

@@ -66,7 +66,12 @@ ExactBest exact_miss() {
 
 // f32 traversal starts where the ray enters the scene's padded bounds, so that the f32 ray's
 // rounding is a few ulps of the scene's size, not of the origin's distance. Returns that distance
-// along the ray (f64), or -1 when the ray misses the bounds within [tmin, tmax].
+// along the ray (f64), or -1 when the ray misses the bounds within [tmin, tmax]. Each slab's
+// distance, (bound - origin) / direction, is rounded to a few ulps of itself: from far away (an
+// origin 1e20 from a scene of size 2) that is more than the scene, and an entry that overshot
+// would start traversal inside the scene, past crossings the f64 test accepts. So the entry is
+// moved back by 8 ulps of itself: before the bounds, by about as much as the origin's own
+// rounding (which the f64 test shares).
 double scene_entry(Ray64 ray) {
   dvec3 lo = dvec3(params.bounds[0], params.bounds[1], params.bounds[2]);
   dvec3 hi = dvec3(params.bounds[3], params.bounds[4], params.bounds[5]);
@@ -78,7 +83,20 @@ double scene_entry(Ray64 ray) {
   dvec3 far = max(t1, t0);
   double enter = max(max(ray.tmin, near.x), max(near.y, near.z));
   double leave = min(min(ray.tmax, far.x), min(far.y, far.z));
-  return enter <= leave ? max(enter, 0.0) : -1.0;
+  // The test is widened by the same rounding: a thin box far away may round to an empty slab.
+  // (enter >= tmin >= 0, so scaling moves it back. Keep this shape: `leave + c * abs(leave)`
+  // here made glslang 2023.2 take minutes over trace_exact_ray_query.comp. Time glslc after
+  // changing it.)
+  double backed = enter * (1.0 - 1.7763568394002505e-15lf);  // 8 ulps
+  return backed <= leave * (1.0 + 1.7763568394002505e-15lf) ? max(backed, 0.0) : -1.0;
+}
+
+// The f32 distance past `entry` to commit for a hit at f64 distance `t`: a little beyond it, so
+// that the rounding of t - entry (a few ulps of t: thousands of units from 1e20 away) never lets
+// traversal skip a box holding a triangle at the same t (the tie-break wants every one).
+float committed_distance(double t, double entry) {
+  const double EPSILON = 2.220446049250313e-16lf;
+  return float((t - entry) + 8.0 * EPSILON * abs(t)) * (1.0 + 1.0 / 1048576.0);
 }
 
 // The f32 ray traversal follows, shifted to start at `entry`, with its interval widened a little:
@@ -90,11 +108,14 @@ struct TraversalRay {
   float tmax;
 };
 
+// The shifted origin is origin + entry * direction in one rounding (fma): near the scene it is
+// then within an ulp of its own size of the ray, where a rounded product (entry * direction, to
+// an ulp of the origin's distance) could move it sideways off the ray by more than the scene.
 TraversalRay traversal_ray(Ray64 ray, double entry) {
   const float FLT_MAX = 3.402823466e38;
   float tmin = float(max(ray.tmin - entry, 0.0)) * (1.0 - 1.0 / 1048576.0);
   float tmax = min(float(ray.tmax - entry) * (1.0 + 1.0 / 1048576.0), FLT_MAX);
-  return TraversalRay(vec3(ray.origin + entry * ray.direction), tmin, vec3(ray.direction), tmax);
+  return TraversalRay(vec3(fma(dvec3(entry), ray.direction, ray.origin)), tmin, vec3(ray.direction), tmax);
 }
 
 bool owns_edge(dvec2 direction) {

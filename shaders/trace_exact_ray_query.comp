@@ -42,7 +42,7 @@ void main() {
       } else if (exact_candidate(best, ray, instance, prim, rayQueryGetIntersectionInstanceCustomIndexEXT(query, false),
                                  rayQueryGetIntersectionGeometryIndexEXT(query, false))) {
         // Commit in f32 too, so that traversal skips boxes beyond the best hit.
-        committed = clamp(float(best.t - entry), r.tmin, committed);
+        committed = clamp(committed_distance(best.t, entry), r.tmin, committed);
         rayQueryGenerateIntersectionEXT(query, committed);
         if ((RAY_FLAGS & gl_RayFlagsTerminateOnFirstHitEXT) != 0u) rayQueryTerminateEXT(query);
       }

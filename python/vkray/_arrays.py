@@ -90,16 +90,20 @@ _DLPACK_DEVICES = {
 _DLPACK_CPU = 1
 
 
-def dlpack_device(value: object) -> Optional[Tuple[int, int]]:
+def dlpack_device(value: object, name: str = "an array argument") -> Optional[Tuple[int, int]]:
     """(device type, index) of an object that speaks DLPack (``__dlpack__`` and
-    ``__dlpack_device__``: torch, cupy, jax, numpy >= 1.22), or None."""
+    ``__dlpack_device__``: torch, cupy, jax, numpy >= 1.22), or None. A ``__dlpack_device__``
+    that raises or answers no pair of ints is a TypeError naming the argument (`name`)."""
     if isinstance(value, np.ndarray) or not hasattr(value, "__dlpack__"):
         return None
     device_of = getattr(value, "__dlpack_device__", None)
     if device_of is None:
         return None
-    kind, index = device_of()
-    return _dlpack_number(kind), _dlpack_number(index)
+    try:
+        kind, index = device_of()
+        return _dlpack_number(kind), _dlpack_number(index)
+    except Exception as exc:  # the caller's object: any error is its
+        raise TypeError(f"{name}: its __dlpack_device__() failed: {type(exc).__name__}: {exc}") from exc
 
 
 def _dlpack_number(value: Any) -> int:
@@ -112,10 +116,11 @@ def _dlpack_number(value: Any) -> int:
 DLPACK_CUDA = 2
 
 
-def on_cuda(*values: object) -> bool:
-    """Whether any of the rays' arrays lives in CUDA memory (the GPU-resident path)."""
-    for value in values:
-        device = dlpack_device(value)
+def on_cuda(*values: object, names: Tuple[str, ...] = ("origins", "directions")) -> bool:
+    """Whether any of the rays' arrays lives in CUDA memory (the GPU-resident path); `names`:
+    the arguments' names, for errors."""
+    for k, value in enumerate(values):
+        device = dlpack_device(value, names[k] if k < len(names) else "an array argument")
         if device is not None and device[0] == DLPACK_CUDA:
             return True
     return False
@@ -139,7 +144,7 @@ def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarra
 
 
 def host_array(name: str, value: object) -> np.ndarray:
-    device = dlpack_device(value)
+    device = dlpack_device(value, name)
     if device is not None:
         return _native(_from_dlpack(name, value, device))
     try:

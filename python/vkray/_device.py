@@ -691,7 +691,7 @@ class Scene(SceneLike):
         self._core.trace_cuda_piece(batch, start, stop, core_query, q.cull, q.opacity_threshold)
 
     def _closest_points(self, q: PointQuery) -> Closest:
-        p = _points(q.points)
+        p = _points(q.points, q.precision)
         core_fields = ["t" if name == "distance" else name for name in q.outputs]
         flat = np.ascontiguousarray(p.reshape(-1, 3))
         arrays = _progress.call(
@@ -713,7 +713,7 @@ class Scene(SceneLike):
         return found.distance
 
     def _signed_distance(self, q: PointQuery) -> np.ndarray:
-        p = _points(q.points)
+        p = _points(q.points, q.precision)
         method = q.method
         if method is None:
             method = "parity" if all(x.mesh.is_closed for x in self.instances) else "winding"
@@ -824,11 +824,21 @@ _ANSWERS: Dict[str, Callable[[Scene, Any], Any]] = {
 }
 
 
-def _points(points: Any) -> np.ndarray:
-    """A point query's points: real, of shape ``S + (3,)``."""
+def _points(points: Any, precision: Optional[Precision] = None) -> np.ndarray:
+    """A point query's points: real, of shape ``S + (3,)``. The fast tier answers distances in
+    float32: a point beyond its range (whose distance float32 cannot hold) is refused there,
+    naming the row, rather than answered inf and unhit."""
     p = _arrays.real_coordinates("points", points)
     if p.ndim == 0 or p.shape[-1] != 3:
         raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+    if precision == "fast" and p.dtype == np.float64:
+        far = (np.isfinite(p) & (np.abs(p) > np.finfo(np.float32).max)).any(axis=-1).reshape(-1)
+        if far.any():
+            row = int(np.argmax(far))
+            raise ValueError(
+                f"points row {row} is beyond float32's range, in which precision='fast' answers: "
+                f"{p.reshape(-1, 3)[row].tolist()}; precision='exact' or 'reference' answers in float64"
+            )
     return p
 
 

@@ -10,7 +10,8 @@ go through ``mesh.ray`` (``mesh.contains``, ``proximity.signed_distance``,
 Choices where trimesh's two engines differ (tests/test_trimesh.py checks each):
 
 - Directions may have any length (trimesh normalizes them; vkray needs not, as no t is returned).
-  A zero or non-finite direction hits nothing (trimesh's triangle engine), rather than raising.
+  A zero or non-finite direction, or a non-finite (NaN, inf) origin, hits nothing (as in trimesh's
+  triangle engine), rather than raising.
 - ``multiple_hits=True`` returns every crossing once, in order along each ray, at the ``"exact"``
   precision by default: a ray through a shared edge or vertex hits one of the triangles there
   (never both, never neither), distinct triangles at one point are all reported, and nothing is

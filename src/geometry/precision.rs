@@ -301,37 +301,105 @@ impl Aabb {
     }
 }
 
+/// A power of two `s` that brings `m` (> 0) within [2^-250, 2^250] (1 where it already is):
+/// Ericson's test multiplies four lengths, which overflows past 2^256 (a point 1e155 from a unit
+/// triangle) and underflows below 2^-256 (a triangle 1e-80 across); squared distances of a
+/// search scaled so stay within f64 too. Scaling by a power of two is exact, so where nothing
+/// overflowed the answer is the same bit for bit (shaders/point_triangle.glsl `length_scale` is
+/// the same loop). Points farther than about 2^250 times a triangle's size keep their distance
+/// to f64's precision, but the products of four then lose the point's offset along the triangle.
+pub fn length_scale(m: f64) -> f64 {
+    const BIG: f64 = 1.809_251_394_333_065_6e75; // 2^250
+    const SMALL: f64 = 5.527_147_875_260_445e-76; // 2^-250
+    let mut s = 1.0;
+    if !m.is_finite() {
+        return s;
+    }
+    while m * s > BIG {
+        s *= SMALL;
+    }
+    while m * s > 0.0 && m * s < SMALL {
+        s *= BIG;
+    }
+    s
+}
+
+/// `n / d` for `0 <= n <= d`, 0 where `d` is 0: the parameter along an edge whose two end tests
+/// both came out 0 (a point far off it, perpendicular, rounded), where every point of it is as near.
+fn fraction(n: f64, d: f64) -> f64 {
+    if d > 0.0 {
+        n / d
+    } else {
+        0.0
+    }
+}
+
+/// The point of segment (a, b) closest to `p`, with its squared distance (in units scaled by `s`).
+fn closest_on_segment(p: DVec3, a: DVec3, b: DVec3, s: f64) -> (DVec3, f64) {
+    let (ab, ap) = ((b - a) * s, (p - a) * s);
+    let t = fraction(ab.dot(ap).max(0.0), ab.dot(ab)).min(1.0);
+    let q = a + (b - a) * t;
+    (q, ((q - p) * s).length_squared())
+}
+
+/// The point of a triangle without area (a repeated corner, or corners on one line) closest to
+/// `p`: the nearest of its edges' (the first of equals). Ericson's regions assume a face: on a
+/// segment they divide 0 by 0 or pick the wrong corner.
+fn closest_on_edges(p: DVec3, a: DVec3, b: DVec3, c: DVec3, s: f64) -> DVec3 {
+    let mut best = closest_on_segment(p, a, b, s);
+    for (from, to) in [(b, c), (c, a)] {
+        let candidate = closest_on_segment(p, from, to, s);
+        if candidate.1 < best.1 {
+            best = candidate;
+        }
+    }
+    best.0
+}
+
 /// The point of triangle (a, b, c) closest to `p` (Ericson, "Real-Time Collision Detection",
-/// 5.1.5: by the Voronoi region of `p` among the triangle's vertices, edges and face).
+/// 5.1.5: by the Voronoi region of `p` among the triangle's vertices, edges and face), its lengths
+/// scaled by a power of two (`length_scale`) so that its products of four neither overflow nor
+/// underflow; a triangle without area by its edges.
 pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
     let (ab, ac, ap) = (b - a, c - a, p - a);
-    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
+    let m = ab.abs().max(ac.abs()).max(ap.abs()).max_element();
+    let s = length_scale(m);
+    let (sab, sac, sap) = (ab * s, ac * s, ap * s);
+    if sab.cross(sac) == DVec3::ZERO {
+        return closest_on_edges(p, a, b, c, s);
+    }
+    let (d1, d2) = (sab.dot(sap), sac.dot(sap));
     if d1 <= 0.0 && d2 <= 0.0 {
         return a;
     }
-    let bp = p - b;
-    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
+    let bp = (p - b) * s;
+    let (d3, d4) = (sab.dot(bp), sac.dot(bp));
     if d3 >= 0.0 && d4 <= d3 {
         return b;
     }
     let vc = d1 * d4 - d3 * d2;
     if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        return a + ab * (d1 / (d1 - d3));
+        return a + ab * fraction(d1, d1 - d3);
     }
-    let cp = p - c;
-    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
+    let cp = (p - c) * s;
+    let (d5, d6) = (sab.dot(cp), sac.dot(cp));
     if d6 >= 0.0 && d5 <= d6 {
         return c;
     }
     let vb = d5 * d2 - d1 * d6;
     if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        return a + ac * (d2 / (d2 - d6));
+        return a + ac * fraction(d2, d2 - d6);
     }
     let va = d3 * d6 - d5 * d4;
     if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+        return b + (c - b) * fraction(d4 - d3, (d4 - d3) + (d5 - d6));
     }
-    let denominator = 1.0 / (va + vb + vc);
+    let sum = va + vb + vc;
+    if !(sum > 0.0 && sum.is_finite()) {
+        // A sliver whose face rounds away: its edges are as near as anything of it.
+        return closest_on_edges(p, a, b, c, s);
+    }
+    let denominator = 1.0 / sum;
     a + ab * (vb * denominator) + ac * (vc * denominator)
 }
 
@@ -420,6 +488,35 @@ mod tests {
         let mirror = Affine::from_rows(&[-1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
         let n = world_normal(&mirror.inverse().unwrap(), DVec3::ZERO, DVec3::X, DVec3::Y);
         assert_eq!(n, DVec3::new(0.0, 0.0, -1.0));
+    }
+
+    #[test]
+    fn closest_points_of_degenerate_triangles_and_far_points_are_finite_and_right() {
+        let (a, b) = (v(1.0, 0.0, 0.0), v(-1.0, 0.0, 0.0));
+        let p = v(0.0, 0.0, 0.5);
+        // A repeated corner (0 * (0 / 0) before), three corners on a line, one point.
+        for [x, y, z] in [[a, a, b], [a, b, b], [b, a, a], [a, b, v(0.25, 0.0, 0.0)]] {
+            assert_eq!(closest_point_on_triangle(p, x, y, z), v(0.0, 0.0, 0.0), "{x} {y} {z}");
+        }
+        assert_eq!(closest_point_on_triangle(p, a, a, a), a);
+        // Products of four lengths overflow f64 from 1e155 on, underflow below 1e-80.
+        let (c, d, e) = (v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0));
+        for far in [1e100, 1e154, 1e155, 1e300] {
+            let q = closest_point_on_triangle(v(0.25, 0.25, far), c, d, e);
+            assert!(q.z == 0.0 && q.x >= 0.0 && q.y >= 0.0 && q.x + q.y <= 1.0, "{q}");
+            // On the nearest edge (x = 0); where along it is below f64's precision of the distance.
+            let q = closest_point_on_triangle(v(-far, 0.5, 0.0), c, d, e);
+            assert!(q.x == 0.0 && (0.0..=1.0).contains(&q.y), "{q}");
+        }
+        assert_eq!(closest_point_on_triangle(v(-1e70, 0.5, 0.0), c, d, e), v(0.0, 0.5, 0.0));
+        assert_eq!(closest_point_on_triangle(v(0.25, 0.25, 1e70), c, d, e), v(0.25, 0.25, 0.0));
+        let tiny = 1e-100;
+        let q = closest_point_on_triangle(v(0.25, 0.25, 1.0) * tiny, c * tiny, d * tiny, e * tiny);
+        assert_eq!(q, v(0.25, 0.25, 0.0) * tiny);
+        assert_eq!(length_scale(1.0), 1.0);
+        assert_eq!(length_scale(1e300), 2f64.powi(-750));
+        assert_eq!(length_scale(1e-300), 2f64.powi(750));
+        assert_eq!((length_scale(2f64.powi(250)), length_scale(2f64.powi(-250))), (1.0, 1.0));
     }
 
     #[test]

@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::arrays::{fmt_row, Vec3s};
 use super::parallel;
-use super::precision::Ray64;
+use super::precision::{Aabb, Ray64};
 use super::sensor::SensorRays;
 use crate::error::{invalid_value, Result};
 
@@ -582,6 +582,30 @@ impl Frame {
         }
         Approach::Advanced { origin, t: advanced }
     }
+}
+
+/// Points as a query that casts rays from them can take them: each point beyond f32's range and
+/// outside the scene's `bounds` (its frame: the world less `center`) replaced by one point just outside the bounds, which
+/// every such query answers alike (outside, unhit: a ray from outside the bounds in any direction
+/// meets the scene as often as from any other point outside, an even number of times for a
+/// closed mesh). None where no point needs it (the common case: no copy).
+pub fn far_points_moved_in(points: Vec3s, bounds: Aabb, center: DVec3) -> Result<Option<Vec<f64>>> {
+    let bounds = Aabb { min: bounds.min + center, max: bounds.max + center };
+    let far = |p: [f64; 3]| p.iter().any(|c| !(*c as f32).is_finite()) && !bounds.contains(DVec3::from_array(p));
+    if !(0..points.rows()).any(|i| far(points.row_f64(i))) {
+        return Ok(None);
+    }
+    let stand_in = if bounds.min.cmple(bounds.max).all() {
+        bounds.max + (bounds.max - bounds.min).max(DVec3::ONE)
+    } else {
+        DVec3::ZERO
+    };
+    let mut moved = crate::geometry::parallel::try_vec(3 * points.rows(), 0.0, "the points moved in from far away")?;
+    for (i, row) in moved.chunks_exact_mut(3).enumerate() {
+        let p = points.row_f64(i);
+        row.copy_from_slice(&if far(p) { stand_in.to_array() } else { p });
+    }
+    Ok(Some(moved))
 }
 
 /// Why ray `i` (with these values) is invalid, naming the array and the row (see

@@ -11,7 +11,9 @@ use super::bvh::Bvh;
 use super::parallel;
 use super::winding::{Triangles, WindingTree};
 
-use crate::geometry::precision::{closest_point_on_triangle, watertight, Aabb, Affine, Cull, Ray64, ShearedRay};
+use crate::geometry::precision::{
+    closest_point_on_triangle, length_scale, watertight, Aabb, Affine, Cull, Ray64, ShearedRay,
+};
 
 /// Triangles of one mesh in its own (re-centred) frame, in f64, with their hierarchy (built on
 /// first use: only the reference tier needs it).
@@ -184,9 +186,9 @@ pub fn gap_weights(to_scene: &Affine, to_local: &Affine) -> [f64; 3] {
     [shrink * shrink; 3]
 }
 
-/// Σ wᵢ gᵢ², g the gap from `b` to `p` (0 inside).
-pub fn weighted_gap(b: &Aabb, p: DVec3, weights: DVec3) -> f64 {
-    let gap = (b.min - p).max(p - b.max).max(DVec3::ZERO);
+/// Σ wᵢ gᵢ², g the gap from `b` to `p` (0 inside) times `scale` (a power of two).
+pub fn weighted_gap(b: &Aabb, p: DVec3, weights: DVec3, scale: f64) -> f64 {
+    let gap = (b.min - p).max(p - b.max).max(DVec3::ZERO) * scale;
     (gap * gap).dot(weights)
 }
 
@@ -236,7 +238,11 @@ impl<'a> ReferenceTracer<'a> {
         self.for_each_hit(ray, mask, filter, |candidate, tmax| {
             if best.is_none_or(|b| candidate.is_before(&b)) {
                 best = Some(candidate);
-                *tmax = candidate.t;
+                // Boxes are skipped past a little beyond the best t: their entry distances are
+                // rounded to a few ulps of themselves (thousands of units from 1e20 away), and a
+                // box holding a triangle at the same t may win the tie-break (the exact tier's
+                // shaders commit as far: exact.glsl committed_distance).
+                *tmax = candidate.t + 8.0 * f64::EPSILON * candidate.t.abs();
             }
             !any
         });
@@ -294,13 +300,16 @@ impl<'a> ReferenceTracer<'a> {
     /// The surface point nearest to `p` (scene frame) within `max_distance`, among the sets
     /// `mask` sees: every triangle is measured in the scene's frame in f64 (so that rotation,
     /// non-uniform scale and mirroring of an instance keep distances exact); the hierarchies
-    /// prune with bounds that hold under each placement's stretch.
+    /// prune with bounds that hold under each placement's stretch. Lengths are compared squared
+    /// after scaling by a power of two (`search_scale`), so that a point 1e155 away or a scene
+    /// 1e-160 across neither overflows nor underflows them.
     pub fn closest_point(&self, p: DVec3, mask: u8, max_distance: f64) -> Option<ClosestHit> {
+        let scale = self.search_scale(p);
         let mut best: Option<ClosestHit> = None;
-        let mut reach = max_distance;
-        let limit = max_distance * max_distance;
+        let mut reach = max_distance * scale;
+        let limit = reach * reach;
         self.top.nearest(
-            |b| b.distance_to(p),
+            |b| ((b.min - p).max(p - b.max).max(DVec3::ZERO) * scale).length(),
             &mut reach,
             |instance, reach| {
                 let set = &self.sets[instance as usize];
@@ -311,13 +320,13 @@ impl<'a> ReferenceTracer<'a> {
                 // Local box gaps, weighted per axis, bound world distances from below.
                 let weights = DVec3::from_array(gap_weights(&set.to_scene, &set.to_local));
                 set.triangles.bvh().nearest(
-                    |b| weighted_gap(b, local, weights).sqrt() * (1.0 - 1e-12),
+                    |b| weighted_gap(b, local, weights, scale).sqrt() * (1.0 - 1e-12),
                     reach,
                     |prim, reach| {
                         let [a, b, c] = set.triangles.triangle(prim as usize).map(|v| set.to_scene.point(v));
                         let q = closest_point_on_triangle(p, a, b, c);
                         // Compared squared (exactly as computed), so that ties are ties in every tier.
-                        let squared = (q - p).length_squared();
+                        let squared = ((q - p) * scale).length_squared();
                         let hit = ClosestHit { distance: squared, point: q, u: 0.0, v: 0.0, instance, prim };
                         if squared <= limit && best.is_none_or(|b| hit.is_before(&b)) {
                             best = Some(hit);
@@ -331,8 +340,16 @@ impl<'a> ReferenceTracer<'a> {
             let set = &self.sets[hit.instance as usize];
             let [a, b, c] = set.triangles.triangle(hit.prim as usize).map(|v| set.to_scene.point(v));
             let (u, v) = barycentrics(hit.point, a, b, c);
-            ClosestHit { distance: hit.distance.sqrt(), u, v, ..hit }
+            ClosestHit { distance: hit.distance.sqrt() / scale, u, v, ..hit }
         })
+    }
+
+    /// The power of two that closest-point searches from `p` scale lengths by before squaring
+    /// them: `length_scale` of the largest coordinate of `p` and of the scene's bounds (the GPU's
+    /// closest_point.comp takes the same).
+    pub fn search_scale(&self, p: DVec3) -> f64 {
+        let bounds = self.top.nodes().first().map_or(0.0, |n| n.bounds.min.abs().max(n.bounds.max.abs()).max_element());
+        length_scale(p.abs().max_element().max(bounds))
     }
 
     /// Whether `p` (scene frame) lies on a triangle of any set, to within `ulps` units in the last
@@ -417,7 +434,7 @@ mod tests {
             let to_local = Affine { linear: a.inverse(), offset: DVec3::ZERO };
             let w = DVec3::from_array(gap_weights(&to_scene, &to_local));
             for p in [DVec3::new(3.0, 1.0, 0.2), DVec3::new(-1.0, -2.0, 2.0), DVec3::new(0.5, 5.0, -0.7)] {
-                let bound = weighted_gap(&b, p, w);
+                let bound = weighted_gap(&b, p, w, 1.0);
                 let sampled = sampled_min(a, &b, p);
                 assert!(bound <= sampled, "map {k}, {p}: {bound} > {sampled}");
                 if k < 3 {

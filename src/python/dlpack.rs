@@ -71,13 +71,21 @@ impl Borrowed<'_> {
     }
 }
 
-/// `value`'s (device type, device id) if it is a DLPack array, else None.
-pub(super) fn dlpack_device(value: &Bound<'_, PyAny>) -> PyResult<Option<(i32, i32)>> {
+/// `value`'s (device type, device id) if it is a DLPack array, else None; a `__dlpack_device__`
+/// that raises or answers no pair of ints is a TypeError naming the argument (`name`).
+pub(super) fn dlpack_device(value: &Bound<'_, PyAny>, name: &str) -> PyResult<Option<(i32, i32)>> {
     if !value.hasattr("__dlpack_device__")? {
         return Ok(None);
     }
-    let (kind, id): (Bound<'_, PyAny>, Bound<'_, PyAny>) = value.call_method0("__dlpack_device__")?.extract()?;
-    Ok(Some((dlpack_number(&kind)?, dlpack_number(&id)?)))
+    let device = value.call_method0("__dlpack_device__").and_then(|d| {
+        let (kind, id): (Bound<'_, PyAny>, Bound<'_, PyAny>) = d.extract()?;
+        Ok((dlpack_number(&kind)?, dlpack_number(&id)?))
+    });
+    device.map(Some).map_err(|e| {
+        let error = PyTypeError::new_err(format!("{name}: its __dlpack_device__() failed: {e}"));
+        error.set_cause(value.py(), Some(e));
+        error
+    })
 }
 
 /// A device type or id as `__dlpack_device__` gives it: an int, or an enum whose `value` is one
@@ -96,7 +104,7 @@ fn dlpack_number(value: &Bound<'_, PyAny>) -> PyResult<i32> {
 /// a TypeError naming the first such array and where it lives.
 pub(super) fn unreadable(device: &str, arrays: [(&str, &Bound<'_, PyAny>); 2]) -> PyErr {
     for (name, value) in arrays {
-        if let Ok(Some((kind, id))) = dlpack_device(value) {
+        if let Ok(Some((kind, id))) = dlpack_device(value, name) {
             if kind == DLPACK_CUDA {
                 return PyTypeError::new_err(format!(
                     "{name} lives on cuda:{id} (DLPack device type {kind}), which vkray cannot read here: {device} \
@@ -118,7 +126,7 @@ pub(super) fn borrow<'py>(
     stream: usize,
     ordinal: i32,
 ) -> PyResult<Borrowed<'py>> {
-    match dlpack_device(value)? {
+    match dlpack_device(value, name)? {
         Some((DLPACK_CUDA, id)) if id == ordinal => {}
         Some((1, _)) => {
             return Err(PyTypeError::new_err(format!(

@@ -42,16 +42,26 @@ fn int_at(bytes: &[u8], i: usize) -> i32 {
     i32::from_ne_bytes(bytes[4 * i..4 * i + 4].try_into().expect("4 bytes"))
 }
 
-/// Rays the host tiers process between two checks for an interrupt.
-const HOST_BLOCK: usize = 1 << 18;
+/// Items (rays, points) the host tiers process between two checks for an interrupt: the first
+/// block, and the bounds of the later ones, which are sized by the rate the previous one ran at
+/// to take about `HOST_BLOCK_SECONDS` (a ray through hundreds of triangles takes a thousand times
+/// one that misses: a fixed count could keep Ctrl-C waiting for many seconds).
+const HOST_BLOCK: (usize, usize, usize) = (4096, 1024, 1 << 20);
+const HOST_BLOCK_SECONDS: f64 = 0.2;
 
 /// Runs `work` over `0..n` in blocks, asking `interrupt` before each.
 fn in_blocks(n: usize, interrupt: &dyn Interrupt, mut work: impl FnMut(std::ops::Range<usize>)) -> Result<()> {
-    for start in (0..n).step_by(HOST_BLOCK) {
+    let (first, least, most) = HOST_BLOCK;
+    let (mut start, mut block) = (0, first);
+    while start < n {
         interrupt.check()?;
-        let end = (start + HOST_BLOCK).min(n);
+        let end = start.saturating_add(block).min(n);
+        let began = std::time::Instant::now();
         work(start..end);
         interrupt.progress(end, n);
+        let rate = (end - start) as f64 / began.elapsed().as_secs_f64().max(1e-6);
+        block = ((rate * HOST_BLOCK_SECONDS) as usize).clamp(least, most);
+        start = end;
     }
     Ok(())
 }
@@ -194,52 +204,93 @@ pub struct AllHits {
     pub wide: bool,
 }
 
+/// Hits the reference tier keeps while it counts them (256 MB of records): a query with no more
+/// is traced once; one with more is counted first (nothing stored), refused where it cannot fit
+/// in host memory, and traced again into its exact allocation, as the GPU tiers count first.
+const KEPT_WHILE_COUNTING: usize = 1 << 23;
+
 /// Traces every ray for all of its hits (the nearest `max_hits` of each) on all cores.
+/// `host_bytes_per_hit`: what the caller will need per hit besides the records, for refusing
+/// (MemoryError, naming the size) an answer that cannot fit before it is stored.
 pub fn all_hits(
     scene: &Scene,
     rays: &Rays,
     filter: Filter,
     max_hits: usize,
+    host_bytes_per_hit: usize,
     interrupt: &dyn Interrupt,
 ) -> Result<AllHits> {
+    use std::sync::atomic::{AtomicUsize, Ordering};
     let tracer = scene.reference_tracer();
-    let mut offsets = try_vec(rays.len() + 1, 0i64, "the offsets of all hits")?;
-    let mut hits: Vec<ReferenceHit> = Vec::new();
-    let mut failed = None;
-    in_blocks(rays.len(), interrupt, |range| {
-        if failed.is_some() {
-            return;
-        }
+    let n = rays.len();
+    let trace = |i: usize, found: &mut Vec<ReferenceHit>| {
+        found.clear();
+        tracer.trace_every(&rays.ray64(i, scene.center), rays.mask.get(i), filter, found);
+        found.truncate(max_hits);
+    };
+    // Pass 1: each ray's count, and its hits while the kept total stays within the budget.
+    let mut counts = try_vec(n, 0usize, "the counts of all hits")?;
+    let mut kept: Vec<Vec<ReferenceHit>> = try_vec(n, Vec::new(), "the reference tier's hits")?;
+    let kept_total = AtomicUsize::new(0);
+    in_blocks(n, interrupt, |range| {
         let start = range.start;
-        let per_ray: Vec<Vec<ReferenceHit>> = parallel::install(|| {
-            range
-                .into_par_iter()
-                .with_min_len(256)
-                .map(|i| {
-                    let mut found = Vec::new();
-                    tracer.trace_every(&rays.ray64(i, scene.center), rays.mask.get(i), filter, &mut found);
-                    found.truncate(max_hits);
-                    found
-                })
-                .collect()
+        parallel::install(|| {
+            counts[range.clone()].par_iter_mut().zip(&mut kept[range]).enumerate().with_min_len(256).for_each_init(
+                Vec::new,
+                |found, (k, (count, slot))| {
+                    trace(start + k, found);
+                    *count = found.len();
+                    if kept_total.load(Ordering::Relaxed) <= KEPT_WHILE_COUNTING
+                        && kept_total.fetch_add(found.len(), Ordering::Relaxed) + found.len() <= KEPT_WHILE_COUNTING
+                    {
+                        *slot = found.clone();
+                    }
+                },
+            )
         });
-        let added: usize = per_ray.iter().map(Vec::len).sum();
-        if hits.try_reserve(added).is_err() {
-            failed = Some(Error::OutOfMemory(format!(
-                "{} hits found so far do not fit in host memory: trace fewer rays at a time, or set max_hits",
-                hits.len() + added
-            )));
-            return;
-        }
-        for (k, found) in per_ray.into_iter().enumerate() {
-            hits.extend(found);
-            offsets[start + k + 1] = hits.len() as i64;
-        }
     })?;
-    match failed {
-        Some(error) => Err(error),
-        None => Ok(AllHits { offsets, hits, wide: true }),
+    let mut offsets = try_vec(n + 1, 0i64, "the offsets of all hits")?;
+    for i in 0..n {
+        offsets[i + 1] = offsets[i] + counts[i] as i64;
     }
+    drop(counts);
+    let total = offsets[n] as usize;
+    if kept_total.into_inner() <= KEPT_WHILE_COUNTING {
+        let mut hits = Vec::new();
+        hits.try_reserve_exact(total)
+            .map_err(|_| Error::OutOfMemory(format!("the {total} hits do not fit in host memory")))?;
+        for found in kept {
+            hits.extend(found);
+        }
+        return Ok(AllHits { offsets, hits, wide: true });
+    }
+    drop(kept);
+    // Pass 2: refused before anything is stored where it cannot fit, else traced again into place.
+    check_hits_fit(total, std::mem::size_of::<ReferenceHit>() + host_bytes_per_hit)?;
+    let mut hits = try_vec(total, ReferenceHit { t: 0.0, u: 0.0, v: 0.0, instance: 0, prim: 0 }, "all hits")?;
+    let mut rest = hits.as_mut_slice();
+    let mut per_ray: Vec<&mut [ReferenceHit]> = Vec::new();
+    per_ray
+        .try_reserve_exact(n)
+        .map_err(|_| Error::OutOfMemory("the hits' places do not fit in host memory".into()))?;
+    for i in 0..n {
+        let (mine, tail) = std::mem::take(&mut rest).split_at_mut((offsets[i + 1] - offsets[i]) as usize);
+        per_ray.push(mine);
+        rest = tail;
+    }
+    in_blocks(n, interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            per_ray[range].par_iter_mut().enumerate().with_min_len(256).for_each_init(Vec::new, |found, (k, slot)| {
+                trace(start + k, found);
+                // The same ray meets the same hits again (the tracer is deterministic).
+                let m = slot.len().min(found.len());
+                slot[..m].copy_from_slice(&found[..m]);
+            })
+        });
+    })?;
+    drop(per_ray);
+    Ok(AllHits { offsets, hits, wide: true })
 }
 
 /// The light each ray keeps: the product of (1 - opacity) over its hits (every crossing, taken
@@ -667,4 +718,18 @@ pub fn positions(scene: &Scene, rays: &Rays, hits: &HitTriangles, out: &mut [u8]
             }
         })
     });
+}
+
+/// Refuses a result of `hits` hits that would not fit in the host's memory, before storing any.
+pub(crate) fn check_hits_fit(hits: usize, bytes_per_hit: usize) -> Result<()> {
+    let needed = hits as u128 * bytes_per_hit as u128;
+    match crate::gpu::memory::host_memory_available() {
+        Some(available) if needed > available as u128 => Err(Error::OutOfMemory(format!(
+            "the {hits} hits of this query need about {:.2} GB of host memory, more than the {:.2} GB \
+             available: trace fewer rays at a time, set max_hits, or ask fewer outputs",
+            needed as f64 / 1e9,
+            available as f64 / 1e9
+        ))),
+        _ => Ok(()),
+    }
 }

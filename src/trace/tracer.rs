@@ -319,7 +319,7 @@ impl<E: Engine> Tracer<E> {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
                 rays.check()?;
-                host_tiers::all_hits(scene, rays, request.filter(), max_hits, interrupt)
+                host_tiers::all_hits(scene, rays, request.filter(), max_hits, host_bytes_per_hit, interrupt)
             }
         }
     }
@@ -469,6 +469,9 @@ impl<E: Engine> Tracer<E> {
         if out.is_empty() {
             return Ok(());
         }
+        // A point beyond f32's range (which rays cannot start from) outside the scene is outside.
+        let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
+        let points = moved.as_deref().map_or(points, Vec3s::F64);
         match precision {
             Precision::Exact if !winding || self.engine.limits().f64_tests => {
                 self.engine.contains(PointBatch { scene, points, interrupt }, winding, out)

@@ -21,11 +21,10 @@ use crate::geometry::parallel;
 use crate::geometry::parallel::try_vec;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::Commands;
-use crate::gpu::memory::host_memory_available;
 use crate::gpu::records::{ExactHit, FastHit, HitList, HIT_LIST_APPEND};
 use crate::scene::Scene;
 use crate::trace::hit_fields::{Field, HitSink};
-use crate::trace::host_tiers::AllHits;
+use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::IdlePool;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Precision, Query, RayBatch, Request};
@@ -264,20 +263,6 @@ impl AllHitsPath {
     fn give_back_lists(&self, lists: Vec<ListBuffers>) {
         let returned = lists.len();
         self.lists.give_back(returned, lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
-    }
-}
-
-/// Refuses a result of `hits` hits that would not fit in the host's memory, before storing any.
-fn check_hits_fit(hits: usize, bytes_per_hit: usize) -> Result<()> {
-    let needed = hits as u128 * bytes_per_hit as u128;
-    match host_memory_available() {
-        Some(available) if needed > available as u128 => Err(Error::OutOfMemory(format!(
-            "the {hits} hits of this query need about {:.2} GB of host memory, more than the {:.2} GB \
-             available: trace fewer rays at a time, set max_hits, or ask fewer outputs",
-            needed as f64 / 1e9,
-            available as f64 / 1e9
-        ))),
-        _ => Ok(()),
     }
 }
 
