@@ -34,6 +34,7 @@ from typing import (
     TypeVar,
     Union,
     cast,
+    overload,
 )
 
 import numpy as np
@@ -476,6 +477,29 @@ def default_devices() -> List[Union[int, str, Device]]:
     return list(hardware or [d.index for d in found])
 
 
+class _OfFirstDevice(Generic[T]):
+    """A read-only attribute of a group's object that is its first device's object's attribute of
+    the same name (the same on every device): `GroupMesh.vertices` is ``per_device[0].vertices``."""
+
+    def __init__(self, doc: str) -> None:
+        self.__doc__ = doc
+        self._name = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self._name = name
+
+    @overload
+    def __get__(self, group_object: None, owner: type) -> _OfFirstDevice[T]: ...
+
+    @overload
+    def __get__(self, group_object: object, owner: type) -> T: ...
+
+    def __get__(self, group_object: Optional[object], owner: type) -> Union[T, _OfFirstDevice[T]]:
+        if group_object is None:
+            return self
+        return cast(T, getattr(cast(Any, group_object).per_device[0], self._name))
+
+
 class GroupMesh:
     """One mesh on every device of a `DeviceGroup` (`per_device[k]` is device k's `Mesh`)."""
 
@@ -483,35 +507,12 @@ class GroupMesh:
         self.group = group
         self.per_device: Tuple[Mesh, ...] = tuple(per_device)
 
-    @property
-    def vertices(self) -> np.ndarray:
-        """As `Mesh.vertices` (the same on every device)."""
-        return self.per_device[0].vertices
-
-    @property
-    def faces(self) -> Optional[np.ndarray]:
-        """The triangles' corner indices; ``None`` for spheres."""
-        return self.per_device[0].faces
-
-    @property
-    def vertex_count(self) -> int:
-        """Vertices (spheres) per device."""
-        return self.per_device[0].vertex_count
-
-    @property
-    def triangle_count(self) -> int:
-        """Triangles per device."""
-        return self.per_device[0].triangle_count
-
-    @property
-    def kind(self) -> str:
-        """``"triangles"``, or ``"spheres"``."""
-        return self.per_device[0].kind
-
-    @property
-    def is_closed(self) -> bool:
-        """`Mesh.is_closed`."""
-        return self.per_device[0].is_closed
+    vertices: _OfFirstDevice[np.ndarray] = _OfFirstDevice("As `Mesh.vertices` (the same on every device).")
+    faces: _OfFirstDevice[Optional[np.ndarray]] = _OfFirstDevice("The triangles' corner indices; ``None`` for spheres.")
+    vertex_count: _OfFirstDevice[int] = _OfFirstDevice("Vertices (spheres) per device.")
+    triangle_count: _OfFirstDevice[int] = _OfFirstDevice("Triangles per device.")
+    kind: _OfFirstDevice[str] = _OfFirstDevice('``"triangles"``, or ``"spheres"``.')
+    is_closed: _OfFirstDevice[bool] = _OfFirstDevice("`Mesh.is_closed`.")
 
     def update(self, vertices: Any) -> None:
         """`Mesh.update` on every device, one after another (the first device's error, if any,
@@ -554,20 +555,11 @@ class GroupInstance:
             for m in mesh.per_device
         )
 
-    @property
-    def transform(self) -> Optional[np.ndarray]:
-        """As `Instance.transform` (`GroupScene.update` changes it)."""
-        return self.per_device[0].transform
-
-    @property
-    def custom_index(self) -> int:
-        """As `Instance.custom_index`."""
-        return self.per_device[0].custom_index
-
-    @property
-    def mask(self) -> int:
-        """As `Instance.mask` (`GroupScene.update` changes it)."""
-        return self.per_device[0].mask
+    transform: _OfFirstDevice[Optional[np.ndarray]] = _OfFirstDevice(
+        "As `Instance.transform` (`GroupScene.update` changes it)."
+    )
+    custom_index: _OfFirstDevice[int] = _OfFirstDevice("As `Instance.custom_index`.")
+    mask: _OfFirstDevice[int] = _OfFirstDevice("As `Instance.mask` (`GroupScene.update` changes it).")
 
     def __repr__(self) -> str:
         return f"<vkray.GroupInstance of {self.mesh!r} custom_index={self.custom_index} mask={self.mask:#04x}>"
