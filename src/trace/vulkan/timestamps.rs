@@ -8,14 +8,14 @@ use crate::error::{Result, VkResultExt};
 use crate::gpu::context::Context;
 use crate::trace::profile::TraceProfile;
 
-/// The phases of one chunk that timestamps separate: start, after upload, after trace, after
-/// readback.
+/// The phases of one chunk that timestamps separate, in order (their query slots 0 to 3): start,
+/// after upload, after trace, after readback.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Stamp {
-    Start = 0,
-    Uploaded = 1,
-    Traced = 2,
-    ReadBack = 3,
+    Start,
+    Uploaded,
+    Traced,
+    ReadBack,
 }
 
 const STAMPS: u32 = 4;
