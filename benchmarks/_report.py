@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import pathlib
-from typing import List, Optional
+from typing import List, Optional, Sequence
 
 
 class Report:
@@ -21,3 +21,8 @@ class Report:
         """Writes every line so far to ``path`` (nothing where it is None)."""
         if path:
             pathlib.Path(path).write_text("\n".join(self.lines) + "\n")
+
+
+def table_head(columns: Sequence[str]) -> str:
+    """A Markdown table's first two lines: the columns' names, then the rule under them."""
+    return "| " + " | ".join(columns) + " |\n" + "|---" * len(columns) + "|"

@@ -25,3 +25,17 @@ def best_run(repeat: int, fn: Callable[[], Any], *, warm: bool = False) -> Tuple
 def best_of(repeat: int, fn: Callable[[], Any], *, warm: bool = False) -> float:
     """The fastest of ``repeat`` runs of ``fn``, in seconds (`best_run` without the result)."""
     return best_run(repeat, fn, warm=warm)[0]
+
+
+def open3d_scene(o3d: Any, vertices: Any, faces: Any) -> Any:
+    """An Open3D RaycastingScene of one mesh, its BVH built (by one query) before any timing starts;
+    ``o3d`` is the open3d module (imported by the caller: it runs in the Open3D worker's interpreter)."""
+    import numpy as np  # here, so that the timer above needs nothing but the standard library
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(vertices, dtype=np.float32)),
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(faces, dtype=np.uint32)),
+    )
+    scene.count_intersections(o3d.core.Tensor(np.array([[0, 0, 0, 1, 1, 1]], np.float32)))  # commit (build)
+    return scene

@@ -35,6 +35,7 @@ import tempfile
 import time
 
 import numpy as np
+from _timing import open3d_scene
 
 # ------------------------------------------------------------------------------------------------
 # The directions each engine casts for inside/outside tests (read from their sources):
@@ -96,13 +97,7 @@ def o3d_worker(inp, outp):
 
     def scene_of(key):
         if key not in scenes:
-            s = o3d.t.geometry.RaycastingScene()
-            s.add_triangles(
-                o3d.core.Tensor.from_numpy(np.ascontiguousarray(data[f"mesh__{key}__v"], dtype=np.float32)),
-                o3d.core.Tensor.from_numpy(np.ascontiguousarray(data[f"mesh__{key}__f"], dtype=np.uint32)),
-            )
-            s.count_intersections(o3d.core.Tensor(np.array([[0, 0, 0, 1, 1, 1]], np.float32)))  # commit (build)
-            scenes[key] = s
+            scenes[key] = open3d_scene(o3d, data[f"mesh__{key}__v"], data[f"mesh__{key}__f"])
         return scenes[key]
 
     def as_rays(o, d):
@@ -175,10 +170,6 @@ def o3d_worker(inp, outp):
 
     out["cpus"] = np.array(multiprocessing.cpu_count())
     np.savez(outp, **out)
-
-
-def edges_of(f):
-    return sorted({tuple(sorted(e)) for tri in f.tolist() for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))})
 
 
 # ------------------------------------------------------------------------------------------------
@@ -350,7 +341,7 @@ def main():
     # The cube's face diagonals: the edges its coplanar triangle pairs share.
     face_normals = np.cross(cube_v[cube_f[:, 1]] - cube_v[cube_f[:, 0]], cube_v[cube_f[:, 2]] - cube_v[cube_f[:, 0]])
     diagonals = []
-    for a, b in edges_of(cube_f):
+    for a, b in oracle.undirected_edges(cube_f):
         tris = [t for t in range(len(cube_f)) if a in cube_f[t] and b in cube_f[t]]
         if len(tris) == 2 and np.allclose(np.cross(face_normals[tris[0]], face_normals[tris[1]]), 0):
             diagonals.append((a, b, face_normals[tris[0]] / np.linalg.norm(face_normals[tris[0]])))
@@ -381,14 +372,8 @@ def main():
         v, f = oracle.bipyramid(offset)
         key = f"bip_{offset:g}"
         add_mesh(key, v, f)
-        targets = np.vstack([v, [0.5 * (v[a] + v[b]) for a, b in edges_of(f)]])
-        kinds = np.repeat(np.array(["vertex"] * len(v) + ["edge"] * (len(targets) - len(v))), 30)
-        targets = np.repeat(targets, 30, axis=0)
-        rng = np.random.default_rng(52)
-        inner = offset + np.column_stack([rng.uniform(-0.3, 0.3, (len(targets), 2)), rng.uniform(-0.2, 0.3, len(targets))])
-        d = inner - targets
-        d *= 2.0 / np.linalg.norm(d, axis=1, keepdims=True)
-        o = targets - d
+        kinds = np.repeat(np.array(["vertex"] * len(v) + ["edge"] * len(oracle.undirected_edges(f))), 30)
+        o, d = oracle.rays_into_bipyramid(v, f, offset, per_target=30)
         hard_rays.append(("closed bipyramid, entered through vertices and edges", offset, key, v, f, o, d, 2,
                           np.ones(len(o)), oracle.bounds(v)[1], kinds))
         # The unit cube entered through its faces' diagonals (the edge each face's two triangles
@@ -426,7 +411,7 @@ def main():
     cube_v, cube_f = oracle.box()
     cube_targets = np.vstack(
         [cube_v]
-        + [cube_v[a] + w * (cube_v[b] - cube_v[a]) for a, b in edges_of(cube_f)
+        + [cube_v[a] + w * (cube_v[b] - cube_v[a]) for a, b in oracle.undirected_edges(cube_f)
            if np.count_nonzero(cube_v[a] != cube_v[b]) == 1 for w in (0.25, 0.5)]
         + [lattice([0.0, 0.5, 1.0])]  # face centres among them
     )
@@ -453,7 +438,7 @@ def main():
     fv, ff = meshes["fandisk"]
     f_radius = oracle.bounds(fv)[1]
     rng = np.random.default_rng(9)
-    fedges = np.array(edges_of(ff))
+    fedges = np.array(oracle.undirected_edges(ff))
     ftargets = np.vstack([fv[rng.choice(len(fv), 150, replace=False)],
                           fv[fedges[rng.choice(len(fedges), 150, replace=False)]].mean(axis=1)])
     fsteps = f_radius * np.array([0.01, 0.05, 0.2, 0.5])

@@ -386,33 +386,54 @@ def main():
         best = max((out[label] for label in exact_labels), default=None)
         return out, best
 
+    def against_open3d(key, what):
+        """The columns the distance and closest-points tables share, of one mesh and kind of points: the
+        report's figures by name, and the table's cells (vkray by engine, Open3D prebuilt and numpy,
+        trimesh, × Open3D: the best exact rate and the reference rate over Open3D's prebuilt rate)."""
+        res = vk[key]
+        r, best = rates(res, what, n)
+        pre, num = rate(n, tm.get(f"{key}/{what}/prebuilt")), rate(n, tm.get(f"{key}/{what}/numpy"))
+        t = tri[key]
+        t_rate = rate(t["n"], t["closest_s"]) if t else None
+        x_ex = best / pre if best and pre else None
+        x_ref = r["reference"] / pre if pre else None
+        figures = {
+            "vkray": r,
+            "calls": {label: res[f"{label}/{what}"][2] for label, _, _ in engines},
+            "o3d_prebuilt": pre,
+            "o3d_numpy": num,
+            "trimesh": t_rate,
+            "x_exact": x_ex,
+            "x_reference": x_ref,
+        }
+        cells = [fmt(r[label]) for label, _, _ in engines] + [fmt(x) for x in (pre, num, t_rate, x_ex, x_ref)]
+        return figures, " | ".join(cells)
+
+    # The columns the distance and closest-points tables open with.
+    cols = " | ".join(f"vkray {label}" for label, _, _ in engines)
+    shared_head = f"| mesh | points | {cols} | Open3D prebuilt | Open3D numpy | trimesh | × Open3D: exact | × Open3D: reference "
+
     # distance
     print("### distance (M points/s)\n")
-    cols = " | ".join(f"vkray {label}" for label, _, _ in engines)
     print(
-        f"| mesh | points | {cols} | Open3D prebuilt | Open3D numpy | trimesh | × Open3D: exact | × Open3D: reference "
-        "| max \\|Δ\\|: exact | max \\|Δ\\|: Open3D | max \\|Δ\\|: trimesh | off by > 1e-6 diag: Open3D | trimesh |"
+        shared_head + "| max \\|Δ\\|: exact | max \\|Δ\\|: Open3D | max \\|Δ\\|: trimesh | off by > 1e-6 diag: Open3D "
+        "| trimesh |"
     )
     print("|---|---|" + "---|" * (len(engines) + 10))
     for name, kind, key in cases:
         res = vk[key]
-        r, best = rates(res, "distance", n)
+        figures, cells = against_open3d(key, "distance")
         ref = res["reference/distance"][1]
-        pre, num = rate(n, tm.get(f"{key}/distance/prebuilt")), rate(n, tm.get(f"{key}/distance/numpy"))
         t = tri[key]
-        t_rate = rate(t["n"], t["closest_s"]) if t else None
         d_exact = [max_delta(res[f"{label}/distance"][1], ref) for label in exact_labels]
         d_o3d = max_delta(o3d_ans[f"{key}__distance"], ref) if f"{key}__distance" in o3d_ans else None
         d_tri = max_delta(t["distance"], ref[: t["n"]]) if t else None
         limit = 1e-6 * diagonals[name]
         off_o3d = off_by(o3d_ans[f"{key}__distance"], ref, limit) if f"{key}__distance" in o3d_ans else None
         off_tri = off_by(t["distance"], ref[: t["n"]], limit) if t else None
-        x_ex = best / pre if best and pre else None
-        x_ref = r["reference"] / pre if pre else None
         of = f" of {t['n']:,}" if t else ""
         print(
-            f"| {name} | {kind} | {' | '.join(fmt(r[label]) for label, _, _ in engines)} | {fmt(pre)} | {fmt(num)} | "
-            f"{fmt(t_rate)} | {fmt(x_ex)} | {fmt(x_ref)} | "
+            f"| {name} | {kind} | {cells} | "
             f"{fmt(max(d_exact) if d_exact else None, '.1e')} | {fmt(d_o3d, '.1e')} | {fmt(d_tri, '.1e')} | "
             f"{fmt(off_o3d, ',')} | {fmt(off_tri, ',')}{of} |"
         )
@@ -422,13 +443,7 @@ def main():
                 "mesh": name,
                 "kind": kind,
                 "n": n,
-                "vkray": r,
-                "calls": {label: res[f"{label}/distance"][2] for label, _, _ in engines},
-                "o3d_prebuilt": pre,
-                "o3d_numpy": num,
-                "trimesh": t_rate,
-                "x_exact": x_ex,
-                "x_reference": x_ref,
+                **figures,
                 "max_delta_exact": dict(zip(exact_labels, d_exact)),
                 "max_delta_o3d": d_o3d,
                 "max_delta_trimesh": d_tri,
@@ -442,20 +457,15 @@ def main():
         "\n### closest points (M points/s; vkray: `closest_points` with its default outputs; Open3D: "
         "`compute_closest_points`, numpy: every result as numpy; trimesh: `proximity.closest_point`)\n"
     )
-    print(
-        f"| mesh | points | {cols} | Open3D prebuilt | Open3D numpy | trimesh | × Open3D: exact | × Open3D: reference "
-        "| max \\|Δ\\| of ‖p − position‖: exact | Open3D | trimesh | ≠ prim_id: exact |"
-    )
+    print(shared_head + "| max \\|Δ\\| of ‖p − position‖: exact | Open3D | trimesh | ≠ prim_id: exact |")
     print("|---|---|" + "---|" * (len(engines) + 9))
     for name, kind, key in cases:
         res = vk[key]
         p = data[f"{key}__p"]
-        r, best = rates(res, "closest", n)
+        figures, cells = against_open3d(key, "closest")
         refc = res["reference/closest"][1]
         ref = refc.distance
-        pre, num = rate(n, tm.get(f"{key}/closest/prebuilt")), rate(n, tm.get(f"{key}/closest/numpy"))
         t = tri[key]
-        t_rate = rate(t["n"], t["closest_s"]) if t else None
 
         def off(position, count=n):
             return max_delta(np.linalg.norm(p[:count] - position, axis=1), ref[:count])
@@ -464,11 +474,8 @@ def main():
         prim = [int(np.count_nonzero(res[f"{label}/closest"][1].prim_id != refc.prim_id)) for label in exact_labels]
         d_o3d = off(o3d_ans[f"{key}__position"]) if f"{key}__position" in o3d_ans else None
         d_tri = off(t["position"], t["n"]) if t else None
-        x_ex = best / pre if best and pre else None
-        x_ref = r["reference"] / pre if pre else None
         print(
-            f"| {name} | {kind} | {' | '.join(fmt(r[label]) for label, _, _ in engines)} | {fmt(pre)} | {fmt(num)} | "
-            f"{fmt(t_rate)} | {fmt(x_ex)} | {fmt(x_ref)} | "
+            f"| {name} | {kind} | {cells} | "
             f"{fmt(max(d_exact) if d_exact else None, '.1e')} | {fmt(d_o3d, '.1e')} | {fmt(d_tri, '.1e')} | "
             f"{fmt(max(prim) if prim else None, ',')} |"
         )
@@ -478,13 +485,7 @@ def main():
                 "mesh": name,
                 "kind": kind,
                 "n": n,
-                "vkray": r,
-                "calls": {label: res[f"{label}/closest"][2] for label, _, _ in engines},
-                "o3d_prebuilt": pre,
-                "o3d_numpy": num,
-                "trimesh": t_rate,
-                "x_exact": x_ex,
-                "x_reference": x_ref,
+                **figures,
                 "max_delta_exact": dict(zip(exact_labels, d_exact)),
                 "prim_differ_exact": dict(zip(exact_labels, prim)),
                 "max_delta_o3d": d_o3d,

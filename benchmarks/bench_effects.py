@@ -69,6 +69,7 @@ import sys
 import time
 
 import numpy as np
+from _report import table_head
 
 import vkray
 
@@ -218,84 +219,32 @@ def bench_rows(device, args, vertices, faces, o32, d32):
     cam_o, cam_d = camera.rays()
 
     t = ["t"]
-    # (name, query, scene, call, explain kwargs, vs)
+
+    def row(name, query, sc, call, vs="baseline", **explain):
+        """(name, query, scene, call, explain kwargs, vs): `call(sc)` is timed, `sc.explain(kind, **explain)`
+        (kind an entry of explain, default "closest") names its stages; vs: the row it is compared with."""
+        return name, query, sc, lambda: call(sc), explain, vs
+
     rows = [
-        ("baseline", "intersect t", scene, lambda: scene.intersect(o32, d32, outputs=t), dict(outputs=t), None),
-        ("all fields", "intersect (6 fields)", scene, lambda: scene.intersect(o32, d32), {}, "baseline"),
-        (
-            "cull back",
-            "intersect t, cull=back",
-            scene,
-            lambda: scene.intersect(o32, d32, outputs=t, cull="back"),
-            dict(outputs=t, cull="back"),
-            "baseline",
-        ),
-        (
-            "per-ray masks",
-            "intersect t, mask=uint8[N]",
-            scene,
-            lambda: scene.intersect(o32, d32, outputs=t, mask=masks),
-            dict(outputs=t),
-            "baseline",
-        ),
-        (
-            "spheres present",
-            "intersect t",
-            scene_spheres,
-            lambda: scene_spheres.intersect(o32, d32, outputs=t),
-            dict(outputs=t),
-            "baseline",
-        ),
-        (
-            "opacity present",
-            "intersect t",
-            scene_opacity,
-            lambda: scene_opacity.intersect(o32, d32, outputs=t),
-            dict(outputs=t),
-            "baseline",
-        ),
-        ("occluded", "occluded", scene, lambda: scene.occluded(o32, d32), dict(kind="occluded"), "baseline"),
-        (
-            "all hits",
-            "intersect_all t",
-            scene,
-            lambda: scene.intersect_all(o32, d32, outputs=t),
-            dict(kind="all"),
-            "baseline",
-        ),
-        ("count", "count", scene, lambda: scene.count(o32, d32), dict(kind="count"), "baseline"),
-        (
-            "transmittance (opacity)",
-            "transmittance",
-            scene_opacity,
-            lambda: scene_opacity.transmittance(o32, d32),
-            dict(kind="transmittance"),
-            "baseline",
-        ),
-        (
-            "transmittance (opaque)",
-            "transmittance",
-            scene,
-            lambda: scene.transmittance(o32, d32),
-            dict(kind="transmittance"),
-            "baseline",
-        ),
-        (
-            "camera, uploaded rays",
-            f"intersect t, camera.rays() {side}x{side}",
-            scene,
-            lambda: scene.intersect(cam_o, cam_d, outputs=t),
-            dict(outputs=t),
-            "baseline",
-        ),
-        (
-            "camera, GPU rays",
-            f"intersect t, camera {side}x{side}",
-            scene,
-            lambda: scene.intersect(camera, outputs=t),
-            dict(outputs=t, sensor=True),
-            "camera, uploaded rays",
-        ),
+        row("baseline", "intersect t", scene, lambda s: s.intersect(o32, d32, outputs=t), vs=None, outputs=t),
+        row("all fields", "intersect (6 fields)", scene, lambda s: s.intersect(o32, d32)),
+        row("cull back", "intersect t, cull=back", scene, lambda s: s.intersect(o32, d32, outputs=t, cull="back"),
+            outputs=t, cull="back"),
+        row("per-ray masks", "intersect t, mask=uint8[N]", scene,
+            lambda s: s.intersect(o32, d32, outputs=t, mask=masks), outputs=t),
+        row("spheres present", "intersect t", scene_spheres, lambda s: s.intersect(o32, d32, outputs=t), outputs=t),
+        row("opacity present", "intersect t", scene_opacity, lambda s: s.intersect(o32, d32, outputs=t), outputs=t),
+        row("occluded", "occluded", scene, lambda s: s.occluded(o32, d32), kind="occluded"),
+        row("all hits", "intersect_all t", scene, lambda s: s.intersect_all(o32, d32, outputs=t), kind="all"),
+        row("count", "count", scene, lambda s: s.count(o32, d32), kind="count"),
+        row("transmittance (opacity)", "transmittance", scene_opacity, lambda s: s.transmittance(o32, d32),
+            kind="transmittance"),
+        row("transmittance (opaque)", "transmittance", scene, lambda s: s.transmittance(o32, d32),
+            kind="transmittance"),
+        row("camera, uploaded rays", f"intersect t, camera.rays() {side}x{side}", scene,
+            lambda s: s.intersect(cam_o, cam_d, outputs=t), outputs=t),
+        row("camera, GPU rays", f"intersect t, camera {side}x{side}", scene, lambda s: s.intersect(camera, outputs=t),
+            vs="camera, uploaded rays", outputs=t, sensor=True),
     ]
     results = []
     for name, query, sc, call, explain_kwargs, vs in rows:
@@ -505,11 +454,9 @@ def print_tiers(report):
         + (f" Skipped (no shaderFloat64): {', '.join(tiers['skipped'])}." if tiers["skipped"] else "")
         + "\n"
     )
-    print(
-        "| query | tier | stages [ray-query branches] | result | rays | mean | median s | Mrays/s | GPU trace s "
-        "| host f64 s | × fast | max \\|Δ\\| | \\|Δ\\| > 1e-6 | ≠ reference |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    columns = ["query", "tier", "stages [ray-query branches]", "result", "rays", "mean", "median s", "Mrays/s"]
+    columns += ["GPU trace s", "host f64 s", "× fast", "max \\|Δ\\|", "\\|Δ\\| > 1e-6", "≠ reference"]
+    print(table_head(columns))
     for row in tiers["rows"]:
         stages, _ = shorten(row["explain"])
         median = f"{row['median_s']:.4f}" + (" (1 call)" if row["once"] else "")
@@ -532,11 +479,8 @@ def print_rows(report):
     print(
         f"### {report['device']} ({report['device_type']}), backend `{report['backend']}`, driver {report['driver']}\n"
     )
-    print(
-        "| effect | query | stages [ray-query branches] | ray flags | rays | hit | median s | Mrays/s | GPU trace s "
-        "| × wall | × GPU | vs | ≠ |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    columns = ["effect", "query", "stages [ray-query branches]", "ray flags", "rays", "hit", "median s", "Mrays/s"]
+    print(table_head(columns + ["GPU trace s", "× wall", "× GPU", "vs", "≠"]))
     for row in report["rows"]:
         stages, flags = shorten(row["explain"])
         print(

@@ -49,6 +49,7 @@ import tempfile
 import time
 
 import numpy as np
+from _timing import open3d_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MESHES = ("stanford-bunny", "fandisk")
@@ -80,13 +81,7 @@ def o3d_worker(inp, outp, repeat):
 
     def scene_of(mesh):
         if mesh not in scenes:
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(
-                o3d.core.Tensor.from_numpy(np.ascontiguousarray(data[f"{mesh}__v"], dtype=np.float32)),
-                o3d.core.Tensor.from_numpy(np.ascontiguousarray(data[f"{mesh}__f"], dtype=np.uint32)),
-            )
-            scene.count_intersections(o3d.core.Tensor(np.zeros((1, 6), np.float32)))  # builds the BVH
-            scenes[mesh] = scene
+            scenes[mesh] = open3d_scene(o3d, data[f"{mesh}__v"], data[f"{mesh}__f"])
         return scenes[mesh]
 
     for task in tasks:
@@ -289,45 +284,50 @@ def part_main(args, report):
     def fmt(x, spec=".1f"):
         return "-" if x is None else format(x, spec)
 
+    def main_cases(what):
+        """Each mesh and ray count of the main part: (mesh, rays, key, vkray's results, vkray's exact
+        counts, Open3D's rates of `what` ("count" or "list") on prebuilt tensors and numpy in, numpy out)."""
+        for name in MESHES:
+            for n in args.sizes:
+                key = f"{name}@{n}"
+                res = vk[key]
+                pre, num = o3d_rate(n, f"{key}/{what}/prebuilt"), o3d_rate(n, f"{key}/{what}/numpy")
+                yield name, n, key, res, res["count/exact"][1], pre, num
+
     # counts
     print("### count (M rays/s; × = vkray / Open3D count_intersections on prebuilt tensors)\n")
     print(
         "| mesh | rays | vkray fast | vkray exact | vkray reference (CPU, 1 run) | Open3D prebuilt | Open3D numpy | × fast | × exact | ≠ exact: fast | ≠ exact: reference | ≠ exact: Open3D |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name in MESHES:
-        for n in args.sizes:
-            key = f"{name}@{n}"
-            res = vk[key]
-            exact = res["count/exact"][1]
-            fast_r, exact_r = rate(n, res["count/fast"][0]), rate(n, res["count/exact"][0])
-            ref_r = rate(n, res["count/reference"][0])
-            pre, num = o3d_rate(n, f"{key}/count/prebuilt"), o3d_rate(n, f"{key}/count/numpy")
-            d_fast = int((res["count/fast"][1] != exact).sum())
-            d_ref = int((res["count/reference"][1] != exact).sum())
-            d_o3d = int((o3d_ans[f"{key}__count"] != exact).sum()) if f"{key}__count" in o3d_ans else None
-            x_fast, x_exact = (fast_r / pre, exact_r / pre) if pre else (None, None)
-            print(
-                f"| {name} | {n:,} | {fast_r:.1f} | {exact_r:.1f} | {ref_r:.2f} | {fmt(pre)} | {fmt(num)} | "
-                f"{fmt(x_fast, '.2f')} | {fmt(x_exact, '.2f')} | {d_fast:,} | {d_ref:,} | {fmt(d_o3d, ',')} |"
-            )
-            rows.append(
-                {
-                    "query": "count",
-                    "mesh": name,
-                    "n": n,
-                    "vkray_fast": fast_r,
-                    "vkray_exact": exact_r,
-                    "vkray_reference": ref_r,
-                    "o3d_prebuilt": pre,
-                    "o3d_numpy": num,
-                    "differ_fast": d_fast,
-                    "differ_reference": d_ref,
-                    "differ_o3d": d_o3d,
-                    "profile_fast": res["count/fast"][2],
-                    "profile_exact": res["count/exact"][2],
-                }
-            )
+    for name, n, key, res, exact, pre, num in main_cases("count"):
+        fast_r, exact_r = rate(n, res["count/fast"][0]), rate(n, res["count/exact"][0])
+        ref_r = rate(n, res["count/reference"][0])
+        d_fast = int((res["count/fast"][1] != exact).sum())
+        d_ref = int((res["count/reference"][1] != exact).sum())
+        d_o3d = int((o3d_ans[f"{key}__count"] != exact).sum()) if f"{key}__count" in o3d_ans else None
+        x_fast, x_exact = (fast_r / pre, exact_r / pre) if pre else (None, None)
+        print(
+            f"| {name} | {n:,} | {fast_r:.1f} | {exact_r:.1f} | {ref_r:.2f} | {fmt(pre)} | {fmt(num)} | "
+            f"{fmt(x_fast, '.2f')} | {fmt(x_exact, '.2f')} | {d_fast:,} | {d_ref:,} | {fmt(d_o3d, ',')} |"
+        )
+        rows.append(
+            {
+                "query": "count",
+                "mesh": name,
+                "n": n,
+                "vkray_fast": fast_r,
+                "vkray_exact": exact_r,
+                "vkray_reference": ref_r,
+                "o3d_prebuilt": pre,
+                "o3d_numpy": num,
+                "differ_fast": d_fast,
+                "differ_reference": d_ref,
+                "differ_o3d": d_o3d,
+                "profile_fast": res["count/fast"][2],
+                "profile_exact": res["count/exact"][2],
+            }
+        )
 
     # all hits
     print(
@@ -337,41 +337,36 @@ def part_main(args, report):
         "| mesh | rays | hits (exact) | vkray fast | vkray refined | vkray exact | Open3D prebuilt | Open3D numpy | × fast | × exact | ≠ count exact: fast | refined | exact | Open3D |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name in MESHES:
-        for n in args.sizes:
-            key = f"{name}@{n}"
-            res = vk[key]
-            exact = res["count/exact"][1]
-            r = {p: rate(n, res[f"all/{p}"][0]) if f"all/{p}" in res else None for p in ("fast", "refined", "exact")}
-            dif = {p: int((res[f"all/{p}"][1] != exact).sum()) if f"all/{p}" in res else None for p in r}
-            pre, num = o3d_rate(n, f"{key}/list/prebuilt"), o3d_rate(n, f"{key}/list/numpy")
-            lc = o3d_ans.get(f"{key}__list_counts")
-            d_o3d = int((lc != exact).sum()) if lc is not None else None
-            x_fast, x_exact = (r["fast"] / pre, r["exact"] / pre) if pre else (None, None)
-            print(
-                f"| {name} | {n:,} | {res['all/exact/hits']:,} | {fmt(r['fast'])} | {fmt(r['refined'])} | {fmt(r['exact'])} | "
-                f"{fmt(pre)} | {fmt(num)} | {fmt(x_fast, '.2f')} | {fmt(x_exact, '.2f')} | "
-                f"{dif['fast']:,} | {fmt(dif['refined'], ',')} | {dif['exact']:,} | {fmt(d_o3d, ',')} |"
-            )
-            rows.append(
-                {
-                    "query": "intersect_all",
-                    "mesh": name,
-                    "n": n,
-                    "hits": res["all/exact/hits"],
-                    **{f"vkray_{p}": r[p] for p in r},
-                    "o3d_prebuilt": pre,
-                    "o3d_numpy": num,
-                    **{f"differ_{p}": dif[p] for p in dif},
-                    "differ_o3d": d_o3d,
-                    "o3d_hits": tm.get(f"{key}/list/hits"),
-                    "o3d_bytes": tm.get(f"{key}/list/bytes"),
-                    "o3d_fields": tm.get(f"{key}/list/fields"),
-                    **{f"bytes_{p}": res[f"all/{p}/bytes"] for p in r if f"all/{p}" in res},
-                    **{f"hits_{p}": res[f"all/{p}/hits"] for p in r if f"all/{p}" in res},
-                    **{f"profile_{p}": res[f"all/{p}"][2] for p in r if f"all/{p}" in res},
-                }
-            )
+    for name, n, key, res, exact, pre, num in main_cases("list"):
+        r = {p: rate(n, res[f"all/{p}"][0]) if f"all/{p}" in res else None for p in ("fast", "refined", "exact")}
+        dif = {p: int((res[f"all/{p}"][1] != exact).sum()) if f"all/{p}" in res else None for p in r}
+        lc = o3d_ans.get(f"{key}__list_counts")
+        d_o3d = int((lc != exact).sum()) if lc is not None else None
+        x_fast, x_exact = (r["fast"] / pre, r["exact"] / pre) if pre else (None, None)
+        print(
+            f"| {name} | {n:,} | {res['all/exact/hits']:,} | {fmt(r['fast'])} | {fmt(r['refined'])} | {fmt(r['exact'])} | "
+            f"{fmt(pre)} | {fmt(num)} | {fmt(x_fast, '.2f')} | {fmt(x_exact, '.2f')} | "
+            f"{dif['fast']:,} | {fmt(dif['refined'], ',')} | {dif['exact']:,} | {fmt(d_o3d, ',')} |"
+        )
+        rows.append(
+            {
+                "query": "intersect_all",
+                "mesh": name,
+                "n": n,
+                "hits": res["all/exact/hits"],
+                **{f"vkray_{p}": r[p] for p in r},
+                "o3d_prebuilt": pre,
+                "o3d_numpy": num,
+                **{f"differ_{p}": dif[p] for p in dif},
+                "differ_o3d": d_o3d,
+                "o3d_hits": tm.get(f"{key}/list/hits"),
+                "o3d_bytes": tm.get(f"{key}/list/bytes"),
+                "o3d_fields": tm.get(f"{key}/list/fields"),
+                **{f"bytes_{p}": res[f"all/{p}/bytes"] for p in r if f"all/{p}" in res},
+                **{f"hits_{p}": res[f"all/{p}/hits"] for p in r if f"all/{p}" in res},
+                **{f"profile_{p}": res[f"all/{p}"][2] for p in r if f"all/{p}" in res},
+            }
+        )
 
     # contains
     print("\n### contains (M points/s; × = vkray / Open3D compute_occupancy on prebuilt tensors)\n")

@@ -313,3 +313,21 @@ def bipyramid(offset, seed=51, k=9):
     top = [[0, 2 + i, 2 + (i + 1) % k] for i in range(k)]
     bottom = [[1, 2 + (i + 1) % k, 2 + i] for i in range(k)]
     return v, np.array(top + bottom)
+
+
+def undirected_edges(faces):
+    """Every edge of the faces once, as a sorted vertex pair, in sorted order."""
+    return sorted({tuple(sorted(e)) for a, b, c in np.asarray(faces).tolist() for e in ((a, b), (b, c), (c, a))})
+
+
+def rays_into_bipyramid(vertices, faces, offset, per_target: int, seed: int = 52):
+    """Rays from outside `bipyramid(offset)` through each of its vertices, then each midpoint of its
+    edges (in `undirected_edges` order), `per_target` rays a target, aimed at random points inside:
+    each enters at t = 1 and leaves once. Returns (origins, directions)."""
+    targets = np.vstack([vertices, [0.5 * (vertices[a] + vertices[b]) for a, b in undirected_edges(faces)]])
+    targets = np.repeat(targets, per_target, axis=0)
+    rng = np.random.default_rng(seed)
+    inner = offset + np.column_stack([rng.uniform(-0.3, 0.3, (len(targets), 2)), rng.uniform(-0.2, 0.3, len(targets))])
+    directions = inner - targets
+    directions *= 2.0 / np.linalg.norm(directions, axis=1, keepdims=True)
+    return targets - directions, directions

@@ -26,6 +26,7 @@ from oracle import (
     heightfield,
     load_mesh,
     random_rays,
+    rays_into_bipyramid,
     rays_through,
     shared_targets,
     surface_distance,
@@ -412,18 +413,11 @@ def test_closed_solid_entered_through_vertices_and_edges(any_device, tier, offse
     aimed at random points inside: they enter once (at t = 1) and leave once: exactly two hits."""
     v, f = bipyramid(offset)
     assert directed_edges_closed(f)
-    edges = {tuple(sorted(e)) for tri in f.tolist() for e in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))}
-    targets = np.vstack([v, [0.5 * (v[a] + v[b]) for a, b in sorted(edges)]])
-    targets = np.repeat(targets, 8, axis=0)
-    rng = np.random.default_rng(52)
-    inner = offset + np.column_stack([rng.uniform(-0.3, 0.3, (len(targets), 2)), rng.uniform(-0.2, 0.3, len(targets))])
-    directions = inner - targets
-    directions *= 2.0 / np.linalg.norm(directions, axis=1, keepdims=True)
-    origins = targets - directions
+    origins, directions = rays_into_bipyramid(v, f, offset, per_target=8)
     scene = any_device.scene(any_device.mesh(v, f))
     hits = scene.intersect_all(origins, directions, precision=tier, outputs=["t", "prim_id"])
     bad = np.nonzero(hits.counts != 2)[0]
-    assert len(bad) == 0, f"{len(bad)} of {len(targets)} rays, counts {hits.counts[bad][:10]}"
+    assert len(bad) == 0, f"{len(bad)} of {len(origins)} rays, counts {hits.counts[bad][:10]}"
     first = hits.t[hits.offsets[:-1]]
     assert (np.abs(first - 1.0) <= 1e-9 + _ray_rounding(offset, directions)).all()
     np.testing.assert_array_equal(scene.count(origins, directions, precision=tier), 2)

@@ -52,6 +52,17 @@ def check_tiers_in_threads(query, tiers=("reference", "exact"), threads=4):
         np.testing.assert_array_equal(got, want[tier])
 
 
+def check_refuses_bad_points(query):
+    """A point query refuses, with a ValueError naming the fault: a point not finite, a negative
+    max_distance, and points not shaped (..., 3)."""
+    with pytest.raises(ValueError, match="not finite"):
+        query([[0.0, np.nan, 0.0]])
+    with pytest.raises(ValueError, match="max_distance"):
+        query([[0.0, 0.0, 0.0]], max_distance=-1.0)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        query(np.zeros((4, 2)))
+
+
 def check_against_brute_force(found, points, tri):
     """distance equals the brute-force minimum; position lies on the reported triangle at that
     distance, at the reported barycentrics."""
@@ -201,14 +212,9 @@ def test_signed_distance_is_negative_inside(any_device, bunny):
     np.testing.assert_array_equal(cut[~far], whole[~far])
     # Several threads at once, each tier: the same answers.
     check_tiers_in_threads(lambda tier: open_scene.signed_distance(probe, precision=tier))
-    with pytest.raises(ValueError, match="not finite"):
-        closed.signed_distance([[0.0, np.nan, 0.0]])
-    with pytest.raises(ValueError, match="max_distance"):
-        closed.signed_distance([[0.0, 0.0, 0.0]], max_distance=-1.0)
+    check_refuses_bad_points(closed.signed_distance)
     with pytest.raises(ValueError, match="method"):
         closed.signed_distance([[0.0, 0.0, 0.0]], method="vote")
-    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
-        closed.signed_distance(np.zeros((4, 2)))
 
 
 def test_the_fast_tier_is_the_nearest_to_float32_rounding(device, bunny):
@@ -238,16 +244,11 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
     assert scene.closest_points(np.zeros((0, 3))).distance.shape == (0,)
     points = points_around(v, 3000, seed=7)
     check_tiers_in_threads(lambda tier: scene.distance(points, precision=tier))
-    with pytest.raises(ValueError, match="not finite"):
-        scene.closest_points([[0.0, np.nan, 0.0]])
-    with pytest.raises(ValueError, match="max_distance"):
-        scene.closest_points([[0.0, 0.0, 0.0]], max_distance=-1.0)
+    check_refuses_bad_points(scene.closest_points)
     with pytest.raises(ValueError, match="max_distance"):
         scene.closest_points([[0.0, 0.0, 0.0]], max_distance=np.nan)
     with pytest.raises(ValueError, match="unknown fields"):
         scene.closest_points([[0.0, 0.0, 0.0]], outputs=["t"])
-    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
-        scene.closest_points(np.zeros((4, 2)))
     spheres = any_device.scene([any_device.spheres([[0, 0, 0]], 1.0)])
     with pytest.raises(vkray.UnsupportedError, match="spheres"):
         spheres.closest_points([[0.0, 0.0, 5.0]])

@@ -279,26 +279,27 @@ def _refused_on_nvidia(r: Dict[str, Any]) -> bool:
     return True
 
 
-def test_new_device_in_forked_child_works(forked):
-    """The remedy: a new Device made in the forked child traces like the parent."""
+def _new_device_answers_like_the_parent(forked, case: str, tier: str, what: str) -> None:
+    """The forked child's `case` (`what`, made in the child) returned the parent's answer of `tier`,
+    or, on NVIDIA, was refused at once."""
     cases, expected = forked
-    r = cases["new_device"]
+    r = cases[case]
     if _refused_on_nvidia(r):
         return
-    assert not r.get("hung"), "a new Device in a forked child hung"
+    assert not r.get("hung"), f"{what} in a forked child hung"
     assert r["outcome"] == "returned", f"{r.get('type')}: {r.get('message')}"
-    assert w.same(w.unpack(r["answer"]), expected["fast"])
+    assert w.same(w.unpack(r["answer"]), expected[tier])
+
+
+def test_new_device_in_forked_child_works(forked):
+    """The remedy: a new Device made in the forked child traces like the parent."""
+    _new_device_answers_like_the_parent(forked, "new_device", "fast", "a new Device")
 
 
 def test_new_device_in_forked_child_cpu_tier_works(forked):
     """The remedy for the CPU tier (its thread pool was the parent's)."""
-    cases, expected = forked
-    r = cases["new_device_reference"]
-    if _refused_on_nvidia(r):
-        return
-    assert not r.get("hung"), "the reference tier of a new Device in a forked child hung"
-    assert r["outcome"] == "returned", f"{r.get('type')}: {r.get('message')}"
-    assert w.same(w.unpack(r["answer"]), expected["reference"])
+    what = "the reference tier of a new Device"
+    _new_device_answers_like_the_parent(forked, "new_device_reference", "reference", what)
 
 
 def test_parent_unaffected_by_forked_children(forked):
