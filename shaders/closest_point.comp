@@ -51,8 +51,8 @@ double weighted_box_distance2(BvhNode node, dvec3 p, dvec3 weights, double scale
 // distance, or max_distance squared before any: boxes beyond it are skipped). Lengths are
 // scaled by `scale` (a power of two: ReferenceTracer::search_scale) before they are squared, so
 // that far points and tiny scenes neither overflow nor underflow; `f32`: the fast tier measures
-// this point in f32 (not where its coordinates or the scene's pass 2^60, or all lie within 2^-60,
-// whose squares f32 cannot hold: there it measures in f64).
+// this point in f32 (the host picks the f64 kernel where coordinates pass 2^30, or all lie within
+// 2^-30, whose products f32 cannot hold).
 struct Search {
   double scale;
   bool f32;
@@ -145,7 +145,10 @@ void main() {
     extent = max(extent, max(max_abs3(dvec3(root.lo[0], root.lo[1], root.lo[2])), max_abs3(dvec3(root.hi[0], root.hi[1], root.hi[2]))));
   }
   s.scale = length_scale(extent);
-  s.f32 = DISTANCE_F32 != 0u && s.scale == 1.0 && extent <= 1152921504606846976.0lf && extent >= 8.673617379884035e-19lf;  // 2^±60
+  // The host runs this kernel in f32 (DISTANCE_F32) only where every coordinate, the points' and
+  // the scene's, lies within 2^±30 of the centre, whose products f32 holds (trace/vulkan/
+  // closest_points.rs f32_measurable); a constant, so that the f32 kernel carries no f64 path.
+  s.f32 = DISTANCE_F32 != 0u;
   precise double reach = point_params.max_distance * s.scale;
   precise double limit = reach * reach;
   s.limit = limit;

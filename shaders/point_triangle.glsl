@@ -93,15 +93,6 @@ dvec3 closest_point_on_triangle(dvec3 p, dvec3 a, dvec3 b, dvec3 c) {
   return a + ab * (vb * denominator) + ac * (vc * denominator);
 }
 
-// The f32 scale (as length_scale, within [2^-30, 2^30]: Ericson's products of four stay finite in f32).
-float length_scale_f32(float m) {
-  float s = 1.0;
-  if (isinf(m) || isnan(m)) return s;
-  while (m * s > 1073741824.0) s *= 9.313225746154785e-10;
-  while (m * s > 0.0 && m * s < 9.313225746154785e-10) s *= 1073741824.0;
-  return s;
-}
-
 float fraction_f32(float n, float d) {
   return d > 0.0 ? n / d : 0.0;
 }
@@ -128,8 +119,10 @@ vec3 closest_point_on_triangle_f32(vec3 p, vec3 a, vec3 b, vec3 c) {
   vec3 ab = b - a;
   vec3 ac = c - a;
   vec3 ap = p - a;
-  vec3 m3 = max(max(abs(ab), abs(ac)), abs(ap));
-  float s = length_scale_f32(max(m3.x, max(m3.y, m3.z)));
+  // No scaling: the host runs the f32 kernel only where every length lies within 2^±30 (its
+  // products of four stay finite in f32), and the f64 kernel elsewhere (closest_points.rs
+  // f32_measurable); a data-dependent loop here cost the f32 kernel 5x its speed on an H200.
+  const float s = 1.0;
   vec3 sab = ab * s;
   vec3 sac = ac * s;
   if (cross(sab, sac) == vec3(0.0)) return closest_on_edges_f32(p, a, b, c, s);

@@ -831,8 +831,11 @@ def _points(points: Any, precision: Optional[Precision] = None) -> np.ndarray:
     p = _arrays.real_coordinates("points", points)
     if p.ndim == 0 or p.shape[-1] != 3:
         raise ValueError(f"points must have shape (..., 3), got {p.shape}")
-    if precision == "fast" and p.dtype == np.float64:
-        far = (np.isfinite(p) & (np.abs(p) > np.finfo(np.float32).max)).any(axis=-1).reshape(-1)
+    limit = float(np.finfo(np.float32).max)
+    # Two reductions without temporaries first (a whole pass of temporaries cost the fast tier 5x
+    # its time on an H200); the rows only where one is beyond (NaN and inf are the core's to refuse).
+    if precision == "fast" and p.dtype == np.float64 and p.size and (p.max() > limit or p.min() < -limit):
+        far = (np.isfinite(p) & (np.abs(p) > limit)).any(axis=-1).reshape(-1)
         if far.any():
             row = int(np.argmax(far))
             raise ValueError(

@@ -394,7 +394,8 @@ impl ClosestPoints {
         precision: Precision,
         full: bool,
     ) -> Result<PointJob<'a>> {
-        let shader = if precision == Precision::Fast { PointShader::ClosestF32 } else { PointShader::Closest };
+        let f32 = precision == Precision::Fast && f32_measurable(scene, points);
+        let shader = if f32 { PointShader::ClosestF32 } else { PointShader::Closest };
         Ok(PointJob {
             points,
             structures,
@@ -831,4 +832,31 @@ pub(super) fn points_as_they_come() -> bool {
 /// GPU (where by default they are not: the host's sort costs more than the trace gains).
 pub(super) fn points_in_grid_order() -> bool {
     std::env::var("VKRAY_POINT_ORDER").is_ok_and(|v| v == "grid")
+}
+
+/// Whether the fast tier's f32 kernel can measure these points against `scene`: every coordinate,
+/// the points' and the scene's bounds', relative to the scene's centre, within 2^±30 (the f32
+/// kernel's products of four lengths overflow beyond, and underflow below). Elsewhere the f64
+/// kernel measures them (its answers are then rounded to f32 as the fast tier's are).
+fn f32_measurable(scene: &Scene, points: Vec3s) -> bool {
+    const HIGH: f64 = 1_073_741_824.0; // 2^30
+    const LOW: f64 = 9.313_225_746_154_785e-10; // 2^-30
+    let center = scene.center.to_array();
+    let bounds = scene.bounds();
+    let scene_extent =
+        (0..3).map(|k| (bounds.min[k] - center[k]).abs().max((bounds.max[k] - center[k]).abs())).fold(0.0, f64::max);
+    let point_extent = match points {
+        Vec3s::F32(v) => parallel::install(|| {
+            v.par_chunks(3)
+                .map(|p| (0..3).map(|k| (p[k] as f64 - center[k]).abs()).fold(0.0, f64::max))
+                .reduce(|| 0.0, f64::max)
+        }),
+        Vec3s::F64(v) => parallel::install(|| {
+            v.par_chunks(3)
+                .map(|p| (0..3).map(|k| (p[k] - center[k]).abs()).fold(0.0, f64::max))
+                .reduce(|| 0.0, f64::max)
+        }),
+    };
+    let extent = scene_extent.max(point_extent);
+    (LOW..=HIGH).contains(&extent)
 }
