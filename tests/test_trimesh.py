@@ -304,5 +304,25 @@ def test_bad_precision():
 
 
 def test_default_device_is_shared():
-    assert vt.default_device() is vt.default_device()
+    assert vt.default_device() is vt.default_device() is vkray.default_device()
     assert isinstance(vt.default_device(), vkray.Device)
+
+
+def test_default_device_from_several_threads_at_once():
+    """Threads asking for the shared device at once all get one and the same (opened outside the
+    lock: none waits on another's driver call holding it)."""
+    import vkray._device as device_module
+
+    got = []
+    previous = device_module._default
+    device_module._default = None  # as in a fresh process
+    try:
+        threads = [threading.Thread(target=lambda: got.append(vkray.default_device())) for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=120)
+        assert len(got) == 4 and all(d is got[0] for d in got)
+        assert vkray.default_device() is got[0]
+    finally:
+        device_module._default = previous

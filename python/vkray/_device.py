@@ -396,8 +396,14 @@ def default_device() -> Device:
     unless given a device."""
     global _default
     with _default_lock:
+        if _default is not None:
+            return _default
+    # Opened outside the lock (opening a device releases the GIL and waits on the driver): two
+    # first calls at once may both open one; the first to return is kept, the other dropped.
+    device = Device()
+    with _default_lock:
         if _default is None:
-            _default = Device()
+            _default = device
         return _default
 
 
