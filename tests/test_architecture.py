@@ -27,7 +27,7 @@ Graph = Dict[str, Set[str]]
 # The Rust core's layers, lowest first: a file imports only files of its own layer or lower ones.
 # `error.rs` is the ground under the ground: every layer returns its errors. `lib.rs` is the root:
 # it declares (and re-exports from) every layer.
-RUST_LAYERS: Dict[str, int] = {"error": 0, "geometry": 1, "gpu": 2, "scene": 3, "trace": 4, "python": 5}
+RUST_LAYERS: Dict[str, int] = {"error": 0, "geometry": 1, "gpu": 2, "embree": 2, "scene": 3, "trace": 4, "python": 5}
 
 
 # ---------------------------------------------------------------- checks over any graph

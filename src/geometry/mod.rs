@@ -4,6 +4,8 @@
 
 pub mod align;
 
+pub mod build_options;
+
 pub mod parallel;
 
 pub mod interrupt;

@@ -9,78 +9,26 @@ use ash::vk;
 
 use crate::error::{invalid_value, Result, VkResultExt};
 use crate::geometry::align::align_up;
+use crate::geometry::build_options::{BuildOptions, BuildPreference, BuildStats};
 use crate::geometry::interrupt::{Interrupt, NoInterrupt};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation, Uploads, GEOMETRY_INPUT};
 
-/// What a build optimizes for (the `VK_BUILD_ACCELERATION_STRUCTURE_PREFER_*` flags).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BuildPreference {
-    FastTrace,
-    FastBuild,
-    LowMemory,
-}
-
-impl BuildPreference {
-    pub fn parse(name: &str) -> Result<BuildPreference> {
-        match name {
-            "fast_trace" => Ok(BuildPreference::FastTrace),
-            "fast_build" => Ok(BuildPreference::FastBuild),
-            "low_memory" => Ok(BuildPreference::LowMemory),
-            other => {
-                Err(invalid_value(format!("build must be 'fast_trace', 'fast_build' or 'low_memory', got {other:?}")))
-            }
-        }
+/// Vulkan's build flags for `options`.
+pub fn build_flags(options: &BuildOptions) -> vk::BuildAccelerationStructureFlagsKHR {
+    use vk::BuildAccelerationStructureFlagsKHR as F;
+    let mut flags = match options.preference {
+        BuildPreference::FastTrace => F::PREFER_FAST_TRACE,
+        BuildPreference::FastBuild => F::PREFER_FAST_BUILD,
+        BuildPreference::LowMemory => F::LOW_MEMORY,
+    };
+    if options.allow_update {
+        flags |= F::ALLOW_UPDATE;
     }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            BuildPreference::FastTrace => "fast_trace",
-            BuildPreference::FastBuild => "fast_build",
-            BuildPreference::LowMemory => "low_memory",
-        }
+    if options.compact {
+        flags |= F::ALLOW_COMPACTION;
     }
-}
-
-#[derive(Clone, Copy, Debug)]
-pub struct BuildOptions {
-    pub preference: BuildPreference,
-    pub allow_update: bool,
-    pub compact: bool,
-}
-
-impl BuildOptions {
-    pub fn flags(&self) -> vk::BuildAccelerationStructureFlagsKHR {
-        use vk::BuildAccelerationStructureFlagsKHR as F;
-        let mut flags = match self.preference {
-            BuildPreference::FastTrace => F::PREFER_FAST_TRACE,
-            BuildPreference::FastBuild => F::PREFER_FAST_BUILD,
-            BuildPreference::LowMemory => F::LOW_MEMORY,
-        };
-        if self.allow_update {
-            flags |= F::ALLOW_UPDATE;
-        }
-        if self.compact {
-            flags |= F::ALLOW_COMPACTION;
-        }
-        flags
-    }
-}
-
-/// Sizes and time of one build.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct BuildStats {
-    /// Bytes of the structure as built.
-    pub built_size: u64,
-    /// Bytes it occupies now (after compaction where asked).
-    pub size: u64,
-    pub scratch_size: u64,
-    pub update_scratch_size: u64,
-    /// Wall time from submission to a usable structure, compaction included (for structures
-    /// built together, their batch's time).
-    pub build_seconds: f64,
-    /// Which submission of a batched build made it (0 for a single build).
-    pub batch: u32,
+    flags
 }
 
 /// A VkAccelerationStructureKHR and the buffer holding it.
@@ -229,7 +177,7 @@ impl<'a> BuildPlan<'a> {
             .map(|input| {
                 vk::AccelerationStructureBuildGeometryInfoKHR::default()
                     .ty(input.ty)
-                    .flags(options.flags())
+                    .flags(build_flags(&options))
                     .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
                     .geometries(&input.geometries)
             })
@@ -413,7 +361,7 @@ pub fn update(
     let scratch = Scratch::new(ctx, update_scratch_size)?;
     let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
         .ty(input.ty)
-        .flags(options.flags())
+        .flags(build_flags(&options))
         .mode(vk::BuildAccelerationStructureModeKHR::UPDATE)
         .geometries(&input.geometries)
         .src_acceleration_structure(structure.raw())
@@ -629,7 +577,7 @@ mod tests {
     fn build_flags_follow_options() {
         use vk::BuildAccelerationStructureFlagsKHR as F;
         let options = BuildOptions { preference: BuildPreference::FastBuild, allow_update: true, compact: true };
-        assert_eq!(options.flags(), F::PREFER_FAST_BUILD | F::ALLOW_UPDATE | F::ALLOW_COMPACTION);
+        assert_eq!(build_flags(&options), F::PREFER_FAST_BUILD | F::ALLOW_UPDATE | F::ALLOW_COMPACTION);
         for name in ["fast_trace", "fast_build", "low_memory"] {
             assert_eq!(BuildPreference::parse(name).unwrap().name(), name);
         }

@@ -1,5 +1,6 @@
 //! `vkray._core.Device`: opens a device and builds meshes and scenes on it.
 
+use std::path::PathBuf;
 use std::sync::{Arc, RwLock};
 
 use numpy::{PyArray2, PyReadonlyArray1, PyUntypedArrayMethods};
@@ -8,19 +9,39 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::calls::{run, run_reporting};
+use super::device_engines::{cuda_of, DeviceTracer};
 use super::mesh_binding::PyMesh;
 use super::numpy_views::{Bound1, IndexArray, Vec3Array};
 use super::scene_binding::{InstanceItem, PyScene};
 use crate::error::{Error, Result};
 use crate::geometry::arrays::instance_transform;
+use crate::geometry::build_options::{BuildOptions, BuildPreference};
+use crate::geometry::interrupt::NoInterrupt;
 use crate::geometry::vertex_format::VertexFormat;
-use crate::gpu::accel::{BuildOptions, BuildPreference};
 use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest};
-use crate::scene::{Instance, InstanceFlags, Mesh, MeshInput, Scene, IDENTITY};
-use crate::trace::{Tracer, VulkanEngine};
+use crate::scene::{Instance, InstanceFlags, Mesh, MeshBatch, MeshInput, IDENTITY};
+use crate::trace::{CpuEngine, Engine, Tracer, VulkanEngine};
+
+/// The CPU engine's entry of `devices()`, in the keys of a Vulkan device's.
+pub(super) fn cpu_info_dict<'py>(py: Python<'py>, engine: &CpuEngine) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("index", 0)?;
+    d.set_item("name", engine.name())?;
+    d.set_item("device_type", "cpu")?;
+    d.set_item("is_software", false)?;
+    d.set_item("api_version", "")?;
+    let v = engine.embree_version();
+    d.set_item("driver", format!("Embree {}.{}.{}", v / 10000, v / 100 % 100, v % 100))?;
+    d.set_item("ray_query", false)?;
+    d.set_item("ray_tracing_pipeline", false)?;
+    d.set_item("shader_float64", true)?;
+    d.set_item("engine", "cpu")?;
+    Ok(d)
+}
 
 pub(super) fn info_dict<'py>(py: Python<'py>, info: &DeviceInfo) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
+    d.set_item("engine", "vulkan")?;
     d.set_item("index", info.index)?;
     d.set_item("name", &info.name)?;
     d.set_item("device_type", info.device_type)?;
@@ -37,47 +58,81 @@ fn build_options(build: &str, allow_update: bool, compact: bool) -> Result<Build
     Ok(BuildOptions { preference: BuildPreference::parse(build)?, allow_update, compact })
 }
 
-/// A Vulkan device able to build acceleration structures and trace rays.
+/// A device that builds hierarchies and traces rays: a Vulkan device, or the CPU engine.
 #[pyclass(name = "Device", module = "vkray._core", frozen)]
 pub(super) struct PyDevice {
-    ctx: Arc<Context>,
-    tracer: Arc<Tracer<VulkanEngine>>,
+    /// The Vulkan device (None for the CPU engine).
+    ctx: Option<Arc<Context>>,
+    tracer: Arc<DeviceTracer>,
+}
+
+impl PyDevice {
+    /// Builds one mesh on the device's engine.
+    fn build_one(&self, item: MeshInput, options: BuildOptions, format: VertexFormat) -> Result<Mesh> {
+        let batch = MeshBatch { items: &[item], options, format, scratch_budget: u64::MAX, interrupt: &NoInterrupt };
+        let mut meshes = self.tracer.engine().build_meshes(batch)?;
+        Ok(meshes.pop().expect("one mesh per input"))
+    }
 }
 
 #[pymethods]
 impl PyDevice {
+    /// `selector` "cpu" (or `VKRAY_DEVICE=cpu`) opens the CPU engine, Embree loaded from the
+    /// first of `library_paths` (folders) that has it; anything else a Vulkan device.
     #[new]
-    #[pyo3(signature = (selector=None, backend=None, validation=false))]
-    fn new(py: Python<'_>, selector: Option<String>, backend: Option<&str>, validation: bool) -> PyResult<Self> {
+    #[pyo3(signature = (selector=None, backend=None, validation=false, library_paths=Vec::new()))]
+    fn new(
+        py: Python<'_>,
+        selector: Option<String>,
+        backend: Option<&str>,
+        validation: bool,
+        library_paths: Vec<PathBuf>,
+    ) -> PyResult<Self> {
         let request = DeviceRequest { selector, backend: backend.map(Backend::parse).transpose()?, validation }
             .with_environment()?;
+        if request.selector.as_deref().is_some_and(|s| s.trim().eq_ignore_ascii_case("cpu")) {
+            if backend.is_some() {
+                return Err(PyValueError::new_err("the CPU engine has no backend: leave backend=None"));
+            }
+            let tracer: Arc<DeviceTracer> = Arc::new(Tracer::new(run(py, |_| CpuEngine::new(&library_paths))?));
+            return Ok(PyDevice { ctx: None, tracer });
+        }
         let (ctx, tracer) = run(py, |_| -> Result<_> {
             let ctx = Context::new(&request)?;
-            let tracer = Arc::new(Tracer::new(VulkanEngine::new(&ctx)?));
+            let tracer: Arc<DeviceTracer> = Arc::new(Tracer::new(VulkanEngine::new(&ctx)?));
             Ok((ctx, tracer))
         })?;
-        Ok(PyDevice { ctx, tracer })
+        Ok(PyDevice { ctx: Some(ctx), tracer })
     }
 
     #[getter]
     fn info<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        info_dict(py, &self.ctx.info)
+        match (&self.ctx, self.tracer.engine().as_any().downcast_ref::<CpuEngine>()) {
+            (Some(ctx), _) => info_dict(py, &ctx.info),
+            (None, Some(cpu)) => cpu_info_dict(py, cpu),
+            (None, None) => unreachable!("a device without a Vulkan context is the CPU engine"),
+        }
     }
 
+    /// "ray_query" or "pipeline" for a Vulkan device, "cpu" for the CPU engine.
     #[getter]
     fn backend(&self) -> &'static str {
-        self.ctx.backend.name()
+        self.ctx.as_ref().map_or("cpu", |ctx| ctx.backend.name())
     }
 
     #[getter]
     fn validation(&self) -> bool {
-        self.ctx.validation
+        self.ctx.as_ref().is_some_and(|ctx| ctx.validation)
     }
 
     #[getter]
     fn limits<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let l = &self.ctx.limits;
         let d = PyDict::new(py);
+        let Some(ctx) = &self.ctx else {
+            d.set_item("chunk_rays", self.tracer.chunk_rays())?;
+            return Ok(d);
+        };
+        let l = &ctx.limits;
         d.set_item("min_acceleration_structure_scratch_offset_alignment", l.min_scratch_offset_alignment)?;
         d.set_item("max_primitive_count", l.max_primitive_count)?;
         d.set_item("max_instance_count", l.max_instance_count)?;
@@ -139,7 +194,7 @@ impl PyDevice {
     /// not a CUDA device that shares memory with Vulkan.
     #[getter]
     fn cuda_device(&self, py: Python<'_>) -> PyResult<Option<i32>> {
-        run(py, |_| Ok(self.tracer.engine().cuda.cuda()?.map(|cuda| cuda.ordinal)))
+        run(py, |_| Ok(cuda_of(&self.tracer)?.1.map(|cuda| cuda.ordinal)))
     }
 
     #[getter]
@@ -181,7 +236,8 @@ impl PyDevice {
         let faces = IndexArray::extract(faces)?;
         let (vertices, faces) = (vertices.view()?, faces.view()?);
         let opacity = opacity.map(|o| o.as_array().to_vec());
-        let mesh = run(py, |_| Mesh::build_parts(&self.ctx, &[(vertices, faces)], opacity, options, format))?;
+        let parts = [(vertices, faces)];
+        let mesh = run(py, |_| self.build_one(MeshInput { parts: &parts, opacity }, options, format))?;
         Ok(PyMesh::new(mesh))
     }
 
@@ -199,7 +255,7 @@ impl PyDevice {
         let centers = Vec3Array::extract("centers", centers)?;
         let radii = Bound1::extract("radii", radii)?;
         let (centers, radii) = (centers.view()?, radii.view()?);
-        let mesh = run(py, |_| Mesh::spheres(&self.ctx, centers, radii, options))?;
+        let mesh = run(py, |_| self.tracer.engine().build_spheres(centers, radii, options))?;
         Ok(PyMesh::new(mesh))
     }
 
@@ -224,7 +280,7 @@ impl PyDevice {
             .map(|(v, f)| Ok((Vec3Array::extract("vertices", v)?, IndexArray::extract(f)?)))
             .collect::<PyResult<Vec<_>>>()?;
         let views = arrays.iter().map(|(v, f)| Ok((v.view()?, f.view()?))).collect::<PyResult<Vec<_>>>()?;
-        let mesh = run(py, |_| Mesh::build_parts(&self.ctx, &views, opacity, options, format))?;
+        let mesh = run(py, |_| self.build_one(MeshInput { parts: &views, opacity }, options, format))?;
         Ok(PyMesh::new(mesh))
     }
 
@@ -252,7 +308,8 @@ impl PyDevice {
         let items: Vec<MeshInput> = views.iter().map(|v| MeshInput { parts: v.as_slice(), opacity: None }).collect();
         let budget = budget_bytes.unwrap_or(u64::MAX);
         let meshes = run_reporting(py, progress, |interrupt| {
-            Mesh::build_many(&self.ctx, &items, options, format, budget, interrupt)
+            let batch = MeshBatch { items: &items, options, format, scratch_budget: budget, interrupt };
+            self.tracer.engine().build_meshes(batch)
         })?;
         Ok(meshes.into_iter().map(PyMesh::new).collect())
     }
@@ -304,7 +361,7 @@ impl PyDevice {
                 flags,
             });
         }
-        let scene = run(py, |_| Scene::build(&self.ctx, &instances, options))?;
+        let scene = run(py, |_| self.tracer.engine().build_scene(&instances, options))?;
         Ok(PyScene { scene: RwLock::new(scene), tracer: self.tracer.clone() })
     }
 }

@@ -7,7 +7,7 @@ use pyo3::types::PyDict;
 
 use super::calls::run;
 use super::numpy_views::Vec3Array;
-use crate::gpu::accel::{BuildOptions, BuildStats};
+use crate::geometry::build_options::{BuildOptions, BuildStats};
 use crate::scene::{Mesh, MeshKind};
 
 /// A triangle mesh and its bottom-level acceleration structure.
@@ -49,7 +49,7 @@ impl PyMesh {
 
     #[getter]
     fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let d = stats_dict(py, &self.mesh.stats, &self.mesh.options)?;
+        let d = stats_dict(py, &self.mesh.stats(), &self.mesh.options)?;
         d.set_item("update_seconds", self.mesh.last_update_seconds())?;
         d.set_item("vertex_format", self.mesh.vertex_format.name())?;
         d.set_item("vertex_bytes", self.mesh.vertex_format.stride() * self.mesh.vertex_count)?;

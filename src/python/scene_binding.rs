@@ -12,6 +12,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::calls::{run, run_reporting};
+use super::device_engines::{cuda_of, DeviceTracer};
 use super::mesh_binding::stats_dict;
 use super::mesh_binding::PyMesh;
 use super::numpy_views::{Bound1, MaskArray, Vec3Array};
@@ -24,13 +25,13 @@ use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
 use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
-use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, SignedDistance, Tracer, VulkanEngine};
+use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, SignedDistance, VulkanEngine};
 
 /// Instances under a top-level acceleration structure, ready for queries.
 #[pyclass(name = "Scene", module = "vkray._core", frozen)]
 pub(super) struct PyScene {
     pub(super) scene: RwLock<Scene>,
-    pub(super) tracer: std::sync::Arc<Tracer<VulkanEngine>>,
+    pub(super) tracer: std::sync::Arc<DeviceTracer>,
 }
 
 /// (mesh, transform or None, custom_index, mask, flags) of one instance, as the Python layer
@@ -287,7 +288,7 @@ impl PyScene {
     #[getter]
     fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let (stats, options, seconds) =
-            self.with_scene(py, |scene| (scene.stats, scene.options, scene.last_update_seconds()))?;
+            self.with_scene(py, |scene| (scene.stats(), scene.options, scene.last_update_seconds()))?;
         let d = stats_dict(py, &stats, &options)?;
         d.set_item("update_seconds", seconds)?;
         Ok(d)
@@ -372,10 +373,10 @@ impl PyScene {
         let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
         let wanted = cuda_fields(&fields)?;
         let tracer = &self.tracer;
-        let Some(cuda) = tracer.engine().cuda.cuda()? else {
+        let (Some(path), Some(cuda)) = cuda_of(tracer)? else {
             return Err(dlpack::unreadable(tracer.device_name(), [("origins", origins), ("directions", directions)]));
         };
-        let mut lease = py.detach(|| tracer.engine().cuda.cuda_lease())?; // may free idle leases, which wait
+        let mut lease = py.detach(|| path.cuda_lease())?; // may free idle leases, which wait
         let result = (|| -> PyResult<Bound<'py, PyDict>> {
             let borrowed =
                 cuda_batch::borrow_rays(&cuda, lease.stream_handle(), origins, directions, (tmin, tmax), mask)?;
@@ -383,12 +384,12 @@ impl PyScene {
                 None
             } else {
                 Some(self.query(py, None, |scene, interrupt| {
-                    tracer.engine().cuda.trace_cuda_rays(scene, &mut lease, &borrowed.rays, request, &wanted, interrupt)
+                    path.trace_cuda_rays(scene, &mut lease, &borrowed.rays, request, &wanted, interrupt)
                 })?)
             };
             cuda_batch::hits_dict(py, hits, &borrowed.leading)
         })();
-        py.detach(|| tracer.engine().cuda.give_back_lease(lease)); // may wait for its stream
+        py.detach(|| path.give_back_lease(lease)); // may wait for its stream
         result
     }
 
@@ -406,7 +407,7 @@ impl PyScene {
         fields: Vec<String>,
         mask: u8,
     ) -> PyResult<cuda_batch::PyCudaBatch> {
-        let Some(cuda) = self.tracer.engine().cuda.cuda()? else {
+        let (_, Some(cuda)) = cuda_of(&self.tracer)? else {
             return Err(dlpack::unreadable(
                 self.tracer.device_name(),
                 [("origins", origins), ("directions", directions)],
@@ -431,17 +432,17 @@ impl PyScene {
     ) -> PyResult<()> {
         let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
         let tracer = &self.tracer;
-        if tracer.engine().cuda.cuda()?.is_none() {
+        let (Some(path), Some(_)) = cuda_of(tracer)? else {
             return Err(pyo3::exceptions::PyTypeError::new_err(format!(
                 "{} does not share memory with CUDA: it cannot trace a piece of CUDA rays",
                 tracer.device_name()
             )));
-        }
-        let mut lease = py.detach(|| tracer.engine().cuda.cuda_lease())?; // may free idle leases, which wait
+        };
+        let mut lease = py.detach(|| path.cuda_lease())?; // may free idle leases, which wait
         let traced = self.query(py, None, |scene, interrupt| {
-            tracer.engine().cuda.trace_cuda_piece(scene, &mut lease, batch.batch(), (start, stop), request, interrupt)
+            path.trace_cuda_piece(scene, &mut lease, batch.batch(), (start, stop), request, interrupt)
         });
-        py.detach(|| tracer.engine().cuda.give_back_lease(lease)); // may wait for its stream
+        py.detach(|| path.give_back_lease(lease)); // may wait for its stream
         traced
     }
 
@@ -554,7 +555,8 @@ impl PyScene {
                 None => Field::Prim.bit() | Field::Instance.bit() | Field::Geometry.bit() | Field::Uv.bit(),
             };
         }
-        let explained = self.with_scene(py, |scene| self.tracer.engine().explain(scene, request, outputs, sensor))?;
+        let Some(vulkan) = self.tracer.engine().as_any().downcast_ref::<VulkanEngine>() else { return Ok(None) };
+        let explained = self.with_scene(py, |scene| vulkan.explain(scene, request, outputs, sensor))?;
         let Some(e) = explained else { return Ok(None) };
         let d = PyDict::new(py);
         d.set_item("stages", e.stages)?;
@@ -743,7 +745,7 @@ fn fields_named(names: &[String]) -> PyResult<Vec<(String, Option<Field>)>> {
 
 /// Refuses a query whose outputs and working memory exceed the host memory available, before
 /// anything is allocated (rather than growing until the system's OOM killer ends the process).
-fn check_fits(tracer: &Tracer<VulkanEngine>, request: Request, fields: &[String], n: usize) -> PyResult<()> {
+fn check_fits(tracer: &DeviceTracer, request: Request, fields: &[String], n: usize) -> PyResult<()> {
     let wide = request.precision.is_f64();
     let per_ray: usize = fields
         .iter()

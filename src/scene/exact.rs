@@ -7,13 +7,13 @@ use glam::DVec3;
 
 use super::instance::Placement;
 use super::mesh::Mesh;
+use super::vulkan_instance::instance_bits;
+use super::vulkan_mesh::VulkanMesh;
 use crate::error::{Error, Result};
+use crate::geometry::build_options::{BuildOptions, BuildPreference};
 use crate::geometry::precision::Aabb;
 use crate::geometry::reference::TriangleSet;
-use crate::gpu::accel::{
-    self, instances_input, upload_instances, AccelerationStructure, BuildInput, BuildOptions, BuildPreference,
-    InstanceBits,
-};
+use crate::gpu::accel::{self, instances_input, upload_instances, AccelerationStructure, BuildInput, InstanceBits};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 use crate::gpu::records::{ExactInstance, EXACT_CULL_DISABLE, EXACT_FLIP_FACING};
@@ -80,7 +80,7 @@ impl ExactScene {
             .iter()
             .map(|p| {
                 // Boxes only: facing, culling and opacity are the exact shader's.
-                let bits = InstanceBits { flags: 0, sbt_offset: 0, ..p.bits() };
+                let bits = InstanceBits { flags: 0, sbt_offset: 0, ..instance_bits(p) };
                 accel::instance_record(&p.to_scene.to_rows_f32(), bits, mesh_of(p).blas.address())
             })
             .collect();
@@ -127,7 +127,7 @@ impl ExactMesh {
             })
             .fold(0.0, f64::max);
         let pad = world_slack * stretch + EXACT_SLACK * triangles.bounds.extent().max_element();
-        let order = box_order(mesh, triangles);
+        let order = box_order(VulkanMesh::of(mesh)?, triangles);
         let mut uploads = Uploads::default();
         let boxes: Vec<[f32; 6]> =
             order.iter().map(|&t| Aabb::of_points(triangles.triangle(t as usize)).padded(pad).outward_f32()).collect();
@@ -187,7 +187,7 @@ impl ExactMesh {
 }
 
 /// The order of a mesh's boxes: each part's device order in turn, as caller's triangles among all.
-fn box_order(mesh: &Mesh, triangles: &TriangleSet) -> Vec<u32> {
+fn box_order(mesh: &VulkanMesh, triangles: &TriangleSet) -> Vec<u32> {
     mesh.parts
         .iter()
         .enumerate()

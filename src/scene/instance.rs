@@ -1,14 +1,13 @@
-//! Instances: placements of meshes in a scene's frame, and the bits of their Vulkan records.
+//! Instances: placements of meshes in a scene's frame, in f64.
 
 use std::sync::Arc;
 
 use glam::DVec3;
 
-use super::mesh::{Mesh, MeshKind};
+use super::mesh::Mesh;
 use crate::error::{invalid_value, Result};
 use crate::geometry::precision::{Aabb, Affine};
 use crate::geometry::reference::TriangleSet;
-use crate::gpu::accel::InstanceBits;
 
 /// One placement of a mesh in a scene.
 #[derive(Clone)]
@@ -35,12 +34,6 @@ pub struct InstanceFlags {
     pub force_no_opaque: bool,
 }
 
-// Instance flags of `VkGeometryInstanceFlagBitsKHR`.
-const INSTANCE_CULL_DISABLE: u8 = 0x1;
-const INSTANCE_FRONT_COUNTERCLOCKWISE: u8 = 0x2;
-const INSTANCE_FORCE_OPAQUE: u8 = 0x4;
-const INSTANCE_FORCE_NO_OPAQUE: u8 = 0x8;
-
 pub const IDENTITY: [f64; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
 
 /// Where an instance's mesh sits in the scene's frame (world coordinates minus the scene centre).
@@ -61,42 +54,6 @@ pub struct Placement {
     /// world normal) or `flip_facing`, not both.
     pub flip_facing: bool,
 }
-
-impl Placement {
-    /// The bits of this placement's Vulkan instance record: spheres' hits go to the second hit
-    /// group of the shader binding table (the procedural one).
-    pub(super) fn bits(&self) -> InstanceBits {
-        InstanceBits {
-            custom_index: self.custom_index,
-            mask: self.mask,
-            flags: self.vulkan_flags(),
-            sbt_offset: (self.mesh.kind == MeshKind::Spheres) as u32,
-        }
-    }
-
-    /// Vulkan's instance flags. Vulkan judges facing in object space and by default calls front
-    /// the side `cross(v1 - v0, v2 - v0)` points to (clockwise seen from the ray, in its
-    /// left-handed wording), our convention too; its counter-clockwise flag swaps the two.
-    fn vulkan_flags(&self) -> u8 {
-        let mut flags = 0;
-        if self.flags.cull_disable {
-            flags |= INSTANCE_CULL_DISABLE;
-        }
-        if self.flip_facing {
-            flags |= INSTANCE_FRONT_COUNTERCLOCKWISE;
-        }
-        if self.flags.force_opaque {
-            flags |= INSTANCE_FORCE_OPAQUE;
-        }
-        if self.flags.force_no_opaque {
-            flags |= INSTANCE_FORCE_NO_OPAQUE;
-        }
-        flags
-    }
-}
-
-/// Largest custom index an instance can carry (24 bits).
-pub const MAX_CUSTOM_INDEX: u32 = (1 << 24) - 1;
 
 /// The scene's centre (the middle of its instances' bounds, unless `center` keeps an earlier one)
 /// and each instance's placement relative to it, all in f64.

@@ -1,26 +1,35 @@
-//! Scenes: instances of meshes under one top-level acceleration structure.
+//! Scenes as every engine sees them: instances of meshes placed in the scene's frame (in f64),
+//! their bounds and update bookkeeping, and the engine's own hierarchy over them behind
+//! `SceneHierarchy` (the Vulkan engine's TLAS, a CPU engine's top-level BVH).
 
-use std::sync::{Arc, OnceLock, RwLockReadGuard};
+use std::any::Any;
+use std::sync::{Arc, RwLockReadGuard};
 use std::time::Instant;
 
-use ash::vk;
 use glam::DVec3;
 
-use super::closest::{ClosestScene, WindingCap, WindingScene};
-use super::exact::ExactScene;
-use super::instance::{place, Instance, Placement, MAX_CUSTOM_INDEX};
+use super::instance::{place, Instance, Placement};
 use super::mesh::{Mesh, MeshKind};
-use crate::error::{invalid_value, Error, Result};
+use crate::error::{invalid_value, Result};
+use crate::geometry::build_options::{BuildOptions, BuildStats};
 use crate::geometry::precision::Aabb;
 use crate::geometry::rays::Frame;
 use crate::geometry::reference::{PlacedSet, ReferenceTracer};
-use crate::gpu::accel::{self, instances_input, upload_instances, AccelerationStructure, BuildOptions, BuildStats};
-use crate::gpu::context::Context;
-use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
 
-/// Instances of meshes under one top-level acceleration structure.
+/// An engine's hierarchy over a scene's placements. The engine that built it reads it back with
+/// `Scene::hierarchy` (one downcast where a query starts).
+pub trait SceneHierarchy: Send + Sync {
+    /// Bytes and time of its build.
+    fn stats(&self) -> BuildStats;
+    /// Follows new placements of the same instances (and their meshes' refits): refits where
+    /// built with `allow_update`, else builds again; drops what it derived from the old ones.
+    fn update(&mut self, placements: &[Placement], options: BuildOptions) -> Result<()>;
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// Instances of meshes under an engine's hierarchy.
 ///
-/// The TLAS lives in the scene's frame: world coordinates minus `center` (the middle of the
+/// The scene lives in its own frame: world coordinates minus `center` (the middle of the
 /// instances' bounds), so that instance translations and ray origins far from the origin are
 /// subtracted in f64 and reach f32 as small numbers.
 pub struct Scene {
@@ -28,50 +37,26 @@ pub struct Scene {
     pub center: DVec3,
     pub placements: Vec<Placement>,
     pub options: BuildOptions,
-    pub stats: BuildStats,
-    pub(super) tlas: AccelerationStructure,
-    // Where each instance's triangles live, for shaders (normals).
-    instance_geometries: Buffer,
-    instance_records: Buffer,
     instances: Vec<Instance>,
-    // The meshes' BLAS and buffers must outlive the TLAS that points at them.
-    pub(super) meshes: Vec<Arc<Mesh>>,
+    // The meshes (and their hierarchies) must outlive the scene's hierarchy that points at them.
+    meshes: Vec<Arc<Mesh>>,
     /// Each mesh's `generation` when this scene last placed it.
     mesh_generations: Vec<u64>,
     last_update_seconds: f64,
-    /// The exact tier's structures, built on its first query.
-    exact: OnceLock<Arc<ExactScene>>,
-    /// Closest points' hierarchies on the device, built on their first query.
-    closest: OnceLock<Arc<ClosestScene>>,
-    /// Winding numbers' boundaries on the device, built on their first query.
-    winding: OnceLock<Arc<WindingScene>>,
-    winding_cap: OnceLock<Option<Arc<WindingCap>>>,
     /// The instances' bounds in the scene's frame.
     bounds: Aabb,
+    hierarchy: Box<dyn SceneHierarchy>,
 }
 
 impl Scene {
-    pub fn build(ctx: &Arc<Context>, instances: &[Instance], options: BuildOptions) -> Result<Scene> {
-        if instances.len() as u64 > ctx.limits.max_instance_count {
-            return Err(Error::Unsupported(format!(
-                "{} instances exceed this device's maxInstanceCount ({})",
-                instances.len(),
-                ctx.limits.max_instance_count
-            )));
-        }
-        if let Some((i, instance)) = instances.iter().enumerate().find(|(_, x)| x.custom_index > MAX_CUSTOM_INDEX) {
-            return Err(invalid_value(format!(
-                "instance {i} has custom_index {} but Vulkan keeps 24 bits (at most {MAX_CUSTOM_INDEX})",
-                instance.custom_index
-            )));
-        }
+    /// Places `instances` and has `build` (an engine's) make its hierarchy over the placements.
+    pub fn build(
+        instances: &[Instance],
+        options: BuildOptions,
+        build: impl FnOnce(&[Placement]) -> Result<Box<dyn SceneHierarchy>>,
+    ) -> Result<Scene> {
         let (center, placements) = place(instances, None)?;
-        let mut uploads = Uploads::default();
-        let records = upload_instances(ctx, &mut uploads, &instance_records(&placements), "instances")?;
-        let sources: Vec<u64> = instances.iter().map(|x| x.mesh.sources_address(x.flags.force_opaque)).collect();
-        let instance_geometries = uploads.records(ctx, &sources, GEOMETRY_INPUT, "instance geometries")?;
-        let input = instances_input(records.address(), instances.len());
-        let (tlas, stats) = accel::build(ctx, &input, options, &uploads)?;
+        let hierarchy = build(&placements)?;
         let mut meshes: Vec<Arc<Mesh>> = Vec::new();
         for instance in instances {
             if !meshes.iter().any(|m| Arc::ptr_eq(m, &instance.mesh)) {
@@ -84,25 +69,35 @@ impl Scene {
             center,
             placements,
             options,
-            stats,
-            tlas,
-            instance_geometries,
-            instance_records: records,
             instances: instances.to_vec(),
             mesh_generations: meshes.iter().map(|m| m.generation()).collect(),
             meshes,
             last_update_seconds: 0.0,
-            exact: OnceLock::new(),
-            closest: OnceLock::new(),
-            winding: OnceLock::new(),
-            winding_cap: OnceLock::new(),
+            hierarchy,
         })
     }
 
+    /// The engine's hierarchy, where it is an `H` (the engine that built the scene reads its own).
+    pub fn hierarchy<H: 'static>(&self) -> Result<&H> {
+        self.hierarchy.as_any().downcast_ref::<H>().ok_or_else(|| {
+            invalid_value("this scene was built by another engine: trace it on the device that built it")
+        })
+    }
+
+    /// Bytes and time of the hierarchy's build (or last update).
+    pub fn stats(&self) -> BuildStats {
+        self.hierarchy.stats()
+    }
+
+    /// The scene's meshes, each once.
+    pub fn meshes(&self) -> &[Arc<Mesh>] {
+        &self.meshes
+    }
+
     /// Moves its instances (`transforms`, row-major 3×4 in f64) or changes their masks, and picks
-    /// up its meshes' `update`s: refits the TLAS in place where it was built with `allow_update`,
-    /// else builds it again (milliseconds). The scene is re-centred on its instances' new bounds,
-    /// so moves far away keep f32 precision.
+    /// up its meshes' `update`s: the hierarchy refits in place where it was built with
+    /// `allow_update`, else it is built again. The scene is re-centred on its instances' new
+    /// bounds, so moves far away keep f32 precision.
     pub fn update(&mut self, transforms: Option<Vec<[f64; 12]>>, masks: Option<Vec<u8>>) -> Result<()> {
         let n = self.instances.len();
         for (name, len) in [("transforms", transforms.as_ref().map(Vec::len)), ("masks", masks.as_ref().map(Vec::len))]
@@ -122,27 +117,12 @@ impl Scene {
             }
         }
         let (center, placements) = place(&instances, None)?;
-        let ctx = self.tlas.context().clone();
-        let mut uploads = Uploads::default();
-        let records = instance_records(&placements);
-        if self.options.allow_update {
-            let bytes = accel::instance_bytes(&records);
-            uploads.overwrite(&ctx, &self.instance_records, |out| out[..bytes.len()].copy_from_slice(bytes))?;
-            let input = instances_input(self.instance_records.address(), n);
-            accel::update(&ctx, &self.tlas, &input, self.options, self.stats.update_scratch_size, &uploads)?;
-        } else {
-            let records = upload_instances(&ctx, &mut uploads, &records, "instances")?;
-            let (tlas, stats) = accel::build(&ctx, &instances_input(records.address(), n), self.options, &uploads)?;
-            (self.tlas, self.stats, self.instance_records) = (tlas, stats, records);
-        }
+        self.hierarchy.update(&placements, self.options)?;
         self.instances = instances;
         self.center = center;
         self.bounds = bounds_of(&placements);
         self.placements = placements;
         self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
-        self.exact = OnceLock::new();
-        self.closest = OnceLock::new();
-        self.winding = OnceLock::new();
         self.last_update_seconds = started.elapsed().as_secs_f64();
         Ok(())
     }
@@ -161,11 +141,7 @@ impl Scene {
         }
     }
 
-    pub fn tlas_address(&self) -> u64 {
-        self.tlas.address()
-    }
-
-    /// Whether any instance is a sphere set (boxes for the shaders' sphere test).
+    /// Whether any instance is a sphere set.
     pub fn has_spheres(&self) -> bool {
         self.meshes.iter().any(|m| m.kind == MeshKind::Spheres)
     }
@@ -181,54 +157,9 @@ impl Scene {
         self.placements.iter().any(|p| !p.flags.force_opaque && p.mesh.is_translucent())
     }
 
-    pub fn instance_geometries_address(&self) -> u64 {
-        self.instance_geometries.address()
-    }
-
-    /// The exact tier's structures over this scene, built on first use (outside any lock: two
-    /// threads may both build them, and the first one stored is kept).
-    pub fn exact(&self) -> Result<Arc<ExactScene>> {
-        if let Some(exact) = self.exact.get() {
-            return Ok(exact.clone());
-        }
-        let built = Arc::new(ExactScene::build(self.tlas.context(), &self.placements, &self.meshes, self.options)?);
-        Ok(self.exact.get_or_init(|| built).clone())
-    }
-
     /// The instances' bounds in the scene's frame (empty without instances).
     pub fn bounds(&self) -> Aabb {
         self.bounds
-    }
-
-    /// Closest points' hierarchies on the device, built on first use (outside any lock, as
-    /// `exact`).
-    pub fn closest(&self) -> Result<Arc<ClosestScene>> {
-        if let Some(closest) = self.closest.get() {
-            return Ok(closest.clone());
-        }
-        let built = Arc::new(ClosestScene::build(self.tlas.context(), &self.placements)?);
-        Ok(self.closest.get_or_init(|| built).clone())
-    }
-
-    /// Winding numbers' boundaries on the device, built on first use (outside any lock, as
-    /// `exact`).
-    pub fn winding(&self) -> Result<Arc<WindingScene>> {
-        if let Some(winding) = self.winding.get() {
-            return Ok(winding.clone());
-        }
-        let built = Arc::new(WindingScene::build(self.tlas.context(), &self.placements)?);
-        Ok(self.winding.get_or_init(|| built).clone())
-    }
-
-    /// The cap that closes the holes of the scene's one mesh, for the exact tier's winding query,
-    /// built on first use (outside any lock, as `exact`); None where the scene has none
-    /// (`WindingCap::build`).
-    pub fn winding_cap(&self) -> Result<Option<Arc<WindingCap>>> {
-        if let Some(cap) = self.winding_cap.get() {
-            return Ok(cap.clone());
-        }
-        let built = WindingCap::build(self.tlas.context(), &self.placements)?.map(Arc::new);
-        Ok(self.winding_cap.get_or_init(|| built).clone())
     }
 
     /// Where rays are packed: the scene's frame and the sphere bounding its instances.
@@ -270,12 +201,4 @@ impl Scene {
 /// The union of the placements' bounds.
 fn bounds_of(placements: &[Placement]) -> Aabb {
     placements.iter().fold(Aabb::EMPTY, |b, p| b.union(&p.bounds))
-}
-
-/// The TLAS instance record of each placement.
-fn instance_records(placements: &[Placement]) -> Vec<vk::AccelerationStructureInstanceKHR> {
-    placements
-        .iter()
-        .map(|p| accel::instance_record(&p.to_scene.to_rows_f32(), p.bits(), p.mesh.blas_address()))
-        .collect()
 }

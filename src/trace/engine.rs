@@ -4,6 +4,10 @@
 //! engine (`vulkan`) implements it today; a CPU engine can implement it without a device.
 
 use crate::error::Result;
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::build_options::BuildOptions;
+use crate::geometry::rays::PerRay;
+use crate::scene::{Instance, Mesh, MeshBatch, Scene};
 use crate::trace::hit_fields::HitSink;
 use crate::trace::host_tiers::AllHits;
 use crate::trace::idle::IdleMemory;
@@ -21,7 +25,9 @@ pub struct EngineLimits {
 /// A device that runs queries' batches. Every method may be called by any number of threads at
 /// once; the caller has checked the request and its arrays' shapes; the engine holds the scene's
 /// meshes (`Scene::hold_meshes`) where it reads them.
-pub trait Engine: Send + Sync {
+pub trait Engine: Send + Sync + 'static {
+    /// The engine as `Any`, for what only one engine has (the Vulkan engine's CUDA rays).
+    fn as_any(&self) -> &dyn std::any::Any;
     /// The device's name, for messages.
     fn name(&self) -> &str;
     /// The device's index among the usable ones (names its threads).
@@ -32,6 +38,14 @@ pub trait Engine: Send + Sync {
     /// Fails with what the device's own checks reported during the last calls (the Vulkan
     /// validation layer's messages), if anything.
     fn check_reported(&self) -> Result<()>;
+
+    /// Builds each item's mesh (its host copy and the engine's hierarchy), batched as the
+    /// batch's `scratch_budget` allows; the error of a bad item names its position.
+    fn build_meshes(&self, batch: MeshBatch) -> Result<Vec<Mesh>>;
+    /// Builds a set of spheres: `centers` (N, 3), `radii` one per sphere or one for all.
+    fn build_spheres(&self, centers: Vec3s, radii: PerRay, options: BuildOptions) -> Result<Mesh>;
+    /// Places `instances` (of meshes this engine built) and builds the scene's hierarchy.
+    fn build_scene(&self, instances: &[Instance], options: BuildOptions) -> Result<Scene>;
 
     /// What the engine keeps idle between queries (staging, scratch, leases).
     fn idle_memory(&self) -> IdleMemory;

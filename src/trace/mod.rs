@@ -2,7 +2,7 @@
 //! query asks (`request`), the hit fields it writes (`hit_fields`), where its time went
 //! (`profile`), the pools of idle resources (`idle`), the host's f64 tiers (`host_tiers`), the
 //! engine seam (`engine`: what a query needs from the device that runs it), the Vulkan engine
-//! (`vulkan`), and the dispatcher that picks a tier and hands the batch to an engine or the host
+//! (`vulkan`), the CPU engine (`cpu`), and the dispatcher that picks a tier and hands the batch to an engine or the host
 //! tiers (`tracer`).
 
 pub mod request;
@@ -19,8 +19,11 @@ pub mod engine;
 
 pub mod vulkan;
 
+pub mod cpu;
+
 pub mod tracer;
 
+pub use cpu::CpuEngine;
 pub use engine::{Engine, EngineLimits};
 pub use hit_fields::{Field, HitSink};
 pub use idle::IdleMemory;

@@ -24,17 +24,20 @@ use crate::scene::Scene;
 
 /// Dispatches queries on one device to its engine `E` and the host tiers. Any number of threads
 /// may trace at once.
-pub struct Tracer<E: Engine> {
-    engine: E,
+pub struct Tracer<E: Engine + ?Sized> {
     /// Threads of this device's own for its queries' host passes (`set_host_threads`).
     host_pool: Mutex<Option<Arc<OwnPool>>>,
+    /// Last: a `Tracer<dyn Engine>` holds either engine.
+    engine: E,
 }
 
 impl<E: Engine> Tracer<E> {
     pub fn new(engine: E) -> Tracer<E> {
-        Tracer { engine, host_pool: Mutex::new(None) }
+        Tracer { host_pool: Mutex::new(None), engine }
     }
+}
 
+impl<E: Engine + ?Sized> Tracer<E> {
     /// The engine, for what only it has (the Vulkan engine's CUDA rays and `explain`).
     pub fn engine(&self) -> &E {
         &self.engine
@@ -395,7 +398,7 @@ impl<E: Engine> Tracer<E> {
                         .into(),
                 )),
             };
-        host_tiers::write_closest(scene, sink, |i| host_tiers::closest_hit_record(scene, &hits[i]));
+        host_tiers::write_closest(scene, sink, true, |i| host_tiers::closest_hit_record(scene, &hits[i]));
         Ok(())
     }
 

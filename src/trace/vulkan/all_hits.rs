@@ -22,7 +22,7 @@ use crate::geometry::parallel::try_vec;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::Commands;
 use crate::gpu::records::{ExactHit, FastHit, HitList, HIT_LIST_APPEND};
-use crate::scene::Scene;
+use crate::scene::{Scene, VulkanScene};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::IdlePool;
@@ -142,7 +142,7 @@ impl AllHitsPath {
     ) -> Result<()> {
         let RayBatch { scene, rays, request, interrupt } = batch;
         let exact = request.precision == Precision::Exact;
-        let exact_scene = if exact { Some(scene.exact()?) } else { None };
+        let exact_scene = if exact { Some(VulkanScene::of(scene)?.exact(scene)?) } else { None };
         let outputs = Field::Prim.bit();
         let all = Request { query: Query::All, ..request };
         let (variant, sensor) = self.shared.gpu_variant(scene, rays, all, exact, outputs)?;
@@ -171,7 +171,7 @@ impl AllHitsPath {
         let frame = scene.frame();
         let sensor = sensor.as_ref();
         let job = GpuJob {
-            scene,
+            hierarchy: VulkanScene::of(scene)?,
             exact: exact_scene.as_deref(),
             rays,
             variant: &variant,

@@ -30,7 +30,7 @@ use crate::gpu::records::{
     POINT_ORDER_SCATTER,
 };
 use crate::gpu::shaders;
-use crate::scene::{ClosestScene, Scene, WindingScene, WINDING_MARGIN, WINDING_TERM_ERROR};
+use crate::scene::{ClosestScene, Scene, VulkanScene, WindingScene, WINDING_MARGIN, WINDING_TERM_ERROR};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers;
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
@@ -338,7 +338,7 @@ impl ClosestPoints {
     pub fn run(&self, batch: PointBatch, max_distance: f64, precision: Precision, sink: &mut HitSink) -> Result<()> {
         let PointBatch { scene, points, interrupt } = batch;
         let n = points.rows();
-        let structures = scene.closest()?;
+        let structures = VulkanScene::of(scene)?.closest(scene)?;
         let full = sink.position.is_some()
             || [Field::Prim, Field::Instance, Field::Custom, Field::Uv, Field::Normal, Field::Geometry]
                 .iter()
@@ -370,7 +370,7 @@ impl ClosestPoints {
                 Some(bytes) => bytemuck::cast_slice::<u8, f64>(bytes).to_vec(),
                 None => Vec::new(),
             };
-            host_tiers::write_closest(scene, sink, |i| {
+            host_tiers::write_closest(scene, sink, true, |i| {
                 let h = &hits[i];
                 (h.instance >= 0).then(|| {
                     let distance = t.get(i).copied().unwrap_or(0.0);
@@ -417,8 +417,9 @@ impl ClosestPoints {
     pub fn contains_by_winding(&self, batch: PointBatch, out: &mut [u8]) -> Result<()> {
         let PointBatch { scene, points, interrupt } = batch;
         let n = points.rows();
-        let structures = scene.closest()?;
-        let boundaries = scene.winding()?;
+        let vulkan = VulkanScene::of(scene)?;
+        let structures = vulkan.closest(scene)?;
+        let boundaries = vulkan.winding(scene)?;
         let job = PointJob {
             points,
             structures: &structures,

@@ -18,7 +18,7 @@ use crate::geometry::parallel;
 use crate::geometry::parallel::try_vec;
 use crate::geometry::rays::{Masks, PerRay, Rays};
 use crate::gpu::records::ExactHit;
-use crate::scene::WindingCap;
+use crate::scene::{VulkanScene, WindingCap};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers;
 use crate::trace::request::{Crossings, Cull, PointBatch, Precision, Query, RayBatch, Request};
@@ -50,7 +50,7 @@ impl Containment {
         }
         let _in_use = batch.scene.hold_meshes();
         batch.scene.check_current()?;
-        match batch.scene.winding_cap()? {
+        match VulkanScene::of(batch.scene)?.winding_cap(batch.scene)? {
             Some(cap) => self.by_gpu_rays(batch, Some(&cap), out),
             None => self.points.contains_by_winding(batch, out),
         }

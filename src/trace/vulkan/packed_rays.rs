@@ -25,7 +25,7 @@ use crate::gpu::records::{
     PackFrame, PackParams, Params, PACK_DIRECTIONS_F64, PACK_ORIGINS_F64, PACK_TMAX_F64, PACK_TMIN_F64,
 };
 use crate::gpu::shaders;
-use crate::scene::Scene;
+use crate::scene::{Scene, VulkanScene};
 use crate::trace::hit_fields::{Field, HitSink, FIELDS, FIELD_COUNT};
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
 use crate::trace::profile::TraceProfile;
@@ -266,8 +266,14 @@ impl PackedRays {
             None => self.device_chunk_capacity(rays.count),
         };
         let scratch = self.shared.with_memory(|| self.packing.take_scratch(capacity))?;
-        let job =
-            PackedJob { scene, rays, outputs, variant: &variant, scratch: &scratch, frame: frame_buffer.address() };
+        let job = PackedJob {
+            hierarchy: VulkanScene::of(scene)?,
+            rays,
+            outputs,
+            variant: &variant,
+            scratch: &scratch,
+            frame: frame_buffer.address(),
+        };
         let traced = self.trace_packed_chunks(&job, capacity, order, interrupt, profile);
         self.packing.give_back(scratch);
         traced?;
@@ -409,7 +415,8 @@ pub struct DeviceQuery<'a> {
 
 /// What every chunk of a query on device rays shares.
 struct PackedJob<'a> {
-    scene: &'a Scene,
+    /// The Vulkan engine's hierarchy of the scene traced.
+    hierarchy: &'a VulkanScene,
     rays: &'a DeviceRays,
     outputs: &'a DeviceOutputs,
     variant: &'a Variant,
@@ -425,8 +432,8 @@ impl PackedJob<'_> {
             rays: self.scratch.packed.address(),
             count: len as u32,
             ray_mask: self.rays.mask as u32,
-            instances: self.scene.instance_geometries_address(),
-            tlas: self.scene.tlas_address(),
+            instances: self.hierarchy.instance_geometries_address(),
+            tlas: self.hierarchy.tlas_address(),
             ..Default::default()
         };
         for field in FIELDS {

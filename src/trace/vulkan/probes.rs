@@ -8,12 +8,14 @@ use super::ray_chunks::RayChunks;
 use super::shared::Shared;
 use crate::error::{Error, Result};
 use crate::geometry::arrays::{Indices, Vec3s};
+use crate::geometry::build_options::{BuildOptions, BuildPreference};
 use crate::geometry::interrupt::NoInterrupt;
 use crate::geometry::rays::{Masks, PerRay, Rays};
 use crate::geometry::vertex_format::VertexFormat;
-use crate::gpu::accel::{BuildOptions, BuildPreference};
 use crate::gpu::context::Backend;
-use crate::scene::{Instance, Mesh, Scene, IDENTITY};
+use crate::scene::{
+    build_vulkan_meshes, build_vulkan_scene, build_vulkan_spheres, Instance, MeshBatch, MeshInput, Scene, IDENTITY,
+};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Cull, Precision, Query, RayBatch, Request};
@@ -82,14 +84,15 @@ impl Probes {
         let options = BuildOptions { preference: BuildPreference::FastBuild, allow_update: false, compact: false };
         let triangle = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
         let mesh = match probe {
-            Probe::Exact => Mesh::build(
-                &self.shared.ctx,
-                Vec3s::F64(&triangle),
-                Indices::U32(&[0, 1, 2]),
-                options,
-                VertexFormat::F32,
-            )?,
-            Probe::Spheres => Mesh::spheres(&self.shared.ctx, Vec3s::F64(&[0.0; 3]), PerRay::All(1.0), options)?,
+            Probe::Exact => {
+                let parts = [(Vec3s::F64(&triangle), Indices::U32(&[0, 1, 2]))];
+                let item = MeshInput { parts: &parts, opacity: None };
+                let format = VertexFormat::F32;
+                let batch =
+                    MeshBatch { items: &[item], options, format, scratch_budget: u64::MAX, interrupt: &NoInterrupt };
+                build_vulkan_meshes(&self.shared.ctx, batch)?.remove(0)
+            }
+            Probe::Spheres => build_vulkan_spheres(&self.shared.ctx, Vec3s::F64(&[0.0; 3]), PerRay::All(1.0), options)?,
         };
         let instance = Instance {
             mesh: Arc::new(mesh),
@@ -98,7 +101,7 @@ impl Probes {
             mask: 0xFF,
             flags: Default::default(),
         };
-        let scene = Scene::build(&self.shared.ctx, &[instance], options)?;
+        let scene = build_vulkan_scene(&self.shared.ctx, &[instance], options)?;
         let rays = Rays {
             origins: Vec3s::F64(&[0.25, 0.25, 5.0]),
             directions: Vec3s::F64(&[0.0, 0.0, -1.0]),

@@ -27,11 +27,12 @@ use crate::geometry::interrupt::Interrupt;
 use crate::gpu::context::{Backend, Commands, Context};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{HitList, Params};
-use crate::scene::{ExactScene, Scene, WindingCap};
+use crate::scene::{ExactScene, VulkanScene, WindingCap};
 
 /// What every chunk of one query shares.
 pub(super) struct GpuJob<'a> {
-    pub scene: &'a Scene,
+    /// The Vulkan engine's hierarchy of the scene traced.
+    pub hierarchy: &'a VulkanScene,
     /// The exact tier's structures, for exact queries.
     pub exact: Option<&'a ExactScene>,
     pub rays: &'a Rays<'a>,
@@ -135,14 +136,14 @@ impl RayChunks {
         let shared = &*self.shared;
         let outputs = sink.outputs();
         // Before any exact variant: this fails on devices without shaderFloat64 (no exact modules).
-        let exact_scene = if exact { Some(scene.exact()?) } else { None };
+        let exact_scene = if exact { Some(VulkanScene::of(scene)?.exact(scene)?) } else { None };
         let all_hits = request.query.counts_hits();
         let (variant, sensor) = shared.gpu_variant(scene, rays, request, exact, outputs)?;
         let capacity = shared.host_chunk_capacity(rays.len());
         let frame = scene.frame();
         let sensor = sensor.as_ref();
         let cap = match request.query {
-            Query::Winding => Some(scene.winding_cap()?.ok_or_else(|| {
+            Query::Winding => Some(VulkanScene::of(scene)?.winding_cap(scene)?.ok_or_else(|| {
                 invalid_value("a winding query needs a scene of one instance whose mesh has a cap (WindingCap)")
             })?),
             _ => None,
@@ -155,7 +156,7 @@ impl RayChunks {
         // Taken last: nothing fails between here and their return.
         let mut slots = shared.with_memory(|| shared.slots.take(capacity, exact.is_some()))?;
         let job = GpuJob {
-            scene,
+            hierarchy: VulkanScene::of(scene)?,
             exact,
             rays,
             variant: &variant,
@@ -342,8 +343,8 @@ fn chunk_params(job: &GpuJob, slot: &Slot, start: usize, len: usize) -> Params {
             params.bounds = exact.bounds_f32();
         }
         None => {
-            params.instances = job.scene.instance_geometries_address();
-            params.tlas = job.scene.tlas_address();
+            params.instances = job.hierarchy.instance_geometries_address();
+            params.tlas = job.hierarchy.tlas_address();
         }
     }
     for field in FIELDS {

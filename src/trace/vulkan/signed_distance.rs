@@ -18,6 +18,7 @@ use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::gpu::records::Params;
+use crate::scene::VulkanScene;
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers;
 use crate::trace::request::{Cull, PointBatch, Precision, Query, Request, SignedDistance};
@@ -64,15 +65,16 @@ impl SignedDistancePath {
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
         let cap = match winding {
-            true => match scene.winding_cap()? {
+            true => match VulkanScene::of(scene)?.winding_cap(scene)? {
                 Some(cap) => Some(cap),
                 None => return Ok(false),
             },
             false => None,
         };
         self.probes.check_paths(scene, true)?;
-        let exact = scene.exact()?;
-        let structures = scene.closest()?;
+        let vulkan = VulkanScene::of(scene)?;
+        let exact = vulkan.exact(scene)?;
+        let structures = vulkan.closest(scene)?;
         let query = if cap.is_some() { Query::Winding } else { Query::Parity };
         // Every triangle counts, whatever its opacity: inside is a question of the surface.
         let request = Request { opacity_threshold: 0.0, ..Request::new(query, Precision::Exact, Cull::None) };

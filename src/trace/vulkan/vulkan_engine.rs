@@ -17,9 +17,12 @@ use super::signed_distance::SignedDistancePath;
 use super::staging::Slot;
 use super::variants::{ray_flag_names, Stage, VariantKey};
 use crate::error::Result;
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::build_options::BuildOptions;
+use crate::geometry::rays::PerRay;
 use crate::gpu::context::{Backend, Context};
 use crate::gpu::records::{ExactHit, FastHit};
-use crate::scene::Scene;
+use crate::scene::{build_vulkan_meshes, build_vulkan_scene, build_vulkan_spheres, Instance, Mesh, MeshBatch, Scene};
 use crate::trace::engine::{Engine, EngineLimits};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::AllHits;
@@ -116,6 +119,10 @@ impl VulkanEngine {
 }
 
 impl Engine for VulkanEngine {
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+
     fn name(&self) -> &str {
         &self.shared.ctx.info.name
     }
@@ -134,6 +141,18 @@ impl Engine for VulkanEngine {
 
     fn check_reported(&self) -> Result<()> {
         self.shared.ctx.check_validation()
+    }
+
+    fn build_meshes(&self, batch: MeshBatch) -> Result<Vec<Mesh>> {
+        build_vulkan_meshes(&self.shared.ctx, batch)
+    }
+
+    fn build_spheres(&self, centers: Vec3s, radii: PerRay, options: BuildOptions) -> Result<Mesh> {
+        build_vulkan_spheres(&self.shared.ctx, centers, radii, options)
+    }
+
+    fn build_scene(&self, instances: &[Instance], options: BuildOptions) -> Result<Scene> {
+        build_vulkan_scene(&self.shared.ctx, instances, options)
     }
 
     fn idle_memory(&self) -> IdleMemory {

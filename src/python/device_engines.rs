@@ -1,0 +1,21 @@
+//! Which engine a device runs: the dispatcher over either engine (`DeviceTracer`), and what only
+//! one engine has (the Vulkan engine's CUDA rays path).
+
+use std::sync::Arc;
+
+use crate::error::Result;
+use crate::gpu::cuda::Cuda;
+use crate::trace::vulkan::cuda_rays::CudaRaysPath;
+use crate::trace::{Engine, Tracer, VulkanEngine};
+
+/// What a device's tracer is: a dispatcher over either engine.
+pub(super) type DeviceTracer = Tracer<dyn Engine>;
+
+/// The device's CUDA rays path, where its engine has one (the Vulkan engine), and its CUDA
+/// device, where its GPU shares memory with CUDA.
+pub(super) fn cuda_of(tracer: &DeviceTracer) -> Result<(Option<&CudaRaysPath>, Option<Arc<Cuda>>)> {
+    match tracer.engine().as_any().downcast_ref::<VulkanEngine>() {
+        Some(engine) => Ok((Some(&engine.cuda), engine.cuda.cuda()?)),
+        None => Ok((None, None)),
+    }
+}

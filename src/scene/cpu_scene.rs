@@ -1,0 +1,77 @@
+//! The CPU engine's hierarchy over a scene: an Embree scene of one instance per placement (its
+//! mesh's Embree scene, placed by the f32 transform the GPU's TLAS holds, under its mask).
+
+use std::any::Any;
+use std::sync::Arc;
+
+use super::cpu_mesh::{build_quality, built_stats, scene_flags, CpuMesh};
+use super::instance::{Instance, Placement};
+use super::top_level::{Scene, SceneHierarchy};
+use crate::embree::api::GEOMETRY_TYPE_INSTANCE;
+use crate::embree::objects::{EmbreeDevice, EmbreeGeometry, EmbreeScene};
+use crate::error::Result;
+use crate::geometry::build_options::{BuildOptions, BuildStats};
+
+/// A scene's Embree scene of instances.
+pub struct CpuScene {
+    device: Arc<EmbreeDevice>,
+    scene: EmbreeScene,
+    /// Instance geometry k places instance k (Embree reports it as the hit's instance id).
+    _instances: Vec<EmbreeGeometry>,
+    stats: BuildStats,
+}
+
+/// Builds a scene of `instances` on the CPU engine's device.
+pub fn build_cpu_scene(device: &Arc<EmbreeDevice>, instances: &[Instance], options: BuildOptions) -> Result<Scene> {
+    Scene::build(instances, options, |placements| {
+        let hierarchy: Box<dyn SceneHierarchy> = Box::new(CpuScene::build(device, placements, options)?);
+        Ok(hierarchy)
+    })
+}
+
+impl CpuScene {
+    /// The CPU engine's hierarchy of `scene`.
+    pub fn of(scene: &Scene) -> Result<&CpuScene> {
+        scene.hierarchy::<CpuScene>()
+    }
+
+    pub fn scene(&self) -> &EmbreeScene {
+        &self.scene
+    }
+
+    fn build(device: &Arc<EmbreeDevice>, placements: &[Placement], options: BuildOptions) -> Result<CpuScene> {
+        let meshes = placements.iter().map(|p| CpuMesh::of(&p.mesh)).collect::<Result<Vec<_>>>()?;
+        let ((scene, instances), bytes, seconds) = device.measured(|| {
+            let scene = device.scene(scene_flags(options), build_quality(options))?;
+            let mut instances = Vec::with_capacity(placements.len());
+            for (k, (p, mesh)) in placements.iter().zip(&meshes).enumerate() {
+                let instance = device.geometry(GEOMETRY_TYPE_INSTANCE)?;
+                instance.instance(mesh.scene(), &p.to_scene.to_rows_f32());
+                instance.set_mask(u32::from(p.mask));
+                instance.commit()?;
+                scene.attach(&instance, k as u32)?;
+                instances.push(instance);
+            }
+            scene.commit()?;
+            Ok((scene, instances))
+        })?;
+        Ok(CpuScene { device: device.clone(), scene, _instances: instances, stats: built_stats(bytes, seconds) })
+    }
+}
+
+impl SceneHierarchy for CpuScene {
+    fn stats(&self) -> BuildStats {
+        self.stats
+    }
+
+    /// Builds the instances' hierarchy again (Embree's top level over a few boxes takes
+    /// microseconds to milliseconds; its meshes' hierarchies are kept).
+    fn update(&mut self, placements: &[Placement], options: BuildOptions) -> Result<()> {
+        *self = CpuScene::build(&self.device.clone(), placements, options)?;
+        Ok(())
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}

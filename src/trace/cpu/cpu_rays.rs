@@ -1,0 +1,291 @@
+//! The CPU engine's fast tier: rays packed in f32 exactly as the GPU's are (far origins advanced
+//! in f64 first), traced by Embree on every core chunk by chunk, each chunk's answers written
+//! into the caller's fields before the next starts (and the interrupt asked between chunks).
+
+use std::time::Instant;
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::hit_filter::{Candidate, QueryContext};
+use crate::embree::api::{RtcHit, RtcRay, RtcRayHit, INVALID_ID};
+use crate::error::{invalid_value, Error, Result};
+use crate::geometry::parallel::{self, try_vec};
+use crate::geometry::precision::world_normal;
+use crate::geometry::rays::{Advance, RAY_FLOATS};
+use crate::geometry::reference::ReferenceHit;
+use crate::scene::{CpuScene, MeshKind, Scene};
+use crate::trace::hit_fields::{Field, HitSink};
+use crate::trace::host_tiers::{check_hits_fit, AllHits};
+use crate::trace::profile::TraceProfile;
+use crate::trace::request::{Query, RayBatch};
+
+/// One ray's answer: its nearest hit (`prim` -1 where none), or for counts the number of hits in
+/// `prim`, for transmittance the light kept in `t`.
+#[derive(Clone, Copy, Debug)]
+struct RayAnswer {
+    t: f32,
+    uv: [f32; 2],
+    prim: i32,
+    geometry: i32,
+    instance: i32,
+    normal: [f32; 3],
+}
+
+const MISS: RayAnswer =
+    RayAnswer { t: f32::INFINITY, uv: [f32::NAN; 2], prim: -1, geometry: -1, instance: -1, normal: [f32::NAN; 3] };
+
+/// A packed ray (`RAY_FLOATS`: origin, tmin, direction, tmax) as Embree takes it.
+fn embree_ray(packed: &[f32], mask: u8) -> RtcRay {
+    RtcRay {
+        org: [packed[0], packed[1], packed[2]],
+        tnear: packed[3],
+        dir: [packed[4], packed[5], packed[6]],
+        time: 0.0,
+        tfar: packed[7],
+        mask: u32::from(mask),
+        id: 0,
+        flags: 0,
+    }
+}
+
+/// Traces the batch's rays in the fast tier (closest hits, occlusion, counts, transmittance),
+/// `chunk` rays at a time, writing every field `sink` asks for (and `hit`).
+pub fn trace_fast(
+    batch: RayBatch,
+    hierarchy: &CpuScene,
+    sink: &mut HitSink,
+    chunk: usize,
+    profile: &mut TraceProfile,
+) -> Result<()> {
+    let RayBatch { scene, rays, request, interrupt } = batch;
+    let query = request.query;
+    if !matches!(query, Query::Closest | Query::Occluded | Query::Count | Query::Transmit) {
+        return Err(Error::Unsupported(format!("the CPU engine answers {query:?} through its host tiers")));
+    }
+    let every = matches!(query, Query::Count | Query::Transmit);
+    // Transmittance multiplies over every crossing, whatever its opacity.
+    let threshold = if query == Query::Transmit { 0.0 } else { request.opacity_threshold };
+    let normals = sink.field(Field::Normal).is_some();
+    let coherent = rays.sensor.is_some();
+    let (n, frame) = (rays.len(), scene.frame());
+    let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
+    let mut answers = try_vec(chunk.min(n), MISS, "the CPU engine's hits")?;
+    let mut start = 0;
+    while start < n {
+        interrupt.check()?;
+        interrupt.progress(start, n);
+        let len = chunk.min(n - start);
+        let began = Instant::now();
+        let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
+        profile.pack += began.elapsed().as_secs_f64();
+        let traced = Instant::now();
+        parallel::install(|| {
+            answers[..len]
+                .par_iter_mut()
+                .zip(packed.par_chunks_exact(RAY_FLOATS))
+                .enumerate()
+                .with_min_len(64)
+                .for_each_init(
+                    || QueryContext::new(scene, request.cull, threshold, every),
+                    |context, (k, (answer, ray))| {
+                        let ray = embree_ray(ray, rays.mask.get(start + k));
+                        *answer = trace_one(hierarchy, context, ray, query, coherent, normals);
+                    },
+                )
+        });
+        profile.host_f64 += traced.elapsed().as_secs_f64();
+        if query == Query::Closest {
+            add_advances(&mut answers, &advances);
+        }
+        let unpacked = Instant::now();
+        write_chunk(scene, sink, start, &answers[..len]);
+        profile.unpack += unpacked.elapsed().as_secs_f64();
+        profile.chunks += 1;
+        start += len;
+    }
+    Ok(())
+}
+
+/// Moves the hits of rays advanced before packing back to their distances from the real origin.
+fn add_advances(answers: &mut [RayAnswer], advances: &[Advance]) {
+    for advance in advances {
+        let answer = &mut answers[advance.ray];
+        if answer.prim >= 0 {
+            answer.t = (f64::from(answer.t) + advance.t) as f32;
+        }
+    }
+}
+
+/// One ray's answer to `query`.
+fn trace_one(
+    hierarchy: &CpuScene,
+    context: &mut QueryContext,
+    ray: RtcRay,
+    query: Query,
+    coherent: bool,
+    normals: bool,
+) -> RayAnswer {
+    context.direction = DVec3::new(f64::from(ray.dir[0]), f64::from(ray.dir[1]), f64::from(ray.dir[2]));
+    context.found.clear();
+    let mut args = context.arguments(coherent);
+    if query == Query::Occluded {
+        let mut ray = ray;
+        // SAFETY: the scene is committed and held; `args` points into `context`, alive here.
+        unsafe { hierarchy.scene().occluded(&mut ray, &mut args) };
+        return if ray.tfar == f32::NEG_INFINITY { RayAnswer { prim: 0, ..MISS } } else { MISS };
+    }
+    let mut rayhit =
+        RtcRayHit { ray, hit: RtcHit { geom_id: INVALID_ID, inst_id: [INVALID_ID], ..Default::default() } };
+    // SAFETY: as above.
+    unsafe { hierarchy.scene().intersect(&mut rayhit, &mut args) };
+    match query {
+        Query::Count => RayAnswer { prim: context.sorted_found().len() as i32, ..MISS },
+        Query::Transmit => RayAnswer { t: light_kept(context), ..MISS },
+        _ if rayhit.hit.geom_id == INVALID_ID => MISS,
+        _ => nearest(context.scene(), &rayhit, normals),
+    }
+}
+
+/// The light a ray keeps: the product of (1 - opacity) over the triangles it crossed.
+fn light_kept(context: &mut QueryContext) -> f32 {
+    let scene = context.scene();
+    let kept = context.sorted_found().iter().fold(1.0f64, |left, c| {
+        let placement = &scene.placements[c.instance as usize];
+        let opacity = match (&placement.mesh.opacity, placement.flags.force_opaque) {
+            (Some(o), false) => f64::from(o[placement.triangles.global(c.geometry as usize, c.prim as usize)]),
+            _ => 1.0,
+        };
+        left * (1.0 - opacity)
+    });
+    kept as f32
+}
+
+/// The answer of a closest hit: its ids, barycentrics (NaN on spheres) and, where asked, the
+/// world normal (from the f64 triangle, or the sphere at the hit).
+fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool) -> RayAnswer {
+    let (hit, ray) = (&rayhit.hit, &rayhit.ray);
+    let instance = hit.inst_id[0];
+    let placement = &scene.placements[instance as usize];
+    let spheres = placement.mesh.kind == MeshKind::Spheres;
+    let normal = if !normals {
+        [f32::NAN; 3]
+    } else if spheres {
+        let (center, radius) = placement.mesh.spheres[hit.prim_id as usize];
+        let along = |k: usize| f64::from(ray.org[k]) + f64::from(ray.tfar) * f64::from(ray.dir[k]);
+        let local = placement.to_local.point(DVec3::new(along(0), along(1), along(2)));
+        (placement.to_local.linear.transpose() * ((local - center) / radius)).normalize().as_vec3().to_array()
+    } else {
+        let global = placement.triangles.global(hit.geom_id as usize, hit.prim_id as usize);
+        let [a, b, c] = placement.triangles.triangle(global);
+        world_normal(&placement.to_local, a, b, c).as_vec3().to_array()
+    };
+    RayAnswer {
+        t: ray.tfar,
+        uv: if spheres { [f32::NAN; 2] } else { [hit.u, hit.v] },
+        prim: hit.prim_id as i32,
+        geometry: hit.geom_id as i32,
+        instance: instance as i32,
+        normal,
+    }
+}
+
+/// Writes a chunk's answers (rays `start..`) into every field `sink` asks for, and `hit`.
+fn write_chunk(scene: &Scene, sink: &mut HitSink, start: usize, answers: &[RayAnswer]) {
+    for (field, out) in sink.iter_mut() {
+        let width = field.bytes_per_ray(false);
+        let out = &mut out[start * width..(start + answers.len()) * width];
+        parallel::install(|| {
+            out.par_chunks_exact_mut(width).zip(answers).with_min_len(4096).for_each(|(dst, a)| {
+                let custom = |a: &RayAnswer| match a.instance {
+                    -1 => -1,
+                    k => scene.placements[k as usize].custom_index as i32,
+                };
+                match field {
+                    Field::T => dst.copy_from_slice(&a.t.to_ne_bytes()),
+                    Field::Prim => dst.copy_from_slice(&a.prim.to_ne_bytes()),
+                    Field::Instance => dst.copy_from_slice(&a.instance.to_ne_bytes()),
+                    Field::Custom => dst.copy_from_slice(&custom(a).to_ne_bytes()),
+                    Field::Geometry => dst.copy_from_slice(&a.geometry.to_ne_bytes()),
+                    Field::Uv => dst.copy_from_slice(bytemuck::cast_slice(&a.uv)),
+                    Field::Normal => dst.copy_from_slice(bytemuck::cast_slice(&a.normal)),
+                }
+            })
+        });
+    }
+    if let Some(hit) = sink.hit.as_deref_mut() {
+        for (h, a) in hit[start..start + answers.len()].iter_mut().zip(answers) {
+            *h = u8::from(a.prim >= 0);
+        }
+    }
+}
+
+/// Every hit of every ray in the fast tier (the nearest `max_hits` of each, f32 values), chunk
+/// by chunk; refused (MemoryError) before it grows past what the host can hold with
+/// `host_bytes_per_hit` more a hit for the caller.
+pub fn all_hits_fast(
+    batch: RayBatch,
+    hierarchy: &CpuScene,
+    max_hits: usize,
+    host_bytes_per_hit: usize,
+    chunk: usize,
+) -> Result<AllHits> {
+    let RayBatch { scene, rays, request, interrupt } = batch;
+    if request.cull != crate::geometry::precision::Cull::None && max_hits == 0 {
+        return Err(invalid_value("max_hits must be at least 1"));
+    }
+    let (n, frame) = (rays.len(), scene.frame());
+    let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
+    let mut offsets = try_vec(n + 1, 0i64, "the offsets of all hits")?;
+    let mut hits: Vec<ReferenceHit> = Vec::new();
+    let mut start = 0;
+    while start < n {
+        interrupt.check()?;
+        interrupt.progress(start, n);
+        let len = chunk.min(n - start);
+        let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
+        let mut found: Vec<Vec<ReferenceHit>> = parallel::install(|| {
+            packed[..len * RAY_FLOATS]
+                .par_chunks_exact(RAY_FLOATS)
+                .enumerate()
+                .with_min_len(64)
+                .map_init(
+                    || QueryContext::new(scene, request.cull, request.opacity_threshold, true),
+                    |context, (k, ray)| {
+                        let ray = embree_ray(ray, rays.mask.get(start + k));
+                        trace_one(hierarchy, context, ray, Query::Count, false, false);
+                        let kept = context.sorted_found();
+                        kept[..kept.len().min(max_hits)].iter().map(|c| reference_hit(scene, c)).collect()
+                    },
+                )
+                .collect()
+        });
+        for advance in &advances {
+            for hit in &mut found[advance.ray] {
+                hit.t = f64::from((hit.t + advance.t) as f32);
+            }
+        }
+        let added: usize = found.iter().map(Vec::len).sum();
+        check_hits_fit(hits.len() + added, std::mem::size_of::<ReferenceHit>() + host_bytes_per_hit)?;
+        hits.try_reserve(added)
+            .map_err(|_| Error::OutOfMemory(format!("{} hits do not fit in host memory", hits.len() + added)))?;
+        for (k, ray_hits) in found.into_iter().enumerate() {
+            hits.extend(ray_hits);
+            offsets[start + k + 1] = hits.len() as i64;
+        }
+        start += len;
+    }
+    Ok(AllHits { offsets, hits, wide: false })
+}
+
+/// A fast-tier hit as every-hit answers hold it: f32 values, the triangle among all parts.
+fn reference_hit(scene: &Scene, c: &Candidate) -> ReferenceHit {
+    let placement = &scene.placements[c.instance as usize];
+    ReferenceHit {
+        t: f64::from(c.t),
+        u: f64::from(c.u),
+        v: f64::from(c.v),
+        instance: c.instance,
+        prim: placement.triangles.global(c.geometry as usize, c.prim as usize) as u32,
+    }
+}
