@@ -44,6 +44,21 @@ fi
 bin=$(dirname "$("$python" -c 'import sys; print(sys.executable)')")
 export PATH="$bin:$PATH"
 
+# The CPU engine's Embree 4 (and the TBB it runs on) travels in the wheel, loaded at run time from
+# vkray/_embree: the manylinux build embreex's wheel carries (glibc >= 2.27, RPATH $ORIGIN), taken
+# from the installed embreex or downloaded.
+embree_dir=python/vkray/_embree
+rm -rf "$embree_dir" && mkdir -p "$embree_dir"
+embree_libs=$("$python" -c 'import importlib.util, os; s = importlib.util.find_spec("embreex"); print(os.path.join(os.path.dirname(os.path.dirname(s.origin)), "embreex.libs") if s else "")')
+if [ -z "$embree_libs" ] || [ ! -d "$embree_libs" ]; then
+    step "downloading embreex's wheel for its Embree build"
+    "$python" -m pip download -q --no-deps --only-binary=:all: embreex==4.4.0.post1 -d "$work/embreex"
+    (cd "$work/embreex" && "$python" -m zipfile -e embreex-*.whl unpacked)
+    embree_libs="$work/embreex/unpacked/embreex.libs"
+fi
+cp "$embree_libs"/libembree4*.so* "$embree_libs"/libtbb*.so* "$embree_dir"/
+step "Embree for the CPU engine: $(ls "$embree_dir" | tr '\n' ' ')"
+
 if [ $quick = 1 ]; then
     step "building an unoptimized wheel linked against glibc 2.28 (about 1-2 min on 2 cores from scratch)"
     CARGO_PROFILE_DEV_DEBUG=0 maturin build --profile dev --zig --compatibility $policy --out "$work/wheels"
@@ -80,7 +95,8 @@ from elftools.elf.dynamic import DynamicSection
 from elftools.elf.elffile import ELFFile
 glibc = {"libc.so.6", "libm.so.6", "libdl.so.2", "libpthread.so.0", "librt.so.1", "ld-linux-x86-64.so.2"}
 with zipfile.ZipFile(sys.argv[1]) as wheel:
-    modules = [n for n in wheel.namelist() if n.endswith(".so")]
+    # The extension module (Embree's copy in vkray/_embree is manylinux2014's own build).
+    modules = [n for n in wheel.namelist() if n.endswith(".so") and "/_embree/" not in n]
     assert modules, "build-wheel: no extension module in the wheel"
     for name in modules:
         with wheel.open(name) as f:
@@ -104,14 +120,17 @@ import vkray
 assert vkray.__file__.startswith(sys.prefix), vkray.__file__
 devices = vkray.devices()
 print("build-wheel: vkray.devices() =", devices)
-if devices:
-    device = vkray.Device()
+if any(d.engine == "vulkan" for d in devices):
+    device = vkray.Device([d.index for d in devices if d.engine == "vulkan"][0])
     mesh = device.mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2]], np.int32))
     hits = device.scene([mesh]).intersect(np.array([[0.25, 0.25, 2]], np.float32), np.array([[0, 0, -1]], np.float32))
     assert hits.hit[0] and abs(hits.t[0] - 2) < 1e-6, (hits.hit, hits.t)
     print("build-wheel: a ray cast on", device, "hits at t =", hits.t[0])
-else:
-    print("build-wheel: no Vulkan device here: the wheel imports, no ray was cast")
+cpu = vkray.Device("cpu")
+mesh = cpu.mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2]], np.int32))
+hits = cpu.scene([mesh]).intersect(np.array([[0.25, 0.25, 2]], np.float32), np.array([[0, 0, -1]], np.float32))
+assert hits.hit[0] and abs(hits.t[0] - 2) < 1e-6, (hits.hit, hits.t)
+print("build-wheel: a ray cast on the CPU engine,", cpu.name, "from the wheel's own Embree, hits at t =", hits.t[0])
 EOF
 )
 

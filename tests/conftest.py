@@ -31,20 +31,28 @@ def _validation_available() -> bool:
 
 
 VALIDATION = _validation_available()
-_INFO = vkray.devices()[0]
+_INFO = [d for d in vkray.devices() if d.engine == "vulkan"][0]
 BACKENDS = [name for name, ok in (("ray_query", _INFO.ray_query), ("pipeline", _INFO.ray_tracing_pipeline)) if ok]
+# The Vulkan device's place in vkray.devices() (the CPU engine comes first where there is no GPU).
+VULKAN_INDEX = _INFO.index
+# The device fixture's engines: the Vulkan device's backends, then the CPU engine.
+ENGINES = BACKENDS + ["cpu"]
 
 _devices = {}
 
 
 def make_device(backend: str) -> vkray.Device:
-    """One device per backend for the whole session (pipelines stay compiled)."""
+    """One device per backend for the whole session (pipelines stay compiled); "cpu": the CPU
+    engine."""
     if backend not in _devices:
-        _devices[backend] = vkray.Device(backend=backend, validation=VALIDATION)
+        if backend == "cpu":
+            _devices[backend] = vkray.Device("cpu")
+        else:
+            _devices[backend] = vkray.Device(backend=backend, validation=VALIDATION)
     return _devices[backend]
 
 
-@pytest.fixture(params=BACKENDS)
+@pytest.fixture(params=ENGINES)
 def device(request) -> vkray.Device:
     return make_device(request.param)
 

@@ -40,6 +40,13 @@ def client():
         yield client
 
 
+@pytest.fixture
+def any_device():
+    """The device the workers open (`vkray.Device()`: the best one, the CPU engine on a machine
+    without a ray-tracing GPU), so that the answers compare bit for bit."""
+    return vkray.default_device()
+
+
 def solids_spec(shift=SHIFT):
     """Two closed boxes (the second shifted) and a soup, as numpy arrays."""
     return vkray_dask.SceneSpec(

@@ -15,11 +15,30 @@ def test_devices_are_listed_best_first():
     assert [i.index for i in infos] == list(range(len(infos)))
     software = [i.is_software for i in infos]
     assert software == sorted(software), "GPUs must come before software devices"
+    # The CPU engine is always there, after the GPUs and before software Vulkan devices.
+    [cpu] = [i for i in infos if i.engine == "cpu"]
+    assert cpu.device_type == "cpu" and not cpu.is_software and cpu.shader_float64
+    assert all(i.device_type != "cpu" or i.engine == "cpu" or i.is_software for i in infos[: cpu.index])
     for info in infos:
-        assert info.ray_query or info.ray_tracing_pipeline
+        assert info.engine == "cpu" or info.ray_query or info.ray_tracing_pipeline
+
+
+def test_the_default_device_is_a_gpu_else_the_cpu_engine_and_lavapipe_only_when_named():
+    infos = vkray.devices()
+    gpus = [i for i in infos if i.engine == "vulkan" and not i.is_software]
+    expected = gpus[0] if gpus else [i for i in infos if i.engine == "cpu"][0]
+    assert vkray.Device().name == expected.name
+    software = [i for i in infos if i.is_software]
+    if software:
+        assert vkray.Device(software[0].index).info == software[0]
+        assert vkray.Device("llvmpipe").is_software
 
 
 def test_device_reports_backend_and_limits(device):
+    if device.engine == "cpu":
+        assert device.backend == "cpu" and not device.validation and device.cuda_device is None
+        assert device.limits["max_primitive_count"] >= 1 << 31
+        return
     assert device.backend in BACKENDS
     assert device.validation == VALIDATION
     limits = device.limits
@@ -60,21 +79,25 @@ def test_bad_device_arguments():
 
 
 def test_default_backend_follows_ray_query_feature():
-    info = vkray.devices()[0]
+    info = [d for d in vkray.devices() if d.engine == "vulkan"][0]
     expected = "ray_query" if info.ray_query else "pipeline"
-    assert vkray.Device(0).backend == expected
+    assert vkray.Device(info.index).backend == expected
 
 
 def test_missing_driver_is_a_clear_no_device_error(tmp_path):
     import subprocess
     import sys
 
+    # Without a Vulkan driver the CPU engine is the one device; asking for Vulkan says why not.
     script = (
-        "import vkray\ntry:\n    vkray.devices()\nexcept vkray.NoDeviceError as e:\n    print('NoDeviceError', e)\n"
+        "import vkray\nprint([d.engine for d in vkray.devices()], vkray.Device().engine)\n"
+        "try:\n    vkray.Device(backend='ray_query')\nexcept vkray.NoDeviceError as e:\n    print('NoDeviceError', e)\n"
     )
     env = dict(__import__("os").environ, VK_DRIVER_FILES=str(tmp_path / "none.json"))
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env).stdout
-    assert out.startswith("NoDeviceError") and "VK_DRIVER_FILES" in out
+    first, second = out.split("\n", 1)
+    assert first == "['cpu'] cpu", out
+    assert second.startswith("NoDeviceError") and "VK_DRIVER_FILES" in second
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

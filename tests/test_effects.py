@@ -199,6 +199,19 @@ def test_explain_follows_the_ray_tracing_guidance(device, bunny):
     with_spheres = device.scene([device.mesh(v, f), device.spheres([[0, 0, 10]], 0.5)])
     pipeline = device.backend == "pipeline"
     skips_boxes = lambda e: "SkipAABBs" in e["ray_flags"] + e["pipeline_flags"]  # noqa: E731
+    if device.engine == "cpu":
+        # No shader variant: Embree's traversal, its hit filter only where the scene or the query
+        # calls for it (none for opaque closest hits and occlusion: Embree's plain path).
+        assert opaque.explain("closest")["filter"] == [] and opaque.explain("occluded")["filter"] == []
+        assert "Embree" in opaque.explain("closest")["stages"][0]
+        assert translucent.explain("closest")["filter"] == ["opacity"]
+        assert translucent.explain("closest", opacity_threshold=1.0)["filter"] == ["opacity"]
+        assert opaque.explain("closest", cull="back")["filter"] == ["culling"]
+        assert opaque.explain("all")["filter"] == ["every hit"] == opaque.explain("count")["filter"]
+        assert translucent.explain("transmittance")["filter"] == ["every hit"]
+        assert "f64" in opaque.explain("closest", precision="exact")["stages"][0]
+        assert opaque.explain("closest", precision="exact")["filter"] == []
+        return
 
     closest = opaque.explain("closest", outputs=["t"])
     assert "CullNoOpaque" in closest["ray_flags"]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import vkray
-from conftest import BACKENDS, VALIDATION, make_device
+from conftest import BACKENDS, VALIDATION, VULKAN_INDEX, make_device
 from oracle import box, triangle_soup
 from test_precision import tiers
 from vkray._device_group import _MIN_TIMED_RAYS, _Speeds, split, usable_cores
@@ -368,12 +368,12 @@ def test_devices_the_group_opens_share_the_cores():
     """A group of k devices gives each device it opens 1/k of the cores for its host passes (or
     host_threads each); devices it is given keep theirs; one device keeps the shared pool. Its
     answers are one device's."""
-    group = vkray.DeviceGroup([0, 0], backend=BACKENDS[0], validation=VALIDATION)
+    group = vkray.DeviceGroup([VULKAN_INDEX, VULKAN_INDEX], backend=BACKENDS[0], validation=VALIDATION)
     share = max(1, usable_cores() // 2)
     assert [d.host_threads for d in group.devices] == [share, share]
-    given = vkray.DeviceGroup([group.devices[0], 0], host_threads=3, backend=BACKENDS[0], validation=VALIDATION)
+    given = vkray.DeviceGroup([group.devices[0], VULKAN_INDEX], host_threads=3, backend=BACKENDS[0], validation=VALIDATION)
     assert [d.host_threads for d in given.devices] == [share, 3]
-    assert vkray.DeviceGroup([0], backend=BACKENDS[0], validation=VALIDATION).devices[0].host_threads is None
+    assert vkray.DeviceGroup([VULKAN_INDEX], backend=BACKENDS[0], validation=VALIDATION).devices[0].host_threads is None
     single = make_device(BACKENDS[0])
     scenes = [mixed_scene(group, vkray.GroupInstance), mixed_scene(single, vkray.Instance)]
     for (name, grouped), (_, one) in zip(*(every_query(s, "fast", seed=5) for s in scenes)):
@@ -596,9 +596,9 @@ def test_one_progress_bar_for_every_piece(monkeypatch):
 
 def test_group_arguments():
     """Devices by index, twice; a bad weight list; a mesh from another group; a Device's mesh."""
-    group = vkray.DeviceGroup([0, 0], backend=BACKENDS[0], validation=VALIDATION)
+    group = vkray.DeviceGroup([VULKAN_INDEX, VULKAN_INDEX], backend=BACKENDS[0], validation=VALIDATION)
     assert len(group) == 2 and group.devices[0] is not group.devices[1]
-    assert all(d.info.index == 0 for d in group.devices)
+    assert all(d.info.index == VULKAN_INDEX for d in group.devices)
     with pytest.raises(ValueError, match="weights must be 2 finite numbers"):
         vkray.DeviceGroup(group.devices, weights=[1, -1])
     with pytest.raises(ValueError, match="weights must be 2 finite numbers"):
@@ -617,8 +617,11 @@ def test_group_arguments():
         group.scene(group.devices[0].mesh(*box()))
     with pytest.raises(TypeError, match="custom_index"):
         vkray.GroupInstance(group.mesh(*box()), custom_index=1.5)
-    default = vkray.DeviceGroup()  # every usable device: here the one lavapipe
-    assert [d.info.index for d in default.devices] == [d.index for d in vkray.devices()]
+    # Every ray-tracing GPU, else the CPU engine (here), else the software devices.
+    default = vkray.DeviceGroup()
+    gpus = [d.index for d in vkray.devices() if d.engine == "vulkan" and not d.is_software]
+    cpu = [d.index for d in vkray.devices() if d.engine == "cpu"]
+    assert [d.info.index for d in default.devices] == (gpus or cpu)
 
 
 @pytest.mark.filterwarnings("ignore:This process .* is multi-threaded, use of fork:DeprecationWarning")

@@ -149,10 +149,15 @@ def test_many_meshes_under_a_scratch_budget(device):
     together = device.meshes(items)
     assert {m.stats["batch"] for m in together} == {0}
     scratch = sorted(m.stats["scratch_bytes"] for m in single)
-    budget = scratch[-1] + scratch[-2]
-    batched = device.meshes(items, budget_bytes=budget, compact=True)
-    batches = [m.stats["batch"] for m in batched]
-    assert batches == sorted(batches) and batches[-1] >= 1
+    if device.engine == "cpu":
+        # Embree builds each mesh on every core and frees its own scratch: no batches to bound.
+        assert scratch[-1] == 0
+        batched = device.meshes(items, budget_bytes=1, compact=True)
+        assert {m.stats["batch"] for m in batched} == {0}
+    else:
+        batched = device.meshes(items, budget_bytes=scratch[-1] + scratch[-2], compact=True)
+        batches = [m.stats["batch"] for m in batched]
+        assert batches == sorted(batches) and batches[-1] >= 1
     for (v, _), alone, many, compacted in zip(items, single, together, batched):
         assert compacted.stats["compacted"] and compacted.stats["bytes"] <= compacted.stats["built_bytes"]
         origins, directions = random_rays(v, 3000, seed=35)

@@ -26,6 +26,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
+from . import _core
 from ._core import UnsupportedError, VkrayError
 from ._device import Device, devices
 from ._options import PRECISIONS, Backend, Precision
@@ -148,6 +149,12 @@ def _hints(loader: Optional[str], error: Optional[str]) -> List[str]:
 def _device_report(index: int, info: Dict[str, Any]) -> Dict[str, Any]:
     """One device: its `DeviceInfo`, the backends that open, its precision tiers and limits."""
     report = dict(info)
+    if info.get("engine") == "cpu":
+        # The CPU engine: Embree on the host's cores, every tier; no Vulkan backend.
+        report["backends"], report["default_backend"] = ["cpu"], "cpu"
+        report["precisions"] = list(PRECISIONS)
+        report["limits"] = Device("cpu").limits
+        return report
     offered = [b for b in _BACKENDS if info["ray_query" if b == "ray_query" else "ray_tracing_pipeline"]]
     backends: List[str] = []
     errors: Dict[str, str] = {}
@@ -173,6 +180,7 @@ def _device_report(index: int, info: Dict[str, Any]) -> Dict[str, Any]:
 def _validation(found: List[Dict[str, Any]]) -> Tuple[Optional[bool], str]:
     """Whether the Khronos validation layer is present, and how that was decided. Where a device
     opens, vkray asks the loader (as the tests' conftest does); else the layer manifests are read."""
+    found = [d for d in found if d.get("engine") != "cpu"]
     if found and found[0]["backends"]:
         try:
             Device(found[0]["index"], found[0]["backends"][0], validation=True)
@@ -206,14 +214,18 @@ def gather_info() -> Dict[str, Any]:
         report["error"] = f"{type(exc).__name__}: {exc}"
         infos = []
     report["devices"] = [_device_report(info["index"], info) for info in infos]
-    if not infos and report["error"] is None:
-        report["error"] = (
-            "NoDeviceError: the Vulkan loader found drivers, but no device with acceleration structures and "
-            "ray queries or ray-tracing pipelines (lavapipe needs Mesa >= 24.1)"
-        )
+    if not any(info["engine"] == "vulkan" for info in infos) and report["error"] is None:
+        try:
+            _core.devices()
+            report["error"] = (
+                "NoDeviceError: the Vulkan loader found drivers, but no device with acceleration structures and "
+                "ray queries or ray-tracing pipelines (lavapipe needs Mesa >= 24.1)"
+            )
+        except VkrayError as exc:
+            report["error"] = f"{type(exc).__name__}: {exc}"
     available, how = _validation(report["devices"])
     report["validation_layer"] = {"available": available, "how": how}
-    report["hints"] = _hints(loader, report["error"]) if not infos else []
+    report["hints"] = _hints(loader, report["error"]) if report["error"] is not None else []
     return report
 
 
@@ -246,7 +258,10 @@ def print_info(report: Dict[str, Any]) -> None:
         kind = device["device_type"] + (", software" if device["is_software"] else "")
         print(f"  type:       {kind}")
         print(f"  driver:     {device['driver']}")
-        print(f"  Vulkan:     {device['api_version']}")
+        if device.get("engine") == "cpu":
+            print("  engine:     the CPU engine (Embree, SIMD chosen for this CPU, every core; no Vulkan)")
+        else:
+            print(f"  Vulkan:     {device['api_version']}")
         backends = [b + (" (default)" if b == device["default_backend"] else "") for b in device["backends"]]
         print(f"  backends:   {', '.join(backends) or 'none opened'}")
         for backend, message in device.get("backend_errors", {}).items():
@@ -264,6 +279,8 @@ def print_info(report: Dict[str, Any]) -> None:
     if report["error"] is not None:
         print()
         print(f"No usable Vulkan device: {report['error']}")
+        if any(device.get("engine") == "cpu" for device in report["devices"]):
+            print("The CPU engine answers every query meanwhile; a Vulkan device adds the GPU's speed.")
     if report["hints"]:
         print()
         for hint in report["hints"]:

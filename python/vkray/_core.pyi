@@ -4,7 +4,7 @@ Arrays arrive C-contiguous, in native byte order and of the dtypes below (vkray.
 that); option strings are checked here, with a ValueError naming the argument and the choices.
 """
 
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union, final
+from typing import Any, Callable, Dict, List, Literal, Optional, Sequence, Tuple, Union, final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,12 +65,16 @@ def host_memory_available() -> Optional[int]:
 @final
 class Device:
     def __new__(
-        cls, selector: Optional[str] = None, backend: Optional[Backend] = None, validation: bool = False
+        cls,
+        selector: Optional[str] = None,
+        backend: Optional[Backend] = None,
+        validation: bool = False,
+        library_paths: Sequence[str] = ...,
     ) -> Device: ...
     @property
     def info(self) -> Dict[str, Any]: ...
     @property
-    def backend(self) -> Backend: ...
+    def backend(self) -> Union[Backend, Literal["cpu"]]: ...
     @property
     def validation(self) -> bool: ...
     @property

@@ -1,13 +1,16 @@
-"""One device and what lives on it: `Device` (a Vulkan device: `devices()` lists them), the
+"""One device and what lives on it: `Device` (a Vulkan device or the CPU engine: `devices()` lists them), the
 `Mesh`es it builds, their `Instance`s, and the `Scene`s over them, which answer the queries of
 `SceneLike` by running them on the device (or its CPU tiers)."""
 
 from __future__ import annotations
 
+import functools
+import importlib.util
+import os
 import threading
 from collections import abc
-from dataclasses import dataclass
-from typing import Any, Callable, Dict, Iterable, List, Optional, Protocol, Tuple, Union, cast
+from dataclasses import dataclass, replace
+from typing import Any, Callable, Dict, Iterable, List, Literal, Optional, Protocol, Tuple, Union, cast
 
 import numpy as np
 
@@ -30,7 +33,9 @@ class MeshObject(Protocol):
 
 @dataclass(frozen=True)
 class DeviceInfo:
-    """A usable Vulkan device, as `devices()` lists it."""
+    """A usable device, as `devices()` lists it: a Vulkan device (``engine == "vulkan"``) or the
+    CPU engine (``engine == "cpu"``, ``device_type == "cpu"``). ``index`` is its place in
+    `devices()`, which `Device` takes."""
 
     index: int
     name: str
@@ -41,15 +46,80 @@ class DeviceInfo:
     ray_query: bool
     ray_tracing_pipeline: bool
     shader_float64: bool
+    engine: str = "vulkan"
+
+
+def embree_places() -> List[str]:
+    """Folders the CPU engine loads Embree from, first match wins: ``VKRAY_EMBREE_PATH``, the
+    copy vkray's wheel carries, then an installed embreex's (a source checkout's tests)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    places = [os.environ["VKRAY_EMBREE_PATH"]] if os.environ.get("VKRAY_EMBREE_PATH") else []
+    places.append(os.path.join(here, "_embree"))
+    embreex = importlib.util.find_spec("embreex")  # found, not imported
+    if embreex is not None and embreex.origin:
+        places.append(os.path.join(os.path.dirname(os.path.dirname(embreex.origin)), "embreex.libs"))
+    return places
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu_engine_info() -> Optional[Dict[str, Any]]:
+    """The CPU engine's `devices()` entry, or None where Embree cannot be loaded."""
+    try:
+        return dict(_core.Device("cpu", None, False, embree_places()).info)
+    except _core.NoDeviceError:
+        return None
+
+
+def _vulkan_infos() -> List[Dict[str, Any]]:
+    """The Vulkan devices, as the core lists them (none where Vulkan cannot be loaded)."""
+    try:
+        return [dict(info) for info in _core.devices()]
+    except _core.NoDeviceError:
+        return []
+
+
+def _listed() -> List[Tuple[DeviceInfo, str]]:
+    """`devices()` with the selector the core opens each by."""
+    vulkan = [(DeviceInfo(**info), str(info["index"])) for info in _vulkan_infos()]
+    cpu = _cpu_engine_info()
+    gpus = [entry for entry in vulkan if not entry[0].is_software]
+    software = [entry for entry in vulkan if entry[0].is_software]
+    ordered = gpus + ([(DeviceInfo(**cpu), "cpu")] if cpu is not None else []) + software
+    return [(replace(info, index=k), selector) for k, (info, selector) in enumerate(ordered)]
 
 
 def devices() -> List[DeviceInfo]:
-    """The Vulkan devices vkray can use, best first (GPUs before software rasterizers).
+    """The devices vkray can use, best first: ray-tracing GPUs, then the CPU engine (Embree on
+    every core, carried by the wheel: always there), then software Vulkan devices (Mesa's
+    lavapipe), which `Device()` takes only when named.
 
-    A device qualifies with Vulkan 1.2, acceleration structures, buffer device addresses, 64-bit
-    shader integers, and ray queries or a ray-tracing pipeline.
+    A Vulkan device qualifies with Vulkan 1.2, acceleration structures, buffer device addresses,
+    64-bit shader integers, and ray queries or a ray-tracing pipeline.
     """
-    return [DeviceInfo(**info) for info in _core.devices()]
+    return [info for info, _ in _listed()]
+
+
+def _selector(device: Union[int, str, None], vulkan: bool = False) -> Optional[str]:
+    """The core's selector for `Device`'s ``device``: an index or name among `devices()`, or
+    (None) ``VKRAY_DEVICE``, else the best device but a software one; the best Vulkan device
+    where the caller asked for a Vulkan feature (`vulkan`: a backend, the validation layer)."""
+    if device is None:
+        device = os.environ.get("VKRAY_DEVICE") or None
+    if device is None:
+        listed = [entry for entry in _listed() if not vulkan or entry[0].engine == "vulkan"]
+        best = [selector for info, selector in listed if not info.is_software]
+        return (best or [selector for _, selector in listed] or [None])[0]
+    listed = _listed()
+    text = str(device).strip()
+    if text.lower() == "cpu":
+        return "cpu"
+    if text.lstrip("-").isdigit():
+        k = int(text)
+        if not 0 <= k < len(listed):
+            raise _core.NoDeviceError(f"device index {k} is out of range: {len(listed)} devices (vkray.devices())")
+        return listed[k][1]
+    named = [selector for info, selector in listed if text.lower() in info.name.lower()]
+    return named[0] if named else text
 
 
 class Device:
@@ -87,10 +157,13 @@ class Device:
             raise TypeError(f"device must be an index, a name or None, got {device!r}")
         if host_threads is not None:  # checked before the device is opened
             host_threads = _arrays.integer("host_threads", host_threads, 1, 4096)
-        selector = None if device is None else str(device)
-        self._core = _core.Device(selector, backend, bool(validation))  # the core checks backend
-        info = self._core.info
-        self.info = DeviceInfo(**info)
+        asks_vulkan = backend is not None or bool(validation) or bool(os.environ.get("VKRAY_BACKEND"))
+        selector = _selector(None if device is None else str(device), vulkan=asks_vulkan)
+        # The core checks backend (and reads VKRAY_BACKEND and VKRAY_VALIDATION).
+        self._core = _core.Device(selector, backend, bool(validation), embree_places())
+        info = dict(self._core.info)
+        listed = [d for d in devices() if (d.engine, d.name) == (info["engine"], info["name"])]
+        self.info = DeviceInfo(**{**info, "index": listed[0].index if listed else info["index"]})
         if host_threads is not None:
             self.host_threads = host_threads
 
@@ -99,9 +172,15 @@ class Device:
         return self.info.name
 
     @property
-    def backend(self) -> Backend:
-        """``"ray_query"`` or ``"pipeline"``: how this device traces."""
+    def backend(self) -> Union[Backend, Literal["cpu"]]:
+        """``"ray_query"`` or ``"pipeline"``: how this Vulkan device traces; ``"cpu"`` for the
+        CPU engine."""
         return self._core.backend
+
+    @property
+    def engine(self) -> str:
+        """``"vulkan"`` or ``"cpu"`` (Embree on the host's cores)."""
+        return self.info.engine
 
     @property
     def is_software(self) -> bool:
@@ -773,8 +852,10 @@ class Scene(SceneLike):
         (the candidate loop's branches that are compiled in), ``ray_flags`` (the static ray flags
         by name), ``pipeline_flags`` (primitives the whole pipeline skips), ``outputs`` (the hit
         fields the GPU writes), ``specialization`` (the constants' values), ``device``,
-        ``backend``, ``kind`` and ``precision``. The ``"reference"`` tier runs on the CPU: its
-        stages are empty. ``RAY_SOURCE`` is shown for rays in the full layout (0) or a sensor's (1):
+        ``backend``, ``kind`` and ``precision``. The ``"reference"`` tier runs on the host, and so
+        does the CPU engine: their ``stages`` say what runs, and the CPU engine's ``filter`` what
+        its fast tier's hit filter handles (``"culling"``, ``"opacity"``, ``"every hit"``; empty:
+        Embree's plain traversal, no filter). ``RAY_SOURCE`` is shown for rays in the full layout (0) or a sensor's (1):
         float32 rays of one interval run the same variant reading the leaner layouts (3: origin and
         direction a ray; 4: from one origin, a direction a ray), which the rays decide.
         """
@@ -792,11 +873,13 @@ class Scene(SceneLike):
             precision = "exact" if precision == "fast" else precision
         core = self._core.explain(kind, list(fields), precision, cull, opacity_threshold, bool(sensor))
         base = {"device": self.device.name, "backend": self.device.backend, "kind": kind, "precision": precision}
-        if core is None:
-            empty: Dict[str, Any] = {"stages": ["host: f64 watertight test on all CPU cores"]}
-            empty.update(ray_query_branches=[], ray_flags=[], pipeline_flags=[], outputs=list(fields))
-            empty["specialization"] = {}
-            return {**base, **empty}
+        if core is None or "filter" in core:
+            # The host's tiers, or the CPU engine: no shader variant; ``filter`` names what the
+            # CPU engine's hit filter does (none: Embree's plain traversal).
+            host: Dict[str, Any] = {"stages": ["host: f64 watertight test on all CPU cores"], "filter": []}
+            host.update(ray_query_branches=[], ray_flags=[], pipeline_flags=[], outputs=list(fields))
+            host["specialization"] = {}
+            return {**base, **host, **(core or {})}
         return {**base, **core}
 
     def _check_closed(self) -> None:

@@ -471,10 +471,12 @@ def _wait_stopping_after_failures(futures: Sequence[Future[Any]], run: _Run) -> 
 
 
 def default_devices() -> List[Union[int, str, Device]]:
-    """Every usable device's index, only the hardware ones where there are any."""
+    """The devices a group takes by default: every ray-tracing GPU, else the CPU engine (which
+    uses every core itself), else every software device."""
     found = devices()
-    hardware = [d.index for d in found if not d.is_software]
-    return list(hardware or [d.index for d in found])
+    gpus = [d.index for d in found if d.engine == "vulkan" and not d.is_software]
+    cpu = [d.index for d in found if d.engine == "cpu"]
+    return list(gpus or cpu or [d.index for d in found])
 
 
 class _OfFirstDevice(Generic[T]):

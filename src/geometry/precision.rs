@@ -173,6 +173,12 @@ fn owns_edge(direction: DVec2) -> bool {
 /// within [tmin, tmax], rays through shared edges and vertices reporting exactly one of the
 /// triangles there. Degenerate triangles and rays in the triangle's plane never hit.
 pub fn watertight(ray: &ShearedRay, a: DVec3, b: DVec3, c: DVec3) -> Option<TriangleHit> {
+    watertight_edges(ray, a, b, c, false)
+}
+
+/// `watertight`, or with `closed` edges: a ray through a shared edge or vertex meets every
+/// triangle there (contacts, the exact shader's CLOSED_EDGES).
+pub fn watertight_edges(ray: &ShearedRay, a: DVec3, b: DVec3, c: DVec3, closed: bool) -> Option<TriangleHit> {
     let (pa, pb, pc) = (ray.project(a), ray.project(b), ray.project(c));
     // Edge functions: u for edge b→c, v for c→a, w for a→b.
     let u = pc.x * pb.y - pc.y * pb.x;
@@ -188,7 +194,7 @@ pub fn watertight(ray: &ShearedRay, a: DVec3, b: DVec3, c: DVec3) -> Option<Tria
     let sign = if det > 0.0 { 1.0 } else { -1.0 };
     let edges = [(u, pb, pc), (v, pc, pa), (w, pa, pb)];
     for (f, from, to) in edges {
-        if f == 0.0 && !owns_edge(sign * (to.truncate() - from.truncate())) {
+        if f == 0.0 && !closed && !owns_edge(sign * (to.truncate() - from.truncate())) {
             return None;
         }
     }

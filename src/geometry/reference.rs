@@ -12,7 +12,7 @@ use super::parallel;
 use super::winding::{Triangles, WindingTree};
 
 use crate::geometry::precision::{
-    closest_point_on_triangle, length_scale, watertight, Aabb, Affine, Cull, Ray64, ShearedRay,
+    closest_point_on_triangle, length_scale, watertight_edges, Aabb, Affine, Cull, Ray64, ShearedRay,
 };
 
 /// Triangles of one mesh in its own (re-centred) frame, in f64, with their hierarchy (built on
@@ -130,17 +130,19 @@ pub fn barycentrics(q: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (f64, f64) {
 }
 
 /// Which triangles a ray may hit: the sides `cull` keeps, whose opacity reaches `threshold`
-/// (0: every triangle).
+/// (0: every triangle); with `contacts`, a ray through a shared edge or vertex meets every
+/// triangle there (closed triangles) rather than one.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Filter {
     pub cull: Cull,
     pub threshold: f32,
+    pub contacts: bool,
 }
 
 impl Filter {
     /// Every triangle on the sides `cull` keeps, whatever its opacity.
     pub fn sides(cull: Cull) -> Filter {
-        Filter { cull, threshold: 0.0 }
+        Filter { cull, threshold: 0.0, contacts: false }
     }
 }
 
@@ -283,7 +285,7 @@ impl<'a> ReferenceTracer<'a> {
             let mut go_on = true;
             set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
                 let [a, b, c] = set.triangles.triangle(prim as usize);
-                let Some(hit) = watertight(&local, a, b, c) else { return true };
+                let Some(hit) = watertight_edges(&local, a, b, c, filter.contacts) else { return true };
                 if hit.t > *tmax || !(set.cull_disable || filter.cull.keeps(hit.front != set.flip_facing)) {
                     return true;
                 }
@@ -399,6 +401,7 @@ impl<'a> ReferenceTracer<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::precision::watertight;
     use glam::DMat3;
 
     /// The smallest scene distance squared from `p` (local) to points of `b` sampled on a grid

@@ -129,7 +129,11 @@ impl PyDevice {
     fn limits<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let d = PyDict::new(py);
         let Some(ctx) = &self.ctx else {
-            d.set_item("chunk_rays", self.tracer.chunk_rays())?;
+            // Embree's own bounds: ids of 32 bits.
+            d.set_item("max_primitive_count", u32::MAX - 1)?;
+            d.set_item("max_instance_count", u32::MAX - 1)?;
+            d.set_item("max_geometry_count", u32::MAX - 1)?;
+            d.set_item("vertex_formats", ["float32", "float16", "snorm16"])?;
             return Ok(d);
         };
         let l = &ctx.limits;

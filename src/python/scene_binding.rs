@@ -25,7 +25,7 @@ use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
 use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
-use crate::trace::{Cull, Field, HitSink, Precision, Query, Request, SignedDistance, VulkanEngine};
+use crate::trace::{CpuEngine, Cull, Field, HitSink, Precision, Query, Request, SignedDistance, VulkanEngine};
 
 /// Instances under a top-level acceleration structure, ready for queries.
 #[pyclass(name = "Scene", module = "vkray._core", frozen)]
@@ -554,6 +554,13 @@ impl PyScene {
                 // Positions come from the hit triangle and its barycentrics, on the host.
                 None => Field::Prim.bit() | Field::Instance.bit() | Field::Geometry.bit() | Field::Uv.bit(),
             };
+        }
+        if let Some(cpu) = self.tracer.engine().as_any().downcast_ref::<CpuEngine>() {
+            let (stages, effects) = self.with_scene(py, |scene| cpu.explain(scene, request))?;
+            let d = PyDict::new(py);
+            d.set_item("stages", stages)?;
+            d.set_item("filter", effects)?;
+            return Ok(Some(d));
         }
         let Some(vulkan) = self.tracer.engine().as_any().downcast_ref::<VulkanEngine>() else { return Ok(None) };
         let explained = self.with_scene(py, |scene| vulkan.explain(scene, request, outputs, sensor))?;

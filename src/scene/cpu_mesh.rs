@@ -3,7 +3,10 @@
 
 use std::any::Any;
 use std::ffi::c_void;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+
+use glam::DVec3;
 
 use super::mesh::{Mesh, MeshBatch, MeshGeometry, MeshHierarchy, MeshKind};
 use crate::embree::api::{
@@ -19,8 +22,15 @@ use crate::geometry::rays::PerRay;
 use crate::geometry::vertex_format::VertexFormat;
 
 /// A mesh's Embree scene and the vertices its geometries share.
+///
+/// Embree's triangle test multiplies a distance by a triangle's area: with coordinates near 1e15
+/// that overflows f32 (the ray misses). So Embree holds the mesh's device-frame coordinates divided
+/// by `unit`, the power of two at or above their largest magnitude (exact: every f32 keeps its
+/// digits), and each instance scales by it again.
 pub struct CpuMesh {
     scene: EmbreeScene,
+    /// The power of two Embree's coordinates are divided by (f64 bits; a refit may change it).
+    unit: AtomicU64,
     /// One per part (geometry id = part), kept for refits.
     parts: Vec<EmbreeGeometry>,
     /// The f32 vertices (xyz and a pad: Embree's vector loads read 16 bytes) every part's
@@ -84,10 +94,16 @@ impl CpuMesh {
         &self.scene
     }
 
+    /// What Embree's coordinates are divided by (instances scale by it).
+    pub fn unit(&self) -> f64 {
+        f64::from_bits(self.unit.load(Ordering::Acquire))
+    }
+
     fn triangles(device: &Arc<EmbreeDevice>, geometry: &MeshGeometry, options: BuildOptions) -> Result<CpuMesh> {
         debug_assert_eq!(geometry.kind, MeshKind::Triangles);
         let set = &geometry.triangles;
-        let vertices: Vec<[f32; 4]> = set.vertices.iter().map(|v| [v.x as f32, v.y as f32, v.z as f32, 0.0]).collect();
+        let unit = unit_of(set.vertices.iter().map(|v| v.abs().max_element()));
+        let vertices: Vec<[f32; 4]> = set.vertices.iter().map(|v| in_units(*v, unit)).collect();
         let quality = build_quality(options);
         let ((scene, parts), bytes, seconds) = device.measured(|| {
             let scene = device.scene(scene_flags(options), quality)?;
@@ -120,17 +136,19 @@ impl CpuMesh {
         })?;
         let own = (vertices.len() * 16) as u64;
         let stats = built_stats(bytes + own, seconds);
-        Ok(CpuMesh { scene, parts, vertices: Mutex::new(vertices), stats })
+        Ok(CpuMesh { scene, unit: AtomicU64::new(unit.to_bits()), parts, vertices: Mutex::new(vertices), stats })
     }
 
     fn spheres(device: &Arc<EmbreeDevice>, geometry: &MeshGeometry, options: BuildOptions) -> Result<CpuMesh> {
         let spheres = &geometry.spheres;
+        let unit = unit_of(spheres.iter().map(|(c, r)| c.abs().max_element() + r));
         let ((scene, part), bytes, seconds) = device.measured(|| {
             let scene = device.scene(scene_flags(options), build_quality(options))?;
             let part = device.geometry(GEOMETRY_TYPE_SPHERE_POINT)?;
             part.buffer(BUFFER_TYPE_VERTEX, FORMAT_FLOAT4, spheres.len(), |out: &mut [[f32; 4]]| {
                 for (o, (c, r)) in out.iter_mut().zip(spheres.iter()) {
-                    *o = [c.x as f32, c.y as f32, c.z as f32, *r as f32];
+                    let [x, y, z, _] = in_units(*c, unit);
+                    *o = [x, y, z, (r / unit) as f32];
                 }
             })?;
             part.set_mask(u32::MAX);
@@ -139,8 +157,30 @@ impl CpuMesh {
             scene.commit()?;
             Ok((scene, part))
         })?;
-        Ok(CpuMesh { scene, parts: vec![part], vertices: Mutex::new(Vec::new()), stats: built_stats(bytes, seconds) })
+        let unit = AtomicU64::new(unit.to_bits());
+        Ok(CpuMesh {
+            scene,
+            unit,
+            parts: vec![part],
+            vertices: Mutex::new(Vec::new()),
+            stats: built_stats(bytes, seconds),
+        })
     }
+}
+
+/// The power of two at or above the largest of `magnitudes` (1 where they are all 0).
+pub fn unit_of(magnitudes: impl Iterator<Item = f64>) -> f64 {
+    let largest = magnitudes.fold(0.0f64, f64::max);
+    if !(largest > 0.0 && largest.is_finite()) {
+        return 1.0;
+    }
+    2f64.powi(largest.log2().ceil() as i32)
+}
+
+/// A device-frame point in `unit`s, as Embree holds it (xyz and a pad).
+fn in_units(p: DVec3, unit: f64) -> [f32; 4] {
+    let q = p / unit;
+    [q.x as f32, q.y as f32, q.z as f32, 0.0]
 }
 
 /// A CPU build's statistics: its bytes (as built and held), no scratch (Embree frees its own),
@@ -166,9 +206,12 @@ impl MeshHierarchy for CpuMesh {
             return Err(Error::Unsupported("Mesh.update refits single-part meshes; rebuild a multi-part mesh".into()));
         };
         let mut vertices = self.vertices.lock().unwrap_or_else(|e| e.into_inner());
+        let unit = unit_of(local.iter().map(|c| c.abs()));
         for (v, xyz) in vertices.iter_mut().zip(local.chunks_exact(3)) {
-            *v = [xyz[0] as f32, xyz[1] as f32, xyz[2] as f32, 0.0];
+            *v = in_units(DVec3::new(xyz[0], xyz[1], xyz[2]), unit);
         }
+        // Scenes pick the new unit up in their update (which `check_current` asks for first).
+        self.unit.store(unit.to_bits(), Ordering::Release);
         part.buffer_changed(BUFFER_TYPE_VERTEX)?;
         part.commit()?;
         self.scene.commit()

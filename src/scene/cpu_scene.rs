@@ -4,18 +4,25 @@
 use std::any::Any;
 use std::sync::Arc;
 
-use super::cpu_mesh::{build_quality, built_stats, scene_flags, CpuMesh};
+use super::cpu_mesh::{build_quality, built_stats, scene_flags, unit_of, CpuMesh};
 use super::instance::{Instance, Placement};
 use super::top_level::{Scene, SceneHierarchy};
 use crate::embree::api::GEOMETRY_TYPE_INSTANCE;
 use crate::embree::objects::{EmbreeDevice, EmbreeGeometry, EmbreeScene};
 use crate::error::Result;
 use crate::geometry::build_options::{BuildOptions, BuildStats};
+use crate::geometry::precision::Affine;
 
 /// A scene's Embree scene of instances.
+///
+/// Embree inverts each instance's f32 transform (its determinant overflows past a scale of
+/// 1e12) and multiplies distances by areas in its triangle test: so it holds the scene's frame
+/// divided by `unit`, the power of two at or above the largest coordinate of the instances'
+/// bounds, and rays are divided by it too (origin and direction: `t` keeps its meaning).
 pub struct CpuScene {
     device: Arc<EmbreeDevice>,
     scene: EmbreeScene,
+    unit: f64,
     /// Instance geometry k places instance k (Embree reports it as the hit's instance id).
     _instances: Vec<EmbreeGeometry>,
     stats: BuildStats,
@@ -39,14 +46,22 @@ impl CpuScene {
         &self.scene
     }
 
+    /// What the scene's frame is divided by in Embree (rays are divided by it too).
+    pub fn unit(&self) -> f64 {
+        self.unit
+    }
+
     fn build(device: &Arc<EmbreeDevice>, placements: &[Placement], options: BuildOptions) -> Result<CpuScene> {
         let meshes = placements.iter().map(|p| CpuMesh::of(&p.mesh)).collect::<Result<Vec<_>>>()?;
+        let unit = unit_of(placements.iter().map(|p| p.bounds.min.abs().max(p.bounds.max.abs()).max_element()));
         let ((scene, instances), bytes, seconds) = device.measured(|| {
             let scene = device.scene(scene_flags(options), build_quality(options))?;
             let mut instances = Vec::with_capacity(placements.len());
             for (k, (p, mesh)) in placements.iter().zip(&meshes).enumerate() {
                 let instance = device.geometry(GEOMETRY_TYPE_INSTANCE)?;
-                instance.instance(mesh.scene(), &p.to_scene.to_rows_f32());
+                let linear = p.to_scene.linear * (mesh.unit() / unit);
+                let placed = Affine { linear, offset: p.to_scene.offset / unit };
+                instance.instance(mesh.scene(), &placed.to_rows_f32());
                 instance.set_mask(u32::from(p.mask));
                 instance.commit()?;
                 scene.attach(&instance, k as u32)?;
@@ -55,7 +70,8 @@ impl CpuScene {
             scene.commit()?;
             Ok((scene, instances))
         })?;
-        Ok(CpuScene { device: device.clone(), scene, _instances: instances, stats: built_stats(bytes, seconds) })
+        let stats = built_stats(bytes, seconds);
+        Ok(CpuScene { device: device.clone(), scene, unit, _instances: instances, stats })
     }
 }
 

@@ -579,19 +579,13 @@ pub fn closest_points(
 
 /// Writes the fields `sink` asks for of each point's closest surface point `hit(i)` (None: none
 /// within reach): `t` is the distance, `position` the point (f64, world), the others as a hit's.
-/// `wide`: `t`, `uv` and `position` in f64 (else f32).
-pub fn write_closest(
-    scene: &Scene,
-    sink: &mut HitSink,
-    wide: bool,
-    hit: impl Fn(usize) -> Option<(ReferenceHit, DVec3)> + Sync,
-) {
+pub fn write_closest(scene: &Scene, sink: &mut HitSink, hit: impl Fn(usize) -> Option<(ReferenceHit, DVec3)> + Sync) {
     let position = sink.position.take();
-    write_hit_fields(scene, sink, wide, |i| hit(i).map(|(h, _)| h));
+    write_hit_fields(scene, sink, true, |i| hit(i).map(|(h, _)| h));
     if let Some(out) = position {
         parallel::install(|| {
-            out.par_chunks_exact_mut(if wide { 24 } else { 12 }).enumerate().with_min_len(1024).for_each(|(i, dst)| {
-                put_floats(dst, &hit(i).map_or(DVec3::NAN, |(_, point)| point).to_array(), wide);
+            out.par_chunks_exact_mut(24).enumerate().with_min_len(1024).for_each(|(i, dst)| {
+                put_f64s(dst, &hit(i).map_or(DVec3::NAN, |(_, point)| point).to_array());
             })
         });
     }

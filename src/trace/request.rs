@@ -133,7 +133,11 @@ impl Request {
 
     /// Which triangles the host's tracer may hit for this request.
     pub fn filter(&self) -> crate::geometry::reference::Filter {
-        crate::geometry::reference::Filter { cull: self.cull, threshold: self.opacity_threshold }
+        crate::geometry::reference::Filter {
+            cull: self.cull,
+            threshold: self.opacity_threshold,
+            contacts: self.contacts,
+        }
     }
 
     /// Checks the opacity threshold: in (0, 1].

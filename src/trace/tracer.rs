@@ -398,7 +398,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
                         .into(),
                 )),
             };
-        host_tiers::write_closest(scene, sink, true, |i| host_tiers::closest_hit_record(scene, &hits[i]));
+        host_tiers::write_closest(scene, sink, |i| host_tiers::closest_hit_record(scene, &hits[i]));
         Ok(())
     }
 

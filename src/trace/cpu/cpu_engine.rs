@@ -8,6 +8,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use super::cpu_rays::{all_hits_fast, trace_fast};
+use super::hit_filter::QueryContext;
 use crate::embree::api::{
     EmbreeApi, DEVICE_PROPERTY_FILTER_FUNCTION_SUPPORTED, DEVICE_PROPERTY_POINT_GEOMETRY_SUPPORTED,
     DEVICE_PROPERTY_RAY_MASK_SUPPORTED,
@@ -25,7 +26,7 @@ use crate::trace::hit_fields::{hits_from_prims, Field, HitSink};
 use crate::trace::host_tiers::{self, AllHits};
 use crate::trace::idle::IdleMemory;
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{PointBatch, Precision, Query, RayBatch, SignedDistance};
+use crate::trace::request::{PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
 
 /// Rays a chunk of the fast tier takes by default: about 10 ms of tracing on two cores, so that
 /// an interrupt is heard at once and the chunk's buffers stay in cache-sized pieces.
@@ -59,9 +60,38 @@ impl CpuEngine {
         Ok(CpuEngine { device, name, chunk_rays: AtomicUsize::new(DEFAULT_CHUNK_RAYS), profile: Default::default() })
     }
 
+    /// What a query of `request` on `scene` runs, as `Scene.explain` shows it: its stages, and the
+    /// effects the fast tier's filter handles (none: Embree's plain traversal, no filter).
+    pub fn explain(&self, scene: &Scene, request: Request) -> (Vec<&'static str>, Vec<&'static str>) {
+        if matches!(request.precision, Precision::Exact | Precision::Reference) {
+            return (vec!["host: f64 watertight test on all CPU cores"], Vec::new());
+        }
+        let every = matches!(request.query, Query::Count | Query::All | Query::Transmit);
+        let threshold = if request.query == Query::Transmit { 0.0 } else { request.opacity_threshold };
+        let effects = QueryContext::new(scene, request.cull, threshold, every).effects();
+        let mut stages = vec!["host: Embree's robust f32 traversal on all CPU cores"];
+        if request.precision == Precision::Refined {
+            stages.push("host: f64 watertight test of each hit");
+        }
+        (stages, effects)
+    }
+
     /// Embree's version (40400 for 4.4.0).
     pub fn embree_version(&self) -> u32 {
         self.device.version
+    }
+
+    /// Keeps the profile of a query of `items` rays or points that ran on the host since `started`.
+    fn keep_host_profile(&self, items: usize, started: Instant) {
+        let seconds = started.elapsed().as_secs_f64();
+        let threads = rayon::current_num_threads();
+        self.keep_profile(TraceProfile {
+            rays: items,
+            total: seconds,
+            host_f64: seconds,
+            host_threads: threads,
+            ..Default::default()
+        });
     }
 
     /// The exact tier: the host's f64 tiers.
@@ -93,7 +123,7 @@ impl CpuEngine {
                 host_tiers::count_hits(scene, rays, request.filter(), bytemuck::cast_slice_mut(out), interrupt)?;
             }
             Query::Transmit => {
-                let every = Filter { cull: request.cull, threshold: 0.0 };
+                let every = Filter { cull: request.cull, threshold: 0.0, contacts: false };
                 let all = host_tiers::all_hits(scene, rays, every, usize::MAX, 0, interrupt)?;
                 let out = sink.field_mut(Field::T).expect("transmittance writes t");
                 host_tiers::transmittance(scene, &all, bytemuck::cast_slice_mut(out));
@@ -185,19 +215,25 @@ impl Engine for CpuEngine {
         let RayBatch { scene, rays, request, interrupt } = batch;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
-        if request.precision == Precision::Exact {
+        let started = Instant::now();
+        let all = if request.precision == Precision::Exact {
             rays.check()?;
-            return host_tiers::all_hits(scene, rays, request.filter(), max_hits, host_bytes_per_hit, interrupt);
-        }
-        all_hits_fast(batch, CpuScene::of(scene)?, max_hits, host_bytes_per_hit, self.chunk_rays())
+            host_tiers::all_hits(scene, rays, request.filter(), max_hits, host_bytes_per_hit, interrupt)?
+        } else {
+            all_hits_fast(batch, CpuScene::of(scene)?, max_hits, host_bytes_per_hit, self.chunk_rays())?
+        };
+        self.keep_host_profile(rays.len(), started);
+        Ok(all)
     }
 
-    /// Closest points in f64 on every core (the reference tier's search); the fast tier's answers
-    /// are its values rounded to f32.
-    fn closest_points(&self, batch: PointBatch, within: f64, precision: Precision, sink: &mut HitSink) -> Result<()> {
+    /// Closest points in f64 on every core (the reference tier's search) in every tier: the fast
+    /// tier's answers are the nearest, not an f32 search's.
+    fn closest_points(&self, batch: PointBatch, within: f64, _precision: Precision, sink: &mut HitSink) -> Result<()> {
         let PointBatch { scene, points, interrupt } = batch;
+        let started = Instant::now();
         let hits = host_tiers::closest_points(scene, points, within, interrupt)?;
-        host_tiers::write_closest(scene, sink, precision.is_f64(), |i| host_tiers::closest_hit_record(scene, &hits[i]));
+        self.keep_host_profile(points.rows(), started);
+        host_tiers::write_closest(scene, sink, |i| host_tiers::closest_hit_record(scene, &hits[i]));
         Ok(())
     }
 
@@ -205,7 +241,10 @@ impl Engine for CpuEngine {
         let PointBatch { scene, points, interrupt } = batch;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
-        host_tiers::contains(scene, points, winding, out, interrupt)
+        let started = Instant::now();
+        host_tiers::contains(scene, points, winding, out, interrupt)?;
+        self.keep_host_profile(points.rows(), started);
+        Ok(())
     }
 
     fn signed_distance(&self, _batch: PointBatch, _query: SignedDistance, _out: &mut [f64]) -> Result<bool> {

@@ -35,18 +35,30 @@ struct RayAnswer {
 const MISS: RayAnswer =
     RayAnswer { t: f32::INFINITY, uv: [f32::NAN; 2], prim: -1, geometry: -1, instance: -1, normal: [f32::NAN; 3] };
 
-/// A packed ray (`RAY_FLOATS`: origin, tmin, direction, tmax) as Embree takes it.
-fn embree_ray(packed: &[f32], mask: u8) -> RtcRay {
-    RtcRay {
-        org: [packed[0], packed[1], packed[2]],
-        tnear: packed[3],
-        dir: [packed[4], packed[5], packed[6]],
+/// A packed ray (`RAY_FLOATS`: origin, tmin, direction, tmax) as Embree takes it, and what its
+/// `t` is multiplied by to be the caller's. Embree holds the scene's frame divided by `unit`
+/// (`CpuScene::unit`), so the origin is too; the direction is scaled to a length near 1 (Embree
+/// clamps direction components below 1e-18, which a direction in units of a huge scene would
+/// be); both by powers of two (exact), and `t` by their ratio.
+fn embree_ray(packed: &[f32], mask: u8, unit: f64) -> (RtcRay, f64) {
+    let longest = packed[4].abs().max(packed[5].abs()).max(packed[6].abs());
+    let direction_scale =
+        if longest > 0.0 && longest.is_finite() { 2f64.powi(-(longest.log2().ceil() as i32)) } else { 1.0 };
+    // A point at t lies at (o + t d) / unit = o / unit + t' (d * direction_scale).
+    let t_unit = unit * direction_scale;
+    let (o, d) = ((1.0 / unit) as f32, direction_scale as f32);
+    let t = |t: f32| ((f64::from(t) / t_unit) as f32).min(f32::MAX);
+    let ray = RtcRay {
+        org: [packed[0] * o, packed[1] * o, packed[2] * o],
+        tnear: t(packed[3]),
+        dir: [packed[4] * d, packed[5] * d, packed[6] * d],
         time: 0.0,
-        tfar: packed[7],
+        tfar: t(packed[7]),
         mask: u32::from(mask),
         id: 0,
         flags: 0,
-    }
+    };
+    (ray, t_unit)
 }
 
 /// Traces the batch's rays in the fast tier (closest hits, occlusion, counts, transmittance),
@@ -70,6 +82,7 @@ pub fn trace_fast(
     let coherent = rays.sensor.is_some();
     let (n, frame) = (rays.len(), scene.frame());
     let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
+    let unit = hierarchy.unit();
     let mut answers = try_vec(chunk.min(n), MISS, "the CPU engine's hits")?;
     let mut start = 0;
     while start < n {
@@ -89,8 +102,11 @@ pub fn trace_fast(
                 .for_each_init(
                     || QueryContext::new(scene, request.cull, threshold, every),
                     |context, (k, (answer, ray))| {
-                        let ray = embree_ray(ray, rays.mask.get(start + k));
-                        *answer = trace_one(hierarchy, context, ray, query, coherent, normals);
+                        let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), unit);
+                        *answer = trace_one(hierarchy, context, ray, query, coherent, normals, unit);
+                        if query == Query::Closest && answer.prim >= 0 {
+                            answer.t = (f64::from(answer.t) * t_unit) as f32;
+                        }
                     },
                 )
         });
@@ -125,6 +141,7 @@ fn trace_one(
     query: Query,
     coherent: bool,
     normals: bool,
+    unit: f64,
 ) -> RayAnswer {
     context.direction = DVec3::new(f64::from(ray.dir[0]), f64::from(ray.dir[1]), f64::from(ray.dir[2]));
     context.found.clear();
@@ -143,7 +160,7 @@ fn trace_one(
         Query::Count => RayAnswer { prim: context.sorted_found().len() as i32, ..MISS },
         Query::Transmit => RayAnswer { t: light_kept(context), ..MISS },
         _ if rayhit.hit.geom_id == INVALID_ID => MISS,
-        _ => nearest(context.scene(), &rayhit, normals),
+        _ => nearest(context.scene(), &rayhit, normals, unit),
     }
 }
 
@@ -162,8 +179,8 @@ fn light_kept(context: &mut QueryContext) -> f32 {
 }
 
 /// The answer of a closest hit: its ids, barycentrics (NaN on spheres) and, where asked, the
-/// world normal (from the f64 triangle, or the sphere at the hit).
-fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool) -> RayAnswer {
+/// world normal (from the f64 triangle, or the sphere at the hit; the ray in `unit`s).
+fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool, unit: f64) -> RayAnswer {
     let (hit, ray) = (&rayhit.hit, &rayhit.ray);
     let instance = hit.inst_id[0];
     let placement = &scene.placements[instance as usize];
@@ -172,7 +189,7 @@ fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool) -> RayAnswer {
         [f32::NAN; 3]
     } else if spheres {
         let (center, radius) = placement.mesh.spheres[hit.prim_id as usize];
-        let along = |k: usize| f64::from(ray.org[k]) + f64::from(ray.tfar) * f64::from(ray.dir[k]);
+        let along = |k: usize| unit * (f64::from(ray.org[k]) + f64::from(ray.tfar) * f64::from(ray.dir[k]));
         let local = placement.to_local.point(DVec3::new(along(0), along(1), along(2)));
         (placement.to_local.linear.transpose() * ((local - center) / radius)).normalize().as_vec3().to_array()
     } else {
@@ -236,6 +253,7 @@ pub fn all_hits_fast(
     }
     let (n, frame) = (rays.len(), scene.frame());
     let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
+    let unit = hierarchy.unit();
     let mut offsets = try_vec(n + 1, 0i64, "the offsets of all hits")?;
     let mut hits: Vec<ReferenceHit> = Vec::new();
     let mut start = 0;
@@ -252,10 +270,10 @@ pub fn all_hits_fast(
                 .map_init(
                     || QueryContext::new(scene, request.cull, request.opacity_threshold, true),
                     |context, (k, ray)| {
-                        let ray = embree_ray(ray, rays.mask.get(start + k));
-                        trace_one(hierarchy, context, ray, Query::Count, false, false);
+                        let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), unit);
+                        trace_one(hierarchy, context, ray, Query::Count, false, false, unit);
                         let kept = context.sorted_found();
-                        kept[..kept.len().min(max_hits)].iter().map(|c| reference_hit(scene, c)).collect()
+                        kept[..kept.len().min(max_hits)].iter().map(|c| reference_hit(scene, c, t_unit)).collect()
                     },
                 )
                 .collect()
@@ -278,11 +296,12 @@ pub fn all_hits_fast(
     Ok(AllHits { offsets, hits, wide: false })
 }
 
-/// A fast-tier hit as every-hit answers hold it: f32 values, the triangle among all parts.
-fn reference_hit(scene: &Scene, c: &Candidate) -> ReferenceHit {
+/// A fast-tier hit as every-hit answers hold it: f32 values, the triangle among all parts (`t`
+/// times `t_unit`: see `embree_ray`).
+fn reference_hit(scene: &Scene, c: &Candidate, t_unit: f64) -> ReferenceHit {
     let placement = &scene.placements[c.instance as usize];
     ReferenceHit {
-        t: f64::from(c.t),
+        t: f64::from((f64::from(c.t) * t_unit) as f32),
         u: f64::from(c.u),
         v: f64::from(c.v),
         instance: c.instance,

@@ -70,7 +70,22 @@ impl<'a> QueryContext<'a> {
     /// Whether this query needs the filter at all: plain closest hits and occlusion in a scene
     /// with nothing translucent and no culling need none (Embree's fastest path).
     pub fn needs_filter(&self) -> bool {
-        self.every || self.cull != Cull::None || (self.threshold > 0.0 && self.scene.has_opacity())
+        !self.effects().is_empty()
+    }
+
+    /// What the filter does for this query, by name (none: no filter runs).
+    pub fn effects(&self) -> Vec<&'static str> {
+        let mut effects = Vec::new();
+        if self.every {
+            effects.push("every hit");
+        }
+        if self.cull != Cull::None {
+            effects.push("culling");
+        }
+        if self.threshold > 0.0 && self.scene.has_opacity() {
+            effects.push("opacity");
+        }
+        effects
     }
 
     /// The arguments of a query through this context (`coherent`: rays from one point, a

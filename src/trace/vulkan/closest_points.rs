@@ -370,7 +370,7 @@ impl ClosestPoints {
                 Some(bytes) => bytemuck::cast_slice::<u8, f64>(bytes).to_vec(),
                 None => Vec::new(),
             };
-            host_tiers::write_closest(scene, sink, true, |i| {
+            host_tiers::write_closest(scene, sink, |i| {
                 let h = &hits[i];
                 (h.instance >= 0).then(|| {
                     let distance = t.get(i).copied().unwrap_or(0.0);
