@@ -142,9 +142,9 @@ def point_table(report: Report, engines: Engines, points: np.ndarray, repeat: in
     cpu, vulkan, o3s = engines.cpu, engines.vulkan, engines.o3d_scene
     queries: Dict[str, Dict[str, Optional[Callable[[], Any]]]] = {
         "contains (exact) / occupancy nsamples=1": {
-            "vkray cpu": lambda: cpu.contains(points),
+            "vkray cpu": lambda: cpu.contains(points, method="winding" if not engines.mesh.is_closed else "parity"),
             "open3d": lambda: o3s.compute_occupancy(tensor, nsamples=1),
-            "lavapipe": (lambda: vulkan.contains(points)) if vulkan else None,
+            "lavapipe": (lambda: vulkan.contains(points, method="winding" if not engines.mesh.is_closed else "parity")) if vulkan else None,
         },
         "distance": {
             "vkray cpu": lambda: cpu.distance(points),

@@ -46,6 +46,8 @@ pub const FEATURE_FLAGS_ALL: u32 = 0xffff_ffff;
 pub const INVALID_ID: u32 = u32::MAX;
 // `RTCDeviceProperty`.
 pub const DEVICE_PROPERTY_VERSION: i32 = 0;
+pub const DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED: i32 = 33;
+pub const DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED: i32 = 34;
 pub const DEVICE_PROPERTY_RAY_MASK_SUPPORTED: i32 = 64;
 pub const DEVICE_PROPERTY_FILTER_FUNCTION_SUPPORTED: i32 = 66;
 pub const DEVICE_PROPERTY_POINT_GEOMETRY_SUPPORTED: i32 = 101;
@@ -85,6 +87,67 @@ pub struct RtcRayHit {
     pub ray: RtcRay,
     pub hit: RtcHit,
 }
+
+/// `RTCRayHit8` / `RTCRayHit16` (`K` lanes, each field an array of lanes), with room for
+/// `instPrimID` as `RtcHit`. Aligned for 16 lanes (Embree asks for the packet's width in bytes).
+#[repr(C, align(64))]
+#[derive(Clone, Copy, Debug)]
+pub struct RtcRayHitPacket<const K: usize> {
+    pub org_x: [f32; K],
+    pub org_y: [f32; K],
+    pub org_z: [f32; K],
+    pub tnear: [f32; K],
+    pub dir_x: [f32; K],
+    pub dir_y: [f32; K],
+    pub dir_z: [f32; K],
+    pub time: [f32; K],
+    pub tfar: [f32; K],
+    pub mask: [u32; K],
+    pub id: [u32; K],
+    pub flags: [u32; K],
+    pub ng_x: [f32; K],
+    pub ng_y: [f32; K],
+    pub ng_z: [f32; K],
+    pub u: [f32; K],
+    pub v: [f32; K],
+    pub prim_id: [u32; K],
+    pub geom_id: [u32; K],
+    pub inst_id: [u32; K],
+    pub inst_prim_id: [u32; K],
+}
+
+impl<const K: usize> Default for RtcRayHitPacket<K> {
+    fn default() -> Self {
+        RtcRayHitPacket {
+            org_x: [0.0; K],
+            org_y: [0.0; K],
+            org_z: [0.0; K],
+            tnear: [0.0; K],
+            dir_x: [0.0; K],
+            dir_y: [0.0; K],
+            dir_z: [0.0; K],
+            time: [0.0; K],
+            tfar: [0.0; K],
+            mask: [0; K],
+            id: [0; K],
+            flags: [0; K],
+            ng_x: [0.0; K],
+            ng_y: [0.0; K],
+            ng_z: [0.0; K],
+            u: [0.0; K],
+            v: [0.0; K],
+            prim_id: [INVALID_ID; K],
+            geom_id: [INVALID_ID; K],
+            inst_id: [INVALID_ID; K],
+            inst_prim_id: [INVALID_ID; K],
+        }
+    }
+}
+
+/// A packet's valid lanes (-1: traced; 0: not), aligned as Embree asks.
+#[repr(C, align(64))]
+#[derive(Clone, Copy, Debug)]
+pub struct RtcValid<const K: usize>(pub [i32; K]);
 
 /// `RTCRayQueryContext` for one instance level: Embree hands the pointer a query passes back to
 /// its filter, so the CPU engine's own per-query state follows it in memory (`#[repr(C)]`, first
@@ -157,6 +220,11 @@ pub struct EmbreeApi {
     pub set_geometry_transform: unsafe extern "C" fn(RtcGeometry, u32, u32, *const c_void),
     pub intersect1: unsafe extern "C" fn(RtcScene, *mut RtcRayHit, *mut RtcArguments),
     pub occluded1: unsafe extern "C" fn(RtcScene, *mut RtcRay, *mut RtcArguments),
+    /// Packets of 8 and 16 (the ray half of a packet is the leading part of its record).
+    pub intersect8: unsafe extern "C" fn(*const i32, RtcScene, *mut c_void, *mut RtcArguments),
+    pub occluded8: unsafe extern "C" fn(*const i32, RtcScene, *mut c_void, *mut RtcArguments),
+    pub intersect16: unsafe extern "C" fn(*const i32, RtcScene, *mut c_void, *mut RtcArguments),
+    pub occluded16: unsafe extern "C" fn(*const i32, RtcScene, *mut c_void, *mut RtcArguments),
     /// Keeps the library loaded while the functions above are used.
     _library: Library,
 }
@@ -224,6 +292,10 @@ impl EmbreeApi {
                 set_geometry_transform: symbol!("rtcSetGeometryTransform"),
                 intersect1: symbol!("rtcIntersect1"),
                 occluded1: symbol!("rtcOccluded1"),
+                intersect8: symbol!("rtcIntersect8"),
+                occluded8: symbol!("rtcOccluded8"),
+                intersect16: symbol!("rtcIntersect16"),
+                occluded16: symbol!("rtcOccluded16"),
                 _library: library,
             })
         }
@@ -275,5 +347,10 @@ mod tests {
         assert_eq!(offset_of!(RtcArguments, context), 8);
         assert_eq!(offset_of!(RtcArguments, filter), 16);
         assert_eq!(offset_of!(RtcArguments, intersect), 24);
+        // RTCRayHit16: the ray's 12 fields of 16 lanes, then the hit's.
+        assert_eq!(offset_of!(RtcRayHitPacket<16>, tfar), 8 * 64);
+        assert_eq!(offset_of!(RtcRayHitPacket<16>, ng_x), 12 * 64);
+        assert_eq!(offset_of!(RtcRayHitPacket<16>, inst_id), 19 * 64);
+        assert_eq!(offset_of!(RtcRayHitPacket<8>, prim_id), 17 * 32);
     }
 }

@@ -5,7 +5,9 @@ use std::ffi::c_void;
 use std::sync::atomic::{AtomicIsize, Ordering};
 use std::sync::Arc;
 
-use super::api::{error_name, EmbreeApi, RtcArguments, RtcDevice, RtcGeometry, RtcRay, RtcRayHit, RtcScene};
+use super::api::{
+    error_name, EmbreeApi, RtcArguments, RtcDevice, RtcGeometry, RtcRay, RtcRayHit, RtcRayHitPacket, RtcScene, RtcValid,
+};
 use crate::error::{Error, Result};
 
 /// An Embree device: the library's functions and its one `RTCDevice`.
@@ -52,6 +54,18 @@ impl EmbreeDevice {
         let device = EmbreeDevice { api, raw, held, version, builds: Default::default() };
         device.check("opening the device")?;
         Ok(Arc::new(device))
+    }
+
+    /// The widest packet Embree traces natively on this CPU (16 with AVX-512, 8 with AVX2), or 1.
+    pub fn packet_width(&self) -> usize {
+        let (avx512, avx2) = vector_widths();
+        if avx512 && self.has(super::api::DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED) {
+            16
+        } else if avx2 && self.has(super::api::DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED) {
+            8
+        } else {
+            1
+        }
     }
 
     /// Bytes Embree holds now (scenes, geometries, their buffers and hierarchies).
@@ -115,6 +129,18 @@ impl EmbreeDevice {
     }
 }
 
+/// Whether this CPU has AVX-512 and AVX2 (Embree's 16- and 8-wide packets run natively).
+fn vector_widths() -> (bool, bool) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        (std::arch::is_x86_feature_detected!("avx512f"), std::arch::is_x86_feature_detected!("avx2"))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        (false, false)
+    }
+}
+
 impl Drop for EmbreeDevice {
     fn drop(&mut self) {
         // SAFETY: every scene and geometry holds an `Arc` of this device, so none is left.
@@ -174,6 +200,43 @@ impl EmbreeScene {
     pub unsafe fn occluded(&self, ray: &mut RtcRay, args: *mut RtcArguments) {
         // SAFETY: the scene is committed; the caller vouches for `args`.
         unsafe { (self.device.api.occluded1)(self.raw, ray, args) }
+    }
+}
+
+impl EmbreeScene {
+    /// The closest hits of a packet of `K` (8 or 16) rays, `valid` lanes only.
+    ///
+    /// # Safety
+    /// As `intersect`.
+    #[inline]
+    pub unsafe fn intersect_packet<const K: usize>(
+        &self,
+        valid: &RtcValid<K>,
+        packet: &mut RtcRayHitPacket<K>,
+        args: *mut RtcArguments,
+    ) {
+        let call = if K == 16 { self.device.api.intersect16 } else { self.device.api.intersect8 };
+        debug_assert!(K == 8 || K == 16);
+        // SAFETY: the record is laid out as RTCRayHitK and aligned; the caller vouches for `args`.
+        unsafe { call(valid.0.as_ptr(), self.raw, packet as *mut RtcRayHitPacket<K> as *mut c_void, args) }
+    }
+
+    /// Occlusion of a packet of `K` (8 or 16) rays: each valid lane's `tfar` becomes -inf where
+    /// it is occluded.
+    ///
+    /// # Safety
+    /// As `intersect`.
+    #[inline]
+    pub unsafe fn occluded_packet<const K: usize>(
+        &self,
+        valid: &RtcValid<K>,
+        packet: &mut RtcRayHitPacket<K>,
+        args: *mut RtcArguments,
+    ) {
+        let call = if K == 16 { self.device.api.occluded16 } else { self.device.api.occluded8 };
+        debug_assert!(K == 8 || K == 16);
+        // SAFETY: the record's leading part is laid out as RTCRayK; the caller vouches for `args`.
+        unsafe { call(valid.0.as_ptr(), self.raw, packet as *mut RtcRayHitPacket<K> as *mut c_void, args) }
     }
 }
 

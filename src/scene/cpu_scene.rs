@@ -4,8 +4,11 @@
 use std::any::Any;
 use std::sync::Arc;
 
+use glam::{DMat3, DVec3};
+
 use super::cpu_mesh::{build_quality, built_stats, scene_flags, unit_of, CpuMesh};
 use super::instance::{Instance, Placement};
+use super::mesh::Mesh;
 use super::top_level::{Scene, SceneHierarchy};
 use crate::embree::api::GEOMETRY_TYPE_INSTANCE;
 use crate::embree::objects::{EmbreeDevice, EmbreeGeometry, EmbreeScene};
@@ -23,6 +26,9 @@ pub struct CpuScene {
     device: Arc<EmbreeDevice>,
     scene: EmbreeScene,
     unit: f64,
+    /// The one instance's mesh, where it is placed as Embree holds it (identity in units, every
+    /// mask bit): traced without the instance level (Embree then reports no instance id: 0).
+    direct: Option<Arc<Mesh>>,
     /// Instance geometry k places instance k (Embree reports it as the hit's instance id).
     _instances: Vec<EmbreeGeometry>,
     stats: BuildStats,
@@ -43,7 +49,10 @@ impl CpuScene {
     }
 
     pub fn scene(&self) -> &EmbreeScene {
-        &self.scene
+        match &self.direct {
+            Some(mesh) => CpuMesh::of(mesh).expect("a CPU scene holds CPU meshes").scene(),
+            None => &self.scene,
+        }
     }
 
     /// What the scene's frame is divided by in Embree (rays are divided by it too).
@@ -71,8 +80,17 @@ impl CpuScene {
             Ok((scene, instances))
         })?;
         let stats = built_stats(bytes, seconds);
-        Ok(CpuScene { device: device.clone(), scene, unit, _instances: instances, stats })
+        let direct = match (placements, meshes.as_slice()) {
+            ([p], [mesh]) if p.mask == 0xFF && placed_as_held(p, mesh.unit(), unit) => Some(p.mesh.clone()),
+            _ => None,
+        };
+        Ok(CpuScene { device: device.clone(), scene, unit, direct, _instances: instances, stats })
     }
+}
+
+/// Whether `p`'s transform in Embree's units is the identity: its mesh's scene is the scene.
+fn placed_as_held(p: &Placement, mesh_unit: f64, unit: f64) -> bool {
+    p.to_scene.offset == DVec3::ZERO && p.to_scene.linear * (mesh_unit / unit) == DMat3::IDENTITY
 }
 
 impl SceneHierarchy for CpuScene {

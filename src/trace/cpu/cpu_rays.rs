@@ -8,10 +8,12 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::hit_filter::{Candidate, QueryContext};
-use crate::embree::api::{RtcHit, RtcRay, RtcRayHit, INVALID_ID};
+use crate::embree::api::{
+    RtcArguments, RtcHit, RtcRay, RtcRayHit, RtcRayHitPacket, RtcValid, FEATURE_FLAGS_ALL, INVALID_ID,
+    RAY_QUERY_FLAG_COHERENT, RAY_QUERY_FLAG_INCOHERENT,
+};
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::parallel::{self, try_vec};
-use crate::geometry::precision::world_normal;
 use crate::geometry::rays::{Advance, RAY_FLOATS};
 use crate::geometry::reference::ReferenceHit;
 use crate::scene::{CpuScene, MeshKind, Scene};
@@ -67,7 +69,7 @@ pub fn trace_fast(
     batch: RayBatch,
     hierarchy: &CpuScene,
     sink: &mut HitSink,
-    chunk: usize,
+    (chunk, packet_width): (usize, usize),
     profile: &mut TraceProfile,
 ) -> Result<()> {
     let RayBatch { scene, rays, request, interrupt } = batch;
@@ -80,6 +82,10 @@ pub fn trace_fast(
     let threshold = if query == Query::Transmit { 0.0 } else { request.opacity_threshold };
     let normals = sink.field(Field::Normal).is_some();
     let coherent = rays.sensor.is_some();
+    // Closest hits and occlusion with nothing for the filter to do trace in Embree's packets.
+    let plain = matches!(query, Query::Closest | Query::Occluded)
+        && !QueryContext::new(scene, request.cull, threshold, false).needs_filter();
+    let packets = if plain { packet_width } else { 1 };
     let (n, frame) = (rays.len(), scene.frame());
     let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
     let unit = hierarchy.unit();
@@ -93,23 +99,29 @@ pub fn trace_fast(
         let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
         profile.pack += began.elapsed().as_secs_f64();
         let traced = Instant::now();
-        parallel::install(|| {
-            answers[..len]
-                .par_iter_mut()
-                .zip(packed.par_chunks_exact(RAY_FLOATS))
-                .enumerate()
-                .with_min_len(64)
-                .for_each_init(
-                    || QueryContext::new(scene, request.cull, threshold, every),
-                    |context, (k, (answer, ray))| {
-                        let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), unit);
-                        *answer = trace_one(hierarchy, context, ray, query, coherent, normals, unit);
-                        if query == Query::Closest && answer.prim >= 0 {
-                            answer.t = (f64::from(answer.t) * t_unit) as f32;
-                        }
-                    },
-                )
-        });
+        let mask = |k: usize| rays.mask.get(start + k);
+        let lanes = (&packed[..len * RAY_FLOATS], &mut answers[..len]);
+        match packets {
+            16 => parallel::install(|| trace_packets::<16>(hierarchy, scene, lanes, mask, (query, coherent, normals))),
+            8 => parallel::install(|| trace_packets::<8>(hierarchy, scene, lanes, mask, (query, coherent, normals))),
+            _ => parallel::install(|| {
+                answers[..len]
+                    .par_iter_mut()
+                    .zip(packed.par_chunks_exact(RAY_FLOATS))
+                    .enumerate()
+                    .with_min_len(64)
+                    .for_each_init(
+                        || QueryContext::new(scene, request.cull, threshold, every),
+                        |context, (k, (answer, ray))| {
+                            let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), unit);
+                            *answer = trace_one(hierarchy, context, ray, query, coherent, normals, unit);
+                            if query == Query::Closest && answer.prim >= 0 {
+                                answer.t = (f64::from(answer.t) * t_unit) as f32;
+                            }
+                        },
+                    )
+            }),
+        }
         profile.host_f64 += traced.elapsed().as_secs_f64();
         if query == Query::Closest {
             add_advances(&mut answers, &advances);
@@ -121,6 +133,84 @@ pub fn trace_fast(
         start += len;
     }
     Ok(())
+}
+
+/// Closest hits (or occlusion) of a chunk's packed rays in Embree's packets of `K` rays, with no
+/// filter: `mask(k)` is ray k's mask; `answers` one per ray.
+fn trace_packets<const K: usize>(
+    hierarchy: &CpuScene,
+    scene: &Scene,
+    (packed, answers): (&[f32], &mut [RayAnswer]),
+    mask: impl Fn(usize) -> u8 + Sync,
+    (query, coherent, normals): (Query, bool, bool),
+) {
+    let unit = hierarchy.unit();
+    let order = if coherent { RAY_QUERY_FLAG_COHERENT } else { RAY_QUERY_FLAG_INCOHERENT };
+    answers.par_chunks_mut(K).zip(packed.par_chunks(K * RAY_FLOATS)).enumerate().with_min_len(8).for_each(
+        |(p, (answers, rays))| {
+            let mut packet = RtcRayHitPacket::<K>::default();
+            let mut valid = RtcValid([0i32; K]);
+            let mut t_units = [1.0f64; K];
+            for (lane, ray) in rays.chunks_exact(RAY_FLOATS).enumerate() {
+                let (r, t_unit) = embree_ray(ray, mask(p * K + lane), unit);
+                [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
+                [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
+                (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
+                (valid.0[lane], t_units[lane]) = (-1, t_unit);
+            }
+            let mut args = RtcArguments {
+                flags: order,
+                feature_mask: FEATURE_FLAGS_ALL,
+                context: std::ptr::null_mut(),
+                filter: None,
+                intersect: std::ptr::null_mut(),
+                min_width_distance_factor: 0.0,
+            };
+            if query == Query::Occluded {
+                // SAFETY: the scene is committed and held; no context or filter is passed.
+                unsafe { hierarchy.scene().occluded_packet(&valid, &mut packet, &mut args) };
+                for (lane, answer) in answers.iter_mut().enumerate() {
+                    *answer = if packet.tfar[lane] == f32::NEG_INFINITY { RayAnswer { prim: 0, ..MISS } } else { MISS };
+                }
+                return;
+            }
+            // SAFETY: as above.
+            unsafe { hierarchy.scene().intersect_packet(&valid, &mut packet, &mut args) };
+            for (lane, answer) in answers.iter_mut().enumerate() {
+                *answer = if packet.geom_id[lane] == INVALID_ID {
+                    MISS
+                } else {
+                    let found = nearest(scene, &lane_hit(&packet, lane), normals, unit);
+                    RayAnswer { t: (f64::from(found.t) * t_units[lane]) as f32, ..found }
+                };
+            }
+        },
+    );
+}
+
+/// Lane `lane` of a packet, as one ray and its hit.
+fn lane_hit<const K: usize>(packet: &RtcRayHitPacket<K>, lane: usize) -> RtcRayHit {
+    RtcRayHit {
+        ray: RtcRay {
+            org: [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]],
+            tnear: packet.tnear[lane],
+            dir: [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]],
+            time: 0.0,
+            tfar: packet.tfar[lane],
+            mask: packet.mask[lane],
+            id: 0,
+            flags: 0,
+        },
+        hit: RtcHit {
+            ng: [packet.ng_x[lane], packet.ng_y[lane], packet.ng_z[lane]],
+            u: packet.u[lane],
+            v: packet.v[lane],
+            prim_id: packet.prim_id[lane],
+            geom_id: packet.geom_id[lane],
+            inst_id: [packet.inst_id[lane]],
+            inst_prim_id: [packet.inst_prim_id[lane]],
+        },
+    }
 }
 
 /// Moves the hits of rays advanced before packing back to their distances from the real origin.
@@ -182,7 +272,8 @@ fn light_kept(context: &mut QueryContext) -> f32 {
 /// world normal (from the f64 triangle, or the sphere at the hit; the ray in `unit`s).
 fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool, unit: f64) -> RayAnswer {
     let (hit, ray) = (&rayhit.hit, &rayhit.ray);
-    let instance = hit.inst_id[0];
+    // No instance id: a one-instance scene traced without its instance level.
+    let instance = if hit.inst_id[0] == INVALID_ID { 0 } else { hit.inst_id[0] };
     let placement = &scene.placements[instance as usize];
     let spheres = placement.mesh.kind == MeshKind::Spheres;
     let normal = if !normals {
@@ -193,9 +284,11 @@ fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool, unit: f64) -> RayAn
         let local = placement.to_local.point(DVec3::new(along(0), along(1), along(2)));
         (placement.to_local.linear.transpose() * ((local - center) / radius)).normalize().as_vec3().to_array()
     } else {
-        let global = placement.triangles.global(hit.geom_id as usize, hit.prim_id as usize);
-        let [a, b, c] = placement.triangles.triangle(global);
-        world_normal(&placement.to_local, a, b, c).as_vec3().to_array()
+        // Embree's geometric normal, cross(v1 - v0, v2 - v0) in the mesh's frame (f32, as the
+        // GPU's), into the world as `world_normal` takes a triangle's.
+        let ng = DVec3::new(f64::from(hit.ng[0]), f64::from(hit.ng[1]), f64::from(hit.ng[2]));
+        let sign = placement.to_local.linear.determinant().signum();
+        (sign * (placement.to_local.linear.transpose() * ng)).normalize().as_vec3().to_array()
     };
     RayAnswer {
         t: ray.tfar,

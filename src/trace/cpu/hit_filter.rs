@@ -4,7 +4,7 @@
 
 use glam::DVec3;
 
-use crate::embree::api::{RtcArguments, RtcFilterArguments, RtcRayQueryContext, FEATURE_FLAGS_ALL};
+use crate::embree::api::{RtcArguments, RtcFilterArguments, RtcRayQueryContext, FEATURE_FLAGS_ALL, INVALID_ID};
 use crate::embree::api::{RAY_QUERY_FLAG_COHERENT, RAY_QUERY_FLAG_INCOHERENT, RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER};
 use crate::geometry::precision::Cull;
 use crate::scene::{MeshKind, Scene};
@@ -157,7 +157,12 @@ unsafe extern "C" fn filter_hit(args: *const RtcFilterArguments) {
             if *valid == 0 {
                 continue;
             }
-            let (prim, geometry, instance) = (*hits.add(5 * n + i), *hits.add(6 * n + i), *hits.add(7 * n + i));
+            let (prim, geometry) = (*hits.add(5 * n + i), *hits.add(6 * n + i));
+            // No instance id: a one-instance scene traced without its instance level.
+            let instance = match *hits.add(7 * n + i) {
+                INVALID_ID => 0,
+                id => id,
+            };
             if !context.keeps(instance, geometry, prim) {
                 *valid = 0;
                 continue;
