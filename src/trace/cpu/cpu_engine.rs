@@ -28,9 +28,9 @@ use crate::trace::idle::IdleMemory;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
 
-/// Rays a chunk of the fast tier takes by default: about 10 ms of tracing on two cores, so that
-/// an interrupt is heard at once and the chunk's buffers stay in cache-sized pieces.
-const DEFAULT_CHUNK_RAYS: usize = 1 << 16;
+/// Rays a chunk of the fast tier takes by default (the interrupt is asked between chunks): tens
+/// of milliseconds on two cores, a few on sixteen.
+const DEFAULT_CHUNK_RAYS: usize = 1 << 20;
 
 /// The CPU engine: Embree's device and the engine's own settings.
 pub struct CpuEngine {

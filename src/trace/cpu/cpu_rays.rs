@@ -63,8 +63,24 @@ fn embree_ray(packed: &[f32], mask: u8, unit: f64) -> (RtcRay, f64) {
     (ray, t_unit)
 }
 
+/// Rays one task of the fast tier packs, traces and writes out at once (the chunk's tasks run on
+/// every core, with no pass over the whole chunk between them).
+const BLOCK_RAYS: usize = 2048;
+
+/// What every block of a fast-tier query shares.
+struct Plan<'a> {
+    hierarchy: &'a CpuScene,
+    scene: &'a Scene,
+    query: Query,
+    coherent: bool,
+    normals: bool,
+    /// Rays a packet takes (1: one ray at a time, through the filter where the query needs it).
+    packets: usize,
+}
+
 /// Traces the batch's rays in the fast tier (closest hits, occlusion, counts, transmittance),
-/// `chunk` rays at a time, writing every field `sink` asks for (and `hit`).
+/// `chunk` rays at a time (the interrupt asked between chunks), each chunk in blocks that pack,
+/// trace and write every field `sink` asks for (and `hit`).
 pub fn trace_fast(
     batch: RayBatch,
     hierarchy: &CpuScene,
@@ -80,112 +96,125 @@ pub fn trace_fast(
     let every = matches!(query, Query::Count | Query::Transmit);
     // Transmittance multiplies over every crossing, whatever its opacity.
     let threshold = if query == Query::Transmit { 0.0 } else { request.opacity_threshold };
-    let normals = sink.field(Field::Normal).is_some();
-    let coherent = rays.sensor.is_some();
     // Closest hits and occlusion with nothing for the filter to do trace in Embree's packets.
     let plain = matches!(query, Query::Closest | Query::Occluded)
         && !QueryContext::new(scene, request.cull, threshold, false).needs_filter();
-    let packets = if plain { packet_width } else { 1 };
+    let plan = Plan {
+        hierarchy,
+        scene,
+        query,
+        coherent: rays.sensor.is_some(),
+        normals: sink.field(Field::Normal).is_some(),
+        packets: if plain { packet_width } else { 1 },
+    };
     let (n, frame) = (rays.len(), scene.frame());
-    let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
-    let unit = hierarchy.unit();
-    let mut answers = try_vec(chunk.min(n), MISS, "the CPU engine's hits")?;
+    let mut hit = sink.hit.take();
+    let began = Instant::now();
     let mut start = 0;
     while start < n {
         interrupt.check()?;
         interrupt.progress(start, n);
         let len = chunk.min(n - start);
-        let began = Instant::now();
-        let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
-        profile.pack += began.elapsed().as_secs_f64();
-        let traced = Instant::now();
-        let mask = |k: usize| rays.mask.get(start + k);
-        let lanes = (&packed[..len * RAY_FLOATS], &mut answers[..len]);
-        match packets {
-            16 => parallel::install(|| trace_packets::<16>(hierarchy, scene, lanes, mask, (query, coherent, normals))),
-            8 => parallel::install(|| trace_packets::<8>(hierarchy, scene, lanes, mask, (query, coherent, normals))),
-            _ => parallel::install(|| {
-                answers[..len]
-                    .par_iter_mut()
-                    .zip(packed.par_chunks_exact(RAY_FLOATS))
-                    .enumerate()
-                    .with_min_len(64)
-                    .for_each_init(
-                        || QueryContext::new(scene, request.cull, threshold, every),
-                        |context, (k, (answer, ray))| {
-                            let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), unit);
-                            *answer = trace_one(hierarchy, context, ray, query, coherent, normals, unit);
-                            if query == Query::Closest && answer.prim >= 0 {
-                                answer.t = (f64::from(answer.t) * t_unit) as f32;
-                            }
-                        },
-                    )
-            }),
+        let blocks = block_sinks(sink, hit.as_deref_mut(), start, len);
+        let traced = parallel::install(|| {
+            blocks.into_par_iter().enumerate().try_for_each_init(
+                || {
+                    let context = QueryContext::new(scene, request.cull, threshold, every);
+                    (context, vec![0f32; BLOCK_RAYS * RAY_FLOATS], vec![MISS; BLOCK_RAYS])
+                },
+                |(context, packed, answers), (b, out)| -> Result<()> {
+                    let first = start + b * BLOCK_RAYS;
+                    let count = BLOCK_RAYS.min(start + len - first);
+                    let (packed, answers) = (&mut packed[..count * RAY_FLOATS], &mut answers[..count]);
+                    let advances = rays.pack(first, packed, &frame)?;
+                    let mask = |k: usize| rays.mask.get(first + k);
+                    match plan.packets {
+                        16 => trace_packets::<16>(&plan, packed, answers, mask),
+                        8 => trace_packets::<8>(&plan, packed, answers, mask),
+                        _ => trace_rays(&plan, context, packed, answers, mask),
+                    }
+                    if query == Query::Closest {
+                        add_advances(answers, &advances);
+                    }
+                    out.write(scene, answers);
+                    Ok(())
+                },
+            )
+        });
+        if traced.is_err() {
+            // A block's error names its own first invalid ray: the caller's is the first of all.
+            rays.check()?;
         }
-        profile.host_f64 += traced.elapsed().as_secs_f64();
-        if query == Query::Closest {
-            add_advances(&mut answers, &advances);
-        }
-        let unpacked = Instant::now();
-        write_chunk(scene, sink, start, &answers[..len]);
-        profile.unpack += unpacked.elapsed().as_secs_f64();
+        traced?;
         profile.chunks += 1;
         start += len;
     }
+    profile.host_f64 = began.elapsed().as_secs_f64();
     Ok(())
 }
 
-/// Closest hits (or occlusion) of a chunk's packed rays in Embree's packets of `K` rays, with no
-/// filter: `mask(k)` is ray k's mask; `answers` one per ray.
-fn trace_packets<const K: usize>(
-    hierarchy: &CpuScene,
-    scene: &Scene,
-    (packed, answers): (&[f32], &mut [RayAnswer]),
-    mask: impl Fn(usize) -> u8 + Sync,
-    (query, coherent, normals): (Query, bool, bool),
+/// Rays one at a time (through the query's filter where it needs one).
+fn trace_rays(
+    plan: &Plan,
+    context: &mut QueryContext,
+    packed: &[f32],
+    answers: &mut [RayAnswer],
+    mask: impl Fn(usize) -> u8,
 ) {
-    let unit = hierarchy.unit();
-    let order = if coherent { RAY_QUERY_FLAG_COHERENT } else { RAY_QUERY_FLAG_INCOHERENT };
-    answers.par_chunks_mut(K).zip(packed.par_chunks(K * RAY_FLOATS)).enumerate().with_min_len(8).for_each(
-        |(p, (answers, rays))| {
-            let mut packet = RtcRayHitPacket::<K>::default();
-            let mut valid = RtcValid([0i32; K]);
-            let mut t_units = [1.0f64; K];
-            for (lane, ray) in rays.chunks_exact(RAY_FLOATS).enumerate() {
-                let (r, t_unit) = embree_ray(ray, mask(p * K + lane), unit);
-                [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
-                [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
-                (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
-                (valid.0[lane], t_units[lane]) = (-1, t_unit);
-            }
-            let mut args = RtcArguments {
-                flags: order,
-                feature_mask: FEATURE_FLAGS_ALL,
-                context: std::ptr::null_mut(),
-                filter: None,
-                intersect: std::ptr::null_mut(),
-                min_width_distance_factor: 0.0,
-            };
-            if query == Query::Occluded {
-                // SAFETY: the scene is committed and held; no context or filter is passed.
-                unsafe { hierarchy.scene().occluded_packet(&valid, &mut packet, &mut args) };
-                for (lane, answer) in answers.iter_mut().enumerate() {
-                    *answer = if packet.tfar[lane] == f32::NEG_INFINITY { RayAnswer { prim: 0, ..MISS } } else { MISS };
-                }
-                return;
-            }
-            // SAFETY: as above.
-            unsafe { hierarchy.scene().intersect_packet(&valid, &mut packet, &mut args) };
+    let unit = plan.hierarchy.unit();
+    for (k, (answer, ray)) in answers.iter_mut().zip(packed.chunks_exact(RAY_FLOATS)).enumerate() {
+        let (ray, t_unit) = embree_ray(ray, mask(k), unit);
+        *answer = trace_one(plan.hierarchy, context, ray, plan.query, plan.coherent, plan.normals, unit);
+        if plan.query == Query::Closest && answer.prim >= 0 {
+            answer.t = (f64::from(answer.t) * t_unit) as f32;
+        }
+    }
+}
+
+/// Closest hits (or occlusion) of a block's packed rays in Embree's packets of `K` rays, with no
+/// filter: `mask(k)` is ray k's mask; `answers` one per ray.
+fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [RayAnswer], mask: impl Fn(usize) -> u8) {
+    let unit = plan.hierarchy.unit();
+    let order = if plan.coherent { RAY_QUERY_FLAG_COHERENT } else { RAY_QUERY_FLAG_INCOHERENT };
+    for (p, (answers, rays)) in answers.chunks_mut(K).zip(packed.chunks(K * RAY_FLOATS)).enumerate() {
+        let mut packet = RtcRayHitPacket::<K>::default();
+        let mut valid = RtcValid([0i32; K]);
+        let mut t_units = [1.0f64; K];
+        for (lane, ray) in rays.chunks_exact(RAY_FLOATS).enumerate() {
+            let (r, t_unit) = embree_ray(ray, mask(p * K + lane), unit);
+            [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
+            [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
+            (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
+            (valid.0[lane], t_units[lane]) = (-1, t_unit);
+        }
+        let mut args = RtcArguments {
+            flags: order,
+            feature_mask: FEATURE_FLAGS_ALL,
+            context: std::ptr::null_mut(),
+            filter: None,
+            intersect: std::ptr::null_mut(),
+            min_width_distance_factor: 0.0,
+        };
+        let scene = plan.hierarchy.scene();
+        if plan.query == Query::Occluded {
+            // SAFETY: the scene is committed and held; no context or filter is passed.
+            unsafe { scene.occluded_packet(&valid, &mut packet, &mut args) };
             for (lane, answer) in answers.iter_mut().enumerate() {
-                *answer = if packet.geom_id[lane] == INVALID_ID {
-                    MISS
-                } else {
-                    let found = nearest(scene, &lane_hit(&packet, lane), normals, unit);
-                    RayAnswer { t: (f64::from(found.t) * t_units[lane]) as f32, ..found }
-                };
+                *answer = if packet.tfar[lane] == f32::NEG_INFINITY { RayAnswer { prim: 0, ..MISS } } else { MISS };
             }
-        },
-    );
+            continue;
+        }
+        // SAFETY: as above.
+        unsafe { scene.intersect_packet(&valid, &mut packet, &mut args) };
+        for (lane, answer) in answers.iter_mut().enumerate() {
+            *answer = if packet.geom_id[lane] == INVALID_ID {
+                MISS
+            } else {
+                let found = nearest(plan.scene, &lane_hit(&packet, lane), plan.normals, unit);
+                RayAnswer { t: (f64::from(found.t) * t_units[lane]) as f32, ..found }
+            };
+        }
+    }
 }
 
 /// Lane `lane` of a packet, as one ray and its hit.
@@ -300,32 +329,58 @@ fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool, unit: f64) -> RayAn
     }
 }
 
-/// Writes a chunk's answers (rays `start..`) into every field `sink` asks for, and `hit`.
-fn write_chunk(scene: &Scene, sink: &mut HitSink, start: usize, answers: &[RayAnswer]) {
+/// One block's share of the caller's fields (and `hit`).
+#[derive(Default)]
+struct BlockSink<'a> {
+    fields: Vec<(Field, &'a mut [u8])>,
+    hit: Option<&'a mut [u8]>,
+}
+
+/// The fields of rays `start..start + len` cut into blocks of `BLOCK_RAYS` rays.
+fn block_sinks<'a>(sink: &'a mut HitSink, hit: Option<&'a mut [u8]>, start: usize, len: usize) -> Vec<BlockSink<'a>> {
+    let mut blocks: Vec<BlockSink> = (0..len.div_ceil(BLOCK_RAYS)).map(|_| BlockSink::default()).collect();
+    if let Some(hit) = hit {
+        for (block, piece) in blocks.iter_mut().zip(hit[start..start + len].chunks_mut(BLOCK_RAYS)) {
+            block.hit = Some(piece);
+        }
+    }
     for (field, out) in sink.iter_mut() {
         let width = field.bytes_per_ray(false);
-        let out = &mut out[start * width..(start + answers.len()) * width];
-        parallel::install(|| {
-            out.par_chunks_exact_mut(width).zip(answers).with_min_len(4096).for_each(|(dst, a)| {
-                let custom = |a: &RayAnswer| match a.instance {
-                    -1 => -1,
-                    k => scene.placements[k as usize].custom_index as i32,
-                };
+        let pieces = out[start * width..(start + len) * width].chunks_mut(BLOCK_RAYS * width);
+        for (block, piece) in blocks.iter_mut().zip(pieces) {
+            block.fields.push((field, piece));
+        }
+    }
+    blocks
+}
+
+impl BlockSink<'_> {
+    /// Writes the block's answers into its fields.
+    fn write(self, scene: &Scene, answers: &[RayAnswer]) {
+        for (field, out) in self.fields {
+            let width = field.bytes_per_ray(false);
+            for (dst, a) in out.chunks_exact_mut(width).zip(answers) {
                 match field {
                     Field::T => dst.copy_from_slice(&a.t.to_ne_bytes()),
                     Field::Prim => dst.copy_from_slice(&a.prim.to_ne_bytes()),
                     Field::Instance => dst.copy_from_slice(&a.instance.to_ne_bytes()),
-                    Field::Custom => dst.copy_from_slice(&custom(a).to_ne_bytes()),
+                    Field::Custom => {
+                        let custom = match a.instance {
+                            -1 => -1,
+                            k => scene.placements[k as usize].custom_index as i32,
+                        };
+                        dst.copy_from_slice(&custom.to_ne_bytes())
+                    }
                     Field::Geometry => dst.copy_from_slice(&a.geometry.to_ne_bytes()),
                     Field::Uv => dst.copy_from_slice(bytemuck::cast_slice(&a.uv)),
                     Field::Normal => dst.copy_from_slice(bytemuck::cast_slice(&a.normal)),
                 }
-            })
-        });
-    }
-    if let Some(hit) = sink.hit.as_deref_mut() {
-        for (h, a) in hit[start..start + answers.len()].iter_mut().zip(answers) {
-            *h = u8::from(a.prim >= 0);
+            }
+        }
+        if let Some(hit) = self.hit {
+            for (h, a) in hit.iter_mut().zip(answers) {
+                *h = u8::from(a.prim >= 0);
+            }
         }
     }
 }
