@@ -225,8 +225,9 @@ pub struct EmbreeApi {
     pub occluded8: unsafe extern "C" fn(*const i32, RtcScene, *mut c_void, *mut RtcArguments),
     pub intersect16: unsafe extern "C" fn(*const i32, RtcScene, *mut c_void, *mut RtcArguments),
     pub occluded16: unsafe extern "C" fn(*const i32, RtcScene, *mut c_void, *mut RtcArguments),
-    /// Keeps the library loaded while the functions above are used.
-    _library: Library,
+    /// Keeps the library loaded: never unloaded, as TBB's worker threads (which Embree starts)
+    /// outlive any device, and unmapping their code under them crashes the process at exit.
+    _library: std::mem::ManuallyDrop<Library>,
 }
 
 /// The file names Embree 4 goes by, the wheel's copy (renamed by its build) first.
@@ -296,7 +297,7 @@ impl EmbreeApi {
                 occluded8: symbol!("rtcOccluded8"),
                 intersect16: symbol!("rtcIntersect16"),
                 occluded16: symbol!("rtcOccluded16"),
-                _library: library,
+                _library: std::mem::ManuallyDrop::new(library),
             })
         }
     }
