@@ -191,7 +191,7 @@ def main() -> None:
     report = Report()
     cpu_name = vkray.Device("cpu").name
     report(f"# bench_cpu: {platform.node()}, {os.cpu_count()} cores, {cpu_name}")
-    report(f"`python benchmarks/bench_cpu.py --rays {args.rays} --points {args.points} --repeat {args.repeat}`")
+    report(f"`python benchmarks/bench_cpu.py {' '.join(sys.argv[1:])}`")
     side = int(round(args.rays**0.5))
     for mesh_name in args.meshes.split(","):
         if mesh_name == "bunny-x16":
