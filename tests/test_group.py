@@ -371,7 +371,9 @@ def test_devices_the_group_opens_share_the_cores():
     group = vkray.DeviceGroup([VULKAN_INDEX, VULKAN_INDEX], backend=BACKENDS[0], validation=VALIDATION)
     share = max(1, usable_cores() // 2)
     assert [d.host_threads for d in group.devices] == [share, share]
-    given = vkray.DeviceGroup([group.devices[0], VULKAN_INDEX], host_threads=3, backend=BACKENDS[0], validation=VALIDATION)
+    given = vkray.DeviceGroup(
+        [group.devices[0], VULKAN_INDEX], host_threads=3, backend=BACKENDS[0], validation=VALIDATION
+    )
     assert [d.host_threads for d in given.devices] == [share, 3]
     assert vkray.DeviceGroup([VULKAN_INDEX], backend=BACKENDS[0], validation=VALIDATION).devices[0].host_threads is None
     single = make_device(BACKENDS[0])

@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import functools
 import importlib.util
 import os
 import threading
@@ -61,13 +60,19 @@ def embree_places() -> List[str]:
     return places
 
 
-@functools.lru_cache(maxsize=1)
+_CPU_ENGINE_INFO: List[Optional[Dict[str, Any]]] = []
+
+
 def _cpu_engine_info() -> Optional[Dict[str, Any]]:
-    """The CPU engine's `devices()` entry, or None where Embree cannot be loaded."""
-    try:
-        return dict(_core.Device("cpu", None, False, embree_places()).info)
-    except _core.NoDeviceError:
-        return None
+    """The CPU engine's `devices()` entry, or None where Embree cannot be loaded (found once a
+    process: two threads asking first both look, and the first answer stays)."""
+    if not _CPU_ENGINE_INFO:
+        try:
+            info: Optional[Dict[str, Any]] = dict(_core.Device("cpu", None, False, embree_places()).info)
+        except _core.NoDeviceError:
+            info = None
+        _CPU_ENGINE_INFO.append(info)
+    return _CPU_ENGINE_INFO[0]
 
 
 def _vulkan_infos() -> List[Dict[str, Any]]:
@@ -107,8 +112,9 @@ def _selector(device: Union[int, str, None], vulkan: bool = False) -> Optional[s
         device = os.environ.get("VKRAY_DEVICE") or None
     if device is None:
         listed = [entry for entry in _listed() if not vulkan or entry[0].engine == "vulkan"]
-        best = [selector for info, selector in listed if not info.is_software]
-        return (best or [selector for _, selector in listed] or [None])[0]
+        best: List[Optional[str]] = [selector for info, selector in listed if not info.is_software]
+        anything: List[Optional[str]] = [selector for _, selector in listed]
+        return (best or anything or [None])[0]
     listed = _listed()
     text = str(device).strip()
     if text.lower() == "cpu":

@@ -72,8 +72,8 @@ pub struct RtcRay {
 #[derive(Clone, Copy, Debug, Default)]
 pub struct RtcHit {
     pub ng: [f32; 3],
-    pub u: f32,
-    pub v: f32,
+    /// Barycentrics of vertices 1 and 2.
+    pub uv: [f32; 2],
     pub prim_id: u32,
     pub geom_id: u32,
     pub inst_id: [u32; 1],
@@ -339,7 +339,7 @@ mod tests {
         assert_eq!(size_of::<RtcRay>(), 48);
         assert_eq!(offset_of!(RtcRay, tfar), 32);
         assert_eq!(offset_of!(RtcRay, mask), 36);
-        assert_eq!(offset_of!(RtcHit, u), 12);
+        assert_eq!(offset_of!(RtcHit, uv), 12);
         assert_eq!(offset_of!(RtcHit, prim_id), 20);
         assert_eq!(offset_of!(RtcHit, geom_id), 24);
         assert_eq!(offset_of!(RtcHit, inst_id), 28);

@@ -155,19 +155,15 @@ pub struct EmbreeScene {
     raw: RtcScene,
 }
 
-// SAFETY: a committed Embree scene may be traced from many threads at once; it is changed
-// (attach, commit) only before it is shared or while its mesh is held alone (`Mesh::update`).
-unsafe impl Send for EmbreeScene {}
-// SAFETY: as above.
-unsafe impl Sync for EmbreeScene {}
-
 impl EmbreeScene {
     pub fn raw(&self) -> RtcScene {
         self.raw
     }
 
-    /// Attaches `geometry` (committed) under `id`.
-    pub fn attach(&self, geometry: &EmbreeGeometry, id: u32) -> Result<()> {
+    /// Commits `geometry` under ray `mask` and attaches it under `id`.
+    pub fn attach(&self, geometry: &EmbreeGeometry, id: u32, mask: u32) -> Result<()> {
+        geometry.set_mask(mask);
+        geometry.commit()?;
         // SAFETY: both are live; the scene takes its own reference to the geometry.
         unsafe { (self.device.api.attach_geometry_by_id)(self.raw, geometry.raw, id) };
         self.device.check("attaching a geometry")
@@ -204,38 +200,29 @@ impl EmbreeScene {
 }
 
 impl EmbreeScene {
-    /// The closest hits of a packet of `K` (8 or 16) rays, `valid` lanes only.
+    /// Traces a packet of `K` (8 or 16) rays, `valid` lanes only: their closest hits, or
+    /// (`occlusion`) whether each is occluded (its `tfar` becomes -inf where it is).
     ///
     /// # Safety
     /// As `intersect`.
     #[inline]
-    pub unsafe fn intersect_packet<const K: usize>(
+    pub unsafe fn trace_packet<const K: usize>(
         &self,
         valid: &RtcValid<K>,
         packet: &mut RtcRayHitPacket<K>,
         args: *mut RtcArguments,
+        occlusion: bool,
     ) {
-        let call = if K == 16 { self.device.api.intersect16 } else { self.device.api.intersect8 };
         debug_assert!(K == 8 || K == 16);
-        // SAFETY: the record is laid out as RTCRayHitK and aligned; the caller vouches for `args`.
-        unsafe { call(valid.0.as_ptr(), self.raw, packet as *mut RtcRayHitPacket<K> as *mut c_void, args) }
-    }
-
-    /// Occlusion of a packet of `K` (8 or 16) rays: each valid lane's `tfar` becomes -inf where
-    /// it is occluded.
-    ///
-    /// # Safety
-    /// As `intersect`.
-    #[inline]
-    pub unsafe fn occluded_packet<const K: usize>(
-        &self,
-        valid: &RtcValid<K>,
-        packet: &mut RtcRayHitPacket<K>,
-        args: *mut RtcArguments,
-    ) {
-        let call = if K == 16 { self.device.api.occluded16 } else { self.device.api.occluded8 };
-        debug_assert!(K == 8 || K == 16);
-        // SAFETY: the record's leading part is laid out as RTCRayK; the caller vouches for `args`.
+        let api = &self.device.api;
+        let call = match (K, occlusion) {
+            (16, false) => api.intersect16,
+            (16, true) => api.occluded16,
+            (_, false) => api.intersect8,
+            (_, true) => api.occluded8,
+        };
+        // SAFETY: the record is laid out as RTCRayHitK (its leading part as RTCRayK) and aligned;
+        // the caller vouches for `args`.
         unsafe { call(valid.0.as_ptr(), self.raw, packet as *mut RtcRayHitPacket<K> as *mut c_void, args) }
     }
 }
@@ -253,8 +240,13 @@ pub struct EmbreeGeometry {
     raw: RtcGeometry,
 }
 
-// SAFETY: a geometry is changed only before it is shared or while its mesh is held alone;
-// Embree's functions may be called from any thread.
+// SAFETY: Embree's functions may be called from any thread, and a committed scene traced from
+// many at once; scenes and geometries are changed (filled, attached, committed) only before they
+// are shared or while their mesh is held alone (`Mesh::update`).
+unsafe impl Send for EmbreeScene {}
+// SAFETY: as above.
+unsafe impl Sync for EmbreeScene {}
+// SAFETY: as above.
 unsafe impl Send for EmbreeGeometry {}
 // SAFETY: as above.
 unsafe impl Sync for EmbreeGeometry {}

@@ -125,10 +125,8 @@ impl CpuMesh {
                 part.buffer(BUFFER_TYPE_INDEX, FORMAT_UINT3, faces.len(), |out: &mut [[u32; 3]]| {
                     out.copy_from_slice(faces)
                 })?;
-                part.set_mask(u32::MAX);
                 part.set_build_quality(if options.allow_update { BUILD_QUALITY_REFIT } else { quality });
-                part.commit()?;
-                scene.attach(&part, k as u32)?;
+                scene.attach(&part, k as u32, u32::MAX)?;
                 parts.push(part);
             }
             scene.commit()?;
@@ -151,9 +149,7 @@ impl CpuMesh {
                     *o = [x, y, z, (r / unit) as f32];
                 }
             })?;
-            part.set_mask(u32::MAX);
-            part.commit()?;
-            scene.attach(&part, 0)?;
+            scene.attach(&part, 0, u32::MAX)?;
             scene.commit()?;
             Ok((scene, part))
         })?;

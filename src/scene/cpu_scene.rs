@@ -71,9 +71,7 @@ impl CpuScene {
                 let linear = p.to_scene.linear * (mesh.unit() / unit);
                 let placed = Affine { linear, offset: p.to_scene.offset / unit };
                 instance.instance(mesh.scene(), &placed.to_rows_f32());
-                instance.set_mask(u32::from(p.mask));
-                instance.commit()?;
-                scene.attach(&instance, k as u32)?;
+                scene.attach(&instance, k as u32, u32::from(p.mask))?;
                 instances.push(instance);
             }
             scene.commit()?;

@@ -198,14 +198,14 @@ fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [Ray
         let scene = plan.hierarchy.scene();
         if plan.query == Query::Occluded {
             // SAFETY: the scene is committed and held; no context or filter is passed.
-            unsafe { scene.occluded_packet(&valid, &mut packet, &mut args) };
+            unsafe { scene.trace_packet(&valid, &mut packet, &mut args, true) };
             for (lane, answer) in answers.iter_mut().enumerate() {
                 *answer = if packet.tfar[lane] == f32::NEG_INFINITY { RayAnswer { prim: 0, ..MISS } } else { MISS };
             }
             continue;
         }
         // SAFETY: as above.
-        unsafe { scene.intersect_packet(&valid, &mut packet, &mut args) };
+        unsafe { scene.trace_packet(&valid, &mut packet, &mut args, false) };
         for (lane, answer) in answers.iter_mut().enumerate() {
             *answer = if packet.geom_id[lane] == INVALID_ID {
                 MISS
@@ -232,8 +232,7 @@ fn lane_hit<const K: usize>(packet: &RtcRayHitPacket<K>, lane: usize) -> RtcRayH
         },
         hit: RtcHit {
             ng: [packet.ng_x[lane], packet.ng_y[lane], packet.ng_z[lane]],
-            u: packet.u[lane],
-            v: packet.v[lane],
+            uv: [packet.u[lane], packet.v[lane]],
             prim_id: packet.prim_id[lane],
             geom_id: packet.geom_id[lane],
             inst_id: [packet.inst_id[lane]],
@@ -321,7 +320,7 @@ fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool, unit: f64) -> RayAn
     };
     RayAnswer {
         t: ray.tfar,
-        uv: if spheres { [f32::NAN; 2] } else { [hit.u, hit.v] },
+        uv: if spheres { [f32::NAN; 2] } else { hit.uv },
         prim: hit.prim_id as i32,
         geometry: hit.geom_id as i32,
         instance: instance as i32,
