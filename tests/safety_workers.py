@@ -105,6 +105,9 @@ def watchdog(seconds: float) -> None:
 
 
 def device(backend: str, validation: bool) -> vkray.Device:
+    """A Vulkan device with `backend`, or ("cpu") the CPU engine."""
+    if backend == "cpu":
+        return vkray.Device("cpu")
     return vkray.Device(backend=backend, validation=validation)
 
 

@@ -38,7 +38,7 @@ import pytest
 import safety_workers as w
 
 import vkray
-from conftest import BACKENDS, VALIDATION, make_device
+from conftest import BACKENDS, ENGINES, VALIDATION, make_device
 
 ForkedDeviceError = vkray.ForkedDeviceError
 # NVIDIA's driver is not usable in forked children at all (see the fork tests).
@@ -110,7 +110,7 @@ def finished(run: Run, what: str) -> Dict[str, Dict[str, Any]]:
 # 1. Queries from many threads
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", ENGINES)
 def test_mixed_queries_from_eight_threads_match_single_threaded_answers(backend):
     """8 threads x 200 queries drawn from 48 mixed ones (intersect with various outputs, occluded;
     every precision tier; cull None/"back"; ray masks; 1..20000 rays): 100 each all on one scene,
@@ -123,7 +123,7 @@ def test_mixed_queries_from_eight_threads_match_single_threaded_answers(backend)
         assert r["error_count"] == 0, f"{phase}: {r['error_count']} wrong answers or errors: {r['errors']}"
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", ENGINES)
 def test_two_threads_intersecting_one_scene_do_not_deadlock(backend):
     """The reported deadlock: two threads calling Scene.intersect 5 times each on one scene
     (reported with 400k rays; 100k rays deadlock as well, and so do 100)."""
@@ -136,7 +136,7 @@ def test_two_threads_intersecting_one_scene_do_not_deadlock(backend):
 # 2, 3. Updates and queries
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", ENGINES)
 def test_queries_stay_correct_while_another_scene_is_refitted(backend):
     """One thread runs 150 mixed queries on three scenes while another keeps refitting a fourth
     scene of the device (new transforms, Mesh.update + Scene.update); every answer equals the
@@ -149,7 +149,7 @@ def test_queries_stay_correct_while_another_scene_is_refitted(backend):
     assert r["final_ok"], "the refitted scene does not answer like a fresh build of its last state"
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", ENGINES)
 def test_scene_update_after_mesh_update_works_with_and_without_allow_update(backend):
     """Mesh.update -> every scene holding the mesh raises ValueError naming update -> scene.update()
     (a refit, or a rebuild of a TLAS built without allow_update) -> answers as a fresh scene of
@@ -192,7 +192,7 @@ def test_scene_update_after_mesh_update_works_with_and_without_allow_update(back
     assert np.all(np.linalg.norm(p, axis=1) > 0.98)  # the level-3 icosphere's faces
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", ENGINES)
 def test_updates_wait_for_queries_on_the_same_scene(backend):
     """One thread queries a scene while another updates it: transforms (Scene.update), then
     vertices (Mesh.update + Scene.update, with a scene built without allow_update too). Every
@@ -339,7 +339,7 @@ INTERRUPT_WITHIN = 5.0  # seconds after SIGINT
 
 
 @pytest.mark.parametrize("precision", ["fast", "reference"])
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", ENGINES)
 def test_ctrl_c_stops_a_long_query_and_the_device_traces_again(backend, precision):
     """A query sized (from the rate the child measures) to take ~16 s uninterrupted: 1000
     overlapping triangles, 10-40M rays. SIGINT 2 s in; KeyboardInterrupt within 5 s; then the
