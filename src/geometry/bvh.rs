@@ -1,6 +1,8 @@
 //! A binary bounding-volume hierarchy over boxes, in f64: the reference tier's, closest points'
 //! and winding numbers' (each mesh's and the one over a scene's instances).
 
+use glam::DVec3;
+
 use crate::geometry::precision::{Aabb, Ray64};
 
 /// Items one leaf holds at most.
@@ -14,11 +16,22 @@ pub struct Node {
     pub count: u32,
 }
 
-/// A binary BVH over boxes, split at the median centroid along the widest axis.
+/// A binary BVH over boxes, split by the surface area heuristic over binned centroids (at the
+/// median where that finds no split, or where the tree would grow deeper than `MAX_DEPTH`).
 pub struct Bvh {
     nodes: Vec<Node>,
     items: Vec<u32>,
 }
+
+/// The deepest a leaf lies: the GPU's closest-point and winding shaders walk these trees with
+/// stacks of 40 entries (closest_point.comp MESH_STACK, winding.comp STACK).
+const MAX_DEPTH: u32 = 36;
+
+/// Bins per axis of the SAH split search.
+const SAH_BINS: usize = 16;
+
+/// Entries a traversal's stack holds: one per level at most (`MAX_DEPTH`), with room to spare.
+const STACK: usize = 64;
 
 impl Bvh {
     /// `boxes` must be conservative: the traversal trusts them to hold every hit.
@@ -28,10 +41,11 @@ impl Bvh {
         if boxes.is_empty() {
             return bvh;
         }
+        let centers: Vec<DVec3> = boxes.iter().map(Aabb::center).collect();
         bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
-        // (node, range of `items`) still to split.
-        let mut todo = vec![(0usize, 0usize, items.len())];
-        while let Some((node, lo, hi)) = todo.pop() {
+        // (node, its depth, range of `items`) still to split.
+        let mut todo = vec![(0usize, 0u32, 0usize, items.len())];
+        while let Some((node, depth, lo, hi)) = todo.pop() {
             let slice = &mut items[lo..hi];
             let bounds = slice.iter().fold(Aabb::EMPTY, |b, &i| b.union(&boxes[i as usize]));
             bvh.nodes[node].bounds = bounds;
@@ -40,25 +54,18 @@ impl Bvh {
                 bvh.nodes[node].count = slice.len() as u32;
                 continue;
             }
-            let centroids = Aabb::of_points(slice.iter().map(|&i| boxes[i as usize].center()));
-            let extent = centroids.extent();
-            let axis = if extent.x >= extent.y && extent.x >= extent.z {
-                0
-            } else if extent.y >= extent.z {
-                1
-            } else {
-                2
-            };
-            let mid = slice.len() / 2;
-            slice.select_nth_unstable_by(mid, |&a, &b| {
-                boxes[a as usize].center()[axis].total_cmp(&boxes[b as usize].center()[axis])
-            });
+            // Median splits keep `depth + levels_below(n)` as it is: SAH only while that has room.
+            let room = depth + levels_below(slice.len()) + 2 < MAX_DEPTH;
+            let mid = room
+                .then(|| sah_split(slice, boxes, &centers))
+                .flatten()
+                .unwrap_or_else(|| median_split(slice, &centers));
             let left = bvh.nodes.len();
             bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
             bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
             bvh.nodes[node].first = left as u32;
-            todo.push((left, lo, lo + mid));
-            todo.push((left + 1, lo + mid, hi));
+            todo.push((left, depth + 1, lo, lo + mid));
+            todo.push((left + 1, depth + 1, lo + mid, hi));
         }
         bvh.items = items;
         bvh
@@ -71,9 +78,12 @@ impl Bvh {
         if self.nodes.is_empty() {
             return;
         }
-        let mut stack = Vec::with_capacity(64);
-        stack.push((0u32, lower_bound(&self.nodes[0].bounds)));
-        while let Some((index, bound)) = stack.pop() {
+        let mut stack = [(0u32, 0f64); STACK];
+        stack[0] = (0, lower_bound(&self.nodes[0].bounds));
+        let mut n = 1;
+        while n > 0 {
+            n -= 1;
+            let (index, bound) = stack[n];
             if bound > *best {
                 continue;
             }
@@ -87,13 +97,13 @@ impl Bvh {
             let (left, right) = (node.first, node.first + 1);
             let (lb, rb) =
                 (lower_bound(&self.nodes[left as usize].bounds), lower_bound(&self.nodes[right as usize].bounds));
-            // The nearer child is popped first.
-            if lb <= rb {
-                stack.push((right, rb));
-                stack.push((left, lb));
-            } else {
-                stack.push((left, lb));
-                stack.push((right, rb));
+            // The nearer child is popped first; a child beyond `best` is not pushed at all.
+            let (near, far) = if lb <= rb { ((left, lb), (right, rb)) } else { ((right, rb), (left, lb)) };
+            for child in [far, near] {
+                if child.1 <= *best {
+                    stack[n] = child;
+                    n += 1;
+                }
             }
         }
     }
@@ -108,31 +118,142 @@ impl Bvh {
         &self.items
     }
 
-    /// Calls `visit` with every item whose box the ray enters before `*tmax`; `visit` may lower
-    /// `*tmax` (a closer hit) or return false to stop (an occlusion query's first hit).
+    /// Calls `visit` with every item whose box the ray enters before `*tmax`, nearer boxes first;
+    /// `visit` may lower `*tmax` (a closer hit) or return false to stop (an occlusion query's
+    /// first hit).
     pub fn traverse(&self, ray: &Ray64, tmax: &mut f64, mut visit: impl FnMut(u32, &mut f64) -> bool) {
         if self.nodes.is_empty() {
             return;
         }
         let inverse_direction = ray.direction.recip();
-        let mut stack = Vec::with_capacity(64);
-        stack.push(0u32);
-        while let Some(index) = stack.pop() {
-            let node = &self.nodes[index as usize];
-            let bounded = Ray64 { tmax: *tmax, ..*ray };
-            if node.bounds.entry(&bounded, inverse_direction).is_none() {
+        let entry = |index: u32, tmax: f64| {
+            let bounded = Ray64 { tmax, ..*ray };
+            self.nodes[index as usize].bounds.entry(&bounded, inverse_direction)
+        };
+        let Some(root) = entry(0, *tmax) else { return };
+        // Nodes still to visit, with where the ray enters them (skipped once a hit comes before).
+        let mut stack = [(0u32, 0f64); STACK];
+        stack[0] = (0, root);
+        let mut n = 1;
+        while n > 0 {
+            n -= 1;
+            let (index, enter) = stack[n];
+            if enter > *tmax {
                 continue;
             }
+            let node = &self.nodes[index as usize];
             if node.count > 0 {
                 for &item in &self.items[node.first as usize..(node.first + node.count) as usize] {
                     if !visit(item, tmax) {
                         return;
                     }
                 }
-            } else {
-                stack.push(node.first);
-                stack.push(node.first + 1);
+                continue;
+            }
+            let (left, right) = (node.first, node.first + 1);
+            match (entry(left, *tmax), entry(right, *tmax)) {
+                (Some(l), Some(r)) => {
+                    let (near, far) = if l <= r { ((left, l), (right, r)) } else { ((right, r), (left, l)) };
+                    stack[n] = far;
+                    stack[n + 1] = near;
+                    n += 2;
+                }
+                (Some(l), None) => {
+                    stack[n] = (left, l);
+                    n += 1;
+                }
+                (None, Some(r)) => {
+                    stack[n] = (right, r);
+                    n += 1;
+                }
+                (None, None) => {}
             }
         }
     }
+}
+
+/// Levels of median splits below a node of `n` items before its leaves.
+fn levels_below(n: usize) -> u32 {
+    n.div_ceil(LEAF_ITEMS).next_power_of_two().trailing_zeros()
+}
+
+/// Splits `slice` at the median centroid along the widest axis of its centroids: the items of
+/// the left child come first; returns their number.
+fn median_split(slice: &mut [u32], centers: &[DVec3]) -> usize {
+    let extent = Aabb::of_points(slice.iter().map(|&i| centers[i as usize])).extent();
+    let axis = widest_axis(extent);
+    let mid = slice.len() / 2;
+    slice.select_nth_unstable_by(mid, |&a, &b| centers[a as usize][axis].total_cmp(&centers[b as usize][axis]));
+    mid
+}
+
+fn widest_axis(extent: DVec3) -> usize {
+    if extent.x >= extent.y && extent.x >= extent.z {
+        0
+    } else if extent.y >= extent.z {
+        1
+    } else {
+        2
+    }
+}
+
+/// The surface area heuristic's best split of `slice` among `SAH_BINS` bins of its centroids'
+/// extent on each axis, partitioned in place (left items first; returns their number), or None
+/// where every candidate leaves a side empty.
+fn sah_split(slice: &mut [u32], boxes: &[Aabb], centers: &[DVec3]) -> Option<usize> {
+    let cb = Aabb::of_points(slice.iter().map(|&i| centers[i as usize]));
+    let extent = cb.extent();
+    let bin_of = |axis: usize, c: DVec3| -> usize {
+        let x = (c[axis] - cb.min[axis]) / extent[axis] * SAH_BINS as f64;
+        (x as usize).min(SAH_BINS - 1)
+    };
+    let mut best: Option<(f64, usize, usize)> = None;
+    for axis in 0..3 {
+        if !(extent[axis] > 0.0) || !extent[axis].is_finite() {
+            continue;
+        }
+        let mut counts = [0usize; SAH_BINS];
+        let mut bins = [Aabb::EMPTY; SAH_BINS];
+        for &i in slice.iter() {
+            let b = bin_of(axis, centers[i as usize]);
+            counts[b] += 1;
+            bins[b] = bins[b].union(&boxes[i as usize]);
+        }
+        // Right-hand sweeps: the area and count of bins k.. for each k.
+        let mut right_area = [0.0f64; SAH_BINS];
+        let mut right_count = [0usize; SAH_BINS];
+        let (mut acc, mut count) = (Aabb::EMPTY, 0);
+        for k in (1..SAH_BINS).rev() {
+            acc = acc.union(&bins[k]);
+            count += counts[k];
+            right_area[k] = half_area(&acc);
+            right_count[k] = count;
+        }
+        let (mut acc, mut count) = (Aabb::EMPTY, 0);
+        for k in 1..SAH_BINS {
+            acc = acc.union(&bins[k - 1]);
+            count += counts[k - 1];
+            if count == 0 || right_count[k] == 0 {
+                continue;
+            }
+            let cost = half_area(&acc) * count as f64 + right_area[k] * right_count[k] as f64;
+            if cost.is_finite() && best.is_none_or(|(c, _, _)| cost < c) {
+                best = Some((cost, axis, k));
+            }
+        }
+    }
+    let (_, axis, split) = best?;
+    let mut left = 0;
+    for k in 0..slice.len() {
+        if bin_of(axis, centers[slice[k] as usize]) < split {
+            slice.swap(k, left);
+            left += 1;
+        }
+    }
+    (left > 0 && left < slice.len()).then_some(left)
+}
+
+fn half_area(b: &Aabb) -> f64 {
+    let e = b.extent();
+    e.x * e.y + e.y * e.z + e.z * e.x
 }
