@@ -209,7 +209,7 @@ fn sah_split(slice: &mut [u32], boxes: &[Aabb], centers: &[DVec3]) -> Option<usi
     };
     let mut best: Option<(f64, usize, usize)> = None;
     for axis in 0..3 {
-        if !(extent[axis] > 0.0) || !extent[axis].is_finite() {
+        if extent[axis] <= 0.0 || !extent[axis].is_finite() {
             continue;
         }
         let mut counts = [0usize; SAH_BINS];
