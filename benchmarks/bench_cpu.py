@@ -186,6 +186,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--meshes", default="stanford-bunny,fandisk,bunny-x16")
     parser.add_argument("--no-lavapipe", action="store_true", help="skip vkray on lavapipe (slow)")
+    parser.add_argument("--no-rays", action="store_true", help="only the point queries")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     report = Report()
@@ -206,16 +207,19 @@ def main() -> None:
             f"- build: vkray cpu {engines.mesh_seconds * 1e3:.1f} ms ({stats['bytes'] / len(faces):.0f} bytes a triangle), "
             f"Open3D {engines.o3d_build_seconds * 1e3:.1f} ms (add_triangles and its first query)"
         )
-        origin, dirs = camera_rays(vertices.astype(np.float64), width=side, height=side)
-        rows = ray_table(report, "camera", engines, origin[None, :], dirs, args.repeat)
-        o, d = random_rays(vertices.astype(np.float64), args.rays, seed=5)
-        rows += ray_table(report, "random", engines, o, d, args.repeat)
+        rows: List[Dict[str, Any]] = []
+        if not args.no_rays:
+            origin, dirs = camera_rays(vertices.astype(np.float64), width=side, height=side)
+            rows += ray_table(report, "camera", engines, origin[None, :], dirs, args.repeat)
+            o, d = random_rays(vertices.astype(np.float64), args.rays, seed=5)
+            rows += ray_table(report, "random", engines, o, d, args.repeat)
         lo, hi = vertices.min(0), vertices.max(0)
         grow = 0.1 * (hi - lo)
         points = np.random.default_rng(1).uniform(lo - grow, hi + grow, (args.points, 3)).astype(np.float32)
         prows = point_table(report, engines, points, args.repeat)
-        report("")
-        report(markdown(rows))
+        if rows:
+            report("")
+            report(markdown(rows))
         report("")
         report(markdown(prows))
     report.save(args.out)

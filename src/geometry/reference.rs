@@ -237,7 +237,7 @@ impl<'a> ReferenceTracer<'a> {
     /// sides `cull` keeps; with `any`, the first one found.
     pub fn trace(&self, ray: &Ray64, mask: u8, filter: Filter, any: bool) -> Option<ReferenceHit> {
         let mut best: Option<ReferenceHit> = None;
-        self.for_each_hit(ray, mask, filter, |candidate, tmax| {
+        self.for_each_hit(ray, mask, filter, |candidate, _, tmax| {
             if best.is_none_or(|b| candidate.is_before(&b)) {
                 best = Some(candidate);
                 // Boxes are skipped past a little beyond the best t: their entry distances are
@@ -258,12 +258,25 @@ impl<'a> ReferenceTracer<'a> {
     /// triangles at the same t (coplanar copies, instances in one place) are all reported.
     pub fn trace_every(&self, ray: &Ray64, mask: u8, filter: Filter, hits: &mut Vec<ReferenceHit>) {
         let first = hits.len();
-        self.for_each_hit(ray, mask, filter, |hit, _| {
+        self.for_each_hit(ray, mask, filter, |hit, _, _| {
             hits.push(hit);
             true
         });
         hits[first..]
             .sort_unstable_by(|x, y| x.t.total_cmp(&y.t).then((x.instance, x.prim).cmp(&(y.instance, y.prim))));
+    }
+
+    /// The signed sum of `ray`'s crossings with every triangle (every side, whatever its
+    /// opacity), each crossing once as `trace_every` finds them: +1 where the ray meets a
+    /// triangle's back in its mesh's frame (it leaves an outward mesh), -1 its front; the exact
+    /// tier's winding query counts the same (shaders/exact.glsl `exact_crossing`).
+    pub fn signed_crossings(&self, ray: &Ray64) -> i32 {
+        let mut sum = 0;
+        self.for_each_hit(ray, 0xFF, Filter::sides(Cull::None), |_, front, _| {
+            sum += if front { -1 } else { 1 };
+            true
+        });
+        sum
     }
 
     /// Calls `found` with each hit of `ray` no farther than the `tmax` it keeps (which `found`
@@ -273,7 +286,7 @@ impl<'a> ReferenceTracer<'a> {
         ray: &Ray64,
         mask: u8,
         filter: Filter,
-        mut found: impl FnMut(ReferenceHit, &mut f64) -> bool,
+        mut found: impl FnMut(ReferenceHit, bool, &mut f64) -> bool,
     ) {
         let mut tmax = ray.tmax;
         self.top.traverse(ray, &mut tmax, |instance, tmax| {
@@ -292,7 +305,7 @@ impl<'a> ReferenceTracer<'a> {
                 if set.opacity.is_some_and(|o| o[prim as usize] < filter.threshold) {
                     return true;
                 }
-                go_on = found(ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim }, tmax);
+                go_on = found(ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim }, hit.front, tmax);
                 go_on
             });
             go_on

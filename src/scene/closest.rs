@@ -6,19 +6,15 @@
 use std::mem::{size_of, size_of_val};
 use std::sync::Arc;
 
-use glam::DVec3;
-
 use super::instance::Placement;
+use super::winding_cap::{band_of, cap_geometry, CapGeometry};
 use crate::error::{Error, Result};
 use crate::geometry::bvh::{Bvh, Node};
 use crate::geometry::precision::{Aabb, Affine};
 use crate::geometry::reference::{gap_weights, TriangleSet};
-use crate::geometry::winding::boundary_loops;
 use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
-use crate::gpu::records::{
-    BvhInstance, BvhNode, BvhTriangle, WindingCapEdge, WindingCapHeader, WindingCapHole, WindingEdge, WindingSpan,
-};
+use crate::gpu::records::{BvhInstance, BvhNode, BvhTriangle, WindingCapHeader, WindingEdge, WindingSpan};
 
 /// The device's copy of every hierarchy closest points search.
 pub struct ClosestScene {
@@ -123,17 +119,6 @@ impl WindingScene {
     }
 }
 
-/// The most boundary edges a cap may have: a ray of the exact tier's winding query near every
-/// hole tests and sums them all, where the hierarchy (`WindingScene`) sums a few nodes' boundaries.
-pub const MAX_CAP_EDGES: usize = 4096;
-
-/// How far one triangle's term of a winding number on the GPU may be from the CPU's: its f32
-/// arctangent (an ulp of π, and the rounding of its arguments), over 4π, with a margin.
-pub const WINDING_TERM_ERROR: f64 = 2e-7;
-/// Added to the terms' bound: winding numbers on the GPU within this (and the terms' bound) of
-/// 1/2 are decided on the CPU.
-pub const WINDING_MARGIN: f64 = 1e-4;
-
 /// The caps that close the holes of a one-instance scene's mesh, for the exact tier's winding
 /// query (trace::Query::Winding): per hole (a loop of the hierarchy's root's boundary,
 /// geometry::winding::boundary_loops) the fan from the hole's mean corner over its edges, corners
@@ -152,54 +137,10 @@ impl WindingCap {
     /// need telling apart), an instance no ray meets (mask 0), or a boundary of more than
     /// `MAX_CAP_EDGES` edges (the root keeps none, or too many to sum per ray).
     pub(super) fn build(ctx: &Arc<Context>, placements: &[Placement]) -> Result<Option<WindingCap>> {
-        let [placement] = placements else { return Ok(None) };
-        if placement.mask == 0 {
-            return Ok(None);
-        }
-        let set = &placement.triangles;
-        let tree = set.winding_tree();
-        let Some(span) = tree.spans().first() else { return Ok(None) };
-        if span.count == crate::geometry::winding::NO_CAP || span.count as usize > MAX_CAP_EDGES {
-            return Ok(None);
-        }
-        let first = span.first as usize;
-        let loops = boundary_loops(&tree.edges()[first..first + span.count as usize]);
-        let in_scene = |v: DVec3| placement.to_scene.point(v);
-        let mut holes = Vec::with_capacity(loops.len());
-        let mut edges = Vec::with_capacity(span.count as usize);
-        for edge_loop in &loops {
-            let corners = |[u, v]: [u32; 2]| (set.vertices[u as usize], set.vertices[v as usize]);
-            let apex = edge_loop.iter().map(|&e| corners(e).0).sum::<DVec3>() / edge_loop.len() as f64;
-            let apex_scene = in_scene(apex);
-            let (mut radius, mut radius_scene, mut area_scene) = (0.0f64, 0.0f64, 0.0f64);
-            holes.push(WindingCapHole {
-                first: edges.len() as u32,
-                count: edge_loop.len() as u32,
-                ..Default::default()
-            });
-            for &e in edge_loop {
-                let (a, b) = corners(e);
-                let (a_scene, b_scene) = (in_scene(a), in_scene(b));
-                radius = radius.max(a.distance(apex)).max(b.distance(apex));
-                radius_scene = radius_scene.max(a_scene.distance(apex_scene)).max(b_scene.distance(apex_scene));
-                area_scene += 0.5 * (a_scene - apex_scene).cross(b_scene - apex_scene).length();
-                edges.push(WindingCapEdge {
-                    a: a.to_array(),
-                    b: b.to_array(),
-                    a_scene: a_scene.to_array(),
-                    b_scene: b_scene.to_array(),
-                });
-            }
-            // Grown past their rounding: the shader trusts them to skip a fan.
-            let grow = 1.0 + 1e-9;
-            let hole = holes.last_mut().expect("pushed");
-            hole.apex = apex.to_array();
-            hole.apex_scene = apex_scene.to_array();
-            (hole.radius, hole.radius_scene, hole.area_scene) = (radius * grow, radius_scene * grow, area_scene * grow);
-        }
+        let Some(CapGeometry { holes, edges, mirrored }) = cap_geometry(placements) else { return Ok(None) };
         let edge_count = edges.len();
         let band = band_of(edge_count);
-        let mirrored = (placement.to_scene.linear.determinant() < 0.0) as u32;
+        let mirrored = u32::from(mirrored);
         let holes_at = size_of::<WindingCapHeader>();
         let edges_at = holes_at + size_of_val(holes.as_slice());
         let size = edges_at + size_of_val(edges.as_slice());
@@ -233,10 +174,6 @@ impl WindingCap {
     pub fn band(&self) -> f64 {
         band_of(self.edge_count)
     }
-}
-
-fn band_of(edge_count: usize) -> f64 {
-    WINDING_TERM_ERROR * edge_count as f64 + WINDING_MARGIN
 }
 
 /// The scene's triangle sets, each once, in the order of their first placement: the order of

@@ -9,6 +9,8 @@ pub mod instance;
 
 pub mod top_level;
 
+pub mod winding_cap;
+
 pub mod cpu_mesh;
 
 pub mod cpu_scene;
@@ -23,7 +25,7 @@ pub mod exact;
 
 pub mod vulkan_scene;
 
-pub use closest::{ClosestScene, WindingCap, WindingScene, MAX_CAP_EDGES, WINDING_MARGIN, WINDING_TERM_ERROR};
+pub use closest::{ClosestScene, WindingCap, WindingScene};
 pub use cpu_mesh::{build_cpu_meshes, build_cpu_spheres, CpuMesh};
 pub use cpu_scene::{build_cpu_scene, CpuScene};
 pub use exact::ExactScene;
@@ -32,3 +34,4 @@ pub use mesh::{Mesh, MeshBatch, MeshGeometry, MeshHierarchy, MeshInput, MeshKind
 pub use top_level::{Scene, SceneHierarchy};
 pub use vulkan_mesh::{build_vulkan_meshes, build_vulkan_spheres, VulkanMesh};
 pub use vulkan_scene::{build_vulkan_scene, VulkanScene};
+pub use winding_cap::{cap_geometry, CapGeometry, MAX_CAP_EDGES, WINDING_MARGIN, WINDING_TERM_ERROR};

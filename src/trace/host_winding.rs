@@ -1,0 +1,119 @@
+//! `contains` by winding number on the host through one ray a point, as the GPU's exact winding
+//! query does it (shaders/exact.glsl `add_cap`): the mesh less the caps that close its holes has
+//! no boundary, so its winding number about a point is the signed count of a ray's crossings
+//! with it, and the mesh's is that plus the caps' solid angles. A ray and a few fans cost far less
+//! than the whole winding number (the hierarchy's sum, `WindingTree`), which then decides only the
+//! points whose sum lies near 1/2.
+
+use std::f64::consts::PI;
+
+use glam::DVec3;
+
+use crate::geometry::precision::{watertight_edges, Ray64, ShearedRay};
+use crate::geometry::reference::ReferenceTracer;
+use crate::geometry::winding::twice_solid_angle;
+use crate::gpu::records::{WindingCapEdge, WindingCapHole};
+use crate::scene::{CapGeometry, Placement};
+use crate::trace::request::Crossings;
+
+/// A hole whose winding number's bound is at most this is passed over at first (the GPU's
+/// CAP_SKIP_BOUND): its bound is summed instead, and its fan only where the bounds passed over
+/// could bring the sum within the band about 1/2.
+const CAP_SKIP_BOUND: f64 = 0.08;
+
+/// The winding query of the point `p` (scene frame) of the scene's one instance `placement`,
+/// closed by `cap`: its ray's crossings (signed sum and whether `p` lies on a surface, as the
+/// GPU's `Crossings`) and the caps' winding number about `p` (NaN where `p` lies within
+/// rounding of a fan); `trace::host_tiers::mark_by_crossings` decides from them.
+pub fn winding_ray(
+    tracer: &ReferenceTracer,
+    placement: &Placement,
+    cap: &CapGeometry,
+    band: f64,
+    p: DVec3,
+    direction: DVec3,
+) -> (Crossings, f64) {
+    let ray = Ray64 { origin: p, direction, tmin: 0.0, tmax: f64::INFINITY };
+    let mut count = tracer.signed_crossings(&ray);
+    // The mesh's own sheared ray, as the tracer tests its triangles: a ray through a boundary
+    // edge meets either the mesh or the fan.
+    let local = ShearedRay::new(ray.transformed(&placement.to_local));
+    let sign = if cap.mirrored { -1.0 } else { 1.0 };
+    let (mut twice_angle, mut unsure, mut passed_over) = (0.0, false, 0.0);
+    let mut skipped = Vec::new();
+    for hole in &cap.holes {
+        let edges = &cap.edges[hole.first as usize..(hole.first + hole.count) as usize];
+        if may_cross_fan(&local.ray, hole) {
+            count -= fan_crossings(&local, hole, edges);
+        }
+        let bound = fan_winding_bound(p, hole);
+        if bound <= CAP_SKIP_BOUND {
+            passed_over += bound;
+            skipped.push((hole, edges));
+            continue;
+        }
+        let (angle, near) = fan_angle(p, hole, edges);
+        (twice_angle, unsure) = (twice_angle + angle, unsure || near);
+    }
+    let near_half = (f64::from(count) + sign * twice_angle / (4.0 * PI) - 0.5).abs();
+    if passed_over > 0.0 && near_half <= band + passed_over {
+        for (hole, edges) in skipped {
+            let (angle, near) = fan_angle(p, hole, edges);
+            (twice_angle, unsure) = (twice_angle + angle, unsure || near);
+        }
+    }
+    let cap_winding = if unsure { f64::NAN } else { sign * twice_angle / (4.0 * PI) };
+    (Crossings(count << 1), cap_winding)
+}
+
+/// Whether the ray (the mesh's frame) may cross the fan of `hole`: the fan lies within its
+/// radius of its apex, so a line passing farther (past a margin far beyond rounding) cannot.
+fn may_cross_fan(ray: &Ray64, hole: &WindingCapHole) -> bool {
+    let apex = DVec3::from_array(hole.apex);
+    let gap = (apex - ray.origin).cross(ray.direction).length() / ray.direction.length();
+    let reach = hole.radius * (1.0 + 1e-6) + 1e-9 * (apex.length() + ray.origin.length());
+    // NaN (a degenerate ray or hole) may cross.
+    gap <= reach || gap.is_nan()
+}
+
+/// The signed crossings of the fan from `hole`'s apex over its `edges` (as `signed_crossings`
+/// counts the mesh's: +1 through a triangle's back).
+fn fan_crossings(ray: &ShearedRay, hole: &WindingCapHole, edges: &[WindingCapEdge]) -> i32 {
+    let apex = DVec3::from_array(hole.apex);
+    edges
+        .iter()
+        .filter_map(|e| watertight_edges(ray, apex, DVec3::from_array(e.a), DVec3::from_array(e.b), false))
+        .map(|hit| if hit.front { -1 } else { 1 })
+        .sum()
+}
+
+/// A bound on the size of `hole`'s winding number about `p`: every point of its fan lies at
+/// least (distance to the apex - radius) away, so each triangle's solid angle is at most its
+/// area over that squared. Infinite where `p` lies within the radius.
+fn fan_winding_bound(p: DVec3, hole: &WindingCapHole) -> f64 {
+    let gap = DVec3::from_array(hole.apex_scene).distance(p) - hole.radius_scene;
+    if gap > 0.0 {
+        hole.area_scene / (4.0 * PI * gap * gap)
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// Twice the solid angle of `hole`'s fan about `p` (scene frame), and whether `p` lies within
+/// rounding of one of its triangles' insides (where the angle jumps by 4π).
+fn fan_angle(p: DVec3, hole: &WindingCapHole, edges: &[WindingCapEdge]) -> (f64, bool) {
+    let apex = DVec3::from_array(hole.apex_scene) - p;
+    edges.iter().fold((0.0, false), |(sum, near), e| {
+        let (a, b) = (DVec3::from_array(e.a_scene) - p, DVec3::from_array(e.b_scene) - p);
+        (sum + twice_solid_angle(apex, a, b), near || near_inside(apex, a, b))
+    })
+}
+
+/// Whether the origin lies on the triangle (a, b, c) or within 1e-10 of its size of its inside
+/// (shaders/solid_angle.glsl `near_inside`).
+fn near_inside(a: DVec3, b: DVec3, c: DVec3) -> bool {
+    let (la, lb, lc) = (a.length(), b.length(), c.length());
+    let numerator = a.dot(b.cross(c));
+    let denominator = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
+    denominator <= 0.0 && numerator.abs() <= 1e-10 * la * lb * lc
+}
