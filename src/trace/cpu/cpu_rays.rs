@@ -4,7 +4,7 @@
 
 use std::time::Instant;
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
 use super::hit_filter::{Candidate, QueryContext};
@@ -37,19 +37,34 @@ struct RayAnswer {
 const MISS: RayAnswer =
     RayAnswer { t: f32::INFINITY, uv: [f32::NAN; 2], prim: -1, geometry: -1, instance: -1, normal: [f32::NAN; 3] };
 
+/// What the scene's frame is divided by in Embree (`CpuScene::unit`, a power of two), with its
+/// inverse (exact) for the rays' packing.
+#[derive(Clone, Copy)]
+struct Units {
+    unit: f64,
+    inverse: f64,
+}
+
+impl Units {
+    fn of(hierarchy: &CpuScene) -> Units {
+        let unit = hierarchy.unit();
+        Units { unit, inverse: 1.0 / unit }
+    }
+}
+
 /// A packed ray (`RAY_FLOATS`: origin, tmin, direction, tmax) as Embree takes it, and what its
 /// `t` is multiplied by to be the caller's. Embree holds the scene's frame divided by `unit`
 /// (`CpuScene::unit`), so the origin is too; the direction is scaled to a length near 1 (Embree
 /// clamps direction components below 1e-18, which a direction in units of a huge scene would
-/// be); both by powers of two (exact), and `t` by their ratio.
-fn embree_ray(packed: &[f32], mask: u8, unit: f64) -> (RtcRay, f64) {
+/// be); both by powers of two (exact: multiplying by their inverses is dividing, bit for bit,
+/// without a division a ray), and `t` by their ratio.
+fn embree_ray(packed: &[f32], mask: u8, units: Units) -> (RtcRay, f64) {
     let longest = packed[4].abs().max(packed[5].abs()).max(packed[6].abs());
-    let direction_scale =
-        if longest > 0.0 && longest.is_finite() { 2f64.powi(-(longest.log2().ceil() as i32)) } else { 1.0 };
-    // A point at t lies at (o + t d) / unit = o / unit + t' (d * direction_scale).
-    let t_unit = unit * direction_scale;
-    let (o, d) = ((1.0 / unit) as f32, direction_scale as f32);
-    let t = |t: f32| ((f64::from(t) / t_unit) as f32).min(f32::MAX);
+    let direction_up = power_of_two_at_or_above(longest).unwrap_or(1.0);
+    // A point at t lies at (o + t d) / unit = o / unit + t' (d / direction_up).
+    let (t_unit, inverse_t_unit) = (units.unit / direction_up, units.inverse * direction_up);
+    let (o, d) = (units.inverse as f32, (1.0 / direction_up) as f32);
+    let t = |t: f32| ((f64::from(t) * inverse_t_unit) as f32).min(f32::MAX);
     let ray = RtcRay {
         org: [packed[0] * o, packed[1] * o, packed[2] * o],
         tnear: t(packed[3]),
@@ -61,6 +76,23 @@ fn embree_ray(packed: &[f32], mask: u8, unit: f64) -> (RtcRay, f64) {
         flags: 0,
     };
     (ray, t_unit)
+}
+
+/// The least power of two at or above `|x|` (`2^ceil(log2 |x|)`), read from its bits (a
+/// logarithm a ray cost a tenth of the trace): None for 0, infinities and NaN.
+fn power_of_two_at_or_above(x: f32) -> Option<f64> {
+    let bits = x.to_bits() & 0x7fff_ffff;
+    let exponent = (bits >> 23) as i32;
+    if bits == 0 || exponent == 0xff {
+        return None;
+    }
+    if exponent == 0 {
+        // Subnormal: rare enough for the logarithm.
+        return Some(2f64.powi(f64::from(x.abs()).log2().ceil() as i32));
+    }
+    let above = i32::from(bits & 0x7f_ffff != 0);
+    // An f64 with exponent (exponent - 127 + above) and no mantissa.
+    Some(f64::from_bits(((exponent - 127 + above + 1023) as u64) << 52))
 }
 
 /// Rays one task of the fast tier packs, traces and writes out at once (the chunk's tasks run on
@@ -161,10 +193,10 @@ fn trace_rays(
     answers: &mut [RayAnswer],
     mask: impl Fn(usize) -> u8,
 ) {
-    let unit = plan.hierarchy.unit();
+    let units = Units::of(plan.hierarchy);
     for (k, (answer, ray)) in answers.iter_mut().zip(packed.chunks_exact(RAY_FLOATS)).enumerate() {
-        let (ray, t_unit) = embree_ray(ray, mask(k), unit);
-        *answer = trace_one(plan.hierarchy, context, ray, plan.query, plan.coherent, plan.normals, unit);
+        let (ray, t_unit) = embree_ray(ray, mask(k), units);
+        *answer = trace_one(plan.hierarchy, context, ray, plan.query, plan.coherent, plan.normals, units.unit);
         if plan.query == Query::Closest && answer.prim >= 0 {
             answer.t = (f64::from(answer.t) * t_unit) as f32;
         }
@@ -174,14 +206,14 @@ fn trace_rays(
 /// Closest hits (or occlusion) of a block's packed rays in Embree's packets of `K` rays, with no
 /// filter: `mask(k)` is ray k's mask; `answers` one per ray.
 fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [RayAnswer], mask: impl Fn(usize) -> u8) {
-    let unit = plan.hierarchy.unit();
+    let units = Units::of(plan.hierarchy);
     let order = if plan.coherent { RAY_QUERY_FLAG_COHERENT } else { RAY_QUERY_FLAG_INCOHERENT };
     for (p, (answers, rays)) in answers.chunks_mut(K).zip(packed.chunks(K * RAY_FLOATS)).enumerate() {
         let mut packet = RtcRayHitPacket::<K>::default();
         let mut valid = RtcValid([0i32; K]);
         let mut t_units = [1.0f64; K];
         for (lane, ray) in rays.chunks_exact(RAY_FLOATS).enumerate() {
-            let (r, t_unit) = embree_ray(ray, mask(p * K + lane), unit);
+            let (r, t_unit) = embree_ray(ray, mask(p * K + lane), units);
             [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
             [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
             (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
@@ -210,7 +242,7 @@ fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [Ray
             *answer = if packet.geom_id[lane] == INVALID_ID {
                 MISS
             } else {
-                let found = nearest(plan.scene, &lane_hit(&packet, lane), plan.normals, unit);
+                let found = nearest(plan.scene, &lane_hit(&packet, lane), plan.normals, units.unit);
                 RayAnswer { t: (f64::from(found.t) * t_units[lane]) as f32, ..found }
             };
         }
@@ -315,8 +347,12 @@ fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool, unit: f64) -> RayAn
         // Embree's geometric normal, cross(v1 - v0, v2 - v0) in the mesh's frame (f32, as the
         // GPU's), into the world as `world_normal` takes a triangle's.
         let ng = DVec3::new(f64::from(hit.ng[0]), f64::from(hit.ng[1]), f64::from(hit.ng[2]));
-        let sign = placement.to_local.linear.determinant().signum();
-        (sign * (placement.to_local.linear.transpose() * ng)).normalize().as_vec3().to_array()
+        let linear = &placement.to_local.linear;
+        // An unturned, unscaled placement (the usual one) maps normals to themselves: the same
+        // answer, bit for bit, without a determinant and a product a hit.
+        let world =
+            if *linear == DMat3::IDENTITY { ng } else { linear.determinant().signum() * (linear.transpose() * ng) };
+        world.normalize().as_vec3().to_array()
     };
     RayAnswer {
         t: ray.tfar,
@@ -400,7 +436,7 @@ pub fn all_hits_fast(
     }
     let (n, frame) = (rays.len(), scene.frame());
     let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
-    let unit = hierarchy.unit();
+    let units = Units::of(hierarchy);
     let mut offsets = try_vec(n + 1, 0i64, "the offsets of all hits")?;
     let mut hits: Vec<ReferenceHit> = Vec::new();
     let mut start = 0;
@@ -417,8 +453,8 @@ pub fn all_hits_fast(
                 .map_init(
                     || QueryContext::new(scene, request.cull, request.opacity_threshold, true),
                     |context, (k, ray)| {
-                        let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), unit);
-                        trace_one(hierarchy, context, ray, Query::Count, false, false, unit);
+                        let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), units);
+                        trace_one(hierarchy, context, ray, Query::Count, false, false, units.unit);
                         let kept = context.sorted_found();
                         kept[..kept.len().min(max_hits)].iter().map(|c| reference_hit(scene, c, t_unit)).collect()
                     },
