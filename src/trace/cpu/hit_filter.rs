@@ -43,6 +43,10 @@ pub struct QueryContext<'a> {
     threshold: f32,
     /// Keep every hit in `found` and go on (counts, all hits, transmittance).
     every: bool,
+    /// Whether every hit counts (no culling, nothing translucent): the filter then asks nothing.
+    keeps_all: bool,
+    /// Whether the filter runs at all (`needs_filter`), decided once: a query asks it a ray.
+    filtered: bool,
     /// The traced ray's direction in the scene's frame (for facing).
     pub direction: DVec3,
     /// The hits met so far, where `every`.
@@ -51,12 +55,15 @@ pub struct QueryContext<'a> {
 
 impl<'a> QueryContext<'a> {
     pub fn new(scene: &'a Scene, cull: Cull, threshold: f32, every: bool) -> QueryContext<'a> {
+        let keeps_all = cull == Cull::None && !(threshold > 0.0 && scene.has_opacity());
         QueryContext {
             embree: RtcRayQueryContext::default(),
             scene,
             cull,
             threshold,
             every,
+            keeps_all,
+            filtered: every || !keeps_all,
             direction: DVec3::ZERO,
             found: Vec::new(),
         }
@@ -70,7 +77,7 @@ impl<'a> QueryContext<'a> {
     /// Whether this query needs the filter at all: plain closest hits and occlusion in a scene
     /// with nothing translucent and no culling need none (Embree's fastest path).
     pub fn needs_filter(&self) -> bool {
-        !self.effects().is_empty()
+        self.filtered
     }
 
     /// What the filter does for this query, by name (none: no filter runs).
@@ -163,7 +170,7 @@ unsafe extern "C" fn filter_hit(args: *const RtcFilterArguments) {
                 INVALID_ID => 0,
                 id => id,
             };
-            if !context.keeps(instance, geometry, prim) {
+            if !context.keeps_all && !context.keeps(instance, geometry, prim) {
                 *valid = 0;
                 continue;
             }
