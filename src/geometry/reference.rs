@@ -338,10 +338,14 @@ impl<'a> ReferenceTracer<'a> {
                 // linear part multiplies by ones and zeros, so adding its offset is the same, bit
                 // for bit, in fewer operations.
                 let (moved_only, offset) = (set.to_scene.linear == glam::DMat3::IDENTITY, set.to_scene.offset);
+                // Searched in squared lengths (no square root a node): the best's squared
+                // distance so far, or the limit's.
+                let mut reach_squared = best.map_or(limit, |b| b.distance);
+                let before = reach_squared;
                 set.triangles.bvh().nearest(
-                    |b| weighted_gap(b, local, weights, scale).sqrt() * (1.0 - 1e-12),
-                    reach,
-                    |prim, reach| {
+                    |b| weighted_gap(b, local, weights, scale) * (1.0 - 2e-12),
+                    &mut reach_squared,
+                    |prim, reach_squared| {
                         let triangle = set.triangles.triangle(prim as usize);
                         let [a, b, c] = if moved_only {
                             triangle.map(|v| v + offset)
@@ -354,10 +358,13 @@ impl<'a> ReferenceTracer<'a> {
                         let hit = ClosestHit { distance: squared, point: q, u: 0.0, v: 0.0, instance, prim };
                         if squared <= limit && best.is_none_or(|b| hit.is_before(&b)) {
                             best = Some(hit);
-                            *reach = squared.sqrt();
+                            *reach_squared = squared;
                         }
                     },
                 );
+                if reach_squared != before {
+                    *reach = reach_squared.sqrt();
+                }
             },
         );
         best.map(|hit| {
