@@ -60,15 +60,18 @@ impl Units {
 /// without a division a ray), and `t` by their ratio.
 fn embree_ray(packed: &[f32], mask: u8, units: Units) -> (RtcRay, f64) {
     let longest = packed[4].abs().max(packed[5].abs()).max(packed[6].abs());
-    let direction_up = power_of_two_at_or_above(longest).unwrap_or(1.0);
-    // A point at t lies at (o + t d) / unit = o / unit + t' (d / direction_up).
-    let (t_unit, inverse_t_unit) = (units.unit / direction_up, units.inverse * direction_up);
-    let (o, d) = (units.inverse as f32, (1.0 / direction_up) as f32);
-    let t = |t: f32| ((f64::from(t) * inverse_t_unit) as f32).min(f32::MAX);
+    // The direction is divided by 2^up (exact), so that its longest component lies in (1/2, 1].
+    let up = exponent_at_or_above(longest).unwrap_or(0);
+    let (down, back_up) = (power_of_two(-up), power_of_two(up));
+    // A point at t lies at (o + t d) / unit = o / unit + t' (d / 2^up).
+    let (t_unit, inverse_t_unit) = (units.unit * down, units.inverse * back_up);
+    // Scaled in f64 (exact), so that neither factor leaves f32's range on its own.
+    let scaled = |v: f32, by: f64| (f64::from(v) * by) as f32;
+    let t = |t: f32| scaled(t, inverse_t_unit).min(f32::MAX);
     let ray = RtcRay {
-        org: [packed[0] * o, packed[1] * o, packed[2] * o],
+        org: [0, 1, 2].map(|k| scaled(packed[k], units.inverse)),
         tnear: t(packed[3]),
-        dir: [packed[4] * d, packed[5] * d, packed[6] * d],
+        dir: [4, 5, 6].map(|k| scaled(packed[k], down)),
         time: 0.0,
         tfar: t(packed[7]),
         mask: u32::from(mask),
@@ -78,9 +81,9 @@ fn embree_ray(packed: &[f32], mask: u8, units: Units) -> (RtcRay, f64) {
     (ray, t_unit)
 }
 
-/// The least power of two at or above `|x|` (`2^ceil(log2 |x|)`), read from its bits (a
-/// logarithm a ray cost a tenth of the trace): None for 0, infinities and NaN.
-fn power_of_two_at_or_above(x: f32) -> Option<f64> {
+/// `ceil(log2 |x|)`, read from the bits (a logarithm a ray cost a tenth of the trace): None for
+/// 0, infinities and NaN.
+fn exponent_at_or_above(x: f32) -> Option<i32> {
     let bits = x.to_bits() & 0x7fff_ffff;
     let exponent = (bits >> 23) as i32;
     if bits == 0 || exponent == 0xff {
@@ -88,11 +91,14 @@ fn power_of_two_at_or_above(x: f32) -> Option<f64> {
     }
     if exponent == 0 {
         // Subnormal: rare enough for the logarithm.
-        return Some(2f64.powi(f64::from(x.abs()).log2().ceil() as i32));
+        return Some(f64::from(x.abs()).log2().ceil() as i32);
     }
-    let above = i32::from(bits & 0x7f_ffff != 0);
-    // An f64 with exponent (exponent - 127 + above) and no mantissa.
-    Some(f64::from_bits(((exponent - 127 + above + 1023) as u64) << 52))
+    Some(exponent - 127 + i32::from(bits & 0x7f_ffff != 0))
+}
+
+/// 2^k in f64 (k within f32's exponents, as `exponent_at_or_above` gives), from its bits.
+fn power_of_two(k: i32) -> f64 {
+    f64::from_bits(((k + 1023) as u64) << 52)
 }
 
 /// Rays one task of the fast tier packs, traces and writes out at once (the chunk's tasks run on
