@@ -451,34 +451,45 @@ pub fn all_hits_fast(
         interrupt.progress(start, n);
         let len = chunk.min(n - start);
         let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
-        let mut found: Vec<Vec<ReferenceHit>> = parallel::install(|| {
+        // Each block's hits in one list and its rays' counts (no list a ray).
+        let blocks: Vec<(Vec<u32>, Vec<ReferenceHit>)> = parallel::install(|| {
             packed[..len * RAY_FLOATS]
-                .par_chunks_exact(RAY_FLOATS)
+                .par_chunks(BLOCK_RAYS * RAY_FLOATS)
                 .enumerate()
-                .with_min_len(64)
                 .map_init(
                     || QueryContext::new(scene, request.cull, request.opacity_threshold, true),
-                    |context, (k, ray)| {
-                        let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + k), units);
-                        trace_one(hierarchy, context, ray, Query::Count, false, false, units.unit);
-                        let kept = context.sorted_found();
-                        kept[..kept.len().min(max_hits)].iter().map(|c| reference_hit(scene, c, t_unit)).collect()
+                    |context, (b, block)| {
+                        let (mut counts, mut found) = (Vec::with_capacity(BLOCK_RAYS), Vec::new());
+                        for (k, ray) in block.chunks_exact(RAY_FLOATS).enumerate() {
+                            let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + b * BLOCK_RAYS + k), units);
+                            trace_one(hierarchy, context, ray, Query::Count, false, false, units.unit);
+                            let kept = context.sorted_found();
+                            let kept = &kept[..kept.len().min(max_hits)];
+                            found.extend(kept.iter().map(|c| reference_hit(scene, c, t_unit)));
+                            counts.push(kept.len() as u32);
+                        }
+                        (counts, found)
                     },
                 )
                 .collect()
         });
-        for advance in &advances {
-            for hit in &mut found[advance.ray] {
-                hit.t = f64::from((hit.t + advance.t) as f32);
-            }
-        }
-        let added: usize = found.iter().map(Vec::len).sum();
+        let added: usize = blocks.iter().map(|(_, found)| found.len()).sum();
         check_hits_fit(hits.len() + added, std::mem::size_of::<ReferenceHit>() + host_bytes_per_hit)?;
         hits.try_reserve(added)
             .map_err(|_| Error::OutOfMemory(format!("{} hits do not fit in host memory", hits.len() + added)))?;
-        for (k, ray_hits) in found.into_iter().enumerate() {
-            hits.extend(ray_hits);
-            offsets[start + k + 1] = hits.len() as i64;
+        let mut ray = start;
+        for (counts, found) in blocks {
+            hits.extend(found);
+            for count in counts {
+                offsets[ray + 1] = offsets[ray] + i64::from(count);
+                ray += 1;
+            }
+        }
+        for advance in &advances {
+            let r = start + advance.ray;
+            for hit in &mut hits[offsets[r] as usize..offsets[r + 1] as usize] {
+                hit.t = f64::from((hit.t + advance.t) as f32);
+            }
         }
         start += len;
     }
