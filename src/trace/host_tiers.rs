@@ -446,7 +446,9 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
         parallel::install(|| {
             out[range].par_iter_mut().enumerate().with_min_len(64).for_each_init(Vec::new, |found, (k, inside)| {
                 let p = point(start + k);
-                *inside = u8::from(if tracer.on_surface(p, ON_SURFACE_ULPS) {
+                *inside = u8::from(if beyond_the_scene(scene, p) {
+                    false
+                } else if tracer.on_surface(p, ON_SURFACE_ULPS) {
                     true
                 } else if winding {
                     scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5)
@@ -459,6 +461,17 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
             })
         });
     })
+}
+
+/// Whether `p` (scene frame) lies outside the scene's bounds, past a margin far beyond the
+/// rounding of the bounds and of an on-surface test: outside by either method of `contains`. A
+/// plane parts such a point from every instance, so each instance's surface lies in a half-space
+/// without it: no ray from it crosses a closed surface an odd number of times, and a surface's
+/// solid angle about it is below 2π (a winding number below 1/2).
+fn beyond_the_scene(scene: &Scene, p: DVec3) -> bool {
+    let bounds = scene.bounds();
+    let scale = bounds.min.abs().max(bounds.max.abs()).max_element().max(p.abs().max_element());
+    !bounds.padded(64.0 * f64::EPSILON * scale).contains(p)
 }
 
 /// `contains` by winding number in a scene of one instance whose holes `cap` closes: one ray a
@@ -479,7 +492,9 @@ fn contains_by_winding_rays(
         parallel::install(|| {
             out[range].par_iter_mut().enumerate().with_min_len(64).for_each(|(k, inside)| {
                 let p = DVec3::from_array(points.row_f64(start + k)) - scene.center;
-                *inside = if tracer.on_surface(p, ON_SURFACE_ULPS) {
+                *inside = if beyond_the_scene(scene, p) {
+                    0
+                } else if tracer.on_surface(p, ON_SURFACE_ULPS) {
                     1
                 } else {
                     let (crossings, cap_winding) = winding_ray(&tracer, placement, cap, band, p, PARITY_DIRECTION);
