@@ -78,19 +78,31 @@ dvec3 closest_point_on_triangle(dvec3 p, dvec3 a, dvec3 b, dvec3 c) {
   precise double d4 = dot3(sac, bp);
   if (d3 >= 0.0 && d4 <= d3) return b;
   precise double vc = d1 * d4 - d3 * d2;
-  if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0) return a + ab * fraction(d1, d1 - d3);
+  // The points returned are precise too: a + ab * x fused into one rounding would differ from
+  // the CPU's two in the last place (issue 34's hostile harness saw it on an H200).
+  if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0) {
+    precise dvec3 q = a + ab * fraction(d1, d1 - d3);
+    return q;
+  }
   precise dvec3 cp = (p - c) * s;
   precise double d5 = dot3(sab, cp);
   precise double d6 = dot3(sac, cp);
   if (d6 >= 0.0 && d5 <= d6) return c;
   precise double vb = d5 * d2 - d1 * d6;
-  if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0) return a + ac * fraction(d2, d2 - d6);
+  if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0) {
+    precise dvec3 q = a + ac * fraction(d2, d2 - d6);
+    return q;
+  }
   precise double va = d3 * d6 - d5 * d4;
-  if (va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0) return b + (c - b) * fraction(d4 - d3, (d4 - d3) + (d5 - d6));
+  if (va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0) {
+    precise dvec3 q = b + (c - b) * fraction(d4 - d3, (d4 - d3) + (d5 - d6));
+    return q;
+  }
   precise double sum = va + vb + vc;
   if (!(sum > 0.0) || isinf(sum)) return closest_on_edges(p, a, b, c, s);
   precise double denominator = 1.0 / sum;
-  return a + ab * (vb * denominator) + ac * (vc * denominator);
+  precise dvec3 q = a + ab * (vb * denominator) + ac * (vc * denominator);
+  return q;
 }
 
 float fraction_f32(float n, float d) {
