@@ -40,25 +40,24 @@ pub fn winding_ray(
     let local = ShearedRay::new(ray.transformed(&placement.to_local));
     let sign = if cap.mirrored { -1.0 } else { 1.0 };
     let (mut twice_angle, mut unsure, mut passed_over) = (0.0, false, 0.0);
-    let mut skipped = Vec::new();
+    let edges_of = |hole: &WindingCapHole| &cap.edges[hole.first as usize..(hole.first + hole.count) as usize];
     for hole in &cap.holes {
-        let edges = &cap.edges[hole.first as usize..(hole.first + hole.count) as usize];
         if may_cross_fan(&local.ray, hole) {
-            count -= fan_crossings(&local, hole, edges);
+            count -= fan_crossings(&local, hole, edges_of(hole));
         }
         let bound = fan_winding_bound(p, hole);
         if bound <= CAP_SKIP_BOUND {
             passed_over += bound;
-            skipped.push((hole, edges));
             continue;
         }
-        let (angle, near) = fan_angle(p, hole, edges);
+        let (angle, near) = fan_angle(p, hole, edges_of(hole));
         (twice_angle, unsure) = (twice_angle + angle, unsure || near);
     }
     let near_half = (f64::from(count) + sign * twice_angle / (4.0 * PI) - 0.5).abs();
     if passed_over > 0.0 && near_half <= band + passed_over {
-        for (hole, edges) in skipped {
-            let (angle, near) = fan_angle(p, hole, edges);
+        // The holes passed over (their bounds are the same again), summed after all.
+        for hole in cap.holes.iter().filter(|hole| fan_winding_bound(p, hole) <= CAP_SKIP_BOUND) {
+            let (angle, near) = fan_angle(p, hole, edges_of(hole));
             (twice_angle, unsure) = (twice_angle + angle, unsure || near);
         }
     }
