@@ -257,3 +257,66 @@ fn half_area(b: &Aabb) -> f64 {
     let e = b.extent();
     e.x * e.y + e.y * e.z + e.z * e.x
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn depth_and_items(bvh: &Bvh, node: usize, depth: u32, seen: &mut Vec<u32>) -> u32 {
+        let n = &bvh.nodes()[node];
+        if n.count > 0 {
+            assert!(n.count as usize <= LEAF_ITEMS);
+            seen.extend(&bvh.items()[n.first as usize..(n.first + n.count) as usize]);
+            return depth;
+        }
+        let left = depth_and_items(bvh, n.first as usize, depth + 1, seen);
+        left.max(depth_and_items(bvh, n.first as usize + 1, depth + 1, seen))
+    }
+
+    /// Boxes strung out so that SAH splits would peel one off at a time (each twice the last):
+    /// the tree still holds every item once and stays within the GPU's stacks.
+    #[test]
+    fn sah_trees_hold_every_item_once_within_the_depth_bound() {
+        let boxes: Vec<Aabb> = (0..5000)
+            .map(|i| {
+                let x = if i < 60 { 2f64.powi(i) } else { f64::from(i) };
+                Aabb { min: DVec3::new(x, 0.0, 0.0), max: DVec3::new(x + 0.5, 1.0, 1.0) }
+            })
+            .collect();
+        let bvh = Bvh::build(&boxes);
+        let mut seen = Vec::new();
+        let depth = depth_and_items(&bvh, 0, 0, &mut seen);
+        assert!(depth <= MAX_DEPTH, "depth {depth}");
+        seen.sort_unstable();
+        assert_eq!(seen, (0..5000).collect::<Vec<u32>>());
+    }
+
+    /// Ordered traversal meets every box a ray enters (a test of every box is the oracle), each
+    /// item once (a leaf's items come together, so some it meets the ray misses).
+    #[test]
+    fn traversal_meets_every_box_the_ray_enters() {
+        let boxes: Vec<Aabb> = (0..2000)
+            .map(|i| {
+                let c = DVec3::new((i * 37 % 101) as f64, (i * 53 % 97) as f64, (i * 71 % 89) as f64);
+                Aabb { min: c, max: c + DVec3::splat(3.0) }
+            })
+            .collect();
+        let bvh = Bvh::build(&boxes);
+        let ray =
+            Ray64 { origin: DVec3::new(-5.0, 1.0, 2.0), direction: DVec3::new(1.0, 0.8, 0.7), tmin: 0.0, tmax: 1e9 };
+        let inverse = ray.direction.recip();
+        let mut expected: Vec<u32> =
+            (0..boxes.len() as u32).filter(|&i| boxes[i as usize].entry(&ray, inverse).is_some()).collect();
+        let mut met = Vec::new();
+        bvh.traverse(&ray, &mut 1e9, |item, _| {
+            met.push(item);
+            true
+        });
+        expected.sort_unstable();
+        met.sort_unstable();
+        assert!(!expected.is_empty());
+        assert!(met.windows(2).all(|w| w[0] < w[1]), "an item met twice");
+        assert!(expected.iter().all(|i| met.binary_search(i).is_ok()), "a box the ray enters was not met");
+        assert!(met.len() < boxes.len() / 4, "the hierarchy pruned little: {} of {}", met.len(), boxes.len());
+    }
+}

@@ -508,3 +508,21 @@ fn reference_hit(scene: &Scene, c: &Candidate, t_unit: f64) -> ReferenceHit {
         prim: placement.triangles.global(c.geometry as usize, c.prim as usize) as u32,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The exponent read from the bits is the logarithm's, powers of two and subnormals too.
+    #[test]
+    fn exponents_from_bits_are_the_ceiling_of_the_logarithm() {
+        for x in [1.0f32, 0.75, 2.0, 3.0, 1e-20, 3e38, -5.5, 1e-40, f32::MIN_POSITIVE, 1.0 + f32::EPSILON] {
+            let expected = f64::from(x.abs()).log2().ceil() as i32;
+            assert_eq!(exponent_at_or_above(x), Some(expected), "{x}");
+            assert_eq!(power_of_two(expected), 2f64.powi(expected));
+        }
+        for x in [0.0f32, -0.0, f32::INFINITY, f32::NAN] {
+            assert_eq!(exponent_at_or_above(x), None);
+        }
+    }
+}
