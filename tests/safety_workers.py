@@ -605,29 +605,56 @@ def spawn_trace(backend: str, validation: bool) -> Dict[str, Any]:
 # 5, 6: Ctrl-C and the GIL
 
 
-def interrupt_child(backend: str, validation: bool, precision: str, seconds: float, max_rays: int) -> None:
+def stacked_quads(k: int, half: float = 1.5) -> Tuple[np.ndarray, np.ndarray]:
+    """k squares of half-side `half` stacked along z from 0 to 1: a ray along +z from the grid
+    (`grid_rays`) crosses every one."""
+    z = np.repeat(np.linspace(0.0, 1.0, k), 4)
+    corners = np.tile([[-half, -half], [half, -half], [half, half], [-half, half]], (k, 1))
+    v = np.column_stack([corners, z])
+    base = 4 * np.arange(k)[:, None]
+    f = np.vstack([base + [0, 1, 2], base + [0, 2, 3]])
+    return v, f
+
+
+def _interrupted_query(scene, query: str, precision: str):
+    """The query a child runs on its origins (traced along +z), by name."""
+    up = np.float32([0, 0, 1])
+    if query == "intersect":
+        return lambda o: scene.intersect(o, up, precision=precision, outputs=["t"])
+    if query == "count":
+        return lambda o: scene.count(o, up, precision=precision)
+    if query == "intersect_all":
+        return lambda o: scene.intersect_all(o, up, precision=precision, max_hits=8)
+    raise ValueError(query)
+
+
+def interrupt_child(backend: str, validation: bool, precision: str, seconds: float, max_rays: int,
+                    query: str = "intersect") -> None:
     """Starts a query sized to take about `seconds`, prints READY; the parent sends SIGINT. Prints
-    INTERRUPTED <s> (KeyboardInterrupt) or FINISHED <s>, then AGAIN <ok> after tracing again."""
+    INTERRUPTED <s> (KeyboardInterrupt) or FINISHED <s>, then AGAIN <ok> after tracing again.
+    `query` "intersect" traces 1000 overlapping triangles; "count" and "intersect_all" 200
+    stacked squares (200 hits a ray, the case that kept Ctrl-C waiting for a whole chunk)."""
     signal.signal(signal.SIGINT, signal.default_int_handler)  # even if the parent ignores SIGINT
     watchdog(seconds * 3 + 60)
     dev = device(backend, validation)
-    # 1000 overlapping triangles: 1-2.5M rays/s in the fast tier on lavapipe (2 cores), so a chunk
-    # of rays (Device.chunk_rays, 1M) takes under a second and the query needs ~15-35M rays.
-    v, f = soup(1000, seed=3)
+    # 1000 overlapping triangles: 1-2.5M rays/s in the fast tier on lavapipe (2 cores), so the
+    # query needs ~15-35M rays.
+    v, f = soup(1000, seed=3) if query == "intersect" else stacked_quads(200)
     scene = dev.scene(dev.mesh(v, f))
     o_small, d_small = rays(2000, seed=51)
     expected = answer(scene.intersect(o_small, d_small, precision=precision))
+    run = _interrupted_query(scene, query, precision)
     # Calibrate: rays per second of this query on this machine, now.
     probe = grid_rays(200_000)
     began = time.monotonic()
-    scene.intersect(probe, np.float32([0, 0, 1]), precision=precision, outputs=["t"])
+    run(probe)
     rate = len(probe) / (time.monotonic() - began)
     n = int(min(max(rate * seconds, 1_000_000), max_rays))
     origins = grid_rays(n)
     print(f"READY {n} {rate:.0f}", flush=True)
     began = time.monotonic()
     try:
-        scene.intersect(origins, np.float32([0, 0, 1]), precision=precision, outputs=["t"])
+        run(origins)
         print(f"FINISHED {time.monotonic() - began:.3f}", flush=True)
     except KeyboardInterrupt:
         print(f"INTERRUPTED {time.monotonic() - began:.3f}", flush=True)

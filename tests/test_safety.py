@@ -335,17 +335,32 @@ def test_spawn_children_trace_like_the_parent():
 # 5. Ctrl-C
 
 INTERRUPT_AFTER = 2.0  # seconds into the query
-INTERRUPT_WITHIN = 5.0  # seconds after SIGINT
+INTERRUPT_WITHIN = 1.0  # seconds after SIGINT (the README's promise)
+INTERRUPT_WAIT = 5.0  # seconds the test waits for the child's answer
 
 
 @pytest.mark.parametrize("precision", ["fast", "reference"])
 @pytest.mark.parametrize("backend", ENGINES)
 def test_ctrl_c_stops_a_long_query_and_the_device_traces_again(backend, precision):
     """A query sized (from the rate the child measures) to take ~16 s uninterrupted: 1000
-    overlapping triangles, 10-40M rays. SIGINT 2 s in; KeyboardInterrupt within 5 s; then the
-    same process traces again with the right answers."""
+    overlapping triangles, 10-40M rays. SIGINT 2 s in; KeyboardInterrupt within a second; then
+    the same process traces again with the right answers."""
+    _interrupt(backend, precision, "intersect")
+
+
+@pytest.mark.parametrize("query", ["count", "intersect_all"])
+@pytest.mark.parametrize("precision", ["fast", "exact"])
+@pytest.mark.parametrize("backend", ENGINES)
+def test_ctrl_c_within_a_second_with_200_hits_a_ray(backend, precision, query):
+    """Counts and all hits through 200 stacked squares: a chunk of a fixed count of rays took
+    4-6 s on lavapipe and 3-22 s on the CPU engine. Chunks paced by their time are heard within a
+    second."""
+    _interrupt(backend, precision, query)
+
+
+def _interrupt(backend: str, precision: str, query: str) -> None:
     code = (f"import sys; sys.path.insert(0, {TESTS_DIR!r}); import safety_workers as w; "
-            f"w.interrupt_child({backend!r}, {VALIDATION!r}, {precision!r}, 16.0, 40_000_000)")
+            f"w.interrupt_child({backend!r}, {VALIDATION!r}, {precision!r}, 16.0, 40_000_000, {query!r})")
     errors = tempfile.TemporaryFile(mode="w+")
     child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=errors, text=True)
     lines: queue.Queue[str] = queue.Queue()
@@ -372,14 +387,14 @@ def test_ctrl_c_stops_a_long_query_and_the_device_traces_again(backend, precisio
         assert child.poll() is None, "the child died before the interrupt"
         child.send_signal(signal.SIGINT)
         sent = time.monotonic()
-        stopped = expect(("INTERRUPTED", "FINISHED"), INTERRUPT_WITHIN)
-        assert stopped is not None, (f"no KeyboardInterrupt {INTERRUPT_WITHIN:.0f} s after SIGINT: the query "
+        stopped = expect(("INTERRUPTED", "FINISHED"), INTERRUPT_WAIT)
+        latency = time.monotonic() - sent
+        assert stopped is not None, (f"no KeyboardInterrupt {INTERRUPT_WAIT:.0f} s after SIGINT: the query "
                                      f"({ready}: rays, rays/s) kept running")
         assert stopped.startswith("INTERRUPTED"), f"the query ran to its end ({stopped}) instead of stopping"
-        latency = time.monotonic() - sent
         again = expect(("AGAIN",), 30)
         assert again == "AGAIN True", f"after the interrupt: {again} {_tail(errors)}"
-        assert latency < INTERRUPT_WITHIN
+        assert latency < INTERRUPT_WITHIN, f"KeyboardInterrupt {latency:.2f} s after SIGINT ({ready}: rays, rays/s)"
     finally:
         if child.poll() is None:
             child.kill()

@@ -250,7 +250,9 @@ class Device:
 
     @property
     def chunk_rays(self) -> int:
-        """Rays traced per submission. Staging memory holds two chunks (72 bytes a ray each)."""
+        """The most rays traced per submission (staging memory holds two chunks, 72 bytes a ray
+        each). Chunks are smaller where a query runs slowly: each is sized by the rate the one
+        before it ran at to last a fraction of a second, so that Ctrl-C is heard within one."""
         return self._core.chunk_rays
 
     @chunk_rays.setter

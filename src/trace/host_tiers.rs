@@ -6,6 +6,7 @@ use rayon::prelude::*;
 
 use super::hit_fields::{Field, HitSink};
 use super::host_winding::winding_ray;
+use super::pacer::in_paced_blocks;
 use super::request::Crossings;
 use crate::error::{Error, Result};
 use crate::geometry::arrays::Vec3s;
@@ -44,27 +45,16 @@ fn int_at(bytes: &[u8], i: usize) -> i32 {
 }
 
 /// Items (rays, points) the host tiers process between two checks for an interrupt: the first
-/// block, and the bounds of the later ones, which are sized by the rate the previous one ran at
-/// to take about `HOST_BLOCK_SECONDS` (a ray through hundreds of triangles takes a thousand times
-/// one that misses: a fixed count could keep Ctrl-C waiting for many seconds).
-const HOST_BLOCK: (usize, usize, usize) = (4096, 1024, 1 << 20);
-const HOST_BLOCK_SECONDS: f64 = 0.2;
+/// block and the most in one; the others are paced to a fraction of a second (`ChunkPacer`: a ray
+/// through hundreds of triangles takes a thousand times one that misses).
+const HOST_BLOCK: (usize, usize) = (4096, 1 << 20);
 
-/// Runs `work` over `0..n` in blocks, asking `interrupt` before each.
+/// Runs `work` over `0..n` in paced blocks, asking `interrupt` before each.
 fn in_blocks(n: usize, interrupt: &dyn Interrupt, mut work: impl FnMut(std::ops::Range<usize>)) -> Result<()> {
-    let (first, least, most) = HOST_BLOCK;
-    let (mut start, mut block) = (0, first);
-    while start < n {
-        interrupt.check()?;
-        let end = start.saturating_add(block).min(n);
-        let began = std::time::Instant::now();
-        work(start..end);
-        interrupt.progress(end, n);
-        let rate = (end - start) as f64 / began.elapsed().as_secs_f64().max(1e-6);
-        block = ((rate * HOST_BLOCK_SECONDS) as usize).clamp(least, most);
-        start = end;
-    }
-    Ok(())
+    in_paced_blocks(n, HOST_BLOCK, interrupt, |range| {
+        work(range);
+        Ok(())
+    })
 }
 
 /// Re-intersects each hit the GPU found (the sink's `prim`, `instance`, `geometry`) with its

@@ -19,6 +19,7 @@ use crate::geometry::reference::ReferenceHit;
 use crate::scene::{CpuScene, MeshKind, Scene};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
+use crate::trace::pacer::{in_paced_blocks, FIRST_ON_CPU};
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Query, RayBatch};
 
@@ -117,7 +118,8 @@ struct Plan<'a> {
 }
 
 /// Traces the batch's rays in the fast tier (closest hits, occlusion, counts, transmittance),
-/// `chunk` rays at a time (the interrupt asked between chunks), each chunk in blocks that pack,
+/// chunks of at most `chunk` rays paced to a fraction of a second (the interrupt asked between
+/// chunks), each chunk in blocks that pack,
 /// trace and write every field `sink` asks for (and `hit`).
 pub fn trace_fast(
     batch: RayBatch,
@@ -148,11 +150,8 @@ pub fn trace_fast(
     let (n, frame) = (rays.len(), scene.frame());
     let mut hit = sink.hit.take();
     let began = Instant::now();
-    let mut start = 0;
-    while start < n {
-        interrupt.check()?;
-        interrupt.progress(start, n);
-        let len = chunk.min(n - start);
+    in_paced_blocks(n, (FIRST_ON_CPU, chunk), interrupt, |range| {
+        let (start, len) = (range.start, range.len());
         let blocks = block_sinks(sink, hit.as_deref_mut(), start, len);
         let traced = parallel::install(|| {
             blocks.into_par_iter().enumerate().try_for_each_init(
@@ -185,8 +184,8 @@ pub fn trace_fast(
         }
         traced?;
         profile.chunks += 1;
-        start += len;
-    }
+        Ok(())
+    })?;
     profile.host_f64 = began.elapsed().as_secs_f64();
     Ok(())
 }
@@ -445,11 +444,8 @@ pub fn all_hits_fast(
     let units = Units::of(hierarchy);
     let mut offsets = try_vec(n + 1, 0i64, "the offsets of all hits")?;
     let mut hits: Vec<ReferenceHit> = Vec::new();
-    let mut start = 0;
-    while start < n {
-        interrupt.check()?;
-        interrupt.progress(start, n);
-        let len = chunk.min(n - start);
+    in_paced_blocks(n, (FIRST_ON_CPU, chunk), interrupt, |range| {
+        let (start, len) = (range.start, range.len());
         let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
         // Each block's hits in one list and its rays' counts (no list a ray).
         let blocks: Vec<(Vec<u32>, Vec<ReferenceHit>)> = parallel::install(|| {
@@ -491,8 +487,8 @@ pub fn all_hits_fast(
                 hit.t = f64::from((hit.t + advance.t) as f32);
             }
         }
-        start += len;
-    }
+        Ok(())
+    })?;
     Ok(AllHits { offsets, hits, wide: false })
 }
 

@@ -26,6 +26,7 @@ use crate::scene::{Scene, VulkanScene};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::IdlePool;
+use crate::trace::pacer::ChunkPacer;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Precision, Query, RayBatch, Request};
 use std::sync::Arc;
@@ -154,11 +155,12 @@ impl AllHitsPath {
         let record_capacity =
             (record_budget(self.shared.ctx.unified_memory) / size_of::<R>()).max(widest).min(total).max(1);
         let ray_capacity = self.shared.chunk_capacity(rays.len());
-        let plan = plan_chunks(offsets, ray_capacity, record_capacity);
+        let pacer = ChunkPacer::on_device(ray_capacity, self.shared.ctx.info.is_software);
+        let one_chunk = chunk_end(offsets, 0, pacer.next_len(rays.len()), record_capacity) == rays.len();
         let mut slots = self.shared.with_memory(|| self.shared.slots.take(ray_capacity, exact))?;
         // One set of lists per chunk in flight: two, or one for a query of one chunk.
         let mut lists = Vec::new();
-        for _ in 0..plan.len().min(2) {
+        for _ in 0..if one_chunk { 1 } else { 2 } {
             match self.shared.with_memory(|| self.take_lists(ray_capacity, record_capacity * size_of::<R>())) {
                 Ok(taken) => lists.push(taken),
                 Err(error) => {
@@ -183,7 +185,8 @@ impl AllHitsPath {
             sensor,
             cap: None,
         };
-        let result = self.store_chunks(&job, &plan, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
+        let chunking = (pacer, record_capacity);
+        let result = self.store_chunks(&job, chunking, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
         self.shared.slots.give_back(slots);
         self.give_back_lists(lists);
         result
@@ -193,7 +196,7 @@ impl AllHitsPath {
     fn store_chunks<R: HitRecord>(
         &self,
         job: &GpuJob,
-        plan: &[(usize, usize)],
+        (mut pacer, record_capacity): (ChunkPacer, usize),
         max_hits: usize,
         slots: &mut [Slot; 2],
         lists: &mut [ListBuffers],
@@ -205,15 +208,19 @@ impl AllHitsPath {
         let mut commands = [Commands::new(&self.shared.ctx)?, Commands::new(&self.shared.ctx)?];
         let mut in_flight: [Option<(usize, usize, Vec<crate::geometry::rays::Advance>)>; 2] = [None, None];
         let mut finished = 0;
-        for (chunk, &(start, end)) in plan.iter().enumerate() {
+        let n = stored.offsets.len() - 1;
+        let (mut chunk, mut start) = (0, 0);
+        while start < n {
             interrupt.check()?;
             let s = chunk % 2;
             commands[s].wait()?;
             if let Some(done) = in_flight[s].take() {
+                pacer.finished(done.1 - done.0);
                 finished += done.1 - done.0;
                 finish_stored(&slots[s], &lists[s], done, stored, profile)?;
                 interrupt.progress(finished, stored.seen.len());
             }
+            let end = chunk_end(&stored.offsets, start, pacer.next_len(n - start), record_capacity);
             let advances = pack_chunk(job, slots[s].split().0, start, end - start)?;
             write_lists(&mut lists[s], &stored.offsets, max_hits, start, end);
             let bytes = (stored.offsets[end] - stored.offsets[start]) as usize * size_of::<R>();
@@ -228,11 +235,13 @@ impl AllHitsPath {
                 Some((&lists[s], bytes)),
             );
             commands[s].submit()?;
+            pacer.started();
             in_flight[s] = Some((start, end, advances));
+            (chunk, start) = (chunk + 1, end);
         }
         // In chunk order: the records are appended.
         for k in 0..2 {
-            let s = (plan.len() + k) % 2;
+            let s = (chunk + k) % 2;
             commands[s].wait()?;
             if let Some(done) = in_flight[s].take() {
                 finished += done.1 - done.0;
@@ -266,21 +275,14 @@ impl AllHitsPath {
     }
 }
 
-/// Consecutive rays per chunk: at most `max_rays`, whose lists hold at most `max_records` hits
-/// together (or one ray, however many it holds).
-fn plan_chunks(offsets: &[i64], max_rays: usize, max_records: usize) -> Vec<(usize, usize)> {
+/// The end of the chunk from ray `start`: at most `max_rays` rays, whose lists hold at most
+/// `max_records` hits together (or one ray, however many it holds).
+fn chunk_end(offsets: &[i64], start: usize, max_rays: usize, max_records: usize) -> usize {
     let n = offsets.len() - 1;
-    let mut plan = Vec::new();
-    let mut start = 0;
-    while start < n {
-        let limit = offsets[start] + max_records as i64;
-        let last = (start + max_rays).min(n);
-        let end = start + offsets[start + 1..=last].partition_point(|&o| o <= limit);
-        let end = end.max(start + 1);
-        plan.push((start, end));
-        start = end;
-    }
-    plan
+    let limit = offsets[start] + max_records as i64;
+    let last = (start + max_rays).min(n);
+    let end = start + offsets[start + 1..=last].partition_point(|&o| o <= limit);
+    end.max(start + 1)
 }
 
 /// Each ray's list within its chunk's records.
@@ -443,16 +445,28 @@ impl StoredHits<FastHit> {
 
 #[cfg(test)]
 mod tests {
-    use super::plan_chunks;
+    use super::chunk_end;
+
+    /// Every chunk from the start, at most `max_rays` rays and `max_records` records each.
+    fn plan(offsets: &[i64], max_rays: usize, max_records: usize) -> Vec<(usize, usize)> {
+        let mut chunks = vec![];
+        let mut start = 0;
+        while start < offsets.len() - 1 {
+            let end = chunk_end(offsets, start, max_rays, max_records);
+            chunks.push((start, end));
+            start = end;
+        }
+        chunks
+    }
 
     #[test]
     fn chunks_respect_rays_and_records() {
         // Rays holding 3, 0, 5, 1, 9 and 2 hits.
         let offsets = [0, 3, 3, 8, 9, 18, 20];
-        assert_eq!(plan_chunks(&offsets, 100, 100), [(0, 6)]);
-        assert_eq!(plan_chunks(&offsets, 2, 100), [(0, 2), (2, 4), (4, 6)]);
+        assert_eq!(plan(&offsets, 100, 100), [(0, 6)]);
+        assert_eq!(plan(&offsets, 2, 100), [(0, 2), (2, 4), (4, 6)]);
         // A ray holding more than a chunk's records gets a chunk of its own.
-        assert_eq!(plan_chunks(&offsets, 100, 8), [(0, 3), (3, 4), (4, 5), (5, 6)]);
-        assert_eq!(plan_chunks(&[0, 0, 0], 1, 1), [(0, 1), (1, 2)]);
+        assert_eq!(plan(&offsets, 100, 8), [(0, 3), (3, 4), (4, 5), (5, 6)]);
+        assert_eq!(plan(&[0, 0, 0], 1, 1), [(0, 1), (1, 2)]);
     }
 }

@@ -34,6 +34,7 @@ use crate::scene::{ClosestScene, Scene, VulkanScene, WindingScene, WINDING_MARGI
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers;
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
+use crate::trace::pacer::ChunkPacer;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{PointBatch, Precision};
 
@@ -491,16 +492,19 @@ impl ClosestPoints {
             interrupt.progress(finished, n);
             Ok(())
         };
-        for (chunk, start) in (0..n).step_by(capacity).enumerate() {
+        let mut pacer = ChunkPacer::on_device(capacity, self.shared.ctx.info.is_software);
+        let (mut chunk, mut start) = (0, 0);
+        while start < n {
             interrupt.check()?;
             let s = chunk % 2;
-            let len = capacity.min(n - start);
             lap(&mut profile.submit);
             commands[s].wait()?;
             lap(&mut profile.wait);
             if let Some(done) = in_flight[s].take() {
+                pacer.finished(done.1);
                 finish(&slots[s], done, &mut profile)?;
             }
+            let len = pacer.next_len(n - start);
             lap(&mut profile.unpack);
             pack_points(job.points, start, len, &mut slots[s]);
             lap(&mut profile.pack);
@@ -508,7 +512,9 @@ impl ClosestPoints {
             commands[s].begin()?;
             self.record_points(commands[s].buffer, job, &slots[s], len);
             commands[s].submit()?;
+            pacer.started();
             in_flight[s] = Some((start, len));
+            (chunk, start) = (chunk + 1, start + len);
         }
         lap(&mut profile.submit);
         for s in 0..2 {

@@ -28,6 +28,7 @@ use crate::gpu::shaders;
 use crate::scene::{Scene, VulkanScene};
 use crate::trace::hit_fields::{Field, HitSink, FIELDS, FIELD_COUNT};
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
+use crate::trace::pacer::ChunkPacer;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Precision, Query, RayBatch, Request};
 
@@ -298,9 +299,11 @@ impl PackedRays {
         let stamps = Stamps::new(&self.shared.ctx)?;
         let mut commands = Commands::new(&self.shared.ctx)?;
         let count = job.rays.count;
-        for start in (0..count).step_by(capacity) {
+        let mut pacer = ChunkPacer::on_device(capacity, self.shared.ctx.info.is_software);
+        let mut start = 0;
+        while start < count {
             interrupt.check()?;
-            let len = capacity.min(count - start);
+            let len = pacer.next_len(count - start);
             commands.begin()?;
             let cmd = commands.buffer;
             let stamp = start_stamps(stamps.as_ref(), cmd);
@@ -335,12 +338,15 @@ impl PackedRays {
                     (order.after_submit)()?;
                 }
             }
+            pacer.started();
             commands.wait()?;
+            pacer.finished(len);
             profile.chunks += 1;
             if let Some(stamps) = &stamps {
                 stamps.add_to(profile)?;
             }
             interrupt.progress(start + len, count);
+            start += len;
         }
         Ok(())
     }

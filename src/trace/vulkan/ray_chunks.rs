@@ -1,6 +1,6 @@
 //! The closest-hit path (`RayChunks`): every GPU ray query whose rays the host packs goes through
 //! the chunk loop: rays go through in chunks that fit the device's dispatch limits and the
-//! staging slots, two chunks in flight so that packing the next overlaps tracing the current one.
+//! staging slots, each sized to last a fraction of a second (`ChunkPacer`), two chunks in flight so that packing the next overlaps tracing the current one.
 //! Between chunks the caller may interrupt (Ctrl-C); chunks in flight finish first.
 
 use std::time::Instant;
@@ -17,6 +17,7 @@ use crate::geometry::parallel;
 use crate::geometry::rays::{Advance, Frame, Masks, RayLayout, Rays, RAY_FLOATS};
 use crate::trace::hit_fields::{hits_from_prims, Field, HitSink, FIELDS};
 use crate::trace::idle::Held;
+use crate::trace::pacer::ChunkPacer;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Query, RayBatch};
 use std::mem::size_of;
@@ -196,14 +197,19 @@ impl RayChunks {
         let mut in_flight: [Option<InFlight>; 2] = [None, None];
         // Rays whose chunk finished, for `Interrupt::progress` (chunks finish out of order at the end).
         let mut finished = 0;
-        for (chunk, start) in (0..n).step_by(capacity).enumerate() {
+        let mut pacer = ChunkPacer::on_device(capacity, self.shared.ctx.info.is_software);
+        let (mut chunk, mut start) = (0, 0);
+        while start < n {
             interrupt.check()?;
             let s = chunk % 2;
-            let len = capacity.min(n - start);
             lap(&mut profile.submit);
             commands[s].wait()?;
             lap(&mut profile.wait);
             let done = in_flight[s].take();
+            if let Some(done) = &done {
+                pacer.finished(done.len);
+            }
+            let len = pacer.next_len(n - start);
             let (finished_chunk, packed) = {
                 // The slot's last chunk's hits are copied out while this chunk's rays are packed
                 // into its ray staging: the one pass reads host memory, the other writes the
@@ -240,7 +246,9 @@ impl RayChunks {
             commands[s].begin()?;
             self.record_chunk(commands[s].buffer, job, &slots[s], start, len, None);
             commands[s].submit()?;
+            pacer.started();
             in_flight[s] = Some(InFlight { start, len, advances });
+            (chunk, start) = (chunk + 1, start + len);
         }
         lap(&mut profile.submit);
         for s in 0..2 {
