@@ -497,10 +497,10 @@ def _fork_case(case: str, dev: vkray.Device, scenes: List[vkray.Scene], backend:
             dev.mesh(v, f)
             got = None
         elif case == "new_device":
-            fresh = vkray.Device(backend=backend, validation=validation)
+            fresh = device(backend, validation)
             got = answer(fresh.scene(fresh.mesh(v, f)).intersect(o, d))
         elif case == "new_device_reference":
-            fresh = vkray.Device(backend=backend, validation=validation)
+            fresh = device(backend, validation)
             got = answer(fresh.scene(fresh.mesh(v, f)).intersect(o, d, precision="reference"))
         else:
             raise AssertionError(case)

@@ -226,6 +226,23 @@ def forked(request):
     return cases, expected
 
 
+def test_cpu_engine_answers_in_a_forked_child():
+    """The CPU engine holds no driver: a forked child of a process that traced with it traces,
+    builds and makes new devices, with the parent's answers (its thread pools are its own)."""
+    run = launch("fork_worker", "cpu", VALIDATION, FORK_GROUPS, FORK_WAIT, timeout=sum(FORK_WAIT) + 60)
+    cases = finished(run, "fork")
+    expected = {k: w.unpack(x) for k, x in cases["expected"].items() if k != "case"}
+    answers = {"intersect": "fast", "occluded_reference": "occluded", "reference_unbuilt": "reference",
+               "new_device": "fast", "new_device_reference": "reference"}
+    for case, tier in answers.items():
+        r = cases[case]
+        assert r.get("outcome") == "returned", f"{case}: {r}"
+        assert w.same(w.unpack(r["answer"]), expected[tier]), case
+    assert cases["mesh"].get("outcome") == "returned", cases["mesh"]
+    assert cases["exit"].get("exit_status") == 0, cases["exit"]
+    assert cases["parent_after"]["ok"]
+
+
 def _forked_error(r: Dict[str, Any]) -> None:
     assert not r.get("hung"), f"the forked child hung: no answer in {r.get('waited')} s"
     assert r["outcome"] == "raised", f"the forked child's call returned: {r}"
