@@ -250,8 +250,8 @@ def test_shapes_threads_and_bad_input(any_device, bunny):
     with pytest.raises(ValueError, match="unknown fields"):
         scene.closest_points([[0.0, 0.0, 0.0]], outputs=["t"])
     spheres = any_device.scene([any_device.spheres([[0, 0, 0]], 1.0)])
-    with pytest.raises(vkray.UnsupportedError, match="spheres"):
-        spheres.closest_points([[0.0, 0.0, 5.0]])
+    ball = spheres.closest_points([[0.0, 0.0, 5.0]])
+    assert ball.distance[0] == 4.0 and ball.position[0].tolist() == [0.0, 0.0, 1.0]
     with pytest.raises(vkray.UnsupportedError, match="'refined' would be 'exact'"):
         scene.closest_points([[0.0, 0.0, 0.0]], precision="refined")
 

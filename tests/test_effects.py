@@ -157,8 +157,7 @@ def test_opacity_per_part_and_bad_opacity(any_device, bunny):
         with pytest.raises(ValueError, match="opacity_threshold"):
             scene.intersect([0, 0, -1], [0, 0, 1], opacity_threshold=threshold)
     spheres = any_device.scene([any_device.spheres([[0, 0, 0]], 1.0)])
-    with pytest.raises(vkray.UnsupportedError, match="spheres"):
-        spheres.transmittance([0, 0, -5], [0, 0, 1])
+    assert spheres.transmittance([[0, 0, -5], [0, 2, -5]], [0, 0, 1]).tolist() == [0.0, 1.0]
 
 
 def test_transmittance_and_sensors_from_several_threads(device, bunny):

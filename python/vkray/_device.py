@@ -566,9 +566,10 @@ class Mesh:
         """Whether the triangles close a volume consistently: every edge is shared by exactly two
         triangles that run along it in opposite directions (each directed edge ``(a, b)`` once,
         and ``(b, a)`` once). Only then does the parity of crossings say inside or outside
-        (`Scene.contains`). Computed once (a mesh's topology never changes)."""
+        (`Scene.contains`). Computed once (a mesh's topology never changes). A sphere set is
+        closed."""
         if self._closed is None:
-            self._closed = self.kind == "triangles" and _closed(np.asarray(self.faces))
+            self._closed = self.kind == "spheres" or _closed(np.asarray(self.faces))
         return self._closed
 
     @property

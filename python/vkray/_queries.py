@@ -220,7 +220,8 @@ class SceneLike(abc.ABC):
         neither, as in `count`), ``"exact"`` (float64; each crossing once, by the f64 test on the
         GPU), ``"refined"`` (the fast tier's crossings re-intersected in f64) or ``"reference"``
         (the f64 test on the CPU: the oracle). Rays or a sensor, ``cull`` and ``mask`` as in
-        `intersect`; scenes with spheres raise `UnsupportedError`.
+        `intersect`. Spheres are opaque; in a scene with spheres and translucent triangles every
+        tier runs on the host (f64, the fast tier's answer in float32).
         """
         query = RayQuery("transmittance", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
                          progress, outputs=("t",))
@@ -262,8 +263,10 @@ class SceneLike(abc.ABC):
           sorted again (float64); a ray with a hit whose f64 answer leaves [tmin, tmax] is traced
           again on the CPU. Edges as in ``"fast"``.
 
-        Scenes with spheres raise `UnsupportedError`. Triangles below ``opacity_threshold`` are
-        not hits. Other arguments (rays or a sensor) as in `intersect`.
+        A sphere is hit where a ray enters it and where it leaves (once from inside, twice at one t
+        by a tangent ray); spheres are opaque and not culled. Scenes with spheres answer every tier
+        on the host (f64; the fast and refined tiers' values as theirs). Triangles below
+        ``opacity_threshold`` are not hits. Other arguments (rays or a sensor) as in `intersect`.
         """
         fields = check_outputs(outputs)
         limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
@@ -329,7 +332,9 @@ class SceneLike(abc.ABC):
         On the GPU one compute invocation per point searches the reference tier's own
         hierarchies (each mesh's, and the one over the instances), uploaded once per scene, best
         first: the same search as the CPU's, on the GPU's cores. Both GPU tiers need the device's
-        shaderFloat64. Scenes with spheres raise `UnsupportedError`.
+        shaderFloat64. Scenes with spheres are measured on the host in every tier (f64), their
+        instances a rotation, mirror and one scale (others stretch spheres into ellipsoids:
+        `UnsupportedError`); a sphere's ``uv`` is NaN.
         """
         query = PointQuery("closest_points", points, check_precision(precision), progress,
                            _max_distance(max_distance), check_closest_outputs(outputs))

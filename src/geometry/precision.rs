@@ -229,6 +229,34 @@ pub fn world_normal(to_local: &Affine, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
     (sign * (to_local.linear.transpose() * (b - a).cross(c - a))).normalize()
 }
 
+/// The two roots (near, far) of `ray`'s line with the sphere (`center`, `radius`), in f64, or
+/// None where the line misses it: Haines et al.'s form (Ray Tracing Gems, ch. 7), as the fast
+/// tier's shaders take it in f32 (common.glsl `sphere_hit`): the discriminant from the line's
+/// closest point to the centre, the nearer root from the farther. A tangent line has one root
+/// twice.
+pub fn sphere_roots(ray: &Ray64, center: DVec3, radius: f64) -> Option<(f64, f64)> {
+    let f = ray.origin - center;
+    let d = ray.direction;
+    let a = d.dot(d);
+    let b = -f.dot(d);
+    let closest = f + (b / a) * d;
+    let r2 = radius * radius;
+    let discriminant = r2 - closest.dot(closest);
+    if discriminant.is_nan() || discriminant < 0.0 {
+        return None;
+    }
+    let q = b + if b >= 0.0 { 1.0 } else { -1.0 } * (a * discriminant).sqrt();
+    let t0 = if q != 0.0 { (f.dot(f) - r2) / q } else { 0.0 };
+    let t1 = q / a;
+    Some((t0.min(t1), t0.max(t1)))
+}
+
+/// The outward unit normal, in the scene's frame, of the sphere (`center`, `radius`) of a set
+/// placed by `to_local`'s inverse, at `local` (a point of it in the set's frame).
+pub fn sphere_normal(to_local: &Affine, center: DVec3, radius: f64, local: DVec3) -> DVec3 {
+    (to_local.linear.transpose() * ((local - center) / radius)).normalize()
+}
+
 /// An axis-aligned box.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Aabb {

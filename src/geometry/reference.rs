@@ -12,17 +12,20 @@ use super::parallel;
 use super::winding::{Triangles, WindingTree};
 
 use crate::geometry::precision::{
-    closest_point_on_triangle, length_scale, watertight_edges, Aabb, Affine, Cull, Ray64, ShearedRay,
+    closest_point_on_triangle, length_scale, sphere_roots, watertight_edges, Aabb, Affine, Cull, Ray64, ShearedRay,
 };
 
 /// Triangles of one mesh in its own (re-centred) frame, in f64, with their hierarchy (built on
-/// first use: only the reference tier needs it).
+/// first use: only the reference tier needs it); or, for a sphere set, its spheres (and their
+/// boxes' corners as `vertices`, no faces).
 pub struct TriangleSet {
     pub vertices: Vec<DVec3>,
     pub faces: Vec<[u32; 3]>,
     pub bounds: Aabb,
     /// Where each part (geometry) of a multi-part mesh starts among `faces`, and the end.
     pub part_offsets: Vec<u32>,
+    /// A sphere set's spheres (centre, radius); empty for triangles.
+    pub spheres: Vec<(DVec3, f64)>,
     bvh: OnceLock<Bvh>,
     winding: OnceLock<WindingTree>,
 }
@@ -32,7 +35,48 @@ impl TriangleSet {
     pub fn new(vertices: Vec<DVec3>, faces: Vec<[u32; 3]>, part_offsets: Vec<u32>) -> TriangleSet {
         debug_assert_eq!(part_offsets.last().copied(), Some(faces.len() as u32));
         let bounds = Aabb::of_points(vertices.iter().copied());
-        TriangleSet { vertices, faces, bounds, part_offsets, bvh: OnceLock::new(), winding: OnceLock::new() }
+        let spheres = Vec::new();
+        TriangleSet { vertices, faces, bounds, part_offsets, spheres, bvh: OnceLock::new(), winding: OnceLock::new() }
+    }
+
+    /// A sphere set (one part), its boxes' corners as vertices.
+    pub fn of_spheres(spheres: Vec<(DVec3, f64)>) -> TriangleSet {
+        let vertices = spheres.iter().flat_map(|&(c, r)| [c - DVec3::splat(r), c + DVec3::splat(r)]).collect();
+        let part_offsets = vec![0, spheres.len() as u32];
+        TriangleSet { spheres, part_offsets, ..TriangleSet::new(vertices, Vec::new(), vec![0, 0]) }
+    }
+
+    /// Whether this is a sphere set.
+    pub fn is_spheres(&self) -> bool {
+        !self.spheres.is_empty()
+    }
+
+    /// The box of item `prim` (a triangle, or a sphere).
+    fn item_bounds(&self, prim: usize) -> Aabb {
+        match self.spheres.get(prim) {
+            Some(&(c, r)) => Aabb { min: c - DVec3::splat(r), max: c + DVec3::splat(r) },
+            None => Aabb::of_points(self.triangle(prim)),
+        }
+    }
+
+    /// How many spheres, where the set holds spheres, at `local` (inside 1, on the surface 1/2
+    /// each): their winding number, under any placement.
+    fn spheres_winding_number(&self, local: DVec3) -> f64 {
+        let probe = Ray64 { origin: local, direction: DVec3::ONE, tmin: 0.0, tmax: 0.0 };
+        let mut sum = 0.0;
+        self.bvh().traverse(&probe, &mut 0.0, |prim, _| {
+            let (c, r) = self.spheres[prim as usize];
+            let (squared, r2) = ((local - c).length_squared(), r * r);
+            sum += if squared < r2 {
+                1.0
+            } else if squared == r2 {
+                0.5
+            } else {
+                0.0
+            };
+            true
+        });
+        sum
     }
 
     /// The index among all triangles of triangle `prim` of part `part`.
@@ -51,21 +95,25 @@ impl TriangleSet {
             // Boxes grow by a hair of the mesh's size so that f64 rounding in the slab test cannot
             // reject a triangle that lies on its own box's face.
             let pad = 1e-9 * self.bounds.extent().max_element().max(f64::MIN_POSITIVE);
-            let boxes: Vec<Aabb> = parallel::install(|| {
-                (0..self.faces.len()).into_par_iter().map(|p| Aabb::of_points(self.triangle(p)).padded(pad)).collect()
-            });
+            let items = self.faces.len().max(self.spheres.len());
+            let boxes: Vec<Aabb> =
+                parallel::install(|| (0..items).into_par_iter().map(|p| self.item_bounds(p).padded(pad)).collect());
             Bvh::build(&boxes)
         })
     }
 
     /// The boundaries of the hierarchy's nodes, for winding numbers (built on first use).
     pub fn winding_tree(&self) -> &WindingTree {
+        debug_assert!(!self.is_spheres(), "a sphere set has no winding tree");
         self.winding.get_or_init(|| WindingTree::build(self.bvh(), &self.faces))
     }
 
     /// The winding number about `p` (scene frame; `local`: the same point in the set's frame) of
     /// the set's triangles placed by `to_scene`, unsigned by any mirroring (`WindingTree`).
     pub fn winding_number(&self, to_scene: &Affine, p: DVec3, local: DVec3) -> f64 {
+        if self.is_spheres() {
+            return self.spheres_winding_number(local);
+        }
         let triangles = Triangles { bvh: self.bvh(), vertices: &self.vertices, faces: &self.faces };
         self.winding_tree().winding_number(triangles, to_scene, p, local)
     }
@@ -294,6 +342,9 @@ impl<'a> ReferenceTracer<'a> {
             if set.mask & mask == 0 {
                 return true;
             }
+            if set.triangles.is_spheres() {
+                return for_each_sphere_hit(set, instance, ray, tmax, &mut found);
+            }
             let local = ShearedRay::new(Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) });
             let mut go_on = true;
             set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
@@ -342,17 +393,22 @@ impl<'a> ReferenceTracer<'a> {
                 // distance so far, or the limit's.
                 let mut reach_squared = best.map_or(limit, |b| b.distance);
                 let before = reach_squared;
+                let spheres = set.triangles.is_spheres();
                 set.triangles.bvh().nearest(
                     |b| weighted_gap(b, local, weights, scale) * (1.0 - 2e-12),
                     &mut reach_squared,
                     |prim, reach_squared| {
-                        let triangle = set.triangles.triangle(prim as usize);
-                        let [a, b, c] = if moved_only {
-                            triangle.map(|v| v + offset)
+                        let q = if spheres {
+                            closest_point_on_sphere(set, prim as usize, p)
                         } else {
-                            triangle.map(|v| set.to_scene.point(v))
+                            let triangle = set.triangles.triangle(prim as usize);
+                            let [a, b, c] = if moved_only {
+                                triangle.map(|v| v + offset)
+                            } else {
+                                triangle.map(|v| set.to_scene.point(v))
+                            };
+                            closest_point_on_triangle(p, a, b, c)
                         };
-                        let q = closest_point_on_triangle(p, a, b, c);
                         // Compared squared (exactly as computed), so that ties are ties in every tier.
                         let squared = ((q - p) * scale).length_squared();
                         let hit = ClosestHit { distance: squared, point: q, u: 0.0, v: 0.0, instance, prim };
@@ -369,6 +425,10 @@ impl<'a> ReferenceTracer<'a> {
         );
         best.map(|hit| {
             let set = &self.sets[hit.instance as usize];
+            if set.triangles.is_spheres() {
+                // Barycentrics mean nothing on a sphere (NaN, as the fast tier's hits have).
+                return ClosestHit { distance: hit.distance.sqrt() / scale, u: f64::NAN, v: f64::NAN, ..hit };
+            }
             let [a, b, c] = set.triangles.triangle(hit.prim as usize).map(|v| set.to_scene.point(v));
             let (u, v) = barycentrics(hit.point, a, b, c);
             ClosestHit { distance: hit.distance.sqrt() / scale, u, v, ..hit }
@@ -397,6 +457,11 @@ impl<'a> ReferenceTracer<'a> {
             let probe = Ray64 { origin: local, direction: DVec3::ONE, tmin: 0.0, tmax: 0.0 };
             let mut found = false;
             set.triangles.bvh().traverse(&probe, &mut 0.0, |prim, _| {
+                if let Some(&(c, r)) = set.triangles.spheres.get(prim as usize) {
+                    let scale = local.abs().max_element().max(c.abs().max_element()).max(r);
+                    found = ((local - c).length() - r).abs() <= tolerance(scale);
+                    return !found;
+                }
                 let [a, b, c] = set.triangles.triangle(prim as usize);
                 let scale = [local, a, b, c].iter().map(|v| v.abs().max_element()).fold(0.0, f64::max);
                 found = (closest_point_on_triangle(local, a, b, c) - local).length() <= tolerance(scale);
@@ -425,6 +490,56 @@ impl<'a> ReferenceTracer<'a> {
     pub fn set(&self, instance: u32) -> &PlacedSet<'a> {
         &self.sets[instance as usize]
     }
+}
+
+/// `ReferenceTracer::for_each_hit` on a sphere set: each sphere the ray's line meets within
+/// [tmin, tmax] is met where it enters (front) and where it leaves (back), the nearer first; a ray
+/// from inside meets only where it leaves, a tangent one both at one t. Spheres are opaque and
+/// have no side to cull (the fast tier's intersection shader reports them alike).
+fn for_each_sphere_hit(
+    set: &PlacedSet,
+    instance: u32,
+    ray: &Ray64,
+    tmax: &mut f64,
+    found: &mut impl FnMut(ReferenceHit, bool, &mut f64) -> bool,
+) -> bool {
+    let local = Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) };
+    let mut go_on = true;
+    set.triangles.bvh().traverse(&local, tmax, |prim, tmax| {
+        let (center, radius) = set.triangles.spheres[prim as usize];
+        let Some((near, far)) = sphere_roots(&local, center, radius) else { return true };
+        for (t, front) in [(near, true), (far, false)] {
+            if t >= local.tmin && t <= *tmax {
+                let hit = ReferenceHit { t, u: f64::NAN, v: f64::NAN, instance, prim };
+                go_on = found(hit, front, tmax);
+                if !go_on {
+                    return false;
+                }
+            }
+        }
+        true
+    });
+    go_on
+}
+
+/// The point of sphere `prim` of `set` nearest to `p` (scene frame), for a set placed by a
+/// similarity (the tracer's `check_spheres_round`): its centre and radius in the scene's frame;
+/// from the centre itself, the point along +x.
+fn closest_point_on_sphere(set: &PlacedSet, prim: usize, p: DVec3) -> DVec3 {
+    let (center, radius) = set.triangles.spheres[prim];
+    let center = set.to_scene.point(center);
+    let radius = radius * set.to_scene.linear.x_axis.length();
+    let away = p - center;
+    let length = away.length();
+    if length == 0.0 || !length.is_finite() {
+        let scale = length_scale(away.abs().max_element());
+        let scaled = away * scale;
+        if scaled.length() > 0.0 {
+            return center + scaled * (radius / scaled.length());
+        }
+        return center + DVec3::X * radius;
+    }
+    center + away * (radius / length)
 }
 
 #[cfg(test)]

@@ -492,7 +492,7 @@ impl PyScene {
                     None => sink.position = Some(column.bytes()),
                 }
             }
-            self.tracer.write_all(scene, &all, &mut sink);
+            self.tracer.write_all(scene, &rays, &all, &mut sink)?;
             let ray_index = crate::trace::host_tiers::ray_indices(&all.offsets)?;
             Ok((all.offsets, ray_index, columns))
         })?;

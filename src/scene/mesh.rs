@@ -70,7 +70,7 @@ pub struct MeshGeometry {
     /// Device coordinates are `(v - center) / scale` (see `Mesh::scale`).
     pub scale: f64,
     pub vertex_format: VertexFormat,
-    /// Every part's triangles in the device frame; for spheres, two corners of each sphere's box.
+    /// Every part's triangles in the device frame; for spheres, the spheres (`TriangleSet::of_spheres`).
     pub triangles: TriangleSet,
     /// Each sphere's centre (device frame) and radius; empty for triangles.
     pub spheres: Vec<(DVec3, f64)>,
@@ -107,8 +107,6 @@ impl MeshGeometry {
         let (n, center) = (centers.rows(), bounds.center());
         let spheres: Vec<(DVec3, f64)> =
             (0..n).map(|i| (DVec3::from_array(centers.row_f64(i)) - center, radii.get(i))).collect();
-        // The host keeps the spheres' boxes (two corners each) for scenes' frames.
-        let corners = spheres.iter().flat_map(|&(c, r)| [c - DVec3::splat(r), c + DVec3::splat(r)]).collect();
         Ok(MeshGeometry {
             kind: MeshKind::Spheres,
             vertex_count: n,
@@ -116,7 +114,8 @@ impl MeshGeometry {
             center,
             scale: 1.0,
             vertex_format: VertexFormat::F32,
-            triangles: TriangleSet::new(corners, Vec::new(), vec![0, 0]),
+            // The host's f64 tiers trace the spheres themselves; their boxes make scenes' frames.
+            triangles: TriangleSet::of_spheres(spheres.clone()),
             spheres,
             opacity: None,
         })

@@ -41,7 +41,8 @@ impl CapGeometry {
 /// `MAX_CAP_EDGES` edges (the root keeps none, or too many to sum per ray).
 pub fn cap_geometry(placements: &[Placement]) -> Option<CapGeometry> {
     let [placement] = placements else { return None };
-    if placement.mask == 0 {
+    // Spheres have no holes (and no winding tree).
+    if placement.mask == 0 || placement.triangles.is_spheres() {
         return None;
     }
     let set = &placement.triangles;

@@ -13,7 +13,7 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
 use crate::geometry::parallel::try_vec;
-use crate::geometry::precision::{plane_hit, world_normal, Cull, Ray64};
+use crate::geometry::precision::{plane_hit, sphere_normal, world_normal, Cull, Ray64};
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::{ClosestHit, Filter, ReferenceHit};
 use crate::scene::{cap_geometry, CapGeometry, MeshKind, Scene};
@@ -103,7 +103,8 @@ pub fn refine(scene: &Scene, rays: &Rays, filter: Filter, sink: &mut HitSink, in
             }
         })?;
     }
-    write_hits(scene, sink, &hits);
+    // Sphere scenes are not refined (their f64 tiers are the reference tier's).
+    write_hit_fields(scene, sink, true, |i| hits[i], |_| None);
     Ok(())
 }
 
@@ -127,14 +128,14 @@ pub fn reference(
             &mut hits[range],
         );
     })?;
-    write_hits(scene, sink, &hits);
+    let spheres = scene.has_spheres();
+    let point = |i: usize| {
+        let hit = hits[i].filter(|_| spheres)?;
+        let ray = rays.ray64(i, scene.center);
+        Some(ray.origin + hit.t * ray.direction)
+    };
+    write_hit_fields(scene, sink, true, |i| hits[i], point);
     Ok(())
-}
-
-/// Writes every field the sink asks for from f64 hits (whose `prim` counts among all parts of
-/// the mesh): `t` and `uv` as f64, normals from the f64 vertices, (geometry, triangle in it).
-fn write_hits(scene: &Scene, sink: &mut HitSink, hits: &[Option<ReferenceHit>]) {
-    write_hit_fields(scene, sink, true, |i| hits[i]);
 }
 
 /// Writes `values` as f64 (`wide`) or f32.
@@ -148,10 +149,18 @@ fn put_floats(dst: &mut [u8], values: &[f64], wide: bool) {
     }
 }
 
-/// As `write_hits`, for the hit `hit(i)` of entry i (None: a miss); `t`, `uv` and `position` as
-/// f64 where `wide`, else f32.
-fn write_hit_fields(scene: &Scene, sink: &mut HitSink, wide: bool, hit: impl Fn(usize) -> Option<ReferenceHit> + Sync) {
-    let hit = &hit;
+/// Writes every field the sink asks for of the hit `hit(i)` of entry i (None: a miss; its
+/// `prim` counts among all parts of the mesh): `t`, `uv` and `position` as f64 where `wide`, else
+/// f32; normals from the f64 vertices; (geometry, triangle in it). `point(i)`: where a sphere hit
+/// lies, in the scene's frame (a sphere's normal and position are its ray's at `t`).
+fn write_hit_fields(
+    scene: &Scene,
+    sink: &mut HitSink,
+    wide: bool,
+    hit: impl Fn(usize) -> Option<ReferenceHit> + Sync,
+    point: impl Fn(usize) -> Option<DVec3> + Sync,
+) {
+    let (hit, point) = (&hit, &point);
     write_field(sink, Field::T, wide, |i, dst| put_floats(dst, &[hit(i).map_or(f64::INFINITY, |h| h.t)], wide));
     write_field(sink, Field::Uv, wide, |i, dst| put_floats(dst, &hit(i).map_or([f64::NAN; 2], |h| [h.u, h.v]), wide));
     let ids = |value: fn(&Scene, &ReferenceHit) -> i32| {
@@ -167,6 +176,10 @@ fn write_hit_fields(scene: &Scene, sink: &mut HitSink, wide: bool, hit: impl Fn(
     write_field(sink, Field::Normal, true, |i, dst| {
         let n = hit(i).map_or(DVec3::NAN, |h| {
             let placement = &scene.placements[h.instance as usize];
+            if let Some(&(center, radius)) = placement.triangles.spheres.get(h.prim as usize) {
+                let local = placement.to_local.point(point(i).unwrap_or(DVec3::NAN));
+                return sphere_normal(&placement.to_local, center, radius, local);
+            }
             let [a, b, c] = placement.triangles.triangle(h.prim as usize);
             world_normal(&placement.to_local, a, b, c)
         });
@@ -177,6 +190,9 @@ fn write_hit_fields(scene: &Scene, sink: &mut HitSink, wide: bool, hit: impl Fn(
             out.par_chunks_exact_mut(if wide { 24 } else { 12 }).enumerate().with_min_len(1024).for_each(|(i, dst)| {
                 let point = hit(i).map_or(DVec3::NAN, |h| {
                     let placement = &scene.placements[h.instance as usize];
+                    if placement.triangles.is_spheres() {
+                        return point(i).unwrap_or(DVec3::NAN) + scene.center;
+                    }
                     let [a, b, c] = placement.triangles.triangle(h.prim as usize);
                     placement.to_scene.point(a + h.u * (b - a) + h.v * (c - a)) + scene.center
                 });
@@ -330,9 +346,18 @@ pub fn ray_indices(offsets: &[i64]) -> Result<Vec<i64>> {
     Ok(out)
 }
 
-/// Writes every field the sink asks for, one entry per hit of `all`, `position` included.
-pub fn write_all_hits(scene: &Scene, all: &AllHits, sink: &mut HitSink) {
-    write_hit_fields(scene, sink, all.wide, |i| Some(all.hits[i]));
+/// Writes every field the sink asks for, one entry per hit of `all` (of `rays`), `position`
+/// included.
+pub fn write_all_hits(scene: &Scene, rays: &Rays, all: &AllHits, sink: &mut HitSink) -> Result<()> {
+    // A sphere's normal and position are its ray's at t: each hit's ray, where they are asked.
+    let asks_points = sink.field(Field::Normal).is_some() || sink.position.is_some();
+    let ray_of = if scene.has_spheres() && asks_points { ray_indices(&all.offsets)? } else { Vec::new() };
+    let point = |k: usize| {
+        let ray = rays.ray64(*ray_of.get(k)? as usize, scene.center);
+        Some(ray.origin + all.hits[k].t * ray.direction)
+    };
+    write_hit_fields(scene, sink, all.wide, |k| Some(all.hits[k]), point);
+    Ok(())
 }
 
 /// The refined tier's all hits from the fast tier's: each hit re-intersected with its triangle in
@@ -446,7 +471,11 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
                     found.clear();
                     let ray = Ray64 { origin: p, direction: PARITY_DIRECTION, tmin: 0.0, tmax: f64::INFINITY };
                     tracer.trace_every(&ray, 0xFF, Filter::sides(Cull::None), found);
-                    odd_crossings(found, scene.placements.len())
+                    // Spheres, which overlap, are asked directly (the parity of one set's crossings
+                    // would be the spheres' exclusive or).
+                    let in_spheres = |h: &ReferenceHit| scene.placements[h.instance as usize].triangles.is_spheres();
+                    found.retain(|h| !in_spheres(h));
+                    odd_crossings(found, scene.placements.len()) || inside_a_sphere(scene, p)
                 });
             })
         });
@@ -620,7 +649,7 @@ pub fn closest_points(
 /// within reach): `t` is the distance, `position` the point (f64, world), the others as a hit's.
 pub fn write_closest(scene: &Scene, sink: &mut HitSink, hit: impl Fn(usize) -> Option<(ReferenceHit, DVec3)> + Sync) {
     let position = sink.position.take();
-    write_hit_fields(scene, sink, true, |i| hit(i).map(|(h, _)| h));
+    write_hit_fields(scene, sink, true, |i| hit(i).map(|(h, _)| h), |i| hit(i).map(|(_, p)| p - scene.center));
     if let Some(out) = position {
         parallel::install(|| {
             out.par_chunks_exact_mut(24).enumerate().with_min_len(1024).for_each(|(i, dst)| {
@@ -679,7 +708,8 @@ pub fn odd_crossings(hits: &[ReferenceHit], instances: usize) -> bool {
 fn winding_number(placement: &crate::scene::Placement, p: DVec3) -> f64 {
     let set = &placement.triangles;
     let w = set.winding_number(&placement.to_scene, p, placement.to_local.point(p));
-    let mirrored = placement.to_scene.linear.determinant() < 0.0;
+    // A mirrored sphere is still a sphere, its inside inside.
+    let mirrored = placement.to_scene.linear.determinant() < 0.0 && !set.is_spheres();
     if mirrored {
         -w
     } else {
@@ -687,11 +717,16 @@ fn winding_number(placement: &crate::scene::Placement, p: DVec3) -> f64 {
     }
 }
 
+/// Whether `p` (scene frame) lies inside (or on) a sphere of any sphere set.
+fn inside_a_sphere(scene: &Scene, p: DVec3) -> bool {
+    scene.placements.iter().filter(|x| x.triangles.is_spheres()).any(|x| winding_number(x, p) >= 0.5)
+}
+
 /// Builds every instance's winding tree before a parallel pass reads them: built lazily inside
 /// it, a thread waiting on one under construction could be the one constructing it (rayon steals
 /// work while it waits) and never wake.
 pub fn build_winding_trees(scene: &Scene) {
-    for placement in &scene.placements {
+    for placement in scene.placements.iter().filter(|p| !p.triangles.is_spheres()) {
         placement.triangles.winding_tree();
     }
 }

@@ -134,7 +134,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
     ) -> Result<()> {
         let started = Instant::now();
         self.engine.check_usable()?;
-        check_request(scene, rays, request, sink)?;
+        check_request(rays, request, sink)?;
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
         self.trace_held(RayBatch { scene, rays, request, interrupt }, sink, started)
@@ -150,11 +150,12 @@ impl<E: Engine + ?Sized> Tracer<E> {
             return Ok(());
         }
         let wide = request.precision.is_f64();
-        let refine = request.precision == Precision::Refined && request.query == Query::Closest;
+        let spheres_on_host = spheres_on_host(scene, request);
+        let refine = request.precision == Precision::Refined && request.query == Query::Closest && !spheres_on_host;
         // The host needs the hit triangles (and barycentrics, or t on spheres) of rays whose
         // caller did not ask for them; `hit`, where the host decides the hits (the reference
         // tier, or refining, which may turn a hit into a miss), the final prim_id.
-        let hit_from_host = request.precision == Precision::Reference || refine;
+        let hit_from_host = request.precision == Precision::Reference || refine || spheres_on_host;
         let mut needed = Vec::new();
         if hit.is_some() && hit_from_host {
             needed.push(Field::Prim);
@@ -206,18 +207,28 @@ impl<E: Engine + ?Sized> Tracer<E> {
     /// Runs the query in its tier, writing every field `work` asks for.
     fn run_tier(&self, batch: RayBatch, work: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
         let RayBatch { scene, rays, request, interrupt } = batch;
-        let refine = request.precision == Precision::Refined && request.query == Query::Closest;
+        let spheres_on_host = spheres_on_host(scene, request);
+        let refine = request.precision == Precision::Refined && request.query == Query::Closest && !spheres_on_host;
         if request.query == Query::Transmit && !scene.has_opacity() {
             // Where every triangle is opaque, light is kept (1) or not (0): an occlusion query.
             return self.transmit_by_occlusion(batch, work, profile);
         }
-        if request.query == Query::Transmit && !matches!(request.precision, Precision::Fast | Precision::Exact) {
+        let host_transmit = !matches!(request.precision, Precision::Fast | Precision::Exact) || spheres_on_host;
+        if request.query == Query::Transmit && host_transmit {
             // The host's tiers multiply over the f64 hits of every crossing.
             let every = Request { query: Query::All, opacity_threshold: 0.0, ..request };
             let started = Instant::now();
             let all = self.all_hits(batch.asking(every), usize::MAX, 0)?;
-            let out: &mut [f64] = bytemuck::cast_slice_mut(work.field_mut(Field::T).expect("transmittance writes t"));
-            host_tiers::transmittance(scene, &all, out);
+            let out = work.field_mut(Field::T).expect("transmittance writes t");
+            if request.precision.is_f64() {
+                host_tiers::transmittance(scene, &all, bytemuck::cast_slice_mut(out));
+            } else {
+                let mut kept = try_vec(rays.len(), 0.0f64, "the light each ray keeps")?;
+                host_tiers::transmittance(scene, &all, &mut kept);
+                for (dst, left) in bytemuck::cast_slice_mut::<u8, f32>(out).iter_mut().zip(kept) {
+                    *dst = left as f32;
+                }
+            }
             if request.precision == Precision::Refined {
                 // The GPU's all-hits passes left their times in the last profile.
                 *profile = TraceProfile { rays: rays.len(), ..self.engine.last_profile() };
@@ -227,6 +238,9 @@ impl<E: Engine + ?Sized> Tracer<E> {
             return Ok(());
         }
         match request.precision {
+            _ if spheres_on_host && request.precision != Precision::Reference => {
+                self.run_tier(batch.asking(Request { precision: Precision::Reference, ..request }), work, profile)
+            }
             Precision::Exact => self.engine.trace_rays(batch, true, work, profile),
             Precision::Refined if refine => {
                 // The GPU finds which triangle; the host recomputes where, in f64.
@@ -307,6 +321,12 @@ impl<E: Engine + ?Sized> Tracer<E> {
         let RayBatch { scene, rays, request, interrupt } = batch;
         self.check_every_hit_query(scene, "intersect_all")?;
         check_contacts(request)?;
+        if scene.has_spheres() && request.precision != Precision::Reference {
+            // Every tier's hits of spheres are the reference tier's (the f32 tiers' values in f32).
+            let reference = Request { precision: Precision::Reference, ..request };
+            let all = self.all_hits(batch.asking(reference), max_hits, host_bytes_per_hit)?;
+            return Ok(AllHits { wide: request.precision.is_f64(), ..all });
+        }
         match request.precision {
             Precision::Exact => self.engine.all_hits(batch, max_hits, host_bytes_per_hit),
             Precision::Fast | Precision::Refined => {
@@ -327,9 +347,10 @@ impl<E: Engine + ?Sized> Tracer<E> {
         }
     }
 
-    /// Writes the fields `sink` asks for, one entry per hit of `trace_all` (on the same scene).
-    pub fn write_all(&self, scene: &Scene, all: &AllHits, sink: &mut HitSink) {
-        host_tiers::write_all_hits(scene, all, sink);
+    /// Writes the fields `sink` asks for, one entry per hit of `trace_all` (on the same scene and
+    /// rays).
+    pub fn write_all(&self, scene: &Scene, rays: &Rays, all: &AllHits, sink: &mut HitSink) -> Result<()> {
+        host_tiers::write_all_hits(scene, rays, all, sink)
     }
 
     /// The number of hits of each ray, into `out`: as `trace_all` finds them, without storing
@@ -347,6 +368,14 @@ impl<E: Engine + ?Sized> Tracer<E> {
         }
         self.check_every_hit_query(scene, "count")?;
         match request.precision {
+            _ if scene.has_spheres() => {
+                // Spheres are counted on the host in every tier (both crossings of each).
+                check_contacts(request)?;
+                let _in_use = scene.hold_meshes();
+                scene.check_current()?;
+                rays.check()?;
+                host_tiers::count_hits(scene, rays, request.filter(), out, interrupt)
+            }
             Precision::Fast | Precision::Exact => {
                 let mut sink = HitSink::default();
                 sink.set(Field::Prim, bytemuck::cast_slice_mut(out));
@@ -385,8 +414,13 @@ impl<E: Engine + ?Sized> Tracer<E> {
         }
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
+        if scene.has_spheres() {
+            check_spheres_round(scene)?;
+        }
         let hits =
             match precision {
+                // The GPU's closest-point structures hold triangles: spheres are measured on the host.
+                _ if scene.has_spheres() => host_tiers::closest_points(scene, points, max_distance, interrupt)?,
                 Precision::Reference => host_tiers::closest_points(scene, points, max_distance, interrupt)?,
                 Precision::Exact | Precision::Fast => {
                     let batch = PointBatch { scene, points, interrupt };
@@ -431,7 +465,8 @@ impl<E: Engine + ?Sized> Tracer<E> {
             )));
         }
         self.check_point_query(scene, points, max_distance, "signed_distance")?;
-        if self.engine.signed_distance(PointBatch { scene, points, interrupt }, query, out)? {
+        let on_gpu = !scene.has_spheres();
+        if on_gpu && self.engine.signed_distance(PointBatch { scene, points, interrupt }, query, out)? {
             return Ok(());
         }
         let mut sink = HitSink::default();
@@ -476,10 +511,11 @@ impl<E: Engine + ?Sized> Tracer<E> {
         let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
         let points = moved.as_deref().map_or(points, Vec3s::F64);
         match precision {
-            Precision::Exact if !winding || self.engine.limits().f64_tests => {
+            Precision::Exact if (!winding || self.engine.limits().f64_tests) && !scene.has_spheres() => {
                 self.engine.contains(PointBatch { scene, points, interrupt }, winding, out)
             }
-            // Without f64 shaders, the exact tier's winding numbers are the reference tier's.
+            // Without f64 shaders, the exact tier's winding numbers are the reference tier's; so is
+            // the exact tier of scenes with spheres (the GPU's f64 structures hold triangles).
             Precision::Exact | Precision::Reference => {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
@@ -493,14 +529,41 @@ impl<E: Engine + ?Sized> Tracer<E> {
         }
     }
 
-    /// The queries that meet every hit (all hits, counts, contains) are for triangle meshes.
-    fn check_every_hit_query(&self, scene: &Scene, query: &str) -> Result<()> {
-        self.engine.check_usable()?;
-        if scene.has_spheres() {
-            return Err(Error::Unsupported(format!("{query} is for triangle meshes: this scene holds spheres")));
-        }
-        Ok(())
+    /// What the queries that meet every hit (all hits, counts, contains) and the point queries
+    /// check first: the device is usable.
+    fn check_every_hit_query(&self, _scene: &Scene, _query: &str) -> Result<()> {
+        self.engine.check_usable()
     }
+}
+
+/// Whether a query on `scene` runs on the host because of its spheres: the GPU traces spheres
+/// for closest hits and occlusion in the fast tier; every f64 tier of a scene with spheres is the
+/// reference tier's tracer (the GPU's f64 structures hold triangles), and so are the other ray
+/// queries (counts, transmittance through opacity) in every tier.
+fn spheres_on_host(scene: &Scene, request: Request) -> bool {
+    scene.has_spheres() && (request.precision.is_f64() || !matches!(request.query, Query::Closest | Query::Occluded))
+}
+
+/// Closest points on spheres are measured in the scene's frame, where an instance must keep a
+/// sphere round: its transform a rotation (or mirror) and one scale.
+fn check_spheres_round(scene: &Scene) -> Result<()> {
+    for (i, placement) in scene.placements.iter().enumerate().filter(|(_, p)| p.triangles.is_spheres()) {
+        let m = placement.to_scene.linear;
+        let scale = m.x_axis.length_squared();
+        let tolerance = 1e-9 * scale;
+        let round =
+            [m.y_axis.length_squared(), m.z_axis.length_squared()].iter().all(|l| (l - scale).abs() <= tolerance)
+                && [m.x_axis.dot(m.y_axis), m.x_axis.dot(m.z_axis), m.y_axis.dot(m.z_axis)]
+                    .iter()
+                    .all(|d| d.abs() <= tolerance);
+        if !round {
+            return Err(Error::Unsupported(format!(
+                "closest points and distances of spheres need instances that keep them round: instance {i}'s transform \
+                 stretches its spheres into ellipsoids (a rotation, a mirror and one scale keep them spheres)"
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Contacts (closed triangles) are the exact tier's alone.
@@ -513,7 +576,7 @@ fn check_contacts(request: Request) -> Result<()> {
 
 /// Checks what a query asks before any work: array sizes, fields the query can write, tiers the
 /// scene can be traced in.
-fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -> Result<()> {
+fn check_request(rays: &Rays, request: Request, sink: &HitSink) -> Result<()> {
     rays.check_shapes()?;
     check_contacts(request)?;
     let n = rays.len();
@@ -553,13 +616,8 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
     if request.query == Query::All {
         return Err(invalid_value("all hits are traced by Tracer::trace_all"));
     }
-    if request.query == Query::Transmit {
-        if sink.outputs() != Field::T.bit() || sink.position.is_some() {
-            return Err(invalid_value("a transmittance query writes t alone (the light each ray keeps)"));
-        }
-        if scene.has_spheres() {
-            return Err(Error::Unsupported("transmittance is for triangle meshes: this scene holds spheres".into()));
-        }
+    if request.query == Query::Transmit && (sink.outputs() != Field::T.bit() || sink.position.is_some()) {
+        return Err(invalid_value("a transmittance query writes t alone (the light each ray keeps)"));
     }
     if request.query == Query::Parity && (!answerable || request.precision != Precision::Exact) {
         return Err(invalid_value("a parity query is answered at precision='exact', into one int32 a ray"));
@@ -568,11 +626,6 @@ fn check_request(scene: &Scene, rays: &Rays, request: Request, sink: &HitSink) -
     if request.query == Query::Winding && (!crossings_and_t || request.precision != Precision::Exact) {
         return Err(invalid_value(
             "a winding query is answered at precision='exact', into one int32 (prim_id) and one f64 (t) a ray",
-        ));
-    }
-    if scene.has_spheres() && request.precision != Precision::Fast {
-        return Err(Error::Unsupported(
-            "scenes with spheres trace at precision='fast' (the f64 tiers are for triangle meshes)".into(),
         ));
     }
     Ok(())
