@@ -482,6 +482,8 @@ impl PyScene {
         let (offsets, ray_index, columns) = self.query(py, progress, |scene, interrupt| {
             let limit = max_hits.unwrap_or(usize::MAX);
             let all = self.tracer.trace_all(scene, &rays, request, limit, bytes_per_hit, interrupt)?;
+            // Hundreds of millions of hits take a pass each to write out: Ctrl-C between them.
+            interrupt.check()?;
             let h = all.hits.len();
             let mut columns =
                 named.iter().map(|(_, f)| Column::new(*f, h, all.wide)).collect::<crate::Result<Vec<_>>>()?;
@@ -493,6 +495,7 @@ impl PyScene {
                 }
             }
             self.tracer.write_all(scene, &rays, &all, &mut sink)?;
+            interrupt.check()?;
             let ray_index = crate::trace::host_tiers::ray_indices(&all.offsets)?;
             Ok((all.offsets, ray_index, columns))
         })?;

@@ -26,7 +26,7 @@ use crate::scene::{Scene, VulkanScene};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::IdlePool;
-use crate::trace::pacer::ChunkPacer;
+use crate::trace::pacer::{in_paced_blocks, ChunkPacer, FIRST_ON_CPU};
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Precision, Query, RayBatch, Request};
 use std::sync::Arc;
@@ -73,7 +73,7 @@ impl AllHitsPath {
         max_hits: usize,
         host_bytes_per_hit: usize,
     ) -> Result<StoredHits<R>> {
-        let RayBatch { scene, rays, request, .. } = batch;
+        let RayBatch { scene, rays, request, interrupt } = batch;
         let started = Instant::now();
         self.shared.ctx.check_usable()?;
         rays.check_shapes()?;
@@ -119,7 +119,9 @@ impl AllHitsPath {
                 offsets[i + 1] - offsets[i]
             )));
         }
-        stored.settle(max_hits);
+        interrupt.check()?;
+        stored.settle(max_hits, interrupt)?;
+        interrupt.check()?;
         let mut last = self.shared.profile_mut();
         last.store = storing.elapsed().as_secs_f64();
         last.total = started.elapsed().as_secs_f64();
@@ -357,7 +359,7 @@ impl<R: HitRecord> StoredHits<R> {
     /// Sorts the appended lists (dropping hits met twice), then drops the unwritten ends of lists
     /// whose ray met fewer hits than counted (a primitive reported twice by traversal and kept
     /// once), so that each ray's hits are contiguous.
-    fn settle(&mut self, max_hits: usize) {
+    fn settle(&mut self, max_hits: usize, interrupt: &dyn Interrupt) -> Result<()> {
         let n = self.seen.len();
         let (offsets, seen) = (&self.offsets, &self.seen);
         let capacity = |i: usize| offsets[i + 1] - offsets[i];
@@ -365,7 +367,7 @@ impl<R: HitRecord> StoredHits<R> {
             (0..n).into_par_iter().any(|i| appends(capacity(i), max_hits) || (seen[i] as i64) < capacity(i))
         });
         if !unsettled {
-            return;
+            return Ok(());
         }
         let mut kept: Vec<usize> =
             (0..n).map(|i| (self.offsets[i + 1] - self.offsets[i]).min(self.seen[i].max(0) as i64) as usize).collect();
@@ -378,22 +380,26 @@ impl<R: HitRecord> StoredHits<R> {
                 appended.push((list, kept));
             }
         }
-        parallel::install(|| {
-            appended.into_par_iter().for_each(|(list, kept)| {
-                let list = &mut list[..*kept];
-                list.sort_unstable_by(R::order);
-                let mut unique = 0;
-                for k in 0..list.len() {
-                    if unique == 0 || list[unique - 1].order(&list[k]) != Ordering::Equal {
-                        list[unique] = list[k];
-                        unique += 1;
+        // Sorted in paced blocks: tens of millions of lists take seconds.
+        in_paced_blocks(appended.len(), (FIRST_ON_CPU, 1 << 22), interrupt, |range| {
+            parallel::install(|| {
+                appended[range].par_iter_mut().with_min_len(1024).for_each(|(list, kept)| {
+                    let list = &mut list[..**kept];
+                    list.sort_unstable_by(R::order);
+                    let mut unique = 0;
+                    for k in 0..list.len() {
+                        if unique == 0 || list[unique - 1].order(&list[k]) != Ordering::Equal {
+                            list[unique] = list[k];
+                            unique += 1;
+                        }
                     }
-                }
-                *kept = unique;
-            })
-        });
+                    **kept = unique;
+                })
+            });
+            Ok(())
+        })?;
         if (0..n).all(|i| kept[i] as i64 == self.offsets[i + 1] - self.offsets[i]) {
-            return;
+            return Ok(());
         }
         let mut to = 0;
         for (i, &kept) in kept.iter().enumerate() {
@@ -404,6 +410,7 @@ impl<R: HitRecord> StoredHits<R> {
         }
         self.offsets[n] = to as i64;
         self.records.truncate(to);
+        Ok(())
     }
 }
 
