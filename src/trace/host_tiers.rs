@@ -456,6 +456,7 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
         build_winding_trees(scene);
     }
     let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
+    let any_triangles = scene.placements.iter().any(|x| !x.triangles.is_spheres());
     in_blocks(out.len(), interrupt, |range| {
         let start = range.start;
         parallel::install(|| {
@@ -467,6 +468,10 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
                     true
                 } else if winding {
                     scene.placements.iter().any(|placement| winding_number(placement, p) >= 0.5)
+                } else if inside_a_sphere(scene, p) {
+                    true
+                } else if !any_triangles {
+                    false
                 } else {
                     found.clear();
                     let ray = Ray64 { origin: p, direction: PARITY_DIRECTION, tmin: 0.0, tmax: f64::INFINITY };
@@ -475,7 +480,7 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
                     // would be the spheres' exclusive or).
                     let in_spheres = |h: &ReferenceHit| scene.placements[h.instance as usize].triangles.is_spheres();
                     found.retain(|h| !in_spheres(h));
-                    odd_crossings(found, scene.placements.len()) || inside_a_sphere(scene, p)
+                    odd_crossings(found, scene.placements.len())
                 });
             })
         });
@@ -607,6 +612,7 @@ pub fn decide_on_the_cpu(scene: &Scene, points: Vec3s, out: &mut [u8], interrupt
     let tracer = scene.reference_tracer();
     build_winding_trees(scene);
     let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
+    let any_triangles = scene.placements.iter().any(|x| !x.triangles.is_spheres());
     in_blocks(out.len(), interrupt, |range| {
         let start = range.start;
         parallel::install(|| {
