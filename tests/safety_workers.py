@@ -625,6 +625,10 @@ def _interrupted_query(scene, query: str, precision: str):
         return lambda o: scene.count(o, up, precision=precision)
     if query == "intersect_all":
         return lambda o: scene.intersect_all(o, up, precision=precision, max_hits=8)
+    if query == "contains":
+        return lambda o: scene.contains(o, precision=precision, method="winding")
+    if query == "distance":
+        return lambda o: scene.distance(o, precision=precision)
     raise ValueError(query)
 
 
@@ -633,7 +637,8 @@ def interrupt_child(backend: str, validation: bool, precision: str, seconds: flo
     """Starts a query sized to take about `seconds`, prints READY; the parent sends SIGINT. Prints
     INTERRUPTED <s> (KeyboardInterrupt) or FINISHED <s>, then AGAIN <ok> after tracing again.
     `query` "intersect" traces 1000 overlapping triangles; "count" and "intersect_all" 200
-    stacked squares (200 hits a ray, the case that kept Ctrl-C waiting for a whole chunk)."""
+    stacked squares (200 hits a ray, the case that kept Ctrl-C waiting for a whole chunk);
+    "contains" (by winding number) and "distance" take the origins as points among them."""
     signal.signal(signal.SIGINT, signal.default_int_handler)  # even if the parent ignores SIGINT
     watchdog(seconds * 3 + 60)
     dev = device(backend, validation)
@@ -644,13 +649,15 @@ def interrupt_child(backend: str, validation: bool, precision: str, seconds: flo
     o_small, d_small = rays(2000, seed=51)
     expected = answer(scene.intersect(o_small, d_small, precision=precision))
     run = _interrupted_query(scene, query, precision)
+    # Points among the squares (rays start below them).
+    z = 0.5013 if query in ("contains", "distance") else -3.0
     # Calibrate: rays per second of this query on this machine, now.
-    probe = grid_rays(200_000)
+    probe = grid_rays(200_000, z)
     began = time.monotonic()
     run(probe)
     rate = len(probe) / (time.monotonic() - began)
     n = int(min(max(rate * seconds, 1_000_000), max_rays))
-    origins = grid_rays(n)
+    origins = grid_rays(n, z)
     print(f"READY {n} {rate:.0f}", flush=True)
     began = time.monotonic()
     try:

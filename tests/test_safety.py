@@ -375,9 +375,17 @@ def test_ctrl_c_within_a_second_with_200_hits_a_ray(backend, precision, query):
     _interrupt(backend, precision, query)
 
 
-def _interrupt(backend: str, precision: str, query: str) -> None:
+@pytest.mark.parametrize("query", ["contains", "distance"])
+@pytest.mark.parametrize("backend", ENGINES)
+def test_ctrl_c_within_a_second_in_point_queries(backend, query):
+    """Winding numbers and distances of points among 200 stacked squares (exact tier): heard
+    within a second too."""
+    _interrupt(backend, "exact", query, max_items=20_000_000)
+
+
+def _interrupt(backend: str, precision: str, query: str, max_items: int = 40_000_000) -> None:
     code = (f"import sys; sys.path.insert(0, {TESTS_DIR!r}); import safety_workers as w; "
-            f"w.interrupt_child({backend!r}, {VALIDATION!r}, {precision!r}, 16.0, 40_000_000, {query!r})")
+            f"w.interrupt_child({backend!r}, {VALIDATION!r}, {precision!r}, 16.0, {max_items}, {query!r})")
     errors = tempfile.TemporaryFile(mode="w+")
     child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=errors, text=True)
     lines: queue.Queue[str] = queue.Queue()
