@@ -612,7 +612,6 @@ pub fn decide_on_the_cpu(scene: &Scene, points: Vec3s, out: &mut [u8], interrupt
     let tracer = scene.reference_tracer();
     build_winding_trees(scene);
     let point = |i: usize| DVec3::from_array(points.row_f64(i)) - scene.center;
-    let any_triangles = scene.placements.iter().any(|x| !x.triangles.is_spheres());
     in_blocks(out.len(), interrupt, |range| {
         let start = range.start;
         parallel::install(|| {

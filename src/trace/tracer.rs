@@ -319,7 +319,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
     /// `trace_all` of a batch.
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
         let RayBatch { scene, rays, request, interrupt } = batch;
-        self.check_every_hit_query(scene, "intersect_all")?;
+        self.engine.check_usable()?;
         check_contacts(request)?;
         if scene.has_spheres() && request.precision != Precision::Reference {
             // Every tier's hits of spheres are the reference tier's (the f32 tiers' values in f32).
@@ -366,7 +366,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         if out.len() != rays.len() {
             return Err(invalid_value(format!("count's output has {} entries for {} rays", out.len(), rays.len())));
         }
-        self.check_every_hit_query(scene, "count")?;
+        self.engine.check_usable()?;
         match request.precision {
             _ if scene.has_spheres() => {
                 // Spheres are counted on the host in every tier (both crossings of each).
@@ -408,7 +408,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         sink: &mut HitSink,
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
-        self.check_point_query(scene, points, max_distance, "closest_points")?;
+        self.check_point_query(points, max_distance)?;
         if sink.hit.is_some() {
             return Err(invalid_value("hit (whether a ray hit anything) is not an output of closest_points"));
         }
@@ -436,9 +436,9 @@ impl<E: Engine + ?Sized> Tracer<E> {
         Ok(())
     }
 
-    /// The checks every query of distances makes: the scene's, `max_distance`, finite points.
-    fn check_point_query(&self, scene: &Scene, points: Vec3s, max_distance: f64, query: &str) -> Result<()> {
-        self.check_every_hit_query(scene, query)?;
+    /// The checks every query of distances makes: the device's, `max_distance`, finite points.
+    fn check_point_query(&self, points: Vec3s, max_distance: f64) -> Result<()> {
+        self.engine.check_usable()?;
         if max_distance.is_nan() || max_distance < 0.0 {
             return Err(invalid_value(format!("max_distance must be >= 0 (or inf), got {max_distance}")));
         }
@@ -464,7 +464,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
                 points.rows()
             )));
         }
-        self.check_point_query(scene, points, max_distance, "signed_distance")?;
+        self.check_point_query(points, max_distance)?;
         let on_gpu = !scene.has_spheres();
         if on_gpu && self.engine.signed_distance(PointBatch { scene, points, interrupt }, query, out)? {
             return Ok(());
@@ -503,7 +503,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         if let Some(i) = (0..points.rows()).find(|&i| !points.row_f64(i).iter().all(|c| c.is_finite())) {
             return Err(invalid_value(format!("points row {i} is not finite: {:?}", points.row_f64(i))));
         }
-        self.check_every_hit_query(scene, "contains")?;
+        self.engine.check_usable()?;
         if out.is_empty() {
             return Ok(());
         }
@@ -527,12 +527,6 @@ impl<E: Engine + ?Sized> Tracer<E> {
                     .into(),
             )),
         }
-    }
-
-    /// What the queries that meet every hit (all hits, counts, contains) and the point queries
-    /// check first: the device is usable.
-    fn check_every_hit_query(&self, _scene: &Scene, _query: &str) -> Result<()> {
-        self.engine.check_usable()
     }
 }
 
