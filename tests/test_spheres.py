@@ -12,15 +12,21 @@ TIERS = ["fast", "refined", "exact", "reference"]
 F64_TIERS = ["refined", "exact", "reference"]
 
 
-def analytic(centers, radii, origins, directions):
-    """Nearest t >= 0 of each ray over all spheres (inf on a miss) and the sphere's index."""
+def roots(centers, radii, origins, directions):
+    """Each ray's line against each sphere, in float64: (discriminant, near root, far root), each
+    (rays, spheres); the line misses where the discriminant is negative."""
     f = origins[:, None, :] - centers[None, :, :]
     a = np.sum(directions**2, axis=1)[:, None]
     b = np.sum(f * directions[:, None, :], axis=2)
     c = np.sum(f**2, axis=2) - radii[None, :] ** 2
     disc = b**2 - a * c
     root = np.sqrt(np.maximum(disc, 0))
-    near, far = (-b - root) / a, (-b + root) / a
+    return disc, (-b - root) / a, (-b + root) / a
+
+
+def analytic(centers, radii, origins, directions):
+    """Nearest t >= 0 of each ray over all spheres (inf on a miss) and the sphere's index."""
+    disc, near, far = roots(centers, radii, origins, directions)
     t = np.where(near >= 0, near, far)
     t = np.where((disc >= 0) & (t >= 0), t, np.inf)
     return t.min(axis=1), np.where(np.isfinite(t.min(axis=1)), t.argmin(axis=1), -1)
@@ -117,13 +123,7 @@ def test_sphere_errors(any_device):
 def all_roots(centers, radii, origins, directions, tmin=0.0):
     """Each ray's crossings of the spheres at t >= tmin (entry and exit, a tangent twice), sorted:
     (t, sphere) lists per ray, in float64."""
-    f = origins[:, None, :] - centers[None, :, :]
-    a = np.sum(directions**2, axis=1)[:, None]
-    b = np.sum(f * directions[:, None, :], axis=2)
-    c = np.sum(f**2, axis=2) - radii[None, :] ** 2
-    disc = b**2 - a * c
-    root = np.sqrt(np.maximum(disc, 0))
-    near, far = (-b - root) / a, (-b + root) / a
+    disc, near, far = roots(centers, radii, origins, directions)
     out = []
     for i in range(len(origins)):
         hits = [(t, k) for k in np.flatnonzero(disc[i] >= 0) for t in (near[i, k], far[i, k]) if t >= tmin]
