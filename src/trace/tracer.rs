@@ -419,9 +419,11 @@ impl<E: Engine + ?Sized> Tracer<E> {
         }
         let hits =
             match precision {
-                // The GPU's closest-point structures hold triangles: spheres are measured on the host.
-                _ if scene.has_spheres() => host_tiers::closest_points(scene, points, max_distance, interrupt)?,
                 Precision::Reference => host_tiers::closest_points(scene, points, max_distance, interrupt)?,
+                // The GPU's closest-point structures hold triangles: spheres are measured on the host.
+                Precision::Exact | Precision::Fast if scene.has_spheres() => {
+                    host_tiers::closest_points(scene, points, max_distance, interrupt)?
+                }
                 Precision::Exact | Precision::Fast => {
                     let batch = PointBatch { scene, points, interrupt };
                     return self.engine.closest_points(batch, max_distance, precision, sink);
