@@ -179,7 +179,10 @@ def test_profile_splits_host_and_gpu_time(device):
     origins, directions = random_rays(v, 50_000, seed=3)
     scene.intersect(origins, directions)
     p = device.last_trace_profile
-    assert p["rays"] == 50_000 and p["chunks"] == 1
+    # Chunks are paced (src/trace/pacer.rs): the first 2^15 rays on a CPU device (the CPU engine,
+    # lavapipe), 2^20 on a GPU.
+    on_cpu = device.engine == "cpu" or device.info.is_software
+    assert p["rays"] == 50_000 and (p["chunks"] >= 2 if on_cpu else p["chunks"] == 1)
     if device.engine == "cpu":
         # The host does it all, block by block: packing, Embree's traversal, writing the fields
         # (host_f64's place).
@@ -197,10 +200,11 @@ def test_profile_splits_host_and_gpu_time(device):
     else:
         assert p["gpu_trace"] is None
     assert p["store"] == 0.0
-    # All hits: a counting pass, then a storing pass, both counted.
+    # All hits: a counting pass, then a storing pass, both counted (each in two chunks at least on
+    # a CPU device).
     scene.intersect_all(origins, directions)
     p = device.last_trace_profile
-    assert p["chunks"] == 2 and 0 < p["store"] < p["total"]
+    assert (p["chunks"] >= 4 if on_cpu else p["chunks"] == 2) and 0 < p["store"] < p["total"]
     if device.limits["timestamp_valid_bits"]:
         assert p["gpu_upload"] + p["gpu_trace"] + p["gpu_readback"] <= p["total"]
 
