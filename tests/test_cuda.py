@@ -63,6 +63,31 @@ def test_torch_in_torch_out_equals_numpy(bunny):
     np.testing.assert_array_equal(on_host(blocked) >= 0, scene.occluded(o32, d32))
 
 
+def test_counts_of_cuda_rays_equal_numpy(bunny):
+    """count on torch and cupy CUDA rays (fast tier) stays on the GPU: int32 counts in a
+    CudaArray, equal to the numpy path's; far rays advanced on the GPU count alike; a cull and an
+    opacity threshold pass through; other tiers are refused by name."""
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 100_000, seed=12)
+    o32, d32 = o.astype(np.float32), d.astype(np.float32)
+    counts = scene.count(torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda())
+    assert isinstance(counts, vkray.CudaArray) and counts.shape == (100_000,) and counts.dtype == "int32"
+    expected = scene.count(o32, d32)
+    np.testing.assert_array_equal(on_host(counts), expected)
+    assert expected.max() >= 4
+    back = scene.count(torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda(), cull="back")
+    np.testing.assert_array_equal(on_host(back), scene.count(o32, d32, cull="back"))
+    eye = (v.mean(axis=0) + [0.0, 0.0, 1e6]).reshape(1, 3)
+    far = v[np.random.default_rng(13).integers(0, len(v), 5000)] - eye
+    np.testing.assert_array_equal(on_host(scene.count(torch.from_numpy(eye).cuda(), torch.from_numpy(far).cuda())),
+                                  scene.count(eye, far))
+    with pytest.raises(vkray.UnsupportedError, match="fast"):
+        scene.count(torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda(), precision="exact")
+    cupy = pytest.importorskip("cupy")
+    np.testing.assert_array_equal(cupy.from_dlpack(scene.count(cupy.asarray(o), cupy.asarray(d))).get(),
+                                  scene.count(o, d))
+
+
 def test_float64_broadcast_bounds_and_far_rays(bunny):
     v, scene = bunny
     rng = np.random.default_rng(2)

@@ -1,10 +1,11 @@
 """Rays packed by the GPU (shaders/pack_rays.comp: always for CUDA arrays; for host arrays with
 VKRAY_PACK=gpu, which imports them in place and writes the hits straight into the result arrays)
-answer bit for bit as rays packed on the host (geometry/rays.rs Rays::pack, the default). The oracle: the
-same query on a device that packs on the host (itself checked against Embree elsewhere), on rays
-that exercise every branch of the packing: float32 and float64 arrays, one origin for many rays,
-per-ray bounds, far rays advanced towards the scene, invalid rays (the same error, naming the
-same row), spheres and instances; and several threads at once."""
+answer bit for bit as rays packed on the host (geometry/rays.rs Rays::pack, the default). The
+oracle: the same query (closest hits, occlusion, counts) on a device that packs on the host
+(itself checked against Embree elsewhere), on rays that exercise every branch of the packing:
+float32 and float64 arrays, one origin for many rays, per-ray bounds, far rays advanced towards
+the scene, invalid rays (the same error, naming the same row), spheres and instances; and several
+threads at once."""
 
 from __future__ import annotations
 
@@ -59,6 +60,10 @@ def test_random_rays_as_the_host_packs_them(pair, dtype):
     assert expected.hit.sum() > 1000
     assert_same_hits(gpu.intersect(o, d, outputs=list(vkray.HIT_FIELDS)), expected)
     np.testing.assert_array_equal(gpu.occluded(o, d), host.occluded(o, d))
+    counts = host.count(o, d)
+    assert counts.max() >= 4
+    np.testing.assert_array_equal(gpu.count(o, d), counts)
+    assert gpu.device.last_trace_profile["ray_bytes"] == 0  # packed by the GPU
 
 
 def test_one_origin_many_directions_and_per_ray_bounds(pair):
@@ -90,6 +95,7 @@ def test_far_rays_are_advanced_as_the_host_advances_them(pair, distance):
     expected = host.intersect(o, d, tmax=tmax)
     assert expected.hit.sum() > 500
     assert_same_hits(gpu.intersect(o, d, tmax=tmax), expected)
+    np.testing.assert_array_equal(gpu.count(o, d, tmax=tmax), host.count(o, d, tmax=tmax))
 
 
 def test_spheres_and_instances(pair):

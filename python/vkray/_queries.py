@@ -295,7 +295,8 @@ class SceneLike(abc.ABC):
         at shared edges it may count two or none), ``"exact"`` (the f64 test on the GPU through
         per-triangle boxes: every crossing counted once; needs shaderFloat64), ``"reference"``
         (the same f64 test on all CPU cores) or ``"refined"``. Rays or a sensor, and the other
-        arguments, as in `intersect`."""
+        arguments, as in `intersect`. CUDA rays (the fast tier, one mask) give a `CudaArray` of
+        int32 ``S`` on their GPU, counted without leaving it."""
         query = RayQuery("count", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
                          progress, opacity_threshold)
         return cast(np.ndarray, self.answer(query))

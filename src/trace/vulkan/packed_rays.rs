@@ -181,8 +181,8 @@ pub fn device_rays_refusal(request: Request) -> Option<&'static str> {
     if request.precision != Precision::Fast {
         return Some("only precision='fast' traces rays the GPU packs itself");
     }
-    if !matches!(request.query, Query::Closest | Query::Occluded) {
-        return Some("only closest-hit and occlusion queries trace rays the GPU packs itself");
+    if !matches!(request.query, Query::Closest | Query::Occluded | Query::Count) {
+        return Some("only closest hits, occlusion and counts trace rays the GPU packs itself");
     }
     None
 }
@@ -558,8 +558,8 @@ impl PackedRays {
     /// The GPU part of a query on host arrays with the rays packed by the GPU: the arrays are
     /// imported in place where the device can (else copied once), and the hits written straight
     /// into the caller's arrays (else copied out once). `None` where this query cannot go this
-    /// way (rays of a sensor, per-ray masks, every-hit queries, the exact tier, a policy of
-    /// packing on the host): the caller packs on the host instead.
+    /// way (rays of a sensor, per-ray masks, lists of hits, the exact tier, a policy of packing on
+    /// the host): the caller packs on the host instead.
     pub fn trace_arrays_packed_on_gpu(
         &self,
         batch: RayBatch,
@@ -571,7 +571,7 @@ impl PackedRays {
         let eligible = self.pack_on_gpu
             && self.packing.available()
             && rays.sensor.is_none()
-            && matches!(request.query, Query::Closest | Query::Occluded)
+            && device_rays_refusal(request).is_none()
             && rays.len() < u32::MAX as usize;
         if !eligible {
             return Ok(None);
