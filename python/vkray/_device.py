@@ -754,7 +754,9 @@ class Scene(SceneLike):
     def _count(self, q: RayQuery) -> np.ndarray:
         if _arrays.on_cuda(q.origins, q.directions):
             # Typed as the numpy path's result: CUDA rays are the exception, and documented.
-            return cast(np.ndarray, self._trace_cuda(q, "count")["prim_id"])
+            # The count comes back in prim_id's place (one int32 a ray).
+            counted = self._trace_cuda(replace(q, outputs=("prim_id",)), "count")
+            return cast(np.ndarray, counted["prim_id"])
         batch = _RayBatch(q)
         counts = self._traced(q, batch, lambda bar: self._core.count(
             *batch.arrays, q.precision, q.cull, batch.mask, progress=bar, opacity_threshold=q.opacity_threshold,

@@ -666,6 +666,10 @@ impl PyScene {
 
 /// The hit fields named, each one the GPU-resident path computes.
 fn cuda_fields(names: &[String]) -> PyResult<Vec<Field>> {
+    // A query of CUDA rays with nothing to write would wait for hits that never come.
+    if names.is_empty() {
+        return Err(PyValueError::new_err("outputs must name at least one field for CUDA rays"));
+    }
     fields_named(names)?
         .into_iter()
         .map(|(name, field)| {
