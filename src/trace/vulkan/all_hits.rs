@@ -186,6 +186,7 @@ impl AllHitsPath {
             all_hits: true,
             sensor,
             cap: None,
+            t_is_distance: true,
         };
         let chunking = (pacer, record_capacity);
         let result = self.store_chunks(&job, chunking, max_hits, &mut slots, &mut lists, stored, interrupt, profile);

@@ -53,6 +53,9 @@ pub(super) struct GpuJob<'a> {
     pub sensor: Option<&'a Buffer>,
     /// The cap a winding query's rays take away (`Query::Winding`).
     pub cap: Option<&'a WindingCap>,
+    /// `t` is a distance along the ray, to which a far ray's advance is added back; not the
+    /// light a transmittance query keeps.
+    pub t_is_distance: bool,
 }
 
 /// The storing pass of all hits, per chunk in flight: each ray's `HitList` (uploaded with the
@@ -168,6 +171,7 @@ impl RayChunks {
             all_hits,
             sensor,
             cap,
+            t_is_distance: request.query != Query::Transmit,
         };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
         shared.slots.give_back(slots);
@@ -238,7 +242,8 @@ impl RayChunks {
                 finished += finished_rays;
                 interrupt.progress(finished, n);
             }
-            let advances = advances?;
+            // A far ray's advance corrects distances, not the light transmittance keeps.
+            let advances = if job.t_is_distance { advances? } else { advances.map(|_| Vec::new())? };
             if job.sensor.is_none() {
                 profile.ray_bytes += slots[s].packed_bytes(len);
             }
