@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use super::bvh::Bvh;
 use super::parallel;
-use super::winding::{Triangles, WindingTree};
+use super::winding::{self, Triangles, WindingTree};
 
 use crate::geometry::precision::{
     closest_point_on_triangle, length_scale, sphere_roots, watertight_edges, Aabb, Affine, Cull, Ray64, ShearedRay,
@@ -28,6 +28,7 @@ pub struct TriangleSet {
     pub spheres: Vec<(DVec3, f64)>,
     bvh: OnceLock<Bvh>,
     winding: OnceLock<WindingTree>,
+    closed: OnceLock<bool>,
 }
 
 impl TriangleSet {
@@ -36,7 +37,16 @@ impl TriangleSet {
         debug_assert_eq!(part_offsets.last().copied(), Some(faces.len() as u32));
         let bounds = Aabb::of_points(vertices.iter().copied());
         let spheres = Vec::new();
-        TriangleSet { vertices, faces, bounds, part_offsets, spheres, bvh: OnceLock::new(), winding: OnceLock::new() }
+        TriangleSet {
+            vertices,
+            faces,
+            bounds,
+            part_offsets,
+            spheres,
+            bvh: OnceLock::new(),
+            winding: OnceLock::new(),
+            closed: OnceLock::new(),
+        }
     }
 
     /// A sphere set (one part), its boxes' corners as vertices.
@@ -116,6 +126,13 @@ impl TriangleSet {
         }
         let triangles = Triangles { bvh: self.bvh(), vertices: &self.vertices, faces: &self.faces };
         self.winding_tree().winding_number(triangles, to_scene, p, local)
+    }
+
+    /// Whether the triangles close up: each oriented edge `(a, b)` run as often as `(b, a)` (a
+    /// sphere set is closed). Then the signed count of a ray's crossings (and its parity) is the
+    /// same from every point of a region the surface does not cut (computed once).
+    pub fn is_closed(&self) -> bool {
+        *self.closed.get_or_init(|| self.is_spheres() || winding::net_boundary_is_empty(&self.faces))
     }
 
     pub fn triangle(&self, prim: usize) -> [DVec3; 3] {

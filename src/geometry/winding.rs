@@ -199,6 +199,18 @@ fn net_edge(u: u32, v: u32) -> NetEdge {
     }
 }
 
+/// Whether the oriented edges of `faces` cancel: each `(a, b)` run as often as `(b, a)` (no
+/// boundary: a closed surface, whose winding number is an integer off it).
+pub fn net_boundary_is_empty(faces: &[[u32; 3]]) -> bool {
+    use rayon::prelude::*;
+    super::parallel::install(|| {
+        let mut edges: Vec<NetEdge> =
+            faces.par_iter().flat_map_iter(|&[a, b, c]| [net_edge(a, b), net_edge(b, c), net_edge(c, a)]).collect();
+        edges.par_sort_unstable();
+        cancel(edges).is_empty()
+    })
+}
+
 /// Sums the counts of equal edges of a sorted list, dropping those that cancel.
 fn cancel(sorted: Vec<NetEdge>) -> Vec<NetEdge> {
     let mut out: Vec<NetEdge> = Vec::with_capacity(sorted.len());

@@ -3,11 +3,12 @@
 //! `SceneHierarchy` (the Vulkan engine's TLAS, a CPU engine's top-level BVH).
 
 use std::any::Any;
-use std::sync::{Arc, RwLockReadGuard};
+use std::sync::{Arc, Mutex, RwLockReadGuard};
 use std::time::Instant;
 
 use glam::DVec3;
 
+use super::inside_grid::InsideGrid;
 use super::instance::{place, Instance, Placement};
 use super::mesh::{Mesh, MeshKind};
 use crate::error::{invalid_value, Result};
@@ -46,6 +47,9 @@ pub struct Scene {
     /// The instances' bounds in the scene's frame.
     bounds: Aabb,
     hierarchy: Box<dyn SceneHierarchy>,
+    /// The grids `contains` answers most points from (by parity, by winding number), kept from
+    /// the first query that built them until the scene's next update.
+    inside_grids: Mutex<[Option<Arc<InsideGrid>>; 2]>,
 }
 
 impl Scene {
@@ -74,6 +78,7 @@ impl Scene {
             meshes,
             last_update_seconds: 0.0,
             hierarchy,
+            inside_grids: Mutex::new([None, None]),
         })
     }
 
@@ -122,6 +127,7 @@ impl Scene {
         self.center = center;
         self.bounds = bounds_of(&placements);
         self.placements = placements;
+        *self.inside_grids.get_mut().unwrap_or_else(|e| e.into_inner()) = [None, None];
         self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
         self.last_update_seconds = started.elapsed().as_secs_f64();
         Ok(())
@@ -139,6 +145,18 @@ impl Scene {
             )),
             None => Ok(()),
         }
+    }
+
+    /// The grid kept for `contains` by winding number (or parity), if a query built one.
+    pub fn inside_grid(&self, winding: bool) -> Option<Arc<InsideGrid>> {
+        self.inside_grids.lock().unwrap_or_else(|e| e.into_inner())[usize::from(winding)].clone()
+    }
+
+    /// Keeps `grid` (built outside the lock) for `contains` by winding number (or parity), unless
+    /// another query kept one first; returns the one kept.
+    pub fn keep_inside_grid(&self, winding: bool, grid: InsideGrid) -> Arc<InsideGrid> {
+        let mut grids = self.inside_grids.lock().unwrap_or_else(|e| e.into_inner());
+        grids[usize::from(winding)].get_or_insert_with(|| Arc::new(grid)).clone()
     }
 
     /// Whether any instance is a sphere set.

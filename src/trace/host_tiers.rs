@@ -50,7 +50,11 @@ fn int_at(bytes: &[u8], i: usize) -> i32 {
 const HOST_BLOCK: (usize, usize) = (4096, 1 << 20);
 
 /// Runs `work` over `0..n` in paced blocks, asking `interrupt` before each.
-fn in_blocks(n: usize, interrupt: &dyn Interrupt, mut work: impl FnMut(std::ops::Range<usize>)) -> Result<()> {
+pub(super) fn in_blocks(
+    n: usize,
+    interrupt: &dyn Interrupt,
+    mut work: impl FnMut(std::ops::Range<usize>),
+) -> Result<()> {
     in_paced_blocks(n, HOST_BLOCK, interrupt, |range| {
         work(range);
         Ok(())
@@ -443,6 +447,9 @@ pub fn count_hits(
 /// along no axis or diagonal (the exact test decides rays through edges anyway).
 pub const PARITY_DIRECTION: DVec3 = DVec3::new(0.6, 0.48, 0.64);
 
+/// `host_winding::winding_ray`'s end of a whole ray: no end, nothing beyond.
+pub const WHOLE_RAY: (f64, i32) = (f64::INFINITY, 0);
+
 /// Whether each point lies inside any instance of the scene: by the parity of the crossings of
 /// one ray per point with each instance (exact: each crossing counted once), or by the
 /// generalized winding number (>= 1/2). A point on a surface (to within `ON_SURFACE_ULPS`)
@@ -521,7 +528,8 @@ fn contains_by_winding_rays(
                 } else if tracer.on_surface(p, ON_SURFACE_ULPS) {
                     1
                 } else {
-                    let (crossings, cap_winding) = winding_ray(&tracer, placement, cap, band, p, PARITY_DIRECTION);
+                    let (crossings, cap_winding) =
+                        winding_ray(&tracer, placement, cap, band, p, (PARITY_DIRECTION, WHOLE_RAY));
                     mark_by_crossings(crossings, cap_winding, band)
                 };
             })
@@ -694,7 +702,7 @@ pub fn inside_by_counts(
 
 /// How close to a triangle a point counts as on it, in units in the last place of the
 /// coordinates: the rounding of re-centring a point and of the distance's own arithmetic.
-const ON_SURFACE_ULPS: f64 = 8.0;
+pub(super) const ON_SURFACE_ULPS: f64 = 8.0;
 
 /// Whether any instance is crossed an odd number of times (the point is off every surface).
 pub fn odd_crossings(hits: &[ReferenceHit], instances: usize) -> bool {

@@ -24,45 +24,73 @@ const CAP_SKIP_BOUND: f64 = 0.08;
 /// The winding query of the point `p` (scene frame) of the scene's one instance `placement`,
 /// closed by `cap`: its ray's crossings (signed sum and whether `p` lies on a surface, as the
 /// GPU's `Crossings`) and the caps' winding number about `p` (NaN where `p` lies within
-/// rounding of a fan); `trace::host_tiers::mark_by_crossings` decides from them.
+/// rounding of a fan); `trace::host_tiers::mark_by_crossings` decides from them. The ray runs
+/// to `ray_end`'s distance, past which `ray_end`'s count of crossings is known (infinity and 0:
+/// the whole ray).
 pub fn winding_ray(
     tracer: &ReferenceTracer,
     placement: &Placement,
     cap: &CapGeometry,
     band: f64,
     p: DVec3,
-    direction: DVec3,
+    (direction, ray_end): (DVec3, (f64, i32)),
 ) -> (Crossings, f64) {
-    let ray = Ray64 { origin: p, direction, tmin: 0.0, tmax: f64::INFINITY };
-    let mut count = tracer.signed_crossings(&ray);
+    let count = signed_crossings_with_caps(tracer, placement, cap, p, (direction, ray_end));
+    (Crossings(count << 1), caps_winding(cap, band, p, count))
+}
+
+/// The signed count of crossings of the ray from `p` along `direction` with the instance
+/// `placement` less the fans of `cap`, to `ray_end`'s distance, plus `ray_end`'s count beyond.
+fn signed_crossings_with_caps(
+    tracer: &ReferenceTracer,
+    placement: &Placement,
+    cap: &CapGeometry,
+    p: DVec3,
+    (direction, (tmax, beyond)): (DVec3, (f64, i32)),
+) -> i32 {
+    let ray = Ray64 { origin: p, direction, tmin: 0.0, tmax };
+    let mut count = tracer.signed_crossings(&ray) + beyond;
     // The mesh's own sheared ray, as the tracer tests its triangles: a ray through a boundary
     // edge meets either the mesh or the fan.
     let local = ShearedRay::new(ray.transformed(&placement.to_local));
+    for hole in cap.holes.iter().filter(|hole| may_cross_fan(&local.ray, hole)) {
+        count -= fan_crossings(&local, hole, edges_of(cap, hole));
+    }
+    count
+}
+
+fn edges_of<'a>(cap: &'a CapGeometry, hole: &WindingCapHole) -> &'a [WindingCapEdge] {
+    &cap.edges[hole.first as usize..(hole.first + hole.count) as usize]
+}
+
+/// The caps' winding number about `p` (scene frame) where the count of crossings from it is
+/// `count` (NaN where `p` lies within rounding of a fan). The holes whose bound is small are
+/// summed only where they could bring the sum within `band` of 1/2.
+pub fn caps_winding(cap: &CapGeometry, band: f64, p: DVec3, count: i32) -> f64 {
     let sign = if cap.mirrored { -1.0 } else { 1.0 };
     let (mut twice_angle, mut unsure, mut passed_over) = (0.0, false, 0.0);
-    let edges_of = |hole: &WindingCapHole| &cap.edges[hole.first as usize..(hole.first + hole.count) as usize];
     for hole in &cap.holes {
-        if may_cross_fan(&local.ray, hole) {
-            count -= fan_crossings(&local, hole, edges_of(hole));
-        }
         let bound = fan_winding_bound(p, hole);
         if bound <= CAP_SKIP_BOUND {
             passed_over += bound;
             continue;
         }
-        let (angle, near) = fan_angle(p, hole, edges_of(hole));
+        let (angle, near) = fan_angle(p, hole, edges_of(cap, hole));
         (twice_angle, unsure) = (twice_angle + angle, unsure || near);
     }
     let near_half = (f64::from(count) + sign * twice_angle / (4.0 * PI) - 0.5).abs();
     if passed_over > 0.0 && near_half <= band + passed_over {
         // The holes passed over (their bounds are the same again), summed after all.
         for hole in cap.holes.iter().filter(|hole| fan_winding_bound(p, hole) <= CAP_SKIP_BOUND) {
-            let (angle, near) = fan_angle(p, hole, edges_of(hole));
+            let (angle, near) = fan_angle(p, hole, edges_of(cap, hole));
             (twice_angle, unsure) = (twice_angle + angle, unsure || near);
         }
     }
-    let cap_winding = if unsure { f64::NAN } else { sign * twice_angle / (4.0 * PI) };
-    (Crossings(count << 1), cap_winding)
+    if unsure {
+        f64::NAN
+    } else {
+        sign * twice_angle / (4.0 * PI)
+    }
 }
 
 /// Whether the ray (the mesh's frame) may cross the fan of `hole`: the fan lies within its

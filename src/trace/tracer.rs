@@ -9,6 +9,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::engine::Engine;
+use super::grid_contains;
 use super::hit_fields::{hits_from_prims, position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::host_tiers::{self, AllHits};
 use super::idle::IdleMemory;
@@ -512,23 +513,45 @@ impl<E: Engine + ?Sized> Tracer<E> {
         // A point beyond f32's range (which rays cannot start from) outside the scene is outside.
         let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
         let points = moved.as_deref().map_or(points, Vec3s::F64);
-        match precision {
-            Precision::Exact if (!winding || self.engine.limits().f64_tests) && !scene.has_spheres() => {
-                self.engine.contains(PointBatch { scene, points, interrupt }, winding, out)
+        if precision == Precision::Exact {
+            if let Some(grid) = grid_contains::inside_grid(scene, winding, points.rows(), interrupt)? {
+                scene.check_current()?;
+                return grid_contains::contains_by_grid(scene, &grid, points, winding, out, interrupt, |rest, out| {
+                    self.contains_exact(scene, rest, winding, out, interrupt)
+                });
             }
-            // Without f64 shaders, the exact tier's winding numbers are the reference tier's; so is
-            // the exact tier of scenes with spheres (the GPU's f64 structures hold triangles).
-            Precision::Exact | Precision::Reference => {
+            return self.contains_exact(scene, points, winding, out, interrupt);
+        }
+        match precision {
+            Precision::Reference => {
                 let _in_use = scene.hold_meshes();
                 scene.check_current()?;
                 host_tiers::contains(scene, points, winding, out, interrupt)
             }
-            Precision::Fast | Precision::Refined => Err(Error::Unsupported(
+            _ => Err(Error::Unsupported(
                 "contains answers at precision='exact' (the f64 test on the GPU: each crossing counted once) or \
                  'reference' (on the CPU); the f32 tiers could count a crossing at an edge twice or not at all"
                     .into(),
             )),
         }
+    }
+
+    /// `contains` at the exact tier: the engine's f64 test; the host's where the engine has no
+    /// f64 winding numbers, or the scene holds spheres (the GPU's f64 structures hold triangles).
+    fn contains_exact(
+        &self,
+        scene: &Scene,
+        points: Vec3s,
+        winding: bool,
+        out: &mut [u8],
+        interrupt: &dyn Interrupt,
+    ) -> Result<()> {
+        if (!winding || self.engine.limits().f64_tests) && !scene.has_spheres() {
+            return self.engine.contains(PointBatch { scene, points, interrupt }, winding, out);
+        }
+        let _in_use = scene.hold_meshes();
+        scene.check_current()?;
+        host_tiers::contains(scene, points, winding, out, interrupt)
     }
 }
 

@@ -1,0 +1,457 @@
+//! A grid over a scene's bounds that answers `contains` for the points of most of its cells with
+//! one lookup. A cell that no surface comes near lies, with its neighbours of the same kind, in one
+//! region of the space that the scene's closed surfaces part; the count of crossings of a closed
+//! surface is the same (mod 2, or signed) from every point of a region, so one exact answer at one
+//! point of the region is every point's. A mesh closed by caps over its holes (the winding method
+//! of a scene of one instance) keeps each region's signed count of crossings of the mesh and its
+//! caps; the caps' solid angles add less than `CAP_WINDING_LIMIT` to it except in the cells near
+//! a hole, whose points add their own. Points in cells near a surface are left to the exact test
+//! (`trace::grid_contains` runs it on a short ray to the next decided cell).
+
+use std::f64::consts::PI;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::instance::Placement;
+use super::winding_cap::CapGeometry;
+use crate::error::Result;
+use crate::geometry::parallel;
+use crate::geometry::precision::Aabb;
+
+/// A grid cell's answer: every point of the cell is outside.
+pub const GRID_OUTSIDE: u8 = 0;
+/// Every point of the cell is inside.
+pub const GRID_INSIDE: u8 = 1;
+/// The cell lies near a surface (or a cap): its points take the exact test.
+pub const GRID_UNDECIDED: u8 = 2;
+
+/// The most cells a grid holds (a byte each): 128³. Undecided points fall as the cells shrink
+/// (as the cube root of their count), the build's time grows with the count.
+pub const GRID_CELLS: usize = 1 << 21;
+
+/// The most triangles (over all instances) a grid is built over: each is placed and drawn in once.
+pub const GRID_MAX_TRIANGLES: usize = 1 << 24;
+
+/// Regions of fewer cells than this are left undecided: their one exact answer would cost more
+/// than their points' own tests saved.
+const SMALLEST_REGION: usize = 4;
+
+/// Cells near enough a hole for the caps' winding number about them to reach this (a bound: the
+/// sum over the holes) stay undecided: elsewhere it stays below 1/2 by more than any rounding, so
+/// the integer count of crossings of the mesh and its caps alone decides.
+const CAP_WINDING_LIMIT: f64 = 0.45;
+
+/// A scene's grid of answers (`GRID_OUTSIDE`, `GRID_INSIDE`, `GRID_UNDECIDED` a cell), in the
+/// scene's frame.
+pub struct InsideGrid {
+    min: DVec3,
+    inverse_cell: f64,
+    dims: [usize; 3],
+    /// Each cell's region's value (`CellValue`, packed by `pack`).
+    cells: Vec<u16>,
+    counts: bool,
+    /// The caps the grid was built with (the winding method of a scene of one instance).
+    cap: Option<CapGeometry>,
+    /// The share of cells left undecided.
+    pub undecided: f64,
+    /// How many regions took an exact answer.
+    pub regions: usize,
+    pub build_seconds: f64,
+}
+
+/// What a grid is built over: the scene's triangle placements and, for the winding method of a
+/// scene of one instance with holes, the caps over them.
+pub struct GridSurfaces<'a> {
+    pub placements: &'a [Placement],
+    pub cap: Option<CapGeometry>,
+    /// The scene's bounds (its frame).
+    pub bounds: Aabb,
+    /// The largest size of a world coordinate of the scene: points were moved into the scene's
+    /// frame with rounding of this size.
+    pub world_scale: f64,
+}
+
+impl InsideGrid {
+    /// The answer of the cell holding `p` (the scene's frame): a point beyond the grid, which
+    /// holds the scene's bounds grown by a cell, is outside.
+    #[inline]
+    pub fn mark(&self, p: DVec3) -> u8 {
+        let q = (p - self.min) * self.inverse_cell;
+        let [nx, ny, nz] = self.dims;
+        // NaN compares false: such a point is outside the grid (the caller checked points finite).
+        let inside = |v: f64, n: usize| v >= 0.0 && v < n as f64;
+        if !(inside(q.x, nx) && inside(q.y, ny) && inside(q.z, nz)) {
+            return GRID_OUTSIDE;
+        }
+        let (x, y, z) = (q.x as usize, q.y as usize, q.z as usize);
+        match unpack(self.cells[(z * ny + y) * nx + x]) {
+            CellValue::Decided(v) if self.counts => u8::from(v >= 1),
+            CellValue::Decided(v) => v as u8,
+            CellValue::Undecided | CellValue::NearCaps(_) => GRID_UNDECIDED,
+        }
+    }
+
+    /// The value of the cell holding `p` (the scene's frame; `Undecided` beyond the grid).
+    #[inline]
+    pub fn cell(&self, p: DVec3) -> CellValue {
+        let q = ((p - self.min) * self.inverse_cell).to_array();
+        if !(0..3).all(|k| q[k] >= 0.0 && q[k] < self.dims[k] as f64) {
+            return CellValue::Undecided;
+        }
+        let [x, y, z] = q.map(|v| v as usize);
+        unpack(self.cells[(z * self.dims[1] + y) * self.dims[0] + x])
+    }
+
+    /// The caps the grid was built with, where it counts crossings of the mesh and its caps.
+    pub fn cap(&self) -> Option<&CapGeometry> {
+        self.cap.as_ref().filter(|_| self.counts)
+    }
+
+    /// The first decided cell that the ray from `p` along `direction` (the scene's frame; every
+    /// component positive) enters within `max_cells` cells after `p`'s own: a distance along the
+    /// ray inside that cell (halfway through it) and its value (its answer, or where the grid
+    /// counts, its count of crossings). None where the ray leaves the grid
+    /// or passes `max_cells` undecided cells first.
+    pub fn first_decided_along(&self, p: DVec3, direction: DVec3, max_cells: usize) -> Option<(f64, i32)> {
+        debug_assert!(direction.cmpgt(DVec3::ZERO).all());
+        let cell = 1.0 / self.inverse_cell;
+        let q = (p - self.min) * self.inverse_cell;
+        let mut at = [q.x.floor(), q.y.floor(), q.z.floor()];
+        // The distance along the ray to the next cell wall on each axis.
+        let step = (DVec3::splat(cell) / direction).to_array();
+        let mut next: [f64; 3] = std::array::from_fn(|k| (self.min[k] + (at[k] + 1.0) * cell - p[k]) / direction[k]);
+        for _ in 0..max_cells {
+            let axis = if next[0] <= next[1] && next[0] <= next[2] {
+                0
+            } else if next[1] <= next[2] {
+                1
+            } else {
+                2
+            };
+            let entered = next[axis];
+            at[axis] += 1.0;
+            next[axis] += step[axis];
+            if !(0..3).all(|k| at[k] >= 0.0 && at[k] < self.dims[k] as f64) {
+                return None;
+            }
+            let [x, y, z] = at.map(|v| v as usize);
+            if let CellValue::Decided(value) = unpack(self.cells[(z * self.dims[1] + y) * self.dims[0] + x]) {
+                let left = next[0].min(next[1]).min(next[2]);
+                return Some((0.5 * (entered + left), value));
+            }
+        }
+        None
+    }
+
+    /// The grid's cell count.
+    pub fn cell_count(&self) -> usize {
+        self.cells.len()
+    }
+
+    /// Builds the grid of `surfaces` (see `GridSurfaces`); `decide` tells each region's value from
+    /// a point of it (the scene's frame): where the grid `counts`, the signed count of crossings
+    /// of the mesh and its caps of a ray from it (the integer part of its winding number), else
+    /// `contains`' exact answer (0 or 1).
+    pub fn build(
+        surfaces: GridSurfaces,
+        counts: bool,
+        decide: impl FnOnce(&[DVec3], Option<&CapGeometry>) -> Result<Vec<i32>>,
+    ) -> Result<InsideGrid> {
+        let started = Instant::now();
+        let layout = CellLayout::new(surfaces.bounds);
+        // Far beyond the rounding of moving a point into the scene's frame and of telling its cell,
+        // and of the exact test's on-surface margin (a few units in the last place).
+        let pad = 1e-9 * surfaces.world_scale.max(surfaces.bounds.extent().max_element()) + 1e-6 * layout.cell;
+        let near = layout.near_surfaces(&surfaces, pad);
+        let near_caps = layout.near_caps(&surfaces, pad);
+        let (labels, representatives) = layout.regions(&near);
+        let centers: Vec<DVec3> = representatives.iter().map(|&cell| layout.center(cell)).collect();
+        let values = decide(&centers, surfaces.cap.as_ref())?;
+        let cells: Vec<u16> = parallel::install(|| {
+            labels
+                .par_iter()
+                .zip(&near_caps)
+                .map(|(&label, near_caps)| {
+                    let value = values.get(label as usize).copied().filter(|_| label != NO_REGION);
+                    pack(match value {
+                        Some(v) if near_caps.load(Ordering::Relaxed) => CellValue::NearCaps(v),
+                        Some(v) => CellValue::Decided(v),
+                        None => CellValue::Undecided,
+                    })
+                })
+                .collect()
+        });
+        let undecided = cells.iter().filter(|&&c| c == UNDECIDED_CELL).count() as f64 / cells.len() as f64;
+        Ok(InsideGrid {
+            min: layout.min,
+            inverse_cell: 1.0 / layout.cell,
+            dims: layout.dims,
+            cells,
+            counts,
+            cap: surfaces.cap,
+            undecided,
+            regions: centers.len(),
+            build_seconds: started.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+/// The caps a grid of `placements` for `contains` (by winding number, or parity) is built with
+/// (`Some(None)`: none), or None where no grid answers: a sphere set, more than
+/// `GRID_MAX_TRIANGLES` triangles, or an open surface (by winding number, one instance whose holes
+/// caps close is answered too).
+pub fn grid_caps(placements: &[Placement], winding: bool) -> Option<Option<CapGeometry>> {
+    if placements.iter().any(|p| p.triangles.is_spheres()) {
+        return None;
+    }
+    if placements.iter().map(|p| p.triangles.faces.len()).sum::<usize>() > GRID_MAX_TRIANGLES {
+        return None;
+    }
+    if winding {
+        if let Some(cap) = super::winding_cap::cap_geometry(placements) {
+            return Some(Some(cap));
+        }
+    }
+    placements.iter().all(|p| p.triangles.is_closed()).then_some(None)
+}
+
+/// What a cell says of its points.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CellValue {
+    /// Near a surface (or in too small a region, or beyond the grid): their own test decides.
+    Undecided,
+    /// The region's value, every point's: the answer, or where the grid counts, the count of
+    /// crossings of the mesh and its caps (inside from 1 up).
+    Decided(i32),
+    /// The region's count of crossings, to which each point adds the caps' winding number about it.
+    NearCaps(i32),
+}
+
+/// A packed undecided cell.
+const UNDECIDED_CELL: u16 = u16::MAX;
+/// The bit of a packed cell near the caps.
+const NEAR_CAPS_BIT: u16 = 1 << 12;
+/// Counts from -2048 to 2047 are packed (offset by 2048); beyond, the region is undecided.
+const COUNT_OFFSET: i32 = 2048;
+
+fn pack(value: CellValue) -> u16 {
+    let packed = |v: i32, bit: u16| {
+        u16::try_from(v + COUNT_OFFSET).ok().filter(|&p| p < NEAR_CAPS_BIT).map_or(UNDECIDED_CELL, |p| p | bit)
+    };
+    match value {
+        CellValue::Undecided => UNDECIDED_CELL,
+        CellValue::Decided(v) => packed(v, 0),
+        CellValue::NearCaps(v) => packed(v, NEAR_CAPS_BIT),
+    }
+}
+
+#[inline]
+fn unpack(cell: u16) -> CellValue {
+    if cell == UNDECIDED_CELL {
+        return CellValue::Undecided;
+    }
+    let v = i32::from(cell & (NEAR_CAPS_BIT - 1)) - COUNT_OFFSET;
+    if cell & NEAR_CAPS_BIT != 0 {
+        CellValue::NearCaps(v)
+    } else {
+        CellValue::Decided(v)
+    }
+}
+
+/// A cell's region label where it belongs to none (near a surface, or in too small a region).
+const NO_REGION: u32 = u32::MAX;
+
+/// Cubic cells over a box: the bounds grown by one cell on every side.
+struct CellLayout {
+    min: DVec3,
+    cell: f64,
+    dims: [usize; 3],
+}
+
+impl CellLayout {
+    fn new(bounds: Aabb) -> CellLayout {
+        let extent = bounds.extent();
+        let largest = extent.max_element().max(f64::MIN_POSITIVE);
+        // Flat bounds (a closed mesh of no volume) still get cells a 512th of their size.
+        let volume = extent.max(DVec3::splat(largest / 512.0));
+        let cell = (volume.x * volume.y * volume.z / GRID_CELLS as f64).cbrt().max(largest / 512.0);
+        let dims = extent.to_array().map(|e| ((e / cell).ceil() as usize).max(1) + 2);
+        CellLayout { min: bounds.min - DVec3::splat(cell), cell, dims }
+    }
+
+    fn count(&self) -> usize {
+        self.dims.iter().product()
+    }
+
+    fn index(&self, [x, y, z]: [usize; 3]) -> usize {
+        (z * self.dims[1] + y) * self.dims[0] + x
+    }
+
+    fn coords(&self, index: usize) -> [usize; 3] {
+        let [nx, ny, _] = self.dims;
+        [index % nx, (index / nx) % ny, index / (nx * ny)]
+    }
+
+    fn center(&self, index: usize) -> DVec3 {
+        let [x, y, z] = self.coords(index);
+        self.min + (DVec3::new(x as f64, y as f64, z as f64) + 0.5) * self.cell
+    }
+
+    /// The cells (inclusive range per axis) that the box `b` overlaps, clamped to the grid.
+    fn span(&self, b: &Aabb) -> [std::ops::RangeInclusive<usize>; 3] {
+        let lo = ((b.min - self.min) / self.cell).floor();
+        let hi = ((b.max - self.min) / self.cell).floor();
+        std::array::from_fn(|axis| {
+            let last = self.dims[axis] as f64 - 1.0;
+            (lo[axis].clamp(0.0, last) as usize)..=(hi[axis].clamp(0.0, last) as usize)
+        })
+    }
+
+    /// Which cells lie within `pad` of a triangle of some placement, or near enough a cap's hole
+    /// for its winding number to matter.
+    fn near_surfaces(&self, surfaces: &GridSurfaces, pad: f64) -> Vec<AtomicBool> {
+        let near: Vec<AtomicBool> = (0..self.count()).map(|_| AtomicBool::new(false)).collect();
+        for placement in surfaces.placements {
+            let set = &placement.triangles;
+            parallel::install(|| {
+                set.faces.par_iter().with_min_len(1024).for_each(|face| {
+                    let [a, b, c] = face.map(|i| placement.to_scene.point(set.vertices[i as usize]));
+                    self.mark_triangle(&near, [a, b, c], pad);
+                })
+            });
+        }
+        if let Some(cap) = &surfaces.cap {
+            // The fans over the holes part regions as the mesh does.
+            parallel::install(|| {
+                cap.holes.par_iter().for_each(|hole| {
+                    let apex = DVec3::from_array(hole.apex_scene);
+                    for edge in &cap.edges[hole.first as usize..(hole.first + hole.count) as usize] {
+                        let [a, b] = [edge.a_scene, edge.b_scene].map(DVec3::from_array);
+                        self.mark_triangle(&near, [apex, a, b], pad);
+                    }
+                })
+            });
+        }
+        near
+    }
+
+    /// Which cells lie near enough a cap's hole for the caps' winding number about a point of
+    /// them to reach `CAP_WINDING_LIMIT`: their points add it to their region's count.
+    fn near_caps(&self, surfaces: &GridSurfaces, pad: f64) -> Vec<AtomicBool> {
+        let near: Vec<AtomicBool> = (0..self.count()).map(|_| AtomicBool::new(false)).collect();
+        let holes = surfaces.cap.as_ref().map_or(&[][..], |cap| &cap.holes[..]);
+        let total_area: f64 = holes.iter().map(|h| h.area_scene).sum();
+        for hole in holes.iter().filter(|hole| hole.area_scene > 0.0) {
+            // A hole's winding number about a point `gap` beyond its radius is at most
+            // area / (4π gap²) (`host_winding::fan_winding_bound`). Each hole's share of the
+            // limit is its share of the holes' area: past `reach`, the sum stays below the limit.
+            let share = CAP_WINDING_LIMIT * hole.area_scene / total_area;
+            let reach = hole.radius_scene + (hole.area_scene / (4.0 * PI * share)).sqrt() + pad;
+            let apex = DVec3::from_array(hole.apex_scene);
+            let ball = Aabb { min: apex - DVec3::splat(reach), max: apex + DVec3::splat(reach) };
+            let [xs, ys, zs] = self.span(&ball);
+            for z in zs {
+                for y in ys.clone() {
+                    for x in xs.clone() {
+                        let center = self.center(self.index([x, y, z]));
+                        let cell = Aabb { min: center - 0.5 * self.cell, max: center + 0.5 * self.cell };
+                        if cell.distance_to(apex) <= reach {
+                            near[self.index([x, y, z])].store(true, Ordering::Relaxed);
+                        }
+                    }
+                }
+            }
+        }
+        near
+    }
+
+    /// Marks the cells within `pad` of the triangle (a, b, c): those its padded box overlaps,
+    /// less those its plane passes farther from (a large triangle's box holds many cells it never
+    /// comes near). Conservative: a cell is marked wherever the triangle may come within `pad`.
+    fn mark_triangle(&self, near: &[AtomicBool], [a, b, c]: [DVec3; 3], pad: f64) {
+        let [xs, ys, zs] = self.span(&Aabb::of_points([a, b, c]).padded(pad));
+        let cells = xs.clone().count() * ys.clone().count() * zs.clone().count();
+        let normal = (b - a).cross(c - a);
+        let length = normal.length();
+        // Small triangles (and degenerate ones, whose normal says nothing) mark their whole box.
+        let plane_test = cells > 8 && length > 0.0 && length.is_finite();
+        let unit = if plane_test { normal / length } else { DVec3::ZERO };
+        let half = 0.5 * self.cell;
+        // The plane's reach over a cell: its half-diagonal projected on the normal, and the pad.
+        let reach = half * unit.abs().element_sum() + pad + 1e-12 * (a.abs().max_element() + self.cell);
+        for z in zs {
+            for y in ys.clone() {
+                for x in xs.clone() {
+                    let index = self.index([x, y, z]);
+                    if plane_test && unit.dot(self.center(index) - a).abs() > reach {
+                        continue;
+                    }
+                    near[index].store(true, Ordering::Relaxed);
+                }
+            }
+        }
+    }
+
+    /// Labels the regions of cells away from surfaces (face-connected), each region's cells with
+    /// its number (`NO_REGION` for the rest and for regions of fewer than `SMALLEST_REGION` cells);
+    /// and one cell of each region.
+    fn regions(&self, near: &[AtomicBool]) -> (Vec<u32>, Vec<usize>) {
+        let mut labels: Vec<u32> =
+            near.iter().map(|n| if n.load(Ordering::Relaxed) { NO_REGION } else { UNSEEN }).collect();
+        let mut representatives = Vec::new();
+        let mut stack = Vec::new();
+        let mut members = Vec::new();
+        let [nx, ny, nz] = self.dims;
+        for start in 0..labels.len() {
+            if labels[start] != UNSEEN {
+                continue;
+            }
+            let label = representatives.len() as u32;
+            labels[start] = label;
+            stack.push(start);
+            members.clear();
+            while let Some(i) = stack.pop() {
+                members.push(i);
+                let [x, y, z] = self.coords(i);
+                let mut visit = |j: usize| {
+                    if labels[j] == UNSEEN {
+                        labels[j] = label;
+                        stack.push(j);
+                    }
+                };
+                if x > 0 {
+                    visit(i - 1);
+                }
+                if x + 1 < nx {
+                    visit(i + 1);
+                }
+                if y > 0 {
+                    visit(i - nx);
+                }
+                if y + 1 < ny {
+                    visit(i + nx);
+                }
+                if z > 0 {
+                    visit(i - nx * ny);
+                }
+                if z + 1 < nz {
+                    visit(i + nx * ny);
+                }
+            }
+            if members.len() < SMALLEST_REGION {
+                for &i in &members {
+                    labels[i] = NO_REGION;
+                }
+            } else {
+                representatives.push(start);
+            }
+        }
+        (labels, representatives)
+    }
+}
+
+/// A cell away from surfaces whose region is not labelled yet.
+const UNSEEN: u32 = u32::MAX - 1;

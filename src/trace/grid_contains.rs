@@ -1,0 +1,224 @@
+//! `contains` at the exact tier through the scene's inside grid (`scene::InsideGrid`): one lookup
+//! answers a point whose cell lies away from every surface; the others (the undecided, near a
+//! surface) are gathered and answered by the engine's exact test. The grid is built by the first
+//! query of at least `GRID_MIN_POINTS` points on a scene it suits, its regions' answers from the
+//! host's exact test, and kept until the scene's next update.
+
+use std::sync::Arc;
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::host_tiers::{self, PARITY_DIRECTION, WHOLE_RAY};
+use super::host_winding::{caps_winding, winding_ray};
+use super::request::Crossings;
+use crate::error::Result;
+use crate::geometry::arrays::Vec3s;
+use crate::geometry::interrupt::Interrupt;
+use crate::geometry::parallel::{self, try_vec};
+use crate::geometry::precision::{Cull, Ray64};
+use crate::geometry::reference::Filter;
+use crate::scene::{grid_caps, CapGeometry, CellValue, GridSurfaces, InsideGrid, Scene, GRID_UNDECIDED};
+
+/// A query of fewer points neither builds a grid (its build costs tens of milliseconds) nor
+/// waits for one; it uses one a larger query built.
+pub const GRID_MIN_POINTS: usize = 1 << 15;
+
+/// The scene's grid for `contains` by winding number (or parity): the one kept, else one built
+/// now for a query of `points` points where the scene suits one (see `grid_caps`); else None.
+pub fn inside_grid(
+    scene: &Scene,
+    winding: bool,
+    points: usize,
+    interrupt: &dyn Interrupt,
+) -> Result<Option<Arc<InsideGrid>>> {
+    if let Some(grid) = scene.inside_grid(winding) {
+        return Ok(Some(grid));
+    }
+    if points < GRID_MIN_POINTS {
+        return Ok(None);
+    }
+    let _in_use = scene.hold_meshes();
+    scene.check_current()?;
+    let Some(cap) = grid_caps(&scene.placements, winding) else { return Ok(None) };
+    let bounds = scene.bounds();
+    let world_scale = scene.center.abs().max_element() + bounds.min.abs().max(bounds.max.abs()).max_element();
+    // With caps (by winding number, one instance), each region keeps its count of crossings of
+    // the mesh and its caps, which short rays from points near the surface add to.
+    let counts = cap.is_some();
+    let surfaces = GridSurfaces { placements: &scene.placements, cap, bounds, world_scale };
+    // Built outside the scene's lock (its regions' values are exact tests on every core), kept
+    // under it: a query built beside it keeps the first.
+    let grid = InsideGrid::build(surfaces, counts, |centers, cap| match cap {
+        Some(cap) => Ok(region_counts(scene, cap, centers)),
+        None => {
+            let world: Vec<f64> = centers.iter().flat_map(|&c| (c + scene.center).to_array()).collect();
+            let mut answers = vec![0u8; centers.len()];
+            host_tiers::contains(scene, Vec3s::F64(&world), winding, &mut answers, interrupt)?;
+            Ok(answers.into_iter().map(i32::from).collect())
+        }
+    })?;
+    Ok(Some(scene.keep_inside_grid(winding, grid)))
+}
+
+/// `contains` of `points` (world frame) into `out` through `grid`: each point's cell answers;
+/// the points of undecided cells take short rays (`parity_by_segments`, `winding_by_segments`) in a
+/// scene of one instance, else `exact` answers them (gathered, in the points' own type).
+pub fn contains_by_grid(
+    scene: &Scene,
+    grid: &InsideGrid,
+    points: Vec3s,
+    winding: bool,
+    out: &mut [u8],
+    interrupt: &dyn Interrupt,
+    exact: impl FnOnce(Vec3s, &mut [u8]) -> Result<()>,
+) -> Result<()> {
+    let center = scene.center;
+    parallel::install(|| {
+        out.par_iter_mut().enumerate().with_min_len(4096).for_each(|(i, inside)| {
+            *inside = grid.mark(DVec3::from_array(points.row_f64(i)) - center);
+        })
+    });
+    let undecided: Vec<usize> = parallel::install(|| {
+        out.par_iter()
+            .enumerate()
+            .with_min_len(4096)
+            .filter(|(_, &mark)| mark == GRID_UNDECIDED)
+            .map(|(i, _)| i)
+            .collect()
+    });
+    if undecided.is_empty() {
+        return Ok(());
+    }
+    let mut answers = try_vec(undecided.len(), 0u8, "the answers of points near a surface")?;
+    if let Some(cap) = grid.cap() {
+        let gathered = gather_f64(points, &undecided)?;
+        winding_by_segments(scene, grid, cap, Vec3s::F64(&gathered), &mut answers, interrupt)?;
+    } else if !winding && scene.placements.len() == 1 {
+        parity_by_segments(scene, grid, points, &undecided, &mut answers, interrupt)?;
+    } else {
+        match points {
+            Vec3s::F32(v) => exact(Vec3s::F32(&gather(v, &undecided)?), &mut answers)?,
+            Vec3s::F64(v) => exact(Vec3s::F64(&gather(v, &undecided)?), &mut answers)?,
+        }
+    }
+    for (&i, &answer) in undecided.iter().zip(&answers) {
+        out[i] = answer;
+    }
+    Ok(())
+}
+
+/// The rows `rows` of the 3-column `values`, in order.
+fn gather<T: Copy + Default + Send + Sync>(values: &[T], rows: &[usize]) -> Result<Vec<T>> {
+    let mut gathered = try_vec(3 * rows.len(), T::default(), "the points near a surface")?;
+    parallel::install(|| {
+        gathered.par_chunks_exact_mut(3).zip(rows).with_min_len(4096).for_each(|(dst, &i)| {
+            dst.copy_from_slice(&values[3 * i..3 * i + 3]);
+        })
+    });
+    Ok(gathered)
+}
+
+/// How many undecided cells a point's segment crosses at most before it takes the whole ray.
+const MOST_SEGMENT_CELLS: usize = 64;
+
+/// `contains` by parity of the `undecided` points of a scene of one closed instance, into
+/// `answers`: each point's ray (the parity direction) runs only to the first decided cell along
+/// it, whose answer the parity of the crossings on the way flips (each crossing counted once by
+/// the exact test; the cell's point lies far from any surface). Points on a surface are inside,
+/// as `host_tiers::contains` has them; a ray that finds no decided cell soon runs to infinity,
+/// where every point is outside.
+fn parity_by_segments(
+    scene: &Scene,
+    grid: &InsideGrid,
+    points: Vec3s,
+    undecided: &[usize],
+    answers: &mut [u8],
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
+    let tracer = scene.reference_tracer();
+    let direction = PARITY_DIRECTION;
+    host_tiers::in_blocks(answers.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            answers[range].par_iter_mut().enumerate().with_min_len(64).for_each_init(Vec::new, |found, (k, inside)| {
+                let p = DVec3::from_array(points.row_f64(undecided[start + k])) - scene.center;
+                *inside = if tracer.on_surface(p, host_tiers::ON_SURFACE_ULPS) {
+                    1
+                } else {
+                    let (tmax, beyond) =
+                        grid.first_decided_along(p, direction, MOST_SEGMENT_CELLS).unwrap_or(WHOLE_RAY);
+                    found.clear();
+                    let ray = Ray64 { origin: p, direction, tmin: 0.0, tmax };
+                    tracer.trace_every(&ray, 0xFF, Filter::sides(Cull::None), found);
+                    (beyond as u8) ^ (found.len() as u8 & 1)
+                };
+            })
+        });
+    })
+}
+
+/// The signed count of crossings of the scene's one instance and its caps of each point's ray
+/// (the scene's frame; points away from every surface and cap): the integer part of its winding
+/// number, which the caps' small part about such a point leaves whole.
+fn region_counts(scene: &Scene, cap: &CapGeometry, centers: &[DVec3]) -> Vec<i32> {
+    let tracer = scene.reference_tracer();
+    let (placement, band) = (&scene.placements[0], cap.band());
+    parallel::install(|| {
+        centers
+            .par_iter()
+            .map(|&p| winding_ray(&tracer, placement, cap, band, p, (PARITY_DIRECTION, WHOLE_RAY)).0.sum())
+            .collect()
+    })
+}
+
+/// `contains` by winding number of the undecided `points` (world frame) of a scene of one
+/// instance closed by `cap`, into `answers`: each point's ray runs only to the first decided
+/// cell along it, whose count of crossings those on the way add to; the caps' winding number about
+/// the point completes its own, and the points within the band about 1/2 take the whole winding
+/// number (as `host_tiers::contains` decides them).
+fn winding_by_segments(
+    scene: &Scene,
+    grid: &InsideGrid,
+    cap: &CapGeometry,
+    points: Vec3s,
+    answers: &mut [u8],
+    interrupt: &dyn Interrupt,
+) -> Result<()> {
+    let tracer = scene.reference_tracer();
+    let (placement, band) = (&scene.placements[0], cap.band());
+    host_tiers::in_blocks(answers.len(), interrupt, |range| {
+        let start = range.start;
+        parallel::install(|| {
+            answers[range].par_iter_mut().enumerate().with_min_len(64).for_each(|(k, inside)| {
+                let p = DVec3::from_array(points.row_f64(start + k)) - scene.center;
+                *inside = match grid.cell(p) {
+                    // Away from every surface: the region's count and the caps' part about `p`.
+                    CellValue::NearCaps(count) => {
+                        host_tiers::mark_by_crossings(Crossings(count << 1), caps_winding(cap, band, p, count), band)
+                    }
+                    _ if tracer.on_surface(p, host_tiers::ON_SURFACE_ULPS) => 1,
+                    _ => {
+                        let end =
+                            grid.first_decided_along(p, PARITY_DIRECTION, MOST_SEGMENT_CELLS).unwrap_or(WHOLE_RAY);
+                        let (crossings, cap_winding) =
+                            winding_ray(&tracer, placement, cap, band, p, (PARITY_DIRECTION, end));
+                        host_tiers::mark_by_crossings(crossings, cap_winding, band)
+                    }
+                };
+            })
+        });
+    })?;
+    host_tiers::decide_on_the_cpu(scene, points, answers, interrupt)
+}
+
+/// The rows `rows` of `points`, in f64.
+fn gather_f64(points: Vec3s, rows: &[usize]) -> Result<Vec<f64>> {
+    let mut gathered = try_vec(3 * rows.len(), 0.0, "the points near a surface")?;
+    parallel::install(|| {
+        gathered.par_chunks_exact_mut(3).zip(rows).with_min_len(4096).for_each(|(dst, &i)| {
+            dst.copy_from_slice(&points.row_f64(i));
+        })
+    });
+    Ok(gathered)
+}

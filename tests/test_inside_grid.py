@@ -1,0 +1,168 @@
+"""`contains` at the exact tier through a scene's inside grid (src/scene/inside_grid.rs): a query
+of 32768 points or more builds it, and then every query of any size answers most points with one
+lookup, the rest by short rays to the nearest region's answer. The grid must change no answer:
+each test holds the exact tier against the reference tier (the host's f64 test, which never uses
+the grid) or against an analytic oracle, on every engine, with points near and on the surfaces,
+far from the origin, under transforms and mirrors, across scene updates and from several threads.
+"""
+
+import threading
+
+import numpy as np
+import pytest
+import trimesh
+
+import vkray
+
+# A query of this many points builds the grid (GRID_MIN_POINTS in src/trace/grid_contains.rs).
+GRID_POINTS = 1 << 15
+
+
+def hard_points(vertices: np.ndarray, faces: np.ndarray, n: int = 40000, seed: int = 0) -> np.ndarray:
+    """Uniform points in the box grown by 10% per side, points within 1e-3 to 1e-12 of the
+    surface on both sides, every vertex, and edge midpoints: at least GRID_POINTS in all."""
+    rng = np.random.default_rng(seed)
+    lo, hi = vertices.min(0), vertices.max(0)
+    grow = 0.1 * (hi - lo)
+    uniform = rng.uniform(lo - grow, hi + grow, (n, 3))
+    tm = trimesh.Trimesh(vertices, faces, process=False)
+    on, index = trimesh.sample.sample_surface(tm, 6000, seed=seed)
+    size = float(np.ptp(vertices, axis=0).max())
+    offsets = size * 10.0 ** rng.uniform(-12, -3, (len(on), 1)) * rng.choice([-1.0, 1.0], (len(on), 1))
+    near = on + offsets * tm.face_normals[index]
+    edges = vertices[faces[:, [0, 1, 2]]] + vertices[faces[:, [1, 2, 0]]]
+    midpoints = 0.5 * edges.reshape(-1, 3)[rng.choice(3 * len(faces), 2000)]
+    points = np.concatenate([uniform, near, on, vertices, midpoints])
+    assert len(points) >= GRID_POINTS
+    return points
+
+
+def mesh_of(name: str):
+    v, f = vkray.data.load_mesh(name)
+    return np.asarray(v, np.float64), np.asarray(f, np.int64)
+
+
+def assert_same(exact: np.ndarray, reference: np.ndarray, what: str) -> None:
+    wrong = np.flatnonzero(exact != reference)
+    assert wrong.size == 0, f"{what}: {wrong.size} points differ from the reference tier, first rows {wrong[:8]}"
+
+
+@pytest.mark.parametrize(
+    "name, method",
+    [("fandisk", "parity"), ("fandisk", "winding"), ("cow", "parity"), ("stanford-bunny", "winding")],
+)
+def test_grid_answers_equal_the_reference_tier(device, name, method):
+    v, f = mesh_of(name)
+    scene = device.scene([device.mesh(v, f)])
+    points = hard_points(v, f)
+    exact = scene.contains(points, method=method)
+    reference = scene.contains(points, method=method, precision="reference")
+    assert_same(exact, reference, f"{name} by {method}")
+    # The grid built above answers small queries too (fewer points than would build it).
+    assert_same(scene.contains(points[-3000:], method=method), reference[-3000:], "a small query after")
+    # Sanity: the sets are neither all inside nor all outside.
+    assert 0.05 < exact[:40000].mean() < 0.9
+
+
+def convex_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, margin: float) -> np.ndarray:
+    """Inside a convex closed mesh (outward faces): on the inner side of every face's plane; NaN
+    where a point lies within `margin` of a plane that decides it."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    heights = np.einsum("fk,pk->pf", normals, points) - np.einsum("fk,fk->f", normals, a)[None, :]
+    highest = heights.max(axis=1)
+    answer = (highest <= 0).astype(float)
+    answer[np.abs(highest) <= margin] = np.nan
+    return answer
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e7])
+def test_grid_answers_a_convex_mesh_analytically(device, offset):
+    """An icosphere, near the origin and 1e7 away: inside exactly where every face's plane has the
+    point on its inner side (points within 1e-6 of a deciding plane are left out)."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    v = np.asarray(sphere.vertices, np.float64) + offset
+    f = np.asarray(sphere.faces, np.int64)
+    scene = device.scene([device.mesh(v, f)])
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-1.2, 1.2, (GRID_POINTS + 8000, 3)) + offset
+    truth = convex_inside(v - offset, f, points - offset, 1e-6)
+    for method in ("parity", "winding"):
+        inside = scene.contains(points, method=method)
+        decided = ~np.isnan(truth)
+        assert decided.mean() > 0.99
+        wrong = np.flatnonzero(inside[decided] != truth[decided])
+        assert wrong.size == 0, f"{method}: {wrong.size} points answered against the planes"
+
+
+def test_grid_of_placed_and_mirrored_instances(device):
+    """Two instances of a closed mesh, one turned, one mirrored and moved, overlapping: both
+    methods against the reference tier."""
+    v, f = mesh_of("cow")
+    mesh = device.mesh(v, f)
+    size = float(np.ptp(v, axis=0).max())
+    turn = np.eye(4)
+    turn[:3, :3] = trimesh.transformations.rotation_matrix(0.7, [0.3, 1.0, 0.2])[:3, :3]
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    mirror[:3, 3] = [0.4 * size, 0.1 * size, 0.0]
+    scene = device.scene([vkray.Instance(mesh, turn), vkray.Instance(mesh, mirror)])
+    both = np.concatenate([v, (v * [-1, 1, 1]) + mirror[:3, 3]])
+    points = hard_points(both, np.concatenate([f, f + len(v)]), seed=2)
+    for method in ("parity", "winding"):
+        exact = scene.contains(points, method=method)
+        assert_same(exact, scene.contains(points, method=method, precision="reference"), method)
+
+
+def test_grid_follows_the_scene_update(device):
+    """A grid built before `Scene.update` moved the instance answers nothing after it."""
+    v, f = mesh_of("fandisk")
+    mesh = device.mesh(v, f)
+    scene = device.scene([vkray.Instance(mesh)], allow_update=True)
+    points = hard_points(v, f, seed=3)
+    first = scene.contains(points)
+    moved = np.eye(4)
+    moved[:3, 3] = 0.3 * np.ptp(v, axis=0)
+    scene.update(transforms=moved[None])
+    after = scene.contains(points)
+    assert_same(after, scene.contains(points, precision="reference"), "after the update")
+    assert (after != first).sum() > 100
+
+
+def test_grid_after_a_mesh_update_raises_until_the_scene_updates(device):
+    v, f = mesh_of("cow")
+    mesh = device.mesh(v, f, allow_update=True)
+    scene = device.scene([mesh], allow_update=True)
+    points = hard_points(v, f, seed=5)
+    scene.contains(points)  # builds the grid
+    mesh.update(v * 0.5)
+    with pytest.raises(ValueError, match="update"):
+        scene.contains(points[:10])
+    scene.update()
+    assert_same(scene.contains(points), scene.contains(points, precision="reference"), "after the mesh update")
+
+
+def test_grid_built_by_several_threads_at_once(device):
+    """Four threads ask a fresh scene at once (each may build a grid; one is kept): every answer
+    is the reference tier's."""
+    v, f = mesh_of("stanford-bunny")
+    scene = device.scene([device.mesh(v, f)])
+    points = hard_points(v, f, n=30000, seed=6)
+    reference = scene.contains(points, method="winding", precision="reference")
+    answers: list = [None] * 4
+    errors: list = []
+
+    def ask(k: int) -> None:
+        try:
+            answers[k] = scene.contains(points, method="winding")
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=ask, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    for k, a in enumerate(answers):
+        assert_same(a, reference, f"thread {k}")
