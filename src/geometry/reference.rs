@@ -182,6 +182,32 @@ impl ClosestHit {
     }
 }
 
+/// Where a placement only moves its set (a scene's usual one instance, less the scene's centre),
+/// the offset: the map's linear part multiplies by ones and zeros, so adding its offset is the
+/// same, bit for bit, in fewer operations.
+fn moved_by(set: &PlacedSet) -> Option<DVec3> {
+    (set.to_scene.linear == glam::DMat3::IDENTITY).then_some(set.to_scene.offset)
+}
+
+/// Item `prim` of `set` (instance `instance`) as a closest-point search measures it from `p`: its
+/// nearest point (scene frame) and that point's squared distance after scaling by `scale`
+/// (compared squared, exactly as computed, so that ties are ties in every tier); `moved`: the
+/// placement's offset where it only moves the set (`moved_by`).
+#[inline]
+fn measure_item(set: &PlacedSet, instance: u32, prim: u32, p: DVec3, scale: f64, moved: Option<DVec3>) -> ClosestHit {
+    let q = if set.triangles.is_spheres() {
+        closest_point_on_sphere(set, prim as usize, p)
+    } else {
+        let triangle = set.triangles.triangle(prim as usize);
+        let [a, b, c] = match moved {
+            Some(offset) => triangle.map(|v| v + offset),
+            None => triangle.map(|v| set.to_scene.point(v)),
+        };
+        closest_point_on_triangle(p, a, b, c)
+    };
+    ClosestHit { distance: ((q - p) * scale).length_squared(), point: q, u: 0.0, v: 0.0, instance, prim }
+}
+
 /// The barycentrics (of b and c) of a point `q` of triangle (a, b, c), in f64.
 pub fn barycentrics(q: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (f64, f64) {
     let (e1, e2, w) = (b - a, c - a, q - a);
@@ -387,10 +413,34 @@ impl<'a> ReferenceTracer<'a> {
     /// after scaling by a power of two (`search_scale`), so that a point 1e155 away or a scene
     /// 1e-160 across neither overflows nor underflows them.
     pub fn closest_point(&self, p: DVec3, mask: u8, max_distance: f64) -> Option<ClosestHit> {
+        self.closest_point_from(p, mask, max_distance, None)
+    }
+
+    /// `closest_point`, its search started from item `hint` (instance, item), where given: a
+    /// neighbouring point's nearest is often this one's, or near it, and its distance prunes the
+    /// search from the first node. The answer is the same (the nearest by `ClosestHit::is_before`,
+    /// a total order, whatever the search meets first).
+    pub fn closest_point_from(
+        &self,
+        p: DVec3,
+        mask: u8,
+        max_distance: f64,
+        hint: Option<(u32, u32)>,
+    ) -> Option<ClosestHit> {
         let scale = self.search_scale(p);
         let mut best: Option<ClosestHit> = None;
         let mut reach = max_distance * scale;
         let limit = reach * reach;
+        if let Some((instance, prim)) = hint {
+            let set = &self.sets[instance as usize];
+            if set.mask & mask != 0 {
+                let hit = measure_item(set, instance, prim, p, scale, moved_by(set));
+                if hit.distance <= limit {
+                    reach = hit.distance.sqrt();
+                    best = Some(hit);
+                }
+            }
+        }
         self.top.nearest(
             |b| ((b.min - p).max(p - b.max).max(DVec3::ZERO) * scale).length(),
             &mut reach,
@@ -402,36 +452,19 @@ impl<'a> ReferenceTracer<'a> {
                 let local = set.to_local.point(p);
                 // Local box gaps, weighted per axis, bound world distances from below.
                 let weights = DVec3::from_array(gap_weights(&set.to_scene, &set.to_local));
-                // Only moved (a scene's usual one instance, less the scene's centre): the map's
-                // linear part multiplies by ones and zeros, so adding its offset is the same, bit
-                // for bit, in fewer operations.
-                let (moved_only, offset) = (set.to_scene.linear == glam::DMat3::IDENTITY, set.to_scene.offset);
+                let moved = moved_by(set);
                 // Searched in squared lengths (no square root a node): the best's squared
                 // distance so far, or the limit's.
                 let mut reach_squared = best.map_or(limit, |b| b.distance);
                 let before = reach_squared;
-                let spheres = set.triangles.is_spheres();
                 set.triangles.bvh().nearest(
                     |b| weighted_gap(b, local, weights, scale) * (1.0 - 2e-12),
                     &mut reach_squared,
                     |prim, reach_squared| {
-                        let q = if spheres {
-                            closest_point_on_sphere(set, prim as usize, p)
-                        } else {
-                            let triangle = set.triangles.triangle(prim as usize);
-                            let [a, b, c] = if moved_only {
-                                triangle.map(|v| v + offset)
-                            } else {
-                                triangle.map(|v| set.to_scene.point(v))
-                            };
-                            closest_point_on_triangle(p, a, b, c)
-                        };
-                        // Compared squared (exactly as computed), so that ties are ties in every tier.
-                        let squared = ((q - p) * scale).length_squared();
-                        let hit = ClosestHit { distance: squared, point: q, u: 0.0, v: 0.0, instance, prim };
-                        if squared <= limit && best.is_none_or(|b| hit.is_before(&b)) {
+                        let hit = measure_item(set, instance, prim, p, scale, moved);
+                        if hit.distance <= limit && best.is_none_or(|b| hit.is_before(&b)) {
                             best = Some(hit);
-                            *reach_squared = squared;
+                            *reach_squared = hit.distance;
                         }
                     },
                 );

@@ -11,6 +11,7 @@ use super::request::Crossings;
 use crate::error::{Error, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
+use crate::geometry::morton;
 use crate::geometry::parallel;
 use crate::geometry::parallel::try_vec;
 use crate::geometry::precision::{plane_hit, sphere_normal, world_normal, Cull, Ray64};
@@ -645,16 +646,28 @@ pub fn closest_points(
     interrupt: &dyn Interrupt,
 ) -> Result<Vec<Option<ClosestHit>>> {
     let tracer = scene.reference_tracer();
-    let mut hits: Vec<Option<ClosestHit>> = try_vec(points.rows(), None, "the closest points")?;
-    in_blocks(points.rows(), interrupt, |range| {
-        let start = range.start;
+    let n = points.rows();
+    // Searched cell by cell along a Morton curve, each search started from the previous point's
+    // nearest item: neighbours share their nearest (or nearly), so the first measure prunes
+    // most of the hierarchy, and their nodes stay in cache.
+    let bounds = scene.bounds();
+    let order = morton::point_order(points, bounds.min + scene.center, bounds.max + scene.center);
+    let mut sorted: Vec<Option<ClosestHit>> = try_vec(n, None, "the closest points")?;
+    in_blocks(n, interrupt, |range| {
+        let order = &order.as_slice()[range.clone()];
         parallel::install(|| {
-            hits[range].par_iter_mut().enumerate().with_min_len(64).for_each(|(k, hit)| {
-                let p = DVec3::from_array(points.row_f64(start + k)) - scene.center;
-                *hit = tracer.closest_point(p, 0xFF, max_distance);
-            })
+            sorted[range].par_iter_mut().zip(order).with_min_len(64).for_each_init(
+                || None,
+                |hint, (hit, &i)| {
+                    let p = DVec3::from_array(points.row_f64(i as usize)) - scene.center;
+                    *hit = tracer.closest_point_from(p, 0xFF, max_distance, *hint);
+                    *hint = hit.map(|h| (h.instance, h.prim)).or(*hint);
+                },
+            )
         });
     })?;
+    let mut hits: Vec<Option<ClosestHit>> = try_vec(n, None, "the closest points")?;
+    order.scatter(&sorted, &mut hits);
     Ok(hits)
 }
 
