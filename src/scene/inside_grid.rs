@@ -42,7 +42,7 @@ const SMALLEST_REGION: usize = 4;
 /// Cells near enough a hole for the caps' winding number about them to reach this (a bound: the
 /// sum over the holes) stay undecided: elsewhere it stays below 1/2 by more than any rounding, so
 /// the integer count of crossings of the mesh and its caps alone decides.
-const CAP_WINDING_LIMIT: f64 = 0.45;
+pub const CAP_WINDING_LIMIT: f64 = 0.45;
 
 /// A scene's grid of answers (`GRID_OUTSIDE`, `GRID_INSIDE`, `GRID_UNDECIDED` a cell), in the
 /// scene's frame.

@@ -7,11 +7,11 @@ pub mod mesh;
 
 pub mod instance;
 
-pub mod top_level;
-
 pub mod winding_cap;
 
 pub mod inside_grid;
+
+pub mod top_level;
 
 pub mod cpu_mesh;
 
@@ -31,7 +31,9 @@ pub use closest::{ClosestScene, WindingCap, WindingScene};
 pub use cpu_mesh::{build_cpu_meshes, build_cpu_spheres, CpuMesh};
 pub use cpu_scene::{build_cpu_scene, CpuScene};
 pub use exact::ExactScene;
-pub use inside_grid::{grid_caps, CellValue, GridSurfaces, InsideGrid, GRID_INSIDE, GRID_OUTSIDE, GRID_UNDECIDED};
+pub use inside_grid::{
+    grid_caps, CellValue, GridSurfaces, InsideGrid, CAP_WINDING_LIMIT, GRID_INSIDE, GRID_OUTSIDE, GRID_UNDECIDED,
+};
 pub use instance::{Instance, InstanceFlags, Placement, IDENTITY};
 pub use mesh::{Mesh, MeshBatch, MeshGeometry, MeshHierarchy, MeshInput, MeshKind};
 pub use top_level::{Scene, SceneHierarchy};

@@ -10,7 +10,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::host_tiers::{self, PARITY_DIRECTION, WHOLE_RAY};
-use super::host_winding::{caps_winding, winding_ray};
+use super::host_winding::{caps_winding, fan_winding_bound, signed_crossings_with_caps, winding_ray};
 use super::request::Crossings;
 use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
@@ -18,7 +18,9 @@ use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel::{self, try_vec};
 use crate::geometry::precision::{Cull, Ray64};
 use crate::geometry::reference::Filter;
-use crate::scene::{grid_caps, CapGeometry, CellValue, GridSurfaces, InsideGrid, Scene, GRID_UNDECIDED};
+use crate::scene::{
+    grid_caps, CapGeometry, CellValue, GridSurfaces, InsideGrid, Scene, CAP_WINDING_LIMIT, GRID_UNDECIDED,
+};
 
 /// A query of fewer points neither builds a grid (its build costs tens of milliseconds) nor
 /// waits for one; it uses one a larger query built.
@@ -193,23 +195,32 @@ fn winding_by_segments(
             answers[range].par_iter_mut().enumerate().with_min_len(64).for_each(|(k, inside)| {
                 let p = DVec3::from_array(points.row_f64(start + k)) - scene.center;
                 *inside = match grid.cell(p) {
-                    // Away from every surface: the region's count and the caps' part about `p`.
-                    CellValue::NearCaps(count) => {
-                        host_tiers::mark_by_crossings(Crossings(count << 1), caps_winding(cap, band, p, count), band)
-                    }
+                    // Away from every surface: the region's count.
+                    CellValue::NearCaps(count) => inside_with_caps(cap, band, p, count),
                     _ if tracer.on_surface(p, host_tiers::ON_SURFACE_ULPS) => 1,
                     _ => {
                         let end =
                             grid.first_decided_along(p, PARITY_DIRECTION, MOST_SEGMENT_CELLS).unwrap_or(WHOLE_RAY);
-                        let (crossings, cap_winding) =
-                            winding_ray(&tracer, placement, cap, band, p, (PARITY_DIRECTION, end));
-                        host_tiers::mark_by_crossings(crossings, cap_winding, band)
+                        let count = signed_crossings_with_caps(&tracer, placement, cap, p, (PARITY_DIRECTION, end));
+                        inside_with_caps(cap, band, p, count)
                     }
                 };
             })
         });
     })?;
     host_tiers::decide_on_the_cpu(scene, points, answers, interrupt)
+}
+
+/// Whether a point `p` (scene frame, off the surface) whose ray's count of crossings of the mesh
+/// and its caps is `count` lies inside (1), outside (0), or `UNSURE` (within `band` of 1/2):
+/// `count` plus the caps' winding number about `p`, which the holes' bounds about `p` often show
+/// too small to matter (below `CAP_WINDING_LIMIT`, the count alone decides) before it is summed.
+fn inside_with_caps(cap: &CapGeometry, band: f64, p: DVec3, count: i32) -> u8 {
+    if cap.holes.iter().map(|hole| fan_winding_bound(p, hole)).sum::<f64>() < CAP_WINDING_LIMIT {
+        u8::from(count >= 1)
+    } else {
+        host_tiers::mark_by_crossings(Crossings(count << 1), caps_winding(cap, band, p, count), band)
+    }
 }
 
 /// The rows `rows` of `points`, in f64.

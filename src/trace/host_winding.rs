@@ -41,7 +41,7 @@ pub fn winding_ray(
 
 /// The signed count of crossings of the ray from `p` along `direction` with the instance
 /// `placement` less the fans of `cap`, to `ray_end`'s distance, plus `ray_end`'s count beyond.
-fn signed_crossings_with_caps(
+pub fn signed_crossings_with_caps(
     tracer: &ReferenceTracer,
     placement: &Placement,
     cap: &CapGeometry,
@@ -117,7 +117,7 @@ fn fan_crossings(ray: &ShearedRay, hole: &WindingCapHole, edges: &[WindingCapEdg
 /// A bound on the size of `hole`'s winding number about `p`: every point of its fan lies at
 /// least (distance to the apex - radius) away, so each triangle's solid angle is at most its
 /// area over that squared. Infinite where `p` lies within the radius.
-fn fan_winding_bound(p: DVec3, hole: &WindingCapHole) -> f64 {
+pub fn fan_winding_bound(p: DVec3, hole: &WindingCapHole) -> f64 {
     let gap = DVec3::from_array(hole.apex_scene).distance(p) - hole.radius_scene;
     if gap > 0.0 {
         hole.area_scene / (4.0 * PI * gap * gap)
