@@ -37,6 +37,11 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import vkray  # noqa: E402
 from oracle import camera_rays, random_rays  # noqa: E402
 
+# The column of the vkray device timed (`--device`): the CPU engine unless named otherwise.
+VKRAY = "vkray cpu"
+DEVICE = "cpu"
+PRECISION = "reference"
+
 
 def big_mesh(vertices: np.ndarray, faces: np.ndarray, times: int) -> Any:
     """The mesh with every triangle split into four, `times` times (bunny x16: 1.1M triangles)."""
@@ -59,7 +64,7 @@ class Engines:
         import trimesh
 
         self.o3d = o3d
-        cpu = vkray.Device("cpu")
+        cpu = vkray.Device() if DEVICE == "default" else vkray.Device(DEVICE)
         self.mesh_seconds, self.mesh = best_run(1, lambda: cpu.mesh(vertices, faces))
         self.cpu = cpu.scene([self.mesh])
         self.vulkan = None
@@ -88,24 +93,24 @@ def ray_table(report: Report, name: str, engines: Engines, origins: np.ndarray, 
     cpu, vulkan, o3s, tm = engines.cpu, engines.vulkan, engines.o3d_scene, engines.trimesh
     queries: Dict[str, Dict[str, Callable[[], Any]]] = {
         "closest hit": {
-            "vkray cpu": lambda: cpu.intersect(origins, dirs),
+            VKRAY: lambda: cpu.intersect(origins, dirs),
             "open3d": lambda: o3s.cast_rays(rays),
             "lavapipe": (lambda: vulkan.intersect(origins, dirs)) if vulkan else None,
             "embreex 1 core": lambda: tm.intersects_first(origins, dirs),
         },
         "occlusion": {
-            "vkray cpu": lambda: cpu.occluded(origins, dirs),
+            VKRAY: lambda: cpu.occluded(origins, dirs),
             "open3d": lambda: o3s.test_occlusions(rays),
             "lavapipe": (lambda: vulkan.occluded(origins, dirs)) if vulkan else None,
             "embreex 1 core": lambda: tm.intersects_any(origins, dirs),
         },
         "count": {
-            "vkray cpu": lambda: cpu.count(origins, dirs),
+            VKRAY: lambda: cpu.count(origins, dirs),
             "open3d": lambda: o3s.count_intersections(rays),
             "lavapipe": (lambda: vulkan.count(origins, dirs)) if vulkan else None,
         },
         "intersect_all": {
-            "vkray cpu": lambda: cpu.intersect_all(origins, dirs, outputs=("t", "prim_id")),
+            VKRAY: lambda: cpu.intersect_all(origins, dirs, outputs=("t", "prim_id")),
             "open3d": lambda: o3s.list_intersections(rays),
             "lavapipe": (lambda: vulkan.intersect_all(origins, dirs, outputs=("t", "prim_id"))) if vulkan else None,
         },
@@ -125,12 +130,12 @@ def ray_table(report: Report, name: str, engines: Engines, origins: np.ndarray, 
             "rays": name,
             "query": query,
             **{f"{e} (M/s)": round(v, 2) for e, v in r.items()},
-            "× open3d": round(seconds["open3d"] / seconds["vkray cpu"], 2),
+            "× open3d": round(seconds["open3d"] / seconds[VKRAY], 2),
         }
         if "lavapipe" in seconds:
-            row["× lavapipe"] = round(seconds["lavapipe"] / seconds["vkray cpu"], 2)
+            row["× lavapipe"] = round(seconds["lavapipe"] / seconds[VKRAY], 2)
         if "embreex 1 core" in seconds:
-            row["× embreex per core"] = round(seconds["embreex 1 core"] / seconds["vkray cpu"] / cores, 2)
+            row["× embreex per core"] = round(seconds["embreex 1 core"] / seconds[VKRAY] / cores, 2)
         rows.append(row)
         report(f"- {name} rays, {query}: " + ", ".join(f"{k} {v}" for k, v in row.items() if k not in ("rays", "query")))
     return rows
@@ -142,17 +147,17 @@ def point_table(report: Report, engines: Engines, points: np.ndarray, repeat: in
     cpu, vulkan, o3s = engines.cpu, engines.vulkan, engines.o3d_scene
     queries: Dict[str, Dict[str, Optional[Callable[[], Any]]]] = {
         "contains (exact) / occupancy nsamples=1": {
-            "vkray cpu": lambda: cpu.contains(points, method="winding" if not engines.mesh.is_closed else "parity"),
+            VKRAY: lambda: cpu.contains(points, method="winding" if not engines.mesh.is_closed else "parity"),
             "open3d": lambda: o3s.compute_occupancy(tensor, nsamples=1),
             "lavapipe": (lambda: vulkan.contains(points, method="winding" if not engines.mesh.is_closed else "parity")) if vulkan else None,
         },
         "distance": {
-            "vkray cpu": lambda: cpu.distance(points),
+            VKRAY: lambda: cpu.distance(points, precision=PRECISION),
             "open3d": lambda: o3s.compute_distance(tensor),
             "lavapipe": (lambda: vulkan.distance(points)) if vulkan else None,
         },
         "signed distance": {
-            "vkray cpu": lambda: cpu.signed_distance(points),
+            VKRAY: lambda: cpu.signed_distance(points, precision=PRECISION),
             "open3d": lambda: o3s.compute_signed_distance(tensor),
             "lavapipe": (lambda: vulkan.signed_distance(points)) if vulkan else None,
         },
@@ -162,9 +167,9 @@ def point_table(report: Report, engines: Engines, points: np.ndarray, repeat: in
         seconds = {e: best_run(repeat, run, warm=True)[0] for e, run in runs.items() if run is not None}
         r = rates(len(points), seconds)
         row = {"query": query, **{f"{e} (M/s)": round(v, 2) for e, v in r.items()}}
-        row["× open3d"] = round(seconds["open3d"] / seconds["vkray cpu"], 2)
+        row["× open3d"] = round(seconds["open3d"] / seconds[VKRAY], 2)
         if "lavapipe" in seconds:
-            row["× lavapipe"] = round(seconds["lavapipe"] / seconds["vkray cpu"], 2)
+            row["× lavapipe"] = round(seconds["lavapipe"] / seconds[VKRAY], 2)
         rows.append(row)
         report(f"- points, {query}: " + ", ".join(f"{k} {v}" for k, v in row.items() if k != "query"))
     return rows
@@ -188,9 +193,14 @@ def main() -> None:
     parser.add_argument("--no-lavapipe", action="store_true", help="skip vkray on lavapipe (slow)")
     parser.add_argument("--no-rays", action="store_true", help="only the point queries")
     parser.add_argument("--out", default=None)
+    parser.add_argument("--device", default="cpu", help="the vkray device timed: 'cpu' (default), 'default' (vkray.Device()) or a name")
+    parser.add_argument("--distance-precision", default="reference", help="the tier of distances (default 'reference')")
     args = parser.parse_args()
+    global VKRAY, DEVICE, PRECISION
+    DEVICE, PRECISION = args.device, args.distance_precision
+    VKRAY = "vkray cpu" if DEVICE == "cpu" else "vkray"
     report = Report()
-    cpu_name = vkray.Device("cpu").name
+    cpu_name = (vkray.Device() if DEVICE == "default" else vkray.Device(DEVICE)).name
     report(f"# bench_cpu: {platform.node()}, {os.cpu_count()} cores, {cpu_name}")
     report(f"`python benchmarks/bench_cpu.py {' '.join(sys.argv[1:])}`")
     side = int(round(args.rays**0.5))
@@ -204,7 +214,7 @@ def main() -> None:
         engines = Engines(vertices, faces, lavapipe=not args.no_lavapipe)
         stats = engines.mesh.stats
         report(
-            f"- build: vkray cpu {engines.mesh_seconds * 1e3:.1f} ms ({stats['bytes'] / len(faces):.0f} bytes a triangle), "
+            f"- build: {VKRAY} {engines.mesh_seconds * 1e3:.1f} ms ({stats['bytes'] / len(faces):.0f} bytes a triangle), "
             f"Open3D {engines.o3d_build_seconds * 1e3:.1f} ms (add_triangles and its first query)"
         )
         rows: List[Dict[str, Any]] = []
