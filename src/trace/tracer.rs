@@ -514,7 +514,11 @@ impl<E: Engine + ?Sized> Tracer<E> {
         let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
         let points = moved.as_deref().map_or(points, Vec3s::F64);
         if precision == Precision::Exact {
-            if let Some(grid) = grid_contains::inside_grid(scene, winding, points.rows(), interrupt)? {
+            let grid = match self.engine.limits().on_host {
+                true => grid_contains::inside_grid(scene, winding, points.rows(), interrupt)?,
+                false => None,
+            };
+            if let Some(grid) = grid {
                 scene.check_current()?;
                 return grid_contains::contains_by_grid(scene, &grid, points, winding, out, interrupt, |rest, out| {
                     self.contains_exact(scene, rest, winding, out, interrupt)

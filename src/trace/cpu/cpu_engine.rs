@@ -154,7 +154,7 @@ impl Engine for CpuEngine {
     }
 
     fn limits(&self) -> EngineLimits {
-        EngineLimits { f64_tests: true }
+        EngineLimits { f64_tests: true, on_host: true }
     }
 
     fn check_usable(&self) -> Result<()> {

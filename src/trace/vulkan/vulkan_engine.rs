@@ -132,7 +132,7 @@ impl Engine for VulkanEngine {
     }
 
     fn limits(&self) -> EngineLimits {
-        EngineLimits { f64_tests: self.shared.ctx.info.shader_float64 }
+        EngineLimits { f64_tests: self.shared.ctx.info.shader_float64, on_host: self.shared.ctx.info.is_software }
     }
 
     fn check_usable(&self) -> Result<()> {
