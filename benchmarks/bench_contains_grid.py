@@ -18,20 +18,11 @@ import argparse
 import os
 import platform
 import sys
-import time
 
 import numpy as np
+from _timing import best_of, best_run, open3d_scene
 
 import vkray
-
-
-def best(repeat: int, run) -> float:
-    times = []
-    for _ in range(repeat):
-        started = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - started)
-    return min(times)
 
 
 def main() -> None:
@@ -59,18 +50,15 @@ def main() -> None:
         os.environ["VKRAY_CONTAINS_GRID"] = "off"
         plain = device.scene([mesh])
         without = plain.contains(points, method=method)
-        t_without = best(args.repeat, lambda: plain.contains(points, method=method))
+        t_without = best_of(args.repeat, lambda: plain.contains(points, method=method))
         del os.environ["VKRAY_CONTAINS_GRID"]
         gridded = device.scene([mesh])
-        started = time.perf_counter()
-        with_grid = gridded.contains(points, method=method)
-        first = time.perf_counter() - started
-        t_with = best(args.repeat, lambda: gridded.contains(points, method=method))
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor.from_numpy(v), o3d.core.Tensor.from_numpy(f.astype(np.uint32)))
+        first, with_grid = best_run(1, lambda: gridded.contains(points, method=method))
+        t_with = best_of(args.repeat, lambda: gridded.contains(points, method=method))
+        scene = open3d_scene(o3d, v, f)
         tensor = o3d.core.Tensor.from_numpy(points)
         scene.compute_occupancy(tensor, nsamples=1)
-        t_o3d = best(args.repeat, lambda: scene.compute_occupancy(tensor, nsamples=1))
+        t_o3d = best_of(args.repeat, lambda: scene.compute_occupancy(tensor, nsamples=1))
         rate = lambda s: f"{args.points / s / 1e6:.2f}"  # noqa: E731
         equal = bool(np.array_equal(without, with_grid))
         print(

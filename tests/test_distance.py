@@ -505,3 +505,27 @@ def test_points_searched_in_grid_order_answer_in_their_own_rows(device, bunny, m
     monkeypatch.delenv("VKRAY_POINT_ORDER")
     # Several threads at once, each with its own chunks in grid order: the same answers.
     check_tiers_in_threads(lambda tier: scene.distance(points, precision=tier), ("exact",), 3)
+
+
+def test_host_search_from_a_neighbours_nearest_answers_each_point_alone(any_device, bunny):
+    """The host's search takes points along a Morton curve, each from the previous point's nearest
+    triangle: every point's answer must be its own search's, whatever its neighbours in the batch.
+    Two identical instances (every distance a tie, settled by the lower instance) and a third moved
+    and turned: the batch, the batch shuffled, and each point asked alone answer alike."""
+    v, f = bunny
+    mesh = any_device.mesh(v, f)
+    turned = np.eye(4)
+    turned[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    turned[:3, 3] = 0.05
+    scene = any_device.scene([vkray.Instance(mesh), vkray.Instance(mesh), vkray.Instance(mesh, turned)])
+    points = points_around(v, 3000, seed=11)
+    batch = scene.closest_points(points, outputs=vkray.CLOSEST_FIELDS, precision="reference")
+    order = np.random.default_rng(2).permutation(len(points))
+    shuffled = scene.closest_points(points[order], outputs=vkray.CLOSEST_FIELDS, precision="reference")
+    for field in vkray.CLOSEST_FIELDS:
+        np.testing.assert_array_equal(getattr(shuffled, field), getattr(batch, field)[order], err_msg=field)
+    assert set(np.unique(batch.instance_id)) <= {0, 2} and (batch.instance_id == 0).any()
+    for i in range(0, len(points), 100):
+        alone = scene.closest_points(points[i : i + 1], outputs=vkray.CLOSEST_FIELDS, precision="reference")
+        for field in vkray.CLOSEST_FIELDS:
+            np.testing.assert_array_equal(getattr(alone, field)[0], getattr(batch, field)[i], err_msg=f"{field} of {i}")

@@ -42,6 +42,22 @@ def mesh_of(name: str):
     return np.asarray(v, np.float64), np.asarray(f, np.int64)
 
 
+def on_host(device) -> bool:
+    """Whether `device` runs queries on the host's cores (the CPU engine, Vulkan on a CPU): only
+    there does `contains` build and use the grid."""
+    return device.info.device_type == "cpu"
+
+
+def assert_grid_used(device, scene, method: str) -> None:
+    """On the host's engines the query kept a grid that decides most cells; elsewhere none."""
+    grid = scene._core.inside_grid(method == "winding")
+    if not on_host(device):
+        assert grid is None
+        return
+    assert grid is not None and grid["cells"] > 100_000 and grid["regions"] >= 1
+    assert grid["undecided"] < 0.1, grid
+
+
 def assert_same(exact: np.ndarray, reference: np.ndarray, what: str) -> None:
     wrong = np.flatnonzero(exact != reference)
     assert wrong.size == 0, f"{what}: {wrong.size} points differ from the reference tier, first rows {wrong[:8]}"
@@ -56,6 +72,7 @@ def test_grid_answers_equal_the_reference_tier(device, name, method):
     scene = device.scene([device.mesh(v, f)])
     points = hard_points(v, f)
     exact = scene.contains(points, method=method)
+    assert_grid_used(device, scene, method)
     reference = scene.contains(points, method=method, precision="reference")
     assert_same(exact, reference, f"{name} by {method}")
     # The grid built above answers small queries too (fewer points than would build it).
@@ -94,6 +111,24 @@ def test_grid_answers_a_convex_mesh_analytically(device, offset):
         assert decided.mean() > 0.99
         wrong = np.flatnonzero(inside[decided] != truth[decided])
         assert wrong.size == 0, f"{method}: {wrong.size} points answered against the planes"
+
+
+@pytest.mark.parametrize("name, method", [("stanford-bunny", "winding"), ("cow", "parity")])
+def test_grid_of_one_turned_stretched_mirrored_instance_far_away(device, name, method):
+    """One instance turned, stretched along one axis, mirrored and moved 1e7 away: the grid's own
+    short rays (parity), or its counts and the mirrored caps (winding), against the reference."""
+    v, f = mesh_of(name)
+    transform = np.eye(4)
+    turn = trimesh.transformations.rotation_matrix(0.9, [0.2, 1.0, 0.4])[:3, :3]
+    transform[:3, :3] = turn @ np.diag([-1.0, 1.7, 0.8])
+    transform[:3, 3] = [1e7, -2e7, 5e6]
+    scene = device.scene([vkray.Instance(device.mesh(v, f), transform)])
+    placed = v @ transform[:3, :3].T + transform[:3, 3]
+    points = hard_points(placed, f, seed=8)
+    exact = scene.contains(points, method=method)
+    assert_grid_used(device, scene, method)
+    assert_same(exact, scene.contains(points, method=method, precision="reference"), f"{name} placed far")
+    assert 0.02 < exact[:40000].mean() < 0.9
 
 
 def test_grid_of_placed_and_mirrored_instances(device):

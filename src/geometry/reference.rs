@@ -442,7 +442,9 @@ impl<'a> ReferenceTracer<'a> {
             }
         }
         self.top.nearest(
-            |b| ((b.min - p).max(p - b.max).max(DVec3::ZERO) * scale).length(),
+            // Shrunk past rounding, as the meshes' own bounds are: a nearest point computed an
+            // ulp outside its instance's box is still met, with or without a hint.
+            |b| ((b.min - p).max(p - b.max).max(DVec3::ZERO) * scale).length() * (1.0 - 2e-12),
             &mut reach,
             |instance, reach| {
                 let set = &self.sets[instance as usize];

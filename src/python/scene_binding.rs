@@ -294,6 +294,19 @@ impl PyScene {
         Ok(d)
     }
 
+    /// The grid `contains` by winding number (or parity) keeps (built by a query of 32768
+    /// points or more on an engine of the host's cores), or None: its cells, the share of them
+    /// undecided, its regions (each one exact answer) and its build's seconds.
+    fn inside_grid<'py>(&self, py: Python<'py>, winding: bool) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some(grid) = self.with_scene(py, |scene| scene.inside_grid(winding))? else { return Ok(None) };
+        let d = PyDict::new(py);
+        d.set_item("cells", grid.cell_count())?;
+        d.set_item("undecided", grid.undecided)?;
+        d.set_item("regions", grid.regions)?;
+        d.set_item("build_seconds", grid.build_seconds)?;
+        Ok(Some(d))
+    }
+
     /// Traces rays; returns {field name: array} for the fields asked for.
     /// `query` is "closest" or "occluded"; `precision` one of the tiers of `Precision`;
     /// `contacts` (exact tier): closed triangles (see `Request::contacts`).

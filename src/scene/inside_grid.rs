@@ -162,9 +162,10 @@ impl InsideGrid {
     ) -> Result<InsideGrid> {
         let started = Instant::now();
         let layout = CellLayout::new(surfaces.bounds);
-        // Far beyond the rounding of moving a point into the scene's frame and of telling its cell,
-        // and of the exact test's on-surface margin (a few units in the last place).
-        let pad = 1e-9 * surfaces.world_scale.max(surfaces.bounds.extent().max_element()) + 1e-6 * layout.cell;
+        // Far beyond the rounding of moving a point into the scene's frame (an ulp of its world
+        // coordinates) and of telling its cell, and of the exact test's on-surface margin (a few
+        // units in the last place of the scene's own coordinates).
+        let pad = 1e-12 * surfaces.world_scale + 1e-9 * surfaces.bounds.extent().max_element() + 1e-6 * layout.cell;
         let near = layout.near_surfaces(&surfaces, pad);
         let near_caps = layout.near_caps(&surfaces, pad);
         let (labels, representatives) = layout.regions(&near);
@@ -380,8 +381,11 @@ impl CellLayout {
         let plane_test = cells > 8 && length > 0.0 && length.is_finite();
         let unit = if plane_test { normal / length } else { DVec3::ZERO };
         let half = 0.5 * self.cell;
-        // The plane's reach over a cell: its half-diagonal projected on the normal, and the pad.
-        let reach = half * unit.abs().element_sum() + pad + 1e-12 * (a.abs().max_element() + self.cell);
+        // The plane's reach over a cell: its half-diagonal projected on the normal, the pad, and
+        // the corners' own distances from the computed plane (a sliver's normal rounds far off:
+        // the triangle still lies within that slab about `a`, whatever the normal's error).
+        let slab = unit.dot(b - a).abs().max(unit.dot(c - a).abs());
+        let reach = half * unit.abs().element_sum() + pad + slab + 1e-12 * (a.abs().max_element() + self.cell);
         for z in zs {
             for y in ys.clone() {
                 for x in xs.clone() {

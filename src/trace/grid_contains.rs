@@ -46,6 +46,10 @@ pub fn inside_grid(
     let Some(cap) = grid_caps(&scene.placements, winding) else { return Ok(None) };
     let bounds = scene.bounds();
     let world_scale = scene.center.abs().max_element() + bounds.min.abs().max(bounds.max.abs()).max_element();
+    // Bounds of no size (every vertex at one point) or near f64's least have no cells to speak of.
+    if !(bounds.extent().max_element() > 1e-200) {
+        return Ok(None);
+    }
     // With caps (by winding number, one instance), each region keeps its count of crossings of
     // the mesh and its caps, which short rays from points near the surface add to.
     let counts = cap.is_some();
@@ -146,7 +150,10 @@ fn parity_by_segments(
         parallel::install(|| {
             answers[range].par_iter_mut().enumerate().with_min_len(64).for_each_init(Vec::new, |found, (k, inside)| {
                 let p = DVec3::from_array(points.row_f64(undecided[start + k])) - scene.center;
-                *inside = if tracer.on_surface(p, host_tiers::ON_SURFACE_ULPS) {
+                // In the reference tier's order: beyond the scene, then on a surface.
+                *inside = if host_tiers::beyond_the_scene(scene, p) {
+                    0
+                } else if tracer.on_surface(p, host_tiers::ON_SURFACE_ULPS) {
                     1
                 } else {
                     let (tmax, beyond) =
@@ -196,6 +203,8 @@ fn winding_by_segments(
             answers[range].par_iter_mut().enumerate().with_min_len(64).for_each(|(k, inside)| {
                 let p = DVec3::from_array(points.row_f64(start + k)) - scene.center;
                 *inside = match grid.cell(p) {
+                    // In the reference tier's order: beyond the scene, then on a surface.
+                    _ if host_tiers::beyond_the_scene(scene, p) => 0,
                     // Away from every surface: the region's count.
                     CellValue::NearCaps(count) => inside_with_caps(cap, band, p, count),
                     _ if tracer.on_surface(p, host_tiers::ON_SURFACE_ULPS) => 1,

@@ -500,7 +500,7 @@ pub fn contains(scene: &Scene, points: Vec3s, winding: bool, out: &mut [u8], int
 /// plane parts such a point from every instance, so each instance's surface lies in a half-space
 /// without it: no ray from it crosses a closed surface an odd number of times, and a surface's
 /// solid angle about it is below 2π (a winding number below 1/2).
-fn beyond_the_scene(scene: &Scene, p: DVec3) -> bool {
+pub(super) fn beyond_the_scene(scene: &Scene, p: DVec3) -> bool {
     let bounds = scene.bounds();
     let scale = bounds.min.abs().max(bounds.max.abs()).max_element().max(p.abs().max_element());
     !bounds.padded(64.0 * f64::EPSILON * scale).contains(p)
