@@ -47,7 +47,8 @@ pub fn inside_grid(
     let bounds = scene.bounds();
     let world_scale = scene.center.abs().max_element() + bounds.min.abs().max(bounds.max.abs()).max_element();
     // Bounds of no size (every vertex at one point) or near f64's least have no cells to speak of.
-    if !(bounds.extent().max_element() > 1e-200) {
+    let extent = bounds.extent().max_element();
+    if extent.is_nan() || extent <= 1e-200 {
         return Ok(None);
     }
     // With caps (by winding number, one instance), each region keeps its count of crossings of
