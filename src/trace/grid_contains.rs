@@ -1,8 +1,9 @@
-//! `contains` at the exact tier through the scene's inside grid (`scene::InsideGrid`): one lookup
-//! answers a point whose cell lies away from every surface; the others (the undecided, near a
-//! surface) are gathered and answered by the engine's exact test. The grid is built by the first
-//! query of at least `GRID_MIN_POINTS` points on a scene it suits, its regions' answers from the
-//! host's exact test, and kept until the scene's next update.
+//! `contains` at the exact tier through the scene's inside grid (`scene::InsideGrid`), on the
+//! engines of the host's cores: one lookup answers a point whose cell lies away from every
+//! surface; a point near a surface (an undecided cell) casts a short exact ray to the next decided
+//! cell in a scene of one instance, and is answered by the engine's exact test otherwise. The grid
+//! is built by the first query of at least `GRID_MIN_POINTS` points on a scene it suits, its
+//! regions' values from the host's exact test, and kept until the scene's next update.
 
 use std::sync::Arc;
 
