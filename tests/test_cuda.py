@@ -81,8 +81,9 @@ def test_counts_of_cuda_rays_equal_numpy(bunny):
     far = v[np.random.default_rng(13).integers(0, len(v), 5000)] - eye
     np.testing.assert_array_equal(on_host(scene.count(torch.from_numpy(eye).cuda(), torch.from_numpy(far).cuda())),
                                   scene.count(eye, far))
-    with pytest.raises(vkray.UnsupportedError, match="fast"):
-        scene.count(torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda(), precision="exact")
+    exact = scene.count(torch.from_numpy(o32).cuda(), torch.from_numpy(d32).cuda(), precision="exact")
+    assert isinstance(exact, vkray.CudaArray) and exact.dtype == "int32"
+    np.testing.assert_array_equal(on_host(exact), scene.count(o32, d32, precision="exact"))
     cupy = pytest.importorskip("cupy")
     np.testing.assert_array_equal(cupy.from_dlpack(scene.count(cupy.asarray(o), cupy.asarray(d))).get(),
                                   scene.count(o, d))
@@ -176,8 +177,13 @@ def test_errors(bunny):
         scene.intersect(torch.from_numpy(o).cuda(), d)  # numpy directions with CUDA origins
     with pytest.raises(TypeError, match="float32 or float64"):
         scene.intersect(torch.from_numpy(o).cuda().half(), torch.from_numpy(d).cuda())
-    with pytest.raises(vkray.UnsupportedError, match="fast"):
+    with pytest.raises(ValueError, match="row 321"):  # through the host: the same error
         scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda(), precision="exact")
+    with pytest.raises(TypeError, match="directions is in host memory"):
+        scene.intersect(torch.from_numpy(o).cuda(), d, precision="exact")
+    with pytest.raises(TypeError, match="out= takes numpy hits"):
+        scene.intersect(torch.from_numpy(o).cuda(), torch.from_numpy(d).cuda(), precision="exact",
+                        out=scene.intersect(o[:1000:2], d[:1000:2], precision="exact"))
     if torch.cuda.device_count() > 1:
         with pytest.raises(TypeError, match="cuda:1"):
             scene.intersect(torch.from_numpy(o).to("cuda:1"), torch.from_numpy(d).to("cuda:1"))

@@ -207,7 +207,7 @@ class _FakeCudaArray:
 def test_cuda_rays_of_a_gpu_outside_the_group_are_named():
     group = make_group(2)
     scene = mixed_scene(group, vkray.GroupInstance)
-    with pytest.raises(ValueError, match="the rays live on cuda:7, which is none of this group's devices"):
+    with pytest.raises(ValueError, match="the arrays live on cuda:7, which is none of this group's devices"):
         scene.intersect(_FakeCudaArray(), _FakeCudaArray())
 
 

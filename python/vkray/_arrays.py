@@ -126,6 +126,35 @@ def on_cuda(*values: object, names: Tuple[str, ...] = ("origins", "directions"))
     return False
 
 
+def cuda_to_numpy(core_device: Any, value: object, name: str) -> np.ndarray:
+    """A CUDA array on ``core_device``'s GPU (a `_core.Device`) copied into a numpy array of its
+    dtype and shape, read in stream order after its producer's writes (DLPack's contract)."""
+    raw, dtype, shape, strides = core_device.cuda_read(value, name)
+    flat = raw.view(np.dtype(dtype))
+    compact = np.empty(0, dtype).reshape(tuple(shape)) if 0 in shape else None
+    if compact is not None:
+        return compact
+    if tuple(strides) == _compact_strides(tuple(shape), flat.itemsize):
+        return cast(np.ndarray, flat[: int(np.prod(shape, dtype=np.int64))].reshape(tuple(shape)))
+    return np.lib.stride_tricks.as_strided(flat, tuple(shape), tuple(strides), writeable=False).copy()
+
+
+def _compact_strides(shape: Tuple[int, ...], itemsize: int) -> Tuple[int, ...]:
+    """numpy's byte strides of a C-contiguous array of ``shape`` (axes of length 1 any)."""
+    strides = []
+    step = itemsize
+    for n in reversed(shape):
+        strides.append(step)
+        step *= n
+    return tuple(reversed(strides))
+
+
+def numpy_to_cuda(core_device: Any, array: np.ndarray) -> Any:
+    """``array`` copied to ``core_device``'s GPU as a `vkray.CudaArray` of its dtype and shape."""
+    a = np.ascontiguousarray(array)
+    return core_device.cuda_write(a.reshape(-1).view(np.uint8), a.dtype.name, list(a.shape))
+
+
 def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarray:
     """A DLPack array in host memory as a numpy view of the same memory (no copy); arrays
     elsewhere are refused with an error naming their device."""

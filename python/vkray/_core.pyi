@@ -94,6 +94,8 @@ class Device:
     def host_threads(self, threads: Optional[int]) -> None: ...
     @property
     def cuda_device(self) -> Optional[int]: ...
+    def cuda_read(self, value: Any, name: str) -> Tuple[NDArray[np.uint8], str, List[int], List[int]]: ...
+    def cuda_write(self, bytes: NDArray[np.uint8], dtype: str, shape: List[int]) -> CudaArray: ...
     def mesh(
         self,
         vertices: _Vec3s,
@@ -282,8 +284,9 @@ class CudaBatch:
 
 @final
 class CudaArray:
-    """Hits in CUDA memory owned by vkray (GPU-resident queries): read them without a copy through
-    DLPack (``torch.from_dlpack(a)``, ``cupy.from_dlpack(a)``), or copy them to numpy."""
+    """A query's answer in CUDA memory owned by vkray (queries of CUDA arrays): read it without a
+    copy through DLPack (``torch.from_dlpack(a)``, ``cupy.from_dlpack(a)``), or copy it to numpy.
+    ``dtype`` is numpy's name of its elements (float32, float64, int32, int64, bool)."""
 
     @property
     def shape(self) -> Tuple[int, ...]: ...

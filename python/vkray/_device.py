@@ -14,7 +14,7 @@ from typing import Any, Callable, Dict, Iterable, List, Literal, Optional, Proto
 import numpy as np
 
 from . import _arrays, _core, _pictures, _progress
-from ._options import Backend, Build, Cull, Precision, VertexFormat, check_outputs
+from ._options import HIT_FIELDS, Backend, Build, Cull, Precision, VertexFormat, check_outputs
 from ._queries import PointQuery, Query, RayQuery, SceneLike
 from ._results import AllHits, Closest, Hits, out_arrays
 
@@ -688,7 +688,41 @@ class Scene(SceneLike):
         run = _ANSWERS.get(query.kind)
         if run is None:
             raise ValueError(f"no query named {query.kind!r}")
+        if _cuda_query(query) and not _resident(query):
+            return self._through_host(query, run)
         return run(self, query)
+
+    def _through_host(self, query: Query, run: Callable[[Scene, Any], Any]) -> Any:
+        """A query of CUDA arrays that has no GPU-resident path (every tier but the fast one, all
+        hits, transmittance, the point queries, the host-made ``position``): its CUDA arrays are
+        copied to the host in stream order, it runs as for numpy, and its answer is copied to new
+        `vkray.CudaArray`s on the same GPU (one copy each way over the bus: docs/benchmarks.md)."""
+        if isinstance(query, RayQuery) and query.out is not None:
+            raise TypeError("out= takes numpy hits: CUDA rays' hits are new arrays vkray owns")
+        core = self.device._core
+
+        def host(value: Any, name: str) -> Any:
+            place = _arrays.dlpack_device(value, name)
+            if place is not None and place[0] == _arrays.DLPACK_CUDA:
+                return _arrays.cuda_to_numpy(core, value, name)
+            return value
+
+        if isinstance(query, RayQuery):
+            if _arrays.on_cuda(query.origins) != _arrays.on_cuda(query.directions, names=("directions",)):
+                host_side = "directions" if _arrays.on_cuda(query.origins) else "origins"
+                raise TypeError(
+                    f"{host_side} is in host memory while other rays are CUDA arrays: pass every ray array on the "
+                    f"GPU (or every one in host memory)"
+                )
+            on_host_rays = query.with_rays(
+                host(query.origins, "origins"), host(query.directions, "directions"), host(query.tmin, "tmin"),
+                host(query.tmax, "tmax"), host(query.mask, "mask"),
+            )
+            if query.kind == "occluded":
+                # As the GPU-resident path answers: the blocking triangle (-1 where none), int32.
+                return _arrays.numpy_to_cuda(core, self._occluded(on_host_rays, "prim_id"))
+            return _to_cuda(core, run(self, on_host_rays))
+        return _to_cuda(core, run(self, query.with_points(host(query.points, "points"))))
 
     def _intersect(self, q: RayQuery) -> Hits:
         if q.out is not None and _arrays.on_cuda(q.origins, q.directions):
@@ -727,16 +761,17 @@ class Scene(SceneLike):
             padded[name] = out
         return Hits(batch.shape + (k,), padded, q.precision)
 
-    def _occluded(self, q: RayQuery) -> np.ndarray:
+    def _occluded(self, q: RayQuery, field: str = "hit") -> np.ndarray:
         if _arrays.on_cuda(q.origins, q.directions):
             # Typed as the numpy path's result: CUDA rays are the exception, and documented.
             return cast(np.ndarray, self._trace_cuda(q, "occluded")["prim_id"])
         batch = _RayBatch(q)
-        # ["hit"]: bools made from the hit triangles as the core copies them out.
+        # ["hit"]: bools made from the hit triangles as the core copies them out; ["prim_id"]:
+        # the blocking triangles (CUDA rays' answer).
         arrays = self._traced(q, batch, lambda bar: self._core.trace(
-            *batch.arrays, "occluded", ["hit"], q.precision, q.cull, batch.mask, progress=bar,
+            *batch.arrays, "occluded", [field], q.precision, q.cull, batch.mask, progress=bar,
             opacity_threshold=q.opacity_threshold, sensor=batch.sensor))
-        return cast(np.ndarray, arrays["hit"].reshape(batch.shape))
+        return cast(np.ndarray, arrays[field].reshape(batch.shape))
 
     def _transmittance(self, q: RayQuery) -> np.ndarray:
         batch = _RayBatch(q)
@@ -981,6 +1016,39 @@ class _RayBatch:
         self.shape = shape
         self.arrays = (o, d, lo, hi)
         self.mask = _arrays.masks(q.mask, shape)
+
+
+def _cuda_query(q: Query) -> bool:
+    """Whether a query's rays or points are CUDA arrays (its answer then stays on their GPU)."""
+    if isinstance(q, RayQuery):
+        return _arrays.on_cuda(q.origins, q.directions)
+    return _arrays.on_cuda(q.points, names=("points",))
+
+
+def _resident(q: Query) -> bool:
+    """Whether a CUDA query runs on the GPU-resident path (rays copied device to device, never
+    through the host): `intersect`, `occluded` and `count` in the fast tier, of one mask, without
+    ``position`` or a progress bar. Every other CUDA query goes through the host
+    (`Scene._through_host`)."""
+    if not isinstance(q, RayQuery) or q.kind not in ("intersect", "occluded", "count"):
+        return False
+    one_mask = np.ndim(q.mask) == 0 and _arrays.dlpack_device(q.mask, "mask") is None
+    return q.precision == "fast" and "position" not in q.outputs and not q.progress and one_mask
+
+
+def _to_cuda(core: Any, answer: Any) -> Any:
+    """A query's numpy answer (an array, `Hits`, `AllHits` or `Closest`) with each array copied
+    to the GPU of ``core`` (a `_core.Device`) as a `vkray.CudaArray`."""
+    if isinstance(answer, np.ndarray):
+        return _arrays.numpy_to_cuda(core, answer)
+    names = ("offsets", "ray_index", "counts", "distance") + tuple(HIT_FIELDS)
+    arrays = {name: getattr(answer, name, None) for name in names}
+    on_gpu = {name: _arrays.numpy_to_cuda(core, a) for name, a in arrays.items() if isinstance(a, np.ndarray)}
+    if isinstance(answer, AllHits):
+        return AllHits(answer.shape, on_gpu, answer.precision)
+    if isinstance(answer, Closest):
+        return Closest(answer.shape, on_gpu, answer.precision)
+    return Hits(answer.shape, on_gpu, answer.precision)
 
 
 def _check_cuda_query(q: RayQuery) -> int:

@@ -746,7 +746,7 @@ class GroupScene(SceneLike):
                 return k
         members = ", ".join(f"{d.name} (cuda:{d.cuda_device})" for d in self.group.devices)
         raise ValueError(
-            f"the rays live on cuda:{ordinal}, which is none of this group's devices ({members}): pass them on one "
+            f"the arrays live on cuda:{ordinal}, which is none of this group's devices ({members}): pass them on one "
             f"of those GPUs, or as numpy arrays to be split over all of them"
         )
 
@@ -794,7 +794,7 @@ class GroupScene(SceneLike):
         `occluded` (the fast tier, every device a CUDA GPU) are split: each device copies its rows
         from that GPU, traces them, and copies its hits into the batch's arrays there, all in
         CUDA's stream order (over NVLink or PCIe, never through the host). Other queries run whole
-        on the device that is that GPU, which raises what `Scene` raises."""
+        on the device that is that GPU, which answers them as `Scene` does."""
         home = self._cuda_member(q.origins, q.directions)
         kind = f"{q.kind}/cuda"
         count = _cuda_rows(q.origins, q.directions)
@@ -837,6 +837,12 @@ class GroupScene(SceneLike):
         def unsplit(scene: Scene) -> T:
             return query(scene, q.points)
 
+        if _arrays.on_cuda(q.points, names=("points",)):
+            # Answered on their GPU's device, through the host (`Scene._through_host`).
+            home = self._cuda_member(q.points)
+            rows = _cuda_rows(q.points)
+            whole = self._run(kind, [(home, 0, rows)], lambda k, _a, _b: unsplit(self.per_device[k]), q.progress)
+            return whole[0]
         p = _arrays.real_coordinates("points", q.points)
         if len(self.per_device) == 1 or p.ndim == 0 or p.shape[-1] != 3 or p.size <= 3:
             return self._whole(kind, p.size // 3, unsplit, q.progress)

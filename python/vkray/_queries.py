@@ -85,7 +85,14 @@ Query = Union[RayQuery, PointQuery]
 class SceneLike(abc.ABC):
     """The queries that `Scene` (one device) and `GroupScene` (several) both answer, with the same
     arguments and the same results: code written against it runs on either. A subclass answers
-    `RayQuery` and `PointQuery` records (`answer`) and refits (`update`)."""
+    `RayQuery` and `PointQuery` records (`answer`) and refits (`update`).
+
+    Every query takes CUDA arrays (torch, cupy, jax: DLPack on the device's GPU) for its rays or
+    points, in every tier, and answers with `vkray.CudaArray`s on that GPU (in `Hits`, `AllHits`
+    and `Closest` each field is one), read in the caller's stream order. `intersect`, `occluded`
+    and `count` in the fast tier, of one mask, never leave the GPU; the other queries and tiers copy
+    the arrays to the host and the answers back (one copy each way over the bus, about 5 ms for
+    1M float32 rays on an H200: docs/benchmarks.md)."""
 
     #: The scene's instances, in the order of their ``instance_id``.
     instances: Tuple[Any, ...]
@@ -164,7 +171,8 @@ class SceneLike(abc.ABC):
         A call that raises may have written some of out's rows.
 
         Rays in CUDA memory (torch, cupy, jax on the device's GPU) give `vkray.CudaArray` hits
-        that stay there (README: rays that never leave the GPU).
+        on that GPU (README: rays that never leave the GPU; `SceneLike` says which queries copy
+        through the host).
         """
         fields = check_outputs(outputs)
         if out is not None and not isinstance(out, Hits):
@@ -192,7 +200,7 @@ class SceneLike(abc.ABC):
         `intersect`; ``occluded(...) == intersect(...).hit`` ray for ray, in every tier
         (``"refined"`` decides hits as ``"fast"`` does). Rays or a sensor, ``cull``, ``mask`` and
         ``opacity_threshold`` as in `intersect`. CUDA rays give a `CudaArray` of int32 ``S``, the hit
-        triangle (>= 0 where occluded, -1 where not), which stays on the GPU.
+        triangle (>= 0 where occluded, -1 where not), on their GPU.
         """
         query = RayQuery("occluded", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
                          progress, opacity_threshold, ("prim_id",))
@@ -295,8 +303,8 @@ class SceneLike(abc.ABC):
         at shared edges it may count two or none), ``"exact"`` (the f64 test on the GPU through
         per-triangle boxes: every crossing counted once; needs shaderFloat64), ``"reference"``
         (the same f64 test on all CPU cores) or ``"refined"``. Rays or a sensor, and the other
-        arguments, as in `intersect`. CUDA rays (the fast tier, one mask) give a `CudaArray` of
-        int32 ``S`` on their GPU, counted without leaving it."""
+        arguments, as in `intersect`. CUDA rays give a `CudaArray` of int32 ``S`` on their GPU
+        (the fast tier, of one mask, counted without leaving it)."""
         query = RayQuery("count", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
                          progress, opacity_threshold)
         return cast(np.ndarray, self.answer(query))

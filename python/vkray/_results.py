@@ -173,6 +173,7 @@ class AllHits(_HitFields):
     counts: int64 ``S``: hits per ray. ray_index: int64 ``(H,)``: the ray of each hit.
     t, prim_id, instance_id, custom_index, geometry_id, uv, normal, position: one entry per hit,
     as `Hits` has them per ray (float64 t, uv and position), for the fields asked; else None.
+    Rays in CUDA memory give every array (counts too) as a `vkray.CudaArray` on their GPU.
     Each ray's hits are in increasing t; hits at the same t in increasing (instance_id,
     geometry_id, prim_id). ``hits[i]`` is ray i's hits as `Hits` of shape ``(count,)``.
     """
@@ -182,7 +183,8 @@ class AllHits(_HitFields):
         self.precision: Precision = precision
         self.offsets: np.ndarray = arrays["offsets"]
         self.ray_index: np.ndarray = arrays["ray_index"]
-        self.counts: np.ndarray = np.diff(self.offsets).reshape(shape)
+        counts = arrays.get("counts")  # given where the arrays are on the GPU
+        self.counts: np.ndarray = np.diff(self.offsets).reshape(shape) if counts is None else counts
         for name in HIT_FIELDS:
             setattr(self, name, arrays.get(name))
 
@@ -192,6 +194,8 @@ class AllHits(_HitFields):
     def __getitem__(self, ray: int) -> Hits:
         if not isinstance(ray, (int, np.integer)) or isinstance(ray, bool):
             raise TypeError(f"AllHits is indexed by a ray's flat index, got {ray!r}")
+        if isinstance(cast(Any, self.offsets), _core.CudaArray):
+            raise TypeError("these hits are on the GPU: index their arrays in your array library (offsets, t, ...)")
         n = len(self)
         if not -n <= int(ray) < n:
             raise IndexError(f"ray {ray} of {n}")
@@ -211,6 +215,7 @@ class Closest(_SurfaceFields):
     nearest surface point, NaN on a miss), ``prim_id``, ``instance_id``, ``custom_index``,
     ``geometry_id`` (int32, -1 on a miss), ``uv`` (float64 barycentrics of vertices 1 and 2),
     ``normal`` (float32, the triangle's unit normal in the world). Fields not asked are None.
+    Points in CUDA memory give each field as a `vkray.CudaArray` on their GPU.
     """
 
     distance: Optional[np.ndarray]
@@ -220,16 +225,23 @@ class Closest(_SurfaceFields):
         self.precision: Precision = precision
         for name in CLOSEST_FIELDS:
             array = arrays.get(name)
-            setattr(self, name, None if array is None else array.reshape(shape + array.shape[1:]))
+            if isinstance(array, np.ndarray):
+                array = array.reshape(shape + array.shape[1:])
+            setattr(self, name, array)
 
     @property
     def hit(self) -> np.ndarray:
-        """bool ``S``: whether a surface lies within max_distance of the point."""
+        """bool ``S``: whether a surface lies within max_distance of the point (numpy; for points
+        on the GPU, compare ``prim_id >= 0`` in your array library)."""
         assert self.distance is not None
+        if isinstance(cast(Any, self.distance), _core.CudaArray):
+            raise TypeError("these answers are on the GPU: use e.g. torch.from_dlpack(closest.prim_id) >= 0")
         found: np.ndarray = np.isfinite(self.distance)
         return found
 
     def __repr__(self) -> str:
         asked = [name for name in CLOSEST_FIELDS if getattr(self, name) is not None]
+        if isinstance(cast(Any, self.distance), _core.CudaArray):
+            return f"<vkray.Closest shape={self.shape} on cuda precision={self.precision!r} fields={asked}>"
         found = int(self.hit.sum())
         return f"<vkray.Closest shape={self.shape} found={found} precision={self.precision!r} fields={asked}>"

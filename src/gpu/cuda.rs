@@ -356,6 +356,34 @@ impl Stream {
         check("cuMemcpy3DPeerAsync", unsafe { sys::cuMemcpy3DPeerAsync(&copy, self.raw) })
     }
 
+    /// Copies `bytes` bytes from device address `src` into host memory at `dst`, in stream
+    /// order. The context must be current.
+    ///
+    /// # Safety
+    /// `src` must be device memory of this context and `dst` writable host memory of `bytes`
+    /// bytes, both valid until the copy has run (the caller synchronizes the stream).
+    pub unsafe fn copy_to_host(&self, dst: *mut u8, src: u64, bytes: usize) -> Result<()> {
+        if bytes == 0 {
+            return Ok(());
+        }
+        // SAFETY: the caller's contract.
+        check("cuMemcpyDtoHAsync", unsafe { sys::cuMemcpyDtoHAsync_v2(dst as *mut c_void, src, bytes, self.raw) })
+    }
+
+    /// Copies `bytes` bytes of host memory at `src` to device address `dst`, in stream order.
+    /// The context must be current.
+    ///
+    /// # Safety
+    /// `dst` must be device memory of this context and `src` readable host memory of `bytes`
+    /// bytes, both valid until the copy has run (the caller synchronizes the stream).
+    pub unsafe fn copy_from_host(&self, dst: u64, src: *const u8, bytes: usize) -> Result<()> {
+        if bytes == 0 {
+            return Ok(());
+        }
+        // SAFETY: the caller's contract.
+        check("cuMemcpyHtoDAsync", unsafe { sys::cuMemcpyHtoDAsync_v2(dst, src as *const c_void, bytes, self.raw) })
+    }
+
     /// The CUDA device this stream runs on.
     pub fn cuda(&self) -> &Arc<Cuda> {
         &self.cuda

@@ -3,13 +3,15 @@
 use std::path::PathBuf;
 use std::sync::{Arc, RwLock};
 
-use numpy::{PyArray2, PyReadonlyArray1, PyUntypedArrayMethods};
+use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::calls::{run, run_reporting};
+use super::cuda_staging;
 use super::device_engines::{cuda_of, DeviceTracer};
+use super::dlpack::{self, PyCudaArray};
 use super::mesh_binding::PyMesh;
 use super::numpy_views::{Bound1, IndexArray, Vec3Array};
 use super::scene_binding::{InstanceItem, PyScene};
@@ -19,6 +21,7 @@ use crate::geometry::build_options::{BuildOptions, BuildPreference};
 use crate::geometry::interrupt::NoInterrupt;
 use crate::geometry::vertex_format::VertexFormat;
 use crate::gpu::context::{Backend, Context, DeviceInfo, DeviceRequest};
+use crate::gpu::cuda::Cuda;
 use crate::scene::{Instance, InstanceFlags, Mesh, MeshBatch, MeshInput, IDENTITY};
 use crate::trace::{CpuEngine, Engine, Tracer, VulkanEngine};
 
@@ -72,6 +75,19 @@ impl PyDevice {
         let batch = MeshBatch { items: &[item], options, format, scratch_budget: u64::MAX, interrupt: &NoInterrupt };
         let mut meshes = self.tracer.engine().build_meshes(batch)?;
         Ok(meshes.pop().expect("one mesh per input"))
+    }
+
+    /// This device's CUDA device, where its GPU shares memory with CUDA; else the TypeError of
+    /// CUDA arrays it cannot read, naming `array` where given.
+    fn cuda_for(&self, array: Option<(&str, &Bound<'_, PyAny>)>) -> PyResult<Arc<Cuda>> {
+        if let Some(cuda) = cuda_of(&self.tracer)?.1 {
+            return Ok(cuda);
+        }
+        let device = self.tracer.engine().name();
+        Err(match array {
+            Some((name, value)) => dlpack::unreadable(device, [(name, value), (name, value)]),
+            None => PyTypeError::new_err(format!("{device} does not share memory with CUDA")),
+        })
     }
 }
 
@@ -199,6 +215,27 @@ impl PyDevice {
     #[getter]
     fn cuda_device(&self, py: Python<'_>) -> PyResult<Option<i32>> {
         run(py, |_| Ok(cuda_of(&self.tracer)?.1.map(|cuda| cuda.ordinal)))
+    }
+
+    /// `value`, a CUDA array on this device's GPU (`name` in errors), read into host memory for
+    /// a query without a GPU-resident path: (bytes, numpy dtype, shape, byte strides), which the
+    /// Python layer views as an array.
+    #[allow(clippy::type_complexity)]
+    fn cuda_read<'py>(
+        &self,
+        value: &Bound<'py, PyAny>,
+        name: &str,
+    ) -> PyResult<(Bound<'py, PyArray1<u8>>, &'static str, Vec<usize>, Vec<usize>)> {
+        let cuda = self.cuda_for(Some((name, value)))?;
+        let copy = cuda_staging::read_to_host(&cuda, value, name)?;
+        Ok((copy.bytes, copy.dtype, copy.shape, copy.strides))
+    }
+
+    /// A contiguous host array's bytes (numpy `dtype`, `shape`) as a new `vkray.CudaArray` on
+    /// this device's GPU: a query's answer to CUDA arrays, where it was computed through the host.
+    fn cuda_write(&self, bytes: PyReadonlyArray1<'_, u8>, dtype: &str, shape: Vec<usize>) -> PyResult<PyCudaArray> {
+        let cuda = self.cuda_for(None)?;
+        cuda_staging::write_from_host(&cuda, bytes, dtype, shape)
     }
 
     #[getter]

@@ -27,11 +27,46 @@ struct DLDevice {
 }
 
 #[repr(C)]
-#[derive(Clone, Copy)]
-struct DLDataType {
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub(super) struct DLDataType {
     code: u8,
     bits: u8,
     lanes: u16,
+}
+
+const fn dl_type(code: u8, bits: u8) -> DLDataType {
+    DLDataType { code, bits, lanes: 1 }
+}
+
+/// The element types a CUDA array may hold through vkray: numpy's name and DLPack's type
+/// (dlpack.h: kDLInt 0, kDLUInt 1, kDLFloat 2, kDLBool 6).
+const ELEMENT_TYPES: [(&str, DLDataType); 11] = [
+    ("float32", dl_type(DLPACK_FLOAT, 32)),
+    ("float64", dl_type(DLPACK_FLOAT, 64)),
+    ("float16", dl_type(DLPACK_FLOAT, 16)),
+    ("int32", dl_type(DLPACK_INT, 32)),
+    ("int64", dl_type(DLPACK_INT, 64)),
+    ("int16", dl_type(DLPACK_INT, 16)),
+    ("int8", dl_type(DLPACK_INT, 8)),
+    ("uint8", dl_type(1, 8)),
+    ("uint16", dl_type(1, 16)),
+    ("uint32", dl_type(1, 32)),
+    ("bool", dl_type(6, 8)),
+];
+
+/// numpy's name of a DLPack element type, if vkray reads it.
+pub(super) fn dtype_name(dtype: DLDataType) -> Option<&'static str> {
+    ELEMENT_TYPES.iter().find(|(_, t)| *t == dtype).map(|(name, _)| *name)
+}
+
+/// DLPack's element type of numpy's `name`, if vkray writes it.
+pub(super) fn dtype_named(name: &str) -> Option<DLDataType> {
+    ELEMENT_TYPES.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
+}
+
+/// Bytes of one element of `dtype`.
+pub(super) fn element_bytes(dtype: DLDataType) -> usize {
+    (dtype.bits as usize).div_ceil(8) * dtype.lanes.max(1) as usize
 }
 
 #[repr(C)]
@@ -117,21 +152,25 @@ pub(super) fn unreadable(device: &str, arrays: [(&str, &Bound<'_, PyAny>); 2]) -
     PyTypeError::new_err("the rays must be CUDA arrays (with __dlpack__)")
 }
 
-/// The CUDA array `value` (ordered before `stream` by its producer) as rows of `columns` numbers
-/// (3: the last axis is xyz; 1: every element a row), on CUDA device `ordinal`.
-pub(super) fn borrow<'py>(
-    value: &Bound<'py, PyAny>,
-    name: &str,
-    columns: usize,
-    stream: usize,
-    ordinal: i32,
-) -> PyResult<Borrowed<'py>> {
+/// A caller's CUDA array as its DLPack tensor describes it: where its elements are, their type,
+/// its shape and its strides in elements (compact row-major where the producer gave none).
+pub(super) struct CudaTensor<'py> {
+    pub data: u64,
+    pub dtype: DLDataType,
+    pub shape: Vec<usize>,
+    pub strides: Vec<i64>,
+    pub capsule: Bound<'py, PyCapsule>,
+}
+
+/// The CUDA array `value` exported through DLPack (its producer's pending writes ordered before
+/// `stream`), refused with a TypeError naming it (`name`) unless it lives on CUDA device `ordinal`.
+pub(super) fn export<'py>(value: &Bound<'py, PyAny>, name: &str, stream: usize, ordinal: i32) -> PyResult<CudaTensor<'py>> {
     match dlpack_device(value, name)? {
         Some((DLPACK_CUDA, id)) if id == ordinal => {}
         Some((1, _)) => {
             return Err(PyTypeError::new_err(format!(
-                "{name} is in host memory while other rays are CUDA arrays: pass every ray array on cuda:{ordinal} \
-                 (or every one in host memory)"
+                "{name} is in host memory while other arrays of the query are CUDA arrays: pass every array on \
+                 cuda:{ordinal} (or every one in host memory)"
             )));
         }
         Some((kind, id)) => {
@@ -143,7 +182,9 @@ pub(super) fn borrow<'py>(
             )));
         }
         None => {
-            return Err(PyTypeError::new_err(format!("{name} must be a CUDA array (with __dlpack__) like the rays")))
+            return Err(PyTypeError::new_err(format!(
+                "{name} must be a CUDA array (with __dlpack__) like the query's other arrays"
+            )))
         }
     }
     let kwargs = [("stream", stream)].into_py_dict(value.py())?;
@@ -157,7 +198,29 @@ pub(super) fn borrow<'py>(
         }
         &(*(pointer as *const DLManagedTensor)).dl_tensor
     };
-    let wide = match (tensor.dtype.code, tensor.dtype.bits, tensor.dtype.lanes) {
+    let ndim = tensor.ndim.max(0) as usize;
+    // SAFETY: DLPack's shape has `ndim` entries; strides too where not null.
+    let shape: Vec<usize> = (0..ndim).map(|k| unsafe { *tensor.shape.add(k) } as usize).collect();
+    let strides: Vec<i64> = match tensor.strides.is_null() {
+        // SAFETY: as above.
+        false => (0..ndim).map(|k| unsafe { *tensor.strides.add(k) }).collect(),
+        true => compact_strides(&shape),
+    };
+    let data = tensor.data as u64 + tensor.byte_offset;
+    Ok(CudaTensor { data, dtype: tensor.dtype, shape, strides, capsule })
+}
+
+/// The CUDA array `value` (ordered before `stream` by its producer) as rows of `columns` numbers
+/// (3: the last axis is xyz; 1: every element a row), on CUDA device `ordinal`.
+pub(super) fn borrow<'py>(
+    value: &Bound<'py, PyAny>,
+    name: &str,
+    columns: usize,
+    stream: usize,
+    ordinal: i32,
+) -> PyResult<Borrowed<'py>> {
+    let CudaTensor { data, dtype, shape, mut strides, capsule } = export(value, name, stream, ordinal)?;
+    let wide = match (dtype.code, dtype.bits, dtype.lanes) {
         (DLPACK_FLOAT, 32, 1) => false,
         (DLPACK_FLOAT, 64, 1) => true,
         (code, bits, _) => {
@@ -166,14 +229,7 @@ pub(super) fn borrow<'py>(
             )))
         }
     };
-    let ndim = tensor.ndim.max(0) as usize;
-    // SAFETY: DLPack's shape has `ndim` entries; strides too where not null.
-    let shape: Vec<usize> = (0..ndim).map(|k| unsafe { *tensor.shape.add(k) } as usize).collect();
-    let mut strides: Vec<i64> = match tensor.strides.is_null() {
-        // SAFETY: as above.
-        false => (0..ndim).map(|k| unsafe { *tensor.strides.add(k) }).collect(),
-        true => compact_strides(&shape),
-    };
+    let ndim = shape.len();
     let element = if wide { 8 } else { 4 };
     let (leading, column_stride) = if columns == 3 {
         if shape.last() != Some(&3) {
@@ -196,7 +252,7 @@ pub(super) fn borrow<'py>(
     // Every row the same element (torch's `expand`): one row, shared by every ray.
     let rows = if row_stride == 0 { 1 } else { leading.iter().product::<usize>() };
     let array = CudaArray {
-        pointer: tensor.data as u64 + tensor.byte_offset,
+        pointer: data,
         rows,
         columns,
         wide,
@@ -255,7 +311,7 @@ pub(super) struct PyCudaArray {
     dtype: DLDataType,
 }
 
-/// One field's CUDA allocation and the event after which it is written.
+/// One array's CUDA allocation and the event after which it is written.
 struct HitMemory {
     allocation: CudaAllocation,
     ready: Arc<Event>,
@@ -272,6 +328,12 @@ impl PyCudaArray {
             Field::T | Field::Uv | Field::Normal => DLDataType { code: DLPACK_FLOAT, bits: 32, lanes: 1 },
             _ => DLDataType { code: DLPACK_INT, bits: 32, lanes: 1 },
         };
+        PyCudaArray { memory: Arc::new(HitMemory { allocation, ready }), shape, dtype }
+    }
+
+    /// An array of `shape` and element type `dtype` in `allocation`, written once `ready` is
+    /// reached (a query's answer copied from the host).
+    pub(super) fn of_type(allocation: CudaAllocation, ready: Arc<Event>, shape: Vec<usize>, dtype: DLDataType) -> Self {
         PyCudaArray { memory: Arc::new(HitMemory { allocation, ready }), shape, dtype }
     }
 }
@@ -322,14 +384,10 @@ impl PyCudaArray {
         PyTuple::new(py, &self.shape)
     }
 
-    /// numpy's name of the element type ("float32" or "int32").
+    /// numpy's name of the element type ("float32", "int32", "float64", "bool", ...).
     #[getter]
     fn dtype(&self) -> &'static str {
-        if self.dtype.code == DLPACK_FLOAT {
-            "float32"
-        } else {
-            "int32"
-        }
+        dtype_name(self.dtype).unwrap_or("uint8")
     }
 
     fn __len__(&self) -> usize {

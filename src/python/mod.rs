@@ -13,6 +13,8 @@ mod dlpack;
 
 mod cuda_batch;
 
+mod cuda_staging;
+
 mod device_engines;
 
 mod mesh_binding;

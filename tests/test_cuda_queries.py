@@ -1,0 +1,190 @@
+"""Every query of CUDA arrays (torch, cupy) answers in CUDA memory: the queries and tiers without
+a GPU-resident path (all hits, transmittance, the exact and refined tiers, the point queries)
+go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same
+query of numpy arrays, which must agree bit for bit (checked against Embree, brute force and
+analytic answers elsewhere). Runs where torch sees a CUDA GPU that is the vkray device."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import oracle
+import vkray
+
+torch = pytest.importorskip("torch")
+if not torch.cuda.is_available():
+    pytest.skip("torch sees no CUDA GPU", allow_module_level=True)
+
+DEVICE = vkray.Device()
+
+
+@pytest.fixture(scope="module")
+def bunny():
+    v, f = oracle.load_mesh("stanford-bunny")
+    scene = DEVICE.scene([DEVICE.mesh(v, f)])
+    if DEVICE.cuda_device is None:
+        pytest.skip("this vkray device shares no memory with CUDA")
+    return v, scene
+
+
+def cuda(array: np.ndarray):
+    return torch.from_numpy(np.ascontiguousarray(array)).cuda()
+
+
+def on_host(array) -> np.ndarray:
+    assert isinstance(array, vkray.CudaArray), type(array)
+    return torch.from_dlpack(array).cpu().numpy()
+
+
+def points_around(v: np.ndarray, n: int, seed: int) -> np.ndarray:
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    pad = 0.1 * (hi - lo)
+    return np.random.default_rng(seed).uniform(lo - pad, hi + pad, (n, 3))
+
+
+@pytest.mark.parametrize("precision", ["fast", "refined", "exact", "reference"])
+def test_ray_queries_of_every_tier_answer_on_the_gpu(bunny, precision):
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 20_000, seed=1)
+    fields = ["t", "prim_id", "uv", "normal", "position"]
+    hits = scene.intersect(cuda(o), cuda(d), outputs=fields, precision=precision)
+    want = scene.intersect(o, d, outputs=fields, precision=precision)
+    for name in fields:
+        np.testing.assert_array_equal(on_host(getattr(hits, name)), getattr(want, name), err_msg=name)
+    assert "on cuda" in repr(hits)
+    blocked = scene.occluded(cuda(o), cuda(d), precision=precision)
+    assert blocked.dtype == "int32"  # as the fast tier's GPU-resident answer: the blocking triangle
+    np.testing.assert_array_equal(on_host(blocked) >= 0, scene.occluded(o, d, precision=precision))
+    counts = scene.count(cuda(o), cuda(d), precision=precision)
+    np.testing.assert_array_equal(on_host(counts), scene.count(o, d, precision=precision))
+    light = scene.transmittance(cuda(o), cuda(d), precision=precision)
+    np.testing.assert_array_equal(on_host(light), scene.transmittance(o, d, precision=precision))
+
+
+@pytest.mark.parametrize("precision", ["fast", "exact"])
+def test_all_hits_come_back_as_cuda_csr_arrays(bunny, precision):
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 20_000, seed=2)
+    found = scene.intersect_all(cuda(o), cuda(d), precision=precision, outputs=["t", "prim_id"])
+    want = scene.intersect_all(o, d, precision=precision, outputs=["t", "prim_id"])
+    for name in ("offsets", "ray_index", "counts", "t", "prim_id"):
+        np.testing.assert_array_equal(on_host(getattr(found, name)), getattr(want, name), err_msg=name)
+    assert found.offsets.dtype == "int64" and len(found) == 20_000
+    assert want.counts.max() >= 4  # rays through the bunny cross it several times
+    with pytest.raises(TypeError, match="on the GPU"):
+        found[0]
+
+
+@pytest.mark.parametrize("precision", ["fast", "exact", "reference"])
+def test_point_queries_answer_on_the_gpu(bunny, precision):
+    v, scene = bunny
+    p = points_around(v, 20_000, seed=3)
+    closest = scene.closest_points(cuda(p), precision=precision, outputs=["distance", "prim_id", "position"])
+    want = scene.closest_points(p, precision=precision, outputs=["distance", "prim_id", "position"])
+    for name in ("distance", "prim_id", "position"):
+        np.testing.assert_array_equal(on_host(getattr(closest, name)), getattr(want, name), err_msg=name)
+    assert "on cuda" in repr(closest)
+    with pytest.raises(TypeError, match="on the GPU"):
+        _ = closest.hit
+    np.testing.assert_array_equal(on_host(scene.distance(cuda(p), precision=precision)),
+                                  scene.distance(p, precision=precision))
+    signed = scene.signed_distance(cuda(p), precision=precision)
+    np.testing.assert_array_equal(on_host(signed), scene.signed_distance(p, precision=precision))
+    assert (on_host(signed) < 0).any() and (on_host(signed) > 0).any()
+
+
+def test_contains_answers_bools_on_the_gpu(bunny):
+    v, f = oracle.load_mesh("fandisk")  # closed: parity, the default
+    closed = DEVICE.scene([DEVICE.mesh(v, f)])
+    p = points_around(v, 50_000, seed=4)
+    inside = closed.contains(cuda(p.astype(np.float32)))
+    assert inside.dtype == "bool" and inside.shape == (50_000,)
+    want = closed.contains(p.astype(np.float32))
+    assert torch.from_dlpack(inside).dtype == torch.bool
+    np.testing.assert_array_equal(on_host(inside), want)
+    assert 0 < want.sum() < len(want)
+    v, scene = bunny  # with holes: the winding number
+    p = points_around(v, 50_000, seed=5)
+    winding = scene.contains(cuda(p), method="winding")
+    np.testing.assert_array_equal(on_host(winding), scene.contains(p, method="winding"))
+
+
+def test_shapes_strides_and_expanded_rays(bunny):
+    v, scene = bunny
+    p = points_around(v, 6_000, seed=5)
+    grid = cuda(p).reshape(20, 300, 3)
+    found = scene.distance(grid, precision="exact")
+    assert found.shape == (20, 300)
+    np.testing.assert_array_equal(on_host(found), scene.distance(p.reshape(20, 300, 3), precision="exact"))
+    # A strided view (every other column of a wider tensor) and a transposed one.
+    doubled = np.concatenate([p, p], axis=1)
+    strided = cuda(doubled)[:, ::2]
+    np.testing.assert_array_equal(on_host(scene.distance(strided)), scene.distance(doubled[:, ::2]))
+    transposed = cuda(np.ascontiguousarray(p.T)).T
+    inside = scene.contains(transposed, method="winding")
+    np.testing.assert_array_equal(on_host(inside), scene.contains(p, method="winding"))
+    # One origin expanded to every ray (stride 0), and per-ray bounds as CUDA arrays.
+    o, d = oracle.random_rays(v, 4_000, seed=6)
+    eye = cuda(o[:1]).expand(4_000, 3)
+    tmax = np.random.default_rng(7).uniform(0.0, 2.0, 4_000)
+    counts = scene.count(eye, cuda(d), tmax=cuda(tmax), precision="exact")
+    np.testing.assert_array_equal(on_host(counts), scene.count(o[:1], d, tmax=tmax, precision="exact"))
+    empty = scene.distance(torch.zeros((0, 3), device="cuda", dtype=torch.float64))
+    assert empty.shape == (0,)
+
+
+def test_reads_follow_the_producers_stream(bunny):
+    """Points written on a side stream, queried at once: DLPack's stream argument orders the
+    producer's writes before vkray's copy, whatever stream the writes went to."""
+    v, scene = bunny
+    p = points_around(v, 200_000, seed=8)
+    want = scene.distance(p, precision="exact")
+    side = torch.cuda.Stream()
+    source = cuda(p)
+    with torch.cuda.stream(side):
+        points = torch.empty_like(source)
+        for _ in range(20):  # long enough that an unordered read would see garbage
+            points.copy_(source * 2.0)
+            points.mul_(0.5)
+        found = scene.distance(points, precision="exact")
+        got = torch.from_dlpack(found).cpu().numpy()
+    np.testing.assert_array_equal(got, want)
+
+
+def test_errors_name_the_argument(bunny):
+    v, scene = bunny
+    p = points_around(v, 100, seed=9)
+    p[42] = np.nan
+    with pytest.raises(ValueError, match="42"):
+        scene.distance(cuda(p))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        scene.contains(cuda(p[:, :2]), method="winding")
+    o, d = oracle.random_rays(v, 100, seed=10)
+    with pytest.raises(TypeError, match="origins is in host memory"):
+        scene.intersect_all(o, cuda(d))
+
+
+def test_several_threads(bunny):
+    v, scene = bunny
+    sets = [points_around(v, 10_000, seed=20 + k) for k in range(6)]
+    expected = [scene.signed_distance(p, precision="exact") for p in sets]
+
+    def work(k):
+        return [on_host(scene.signed_distance(cuda(sets[k]), precision="exact")) for _ in range(3)]
+
+    for runs, want in zip(oracle.in_threads(len(sets), work), expected):
+        for found in runs:
+            np.testing.assert_array_equal(found, want)
+
+
+def test_cupy_arrays(bunny):
+    cupy = pytest.importorskip("cupy")
+    v, scene = bunny
+    p = points_around(v, 10_000, seed=11)
+    found = scene.signed_distance(cupy.asarray(p), precision="exact")
+    np.testing.assert_array_equal(cupy.from_dlpack(found).get(), scene.signed_distance(p, precision="exact"))
+    o, d = oracle.random_rays(v, 10_000, seed=12)
+    hits = scene.intersect_all(cupy.asarray(o), cupy.asarray(d), precision="exact")
+    want = scene.intersect_all(o, d, precision="exact")
+    np.testing.assert_array_equal(cupy.from_dlpack(hits.offsets).get(), want.offsets)
