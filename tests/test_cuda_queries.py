@@ -37,6 +37,11 @@ def on_host(array) -> np.ndarray:
     return torch.from_dlpack(array).cpu().numpy()
 
 
+def assert_same(found, expected, err_msg=""):
+    """Equal values, dtypes and shapes (numpy's own check lets a dtype or a 0-d shape differ)."""
+    np.testing.assert_array_equal(found, expected, err_msg=err_msg, strict=True)
+
+
 def points_around(v: np.ndarray, n: int, seed: int) -> np.ndarray:
     lo, hi = v.min(axis=0), v.max(axis=0)
     pad = 0.1 * (hi - lo)
@@ -51,15 +56,15 @@ def test_ray_queries_of_every_tier_answer_on_the_gpu(bunny, precision):
     hits = scene.intersect(cuda(o), cuda(d), outputs=fields, precision=precision)
     want = scene.intersect(o, d, outputs=fields, precision=precision)
     for name in fields:
-        np.testing.assert_array_equal(on_host(getattr(hits, name)), getattr(want, name), err_msg=name)
+        assert_same(on_host(getattr(hits, name)), getattr(want, name), err_msg=name)
     assert "on cuda" in repr(hits)
     blocked = scene.occluded(cuda(o), cuda(d), precision=precision)
     assert blocked.dtype == "int32"  # as the fast tier's GPU-resident answer: the blocking triangle
-    np.testing.assert_array_equal(on_host(blocked) >= 0, scene.occluded(o, d, precision=precision))
+    assert_same(on_host(blocked) >= 0, scene.occluded(o, d, precision=precision))
     counts = scene.count(cuda(o), cuda(d), precision=precision)
-    np.testing.assert_array_equal(on_host(counts), scene.count(o, d, precision=precision))
+    assert_same(on_host(counts), scene.count(o, d, precision=precision))
     light = scene.transmittance(cuda(o), cuda(d), precision=precision)
-    np.testing.assert_array_equal(on_host(light), scene.transmittance(o, d, precision=precision))
+    assert_same(on_host(light), scene.transmittance(o, d, precision=precision))
 
 
 @pytest.mark.parametrize("precision", ["fast", "exact"])
@@ -69,7 +74,7 @@ def test_all_hits_come_back_as_cuda_csr_arrays(bunny, precision):
     found = scene.intersect_all(cuda(o), cuda(d), precision=precision, outputs=["t", "prim_id"])
     want = scene.intersect_all(o, d, precision=precision, outputs=["t", "prim_id"])
     for name in ("offsets", "ray_index", "counts", "t", "prim_id"):
-        np.testing.assert_array_equal(on_host(getattr(found, name)), getattr(want, name), err_msg=name)
+        assert_same(on_host(getattr(found, name)), getattr(want, name), err_msg=name)
     assert found.offsets.dtype == "int64" and len(found) == 20_000
     assert want.counts.max() >= 4  # rays through the bunny cross it several times
     with pytest.raises(TypeError, match="on the GPU"):
@@ -83,14 +88,14 @@ def test_point_queries_answer_on_the_gpu(bunny, precision):
     closest = scene.closest_points(cuda(p), precision=precision, outputs=["distance", "prim_id", "position"])
     want = scene.closest_points(p, precision=precision, outputs=["distance", "prim_id", "position"])
     for name in ("distance", "prim_id", "position"):
-        np.testing.assert_array_equal(on_host(getattr(closest, name)), getattr(want, name), err_msg=name)
+        assert_same(on_host(getattr(closest, name)), getattr(want, name), err_msg=name)
     assert "on cuda" in repr(closest)
     with pytest.raises(TypeError, match="on the GPU"):
         _ = closest.hit
-    np.testing.assert_array_equal(on_host(scene.distance(cuda(p), precision=precision)),
+    assert_same(on_host(scene.distance(cuda(p), precision=precision)),
                                   scene.distance(p, precision=precision))
     signed = scene.signed_distance(cuda(p), precision=precision)
-    np.testing.assert_array_equal(on_host(signed), scene.signed_distance(p, precision=precision))
+    assert_same(on_host(signed), scene.signed_distance(p, precision=precision))
     assert (on_host(signed) < 0).any() and (on_host(signed) > 0).any()
 
 
@@ -102,12 +107,12 @@ def test_contains_answers_bools_on_the_gpu(bunny):
     assert inside.dtype == "bool" and inside.shape == (50_000,)
     want = closed.contains(p.astype(np.float32))
     assert torch.from_dlpack(inside).dtype == torch.bool
-    np.testing.assert_array_equal(on_host(inside), want)
+    assert_same(on_host(inside), want)
     assert 0 < want.sum() < len(want)
     v, scene = bunny  # with holes: the winding number
     p = points_around(v, 50_000, seed=5)
     winding = scene.contains(cuda(p), method="winding")
-    np.testing.assert_array_equal(on_host(winding), scene.contains(p, method="winding"))
+    assert_same(on_host(winding), scene.contains(p, method="winding"))
 
 
 def test_shapes_strides_and_expanded_rays(bunny):
@@ -116,40 +121,76 @@ def test_shapes_strides_and_expanded_rays(bunny):
     grid = cuda(p).reshape(20, 300, 3)
     found = scene.distance(grid, precision="exact")
     assert found.shape == (20, 300)
-    np.testing.assert_array_equal(on_host(found), scene.distance(p.reshape(20, 300, 3), precision="exact"))
+    assert_same(on_host(found), scene.distance(p.reshape(20, 300, 3), precision="exact"))
     # A strided view (every other column of a wider tensor) and a transposed one.
     doubled = np.concatenate([p, p], axis=1)
     strided = cuda(doubled)[:, ::2]
-    np.testing.assert_array_equal(on_host(scene.distance(strided)), scene.distance(doubled[:, ::2]))
+    assert_same(on_host(scene.distance(strided)), scene.distance(doubled[:, ::2]))
+    wider = np.random.default_rng(5).normal(size=(len(p), 7))
+    wider[:, 2:5] = p
+    sliced = cuda(wider)[:, 2:5]  # rows 56 bytes apart: only each row's 24 bytes cross the bus
+    assert_same(on_host(scene.distance(sliced)), scene.distance(p))
     transposed = cuda(np.ascontiguousarray(p.T)).T
     inside = scene.contains(transposed, method="winding")
-    np.testing.assert_array_equal(on_host(inside), scene.contains(p, method="winding"))
+    assert_same(on_host(inside), scene.contains(p, method="winding"))
     # One origin expanded to every ray (stride 0), and per-ray bounds as CUDA arrays.
     o, d = oracle.random_rays(v, 4_000, seed=6)
     eye = cuda(o[:1]).expand(4_000, 3)
     tmax = np.random.default_rng(7).uniform(0.0, 2.0, 4_000)
     counts = scene.count(eye, cuda(d), tmax=cuda(tmax), precision="exact")
-    np.testing.assert_array_equal(on_host(counts), scene.count(o[:1], d, tmax=tmax, precision="exact"))
+    assert_same(on_host(counts), scene.count(o[:1], d, tmax=tmax, precision="exact"))
     empty = scene.distance(torch.zeros((0, 3), device="cuda", dtype=torch.float64))
     assert empty.shape == (0,)
 
 
-def test_reads_follow_the_producers_stream(bunny):
-    """Points written on a side stream, queried at once: DLPack's stream argument orders the
-    producer's writes before vkray's copy, whatever stream the writes went to."""
+def test_reads_and_answers_follow_the_callers_streams(bunny):
+    """Points written on a side stream after a long wait, queried at once: DLPack's stream
+    argument orders the producer's writes before vkray's copy (an unordered read would see the
+    NaN the points held before, and raise). The answer, read on another stream that first sleeps,
+    is the one written."""
     v, scene = bunny
     p = points_around(v, 200_000, seed=8)
     want = scene.distance(p, precision="exact")
-    side = torch.cuda.Stream()
+    side, reader = torch.cuda.Stream(), torch.cuda.Stream()
     source = cuda(p)
+    points = torch.full_like(source, float("nan"))
+    torch.cuda.synchronize()
     with torch.cuda.stream(side):
-        points = torch.empty_like(source)
-        for _ in range(20):  # long enough that an unordered read would see garbage
-            points.copy_(source * 2.0)
-            points.mul_(0.5)
+        torch.cuda._sleep(200_000_000)  # ~0.1 s of the GPU's clock before the points are written
+        points.copy_(source)
         found = scene.distance(points, precision="exact")
-        got = torch.from_dlpack(found).cpu().numpy()
-    np.testing.assert_array_equal(got, want)
+    with torch.cuda.stream(reader):
+        torch.cuda._sleep(50_000_000)
+        got = torch.from_dlpack(found).clone()
+    torch.cuda.synchronize()
+    assert_same(got.cpu().numpy(), want)
+
+
+def test_one_ray_and_one_point_keep_their_shapes(bunny):
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 1, seed=13)
+    hits = scene.intersect(cuda(o[0]), cuda(d[0]), precision="exact")
+    assert hits.t.shape == () and hits.prim_id.shape == ()
+    assert_same(on_host(hits.t), scene.intersect(o[0], d[0], precision="exact").t)
+    assert_same(on_host(scene.count(cuda(o[0]), cuda(d[0]), precision="exact")),
+                scene.count(o[0], d[0], precision="exact"))
+    point = points_around(v, 1, seed=14)[0]
+    assert_same(on_host(scene.distance(cuda(point))), scene.distance(point))
+    assert_same(on_host(scene.contains(cuda(point), method="winding")), scene.contains(point, method="winding"))
+
+
+def test_the_host_path_answers_in_the_resident_paths_types(bunny):
+    """`position` sends a fast-tier intersect through the host: its other fields keep the GPU-resident
+    path's dtypes and values."""
+    v, scene = bunny
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 10_000, seed=15))
+    resident = scene.intersect(cuda(o), cuda(d), outputs=["t", "prim_id", "uv", "normal"])
+    through = scene.intersect(cuda(o), cuda(d), outputs=["t", "prim_id", "uv", "normal", "position"])
+    for name in ("t", "prim_id", "uv", "normal"):
+        assert_same(on_host(getattr(through, name)), on_host(getattr(resident, name)), err_msg=name)
+    assert through.position.dtype == "float32"
+    assert_same(on_host(scene.occluded(cuda(o), cuda(d), precision="exact")) >= 0,
+                on_host(scene.occluded(cuda(o), cuda(d))) >= 0)
 
 
 def test_errors_name_the_argument(bunny):
@@ -163,6 +204,12 @@ def test_errors_name_the_argument(bunny):
     o, d = oracle.random_rays(v, 100, seed=10)
     with pytest.raises(TypeError, match="origins is in host memory"):
         scene.intersect_all(o, cuda(d))
+    with pytest.raises(TypeError, match="tmax is in host memory"):
+        scene.intersect_all(cuda(o), cuda(d), tmax=np.ones(100))
+    with pytest.raises(TypeError, match="float32 or float64"):
+        scene.distance(cuda(p[:42]).half())
+    with pytest.raises(TypeError, match="directions are needed"):
+        scene.intersect(cuda(o), precision="exact")
 
 
 def test_several_threads(bunny):
@@ -175,7 +222,7 @@ def test_several_threads(bunny):
 
     for runs, want in zip(oracle.in_threads(len(sets), work), expected):
         for found in runs:
-            np.testing.assert_array_equal(found, want)
+            assert_same(found, want)
 
 
 def test_cupy_arrays(bunny):
@@ -183,8 +230,8 @@ def test_cupy_arrays(bunny):
     v, scene = bunny
     p = points_around(v, 10_000, seed=11)
     found = scene.signed_distance(cupy.asarray(p), precision="exact")
-    np.testing.assert_array_equal(cupy.from_dlpack(found).get(), scene.signed_distance(p, precision="exact"))
+    assert_same(cupy.from_dlpack(found).get(), scene.signed_distance(p, precision="exact"))
     o, d = oracle.random_rays(v, 10_000, seed=12)
     hits = scene.intersect_all(cupy.asarray(o), cupy.asarray(d), precision="exact")
     want = scene.intersect_all(o, d, precision="exact")
-    np.testing.assert_array_equal(cupy.from_dlpack(hits.offsets).get(), want.offsets)
+    assert_same(cupy.from_dlpack(hits.offsets).get(), want.offsets)

@@ -140,7 +140,8 @@ def cuda_to_numpy(core_device: Any, value: object, name: str) -> np.ndarray:
 
 
 def _compact_strides(shape: Tuple[int, ...], itemsize: int) -> Tuple[int, ...]:
-    """numpy's byte strides of a C-contiguous array of ``shape`` (axes of length 1 any)."""
+    """numpy's byte strides of a C-contiguous array of ``shape`` (the core reports these for the
+    arrays it copies compactly)."""
     strides = []
     step = itemsize
     for n in reversed(shape):
@@ -150,9 +151,10 @@ def _compact_strides(shape: Tuple[int, ...], itemsize: int) -> Tuple[int, ...]:
 
 
 def numpy_to_cuda(core_device: Any, array: np.ndarray) -> Any:
-    """``array`` copied to ``core_device``'s GPU as a `vkray.CudaArray` of its dtype and shape."""
-    a = np.ascontiguousarray(array)
-    return core_device.cuda_write(a.reshape(-1).view(np.uint8), a.dtype.name, list(a.shape))
+    """``array`` copied to ``core_device``'s GPU as a `vkray.CudaArray` of its dtype and shape
+    (0-d included: ``ascontiguousarray`` alone would make it 1-d)."""
+    flat = np.ascontiguousarray(array).reshape(-1)
+    return core_device.cuda_write(flat.view(np.uint8), flat.dtype.name, list(np.shape(array)))
 
 
 def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarray:
@@ -167,8 +169,7 @@ def _from_dlpack(name: str, value: object, device: Tuple[int, int]) -> np.ndarra
     where = f"{_DLPACK_DEVICES.get(kind, f'DLPack device type {kind}')}:{index}"
     raise TypeError(
         f"{name} lives on {where} (DLPack device type {kind}), which vkray cannot read here: pass host arrays "
-        f"(torch: .cpu(), cupy: .get(), jax: jax.device_get), or, for Scene.intersect and Scene.occluded, CUDA "
-        f"arrays on the GPU the vkray.Device is"
+        f"(torch: .cpu(), cupy: .get(), jax: jax.device_get), or CUDA arrays on the GPU the vkray.Device is"
     )
 
 

@@ -688,7 +688,7 @@ class Scene(SceneLike):
         run = _ANSWERS.get(query.kind)
         if run is None:
             raise ValueError(f"no query named {query.kind!r}")
-        if _cuda_query(query) and not _resident(query):
+        if _cuda_query(query) and not (isinstance(query, RayQuery) and query.stays_on_gpu):
             return self._through_host(query, run)
         return run(self, query)
 
@@ -701,22 +701,28 @@ class Scene(SceneLike):
             raise TypeError("out= takes numpy hits: CUDA rays' hits are new arrays vkray owns")
         core = self.device._core
 
-        def host(value: Any, name: str) -> Any:
-            place = _arrays.dlpack_device(value, name)
-            if place is not None and place[0] == _arrays.DLPACK_CUDA:
-                return _arrays.cuda_to_numpy(core, value, name)
-            return value
+        def host(value: Any, name: str, kinds: str = "f") -> Any:
+            """A CUDA array argument read to the host; numbers pass; host arrays are refused, as
+            on the GPU-resident path (every array of a CUDA query lives on its GPU)."""
+            if not _arrays.on_cuda(value, names=(name,)):
+                if np.ndim(value) == 0:
+                    return value
+                raise TypeError(
+                    f"{name} is in host memory while the query's other arrays are CUDA arrays: pass every array "
+                    f"on the GPU (or every one in host memory)"
+                )
+            array = _arrays.cuda_to_numpy(core, value, name)
+            if array.dtype.kind not in kinds or (kinds == "f" and array.dtype.itemsize < 4):
+                wanted = "float32 or float64" if kinds == "f" else "integers"
+                raise TypeError(f"{name} must be {wanted}, got {array.dtype}")
+            return array
 
         if isinstance(query, RayQuery):
-            if _arrays.on_cuda(query.origins) != _arrays.on_cuda(query.directions, names=("directions",)):
-                host_side = "directions" if _arrays.on_cuda(query.origins) else "origins"
-                raise TypeError(
-                    f"{host_side} is in host memory while other rays are CUDA arrays: pass every ray array on the "
-                    f"GPU (or every one in host memory)"
-                )
+            if query.directions is None:
+                raise TypeError("directions are needed, unless origins is a sensor (vkray.PinholeCamera ...)")
             on_host_rays = query.with_rays(
                 host(query.origins, "origins"), host(query.directions, "directions"), host(query.tmin, "tmin"),
-                host(query.tmax, "tmax"), host(query.mask, "mask"),
+                host(query.tmax, "tmax"), host(query.mask, "mask", "iu"),
             )
             if query.kind == "occluded":
                 # As the GPU-resident path answers: the blocking triangle (-1 where none), int32.
@@ -1025,17 +1031,6 @@ def _cuda_query(q: Query) -> bool:
     return _arrays.on_cuda(q.points, names=("points",))
 
 
-def _resident(q: Query) -> bool:
-    """Whether a CUDA query runs on the GPU-resident path (rays copied device to device, never
-    through the host): `intersect`, `occluded` and `count` in the fast tier, of one mask, without
-    ``position`` or a progress bar. Every other CUDA query goes through the host
-    (`Scene._through_host`)."""
-    if not isinstance(q, RayQuery) or q.kind not in ("intersect", "occluded", "count"):
-        return False
-    one_mask = np.ndim(q.mask) == 0 and _arrays.dlpack_device(q.mask, "mask") is None
-    return q.precision == "fast" and "position" not in q.outputs and not q.progress and one_mask
-
-
 def _to_cuda(core: Any, answer: Any) -> Any:
     """A query's numpy answer (an array, `Hits`, `AllHits` or `Closest`) with each array copied
     to the GPU of ``core`` (a `_core.Device`) as a `vkray.CudaArray`."""
@@ -1052,17 +1047,13 @@ def _to_cuda(core: Any, answer: Any) -> Any:
 
 
 def _check_cuda_query(q: RayQuery) -> int:
-    """The one mask of a GPU-resident query, once its options are checked (only the fast tier and
-    the fields computed on the GPU, no progress bar)."""
-    if q.precision != "fast":
+    """The one mask of a GPU-resident query (`RayQuery.stays_on_gpu`; `Scene.answer` sends the
+    others through the host)."""
+    if not q.stays_on_gpu:
         raise _core.UnsupportedError(
-            f"precision={q.precision!r} is not available for CUDA rays: only 'fast' stays on the GPU; pass numpy "
-            f"arrays for the other tiers (e.g. tensor.cpu().numpy())"
+            f"this {q.kind} query (precision={q.precision!r}) does not stay on the GPU: Scene.answer takes it "
+            f"through the host"
         )
-    if "position" in q.outputs:
-        raise _core.UnsupportedError("'position' is computed on the host: not available for CUDA rays")
-    if q.progress:
-        raise _core.UnsupportedError("progress is not shown for CUDA rays (one submission, nothing to report)")
     return _arrays.integer("mask", q.mask, 0, 255, " (one mask for every CUDA ray)")
 
 

@@ -805,9 +805,7 @@ class GroupScene(SceneLike):
 
         splittable = (
             q.kind in ("intersect", "occluded")
-            and q.out is None
-            and not q.progress
-            and q.precision == "fast"
+            and q.stays_on_gpu
             and len(self.per_device) > 1
             and all(d.cuda_device is not None for d in self.group.devices)
         )

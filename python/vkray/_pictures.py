@@ -155,8 +155,8 @@ def _default_field(hits: Hits) -> Optional[str]:
 def hits_png(hits: Hits) -> Optional[bytes]:
     """PNG bytes of 2-D hits' depth (else normals, else ids); None for other shapes or no pixels."""
     field = _default_field(hits)
-    if len(hits.shape) != 2 or 0 in hits.shape or field is None:
-        return None
+    if len(hits.shape) != 2 or 0 in hits.shape or field is None or not isinstance(getattr(hits, field), np.ndarray):
+        return None  # hits on the GPU (vkray.CudaArray) are not pictured
     return png(hits_image(hits, field))
 
 

@@ -52,6 +52,22 @@ class RayQuery:
     max_hits: Optional[int] = None
     out: Optional[Hits] = None
 
+    @property
+    def stays_on_gpu(self) -> bool:
+        """Whether CUDA rays of this query are traced without leaving the GPU (the GPU-resident
+        path: copied device to device, packed and traced there): `intersect`, `occluded` and
+        `count` in the fast tier, of one mask for every ray, without ``position`` (computed on the
+        host), ``out=`` or a progress bar. Other queries of CUDA arrays go through the host."""
+        one_mask = np.ndim(self.mask) == 0 and _arrays.dlpack_device(self.mask, "mask") is None
+        return (
+            self.kind in ("intersect", "occluded", "count")
+            and self.precision == "fast"
+            and "position" not in self.outputs
+            and self.out is None
+            and not self.progress
+            and one_mask
+        )
+
     def with_rays(self, origins: Any, directions: Any, tmin: Any, tmax: Any, mask: Any, **changes: Any) -> RayQuery:
         """The same query of other rays (a piece of these, a chunk), with ``changes`` to its options."""
         return dataclasses.replace(

@@ -183,8 +183,10 @@ class AllHits(_HitFields):
         self.precision: Precision = precision
         self.offsets: np.ndarray = arrays["offsets"]
         self.ray_index: np.ndarray = arrays["ray_index"]
-        counts = arrays.get("counts")  # given where the arrays are on the GPU
-        self.counts: np.ndarray = np.diff(self.offsets).reshape(shape) if counts is None else counts
+        counts = arrays.get("counts")  # the core's, or on the GPU
+        if counts is None:
+            counts = np.diff(self.offsets)
+        self.counts: np.ndarray = counts.reshape(shape) if isinstance(counts, np.ndarray) else counts
         for name in HIT_FIELDS:
             setattr(self, name, arrays.get(name))
 

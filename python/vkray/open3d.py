@@ -104,10 +104,10 @@ _INSTALL = (
     'Open3D is not installed: pip install "vkray[open3d]" (or open3d, or open3d-cpu) for Open3D tensors and meshes'
 )
 
-#: The queries whose vkray call takes CUDA arrays today (Scene.intersect and Scene.occluded, in
-#: the fast tier). The others copy CUDA inputs through the host (`_host`); when vkray's other
-#: queries take CUDA arrays, their names go here (results already convert from vkray's CUDA
-#: arrays for any query: `_Result`).
+#: The queries whose vkray call takes CUDA arrays without leaving the GPU (Scene.intersect and
+#: Scene.occluded, in the fast tier). The others copy CUDA inputs through the host here (`_host`),
+#: as vkray's own queries would (results convert from vkray's CUDA arrays for any query:
+#: `_Result`).
 _CUDA_QUERIES = frozenset({"cast_rays", "test_occlusions"})
 
 _DLPACK_CUDA = 2

@@ -370,6 +370,46 @@ impl Stream {
         check("cuMemcpyDtoHAsync", unsafe { sys::cuMemcpyDtoHAsync_v2(dst as *mut c_void, src, bytes, self.raw) })
     }
 
+    /// Copies `rows` rows of `width` bytes from device address `src` (rows `src_pitch` bytes
+    /// apart) into host memory at `dst`, packed, in stream order. The context must be current.
+    ///
+    /// # Safety
+    /// The rows must be device memory of this context and `dst` writable host memory of
+    /// `rows * width` bytes, both valid until the copy has run (the caller synchronizes).
+    pub unsafe fn copy_rows_to_host(
+        &self,
+        dst: *mut u8,
+        src: u64,
+        src_pitch: usize,
+        width: usize,
+        rows: usize,
+    ) -> Result<()> {
+        if rows <= 1 || src_pitch == width {
+            // SAFETY: the caller's contract; one contiguous block.
+            return unsafe { self.copy_to_host(dst, src, width * rows) };
+        }
+        let copy = sys::CUDA_MEMCPY2D {
+            srcXInBytes: 0,
+            srcY: 0,
+            srcMemoryType: sys::CUmemorytype::CU_MEMORYTYPE_DEVICE,
+            srcHost: std::ptr::null(),
+            srcDevice: src,
+            srcArray: std::ptr::null_mut(),
+            srcPitch: src_pitch,
+            dstXInBytes: 0,
+            dstY: 0,
+            dstMemoryType: sys::CUmemorytype::CU_MEMORYTYPE_HOST,
+            dstHost: dst as *mut c_void,
+            dstDevice: 0,
+            dstArray: std::ptr::null_mut(),
+            dstPitch: width,
+            WidthInBytes: width,
+            Height: rows,
+        };
+        // SAFETY: the caller's contract; `copy` lives through the call.
+        check("cuMemcpy2DAsync", unsafe { sys::cuMemcpy2DAsync_v2(&copy, self.raw) })
+    }
+
     /// Copies `bytes` bytes of host memory at `src` to device address `dst`, in stream order.
     /// The context must be current.
     ///

@@ -32,30 +32,94 @@ pub(super) fn read_to_host<'py>(cuda: &Arc<Cuda>, value: &Bound<'py, PyAny>, nam
     drop(entered);
     let CudaTensor { data, dtype, shape, strides, capsule } = tensor;
     let Some(dtype_name) = dlpack::dtype_name(dtype) else {
-        return Err(PyTypeError::new_err(format!("{name} has a DLPack element type vkray does not read ({dtype:?})")));
+        return Err(PyTypeError::new_err(format!(
+            "{name} has DLPack elements of type code {} with {} bits, which vkray does not read",
+            dtype.code, dtype.bits
+        )));
     };
-    if strides.iter().any(|&s| s < 0) {
+    if shape.iter().zip(&strides).any(|(&n, &s)| n > 1 && s < 0) {
         return Err(PyValueError::new_err(format!("{name} has negative strides: pass a contiguous array")));
     }
     let element = dlpack::element_bytes(dtype);
-    let span = if shape.contains(&0) {
-        0
-    } else {
-        element + shape.iter().zip(&strides).map(|(&n, &s)| (n - 1) * s as usize * element).sum::<usize>()
-    };
-    let bytes = PyArray1::<u8>::zeros(py, span, false);
+    let plan = CopyPlan::of(&shape, &strides, element);
+    let bytes = PyArray1::<u8>::zeros(py, plan.host_bytes(), false);
     let host = bytes.data() as usize;
     py.detach(|| -> crate::Result<()> {
         let _current = cuda.enter()?;
         // SAFETY: `data` is the producer's CUDA memory, alive while `capsule` is (held through
-        // the synchronize); the strides span `span` bytes from it; `host` is a fresh array of
-        // `span` bytes no other code touches until this returns.
-        unsafe { stream.copy_to_host(host as *mut u8, data, span)? };
+        // the synchronize); the plan reads only within its strides' span; `host` is a fresh
+        // array of the plan's bytes that no other code touches until this returns.
+        unsafe { plan.copy(&stream, host as *mut u8, data)? };
         stream.synchronize()
     })?;
     drop(capsule);
-    let strides = strides.iter().map(|&s| s as usize * element).collect();
-    Ok(HostCopy { bytes, dtype: dtype_name, shape, strides })
+    Ok(HostCopy { bytes, dtype: dtype_name, shape, strides: plan.host_strides })
+}
+
+/// How a CUDA array's elements reach the host: its rows packed (the last axis contiguous and
+/// the others one stride: slices of wider arrays copy only their own rows), or else every byte
+/// its strides span, viewed there with the same strides.
+struct CopyPlan {
+    /// Rows of `width` bytes, `pitch` bytes apart on the GPU; or the span (`pitch` None).
+    rows: usize,
+    width: usize,
+    pitch: Option<usize>,
+    /// Byte strides of the copy on the host.
+    host_strides: Vec<usize>,
+}
+
+impl CopyPlan {
+    fn of(shape: &[usize], strides: &[i64], element: usize) -> CopyPlan {
+        let in_bytes = |s: &[i64]| s.iter().map(|&s| s.max(0) as usize * element).collect::<Vec<_>>();
+        if shape.contains(&0) {
+            return CopyPlan { rows: 0, width: 0, pitch: None, host_strides: in_bytes(strides) };
+        }
+        if let Some((&columns, leading)) = shape.split_last() {
+            let inner = strides[shape.len() - 1];
+            let packed_row = columns == 1 || inner == 1;
+            // Rows apart (or all one row): not overlapping windows of one another.
+            let row_stride = dlpack::collapsed_stride(leading, &strides[..leading.len()])
+                .filter(|&r| r == 0 || r as usize >= columns);
+            if let (true, Some(row_stride)) = (packed_row, row_stride) {
+                let width = columns * element;
+                let rows = if row_stride == 0 { 1 } else { leading.iter().product() };
+                // Every row the same (an expanded array): one row, viewed with strides of 0.
+                let mut host_strides: Vec<usize> = if row_stride == 0 {
+                    vec![0; leading.len()]
+                } else {
+                    let mut outer = Vec::with_capacity(leading.len());
+                    let mut step = width;
+                    for &n in leading.iter().rev() {
+                        outer.push(step);
+                        step *= n;
+                    }
+                    outer.reverse();
+                    outer
+                };
+                host_strides.push(element);
+                let pitch = row_stride as usize * element;
+                return CopyPlan { rows, width, pitch: Some(pitch), host_strides };
+            }
+        }
+        let span = element + shape.iter().zip(strides).map(|(&n, &s)| (n - 1) * s.max(0) as usize * element).sum::<usize>();
+        CopyPlan { rows: 1, width: span, pitch: None, host_strides: in_bytes(strides) }
+    }
+
+    fn host_bytes(&self) -> usize {
+        self.rows * self.width
+    }
+
+    /// # Safety
+    /// `src` must be the array's CUDA memory (of the stream's context, which must be current)
+    /// and `dst` writable host memory of `host_bytes()`, both valid until the stream has run.
+    unsafe fn copy(&self, stream: &Stream, dst: *mut u8, src: u64) -> crate::Result<()> {
+        match self.pitch {
+            // SAFETY: the caller's contract; the rows lie within the array's strides.
+            Some(pitch) => unsafe { stream.copy_rows_to_host(dst, src, pitch, self.width, self.rows) },
+            // SAFETY: as above; the span is the array's.
+            None => unsafe { stream.copy_to_host(dst, src, self.host_bytes()) },
+        }
+    }
 }
 
 /// A contiguous host array's `bytes` (numpy dtype `dtype`, shape `shape`) copied into a new

@@ -79,8 +79,9 @@ impl PyDevice {
 
     /// This device's CUDA device, where its GPU shares memory with CUDA; else the TypeError of
     /// CUDA arrays it cannot read, naming `array` where given.
-    fn cuda_for(&self, array: Option<(&str, &Bound<'_, PyAny>)>) -> PyResult<Arc<Cuda>> {
-        if let Some(cuda) = cuda_of(&self.tracer)?.1 {
+    fn cuda_for(&self, py: Python<'_>, array: Option<(&str, &Bound<'_, PyAny>)>) -> PyResult<Arc<Cuda>> {
+        // Without the GIL: the first call opens CUDA (cuInit, a lock of the open devices).
+        if let Some(cuda) = run(py, |_| Ok(cuda_of(&self.tracer)?.1))? {
             return Ok(cuda);
         }
         let device = self.tracer.engine().name();
@@ -226,15 +227,21 @@ impl PyDevice {
         value: &Bound<'py, PyAny>,
         name: &str,
     ) -> PyResult<(Bound<'py, PyArray1<u8>>, &'static str, Vec<usize>, Vec<usize>)> {
-        let cuda = self.cuda_for(Some((name, value)))?;
+        let cuda = self.cuda_for(value.py(), Some((name, value)))?;
         let copy = cuda_staging::read_to_host(&cuda, value, name)?;
         Ok((copy.bytes, copy.dtype, copy.shape, copy.strides))
     }
 
     /// A contiguous host array's bytes (numpy `dtype`, `shape`) as a new `vkray.CudaArray` on
     /// this device's GPU: a query's answer to CUDA arrays, where it was computed through the host.
-    fn cuda_write(&self, bytes: PyReadonlyArray1<'_, u8>, dtype: &str, shape: Vec<usize>) -> PyResult<PyCudaArray> {
-        let cuda = self.cuda_for(None)?;
+    fn cuda_write(
+        &self,
+        py: Python<'_>,
+        bytes: PyReadonlyArray1<'_, u8>,
+        dtype: &str,
+        shape: Vec<usize>,
+    ) -> PyResult<PyCudaArray> {
+        let cuda = self.cuda_for(py, None)?;
         cuda_staging::write_from_host(&cuda, bytes, dtype, shape)
     }
 

@@ -29,8 +29,8 @@ struct DLDevice {
 #[repr(C)]
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 pub(super) struct DLDataType {
-    code: u8,
-    bits: u8,
+    pub code: u8,
+    pub bits: u8,
     lanes: u16,
 }
 
@@ -40,7 +40,7 @@ const fn dl_type(code: u8, bits: u8) -> DLDataType {
 
 /// The element types a CUDA array may hold through vkray: numpy's name and DLPack's type
 /// (dlpack.h: kDLInt 0, kDLUInt 1, kDLFloat 2, kDLBool 6).
-const ELEMENT_TYPES: [(&str, DLDataType); 11] = [
+const ELEMENT_TYPES: [(&str, DLDataType); 12] = [
     ("float32", dl_type(DLPACK_FLOAT, 32)),
     ("float64", dl_type(DLPACK_FLOAT, 64)),
     ("float16", dl_type(DLPACK_FLOAT, 16)),
@@ -51,6 +51,7 @@ const ELEMENT_TYPES: [(&str, DLDataType); 11] = [
     ("uint8", dl_type(1, 8)),
     ("uint16", dl_type(1, 16)),
     ("uint32", dl_type(1, 32)),
+    ("uint64", dl_type(1, 64)),
     ("bool", dl_type(6, 8)),
 ];
 
@@ -273,7 +274,7 @@ fn compact_strides(shape: &[usize]) -> Vec<i64> {
 
 /// The one stride that walks every element of the leading axes in row-major order, if there is
 /// one (axes of length 1 have any stride); 0 for no axes.
-fn collapsed_stride(shape: &[usize], strides: &[i64]) -> Option<i64> {
+pub(super) fn collapsed_stride(shape: &[usize], strides: &[i64]) -> Option<i64> {
     let axes: Vec<(usize, i64)> = shape.iter().copied().zip(strides.iter().copied()).filter(|(n, _)| *n != 1).collect();
     let Some(&(_, innermost)) = axes.last() else { return Some(0) };
     for pair in axes.windows(2) {

@@ -89,10 +89,7 @@ impl AllHitsPath {
             let exact = request.precision == Precision::Exact;
             self.shared.profiled(n, started, |profile| self.rays.run(count, exact, &mut sink, profile))?;
         }
-        let mut offsets = try_vec(n + 1, 0i64, "the hits' offsets")?;
-        for i in 0..n {
-            offsets[i + 1] = offsets[i] + (seen[i].max(0) as usize).min(max_hits) as i64;
-        }
+        let offsets = list_offsets(&seen, max_hits)?;
         let total = offsets[n] as usize;
         check_hits_fit(total, size_of::<R>() + host_bytes_per_hit)?;
         let storing = Instant::now();
@@ -107,7 +104,7 @@ impl AllHitsPath {
         }
         let (offsets, seen) = (&stored.offsets, &stored.seen);
         let overflowed = parallel::install(|| {
-            (0..n).into_par_iter().find_first(|&i| {
+            (0..n).into_par_iter().with_min_len(SCAN_BLOCK).find_first(|&i| {
                 let capacity = offsets[i + 1] - offsets[i];
                 seen[i] as i64 > capacity && capacity < max_hits as i64
             })
@@ -152,7 +149,9 @@ impl AllHitsPath {
         // The counting pass's layouts (its rays reach traversal the same either way).
         let compact_variant = self.shared.compact_variant(scene, rays, all, outputs, exact || sensor.is_some())?;
         let offsets = &stored.offsets;
-        let widest = offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0);
+        let widest = parallel::install(|| {
+            offsets.par_windows(2).with_min_len(SCAN_BLOCK).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0)
+        });
         let total = *offsets.last().unwrap_or(&0) as usize;
         let record_capacity =
             (record_budget(self.shared.ctx.unified_memory) / size_of::<R>()).max(widest).min(total).max(1);
@@ -278,6 +277,37 @@ impl AllHitsPath {
     }
 }
 
+/// Rays a block of the host's passes over every ray covers (a task each, on all cores).
+const SCAN_BLOCK: usize = 1 << 14;
+
+/// Where each ray's list starts among all hits (and, last, their total): the prefix sums of the
+/// counting pass's counts, each at most `max_hits`. Block sums on all cores, then each block's
+/// run from its start (a serial pass over a million rays took 3.6 ms on an H200's host).
+fn list_offsets(seen: &[i32], max_hits: usize) -> Result<Vec<i64>> {
+    let n = seen.len();
+    let mut offsets = try_vec(n + 1, 0i64, "the hits' offsets")?;
+    let kept = |count: i32| (count.max(0) as usize).min(max_hits) as i64;
+    parallel::install(|| {
+        let sums: Vec<i64> = seen.par_chunks(SCAN_BLOCK).map(|block| block.iter().map(|&c| kept(c)).sum()).collect();
+        let mut starts = Vec::with_capacity(sums.len());
+        let mut total = 0i64;
+        for sum in sums {
+            starts.push(total);
+            total += sum;
+        }
+        offsets[1..].par_chunks_mut(SCAN_BLOCK).zip(seen.par_chunks(SCAN_BLOCK)).zip(starts).for_each(
+            |((out, block), start)| {
+                let mut running = start;
+                for (slot, &count) in out.iter_mut().zip(block) {
+                    running += kept(count);
+                    *slot = running;
+                }
+            },
+        );
+    });
+    Ok(offsets)
+}
+
 /// The end of the chunk from ray `start`: at most `max_rays` rays, whose lists hold at most
 /// `max_records` hits together (or one ray, however many it holds).
 fn chunk_end(offsets: &[i64], start: usize, max_rays: usize, max_records: usize) -> usize {
@@ -365,7 +395,10 @@ impl<R: HitRecord> StoredHits<R> {
         let (offsets, seen) = (&self.offsets, &self.seen);
         let capacity = |i: usize| offsets[i + 1] - offsets[i];
         let unsettled = parallel::install(|| {
-            (0..n).into_par_iter().any(|i| appends(capacity(i), max_hits) || (seen[i] as i64) < capacity(i))
+            (0..n)
+                .into_par_iter()
+                .with_min_len(SCAN_BLOCK)
+                .any(|i| appends(capacity(i), max_hits) || (seen[i] as i64) < capacity(i))
         });
         if !unsettled {
             return Ok(());
@@ -453,7 +486,18 @@ impl StoredHits<FastHit> {
 
 #[cfg(test)]
 mod tests {
-    use super::chunk_end;
+    use super::{chunk_end, list_offsets, SCAN_BLOCK};
+
+    #[test]
+    fn offsets_are_the_prefix_sums_of_the_kept_counts() {
+        let seen: Vec<i32> = (0..3 * SCAN_BLOCK as i32 + 17).map(|i| (i * 7919) % 13 - 2).collect();
+        let mut expected = vec![0i64];
+        for &count in &seen {
+            expected.push(expected.last().unwrap() + count.clamp(0, 5) as i64);
+        }
+        assert_eq!(list_offsets(&seen, 5).unwrap(), expected);
+        assert_eq!(list_offsets(&[], 5).unwrap(), vec![0]);
+    }
 
     /// Every chunk from the start, at most `max_rays` rays and `max_records` records each.
     fn plan(offsets: &[i64], max_rays: usize, max_records: usize) -> Vec<(usize, usize)> {
