@@ -503,9 +503,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
                 points.rows()
             )));
         }
-        if let Some(i) = (0..points.rows()).find(|&i| !points.row_f64(i).iter().all(|c| c.is_finite())) {
-            return Err(invalid_value(format!("points row {i} is not finite: {:?}", points.row_f64(i))));
-        }
+        crate::geometry::arrays::check_points("points", points)?;
         self.engine.check_usable()?;
         if out.is_empty() {
             return Ok(());

@@ -103,13 +103,14 @@ impl AllHitsPath {
             self.store_pass(batch, max_hits, &mut stored, &mut profile)?;
         }
         let (offsets, seen) = (&stored.offsets, &stored.seen);
-        let overflowed = parallel::install(|| {
-            (0..n).into_par_iter().with_min_len(SCAN_BLOCK).find_first(|&i| {
-                let capacity = offsets[i + 1] - offsets[i];
-                seen[i] as i64 > capacity && capacity < max_hits as i64
-            })
-        });
-        if let Some(i) = overflowed {
+        let overflows = |i: usize| {
+            let capacity = offsets[i + 1] - offsets[i];
+            seen[i] as i64 > capacity && capacity < max_hits as i64
+        };
+        // Any, on all cores (an ordered search for the first took 1.7 ms of a million rays on an
+        // H200's host); the first only where there is one.
+        let overflowed = parallel::install(|| (0..n).into_par_iter().with_min_len(SCAN_BLOCK).any(overflows));
+        if let Some(i) = overflowed.then(|| (0..n).find(|&i| overflows(i))).flatten() {
             return Err(Error::Internal(format!(
                 "ray {i} met {} hits in the storing pass, {} in the counting pass",
                 seen[i],
