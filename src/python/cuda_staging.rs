@@ -101,7 +101,8 @@ impl CopyPlan {
                 return CopyPlan { rows, width, pitch: Some(pitch), host_strides };
             }
         }
-        let span = element + shape.iter().zip(strides).map(|(&n, &s)| (n - 1) * s.max(0) as usize * element).sum::<usize>();
+        let span =
+            element + shape.iter().zip(strides).map(|(&n, &s)| (n - 1) * s.max(0) as usize * element).sum::<usize>();
         CopyPlan { rows: 1, width: span, pitch: None, host_strides: in_bytes(strides) }
     }
 

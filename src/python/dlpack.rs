@@ -165,7 +165,12 @@ pub(super) struct CudaTensor<'py> {
 
 /// The CUDA array `value` exported through DLPack (its producer's pending writes ordered before
 /// `stream`), refused with a TypeError naming it (`name`) unless it lives on CUDA device `ordinal`.
-pub(super) fn export<'py>(value: &Bound<'py, PyAny>, name: &str, stream: usize, ordinal: i32) -> PyResult<CudaTensor<'py>> {
+pub(super) fn export<'py>(
+    value: &Bound<'py, PyAny>,
+    name: &str,
+    stream: usize,
+    ordinal: i32,
+) -> PyResult<CudaTensor<'py>> {
     match dlpack_device(value, name)? {
         Some((DLPACK_CUDA, id)) if id == ordinal => {}
         Some((1, _)) => {
