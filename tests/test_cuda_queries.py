@@ -166,6 +166,17 @@ def test_reads_and_answers_follow_the_callers_streams(bunny):
     assert_same(got.cpu().numpy(), want)
 
 
+def test_large_arrays_cross_in_chunks(bunny):
+    """Arrays of several megabytes cross the bus in chunks through pinned memory, both ways: odd
+    sizes, the last chunk short, every element in its place."""
+    v, scene = bunny
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 1_100_003, seed=16))  # 13.2 MB each
+    counts = scene.count(cuda(o), cuda(d), precision="exact")  # 4.4 MB back
+    assert_same(on_host(counts), scene.count(o, d, precision="exact"))
+    p = points_around(v, 700_001, seed=17)  # 16.8 MB: three chunks
+    assert_same(on_host(scene.distance(cuda(p), precision="exact")), scene.distance(p, precision="exact"))
+
+
 def test_one_ray_and_one_point_keep_their_shapes(bunny):
     v, scene = bunny
     o, d = oracle.random_rays(v, 1, seed=13)

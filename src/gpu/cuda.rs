@@ -706,3 +706,180 @@ pub fn read_number(address: u64, wide: bool) -> Result<f64> {
         f32::from_ne_bytes(bytes[..4].try_into().expect("4 bytes")) as f64
     })
 }
+
+/// Page-locked host memory, which CUDA's copies reach at the bus's full speed (pageable memory
+/// goes through the driver's own staging at a fraction of it). Portable: any context may copy
+/// through it.
+struct Pinned {
+    pointer: *mut u8,
+}
+
+// SAFETY: the pointer is a plain value; one user at a time (taken from the pool).
+unsafe impl Send for Pinned {}
+
+/// Bytes of each of a copy's two pinned buffers: chunks this size cross the bus while the
+/// previous one is copied on the host.
+const PINNED_CHUNK: usize = 8 << 20;
+
+/// Idle pinned pairs kept for the next copies (allocating one costs milliseconds).
+const IDLE_PINNED_PAIRS: usize = 4;
+
+static IDLE_PINNED: Mutex<Vec<[Pinned; 2]>> = Mutex::new(Vec::new());
+
+impl Pinned {
+    /// A new buffer of `PINNED_CHUNK` bytes. The context must be current.
+    fn new() -> Result<Pinned> {
+        let mut pointer = std::ptr::null_mut();
+        let flags = sys::CU_MEMHOSTALLOC_PORTABLE;
+        // SAFETY: `pointer` is writable; the context is current.
+        check("cuMemHostAlloc", unsafe { sys::cuMemHostAlloc(&mut pointer, PINNED_CHUNK, flags) })?;
+        Ok(Pinned { pointer: pointer as *mut u8 })
+    }
+
+    /// A pair from the idle pool, or a new one. The context must be current.
+    fn take_pair() -> Result<[Pinned; 2]> {
+        let idle = IDLE_PINNED.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        match idle {
+            Some(pair) => Ok(pair),
+            None => Ok([Pinned::new()?, Pinned::new()?]),
+        }
+    }
+
+    /// Keeps a pair for the next copy (or frees it, beyond those kept), once no copy uses it.
+    fn give_back(pair: [Pinned; 2]) {
+        let mut idle = IDLE_PINNED.lock().unwrap_or_else(|e| e.into_inner());
+        if idle.len() < IDLE_PINNED_PAIRS {
+            idle.push(pair);
+        }
+    }
+}
+
+impl Drop for Pinned {
+    fn drop(&mut self) {
+        // SAFETY: allocated by cuMemHostAlloc (portable), freed once, no copy in flight.
+        unsafe { sys::cuMemFreeHost(self.pointer as *mut c_void) };
+    }
+}
+
+/// Copies `dst.len()` bytes on all cores (the pinned side and a caller's array).
+fn copy_on_all_cores(dst: &mut [u8], src: &[u8]) {
+    use rayon::prelude::*;
+    crate::geometry::parallel::install(|| {
+        dst.par_chunks_mut(1 << 20).zip(src.par_chunks(1 << 20)).for_each(|(d, s)| d.copy_from_slice(s))
+    });
+}
+
+impl Stream {
+    /// Copies `src` into device memory at `dst` through two pinned buffers (the host fills one
+    /// while the other's chunk crosses the bus), in stream order; the stream is synchronized
+    /// before this returns. The context must be current.
+    ///
+    /// # Safety
+    /// `dst` must be device memory of this context with room for `src.len()` bytes, valid until
+    /// the stream's copies have run.
+    pub unsafe fn write_through_pinned(&self, dst: u64, src: &[u8]) -> Result<()> {
+        let pair = Pinned::take_pair()?;
+        // SAFETY: the caller's contract.
+        let copied = unsafe { self.write_chunks(&pair, dst, src) };
+        let settled = self.synchronize();
+        match (copied, settled) {
+            (Ok(()), Ok(())) => {
+                Pinned::give_back(pair);
+                Ok(())
+            }
+            (copied, settled) => {
+                if settled.is_err() {
+                    std::mem::forget(pair); // a copy may still read it: leaked rather than freed
+                } else {
+                    Pinned::give_back(pair);
+                }
+                copied.and(settled)
+            }
+        }
+    }
+
+    /// `write_through_pinned`'s chunks.
+    ///
+    /// # Safety
+    /// As `write_through_pinned`.
+    unsafe fn write_chunks(&self, pair: &[Pinned; 2], dst: u64, src: &[u8]) -> Result<()> {
+        let mut sent: [Option<Event>; 2] = [None, None];
+        for (k, at) in (0..src.len()).step_by(PINNED_CHUNK).enumerate() {
+            let len = PINNED_CHUNK.min(src.len() - at);
+            // The buffer's previous chunk must have crossed before it is filled again.
+            if let Some(event) = sent[k % 2].take() {
+                event.synchronize()?;
+            }
+            // SAFETY: the buffer holds `PINNED_CHUNK` bytes and no copy reads it now.
+            let pinned = unsafe { std::slice::from_raw_parts_mut(pair[k % 2].pointer, len) };
+            copy_on_all_cores(pinned, &src[at..at + len]);
+            // SAFETY: the chunk lies within the caller's device memory; the pinned bytes stay
+            // unchanged until this chunk's event.
+            unsafe { self.copy_from_host(dst + at as u64, pair[k % 2].pointer, len)? };
+            sent[k % 2] = Some(self.record()?);
+        }
+        Ok(())
+    }
+}
+
+/// Page-locked host memory a CUDA array is read into whole, lent to the caller as long as it
+/// needs it and kept for the next read when dropped: no copy on the host and no page faults of
+/// fresh memory (1M float32 rays: 12 MB in 0.5 ms rather than 1.7 ms through a pageable array).
+pub struct HostBlock {
+    pointer: *mut u8,
+    capacity: usize,
+    pub bytes: usize,
+}
+
+// SAFETY: the pointer is a plain value; the block has one owner.
+unsafe impl Send for HostBlock {}
+// SAFETY: as above; shared only for reading.
+unsafe impl Sync for HostBlock {}
+
+/// Idle host blocks, and the bytes they hold at most (more are freed by the next `take`).
+static IDLE_BLOCKS: Mutex<Vec<(usize, usize)>> = Mutex::new(Vec::new());
+const IDLE_BLOCK_BYTES: usize = 512 << 20;
+
+impl HostBlock {
+    /// A block of at least `bytes` bytes: an idle one of at most twice that, or a new one (a
+    /// power of two, at least 1 MiB). The context must be current (a new block is allocated, and
+    /// idle ones beyond `IDLE_BLOCK_BYTES` freed, in it).
+    pub fn take(bytes: usize) -> Result<HostBlock> {
+        let (found, surplus) = {
+            let mut idle = IDLE_BLOCKS.lock().unwrap_or_else(|e| e.into_inner());
+            let found = idle
+                .iter()
+                .position(|&(_, capacity)| capacity >= bytes && capacity <= 2 * bytes.max(1 << 20))
+                .map(|k| idle.swap_remove(k));
+            let mut surplus = Vec::new();
+            while idle.iter().map(|&(_, c)| c).sum::<usize>() > IDLE_BLOCK_BYTES {
+                surplus.push(idle.remove(0));
+            }
+            (found, surplus)
+        };
+        for (pointer, _) in surplus {
+            // SAFETY: an idle block (no copy or array uses it), allocated by cuMemHostAlloc.
+            unsafe { sys::cuMemFreeHost(pointer as *mut c_void) };
+        }
+        if let Some((pointer, capacity)) = found {
+            return Ok(HostBlock { pointer: pointer as *mut u8, capacity, bytes });
+        }
+        let capacity = bytes.max(1 << 20).next_power_of_two();
+        let mut pointer = std::ptr::null_mut();
+        // SAFETY: `pointer` is writable; the context is current.
+        check("cuMemHostAlloc", unsafe { sys::cuMemHostAlloc(&mut pointer, capacity, sys::CU_MEMHOSTALLOC_PORTABLE) })?;
+        Ok(HostBlock { pointer: pointer as *mut u8, capacity, bytes })
+    }
+
+    pub fn as_ptr(&self) -> *mut u8 {
+        self.pointer
+    }
+}
+
+impl Drop for HostBlock {
+    /// Back to the idle blocks (freed by a later `take`, whose context is current).
+    fn drop(&mut self) {
+        let mut idle = IDLE_BLOCKS.lock().unwrap_or_else(|e| e.into_inner());
+        idle.push((self.pointer as usize, self.capacity));
+    }
+}
