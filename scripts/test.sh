@@ -3,9 +3,9 @@
 # (cargo fmt, clippy) and of the Python layer (ruff, mypy, stubtest against the built module),
 # the core's unit tests, then the Python suite under the Khronos validation layer (required: a
 # missing layer fails the run). Each stage ends with a line saying how it went and how long it
-# took. pytest prints the reason of every skip (-rs), and a test that skips for want of anything
-# scripts/setup.sh installs fails instead (VKRAY_STRICT_SKIPS=1; only hardware this machine lacks,
-# such as a CUDA GPU, may be skipped). Arguments go to pytest.
+# took. pytest prints the reason of every skip (-rs) and its 15 slowest tests, and a test that
+# skips for want of anything scripts/setup.sh installs fails instead (VKRAY_STRICT_SKIPS=1; only
+# hardware this machine lacks, such as a CUDA GPU, may be skipped). Arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -32,4 +32,4 @@ stage "python types" mypy
 stage "stubs" python -m mypy.stubtest vkray
 stage "rust unit tests" cargo test --quiet
 export VKRAY_REQUIRE_VALIDATION=1 VKRAY_STRICT_SKIPS=${VKRAY_STRICT_SKIPS:-1}
-stage "python tests" python -m pytest tests -rs "$@"
+stage "python tests" python -m pytest tests -rs --durations=15 "$@"

@@ -238,7 +238,8 @@ class Device:
 
     def release_idle_memory(self) -> None:
         """Frees the staging memory kept between queries (`idle_memory`), e.g. after a burst of
-        queries from many threads; later queries allocate what they need again."""
+        queries from many threads, and the page-locked host memory that CUDA arrays of queries
+        without a GPU-resident path crossed through; later queries allocate what they need again."""
         self._core.release_idle_memory()
 
     @property

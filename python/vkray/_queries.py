@@ -107,8 +107,8 @@ class SceneLike(abc.ABC):
     points, in every tier, and answers with `vkray.CudaArray`s on that GPU (in `Hits`, `AllHits`
     and `Closest` each field is one), read in the caller's stream order. `intersect`, `occluded`
     and `count` in the fast tier, of one mask, never leave the GPU; the other queries and tiers copy
-    the arrays to the host and the answers back (one copy each way over the bus, about 5 ms for
-    1M float32 rays on an H200: docs/benchmarks.md)."""
+    the arrays to the host and the answers back (one copy each way over the bus, 1-2 ms for 1M
+    float32 rays on an H200: docs/benchmarks.md)."""
 
     #: The scene's instances, in the order of their ``instance_id``.
     instances: Tuple[Any, ...]

@@ -876,6 +876,20 @@ impl HostBlock {
     }
 }
 
+/// Frees the idle host blocks and pinned pairs (`Device.release_idle_memory`), in `cuda`'s
+/// context; blocks lent to arrays come back later, as idle ones.
+pub fn release_idle_host_memory(cuda: &Cuda) -> Result<()> {
+    let _current = cuda.enter()?;
+    let blocks = std::mem::take(&mut *IDLE_BLOCKS.lock().unwrap_or_else(|e| e.into_inner()));
+    for (pointer, _) in blocks {
+        // SAFETY: an idle block (no copy or array uses it), allocated by cuMemHostAlloc.
+        unsafe { sys::cuMemFreeHost(pointer as *mut c_void) };
+    }
+    // Each pair's buffers free themselves (`Pinned::drop`), in this context.
+    drop(std::mem::take(&mut *IDLE_PINNED.lock().unwrap_or_else(|e| e.into_inner())));
+    Ok(())
+}
+
 impl Drop for HostBlock {
     /// Back to the idle blocks (freed by a later `take`, whose context is current).
     fn drop(&mut self) {

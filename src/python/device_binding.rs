@@ -206,9 +206,16 @@ impl PyDevice {
         Ok(d)
     }
 
-    /// Frees the idle staging (a CUDA lease's release waits for its stream: without the GIL).
-    fn release_idle_memory(&self, py: Python<'_>) {
-        py.detach(|| self.tracer.release_idle_memory());
+    /// Frees the idle staging (a CUDA lease's release waits for its stream: without the GIL),
+    /// and the page-locked host memory CUDA arrays crossed through.
+    fn release_idle_memory(&self, py: Python<'_>) -> PyResult<()> {
+        run(py, |_| {
+            self.tracer.release_idle_memory();
+            match cuda_of(&self.tracer)?.1 {
+                Some(cuda) => crate::gpu::cuda::release_idle_host_memory(&cuda),
+                None => Ok(()),
+            }
+        })
     }
 
     /// CUDA's index of this device (DLPack's device id for its CUDA arrays), or None where it is
