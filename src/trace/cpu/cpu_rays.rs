@@ -59,6 +59,7 @@ impl Units {
 /// clamps direction components below 1e-18, which a direction in units of a huge scene would
 /// be); both by powers of two (exact: multiplying by their inverses is dividing, bit for bit,
 /// without a division a ray), and `t` by their ratio.
+#[inline(always)]
 fn embree_ray(packed: &[f32], mask: u8, units: Units) -> (RtcRay, f64) {
     let longest = packed[4].abs().max(packed[5].abs()).max(packed[6].abs());
     // The direction is divided by 2^up (exact), so that its longest component lies in (1/2, 1].
@@ -84,6 +85,7 @@ fn embree_ray(packed: &[f32], mask: u8, units: Units) -> (RtcRay, f64) {
 
 /// `ceil(log2 |x|)`, read from the bits (a logarithm a ray cost a tenth of the trace): None for
 /// 0, infinities and NaN.
+#[inline(always)]
 fn exponent_at_or_above(x: f32) -> Option<i32> {
     let bits = x.to_bits() & 0x7fff_ffff;
     let exponent = (bits >> 23) as i32;
@@ -98,6 +100,7 @@ fn exponent_at_or_above(x: f32) -> Option<i32> {
 }
 
 /// 2^k in f64 (k within f32's exponents, as `exponent_at_or_above` gives), from its bits.
+#[inline(always)]
 fn power_of_two(k: i32) -> f64 {
     f64::from_bits(((k + 1023) as u64) << 52)
 }
@@ -255,6 +258,7 @@ fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [Ray
 }
 
 /// Lane `lane` of a packet, as one ray and its hit.
+#[inline(always)]
 fn lane_hit<const K: usize>(packet: &RtcRayHitPacket<K>, lane: usize) -> RtcRayHit {
     RtcRayHit {
         ray: RtcRay {
@@ -335,6 +339,7 @@ fn light_kept(context: &mut QueryContext) -> f32 {
 
 /// The answer of a closest hit: its ids, barycentrics (NaN on spheres) and, where asked, the
 /// world normal (from the f64 triangle, or the sphere at the hit; the ray in `unit`s).
+#[inline(always)]
 fn nearest(scene: &Scene, rayhit: &RtcRayHit, normals: bool, unit: f64) -> RayAnswer {
     let (hit, ray) = (&rayhit.hit, &rayhit.ray);
     // No instance id: a one-instance scene traced without its instance level.
