@@ -211,6 +211,16 @@ def test_cuda_rays_of_a_gpu_outside_the_group_are_named():
         scene.intersect(_FakeCudaArray(), _FakeCudaArray())
 
 
+def test_cuda_points_of_a_gpu_outside_the_group_are_named():
+    """CUDA points go to the group's device that is their GPU (answered there through the host):
+    none is cuda:7."""
+    group = make_group(2)
+    scene = mixed_scene(group, vkray.GroupInstance)
+    for query in (scene.distance, scene.contains, scene.closest_points):
+        with pytest.raises(ValueError, match="the arrays live on cuda:7, which is none of this group's devices"):
+            query(_FakeCudaArray())
+
+
 def test_the_split_follows_the_weights():
     """5 to 1 over 3001 rays: the second device traces rays 2501-3000, the first the rest."""
     group = make_group(2, (5, 1))
