@@ -166,6 +166,26 @@ def test_reads_and_answers_follow_the_callers_streams(bunny):
     assert_same(got.cpu().numpy(), want)
 
 
+def test_a_cameras_hits_land_in_cuda_memory(bunny):
+    """cuda=True: a sensor's (and host rays') answers in CUDA memory, equal to the host's."""
+    v, scene = bunny
+    centre = v.mean(axis=0)
+    camera = vkray.PinholeCamera(64, 48, fov_deg=60.0, eye=centre + [0.0, 0.0, 0.4], target=centre, up=[0, 1, 0])
+    hits = scene.intersect(camera, cuda=True)
+    want = scene.intersect(camera)
+    assert hits.t.shape == (48, 64) and "on cuda" in repr(hits)
+    for name in ("t", "prim_id", "uv", "normal"):
+        assert_same(on_host(getattr(hits, name)), getattr(want, name), err_msg=name)
+    assert (on_host(hits.prim_id) >= 0).any()
+    assert_same(on_host(scene.occluded(camera, cuda=True)) >= 0, scene.occluded(camera))
+    assert_same(on_host(scene.count(camera, precision="exact", cuda=True)), scene.count(camera, precision="exact"))
+    assert_same(on_host(scene.intersect_all(camera, cuda=True).offsets), scene.intersect_all(camera).offsets)
+    o, d = oracle.random_rays(v, 1000, seed=18)
+    assert_same(on_host(scene.transmittance(o, d, cuda=True)), scene.transmittance(o, d))
+    with pytest.raises(TypeError, match="out= takes numpy hits"):
+        scene.intersect(o, d, out=scene.intersect(o, d), cuda=True)
+
+
 def test_large_arrays_cross_in_chunks(bunny):
     """Arrays of several megabytes cross the bus in chunks through pinned memory, both ways: odd
     sizes, the last chunk short, every element in its place."""

@@ -197,6 +197,8 @@ def test_errors_are_one_process_errors(client, any_device):
         vkray_dask.closest_points(spec, masked)
     with pytest.raises(ValueError, match="unknown hit fields"):
         vkray_dask.intersect(spec, da.zeros((10, 3)), da.ones((10, 3)), outputs=["colour"])
+    with pytest.raises(TypeError, match="cuda=True are not for it"):
+        vkray_dask.intersect(spec, da.zeros((10, 3)), da.ones((10, 3)), cuda=True)
     with pytest.raises(ValueError, match="unknown keys"):
         vkray_dask.SceneSpec([box()], [{"mesh": 0, "colour": 1}])
     with pytest.raises(ValueError, match="mesh must be in"):

@@ -167,3 +167,17 @@ def test_device_types_given_as_enums_are_read(any_device, bunny):
     np.testing.assert_array_equal(got.t, want.t)
     assert _arrays.dlpack_device(EnumDevice(o)) == (1, 0)
     np.testing.assert_array_equal(scene.count(EnumDevice(o), d), scene.count(o, d))
+
+
+def test_cuda_answers_need_a_cuda_device(any_device, bunny):
+    """cuda=True answers in CUDA memory: a device that shares none with CUDA says so (the CUDA
+    machines' tests check the answers themselves, tests/test_cuda_queries.py)."""
+    if any_device.cuda_device is not None:
+        pytest.skip("this device shares memory with CUDA")
+    v, f = bunny
+    scene = any_device.scene([any_device.mesh(v, f)])
+    o, d = oracle.random_rays(v, 10, seed=3)
+    for query in (scene.intersect, scene.occluded, scene.count, scene.intersect_all, scene.transmittance):
+        with pytest.raises(TypeError, match="does not share memory with CUDA"):
+            query(o, d, cuda=True)
+

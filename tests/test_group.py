@@ -221,6 +221,15 @@ def test_cuda_points_of_a_gpu_outside_the_group_are_named():
             query(_FakeCudaArray())
 
 
+def test_cuda_answers_of_host_arrays_are_refused_by_a_group():
+    """cuda=True in a group is for sensors (their answer lands on the GPU that traced them); host
+    arrays have no GPU to answer on."""
+    group = make_group(2)
+    scene = mixed_scene(group, vkray.GroupInstance)
+    with pytest.raises(TypeError, match="cuda=True in a DeviceGroup is for sensors"):
+        scene.intersect(*rays(N, 5), cuda=True)
+
+
 def test_the_split_follows_the_weights():
     """5 to 1 over 3001 rays: the second device traces rays 2501-3000, the first the rest."""
     group = make_group(2, (5, 1))

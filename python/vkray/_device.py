@@ -691,7 +691,23 @@ class Scene(SceneLike):
             raise ValueError(f"no query named {query.kind!r}")
         if _cuda_query(query) and not (isinstance(query, RayQuery) and query.stays_on_gpu):
             return self._through_host(query, run)
+        if isinstance(query, RayQuery) and query.cuda:
+            return self._onto_gpu(query, run)
         return run(self, query)
+
+    def _onto_gpu(self, query: RayQuery, run: Callable[[Scene, Any], Any]) -> Any:
+        """A query of host rays (arrays or a sensor) answered in CUDA memory (``cuda=True``): as
+        for host rays, then each answer copied to the device's GPU."""
+        if query.out is not None:
+            raise TypeError("out= takes numpy hits: cuda=True answers in new arrays vkray owns")
+        if self.device.cuda_device is None:
+            raise TypeError(f"cuda=True: {self.device.name} does not share memory with CUDA (no CUDA GPU)")
+        core = self.device._core
+        on_host = replace(query, cuda=False)
+        if query.kind == "occluded":
+            # As for CUDA rays: the blocking triangle (-1 where none), int32.
+            return _arrays.numpy_to_cuda(core, self._occluded(on_host, "prim_id"))
+        return _to_cuda(core, run(self, on_host))
 
     def _through_host(self, query: Query, run: Callable[[Scene, Any], Any]) -> Any:
         """A query of CUDA arrays that has no GPU-resident path (every tier but the fast one, all

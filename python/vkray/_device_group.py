@@ -768,6 +768,11 @@ class GroupScene(SceneLike):
             return self._whole(kind, len(q.origins), unsplit, q.progress)
         if _arrays.on_cuda(q.origins, q.directions):
             return self._trace_cuda(q, unsplit)
+        if q.cuda:
+            raise TypeError(
+                "cuda=True in a DeviceGroup is for sensors (their answer lands on the GPU that traced them): pass "
+                "CUDA rays to keep the answer on their GPU"
+            )
         if q.directions is None:  # the device raises what it raises
             return self._whole(kind, 0, unsplit, q.progress)
         batch = _RaysToSplit(q)

@@ -51,6 +51,7 @@ class RayQuery:
     outputs: Tuple[str, ...] = ()
     max_hits: Optional[int] = None
     out: Optional[Hits] = None
+    cuda: bool = False
 
     @property
     def stays_on_gpu(self) -> bool:
@@ -134,6 +135,7 @@ class SceneLike(abc.ABC):
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        cuda: bool = False,
         opacity_threshold: float = 0.5,
         out: Optional[Hits] = None,
     ) -> Hits:
@@ -186,6 +188,12 @@ class SceneLike(abc.ABC):
         alone during the call). Returns Hits over those arrays. numpy rays only, one hit per ray.
         A call that raises may have written some of out's rows.
 
+        cuda: answer in CUDA memory of the device's GPU, as for CUDA rays (`vkray.CudaArray`s):
+        a sensor's hits straight into torch (``torch.from_dlpack(hits.t)``). They are found as
+        for host rays and copied to the GPU once. The same on `occluded` (int32 blocking
+        triangles, as for CUDA rays), `transmittance`, `intersect_all` and `count`; not with
+        ``out=``.
+
         Rays in CUDA memory (torch, cupy, jax on the device's GPU) give `vkray.CudaArray` hits
         on that GPU (README: rays that never leave the GPU; `SceneLike` says which queries copy
         through the host).
@@ -194,7 +202,7 @@ class SceneLike(abc.ABC):
         if out is not None and not isinstance(out, Hits):
             raise TypeError(f"out must be the Hits of an earlier intersect, got {type(out).__name__}")
         query = RayQuery("intersect", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
-                         progress, opacity_threshold, fields, out=out)
+                         progress, opacity_threshold, fields, out=out, cuda=cuda)
         return cast(Hits, self.answer(query))
 
     def occluded(
@@ -208,6 +216,7 @@ class SceneLike(abc.ABC):
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        cuda: bool = False,
         opacity_threshold: float = 0.5,
     ) -> np.ndarray:
         """bool ``S``: whether anything lies along each ray within [tmin, tmax].
@@ -219,7 +228,7 @@ class SceneLike(abc.ABC):
         triangle (>= 0 where occluded, -1 where not), on their GPU.
         """
         query = RayQuery("occluded", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
-                         progress, opacity_threshold, ("prim_id",))
+                         progress, opacity_threshold, ("prim_id",), cuda=cuda)
         return cast(np.ndarray, self.answer(query))
 
     def transmittance(
@@ -233,6 +242,7 @@ class SceneLike(abc.ABC):
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        cuda: bool = False,
     ) -> np.ndarray:
         """The light each ray keeps within [tmin, tmax]: the product of ``1 - opacity`` over every
         triangle it crosses (`Device.mesh`'s opacity; opaque triangles give 0, cut-outs 1):
@@ -248,7 +258,7 @@ class SceneLike(abc.ABC):
         tier runs on the host (f64, the fast tier's answer in float32).
         """
         query = RayQuery("transmittance", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
-                         progress, outputs=("t",))
+                         progress, outputs=("t",), cuda=cuda)
         return cast(np.ndarray, self.answer(query))
 
     def intersect_all(
@@ -264,6 +274,7 @@ class SceneLike(abc.ABC):
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        cuda: bool = False,
         opacity_threshold: float = 0.5,
     ) -> AllHits:
         """Every hit of each ray within [tmin, tmax], nearest first (see `AllHits`).
@@ -295,7 +306,7 @@ class SceneLike(abc.ABC):
         fields = check_outputs(outputs)
         limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)
         query = RayQuery("intersect_all", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
-                         progress, opacity_threshold, fields, limit)
+                         progress, opacity_threshold, fields, limit, cuda=cuda)
         return cast(AllHits, self.answer(query))
 
     def count(
@@ -309,6 +320,7 @@ class SceneLike(abc.ABC):
         cull: Cull = None,
         mask: Any = 0xFF,
         progress: bool = False,
+        cuda: bool = False,
         opacity_threshold: float = 0.5,
     ) -> np.ndarray:
         """int32 ``S``: the number of hits of each ray within [tmin, tmax], as `intersect_all`
@@ -322,7 +334,7 @@ class SceneLike(abc.ABC):
         arguments, as in `intersect`. CUDA rays give a `CudaArray` of int32 ``S`` on their GPU
         (the fast tier, of one mask, counted without leaving it)."""
         query = RayQuery("count", origins, directions, tmin, tmax, mask, check_precision(precision), cull,
-                         progress, opacity_threshold)
+                         progress, opacity_threshold, cuda=cuda)
         return cast(np.ndarray, self.answer(query))
 
     def closest_points(

@@ -450,8 +450,8 @@ _RECORDER = _Recorder()
 def _ray_graph(scene: Union[SceneSpec, Builder], query: RayQuery) -> Dict[str, da.Array]:
     """A ray query's graph: rays aligned to the origins' chunks, per-ray arguments to theirs
     (one value for every ray stays in the record)."""
-    if query.progress or query.out is not None:
-        raise TypeError("vkray.dask answers in dask arrays: progress and out= are not for it")
+    if query.progress or query.out is not None or query.cuda:
+        raise TypeError("vkray.dask answers in dask arrays: progress, out= and cuda=True are not for it")
     spec = _as_scene_spec(scene)
     o = _rows("origins", query.origins)
     d = _rows("directions", query.directions)
