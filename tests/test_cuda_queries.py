@@ -193,11 +193,14 @@ def test_large_arrays_cross_in_chunks(bunny):
     o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 1_100_003, seed=16))  # 13.2 MB each
     counts = scene.count(cuda(o), cuda(d), precision="exact")  # 4.4 MB back
     assert_same(on_host(counts), scene.count(o, d, precision="exact"))
-    p = points_around(v, 700_001, seed=17)  # 16.8 MB: three chunks
-    want = scene.distance(p, precision="exact")
-    assert_same(on_host(scene.distance(cuda(p), precision="exact")), want)
+    p = points_around(v, 700_001, seed=17)  # positions back: 16.8 MB, three chunks both buffers
+    want = scene.closest_points(p, precision="exact", outputs=["distance", "position"])
+    found = scene.closest_points(cuda(p), precision="exact", outputs=["distance", "position"])
+    assert_same(on_host(found.position), want.position)
+    assert DEVICE.idle_memory["pinned_bytes"] > 0
     DEVICE.release_idle_memory()  # the page-locked memory goes; the next query takes new
-    assert_same(on_host(scene.distance(cuda(p), precision="exact")), want)
+    assert DEVICE.idle_memory["pinned_bytes"] == 0
+    assert_same(on_host(scene.distance(cuda(p), precision="exact")), want.distance)
 
 
 def test_one_ray_and_one_point_keep_their_shapes(bunny):
@@ -247,16 +250,26 @@ def test_errors_name_the_argument(bunny):
 
 
 def test_several_threads(bunny):
+    """Six threads at once, each array large enough to cross through page-locked memory both ways
+    (points of 1.2 MB in; counts of 1.2 MB out), the pools shared among them."""
     v, scene = bunny
-    sets = [points_around(v, 10_000, seed=20 + k) for k in range(6)]
+    sets = [points_around(v, 50_000, seed=20 + k) for k in range(6)]
     expected = [scene.signed_distance(p, precision="exact") for p in sets]
+    rays = [tuple(a.astype(np.float32) for a in oracle.random_rays(v, 300_000, seed=30 + k)) for k in range(6)]
+    counted = [scene.count(o, d, precision="exact") for o, d in rays]
 
     def work(k):
-        return [on_host(scene.signed_distance(cuda(sets[k]), precision="exact")) for _ in range(3)]
+        runs = []
+        for _ in range(3):
+            signed = on_host(scene.signed_distance(cuda(sets[k]), precision="exact"))
+            counts = on_host(scene.count(cuda(rays[k][0]), cuda(rays[k][1]), precision="exact"))
+            runs.append((signed, counts))
+        return runs
 
-    for runs, want in zip(oracle.in_threads(len(sets), work), expected):
-        for found in runs:
-            assert_same(found, want)
+    for runs, want, want_counts in zip(oracle.in_threads(len(sets), work), expected, counted):
+        for signed, counts in runs:
+            assert_same(signed, want)
+            assert_same(counts, want_counts)
 
 
 def test_cupy_arrays(bunny):

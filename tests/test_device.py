@@ -133,7 +133,7 @@ def test_a_device_keeps_staging_for_as_many_queries_as_ran_at_once(backend):
     assert after["kept"] == after["made"] and after["bytes"] >= alone["bytes"]
 
     device.release_idle_memory()
-    assert device.idle_memory == {"bytes": 0, "kept": 0, "made": after["made"]}
+    assert device.idle_memory == {"bytes": 0, "kept": 0, "made": after["made"], "pinned_bytes": 0}
     scene.intersect(o, d, outputs=["t", "prim_id"])
     assert device.idle_memory == {**alone, "made": after["made"] + alone["made"]}
 

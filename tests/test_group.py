@@ -228,6 +228,10 @@ def test_cuda_answers_of_host_arrays_are_refused_by_a_group():
     scene = mixed_scene(group, vkray.GroupInstance)
     with pytest.raises(TypeError, match="cuda=True in a DeviceGroup is for sensors"):
         scene.intersect(*rays(N, 5), cuda=True)
+    camera = vkray.PinholeCamera(8, 6, fov_deg=60.0, eye=[0.0, 0.0, 5.0], target=[0.0, 0.0, 0.0], up=[0, 1, 0])
+    if all(d.cuda_device is None for d in group.devices):
+        with pytest.raises(TypeError, match="none of this group's devices shares memory with CUDA"):
+            scene.intersect(camera, cuda=True)
 
 
 def test_the_split_follows_the_weights():
@@ -686,4 +690,4 @@ def test_a_group_tells_and_frees_the_staging_its_devices_keep():
     kept = group.idle_memory
     assert len(kept) == 2 and all(k["bytes"] > 0 and k["kept"] > 0 and k["made"] > 0 for k in kept), kept
     group.release_idle_memory()
-    assert group.idle_memory == [{"bytes": 0, "kept": 0, "made": k["made"]} for k in kept]
+    assert group.idle_memory == [{"bytes": 0, "kept": 0, "made": k["made"], "pinned_bytes": 0} for k in kept]

@@ -227,7 +227,9 @@ class Device:
         """The staging memory this device keeps between queries, so that the next query need not
         allocate it (host-visible buffers for rays and hits, their device copies, packing
         scratch, CUDA leases): ``bytes`` held now, ``kept`` (how many sets of buffers), and
-        ``made`` (how many its queries had to allocate so far, because none was idle).
+        ``made`` (how many its queries had to allocate so far, because none was idle);
+        ``pinned_bytes``: page-locked host memory kept for CUDA arrays that queries copy through
+        the host (up to 512 MiB of blocks and 64 MiB of buffers; 0 where CUDA was never used).
 
         A device keeps as many as its queries used at once (several threads querying it at the
         same time each hold their own), at least two queries' worth and up to eight: a query's
@@ -701,7 +703,10 @@ class Scene(SceneLike):
         if query.out is not None:
             raise TypeError("out= takes numpy hits: cuda=True answers in new arrays vkray owns")
         if self.device.cuda_device is None:
-            raise TypeError(f"cuda=True: {self.device.name} does not share memory with CUDA (no CUDA GPU)")
+            raise TypeError(
+                f"cuda=True: {self.device.name} does not share memory with CUDA (not a CUDA GPU, or its Vulkan "
+                f"driver cannot share memory with CUDA)"
+            )
         core = self.device._core
         on_host = replace(query, cuda=False)
         if query.kind == "occluded":

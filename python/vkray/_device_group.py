@@ -399,11 +399,13 @@ class DeviceGroup:
                 raise error
         return [future.result() for future in futures]
 
-    def _least_busy(self, kind: str) -> int:
-        """The device with the fewest pieces in flight, the fastest for ``kind`` among those."""
+    def _least_busy(self, kind: str, among: Optional[Sequence[int]] = None) -> int:
+        """The device with the fewest pieces in flight, the fastest for ``kind`` among those (of
+        ``among``, where given)."""
         weights = self.weights(kind)
+        members = range(len(self.devices)) if among is None else among
         with self._busy_lock:
-            return min(range(len(self.devices)), key=lambda k: (self._busy[k], -weights[k]))
+            return min(members, key=lambda k: (self._busy[k], -weights[k]))
 
     def _run_piece(self, device: int, run: _Run, piece: int, rays: int, work: Callable[[], T], kind: str) -> T:
         """One piece in its device's thread: reports to its query's run, and times the device."""
@@ -731,10 +733,18 @@ class GroupScene(SceneLike):
         with self._updates.query():
             return self.group._run_pieces(kind, pieces, work, progress)
 
-    def _whole(self, kind: str, count: int, call: Callable[[Scene], T], progress: bool) -> T:
-        """A query of ``count`` rays run unsplit on the least busy device (in its thread,
-        stoppable as pieces are)."""
-        device = self.group._least_busy(kind)
+    def _whole(
+        self, kind: str, count: int, call: Callable[[Scene], T], progress: bool, on_cuda: bool = False
+    ) -> T:
+        """A query of ``count`` rays run unsplit on the least busy device (of those that are CUDA
+        GPUs, ``on_cuda``: a ``cuda=True`` answer lands on the GPU that traced it), in its thread,
+        stoppable as pieces are."""
+        among = None
+        if on_cuda:
+            among = [k for k, d in enumerate(self.group.devices) if d.cuda_device is not None]
+            if not among:
+                raise TypeError("cuda=True: none of this group's devices shares memory with CUDA")
+        device = self.group._least_busy(kind, among)
         return self._run(kind, [(device, 0, count)], lambda k, _start, _stop: call(self.per_device[k]), progress)[0]
 
     def _cuda_member(self, *arrays: Any) -> int:
@@ -765,7 +775,7 @@ class GroupScene(SceneLike):
             return cast(T, scene.answer(dataclasses.replace(q, progress=False)))
 
         if isinstance(q.origins, Sensor):
-            return self._whole(kind, len(q.origins), unsplit, q.progress)
+            return self._whole(kind, len(q.origins), unsplit, q.progress, on_cuda=q.cuda)
         if _arrays.on_cuda(q.origins, q.directions):
             return self._trace_cuda(q, unsplit)
         if q.cuda:

@@ -34,6 +34,8 @@ pub struct Cuda {
     /// A memory pool of this device whose allocations other devices may write (`shared_pool`):
     /// made on first use, with the devices granted access.
     shared_pool: Mutex<Option<(SharedPool, Vec<i32>)>>,
+    /// Idle page-locked host memory of this context (`PinnedPools`).
+    pinned: Mutex<PinnedPools>,
 }
 
 /// A CUDA memory pool handle.
@@ -89,7 +91,14 @@ impl Cuda {
             // SAFETY: `device` is valid; the retained context is released in `Drop`.
             check("cuDevicePrimaryCtxRetain", unsafe { sys::cuDevicePrimaryCtxRetain(&mut context, device) })?;
             let (peers, shared_pool) = (Mutex::new(Vec::new()), Mutex::new(None));
-            return Ok(Some(Arc::new(Cuda { device, context, ordinal, peers, shared_pool })));
+            return Ok(Some(Arc::new(Cuda {
+                device,
+                context,
+                ordinal,
+                peers,
+                shared_pool,
+                pinned: Default::default(),
+            })));
         }
         Ok(None)
     }
@@ -211,6 +220,8 @@ impl Cuda {
 
 impl Drop for Cuda {
     fn drop(&mut self) {
+        // The idle pinned memory is the context's: freed before the context goes.
+        let _ = self.release_idle_host_memory();
         if let Some((pool, _)) = self.shared_pool.get_mut().unwrap_or_else(|e| e.into_inner()).take() {
             // SAFETY: made once by `shared_pool`; CUDA releases it once its last allocation's
             // queued free is done.
@@ -707,57 +718,109 @@ pub fn read_number(address: u64, wide: bool) -> Result<f64> {
     })
 }
 
-/// Page-locked host memory, which CUDA's copies reach at the bus's full speed (pageable memory
-/// goes through the driver's own staging at a fraction of it). Portable: any context may copy
-/// through it.
-struct Pinned {
-    pointer: *mut u8,
+/// Page-locked host memory of one CUDA context, which CUDA's copies reach at the bus's full
+/// speed (pageable memory goes through the driver's own staging at a fraction of it): idle
+/// buffers kept for the next copies (allocating them costs milliseconds), freed with the context
+/// (`Cuda::drop`) or by `Device.release_idle_memory`. The buffers in use hold the context
+/// (`Arc<Cuda>`), the idle ones only their addresses: the context owns them.
+#[derive(Default)]
+pub struct PinnedPools {
+    /// Idle (address, capacity) blocks a CUDA array is read into whole (`HostBlock`).
+    blocks: Vec<(usize, usize)>,
+    /// Idle pairs of `PINNED_CHUNK` buffers answers cross through (`Stream::write_through_pinned`).
+    pairs: Vec<[usize; 2]>,
 }
-
-// SAFETY: the pointer is a plain value; one user at a time (taken from the pool).
-unsafe impl Send for Pinned {}
 
 /// Bytes of each of a copy's two pinned buffers: chunks this size cross the bus while the
 /// previous one is copied on the host.
 const PINNED_CHUNK: usize = 8 << 20;
 
-/// Idle pinned pairs kept for the next copies (allocating one costs milliseconds).
+/// Idle pinned pairs kept for the next copies.
 const IDLE_PINNED_PAIRS: usize = 4;
 
-static IDLE_PINNED: Mutex<Vec<[Pinned; 2]>> = Mutex::new(Vec::new());
+/// Bytes of idle host blocks kept for the next reads (more are freed as they come back).
+const IDLE_BLOCK_BYTES: usize = 512 << 20;
 
-impl Pinned {
-    /// A new buffer of `PINNED_CHUNK` bytes. The context must be current.
-    fn new() -> Result<Pinned> {
-        let mut pointer = std::ptr::null_mut();
-        let flags = sys::CU_MEMHOSTALLOC_PORTABLE;
-        // SAFETY: `pointer` is writable; the context is current.
-        check("cuMemHostAlloc", unsafe { sys::cuMemHostAlloc(&mut pointer, PINNED_CHUNK, flags) })?;
-        Ok(Pinned { pointer: pointer as *mut u8 })
+/// Page-locked host memory of `bytes`, or None where the driver has none to give (the caller
+/// copies through pageable memory instead). The context must be current.
+fn pin(bytes: usize) -> Option<usize> {
+    let mut pointer = std::ptr::null_mut();
+    // SAFETY: `pointer` is writable; the context is current.
+    let result = unsafe { sys::cuMemHostAlloc(&mut pointer, bytes, sys::CU_MEMHOSTALLOC_PORTABLE) };
+    (result == sys::CUresult::CUDA_SUCCESS).then_some(pointer as usize)
+}
+
+/// Frees page-locked memory of the current context (its result ignored: after a fork, or with
+/// the context gone, there is nothing left to free).
+fn unpin(pointer: usize) {
+    // SAFETY: allocated by cuMemHostAlloc in the current context, freed once, no copy uses it.
+    unsafe { sys::cuMemFreeHost(pointer as *mut c_void) };
+}
+
+impl Cuda {
+    fn pools(&self) -> std::sync::MutexGuard<'_, PinnedPools> {
+        self.pinned.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// A pair from the idle pool, or a new one. The context must be current.
-    fn take_pair() -> Result<[Pinned; 2]> {
-        let idle = IDLE_PINNED.lock().unwrap_or_else(|e| e.into_inner()).pop();
-        match idle {
-            Some(pair) => Ok(pair),
-            None => Ok([Pinned::new()?, Pinned::new()?]),
-        }
+    /// Frees the idle pinned memory (`Device.release_idle_memory`); buffers in use come back
+    /// idle later.
+    pub fn release_idle_host_memory(&self) -> Result<()> {
+        let idle = std::mem::take(&mut *self.pools());
+        let _current = self.enter()?;
+        idle.blocks.iter().for_each(|&(pointer, _)| unpin(pointer));
+        idle.pairs.iter().flatten().for_each(|&pointer| unpin(pointer));
+        Ok(())
     }
 
-    /// Keeps a pair for the next copy (or frees it, beyond those kept), once no copy uses it.
-    fn give_back(pair: [Pinned; 2]) {
-        let mut idle = IDLE_PINNED.lock().unwrap_or_else(|e| e.into_inner());
-        if idle.len() < IDLE_PINNED_PAIRS {
-            idle.push(pair);
-        }
+    /// Bytes of idle pinned memory held.
+    pub fn idle_host_bytes(&self) -> usize {
+        let pools = self.pools();
+        pools.blocks.iter().map(|&(_, capacity)| capacity).sum::<usize>() + pools.pairs.len() * 2 * PINNED_CHUNK
     }
 }
 
-impl Drop for Pinned {
+/// Two pinned buffers of `PINNED_CHUNK` bytes, lent for one copy.
+struct PinnedPair {
+    cuda: Arc<Cuda>,
+    pointers: [usize; 2],
+}
+
+impl PinnedPair {
+    /// An idle pair, or a new one (None where the driver pins no more). The context must be
+    /// current.
+    fn take(cuda: &Arc<Cuda>) -> Option<PinnedPair> {
+        let idle = cuda.pools().pairs.pop();
+        let pointers = match idle {
+            Some(pair) => pair,
+            None => {
+                let first = pin(PINNED_CHUNK)?;
+                let Some(second) = pin(PINNED_CHUNK) else {
+                    unpin(first);
+                    return None;
+                };
+                [first, second]
+            }
+        };
+        Some(PinnedPair { cuda: cuda.clone(), pointers })
+    }
+
+    fn buffer(&self, k: usize) -> *mut u8 {
+        self.pointers[k % 2] as *mut u8
+    }
+}
+
+impl Drop for PinnedPair {
+    /// Back to the context's idle pairs (beyond those kept, freed): no copy uses it any more.
     fn drop(&mut self) {
-        // SAFETY: allocated by cuMemHostAlloc (portable), freed once, no copy in flight.
-        unsafe { sys::cuMemFreeHost(self.pointer as *mut c_void) };
+        let mut pools = self.cuda.pools();
+        if pools.pairs.len() < IDLE_PINNED_PAIRS {
+            pools.pairs.push(self.pointers);
+            return;
+        }
+        drop(pools);
+        if let Ok(_current) = self.cuda.enter() {
+            self.pointers.iter().for_each(|&pointer| unpin(pointer));
+        }
     }
 }
 
@@ -770,30 +833,27 @@ fn copy_on_all_cores(dst: &mut [u8], src: &[u8]) {
 }
 
 impl Stream {
-    /// Copies `src` into device memory at `dst` through two pinned buffers (the host fills one
-    /// while the other's chunk crosses the bus), in stream order; the stream is synchronized
-    /// before this returns. The context must be current.
+    /// Copies `src` into device memory at `dst`, through two pinned buffers where the driver
+    /// gives them (the host fills one while the other's chunk crosses the bus), else straight
+    /// from `src`; in stream order, the stream synchronized before this returns. The context
+    /// must be current.
     ///
     /// # Safety
     /// `dst` must be device memory of this context with room for `src.len()` bytes, valid until
     /// the stream's copies have run.
     pub unsafe fn write_through_pinned(&self, dst: u64, src: &[u8]) -> Result<()> {
-        let pair = Pinned::take_pair()?;
+        let Some(pair) = PinnedPair::take(&self.cuda) else {
+            // SAFETY: the caller's contract; `src` is borrowed until the synchronize.
+            unsafe { self.copy_from_host(dst, src.as_ptr(), src.len())? };
+            return self.synchronize();
+        };
         // SAFETY: the caller's contract.
         let copied = unsafe { self.write_chunks(&pair, dst, src) };
-        let settled = self.synchronize();
-        match (copied, settled) {
-            (Ok(()), Ok(())) => {
-                Pinned::give_back(pair);
-                Ok(())
-            }
-            (copied, settled) => {
-                if settled.is_err() {
-                    std::mem::forget(pair); // a copy may still read it: leaked rather than freed
-                } else {
-                    Pinned::give_back(pair);
-                }
-                copied.and(settled)
+        match self.synchronize() {
+            Ok(()) => copied,
+            Err(error) => {
+                std::mem::forget(pair); // a copy may still read it: kept from reuse, not freed
+                copied.and(Err(error))
             }
         }
     }
@@ -802,7 +862,7 @@ impl Stream {
     ///
     /// # Safety
     /// As `write_through_pinned`.
-    unsafe fn write_chunks(&self, pair: &[Pinned; 2], dst: u64, src: &[u8]) -> Result<()> {
+    unsafe fn write_chunks(&self, pair: &PinnedPair, dst: u64, src: &[u8]) -> Result<()> {
         let mut sent: [Option<Event>; 2] = [None, None];
         for (k, at) in (0..src.len()).step_by(PINNED_CHUNK).enumerate() {
             let len = PINNED_CHUNK.min(src.len() - at);
@@ -811,11 +871,11 @@ impl Stream {
                 event.synchronize()?;
             }
             // SAFETY: the buffer holds `PINNED_CHUNK` bytes and no copy reads it now.
-            let pinned = unsafe { std::slice::from_raw_parts_mut(pair[k % 2].pointer, len) };
+            let pinned = unsafe { std::slice::from_raw_parts_mut(pair.buffer(k), len) };
             copy_on_all_cores(pinned, &src[at..at + len]);
             // SAFETY: the chunk lies within the caller's device memory; the pinned bytes stay
             // unchanged until this chunk's event.
-            unsafe { self.copy_from_host(dst + at as u64, pair[k % 2].pointer, len)? };
+            unsafe { self.copy_from_host(dst + at as u64, pair.buffer(k), len)? };
             sent[k % 2] = Some(self.record()?);
         }
         Ok(())
@@ -823,77 +883,57 @@ impl Stream {
 }
 
 /// Page-locked host memory a CUDA array is read into whole, lent to the caller as long as it
-/// needs it and kept for the next read when dropped: no copy on the host and no page faults of
-/// fresh memory (1M float32 rays: 12 MB in 0.5 ms rather than 1.7 ms through a pageable array).
+/// needs it (it holds the context) and back among the context's idle blocks when dropped: no
+/// copy on the host and no page faults of fresh memory (1M float32 rays: 12 MB in 0.28 ms
+/// rather than 1.7 ms through a pageable array).
 pub struct HostBlock {
-    pointer: *mut u8,
+    cuda: Arc<Cuda>,
+    pointer: usize,
     capacity: usize,
     pub bytes: usize,
 }
 
-// SAFETY: the pointer is a plain value; the block has one owner.
-unsafe impl Send for HostBlock {}
-// SAFETY: as above; shared only for reading.
-unsafe impl Sync for HostBlock {}
-
-/// Idle host blocks, and the bytes they hold at most (more are freed by the next `take`).
-static IDLE_BLOCKS: Mutex<Vec<(usize, usize)>> = Mutex::new(Vec::new());
-const IDLE_BLOCK_BYTES: usize = 512 << 20;
-
 impl HostBlock {
     /// A block of at least `bytes` bytes: an idle one of at most twice that, or a new one (a
-    /// power of two, at least 1 MiB). The context must be current (a new block is allocated, and
-    /// idle ones beyond `IDLE_BLOCK_BYTES` freed, in it).
-    pub fn take(bytes: usize) -> Result<HostBlock> {
-        let (found, surplus) = {
-            let mut idle = IDLE_BLOCKS.lock().unwrap_or_else(|e| e.into_inner());
-            let found = idle
-                .iter()
-                .position(|&(_, capacity)| capacity >= bytes && capacity <= 2 * bytes.max(1 << 20))
-                .map(|k| idle.swap_remove(k));
-            let mut surplus = Vec::new();
-            while idle.iter().map(|&(_, c)| c).sum::<usize>() > IDLE_BLOCK_BYTES {
-                surplus.push(idle.remove(0));
-            }
-            (found, surplus)
+    /// power of two from 1 MiB, whole MiBs beyond 64 MiB); None where the driver pins no more.
+    /// The context must be current.
+    pub fn take(cuda: &Arc<Cuda>, bytes: usize) -> Option<HostBlock> {
+        let found = {
+            let mut pools = cuda.pools();
+            let k = pools.blocks.iter().position(|&(_, c)| c >= bytes && c <= 2 * bytes.max(1 << 20));
+            k.map(|k| pools.blocks.swap_remove(k))
         };
-        for (pointer, _) in surplus {
-            // SAFETY: an idle block (no copy or array uses it), allocated by cuMemHostAlloc.
-            unsafe { sys::cuMemFreeHost(pointer as *mut c_void) };
-        }
-        if let Some((pointer, capacity)) = found {
-            return Ok(HostBlock { pointer: pointer as *mut u8, capacity, bytes });
-        }
-        let capacity = bytes.max(1 << 20).next_power_of_two();
-        let mut pointer = std::ptr::null_mut();
-        // SAFETY: `pointer` is writable; the context is current.
-        check("cuMemHostAlloc", unsafe { sys::cuMemHostAlloc(&mut pointer, capacity, sys::CU_MEMHOSTALLOC_PORTABLE) })?;
-        Ok(HostBlock { pointer: pointer as *mut u8, capacity, bytes })
+        let (pointer, capacity) = match found {
+            Some(block) => block,
+            None => {
+                let capacity = if bytes <= 64 << 20 {
+                    bytes.max(1 << 20).next_power_of_two()
+                } else {
+                    bytes.next_multiple_of(1 << 20)
+                };
+                (pin(capacity)?, capacity)
+            }
+        };
+        Some(HostBlock { cuda: cuda.clone(), pointer, capacity, bytes })
     }
 
     pub fn as_ptr(&self) -> *mut u8 {
-        self.pointer
+        self.pointer as *mut u8
     }
-}
-
-/// Frees the idle host blocks and pinned pairs (`Device.release_idle_memory`), in `cuda`'s
-/// context; blocks lent to arrays come back later, as idle ones.
-pub fn release_idle_host_memory(cuda: &Cuda) -> Result<()> {
-    let _current = cuda.enter()?;
-    let blocks = std::mem::take(&mut *IDLE_BLOCKS.lock().unwrap_or_else(|e| e.into_inner()));
-    for (pointer, _) in blocks {
-        // SAFETY: an idle block (no copy or array uses it), allocated by cuMemHostAlloc.
-        unsafe { sys::cuMemFreeHost(pointer as *mut c_void) };
-    }
-    // Each pair's buffers free themselves (`Pinned::drop`), in this context.
-    drop(std::mem::take(&mut *IDLE_PINNED.lock().unwrap_or_else(|e| e.into_inner())));
-    Ok(())
 }
 
 impl Drop for HostBlock {
-    /// Back to the idle blocks (freed by a later `take`, whose context is current).
+    /// Back to the context's idle blocks, or freed where they hold `IDLE_BLOCK_BYTES` already.
     fn drop(&mut self) {
-        let mut idle = IDLE_BLOCKS.lock().unwrap_or_else(|e| e.into_inner());
-        idle.push((self.pointer as usize, self.capacity));
+        let mut pools = self.cuda.pools();
+        let idle: usize = pools.blocks.iter().map(|&(_, c)| c).sum();
+        if idle + self.capacity <= IDLE_BLOCK_BYTES {
+            pools.blocks.push((self.pointer, self.capacity));
+            return;
+        }
+        drop(pools);
+        if let Ok(_current) = self.cuda.enter() {
+            unpin(self.pointer);
+        }
     }
 }

@@ -43,16 +43,24 @@ pub(super) fn read_to_host<'py>(cuda: &Arc<Cuda>, value: &Bound<'py, PyAny>, nam
     let element = dlpack::element_bytes(dtype);
     let plan = CopyPlan::of(&shape, &strides, element);
     let contiguous = plan.pitch.is_none_or(|pitch| pitch == plan.width || plan.rows <= 1);
-    let bytes = if contiguous && plan.host_bytes() >= THROUGH_PINNED_BYTES {
-        let block = py.detach(|| -> crate::Result<HostBlock> {
+    let pinned = if contiguous && plan.host_bytes() >= THROUGH_PINNED_BYTES {
+        py.detach(|| -> crate::Result<Option<HostBlock>> {
             let _current = cuda.enter()?;
-            let block = HostBlock::take(plan.host_bytes())?;
+            let Some(block) = HostBlock::take(cuda, plan.host_bytes()) else { return Ok(None) };
             // SAFETY: `data` is the producer's CUDA memory, alive while `capsule` is (held
             // through the synchronize); the block holds the plan's bytes and is ours alone.
-            unsafe { stream.copy_to_host(block.as_ptr(), data, plan.host_bytes())? };
-            stream.synchronize()?;
-            Ok(block)
-        })?;
+            if let Err(error) = unsafe { stream.copy_to_host(block.as_ptr(), data, plan.host_bytes()) }
+                .and_then(|()| stream.synchronize())
+            {
+                std::mem::forget(block); // a copy may still write into it: kept from reuse
+                return Err(error);
+            }
+            Ok(Some(block))
+        })?
+    } else {
+        None
+    };
+    let bytes = if let Some(block) = pinned {
         lend(py, block)?
     } else {
         let bytes = PyArray1::<u8>::zeros(py, plan.host_bytes(), false);

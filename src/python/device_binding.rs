@@ -10,7 +10,7 @@ use pyo3::types::PyDict;
 
 use super::calls::{run, run_reporting};
 use super::cuda_staging;
-use super::device_engines::{cuda_of, DeviceTracer};
+use super::device_engines::{cuda_of, opened_cuda, DeviceTracer};
 use super::dlpack::{self, PyCudaArray};
 use super::mesh_binding::PyMesh;
 use super::numpy_views::{Bound1, IndexArray, Vec3Array};
@@ -195,7 +195,8 @@ impl PyDevice {
         Ok(d)
     }
 
-    /// The staging this device keeps idle between queries: ``bytes``, ``kept``, ``made``.
+    /// The staging this device keeps idle between queries: ``bytes``, ``kept``, ``made``, and
+    /// ``pinned_bytes`` (page-locked host memory of its CUDA context).
     #[getter]
     fn idle_memory<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let memory = self.tracer.idle_memory();
@@ -203,6 +204,7 @@ impl PyDevice {
         d.set_item("bytes", memory.bytes)?;
         d.set_item("kept", memory.items)?;
         d.set_item("made", memory.made)?;
+        d.set_item("pinned_bytes", opened_cuda(&self.tracer).map_or(0, |cuda| cuda.idle_host_bytes()))?;
         Ok(d)
     }
 
@@ -211,8 +213,9 @@ impl PyDevice {
     fn release_idle_memory(&self, py: Python<'_>) -> PyResult<()> {
         run(py, |_| {
             self.tracer.release_idle_memory();
-            match cuda_of(&self.tracer)?.1 {
-                Some(cuda) => crate::gpu::cuda::release_idle_host_memory(&cuda),
+            // Only where CUDA was opened: freeing memory starts nothing.
+            match opened_cuda(&self.tracer) {
+                Some(cuda) => cuda.release_idle_host_memory(),
                 None => Ok(()),
             }
         })

@@ -11,6 +11,12 @@ use crate::trace::{Engine, Tracer, VulkanEngine};
 /// What a device's tracer is: a dispatcher over either engine.
 pub(super) type DeviceTracer = Tracer<dyn Engine>;
 
+/// The device's CUDA device where it was opened already (nothing is started: no cuInit, no
+/// context), else None.
+pub(super) fn opened_cuda(tracer: &DeviceTracer) -> Option<Arc<Cuda>> {
+    tracer.engine().as_any().downcast_ref::<VulkanEngine>().and_then(|engine| engine.cuda.opened_cuda())
+}
+
 /// The device's CUDA rays path, where its engine has one (the Vulkan engine), and its CUDA
 /// device, where its GPU shares memory with CUDA.
 pub(super) fn cuda_of(tracer: &DeviceTracer) -> Result<(Option<&CudaRaysPath>, Option<Arc<Cuda>>)> {

@@ -174,6 +174,11 @@ impl CudaRaysPath {
         Ok(self.cuda.cuda.get_or_init(|| found).clone())
     }
 
+    /// The CUDA device, where it was opened already (`cuda` opens it): nothing is started.
+    pub fn opened_cuda(&self) -> Option<Arc<Cuda>> {
+        self.cuda.cuda.get().cloned().flatten()
+    }
+
     /// A lease for one GPU-resident query: an idle one, or a new one.
     pub fn cuda_lease(&self) -> Result<CudaLease> {
         if let Some(lease) = self.cuda.idle.take(1, |_| true, |_| true).pop() {
