@@ -31,6 +31,7 @@ const SHADERS: &[&str] = &[
     "pack_rays.comp",
     "point_order.comp",
     "sign_points.comp",
+    "list_offsets.comp",
 ];
 
 /// How long glslc may take over one shader (each takes well under 5 s): some shapes of code with

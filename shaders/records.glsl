@@ -62,6 +62,26 @@ layout(push_constant, std430) uniform PointOrderParams {
 const uint POINT_ORDER_COUNT = 0u;
 const uint POINT_ORDER_SCAN = 1u;
 const uint POINT_ORDER_SCATTER = 2u;
+#elif defined(VKRAY_LIST_OFFSETS)
+// The push constants of list_offsets.comp (records.rs ListParams): one chunk of an all-hits query,
+// from the counting pass's counts to the storing pass's lists and their offsets, in three passes
+// (LIST_*) over runs of `run` rays.
+layout(push_constant, std430) uniform ListParams {
+  uint64_t counts;          // int per ray: the hits the counting pass met
+  uint64_t sums;            // uint64 per run: its lists' records, then (scanned) its first record;
+                            // one more after the last: the chunk's records
+  uint64_t lists;           // out: HitList per ray
+  uint64_t offsets;         // out: uint64 per ray, its first record among the chunk's
+  uint count;               // rays in the chunk
+  uint max_hits;            // most hits a list keeps (at most 2^31 - 1)
+  uint insertion_limit;     // lists longer than this holding every hit of their ray: HIT_LIST_APPEND
+  uint run;                 // rays per run
+  uint pass;
+  uint unused;
+} list_params;
+const uint LIST_SUMS = 0u;
+const uint LIST_SCAN = 1u;
+const uint LIST_WRITE = 2u;
 #elif defined(VKRAY_SIGN_POINTS)
 // The push constants of sign_points.comp (records.rs SignPointsParams): one chunk of a signed
 // distance query, its distances signed in place from its sign's crossings (and cap's winding

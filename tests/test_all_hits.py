@@ -1297,6 +1297,38 @@ def test_gpu_count_does_not_depend_on_chunks(device, tier):
 
 
 @pytest.mark.parametrize("tier", ["fast", "exact"])
+def test_all_hits_in_records_smaller_than_a_chunk(device, tier, monkeypatch):
+    """Room for 8 hit records a chunk (VKRAY_HIT_RECORD_BYTES, the storing pass's budget): each
+    chunk stores only the rays whose lists fit and the next starts after them, and a ray of more
+    hits than that (the long lists through 40 boxes) gets records of its own. The hits are those
+    of one chunk with room for all."""
+    if tier == "exact" and not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    v, f = mesh_data("cow")
+    cow = device.mesh(v, f)
+    boxes = device.mesh(*box())
+    far = [vkray.Instance(boxes, _affine(np.eye(3), [50.0, 0.0, 1.5 * k])) for k in range(12)]
+    scene = device.scene([vkray.Instance(cow)] + far)
+    origins, directions = random_rays(v, 300, seed=52)
+    # Every 50th ray through the twelve boxes (24 hits).
+    origins[::50] = [50.3, 0.6, -1.0]
+    directions[::50] = [0.0, 0.0, 1.0]
+    fields = ["t", "prim_id", "instance_id"]
+    whole = scene.intersect_all(origins, directions, precision=tier, outputs=fields)
+    assert whole.counts[::50].tolist() == [24] * 6 and whole.counts.sum() > 300
+    monkeypatch.setenv("VKRAY_HIT_RECORD_BYTES", str(8 * 32))
+    small = scene.intersect_all(origins, directions, precision=tier, outputs=fields)
+    for max_hits in (3, 30):
+        kept = scene.intersect_all(origins, directions, precision=tier, outputs=fields, max_hits=max_hits)
+        np.testing.assert_array_equal(kept.counts, np.minimum(whole.counts, max_hits))
+        rows = np.concatenate([np.arange(a, a + c) for a, c in zip(whole.offsets[:-1], kept.counts)])
+        np.testing.assert_array_equal(kept.prim_id, whole.prim_id[rows])
+    monkeypatch.delenv("VKRAY_HIT_RECORD_BYTES")
+    for name in ("offsets", "counts", "ray_index") + tuple(fields):
+        np.testing.assert_array_equal(getattr(small, name), getattr(whole, name), err_msg=name)
+
+
+@pytest.mark.parametrize("tier", ["fast", "exact"])
 def test_long_lists(device, tier):
     """Rays through 40 boxes in a row (80 hits each, in lists long enough that the GPU appends
     them and the host sorts them), some with max_hits=50 (kept sorted on the GPU): the reference

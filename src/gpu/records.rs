@@ -229,6 +229,36 @@ pub const POINT_ORDER_COUNT: u32 = 0;
 pub const POINT_ORDER_SCAN: u32 = 1;
 pub const POINT_ORDER_SCATTER: u32 = 2;
 
+/// The push constants of list_offsets.comp (`ListParams` in shaders/records.glsl): one chunk of
+/// an all-hits query, from the counting pass's counts to the storing pass's lists and offsets.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct ListParams {
+    /// i32 per ray: the hits the counting pass met.
+    pub counts: u64,
+    /// u64 per run of `run` rays, and one more: the chunk's records.
+    pub sums: u64,
+    /// Out: `HitList` per ray.
+    pub lists: u64,
+    /// Out: u64 per ray, its first record among the chunk's.
+    pub offsets: u64,
+    pub count: u32,
+    /// Most hits a list keeps (at most `i32::MAX`).
+    pub max_hits: u32,
+    /// Lists longer than this, holding every hit of their ray, get `HIT_LIST_APPEND`.
+    pub insertion_limit: u32,
+    pub run: u32,
+    /// `LIST_*`.
+    pub pass: u32,
+    pub unused: u32,
+}
+
+/// `ListParams::pass`: each run's records; the runs' first records and the total; each ray's
+/// list and offset.
+pub const LIST_SUMS: u32 = 0;
+pub const LIST_SCAN: u32 = 1;
+pub const LIST_WRITE: u32 = 2;
+
 /// The push constants of pack_rays.comp (`PackParams` in shaders/records.glsl): one chunk of the
 /// caller's rays in its own layout, and where their packed form goes.
 #[repr(C)]
@@ -448,6 +478,8 @@ layout!(PointParams, size 128, points @ 0, distances @ 8, hits @ 16, nodes @ 24,
     top_nodes @ 48, top_items @ 56, spans @ 64, edges @ 72, order @ 80, center @ 88, max_distance @ 112, count @ 120,
     instance_count @ 124);
 layout!(PointOrderParams, size 80, points @ 0, cells @ 8, order @ 16, corner @ 24, scale @ 48, count @ 72, pass @ 76);
+layout!(ListParams, size 56, counts @ 0, sums @ 8, lists @ 16, offsets @ 24, count @ 32, max_hits @ 36,
+    insertion_limit @ 40, run @ 44, pass @ 48, unused @ 52);
 layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
     outside_below @ 40, count @ 48, unused @ 52);
 layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
@@ -661,6 +693,11 @@ mod tests {
                 "PointOrderParams",
                 size_of::<PointOrderParams>(),
                 members!(PointOrderParams: points, cells, order, corner, scale, count, pass),
+            ),
+            (
+                "ListParams",
+                size_of::<ListParams>(),
+                members!(ListParams: counts, sums, lists, offsets, count, max_hits, insertion_limit, run, pass, unused),
             ),
             (
                 "SignPointsParams",

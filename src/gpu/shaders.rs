@@ -21,6 +21,7 @@ pub const WINDING: &[u8] = spirv!("winding.comp");
 pub const PACK_RAYS: &[u8] = spirv!("pack_rays.comp");
 pub const POINT_ORDER: &[u8] = spirv!("point_order.comp");
 pub const SIGN_POINTS: &[u8] = spirv!("sign_points.comp");
+pub const LIST_OFFSETS: &[u8] = spirv!("list_offsets.comp");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -39,6 +40,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("pack_rays.comp", PACK_RAYS),
     ("point_order.comp", POINT_ORDER),
     ("sign_points.comp", SIGN_POINTS),
+    ("list_offsets.comp", LIST_OFFSETS),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

@@ -1,29 +1,35 @@
-//! All hits of each ray on the GPU (fast and exact tiers). A counting pass (the all-hits shaders
-//! with lists of no room) finds how many hits each ray meets; their prefix sums place each ray's
-//! hits in one array; a storing pass then keeps each ray's hits (its nearest `max_hits`), sorted,
-//! in a list of exactly that length, chunk by chunk, straight into their final place. Memory is
-//! bounded by the chunks and nothing is truncated.
+//! All hits of each ray on the GPU (fast and exact tiers), chunk by chunk. Each chunk's rays are
+//! packed once; a counting pass (the all-hits shaders with lists of no room) finds how many hits
+//! each ray meets, and list_offsets.comp turns the counts into each ray's list among the chunk's
+//! records, all in one submission; the host reads back only the chunk's total. A storing pass then
+//! keeps each ray's hits (its nearest `max_hits`), sorted, in its list, and the records come back
+//! with their offsets: straight after the chunks before. Memory is bounded by the chunks (a chunk
+//! whose records do not fit stores only the rays whose lists do) and nothing is truncated.
 
 use std::cmp::Ordering;
 use std::mem::size_of;
 use std::time::Instant;
 
+use ash::vk;
 use bytemuck::Pod;
 use rayon::prelude::*;
 
 use super::gpu_rays::GpuRays;
-use super::ray_chunks::{pack_chunk, GpuJob, ListBuffers};
+use super::hit_lists::{appends, ListBuffers, ListOffsets};
+use super::ray_chunks::{pack_chunk, record_readback, trace_stage, GpuJob};
 use super::shared::Shared;
 use super::staging::Slot;
+use super::timestamps::{start_stamps, Stamp};
 use crate::error::{Error, Result};
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
 use crate::geometry::parallel::try_vec;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::Commands;
-use crate::gpu::records::{ExactHit, FastHit, HitList, HIT_LIST_APPEND};
+use crate::gpu::memory::memory_barrier;
+use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{Scene, VulkanScene};
-use crate::trace::hit_fields::{Field, HitSink};
+use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::IdlePool;
 use crate::trace::pacer::{in_paced_blocks, ChunkPacer, FIRST_ON_CPU};
@@ -42,26 +48,41 @@ pub struct StoredHits<R> {
     pub advances: Vec<(usize, f64)>,
 }
 
-/// Bytes of hit records one chunk in flight may hold: CPU devices share the host's memory.
+/// Bytes of hit records a chunk may hold: CPU devices share the host's memory. `VKRAY_HIT_RECORD_BYTES`
+/// sets another (the tests' way to chunks that store part of their rays).
 fn record_budget(unified_memory: bool) -> usize {
-    if unified_memory {
-        64 << 20
-    } else {
-        256 << 20
-    }
+    let set = std::env::var("VKRAY_HIT_RECORD_BYTES").ok().and_then(|v| v.parse().ok());
+    set.unwrap_or(if unified_memory { 64 << 20 } else { 256 << 20 })
 }
 
-/// The all-hits path: a counting pass sizes each ray's list, a storing pass fills them. Owns
-/// the idle lists and records of the storing pass.
+/// Idle lists kept between queries: as many as were in use at once, at least one and at most
+/// eight, each of at most `IDLE_RECORD_BYTES` of records.
+pub const IDLE_LISTS: (usize, usize) = (1, 8);
+const IDLE_RECORD_BYTES: usize = 256 << 20;
+
+/// The all-hits path. Owns the idle lists and records of the storing pass and the kernel that
+/// places the lists.
 pub struct AllHitsPath {
     shared: Arc<Shared>,
     rays: Arc<GpuRays>,
     lists: Arc<IdlePool<ListBuffers>>,
+    offsets: ListOffsets,
+}
+
+/// A query's two passes over each chunk: the counting pass's job and the storing pass's, which
+/// read the same packed rays.
+struct Passes<'a> {
+    counting: GpuJob<'a>,
+    storing: GpuJob<'a>,
+    max_hits: usize,
+    /// What the caller will need per hit besides the records (`check_hits_fit`).
+    host_bytes_per_hit: usize,
 }
 
 impl AllHitsPath {
-    pub fn new(shared: &Arc<Shared>, rays: &Arc<GpuRays>, lists: &Arc<IdlePool<ListBuffers>>) -> AllHitsPath {
-        AllHitsPath { shared: shared.clone(), rays: rays.clone(), lists: lists.clone() }
+    pub fn new(shared: &Arc<Shared>, rays: &Arc<GpuRays>, lists: &Arc<IdlePool<ListBuffers>>) -> Result<AllHitsPath> {
+        let offsets = ListOffsets::new(&shared.ctx)?;
+        Ok(AllHitsPath { shared: shared.clone(), rays: rays.clone(), lists: lists.clone(), offsets })
     }
 
     /// Every hit of every ray (the nearest `max_hits` of each) as the GPU tier `request` names
@@ -81,26 +102,16 @@ impl AllHitsPath {
         // Held across both passes, so that the lists the first sizes are the second's.
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
-        let mut seen = try_vec(n, 0i32, "the hits' counts")?;
-        if n > 0 {
-            let mut sink = HitSink::default();
-            sink.set(Field::Prim, bytemuck::cast_slice_mut(&mut seen));
-            let count = batch.asking(Request { query: Query::Count, ..request });
-            let exact = request.precision == Precision::Exact;
-            self.shared.profiled(n, started, |profile| self.rays.run(count, exact, &mut sink, profile))?;
-        }
-        let offsets = list_offsets(&seen, max_hits)?;
-        let total = offsets[n] as usize;
-        check_hits_fit(total, size_of::<R>() + host_bytes_per_hit)?;
-        let storing = Instant::now();
-        let mut records = Vec::new();
-        records
-            .try_reserve_exact(total)
-            .map_err(|_| Error::OutOfMemory(format!("the {total} hits' records do not fit in host memory")))?;
-        let mut stored = StoredHits { offsets, records, seen, advances: Vec::new() };
+        self.rays.probes.check_paths(scene, request.precision == Precision::Exact)?;
+        let mut stored = StoredHits {
+            offsets: try_vec(n + 1, 0i64, "the hits' offsets")?,
+            records: Vec::new(),
+            seen: try_vec(n, 0i32, "the hits' counts")?,
+            advances: Vec::new(),
+        };
         let mut profile = TraceProfile { rays: n, ..Default::default() };
-        if total > 0 {
-            self.store_pass(batch, max_hits, &mut stored, &mut profile)?;
+        if n > 0 {
+            self.trace_lists(batch, max_hits, host_bytes_per_hit, &mut stored, &mut profile)?;
         }
         let (offsets, seen) = (&stored.offsets, &stored.seen);
         let overflows = |i: usize| {
@@ -118,148 +129,232 @@ impl AllHitsPath {
             )));
         }
         interrupt.check()?;
+        let settling = Instant::now();
         stored.settle(max_hits, interrupt)?;
         interrupt.check()?;
-        let mut last = self.shared.profile_mut();
-        last.store = storing.elapsed().as_secs_f64();
-        last.total = started.elapsed().as_secs_f64();
-        last.chunks += profile.chunks;
-        let add = |a: Option<f64>, b: Option<f64>| Some(a? + b.unwrap_or(0.0));
-        last.gpu_upload = add(last.gpu_upload, profile.gpu_upload);
-        last.gpu_trace = add(last.gpu_trace, profile.gpu_trace);
-        last.gpu_readback = add(last.gpu_readback, profile.gpu_readback);
-        drop(last);
+        profile.unpack += settling.elapsed().as_secs_f64();
+        profile.total = started.elapsed().as_secs_f64();
+        self.shared.keep_profile(profile);
         self.shared.ctx.check_validation()?;
         Ok(stored)
     }
 
-    /// The storing pass: each chunk's rays with their lists, two chunks in flight.
-    fn store_pass<R: HitRecord>(
+    /// Both passes over every chunk of the batch's rays, in one slot and one set of lists.
+    fn trace_lists<R: HitRecord>(
         &self,
         batch: RayBatch,
         max_hits: usize,
+        host_bytes_per_hit: usize,
         stored: &mut StoredHits<R>,
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let RayBatch { scene, rays, request, interrupt } = batch;
+        let shared = &*self.shared;
         let exact = request.precision == Precision::Exact;
         let exact_scene = if exact { Some(VulkanScene::of(scene)?.exact(scene)?) } else { None };
         let outputs = Field::Prim.bit();
-        let all = Request { query: Query::All, ..request };
-        let (variant, sensor) = self.shared.gpu_variant(scene, rays, all, exact, outputs)?;
-        // The counting pass's layouts (its rays reach traversal the same either way).
-        let compact_variant = self.shared.compact_variant(scene, rays, all, outputs, exact || sensor.is_some())?;
-        let offsets = &stored.offsets;
-        let widest = parallel::install(|| {
-            offsets.par_windows(2).with_min_len(SCAN_BLOCK).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0)
-        });
-        let total = *offsets.last().unwrap_or(&0) as usize;
-        let record_capacity =
-            (record_budget(self.shared.ctx.unified_memory) / size_of::<R>()).max(widest).min(total).max(1);
-        let ray_capacity = self.shared.chunk_capacity(rays.len());
-        let pacer = ChunkPacer::on_device(ray_capacity, self.shared.ctx.info.is_software);
-        let one_chunk = chunk_end(offsets, 0, pacer.next_len(rays.len()), record_capacity) == rays.len();
-        let mut slots = self.shared.with_memory(|| self.shared.slots.take(ray_capacity, exact))?;
-        // One set of lists per chunk in flight: two, or one for a query of one chunk.
-        let mut lists = Vec::new();
-        for _ in 0..if one_chunk { 1 } else { 2 } {
-            match self.shared.with_memory(|| self.take_lists(ray_capacity, record_capacity * size_of::<R>())) {
-                Ok(taken) => lists.push(taken),
-                Err(error) => {
-                    self.shared.slots.give_back(slots);
-                    self.give_back_lists(lists);
-                    return Err(error);
-                }
-            }
-        }
-        let frame = scene.frame();
-        let sensor = sensor.as_ref();
-        let job = GpuJob {
-            hierarchy: VulkanScene::of(scene)?,
+        let (count, all) = (Request { query: Query::Count, ..request }, Request { query: Query::All, ..request });
+        let (counting_variant, sensor) = shared.gpu_variant(scene, rays, count, exact, outputs)?;
+        let storing_variant = shared.variants.get(shared.variant_key(scene, all, exact, outputs, sensor.is_some()))?;
+        let compact = |request| shared.compact_variant(scene, rays, request, outputs, exact || sensor.is_some());
+        let (counting_compact, storing_compact) = match (compact(count)?, compact(all)?) {
+            // Both passes read the rays as packed once: compact only where both variants can.
+            (Some(a), Some(b)) if a.0 == b.0 => (Some(a), Some(b)),
+            _ => (None, None),
+        };
+        let job = |variant, compact: Option<(_, _)>| GpuJob {
+            hierarchy: VulkanScene::of(scene).expect("checked by gpu_variant"),
             exact: exact_scene.as_deref(),
             rays,
-            variant: &variant,
-            compact: compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant)),
+            variant,
+            compact,
             compact_refused: Default::default(),
             outputs,
-            frame,
+            frame: scene.frame(),
             all_hits: true,
-            sensor,
+            sensor: sensor.as_ref(),
             cap: None,
             t_is_distance: true,
         };
-        let chunking = (pacer, record_capacity);
-        let result = self.store_chunks(&job, chunking, max_hits, &mut slots, &mut lists, stored, interrupt, profile);
-        self.shared.slots.give_back(slots);
-        self.give_back_lists(lists);
+        let passes = Passes {
+            counting: job(&counting_variant, counting_compact.as_ref().map(|(layout, v)| (*layout, &**v))),
+            storing: job(&storing_variant, storing_compact.as_ref().map(|(layout, v)| (*layout, &**v))),
+            max_hits,
+            host_bytes_per_hit,
+        };
+        let ray_capacity = shared.chunk_capacity(rays.len());
+        let record_bytes = (record_budget(shared.ctx.unified_memory) / size_of::<R>()).max(1) * size_of::<R>();
+        let mut slots = shared.with_memory(|| shared.slots.take(ray_capacity, exact))?;
+        let mut lists = match shared.with_memory(|| self.take_lists(ray_capacity, record_bytes)) {
+            Ok(lists) => lists,
+            Err(error) => {
+                shared.slots.give_back(slots);
+                return Err(error);
+            }
+        };
+        let room = record_bytes / size_of::<R>();
+        let result = self.trace_chunks(&passes, &mut slots[0], (&mut lists, room), stored, interrupt, profile);
+        shared.slots.give_back(slots);
+        self.give_back_lists(vec![lists]);
         result
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn store_chunks<R: HitRecord>(
+    /// Chunk after chunk, each sized by the time the last took.
+    fn trace_chunks<R: HitRecord>(
         &self,
-        job: &GpuJob,
-        (mut pacer, record_capacity): (ChunkPacer, usize),
-        max_hits: usize,
-        slots: &mut [Slot; 2],
-        lists: &mut [ListBuffers],
+        passes: &Passes,
+        slot: &mut Slot,
+        (lists, mut room): (&mut ListBuffers, usize),
         stored: &mut StoredHits<R>,
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<()> {
-        // Dropping these on an error waits for the chunks in flight before their memory goes.
-        let mut commands = [Commands::new(&self.shared.ctx)?, Commands::new(&self.shared.ctx)?];
-        let mut in_flight: [Option<(usize, usize, Vec<crate::geometry::rays::Advance>)>; 2] = [None, None];
-        let mut finished = 0;
-        let n = stored.offsets.len() - 1;
-        let (mut chunk, mut start) = (0, 0);
+        let n = stored.seen.len();
+        // Dropping this on an error waits for the chunk in flight before its memory goes.
+        let mut commands = Commands::new(&self.shared.ctx)?;
+        let mut pacer = ChunkPacer::on_device(lists.rays.min(slot.capacity), self.shared.ctx.info.is_software);
+        let mut start = 0;
         while start < n {
             interrupt.check()?;
-            let s = chunk % 2;
-            commands[s].wait()?;
-            if let Some(done) = in_flight[s].take() {
-                pacer.finished(done.1 - done.0);
-                finished += done.1 - done.0;
-                finish_stored(&slots[s], &lists[s], done, stored, profile)?;
-                interrupt.progress(finished, stored.seen.len());
-            }
-            let end = chunk_end(&stored.offsets, start, pacer.next_len(n - start), record_capacity);
-            let advances = pack_chunk(job, slots[s].split().0, start, end - start)?;
-            write_lists(&mut lists[s], &stored.offsets, max_hits, start, end);
-            let bytes = (stored.offsets[end] - stored.offsets[start]) as usize * size_of::<R>();
-            profile.chunks += 1;
-            commands[s].begin()?;
-            self.rays.chunks.record_chunk(
-                commands[s].buffer,
-                job,
-                &slots[s],
-                start,
-                end - start,
-                Some((&lists[s], bytes)),
-            );
-            commands[s].submit()?;
+            let len = pacer.next_len(n - start);
             pacer.started();
-            in_flight[s] = Some((start, end, advances));
-            (chunk, start) = (chunk + 1, end);
-        }
-        // In chunk order: the records are appended.
-        for k in 0..2 {
-            let s = (chunk + k) % 2;
-            commands[s].wait()?;
-            if let Some(done) = in_flight[s].take() {
-                finished += done.1 - done.0;
-                finish_stored(&slots[s], &lists[s], done, stored, profile)?;
-                interrupt.progress(finished, stored.seen.len());
-            }
+            let lists = (&mut *lists, &mut room);
+            let stored_rays = self.trace_chunk(passes, slot, lists, &mut commands, (start, len), stored, profile)?;
+            pacer.finished(stored_rays.max(1));
+            start += stored_rays;
+            interrupt.progress(start, n);
         }
         Ok(())
     }
+
+    /// Counts, places and stores the hits of the `len` rays from `start` (or of as many of the
+    /// first as the lists' `room` of records holds): returns how many rays it stored (none where
+    /// it grew the records to hold the first ray's hits, which the next call then stores).
+    #[allow(clippy::too_many_arguments)]
+    fn trace_chunk<R: HitRecord>(
+        &self,
+        passes: &Passes,
+        slot: &mut Slot,
+        (lists, room): (&mut ListBuffers, &mut usize),
+        commands: &mut Commands,
+        (start, len): (usize, usize),
+        stored: &mut StoredHits<R>,
+        profile: &mut TraceProfile,
+    ) -> Result<usize> {
+        let ctx = &self.shared.ctx;
+        let chunks = &self.rays.chunks;
+        let Passes { counting, storing, max_hits, host_bytes_per_hit } = passes;
+        let mut clock = Instant::now();
+        let mut lap = |into: &mut f64| {
+            let now = Instant::now();
+            *into += (now - clock).as_secs_f64();
+            clock = now;
+        };
+        let advances = pack_chunk(counting, slot.split().0, start, len)?;
+        if counting.sensor.is_none() {
+            profile.ray_bytes += slot.packed_bytes(len);
+        }
+        lap(&mut profile.pack);
+        // The counting pass, and the lists placed from its counts.
+        commands.begin()?;
+        let cmd = commands.buffer;
+        let stamp = start_stamps(slot.stamps.as_ref(), cmd);
+        chunks.record_upload(cmd, counting, slot, len);
+        stamp(Stamp::Uploaded);
+        chunks.record_trace(cmd, counting, slot, start, len, None);
+        stamp(Stamp::Traced);
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        memory_barrier(
+            ctx,
+            cmd,
+            (trace_stage(ctx), vk::AccessFlags::SHADER_WRITE),
+            (compute, vk::AccessFlags::SHADER_READ),
+        );
+        let counts = slot.hits_address() + slot.field_offset(Field::Prim) as u64;
+        self.offsets.record(cmd, counts, lists, len, *max_hits)?;
+        // (Every stamp written: their results are waited for.)
+        stamp(Stamp::ReadBack);
+        commands.submit()?;
+        lap(&mut profile.submit);
+        commands.wait()?;
+        lap(&mut profile.wait);
+        profile.chunks += 1;
+        if let Some(stamps) = &slot.stamps {
+            stamps.add_to(profile)?;
+        }
+        // The budget's, not the idle lists': they may have more.
+        let capacity = *room as u64;
+        let mut total = lists.read_total();
+        let mut len = len;
+        if total > capacity {
+            // Only the rays whose lists fit in the records.
+            commands.begin()?;
+            self.offsets.record_offsets(commands.buffer, lists, len);
+            commands.submit()?;
+            commands.wait()?;
+            let offsets = lists.read_offsets(len + 1);
+            len = rays_that_fit(&offsets[1..], capacity);
+            if len == 0 {
+                // The first ray's alone: in records that hold them, after counting it again.
+                let first = offsets.get(2).copied().unwrap_or(total) as usize;
+                let grown = self.shared.with_memory(|| self.take_lists(lists.rays, first * size_of::<R>()))?;
+                self.give_back_lists(vec![std::mem::replace(lists, grown)]);
+                *room = first;
+                return Ok(0);
+            }
+            total = offsets[1 + len];
+        }
+        let base = stored.records.len();
+        check_hits_fit(base + total as usize, size_of::<R>() + host_bytes_per_hit)?;
+        stored.records.try_reserve(total as usize).map_err(|_| {
+            Error::OutOfMemory(format!("the {} hits' records do not fit in host memory", base + total as usize))
+        })?;
+        lap(&mut profile.unpack);
+        // The storing pass, and its records, counts and offsets back.
+        let bytes = total as usize * size_of::<R>();
+        commands.begin()?;
+        let cmd = commands.buffer;
+        let stamp = start_stamps(slot.stamps.as_ref(), cmd);
+        stamp(Stamp::Uploaded);
+        chunks.record_trace(cmd, storing, slot, start, len, Some((lists, bytes)));
+        stamp(Stamp::Traced);
+        record_readback(ctx, cmd, slot, storing.outputs, len, Some((lists, bytes)));
+        self.offsets.record_offsets(cmd, lists, len);
+        stamp(Stamp::ReadBack);
+        commands.submit()?;
+        lap(&mut profile.submit);
+        commands.wait()?;
+        lap(&mut profile.wait);
+        if let Some(stamps) = &slot.stamps {
+            stamps.add_to(profile)?;
+        }
+        let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
+        let at = slot.field_offset(Field::Prim);
+        stored.seen[start..start + len].copy_from_slice(bytemuck::cast_slice(&hits[at..at + 4 * len]));
+        let offsets = &lists.read_offsets(len + 1)[1..];
+        parallel::install(|| {
+            stored.offsets[start..start + len]
+                .par_iter_mut()
+                .zip(offsets)
+                .with_min_len(SCAN_BLOCK)
+                .for_each(|(out, &offset)| *out = (base as u64 + offset) as i64)
+        });
+        stored.offsets[start + len] = (base as u64 + total) as i64;
+        let records = lists.records_host.mapped().expect("hit records are host-visible");
+        let src: &[R] = bytemuck::cast_slice(&records[..bytes]);
+        // Appended on all cores (room was reserved): the pages' first touch is spread too.
+        parallel::install(|| stored.records.par_extend(src.par_iter().copied()));
+        stored.advances.extend(advances.into_iter().filter(|a| a.ray < len).map(|a| (start + a.ray, a.t)));
+        lap(&mut profile.unpack);
+        Ok(len)
+    }
 }
 
-/// Idle lists kept between queries (two a query): as many as were in use at once, at least two
-/// and at most eight, each of at most `IDLE_RECORD_BYTES` of records.
-pub const IDLE_LISTS: (usize, usize) = (2, 8);
-const IDLE_RECORD_BYTES: usize = 64 << 20;
+/// How many of a chunk's first rays have lists that end within `capacity` records, from each
+/// ray's first record among the chunk's (`firsts`; the last ray's list ends past `capacity`).
+fn rays_that_fit(firsts: &[u64], capacity: u64) -> usize {
+    firsts[1..].partition_point(|&end| end <= capacity)
+}
 
 impl AllHitsPath {
     /// Lists for `rays` rays and `record_bytes` of records: idle ones where they fit, new ones
@@ -281,83 +376,6 @@ impl AllHitsPath {
 /// Rays a block of the host's passes over every ray covers (a task each, on all cores).
 const SCAN_BLOCK: usize = 1 << 14;
 
-/// Where each ray's list starts among all hits (and, last, their total): the prefix sums of the
-/// counting pass's counts, each at most `max_hits`. Block sums on all cores, then each block's
-/// run from its start (a serial pass over a million rays took 3.6 ms on an H200's host).
-fn list_offsets(seen: &[i32], max_hits: usize) -> Result<Vec<i64>> {
-    let n = seen.len();
-    let mut offsets = try_vec(n + 1, 0i64, "the hits' offsets")?;
-    let kept = |count: i32| (count.max(0) as usize).min(max_hits) as i64;
-    parallel::install(|| {
-        let sums: Vec<i64> = seen.par_chunks(SCAN_BLOCK).map(|block| block.iter().map(|&c| kept(c)).sum()).collect();
-        let mut starts = Vec::with_capacity(sums.len());
-        let mut total = 0i64;
-        for sum in sums {
-            starts.push(total);
-            total += sum;
-        }
-        offsets[1..].par_chunks_mut(SCAN_BLOCK).zip(seen.par_chunks(SCAN_BLOCK)).zip(starts).for_each(
-            |((out, block), start)| {
-                let mut running = start;
-                for (slot, &count) in out.iter_mut().zip(block) {
-                    running += kept(count);
-                    *slot = running;
-                }
-            },
-        );
-    });
-    Ok(offsets)
-}
-
-/// The end of the chunk from ray `start`: at most `max_rays` rays, whose lists hold at most
-/// `max_records` hits together (or one ray, however many it holds).
-fn chunk_end(offsets: &[i64], start: usize, max_rays: usize, max_records: usize) -> usize {
-    let n = offsets.len() - 1;
-    let limit = offsets[start] + max_records as i64;
-    let last = (start + max_rays).min(n);
-    let end = start + offsets[start + 1..=last].partition_point(|&o| o <= limit);
-    end.max(start + 1)
-}
-
-/// Each ray's list within its chunk's records.
-fn write_lists(buffers: &mut ListBuffers, offsets: &[i64], max_hits: usize, start: usize, end: usize) {
-    let bytes = buffers.lists_host.mapped_mut().expect("hit lists are host-visible");
-    let lists: &mut [HitList] = bytemuck::cast_slice_mut(&mut bytes[..(end - start) * size_of::<HitList>()]);
-    let base = offsets[start];
-    parallel::install(|| {
-        lists.par_iter_mut().enumerate().with_min_len(4096).for_each(|(k, list)| {
-            let i = start + k;
-            let capacity = offsets[i + 1] - offsets[i];
-            let append = if appends(capacity, max_hits) { HIT_LIST_APPEND } else { 0 };
-            *list = HitList { first: (offsets[i] - base) as u32, capacity: capacity as u32 | append };
-        })
-    });
-}
-
-/// A finished chunk: its counts and records into place, its far rays' advances noted.
-fn finish_stored<R: HitRecord>(
-    slot: &Slot,
-    buffers: &ListBuffers,
-    (start, end, advances): (usize, usize, Vec<crate::geometry::rays::Advance>),
-    stored: &mut StoredHits<R>,
-    profile: &mut TraceProfile,
-) -> Result<()> {
-    if let Some(stamps) = &slot.stamps {
-        stamps.add_to(profile)?;
-    }
-    let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
-    let at = slot.field_offset(Field::Prim);
-    stored.seen[start..end].copy_from_slice(bytemuck::cast_slice(&hits[at..at + 4 * (end - start)]));
-    let (first, last) = (stored.offsets[start] as usize, stored.offsets[end] as usize);
-    assert_eq!(stored.records.len(), first, "chunks finish in order");
-    let records = buffers.records_host.mapped().expect("hit records are host-visible");
-    let src: &[R] = bytemuck::cast_slice(&records[..(last - first) * size_of::<R>()]);
-    // Appended on all cores (room was reserved): the pages' first touch is spread too.
-    parallel::install(|| stored.records.par_extend(src.par_iter().copied()));
-    stored.advances.extend(advances.into_iter().map(|a| (start + a.ray, a.t)));
-    Ok(())
-}
-
 /// A stored hit record: the order of a ray's hits (the shaders' `is_before`; `Equal`: the same
 /// hit, met twice).
 pub trait HitRecord: Pod + Send + Sync {
@@ -377,16 +395,6 @@ impl HitRecord for ExactHit {
     }
 }
 
-/// Lists longer than this are filled in the order traversal meets their hits and sorted by the
-/// host (`HIT_LIST_APPEND`): insertion costs the square of a list's length.
-const INSERTION_LIMIT: i64 = 32;
-
-/// Whether a list of `capacity` hits (as many as its ray met, unless `max_hits` cut it) is
-/// appended to: long, and holding every hit of its ray.
-fn appends(capacity: i64, max_hits: usize) -> bool {
-    capacity > INSERTION_LIMIT && (capacity as u64) < max_hits as u64
-}
-
 impl<R: HitRecord> StoredHits<R> {
     /// Sorts the appended lists (dropping hits met twice), then drops the unwritten ends of lists
     /// whose ray met fewer hits than counted (a primitive reported twice by traversal and kept
@@ -399,7 +407,7 @@ impl<R: HitRecord> StoredHits<R> {
             (0..n)
                 .into_par_iter()
                 .with_min_len(SCAN_BLOCK)
-                .any(|i| appends(capacity(i), max_hits) || (seen[i] as i64) < capacity(i))
+                .any(|i| appends(capacity(i) as usize, max_hits) || (seen[i] as i64) < capacity(i))
         });
         if !unsettled {
             return Ok(());
@@ -411,7 +419,7 @@ impl<R: HitRecord> StoredHits<R> {
         for (i, kept) in kept.iter_mut().enumerate() {
             let (list, tail) = rest.split_at_mut((self.offsets[i + 1] - self.offsets[i]) as usize);
             rest = tail;
-            if appends(self.offsets[i + 1] - self.offsets[i], max_hits) {
+            if appends((self.offsets[i + 1] - self.offsets[i]) as usize, max_hits) {
                 appended.push((list, kept));
             }
         }
@@ -487,39 +495,16 @@ impl StoredHits<FastHit> {
 
 #[cfg(test)]
 mod tests {
-    use super::{chunk_end, list_offsets, SCAN_BLOCK};
+    use super::rays_that_fit;
 
     #[test]
-    fn offsets_are_the_prefix_sums_of_the_kept_counts() {
-        let seen: Vec<i32> = (0..3 * SCAN_BLOCK as i32 + 17).map(|i| (i * 7919) % 13 - 2).collect();
-        let mut expected = vec![0i64];
-        for &count in &seen {
-            expected.push(expected.last().unwrap() + count.clamp(0, 5) as i64);
-        }
-        assert_eq!(list_offsets(&seen, 5).unwrap(), expected);
-        assert_eq!(list_offsets(&[], 5).unwrap(), vec![0]);
-    }
-
-    /// Every chunk from the start, at most `max_rays` rays and `max_records` records each.
-    fn plan(offsets: &[i64], max_rays: usize, max_records: usize) -> Vec<(usize, usize)> {
-        let mut chunks = vec![];
-        let mut start = 0;
-        while start < offsets.len() - 1 {
-            let end = chunk_end(offsets, start, max_rays, max_records);
-            chunks.push((start, end));
-            start = end;
-        }
-        chunks
-    }
-
-    #[test]
-    fn chunks_respect_rays_and_records() {
-        // Rays holding 3, 0, 5, 1, 9 and 2 hits.
-        let offsets = [0, 3, 3, 8, 9, 18, 20];
-        assert_eq!(plan(&offsets, 100, 100), [(0, 6)]);
-        assert_eq!(plan(&offsets, 2, 100), [(0, 2), (2, 4), (4, 6)]);
-        // A ray holding more than a chunk's records gets a chunk of its own.
-        assert_eq!(plan(&offsets, 100, 8), [(0, 3), (3, 4), (4, 5), (5, 6)]);
-        assert_eq!(plan(&[0, 0, 0], 1, 1), [(0, 1), (1, 2)]);
+    fn a_chunk_stores_the_rays_whose_lists_fit() {
+        // Rays holding 3, 0, 5, 1 and 9 hits: lists from 0, 3, 3, 8 and 9 (18 in all).
+        let firsts = [0, 3, 3, 8, 9];
+        assert_eq!(rays_that_fit(&firsts, 17), 4);
+        assert_eq!(rays_that_fit(&firsts, 8), 3);
+        assert_eq!(rays_that_fit(&firsts, 7), 2);
+        assert_eq!(rays_that_fit(&firsts, 2), 0);
+        assert_eq!(rays_that_fit(&[0], 2), 0);
     }
 }

@@ -1,6 +1,6 @@
 //! The Vulkan engine (`VulkanEngine`, the `Engine` seam over one Vulkan device). Its files, lowest
 //! first (each imports only files above it in this list): the device's timestamps, pipeline
-//! variants, staging and sensor records; the value every path shares; then each path, owning its
+//! variants, staging, sensor records and the all-hits lists; the value every path shares; then each path, owning its
 //! state and borrowing the shared value: the host-packed chunk loop (closest hit and the other ray
 //! queries), the probes, GPU-packed rays, the two together, CUDA rays, all hits, closest points,
 //! signed distances and `contains`; last the engine that makes them and dispatches to them.
@@ -12,6 +12,8 @@ pub mod variants;
 pub mod staging;
 
 pub mod sensor_upload;
+
+pub mod hit_lists;
 
 pub mod shared;
 

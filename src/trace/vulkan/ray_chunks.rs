@@ -8,26 +8,25 @@ use std::time::Instant;
 use ash::vk;
 use rayon::prelude::*;
 
+use super::hit_lists::ListBuffers;
 use super::shared::Shared;
-use super::staging::{pair_bytes, HitReadback, RayStaging, Slot};
+use super::staging::{HitReadback, RayStaging, Slot};
 use super::timestamps::{start_stamps, Stamp};
 use super::variants::Variant;
 use crate::error::{invalid_value, Result};
 use crate::geometry::parallel;
 use crate::geometry::rays::{Advance, Frame, Masks, RayLayout, Rays, RAY_FLOATS};
 use crate::trace::hit_fields::{hits_from_prims, Field, HitSink, FIELDS};
-use crate::trace::idle::Held;
 use crate::trace::pacer::ChunkPacer;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Query, RayBatch};
-use std::mem::size_of;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use crate::geometry::interrupt::Interrupt;
 use crate::gpu::context::{Backend, Commands, Context};
-use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
-use crate::gpu::records::{HitList, Params};
+use crate::gpu::memory::{memory_barrier, Buffer};
+use crate::gpu::records::Params;
 use crate::scene::{ExactScene, VulkanScene, WindingCap};
 
 /// What every chunk of one query shares.
@@ -56,58 +55,6 @@ pub(super) struct GpuJob<'a> {
     /// `t` is a distance along the ray, to which a far ray's advance is added back; not the
     /// light a transmittance query keeps.
     pub t_is_distance: bool,
-}
-
-/// The storing pass of all hits, per chunk in flight: each ray's `HitList` (uploaded with the
-/// rays) and the hit records the shaders keep in them (read back with the counts).
-pub struct ListBuffers {
-    pub lists_host: Buffer,
-    pub records_host: Buffer,
-    /// Device copies (discrete GPUs): lists, records.
-    pub device: Option<(Buffer, Buffer)>,
-    /// Lists, and bytes of records, they have room for.
-    pub rays: usize,
-    pub record_bytes: usize,
-}
-
-impl Held for ListBuffers {
-    fn bytes(&self) -> u64 {
-        self.lists_host.size() + self.records_host.size() + pair_bytes(&self.device)
-    }
-}
-
-impl ListBuffers {
-    /// Room for `rays` lists and `record_bytes` bytes of records.
-    pub fn new(ctx: &Arc<Context>, rays: usize, record_bytes: usize) -> Result<ListBuffers> {
-        use vk::BufferUsageFlags as U;
-        let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
-        let (lists, records) = ((rays * size_of::<HitList>()) as u64, record_bytes as u64);
-        let (lists_host, records_host, device) = if ctx.unified_memory {
-            (
-                Buffer::new(ctx, lists, storage, MemoryLocation::CpuToGpu, "hit lists")?,
-                Buffer::new(ctx, records, storage, MemoryLocation::GpuToCpu, "hit records")?,
-                None,
-            )
-        } else {
-            (
-                Buffer::new(ctx, lists, U::TRANSFER_SRC, MemoryLocation::CpuToGpu, "hit lists staging")?,
-                Buffer::new(ctx, records, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hit records readback")?,
-                Some((
-                    Buffer::new(ctx, lists, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "hit lists")?,
-                    Buffer::new(ctx, records, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hit records")?,
-                )),
-            )
-        };
-        Ok(ListBuffers { lists_host, records_host, device, rays, record_bytes })
-    }
-
-    fn lists_address(&self) -> u64 {
-        self.device.as_ref().map_or(self.lists_host.address(), |(lists, _)| lists.address())
-    }
-
-    fn records_address(&self) -> u64 {
-        self.device.as_ref().map_or(self.records_host.address(), |(_, records)| records.address())
-    }
 }
 
 /// A chunk's lists for the storing pass: the buffers, and the bytes of records its rays keep.
@@ -270,7 +217,7 @@ impl RayChunks {
     }
 
     /// Records one chunk (`len` rays from `start`): its upload (discrete GPUs), the trace, and its
-    /// readback (with the storing pass's lists and records, where given).
+    /// readback (with the storing pass's records, where given).
     pub(super) fn record_chunk(
         &self,
         cmd: vk::CommandBuffer,
@@ -280,40 +227,50 @@ impl RayChunks {
         len: usize,
         lists: ChunkLists,
     ) {
-        let ctx = &self.shared.ctx;
-        let device = &ctx.device;
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
-        let shader_stage = match ctx.backend {
-            Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
-            Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
-        };
-        if let Some((rays_device, _)) = &slot.device {
-            // Rays a sensor generates need no upload; the storing pass's lists always do.
-            if job.sensor.is_none() {
-                let masks_at = slot.masks_offset() as u64;
-                let rays_region = vk::BufferCopy::default().size(slot.packed_bytes(len) as u64);
-                let masks_region =
-                    vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
-                let regions = match job.rays.mask {
-                    Masks::Each(_) => vec![rays_region, masks_region],
-                    Masks::All(_) => vec![rays_region],
-                };
-                // SAFETY: `cmd` is recording; both buffers hold `capacity` rays and masks.
-                unsafe { device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &regions) };
-            }
-            if let Some((ListBuffers { lists_host, device: Some((lists_device, _)), .. }, _)) = lists {
-                let region = [vk::BufferCopy::default().size((len * size_of::<HitList>()) as u64)];
-                // SAFETY: `cmd` is recording; both buffers hold at least `len` lists.
-                unsafe { device.cmd_copy_buffer(cmd, lists_host.raw(), lists_device.raw(), &region) };
-            }
-            memory_barrier(
-                ctx,
-                cmd,
-                (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
-                (shader_stage, vk::AccessFlags::SHADER_READ),
-            );
-        }
+        self.record_upload(cmd, job, slot, len);
         stamp(Stamp::Uploaded);
+        self.record_trace(cmd, job, slot, start, len, lists);
+        stamp(Stamp::Traced);
+        record_readback(&self.shared.ctx, cmd, slot, job.outputs, len, lists);
+        stamp(Stamp::ReadBack);
+    }
+
+    /// Records the upload of a chunk's `len` rays from the slot's staging (discrete GPUs; rays a
+    /// sensor generates need none), made visible to the trace.
+    pub(super) fn record_upload(&self, cmd: vk::CommandBuffer, job: &GpuJob, slot: &Slot, len: usize) {
+        let ctx = &self.shared.ctx;
+        let Some((rays_device, _)) = &slot.device else { return };
+        if job.sensor.is_none() {
+            let masks_at = slot.masks_offset() as u64;
+            let rays_region = vk::BufferCopy::default().size(slot.packed_bytes(len) as u64);
+            let masks_region = vk::BufferCopy::default().src_offset(masks_at).dst_offset(masks_at).size(4 * len as u64);
+            let regions = match job.rays.mask {
+                Masks::Each(_) => vec![rays_region, masks_region],
+                Masks::All(_) => vec![rays_region],
+            };
+            // SAFETY: `cmd` is recording; both buffers hold `capacity` rays and masks.
+            unsafe { ctx.device.cmd_copy_buffer(cmd, slot.rays_host.raw(), rays_device.raw(), &regions) };
+        }
+        memory_barrier(
+            ctx,
+            cmd,
+            (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+            (trace_stage(ctx), vk::AccessFlags::SHADER_READ),
+        );
+    }
+
+    /// Records the trace of a chunk's `len` rays (from `start`) already on the device (the
+    /// storing pass's: into `lists`).
+    pub(super) fn record_trace(
+        &self,
+        cmd: vk::CommandBuffer,
+        job: &GpuJob,
+        slot: &Slot,
+        start: usize,
+        len: usize,
+        lists: ChunkLists,
+    ) {
         let mut params = chunk_params(job, slot, start, len);
         if job.all_hits {
             // QUERY_ALL reads `scratch` as the rays' lists: none in the counting pass.
@@ -331,9 +288,14 @@ impl RayChunks {
             _ => job.variant,
         };
         self.shared.record_trace(cmd, variant, &params, len);
-        stamp(Stamp::Traced);
-        record_readback(ctx, cmd, slot, job.outputs, len, lists, shader_stage);
-        stamp(Stamp::ReadBack);
+    }
+}
+
+/// The shader stage tracing runs in on this device.
+pub(super) fn trace_stage(ctx: &Context) -> vk::PipelineStageFlags {
+    match ctx.backend {
+        Backend::RayQuery => vk::PipelineStageFlags::COMPUTE_SHADER,
+        Backend::Pipeline => vk::PipelineStageFlags::RAY_TRACING_SHADER_KHR,
     }
 }
 
@@ -370,15 +332,15 @@ fn chunk_params(job: &GpuJob, slot: &Slot, start: usize, len: usize) -> Params {
 
 /// Makes the hits (and the storing pass's records) visible to the host: copied to readback
 /// memory on discrete GPUs.
-fn record_readback(
+pub(super) fn record_readback(
     ctx: &Context,
     cmd: vk::CommandBuffer,
     slot: &Slot,
     outputs: u32,
     len: usize,
     lists: ChunkLists,
-    shader_stage: vk::PipelineStageFlags,
 ) {
+    let shader_stage = trace_stage(ctx);
     let Some((_, hits_device)) = &slot.device else {
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
         memory_barrier(ctx, cmd, (shader_stage, vk::AccessFlags::SHADER_WRITE), host);
@@ -403,7 +365,7 @@ fn record_readback(
         .collect();
     // SAFETY: `cmd` is recording; each region lies within both buffers (same layout).
     unsafe { ctx.device.cmd_copy_buffer(cmd, hits_device.raw(), slot.hits_host.raw(), &regions) };
-    if let Some((ListBuffers { records_host, device: Some((_, records_device)), .. }, bytes)) = lists {
+    if let Some((ListBuffers { records_host, records_device: Some(records_device), .. }, bytes)) = lists {
         if bytes > 0 {
             let region = [vk::BufferCopy::default().size(bytes as u64)];
             // SAFETY: `cmd` is recording; both buffers hold at least `bytes` of records.

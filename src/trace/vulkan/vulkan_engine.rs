@@ -67,7 +67,7 @@ impl VulkanEngine {
         let probes = Arc::new(Probes::new(&shared, &chunks));
         let packed = Arc::new(PackedRays::new(&shared, &probes, &packing));
         let rays = Arc::new(GpuRays { chunks, packed: packed.clone(), probes: probes.clone() });
-        let all_hits = Arc::new(AllHitsPath::new(&shared, &rays, &lists));
+        let all_hits = Arc::new(AllHitsPath::new(&shared, &rays, &lists)?);
         let points = Arc::new(ClosestPoints::new(&shared, &points));
         Ok(VulkanEngine {
             signed: SignedDistancePath::new(&shared, &points, &probes),

@@ -1,0 +1,96 @@
+#version 460
+// The storing pass's lists from the counting pass's counts, on the GPU (all_hits.rs): ray i keeps
+// min(count, max_hits) records, from the sum of those of the rays before it in its chunk. The
+// host reads only the total (to size the records) and, with the hits, the offsets.
+//   LIST_SUMS: invocation j sums the records of the rays of run j.
+//   LIST_SCAN: one workgroup turns the runs' sums into each run's first record (each thread
+//     scans a stretch of runs, the stretches' sums are scanned in shared memory), and writes the
+//     total after the last run.
+//   LIST_WRITE: invocation j writes the lists and offsets of run j's rays from its first record.
+#extension GL_EXT_buffer_reference : require
+#extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
+#define VKRAY_LIST_OFFSETS
+#include "records.glsl"
+
+layout(local_size_x_id = 0) in;
+
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Counts { int v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) buffer Sums { uint64_t v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer Lists { HitList l[]; };
+layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer Offsets { uint64_t v[]; };
+
+shared uint64_t partial[gl_WorkGroupSize.x];
+
+// The records ray i keeps.
+uint kept(uint i) {
+  return uint(clamp(Counts(list_params.counts).v[i], 0, int(list_params.max_hits)));
+}
+
+uint runs() {
+  return (list_params.count + list_params.run - 1u) / list_params.run;
+}
+
+void sum_run(uint j) {
+  uint first = j * list_params.run;
+  uint last = min(first + list_params.run, list_params.count);
+  uint64_t sum = 0ul;
+  for (uint i = first; i < last; ++i) sum += uint64_t(kept(i));
+  Sums(list_params.sums).v[j] = sum;
+}
+
+void scan_runs() {
+  Sums sums = Sums(list_params.sums);
+  uint threads = gl_WorkGroupSize.x;
+  uint total_runs = runs();
+  uint stretch = (total_runs + threads - 1u) / threads;
+  uint t = gl_LocalInvocationID.x;
+  uint first = min(t * stretch, total_runs);
+  uint last = min(first + stretch, total_runs);
+  uint64_t sum = 0ul;
+  for (uint j = first; j < last; ++j) sum += sums.v[j];
+  partial[t] = sum;
+  barrier();
+  for (uint step = 1u; step < threads; step <<= 1) {
+    uint64_t add = t >= step ? partial[t - step] : 0ul;
+    barrier();
+    partial[t] += add;
+    barrier();
+  }
+  uint64_t at = partial[t] - sum;
+  for (uint j = first; j < last; ++j) {
+    uint64_t records = sums.v[j];
+    sums.v[j] = at;
+    at += records;
+  }
+  if (t == threads - 1u) sums.v[total_runs] = partial[t];
+}
+
+void write_run(uint j) {
+  uint first = j * list_params.run;
+  uint last = min(first + list_params.run, list_params.count);
+  uint64_t at = Sums(list_params.sums).v[j];
+  Lists lists = Lists(list_params.lists);
+  Offsets offsets = Offsets(list_params.offsets);
+  for (uint i = first; i < last; ++i) {
+    uint capacity = kept(i);
+    // Only lists the host will keep are read by the storing pass: their `first` fits 32 bits.
+    bool appends = capacity > list_params.insertion_limit && capacity < list_params.max_hits;
+    lists.l[i] = HitList(uint(at), capacity | (appends ? HIT_LIST_APPEND : 0u));
+    offsets.v[i] = at;
+    at += uint64_t(capacity);
+  }
+}
+
+void main() {
+  if (list_params.pass == LIST_SCAN) {
+    scan_runs();
+    return;
+  }
+  uint j = gl_GlobalInvocationID.x;
+  if (j >= runs()) return;
+  if (list_params.pass == LIST_SUMS) {
+    sum_run(j);
+  } else {
+    write_run(j);
+  }
+}
