@@ -37,15 +37,20 @@ use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Precision, Query, RayBatch, Request};
 use std::sync::Arc;
 
-/// What the storing pass found: ray i's hits are `records[offsets[i]..offsets[i + 1]]`, of which
-/// the first `seen[i]` are written where `seen[i]` is smaller (a primitive traversal reported
-/// twice, kept once); `advances` holds (ray, t) for far rays packed from nearer origins (fast
-/// tier), whose records' `t` is short by `t`.
-pub struct StoredHits<R> {
-    pub offsets: Vec<i64>,
-    pub records: Vec<R>,
-    pub seen: Vec<i32>,
-    pub advances: Vec<(usize, f64)>,
+/// What the storing pass found: ray i's hits are `records[offsets[i]..offsets[i + 1]]` (the CPU
+/// tracer's records, each turned into one as it came back), of which the first `seen[i]` are
+/// written where `seen[i]` is smaller (a primitive traversal reported twice, kept once);
+/// `advances` holds (ray, t) for far rays packed from nearer origins (fast tier), whose records'
+/// `t` is short by `t`.
+struct StoredHits {
+    offsets: Vec<i64>,
+    records: Vec<ReferenceHit>,
+    seen: Vec<i32>,
+    advances: Vec<(usize, f64)>,
+    /// Some list needs the host: appended (sorted by the host), or written short.
+    unsettled: bool,
+    /// The first ray that met more hits storing than counting (a driver's fault), if any.
+    overflowed: Option<usize>,
 }
 
 /// Bytes of hit records a chunk may hold: CPU devices share the host's memory. `VKRAY_HIT_RECORD_BYTES`
@@ -72,6 +77,7 @@ pub struct AllHitsPath {
 /// A query's two passes over each chunk: the counting pass's job and the storing pass's, which
 /// read the same packed rays.
 struct Passes<'a> {
+    scene: &'a Scene,
     counting: GpuJob<'a>,
     storing: GpuJob<'a>,
     max_hits: usize,
@@ -93,7 +99,7 @@ impl AllHitsPath {
         batch: RayBatch,
         max_hits: usize,
         host_bytes_per_hit: usize,
-    ) -> Result<StoredHits<R>> {
+    ) -> Result<AllHits> {
         let RayBatch { scene, rays, request, interrupt } = batch;
         let started = Instant::now();
         self.shared.ctx.check_usable()?;
@@ -108,20 +114,15 @@ impl AllHitsPath {
             records: Vec::new(),
             seen: try_vec(n, 0i32, "the hits' counts")?,
             advances: Vec::new(),
+            unsettled: false,
+            overflowed: None,
         };
         let mut profile = TraceProfile { rays: n, ..Default::default() };
         if n > 0 {
-            self.trace_lists(batch, max_hits, host_bytes_per_hit, &mut stored, &mut profile)?;
+            self.trace_lists::<R>(batch, max_hits, host_bytes_per_hit, &mut stored, &mut profile)?;
         }
-        let (offsets, seen) = (&stored.offsets, &stored.seen);
-        let overflows = |i: usize| {
-            let capacity = offsets[i + 1] - offsets[i];
-            seen[i] as i64 > capacity && capacity < max_hits as i64
-        };
-        // Any, on all cores (an ordered search for the first took 1.7 ms of a million rays on an
-        // H200's host); the first only where there is one.
-        let overflowed = parallel::install(|| (0..n).into_par_iter().with_min_len(SCAN_BLOCK).any(overflows));
-        if let Some(i) = overflowed.then(|| (0..n).find(|&i| overflows(i))).flatten() {
+        if let Some(i) = stored.overflowed {
+            let (offsets, seen) = (&stored.offsets, &stored.seen);
             return Err(Error::Internal(format!(
                 "ray {i} met {} hits in the storing pass, {} in the counting pass",
                 seen[i],
@@ -132,11 +133,18 @@ impl AllHitsPath {
         let settling = Instant::now();
         stored.settle(max_hits, interrupt)?;
         interrupt.check()?;
+        let StoredHits { offsets, mut records, advances, .. } = stored;
+        for (ray, t) in advances {
+            let range = offsets[ray] as usize..offsets[ray + 1] as usize;
+            for hit in &mut records[range] {
+                hit.t = (hit.t + t) as f32 as f64;
+            }
+        }
         profile.unpack += settling.elapsed().as_secs_f64();
         profile.total = started.elapsed().as_secs_f64();
         self.shared.keep_profile(profile);
         self.shared.ctx.check_validation()?;
-        Ok(stored)
+        Ok(AllHits { offsets, hits: records, wide: R::WIDE })
     }
 
     /// Both passes over every chunk of the batch's rays, in one slot and one set of lists.
@@ -145,7 +153,7 @@ impl AllHitsPath {
         batch: RayBatch,
         max_hits: usize,
         host_bytes_per_hit: usize,
-        stored: &mut StoredHits<R>,
+        stored: &mut StoredHits,
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let RayBatch { scene, rays, request, interrupt } = batch;
@@ -177,6 +185,7 @@ impl AllHitsPath {
             t_is_distance: true,
         };
         let passes = Passes {
+            scene,
             counting: job(&counting_variant, counting_compact.as_ref().map(|(layout, v)| (*layout, &**v))),
             storing: job(&storing_variant, storing_compact.as_ref().map(|(layout, v)| (*layout, &**v))),
             max_hits,
@@ -193,7 +202,7 @@ impl AllHitsPath {
             }
         };
         let room = record_bytes / size_of::<R>();
-        let result = self.trace_chunks(&passes, &mut slots[0], (&mut lists, room), stored, interrupt, profile);
+        let result = self.trace_chunks::<R>(&passes, &mut slots[0], (&mut lists, room), stored, interrupt, profile);
         shared.slots.give_back(slots);
         self.give_back_lists(vec![lists]);
         result
@@ -205,7 +214,7 @@ impl AllHitsPath {
         passes: &Passes,
         slot: &mut Slot,
         (lists, mut room): (&mut ListBuffers, usize),
-        stored: &mut StoredHits<R>,
+        stored: &mut StoredHits,
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<()> {
@@ -219,7 +228,8 @@ impl AllHitsPath {
             let len = pacer.next_len(n - start);
             pacer.started();
             let lists = (&mut *lists, &mut room);
-            let stored_rays = self.trace_chunk(passes, slot, lists, &mut commands, (start, len), stored, profile)?;
+            let stored_rays =
+                self.trace_chunk::<R>(passes, slot, lists, &mut commands, (start, len), stored, profile)?;
             pacer.finished(stored_rays.max(1));
             start += stored_rays;
             interrupt.progress(start, n);
@@ -238,12 +248,12 @@ impl AllHitsPath {
         (lists, room): (&mut ListBuffers, &mut usize),
         commands: &mut Commands,
         (start, len): (usize, usize),
-        stored: &mut StoredHits<R>,
+        stored: &mut StoredHits,
         profile: &mut TraceProfile,
     ) -> Result<usize> {
         let ctx = &self.shared.ctx;
         let chunks = &self.rays.chunks;
-        let Passes { counting, storing, max_hits, host_bytes_per_hit } = passes;
+        let Passes { scene, counting, storing, max_hits, host_bytes_per_hit } = passes;
         let mut clock = Instant::now();
         let mut lap = |into: &mut f64| {
             let now = Instant::now();
@@ -306,9 +316,17 @@ impl AllHitsPath {
         }
         let base = stored.records.len();
         check_hits_fit(base + total as usize, size_of::<R>() + host_bytes_per_hit)?;
+        // The first chunk's rate of hits for all the rays (the memory untouched until written):
+        // a vector grown chunk by chunk would copy its records again each time it doubles.
+        let n = stored.seen.len();
+        let expected = (total as f64 * (n - start) as f64 / len as f64 * 1.1) as usize;
+        if base == 0 && expected > total as usize && stored.records.try_reserve_exact(expected).is_ok() {
+            parallel::advise_huge_pages(&mut stored.records);
+        }
         stored.records.try_reserve(total as usize).map_err(|_| {
             Error::OutOfMemory(format!("the {} hits' records do not fit in host memory", base + total as usize))
         })?;
+        parallel::advise_huge_pages(&mut stored.records);
         lap(&mut profile.unpack);
         // The storing pass, and its records, counts and offsets back.
         let bytes = total as usize * size_of::<R>();
@@ -330,23 +348,67 @@ impl AllHitsPath {
         }
         let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
         let at = slot.field_offset(Field::Prim);
-        stored.seen[start..start + len].copy_from_slice(bytemuck::cast_slice(&hits[at..at + 4 * len]));
-        let offsets = &lists.read_offsets(len + 1)[1..];
-        parallel::install(|| {
-            stored.offsets[start..start + len]
-                .par_iter_mut()
-                .zip(offsets)
-                .with_min_len(SCAN_BLOCK)
-                .for_each(|(out, &offset)| *out = (base as u64 + offset) as i64)
-        });
+        let seen: &[i32] = bytemuck::cast_slice(&hits[at..at + 4 * len]);
+        let firsts = &lists.read_offsets(len + 1)[1..];
+        let range = start..start + len;
+        let placed = ChunkLists { seen, firsts, total, base: base as u64, max_hits: *max_hits };
+        let (unsettled, overflowed) = placed.place(&mut stored.seen[range.clone()], &mut stored.offsets[range]);
         stored.offsets[start + len] = (base as u64 + total) as i64;
+        stored.unsettled |= unsettled;
+        stored.overflowed = stored.overflowed.or(overflowed.map(|k| start + k));
         let records = lists.records_host.mapped().expect("hit records are host-visible");
         let src: &[R] = bytemuck::cast_slice(&records[..bytes]);
-        // Appended on all cores (room was reserved): the pages' first touch is spread too.
-        parallel::install(|| stored.records.par_extend(src.par_iter().copied()));
+        // Appended on all cores (room was reserved), each the CPU tracer's record as it goes: the
+        // pages' first touch is spread too.
+        parallel::install(|| stored.records.par_extend(src.par_iter().with_min_len(4096).map(|r| r.reference(scene))));
         stored.advances.extend(advances.into_iter().filter(|a| a.ray < len).map(|a| (start + a.ray, a.t)));
         lap(&mut profile.unpack);
         Ok(len)
+    }
+}
+
+/// A stored chunk as it came back: each ray's hits seen by the storing pass and its list's first
+/// record among the chunk's `total`, which follow `base` records of the chunks before.
+struct ChunkLists<'a> {
+    seen: &'a [i32],
+    firsts: &'a [u64],
+    total: u64,
+    base: u64,
+    max_hits: usize,
+}
+
+impl ChunkLists<'_> {
+    /// Writes the rays' counts and offsets into the query's, on all cores, and tells whether any
+    /// list needs the host (appended, or written short), and which ray first met more hits
+    /// storing than counting, if any: one pass over the rays.
+    fn place(&self, seen_out: &mut [i32], offsets_out: &mut [i64]) -> (bool, Option<usize>) {
+        let len = self.seen.len();
+        let block = |(b, (seen_out, offsets_out)): (usize, (&mut [i32], &mut [i64]))| {
+            let (mut unsettled, mut overflowed) = (false, None);
+            for (k, (seen_out, offset_out)) in seen_out.iter_mut().zip(offsets_out.iter_mut()).enumerate() {
+                let i = b * SCAN_BLOCK + k;
+                let (first, seen) = (self.firsts[i], self.seen[i]);
+                let end = if i + 1 < len { self.firsts[i + 1] } else { self.total };
+                let capacity = (end - first) as usize;
+                *seen_out = seen;
+                *offset_out = (self.base + first) as i64;
+                let seen = seen.max(0) as usize;
+                unsettled |= appends(capacity, self.max_hits) || seen < capacity;
+                if seen > capacity && capacity < self.max_hits && overflowed.is_none() {
+                    overflowed = Some(i);
+                }
+            }
+            (unsettled, overflowed)
+        };
+        let either = |a: (bool, Option<usize>), b: (bool, Option<usize>)| (a.0 || b.0, a.1.or(b.1));
+        parallel::install(|| {
+            seen_out
+                .par_chunks_mut(SCAN_BLOCK)
+                .zip(offsets_out.par_chunks_mut(SCAN_BLOCK))
+                .enumerate()
+                .map(block)
+                .reduce(|| (false, None), either)
+        })
     }
 }
 
@@ -376,121 +438,170 @@ impl AllHitsPath {
 /// Rays a block of the host's passes over every ray covers (a task each, on all cores).
 const SCAN_BLOCK: usize = 1 << 14;
 
-/// A stored hit record: the order of a ray's hits (the shaders' `is_before`; `Equal`: the same
-/// hit, met twice).
+/// A hit record the shaders store (`FastHit`, `ExactHit`).
 pub trait HitRecord: Pod + Send + Sync {
-    fn order(&self, other: &Self) -> Ordering;
+    /// Its distance and barycentrics are f64 (the exact tier's).
+    const WIDE: bool;
+
+    /// The CPU tracer's record of the same hit, whose triangle is counted among all parts of
+    /// its mesh. Ordered as the shaders order the stored records (`is_before`): by t, then
+    /// instance, then triangle (a part's triangles follow the parts before it).
+    fn reference(&self, scene: &Scene) -> ReferenceHit;
 }
 
 impl HitRecord for FastHit {
-    fn order(&self, other: &Self) -> Ordering {
-        let key = |h: &FastHit| (h.instance, h.geometry, h.prim);
-        self.t.total_cmp(&other.t).then(key(self).cmp(&key(other)))
+    const WIDE: bool = false;
+
+    fn reference(&self, scene: &Scene) -> ReferenceHit {
+        let triangles = &scene.placements[self.instance as usize].triangles;
+        ReferenceHit {
+            t: self.t as f64,
+            u: self.u as f64,
+            v: self.v as f64,
+            instance: self.instance as u32,
+            prim: triangles.global(self.geometry as usize, self.prim as usize) as u32,
+        }
     }
 }
 
 impl HitRecord for ExactHit {
-    fn order(&self, other: &Self) -> Ordering {
-        self.t.total_cmp(&other.t).then((self.instance, self.prim).cmp(&(other.instance, other.prim)))
+    const WIDE: bool = true;
+
+    fn reference(&self, _: &Scene) -> ReferenceHit {
+        *self
     }
 }
 
-impl<R: HitRecord> StoredHits<R> {
+/// The order of a ray's stored hits (`Equal`: the same hit, met twice).
+fn hit_order(a: &ReferenceHit, b: &ReferenceHit) -> Ordering {
+    a.t.total_cmp(&b.t).then((a.instance, a.prim).cmp(&(b.instance, b.prim)))
+}
+
+impl StoredHits {
     /// Sorts the appended lists (dropping hits met twice), then drops the unwritten ends of lists
     /// whose ray met fewer hits than counted (a primitive reported twice by traversal and kept
-    /// once), so that each ray's hits are contiguous.
+    /// once), so that each ray's hits are contiguous. On all cores, in blocks of rays.
     fn settle(&mut self, max_hits: usize, interrupt: &dyn Interrupt) -> Result<()> {
+        if !self.unsettled {
+            return Ok(());
+        }
         let n = self.seen.len();
         let (offsets, seen) = (&self.offsets, &self.seen);
-        let capacity = |i: usize| offsets[i + 1] - offsets[i];
-        let unsettled = parallel::install(|| {
+        let mut kept: Vec<usize> = parallel::install(|| {
             (0..n)
                 .into_par_iter()
                 .with_min_len(SCAN_BLOCK)
-                .any(|i| appends(capacity(i) as usize, max_hits) || (seen[i] as i64) < capacity(i))
+                .map(|i| ((offsets[i + 1] - offsets[i]) as usize).min(seen[i].max(0) as usize))
+                .collect()
         });
-        if !unsettled {
-            return Ok(());
-        }
-        let mut kept: Vec<usize> =
-            (0..n).map(|i| (self.offsets[i + 1] - self.offsets[i]).min(self.seen[i].max(0) as i64) as usize).collect();
-        let mut appended: Vec<(&mut [R], &mut usize)> = Vec::new();
-        let mut rest = self.records.as_mut_slice();
-        for (i, kept) in kept.iter_mut().enumerate() {
-            let (list, tail) = rest.split_at_mut((self.offsets[i + 1] - self.offsets[i]) as usize);
-            rest = tail;
-            if appends((self.offsets[i + 1] - self.offsets[i]) as usize, max_hits) {
-                appended.push((list, kept));
-            }
-        }
         // Sorted in paced blocks: tens of millions of lists take seconds.
-        in_paced_blocks(appended.len(), (FIRST_ON_CPU, 1 << 22), interrupt, |range| {
+        in_paced_blocks(n, (FIRST_ON_CPU, 1 << 22), interrupt, |range| {
+            let blocks = ray_blocks(&self.offsets, range, &mut self.records, &mut kept);
             parallel::install(|| {
-                appended[range].par_iter_mut().with_min_len(1024).for_each(|(list, kept)| {
-                    let list = &mut list[..**kept];
-                    list.sort_unstable_by(R::order);
-                    let mut unique = 0;
-                    for k in 0..list.len() {
-                        if unique == 0 || list[unique - 1].order(&list[k]) != Ordering::Equal {
-                            list[unique] = list[k];
-                            unique += 1;
+                blocks.into_par_iter().for_each(|(rays, records, kept)| {
+                    let base = self.offsets[rays.start];
+                    for (k, i) in rays.enumerate() {
+                        let capacity = (self.offsets[i + 1] - self.offsets[i]) as usize;
+                        if appends(capacity, max_hits) {
+                            let from = (self.offsets[i] - base) as usize;
+                            kept[k] = sort_unique(&mut records[from..from + kept[k]]);
                         }
                     }
-                    **kept = unique;
                 })
             });
             Ok(())
         })?;
-        if (0..n).all(|i| kept[i] as i64 == self.offsets[i + 1] - self.offsets[i]) {
+        let whole = |i: usize| kept[i] as i64 == self.offsets[i + 1] - self.offsets[i];
+        if parallel::install(|| (0..n).into_par_iter().with_min_len(SCAN_BLOCK).all(whole)) {
             return Ok(());
         }
-        let mut to = 0;
-        for (i, &kept) in kept.iter().enumerate() {
-            let from = self.offsets[i] as usize;
-            self.records.copy_within(from..from + kept, to);
-            self.offsets[i] = to as i64;
-            to += kept;
+        self.compact(&kept)
+    }
+
+    /// Keeps the first `kept[i]` hits of each ray's list, contiguous: new offsets by a blocked
+    /// scan, the records gathered into a new array on all cores.
+    fn compact(&mut self, kept: &[usize]) -> Result<()> {
+        let n = kept.len();
+        let sums: Vec<usize> = parallel::install(|| kept.par_chunks(SCAN_BLOCK).map(|b| b.iter().sum()).collect());
+        let mut starts = Vec::with_capacity(sums.len());
+        let mut total = 0;
+        for sum in sums {
+            starts.push(total);
+            total += sum;
         }
-        self.offsets[n] = to as i64;
-        self.records.truncate(to);
+        let mut records: Vec<ReferenceHit> = Vec::new();
+        records
+            .try_reserve_exact(total)
+            .map_err(|_| Error::OutOfMemory(format!("the {total} hits' records do not fit in host memory")))?;
+        parallel::advise_huge_pages(&mut records);
+        // Each block's records go to their own part of the new array.
+        let mut parts = Vec::with_capacity(starts.len());
+        let mut rest = &mut records.spare_capacity_mut()[..total];
+        for (b, &start) in starts.iter().enumerate() {
+            let end = starts.get(b + 1).copied().unwrap_or(total);
+            let (part, tail) = rest.split_at_mut(end - start);
+            parts.push(part);
+            rest = tail;
+        }
+        let (old, offsets) = (&self.records, &self.offsets);
+        parallel::install(|| {
+            parts.into_par_iter().enumerate().for_each(|(b, part)| {
+                let mut to = 0;
+                for i in b * SCAN_BLOCK..((b + 1) * SCAN_BLOCK).min(n) {
+                    let from = offsets[i] as usize;
+                    for (slot, hit) in part[to..to + kept[i]].iter_mut().zip(&old[from..from + kept[i]]) {
+                        slot.write(*hit);
+                    }
+                    to += kept[i];
+                }
+            })
+        });
+        // SAFETY: the parts cover the first `total` entries, and each block wrote all of its
+        // part: its rays' kept hits, `sums[b]` of them.
+        unsafe { records.set_len(total) };
+        let mut running = 0i64;
+        for (i, &k) in kept.iter().enumerate() {
+            self.offsets[i] = running;
+            running += k as i64;
+        }
+        self.offsets[n] = running;
+        self.records = records;
         Ok(())
     }
 }
 
-impl StoredHits<ExactHit> {
-    /// The exact tier's hits as the CPU tracer's (the same record).
-    pub fn into_all_hits(self) -> AllHits {
-        AllHits { offsets: self.offsets, hits: self.records, wide: true }
+/// The rays of `range` in blocks of `SCAN_BLOCK`: each with its records and its part of `kept`.
+fn ray_blocks<'a>(
+    offsets: &[i64],
+    range: std::ops::Range<usize>,
+    records: &'a mut [ReferenceHit],
+    kept: &'a mut [usize],
+) -> Vec<(std::ops::Range<usize>, &'a mut [ReferenceHit], &'a mut [usize])> {
+    let mut blocks = Vec::new();
+    let mut records = &mut records[offsets[range.start] as usize..offsets[range.end] as usize];
+    let mut kept = &mut kept[range.clone()];
+    let mut start = range.start;
+    while start < range.end {
+        let end = (start + SCAN_BLOCK).min(range.end);
+        let (block_records, records_rest) = records.split_at_mut((offsets[end] - offsets[start]) as usize);
+        let (block_kept, kept_rest) = kept.split_at_mut(end - start);
+        blocks.push((start..end, block_records, block_kept));
+        (records, kept, start) = (records_rest, kept_rest, end);
     }
+    blocks
 }
 
-impl StoredHits<FastHit> {
-    /// The fast tier's hits with their triangles counted among all parts of their mesh and far
-    /// rays' `t` measured from their own origin.
-    pub fn into_all_hits(mut self, scene: &Scene) -> Result<AllHits> {
-        parallel::install(|| {
-            self.records.par_iter_mut().with_min_len(4096).for_each(|record| {
-                let r = *record;
-                let triangles = &scene.placements[r.instance as usize].triangles;
-                *bytemuck::cast_mut::<FastHit, ReferenceHit>(record) = ReferenceHit {
-                    t: r.t as f64,
-                    u: r.u as f64,
-                    v: r.v as f64,
-                    instance: r.instance as u32,
-                    prim: triangles.global(r.geometry as usize, r.prim as usize) as u32,
-                };
-            })
-        });
-        // Same size and alignment (records.rs): the vector is reinterpreted, not copied.
-        let mut hits: Vec<ReferenceHit> = bytemuck::allocation::cast_vec(self.records);
-        for &(ray, t) in &self.advances {
-            let range = self.offsets[ray] as usize..self.offsets[ray + 1] as usize;
-            for hit in &mut hits[range] {
-                hit.t = (hit.t + t) as f32 as f64;
-            }
+/// Sorts a list appended as met, keeping one of each hit met twice: returns how many are left.
+fn sort_unique(list: &mut [ReferenceHit]) -> usize {
+    list.sort_unstable_by(hit_order);
+    let mut unique = 0;
+    for k in 0..list.len() {
+        if unique == 0 || hit_order(&list[unique - 1], &list[k]) != Ordering::Equal {
+            list[unique] = list[k];
+            unique += 1;
         }
-        Ok(AllHits { offsets: self.offsets, hits, wide: false })
     }
+    unique
 }
 
 #[cfg(test)]

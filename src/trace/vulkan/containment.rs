@@ -139,7 +139,7 @@ impl Containment {
             });
             return Ok(());
         }
-        let all = self.all_hits.gpu_all_hits::<ExactHit>(batch, usize::MAX, 0)?.into_all_hits();
+        let all = self.all_hits.gpu_all_hits::<ExactHit>(batch, usize::MAX, 0)?;
         for (odd, pair) in odd.iter_mut().zip(all.offsets.windows(2)) {
             *odd = i32::from(host_tiers::odd_crossings(
                 &all.hits[pair[0] as usize..pair[1] as usize],

@@ -189,11 +189,9 @@ impl Engine for VulkanEngine {
 
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
         if batch.request.precision == Precision::Exact {
-            let stored = self.all_hits.gpu_all_hits::<ExactHit>(batch, max_hits, host_bytes_per_hit)?;
-            return Ok(stored.into_all_hits());
+            return self.all_hits.gpu_all_hits::<ExactHit>(batch, max_hits, host_bytes_per_hit);
         }
-        let stored = self.all_hits.gpu_all_hits::<FastHit>(batch, max_hits, host_bytes_per_hit)?;
-        stored.into_all_hits(batch.scene)
+        self.all_hits.gpu_all_hits::<FastHit>(batch, max_hits, host_bytes_per_hit)
     }
 
     fn closest_points(&self, batch: PointBatch, within: f64, precision: Precision, sink: &mut HitSink) -> Result<()> {
