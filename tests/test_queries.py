@@ -200,11 +200,11 @@ def test_profile_splits_host_and_gpu_time(device):
     else:
         assert p["gpu_trace"] is None
     assert p["store"] == 0.0
-    # All hits: a counting pass, then a storing pass, both counted (each in two chunks at least on
-    # a CPU device).
+    # All hits: a counting pass, then a storing pass over each chunk (two chunks at least on a CPU
+    # device); the storing passes' time apart.
     scene.intersect_all(origins, directions)
     p = device.last_trace_profile
-    assert (p["chunks"] >= 4 if on_cpu else p["chunks"] == 2) and 0 < p["store"] < p["total"]
+    assert (p["chunks"] >= 2 if on_cpu else p["chunks"] == 1) and 0 < p["store"] < p["total"]
     if device.limits["timestamp_valid_bits"]:
         assert p["gpu_upload"] + p["gpu_trace"] + p["gpu_readback"] <= p["total"]
 

@@ -135,24 +135,58 @@ const HUGE_PAGE: usize = 2 << 20;
 /// first touch: each fault of fresh memory then maps 2 MiB rather than 4 KiB (where transparent
 /// huge pages are `madvise`d; numpy asks the same for its large arrays). Below 4 MiB, nothing.
 pub fn advise_huge_pages<T>(v: &mut Vec<T>) {
+    let spare = v.spare_capacity_mut();
+    advise_range(spare.as_mut_ptr() as usize, std::mem::size_of_val(spare));
+}
+
+/// `advise_huge_pages` for a vector's values (zeros no one has touched yet).
+fn advise_huge_pages_of<T>(v: &mut [T]) {
+    advise_range(v.as_mut_ptr() as usize, std::mem::size_of_val(v));
+}
+
+/// `advise_huge_pages` for `bytes` of memory from `start`.
+fn advise_range(start: usize, bytes: usize) {
     #[cfg(target_os = "linux")]
     {
-        let spare = v.spare_capacity_mut();
-        let bytes = std::mem::size_of_val(spare);
         if bytes < 2 * HUGE_PAGE {
             return;
         }
-        let start = spare.as_mut_ptr() as usize;
         let (first, end) = (start.next_multiple_of(HUGE_PAGE), (start + bytes) / HUGE_PAGE * HUGE_PAGE);
         if end > first {
-            // SAFETY: the range lies within `v`'s allocation, which nothing has touched beyond its
-            // length; MADV_HUGEPAGE changes how its pages are backed, never their contents. A
-            // failure (no transparent huge pages) leaves them as they were.
+            // SAFETY: the range lies within one allocation of the caller's; MADV_HUGEPAGE changes
+            // how its pages are backed, never their contents. A failure (no transparent huge
+            // pages) leaves them as they were.
             unsafe { libc::madvise(first as *mut libc::c_void, end - first, libc::MADV_HUGEPAGE) };
         }
     }
     #[cfg(not(target_os = "linux"))]
-    let _ = v;
+    let _ = (start, bytes);
+}
+
+/// A vector of `len` zeros, or `OutOfMemory` where the host cannot give the memory. Zeroed by the
+/// allocator (fresh pages of a large allocation are zero already): its pages are first touched
+/// by whoever writes the values, not by a pass of zeros before them.
+pub fn try_zeroed<T: bytemuck::Zeroable>(len: usize, what: &str) -> crate::error::Result<Vec<T>> {
+    let refused = || {
+        Error::OutOfMemory(format!(
+            "{what} needs {} bytes of host memory, which could not be allocated",
+            len.saturating_mul(std::mem::size_of::<T>())
+        ))
+    };
+    let layout = std::alloc::Layout::array::<T>(len).map_err(|_| refused())?;
+    if layout.size() == 0 {
+        return Ok(Vec::new());
+    }
+    // SAFETY: the layout's size is not zero.
+    let memory = unsafe { std::alloc::alloc_zeroed(layout) } as *mut T;
+    if memory.is_null() {
+        return Err(refused());
+    }
+    // SAFETY: `memory` was allocated by the global allocator with `T`'s alignment and room for
+    // exactly `len` values, all zero bytes, which `Zeroable` makes valid values of `T`.
+    let mut v = unsafe { Vec::from_raw_parts(memory, len, len) };
+    advise_huge_pages_of(&mut v);
+    Ok(v)
 }
 
 /// A vector of `len` copies of `value`, or `OutOfMemory` where the host cannot give the memory

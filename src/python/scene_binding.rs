@@ -19,7 +19,7 @@ use super::numpy_views::{Bound1, MaskArray, Vec3Array};
 use super::{cuda_batch, dlpack};
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::interrupt::Interrupt;
-use crate::geometry::parallel::try_vec;
+use crate::geometry::parallel::try_zeroed;
 use crate::geometry::rays::Rays;
 use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
@@ -726,17 +726,17 @@ impl Column {
     fn new(field: Option<Field>, hits: usize, wide: bool) -> crate::Result<Column> {
         let floats = |k: usize, what: &str| -> crate::Result<Column> {
             Ok(if wide {
-                Column::F64(try_vec(k * hits, 0.0, what)?, k)
+                Column::F64(try_zeroed(k * hits, what)?, k)
             } else {
-                Column::F32(try_vec(k * hits, 0.0, what)?, k)
+                Column::F32(try_zeroed(k * hits, what)?, k)
             })
         };
         Ok(match field {
             None => floats(3, "the hits' positions")?,
             Some(Field::T) => floats(1, "the hits' t")?,
             Some(Field::Uv) => floats(2, "the hits' uv")?,
-            Some(Field::Normal) => Column::F32(try_vec(3 * hits, 0.0, "the hits' normals")?, 3),
-            Some(_) => Column::I32(try_vec(hits, 0, "the hits' ids")?),
+            Some(Field::Normal) => Column::F32(try_zeroed(3 * hits, "the hits' normals")?, 3),
+            Some(_) => Column::I32(try_zeroed(hits, "the hits' ids")?),
         })
     }
 

@@ -13,7 +13,7 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::morton;
 use crate::geometry::parallel;
-use crate::geometry::parallel::try_vec;
+use crate::geometry::parallel::{try_vec, try_zeroed};
 use crate::geometry::precision::{plane_hit, sphere_normal, world_normal, Cull, Ray64};
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::{ClosestHit, Filter, ReferenceHit};
@@ -331,7 +331,7 @@ pub fn transmittance(scene: &Scene, all: &AllHits, out: &mut [f64]) {
 pub fn ray_indices(offsets: &[i64]) -> Result<Vec<i64>> {
     const BLOCK: usize = 4096;
     let rays = offsets.len() - 1;
-    let mut out = try_vec(offsets[rays] as usize, 0i64, "the hits' ray indices")?;
+    let mut out: Vec<i64> = try_zeroed(offsets[rays] as usize, "the hits' ray indices")?;
     let mut blocks = Vec::with_capacity(rays.div_ceil(BLOCK));
     let mut rest = out.as_mut_slice();
     for start in (0..rays).step_by(BLOCK) {

@@ -23,7 +23,7 @@ use super::timestamps::{start_stamps, Stamp};
 use crate::error::{Error, Result};
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
-use crate::geometry::parallel::try_vec;
+use crate::geometry::parallel::try_zeroed;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::Commands;
 use crate::gpu::memory::memory_barrier;
@@ -110,9 +110,9 @@ impl AllHitsPath {
         scene.check_current()?;
         self.rays.probes.check_paths(scene, request.precision == Precision::Exact)?;
         let mut stored = StoredHits {
-            offsets: try_vec(n + 1, 0i64, "the hits' offsets")?,
+            offsets: try_zeroed(n + 1, "the hits' offsets")?,
             records: Vec::new(),
-            seen: try_vec(n, 0i32, "the hits' counts")?,
+            seen: try_zeroed(n, "the hits' counts")?,
             advances: Vec::new(),
             unsettled: false,
             overflowed: None,
@@ -329,6 +329,7 @@ impl AllHitsPath {
         parallel::advise_huge_pages(&mut stored.records);
         lap(&mut profile.unpack);
         // The storing pass, and its records, counts and offsets back.
+        let storing_since = Instant::now();
         let bytes = total as usize * size_of::<R>();
         commands.begin()?;
         let cmd = commands.buffer;
@@ -363,6 +364,7 @@ impl AllHitsPath {
         parallel::install(|| stored.records.par_extend(src.par_iter().with_min_len(4096).map(|r| r.reference(scene))));
         stored.advances.extend(advances.into_iter().filter(|a| a.ray < len).map(|a| (start + a.ray, a.t)));
         lap(&mut profile.unpack);
+        profile.store += storing_since.elapsed().as_secs_f64();
         Ok(len)
     }
 }
