@@ -2,7 +2,9 @@
 // sorted as they arrive (insertion: a list is as long as its ray's hits, which a counting pass
 // found, or max_hits). A hit equal to one kept (the same triangle at the same t: traversal may
 // report a primitive twice) is dropped, so that the count and the list hold it once. Long lists
-// (HIT_LIST_APPEND) are filled in the order met instead, and sorted by the host.
+// (HIT_LIST_APPEND) are filled in the order met instead, and sorted by the host. The counting
+// pass may keep each ray's nearest few (fixed lists); the storing pass then skips the rays they
+// held whole (HIT_LIST_DONE).
 // Include after common.glsl, with HIT_RECORD defined as the stored record (FastHit, or ExactHit
 // after exact.glsl) and `is_before` and `is_same` defined for it.
 #ifndef VKRAY_HIT_LISTS_GLSL
@@ -13,9 +15,20 @@ layout(buffer_reference, std430, buffer_reference_align = 8) buffer HitRecords {
 // volatile: see ExactScratch in exact.glsl (the pipeline backend counts here across stages).
 layout(buffer_reference, std430, buffer_reference_align = 4) volatile buffer HitCounts { int v[]; };
 
+// `scratch` is 0 (only counted), or an odd number (K << 1 | 1: the counting pass keeps each ray's
+// nearest K hits in records i * K onwards), or the lists' address.
 HitList hit_list(uint i) {
   if (params.scratch == 0ul) return HitList(0u, 0u);
+  if ((params.scratch & 1ul) != 0ul) {
+    uint k = uint(params.scratch >> 1);
+    return HitList(i * k, k);
+  }
   return HitLists(params.scratch).l[i];
+}
+
+// The counting pass kept ray i's hits whole: the storing pass has nothing to do.
+bool list_done(uint i) {
+  return params.scratch != 0ul && (params.scratch & 1ul) == 0ul && HitLists(params.scratch).l[i].first == HIT_LIST_DONE;
 }
 
 // Ray i met hit h after `seen` others: keeps it if it is among the nearest, and returns the new

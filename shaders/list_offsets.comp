@@ -7,6 +7,9 @@
 //     scans a stretch of runs, the stretches' sums are scanned in shared memory), and writes the
 //     total after the last run.
 //   LIST_WRITE: invocation j writes the lists and offsets of run j's rays from its first record.
+//     Where the counting pass kept each ray's nearest hits, a ray it kept whole (all its hits, or
+//     its nearest max_hits) has them copied into place and its list marked HIT_LIST_DONE; any
+//     other ray sets the flag after the total: the storing pass must trace it.
 #extension GL_EXT_buffer_reference : require
 #extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
 #define VKRAY_LIST_OFFSETS
@@ -18,6 +21,12 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Cou
 layout(buffer_reference, std430, buffer_reference_align = 8) buffer Sums { uint64_t v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer Lists { HitList l[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer Offsets { uint64_t v[]; };
+// A hit record of either tier (FastHit, ExactHit: 32 bytes), copied as it is.
+struct AnyHit {
+  uvec4 low;
+  uvec4 high;
+};
+layout(buffer_reference, std430, buffer_reference_align = 16) buffer Records { AnyHit v[]; };
 
 shared uint64_t partial[gl_WorkGroupSize.x];
 
@@ -62,7 +71,20 @@ void scan_runs() {
     sums.v[j] = at;
     at += records;
   }
-  if (t == threads - 1u) sums.v[total_runs] = partial[t];
+  if (t == threads - 1u) {
+    sums.v[total_runs] = partial[t];
+    sums.v[total_runs + 1u] = 0ul;
+  }
+}
+
+// Ray i's hits as the counting pass kept them (`kept` of them, its nearest), into place from `at`.
+void copy_nearest(uint i, uint kept, uint64_t at) {
+  Records nearest = Records(list_params.nearest);
+  Records records = Records(list_params.records);
+  // Both within 32 bits: the nearest records hold at most 8 per ray of a chunk, and `at` lies
+  // within the room, which a list's `first` indexes.
+  uint from = i * list_params.nearest_hits;
+  for (uint k = 0u; k < kept; ++k) records.v[uint(at) + k] = nearest.v[from + k];
 }
 
 void write_run(uint j) {
@@ -71,14 +93,28 @@ void write_run(uint j) {
   uint64_t at = Sums(list_params.sums).v[j];
   Lists lists = Lists(list_params.lists);
   Offsets offsets = Offsets(list_params.offsets);
+  bool storing = false;
+  uint k_nearest = list_params.nearest != 0ul ? list_params.nearest_hits : 0u;
   for (uint i = first; i < last; ++i) {
     uint capacity = kept(i);
-    // Only lists the host will keep are read by the storing pass: their `first` fits 32 bits.
-    bool appends = capacity > list_params.insertion_limit && capacity < list_params.max_hits;
-    lists.l[i] = HitList(uint(at), capacity | (appends ? HIT_LIST_APPEND : 0u));
+    uint met = uint(max(Counts(list_params.counts).v[i], 0));
+    // Kept whole by the counting pass: every hit it met, or the nearest max_hits of them.
+    bool whole = capacity <= k_nearest && (met <= k_nearest || list_params.max_hits <= k_nearest);
+    // Only lists the host will keep are read by the storing pass: their `first` fits 32 bits
+    // (the copies, those that fit the records' room).
+    if (whole && at + uint64_t(capacity) <= uint64_t(list_params.room)) {
+      copy_nearest(i, capacity, at);
+      lists.l[i] = HitList(HIT_LIST_DONE, capacity);
+    } else {
+      bool appends = capacity > list_params.insertion_limit && capacity < list_params.max_hits;
+      lists.l[i] = HitList(uint(at), capacity | (appends ? HIT_LIST_APPEND : 0u));
+      storing = true;
+    }
     offsets.v[i] = at;
     at += uint64_t(capacity);
   }
+  // Every writer writes the same 1.
+  if (storing) Sums(list_params.sums).v[runs() + 1u] = 1ul;
 }
 
 void main() {

@@ -69,14 +69,18 @@ const uint POINT_ORDER_SCATTER = 2u;
 layout(push_constant, std430) uniform ListParams {
   uint64_t counts;          // int per ray: the hits the counting pass met
   uint64_t sums;            // uint64 per run: its lists' records, then (scanned) its first record;
-                            // one more after the last: the chunk's records
+                            // then the chunk's records, then whether any ray needs the storing pass
   uint64_t lists;           // out: HitList per ray
   uint64_t offsets;         // out: uint64 per ray, its first record among the chunk's
+  uint64_t nearest;         // the counting pass's records: `nearest_hits` per ray, or 0: none kept
+  uint64_t records;         // out: the chunk's records (those of rays the counting pass kept whole)
   uint count;               // rays in the chunk
   uint max_hits;            // most hits a list keeps (at most 2^31 - 1)
   uint insertion_limit;     // lists longer than this holding every hit of their ray: HIT_LIST_APPEND
   uint run;                 // rays per run
   uint pass;
+  uint nearest_hits;        // records the counting pass kept per ray
+  uint room;                // records `records` holds
   uint unused;
 } list_params;
 const uint LIST_SUMS = 0u;
@@ -294,6 +298,9 @@ struct HitList {
   uint capacity;
 };
 const uint HIT_LIST_APPEND = 0x80000000u;
+// `first` of a ray whose hits the counting pass kept whole (list_offsets.comp copied them into
+// place): the storing pass skips it.
+const uint HIT_LIST_DONE = 0xFFFFFFFFu;
 
 // One stored hit of the fast tier: f32 t and barycentrics (of vertices 1 and 2), the caller's
 // triangle within its geometry. Ordered by (t, instance, geometry, prim). 32 bytes, as ExactHit:

@@ -13,6 +13,8 @@ void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= params.count) return;
   i = ray_index(i);
+  // The storing pass of all hits: a ray the counting pass kept whole is done.
+  if (QUERY == QUERY_ALL && list_done(i)) return;
   Ray64 ray = load_ray64(i);
   ExactBest best = exact_miss();
   int seen = 0;

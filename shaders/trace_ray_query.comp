@@ -20,6 +20,8 @@ float candidate_opacity(rayQueryEXT query) {
 // candidate; each is kept in the ray's list and none is committed. Scenes with spheres do not
 // take this path.
 void trace_all(uint i, Ray ray) {
+  // The storing pass: a ray the counting pass kept whole is done.
+  if (list_done(i)) return;
   bool storing = hit_list(i).capacity > 0u;
   int seen = 0;
   rayQueryEXT query;

@@ -242,6 +242,10 @@ pub struct ListParams {
     pub lists: u64,
     /// Out: u64 per ray, its first record among the chunk's.
     pub offsets: u64,
+    /// The counting pass's records: `nearest_hits` per ray (or 0: none kept).
+    pub nearest: u64,
+    /// Out: the chunk's records (the copies of those the counting pass kept whole).
+    pub records: u64,
     pub count: u32,
     /// Most hits a list keeps (at most `i32::MAX`).
     pub max_hits: u32,
@@ -250,6 +254,10 @@ pub struct ListParams {
     pub run: u32,
     /// `LIST_*`.
     pub pass: u32,
+    /// Records the counting pass kept per ray.
+    pub nearest_hits: u32,
+    /// Records `records` holds.
+    pub room: u32,
     pub unused: u32,
 }
 
@@ -478,8 +486,8 @@ layout!(PointParams, size 128, points @ 0, distances @ 8, hits @ 16, nodes @ 24,
     top_nodes @ 48, top_items @ 56, spans @ 64, edges @ 72, order @ 80, center @ 88, max_distance @ 112, count @ 120,
     instance_count @ 124);
 layout!(PointOrderParams, size 80, points @ 0, cells @ 8, order @ 16, corner @ 24, scale @ 48, count @ 72, pass @ 76);
-layout!(ListParams, size 56, counts @ 0, sums @ 8, lists @ 16, offsets @ 24, count @ 32, max_hits @ 36,
-    insertion_limit @ 40, run @ 44, pass @ 48, unused @ 52);
+layout!(ListParams, size 80, counts @ 0, sums @ 8, lists @ 16, offsets @ 24, nearest @ 32, records @ 40, count @ 48,
+    max_hits @ 52, insertion_limit @ 56, run @ 60, pass @ 64, nearest_hits @ 68, room @ 72, unused @ 76);
 layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
     outside_below @ 40, count @ 48, unused @ 52);
 layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
@@ -697,7 +705,22 @@ mod tests {
             (
                 "ListParams",
                 size_of::<ListParams>(),
-                members!(ListParams: counts, sums, lists, offsets, count, max_hits, insertion_limit, run, pass, unused),
+                members!(
+                    ListParams: counts,
+                    sums,
+                    lists,
+                    offsets,
+                    nearest,
+                    records,
+                    count,
+                    max_hits,
+                    insertion_limit,
+                    run,
+                    pass,
+                    nearest_hits,
+                    room,
+                    unused
+                ),
             ),
             (
                 "SignPointsParams",

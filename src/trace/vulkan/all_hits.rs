@@ -15,8 +15,8 @@ use bytemuck::Pod;
 use rayon::prelude::*;
 
 use super::gpu_rays::GpuRays;
-use super::hit_lists::{appends, ListBuffers, ListOffsets};
-use super::ray_chunks::{pack_chunk, record_readback, trace_stage, GpuJob};
+use super::hit_lists::{appends, ListBuffers, ListOffsets, Placed};
+use super::ray_chunks::{pack_chunk, record_readback, trace_stage, ChunkLists, GpuJob};
 use super::shared::Shared;
 use super::staging::Slot;
 use super::timestamps::{start_stamps, Stamp};
@@ -271,7 +271,13 @@ impl AllHitsPath {
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         chunks.record_upload(cmd, counting, slot, len);
         stamp(Stamp::Uploaded);
-        chunks.record_trace(cmd, counting, slot, start, len, None);
+        // Each ray's nearest few hits kept as it is counted: most rays need no storing pass.
+        let nearest_hits = lists.nearest_hits(len);
+        let kept = match nearest_hits {
+            0 => ChunkLists::Counted,
+            hits => ChunkLists::Nearest { records: lists.nearest_address(), hits },
+        };
+        chunks.record_trace(cmd, counting, slot, start, len, kept);
         stamp(Stamp::Traced);
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         memory_barrier(
@@ -281,7 +287,7 @@ impl AllHitsPath {
             (compute, vk::AccessFlags::SHADER_READ),
         );
         let counts = slot.hits_address() + slot.field_offset(Field::Prim) as u64;
-        self.offsets.record(cmd, counts, lists, len, *max_hits)?;
+        self.offsets.record(cmd, counts, lists, len, *max_hits, nearest_hits, *room)?;
         // (Every stamp written: their results are waited for.)
         stamp(Stamp::ReadBack);
         commands.submit()?;
@@ -294,7 +300,7 @@ impl AllHitsPath {
         }
         // The budget's, not the idle lists': they may have more.
         let capacity = *room as u64;
-        let mut total = lists.read_total();
+        let Placed { mut total, storing: needs_storing } = lists.read_placed();
         let mut len = len;
         if total > capacity {
             // Only the rays whose lists fit in the records.
@@ -302,17 +308,17 @@ impl AllHitsPath {
             self.offsets.record_offsets(commands.buffer, lists, len);
             commands.submit()?;
             commands.wait()?;
-            let offsets = lists.read_offsets(len + 1);
-            len = rays_that_fit(&offsets[1..], capacity);
+            let firsts = lists.read_offsets(len);
+            len = rays_that_fit(firsts, capacity);
             if len == 0 {
                 // The first ray's alone: in records that hold them, after counting it again.
-                let first = offsets.get(2).copied().unwrap_or(total) as usize;
+                let first = firsts.get(1).copied().unwrap_or(total) as usize;
                 let grown = self.shared.with_memory(|| self.take_lists(lists.rays, first * size_of::<R>()))?;
                 self.give_back_lists(vec![std::mem::replace(lists, grown)]);
                 *room = first;
                 return Ok(0);
             }
-            total = offsets[1 + len];
+            total = firsts[len];
         }
         let base = stored.records.len();
         check_hits_fit(base + total as usize, size_of::<R>() + host_bytes_per_hit)?;
@@ -328,14 +334,17 @@ impl AllHitsPath {
         })?;
         parallel::advise_huge_pages(&mut stored.records);
         lap(&mut profile.unpack);
-        // The storing pass, and its records, counts and offsets back.
+        // The storing pass (of the rays the counting pass did not keep whole, if any), and the
+        // records, counts and offsets back.
         let storing_since = Instant::now();
         let bytes = total as usize * size_of::<R>();
         commands.begin()?;
         let cmd = commands.buffer;
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         stamp(Stamp::Uploaded);
-        chunks.record_trace(cmd, storing, slot, start, len, Some((lists, bytes)));
+        if needs_storing {
+            chunks.record_trace(cmd, storing, slot, start, len, ChunkLists::Lists(lists));
+        }
         stamp(Stamp::Traced);
         record_readback(ctx, cmd, slot, storing.outputs, len, Some((lists, bytes)));
         self.offsets.record_offsets(cmd, lists, len);
@@ -350,9 +359,9 @@ impl AllHitsPath {
         let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
         let at = slot.field_offset(Field::Prim);
         let seen: &[i32] = bytemuck::cast_slice(&hits[at..at + 4 * len]);
-        let firsts = &lists.read_offsets(len + 1)[1..];
+        let firsts = lists.read_offsets(len);
         let range = start..start + len;
-        let placed = ChunkLists { seen, firsts, total, base: base as u64, max_hits: *max_hits };
+        let placed = StoredChunk { seen, firsts, total, base: base as u64, max_hits: *max_hits };
         let (unsettled, overflowed) = placed.place(&mut stored.seen[range.clone()], &mut stored.offsets[range]);
         stored.offsets[start + len] = (base as u64 + total) as i64;
         stored.unsettled |= unsettled;
@@ -371,7 +380,7 @@ impl AllHitsPath {
 
 /// A stored chunk as it came back: each ray's hits seen by the storing pass and its list's first
 /// record among the chunk's `total`, which follow `base` records of the chunks before.
-struct ChunkLists<'a> {
+struct StoredChunk<'a> {
     seen: &'a [i32],
     firsts: &'a [u64],
     total: u64,
@@ -379,7 +388,7 @@ struct ChunkLists<'a> {
     max_hits: usize,
 }
 
-impl ChunkLists<'_> {
+impl StoredChunk<'_> {
     /// Writes the rays' counts and offsets into the query's, on all cores, and tells whether any
     /// list needs the host (appended, or written short), and which ray first met more hits
     /// storing than counting, if any: one pass over the rays.

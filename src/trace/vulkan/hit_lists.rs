@@ -1,8 +1,10 @@
 //! Where the storing pass of all hits keeps each ray's hits (`ListBuffers`), and the kernel that
 //! places them (`ListOffsets`, shaders/list_offsets.comp): from the counting pass's counts, still
 //! on the GPU, each ray's list and its offset among the chunk's records, by a scan in three
-//! dispatches. The host reads back only the chunk's total before the storing pass, and the
-//! offsets with the hits.
+//! dispatches. The counting pass may keep each ray's nearest few hits (`nearest`): the rays it
+//! kept whole have them copied into place by the last dispatch, and the storing pass skips them.
+//! The host reads back only the chunk's total (and whether any ray needs the storing pass) before
+//! the storing pass, and the offsets with the hits.
 
 use std::mem::size_of;
 use std::sync::Arc;
@@ -35,11 +37,14 @@ pub fn appends(capacity: usize, max_hits: usize) -> bool {
 /// and the records the shaders keep in the lists (read back with the offsets).
 pub struct ListBuffers {
     lists: Buffer,
+    /// The counting pass's records: its nearest few hits of each ray (as many bytes as `records`).
+    nearest: Buffer,
     /// u64 per run of rays, and one more: the chunk's total.
     sums: Buffer,
     /// u64 per ray: its list's first record among the chunk's.
     offsets: Buffer,
-    /// Host-visible: the chunk's total, then the offsets (`read_offsets`).
+    /// Host-visible: the chunk's total and whether any ray needs the storing pass (`read_placed`),
+    /// then the offsets (`read_offsets`).
     pub offsets_host: Buffer,
     /// Host-visible records (written by the shaders on shared-memory devices, copied there on
     /// discrete ones).
@@ -53,7 +58,7 @@ pub struct ListBuffers {
 
 impl Held for ListBuffers {
     fn bytes(&self) -> u64 {
-        [&self.lists, &self.sums, &self.offsets, &self.offsets_host, &self.records_host]
+        [&self.lists, &self.nearest, &self.sums, &self.offsets, &self.offsets_host, &self.records_host]
             .iter()
             .map(|b| b.size())
             .sum::<u64>()
@@ -68,7 +73,7 @@ impl ListBuffers {
         let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
         let gpu =
             |bytes: usize, usage, name| Buffer::new(ctx, bytes as u64, storage | usage, MemoryLocation::GpuOnly, name);
-        let offsets_bytes = 8 * (rays + 1);
+        let offsets_bytes = 8 * (rays + 2);
         let (records_host, records_device) = if ctx.unified_memory {
             (Buffer::new(ctx, record_bytes as u64, storage, MemoryLocation::GpuToCpu, "hit records")?, None)
         } else {
@@ -83,7 +88,8 @@ impl ListBuffers {
         };
         Ok(ListBuffers {
             lists: gpu(rays * size_of::<HitList>(), U::empty(), "hit lists")?,
-            sums: gpu(8 * (rays.div_ceil(LIST_RUN) + 1), U::TRANSFER_SRC, "hit list sums")?,
+            nearest: gpu(record_bytes, U::empty(), "nearest hit records")?,
+            sums: gpu(8 * (rays.div_ceil(LIST_RUN) + 2), U::TRANSFER_SRC, "hit list sums")?,
             offsets: gpu(offsets_bytes, U::TRANSFER_SRC, "hit list offsets")?,
             offsets_host: Buffer::new(
                 ctx,
@@ -107,17 +113,44 @@ impl ListBuffers {
         self.records_device.as_ref().unwrap_or(&self.records_host).address()
     }
 
-    /// The chunk's total records, once `record_total`'s copy finished.
-    pub fn read_total(&self) -> u64 {
-        self.read_offsets(1)[0]
+    pub fn nearest_address(&self) -> u64 {
+        self.nearest.address()
     }
 
-    /// The first `len` entries of the host's copy: the total, then (after `record_offsets`'s
-    /// copy) the rays' offsets from the second entry on.
+    /// Records the counting pass may keep per ray of a chunk of `rays` (at most
+    /// `MOST_NEAREST_HITS`; none where a chunk's are too many for the room).
+    pub fn nearest_hits(&self, rays: usize) -> usize {
+        (self.record_bytes / RECORD_BYTES / rays.max(1)).min(MOST_NEAREST_HITS)
+    }
+
+    /// What `ListOffsets::record` found, once its copy finished.
+    pub fn read_placed(&self) -> Placed {
+        let bytes = self.offsets_host.mapped().expect("offsets readback is host-visible");
+        let head: &[u64] = bytemuck::cast_slice(&bytes[..16]);
+        Placed { total: head[0], storing: head[1] != 0 }
+    }
+
+    /// The first `len` rays' offsets, once `record_offsets`'s copy finished.
     pub fn read_offsets(&self, len: usize) -> &[u64] {
         let bytes = self.offsets_host.mapped().expect("offsets readback is host-visible");
-        &bytemuck::cast_slice(&bytes[..8 * (self.rays + 1)])[..len]
+        &bytemuck::cast_slice(&bytes[16..8 * (self.rays + 2)])[..len]
     }
+}
+
+/// Bytes of a hit record of either tier (`FastHit`, `ExactHit`), which list_offsets.comp copies.
+const RECORD_BYTES: usize = 32;
+const _: () = assert!(size_of::<crate::gpu::records::FastHit>() == RECORD_BYTES);
+const _: () = assert!(size_of::<crate::gpu::records::ExactHit>() == RECORD_BYTES);
+
+/// Most hits the counting pass keeps per ray: most rays meet fewer (a closed mesh twice or four
+/// times), and insertion costs the square of a list's length.
+const MOST_NEAREST_HITS: usize = 8;
+
+/// A chunk's lists as `ListOffsets::record` placed them: their records, and whether any ray needs
+/// the storing pass (the counting pass did not keep its hits whole).
+pub struct Placed {
+    pub total: u64,
+    pub storing: bool,
 }
 
 /// list_offsets.comp's pipeline (compiled on first use).
@@ -134,8 +167,11 @@ impl ListOffsets {
 
     /// Records the three passes that turn `counts` (i32 per ray, written by the counting pass in
     /// an earlier command of `cmd`, whose writes a barrier made visible to compute shaders) into
-    /// the lists and offsets of `len` rays keeping at most `max_hits` hits each; then the copy of
-    /// the total to the host.
+    /// the lists and offsets of `len` rays keeping at most `max_hits` hits each, copying into
+    /// place (within `room` records) the hits of rays the counting pass kept whole
+    /// (`nearest_hits` of each in the buffers' `nearest`, where not 0); then the copy of what
+    /// they found to the host.
+    #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
         cmd: vk::CommandBuffer,
@@ -143,6 +179,8 @@ impl ListOffsets {
         buffers: &ListBuffers,
         len: usize,
         max_hits: usize,
+        nearest_hits: usize,
+        room: usize,
     ) -> Result<()> {
         let ctx = &self.ctx;
         let pipeline = self.kernel.pipeline(&[])?;
@@ -155,11 +193,15 @@ impl ListOffsets {
                 sums: buffers.sums.address(),
                 lists: buffers.lists.address(),
                 offsets: buffers.offsets.address(),
+                nearest: if nearest_hits > 0 { buffers.nearest.address() } else { 0 },
+                records: buffers.records_address(),
                 count: len as u32,
                 max_hits: max_hits.min(i32::MAX as usize) as u32,
                 insertion_limit: INSERTION_LIMIT as u32,
                 run: LIST_RUN as u32,
                 pass,
+                nearest_hits: nearest_hits as u32,
+                room: room.min(u32::MAX as usize) as u32,
                 unused: 0,
             };
             // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push
@@ -187,17 +229,17 @@ impl ListOffsets {
         pass(LIST_WRITE, groups);
         // The lists for the storing pass's shaders (any stage), the total for the host.
         between(vk::PipelineStageFlags::ALL_COMMANDS, vk::AccessFlags::SHADER_READ | vk::AccessFlags::TRANSFER_READ);
-        let total = [vk::BufferCopy::default().src_offset(8 * runs as u64).size(8)];
-        // SAFETY: `cmd` is recording; the sums hold `runs + 1` entries and the readback at least one.
+        let total = [vk::BufferCopy::default().src_offset(8 * runs as u64).size(16)];
+        // SAFETY: `cmd` is recording; the sums hold `runs + 2` entries and the readback more.
         unsafe { ctx.device.cmd_copy_buffer(cmd, buffers.sums.raw(), buffers.offsets_host.raw(), &total) };
         to_host(ctx, cmd);
         Ok(())
     }
 
-    /// Records the copy of `len` rays' offsets to the host (after the total).
+    /// Records the copy of `len` rays' offsets to the host (after what `record` found).
     pub fn record_offsets(&self, cmd: vk::CommandBuffer, buffers: &ListBuffers, len: usize) {
-        let region = [vk::BufferCopy::default().dst_offset(8).size(8 * len as u64)];
-        // SAFETY: `cmd` is recording; both buffers hold `rays + 1 >= len + 1` entries; the
+        let region = [vk::BufferCopy::default().dst_offset(16).size(8 * len as u64)];
+        // SAFETY: `cmd` is recording; the offsets hold `rays + 1`, the readback `rays + 2`; the
         // offsets were written by an earlier command whose writes `record` made visible to
         // transfers.
         unsafe { self.ctx.device.cmd_copy_buffer(cmd, buffers.offsets.raw(), buffers.offsets_host.raw(), &region) };

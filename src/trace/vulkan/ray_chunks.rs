@@ -57,8 +57,16 @@ pub(super) struct GpuJob<'a> {
     pub t_is_distance: bool,
 }
 
-/// A chunk's lists for the storing pass: the buffers, and the bytes of records its rays keep.
-pub(super) type ChunkLists<'a> = Option<(&'a ListBuffers, usize)>;
+/// Where a chunk's all hits go (QUERY_ALL), in `scratch` and `out_t`.
+#[derive(Clone, Copy)]
+pub(super) enum ChunkLists<'a> {
+    /// Counted only.
+    Counted,
+    /// The counting pass, keeping each ray's nearest `hits` in fixed lists from `records`.
+    Nearest { records: u64, hits: usize },
+    /// The storing pass: into the buffers' lists.
+    Lists(&'a ListBuffers),
+}
 
 /// A chunk submitted and not yet unpacked: its first ray, its length, and how far its far rays
 /// were advanced.
@@ -196,7 +204,7 @@ impl RayChunks {
             }
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_chunk(commands[s].buffer, job, &slots[s], start, len, None);
+            self.record_chunk(commands[s].buffer, job, &slots[s], start, len);
             commands[s].submit()?;
             pacer.started();
             in_flight[s] = Some(InFlight { start, len, advances });
@@ -217,22 +225,14 @@ impl RayChunks {
     }
 
     /// Records one chunk (`len` rays from `start`): its upload (discrete GPUs), the trace, and its
-    /// readback (with the storing pass's records, where given).
-    pub(super) fn record_chunk(
-        &self,
-        cmd: vk::CommandBuffer,
-        job: &GpuJob,
-        slot: &Slot,
-        start: usize,
-        len: usize,
-        lists: ChunkLists,
-    ) {
+    /// readback.
+    pub(super) fn record_chunk(&self, cmd: vk::CommandBuffer, job: &GpuJob, slot: &Slot, start: usize, len: usize) {
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         self.record_upload(cmd, job, slot, len);
         stamp(Stamp::Uploaded);
-        self.record_trace(cmd, job, slot, start, len, lists);
+        self.record_trace(cmd, job, slot, start, len, ChunkLists::Counted);
         stamp(Stamp::Traced);
-        record_readback(&self.shared.ctx, cmd, slot, job.outputs, len, lists);
+        record_readback(&self.shared.ctx, cmd, slot, job.outputs, len, None);
         stamp(Stamp::ReadBack);
     }
 
@@ -260,8 +260,8 @@ impl RayChunks {
         );
     }
 
-    /// Records the trace of a chunk's `len` rays (from `start`) already on the device (the
-    /// storing pass's: into `lists`).
+    /// Records the trace of a chunk's `len` rays (from `start`) already on the device (all hits:
+    /// where `lists` says).
     pub(super) fn record_trace(
         &self,
         cmd: vk::CommandBuffer,
@@ -273,10 +273,15 @@ impl RayChunks {
     ) {
         let mut params = chunk_params(job, slot, start, len);
         if job.all_hits {
-            // QUERY_ALL reads `scratch` as the rays' lists: none in the counting pass.
-            params.scratch = lists.map_or(0, |(buffers, _)| buffers.lists_address());
-            if let Some((buffers, _)) = lists {
-                params.outputs[Field::T as usize] = buffers.records_address();
+            // QUERY_ALL reads `scratch` as the rays' lists (hit_lists.glsl), `out_t` as their records.
+            let (scratch, records) = match lists {
+                ChunkLists::Counted => (0, 0),
+                ChunkLists::Nearest { records, hits } => (((hits as u64) << 1) | 1, records),
+                ChunkLists::Lists(buffers) => (buffers.lists_address(), buffers.records_address()),
+            };
+            params.scratch = scratch;
+            if records != 0 {
+                params.outputs[Field::T as usize] = records;
             }
         }
         if let Some(cap) = job.cap {
@@ -338,7 +343,7 @@ pub(super) fn record_readback(
     slot: &Slot,
     outputs: u32,
     len: usize,
-    lists: ChunkLists,
+    records: Option<(&ListBuffers, usize)>,
 ) {
     let shader_stage = trace_stage(ctx);
     let Some((_, hits_device)) = &slot.device else {
@@ -365,7 +370,7 @@ pub(super) fn record_readback(
         .collect();
     // SAFETY: `cmd` is recording; each region lies within both buffers (same layout).
     unsafe { ctx.device.cmd_copy_buffer(cmd, hits_device.raw(), slot.hits_host.raw(), &regions) };
-    if let Some((ListBuffers { records_host, records_device: Some(records_device), .. }, bytes)) = lists {
+    if let Some((ListBuffers { records_host, records_device: Some(records_device), .. }, bytes)) = records {
         if bytes > 0 {
             let region = [vk::BufferCopy::default().size(bytes as u64)];
             // SAFETY: `cmd` is recording; both buffers hold at least `bytes` of records.
