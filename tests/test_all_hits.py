@@ -1300,8 +1300,9 @@ def test_gpu_count_does_not_depend_on_chunks(device, tier):
 def test_all_hits_in_records_smaller_than_a_chunk(device, tier, monkeypatch):
     """Room for 8 hit records a chunk (VKRAY_HIT_RECORD_BYTES, the storing pass's budget): each
     chunk stores only the rays whose lists fit and the next starts after them, and a ray of more
-    hits than that (the long lists through 40 boxes) gets records of its own. The hits are those
-    of one chunk with room for all."""
+    hits than that (through twelve boxes) gets records of its own. With room for a few of each
+    ray's hits, the counting pass keeps them, and only the rays with more are traced again. The
+    hits (all, and the nearest 1, 3 or 30) are those of one chunk with room for all."""
     if tier == "exact" and not _exact_on(device):
         pytest.skip("this device does not answer precision='exact'")
     v, f = mesh_data("cow")
@@ -1316,16 +1317,19 @@ def test_all_hits_in_records_smaller_than_a_chunk(device, tier, monkeypatch):
     fields = ["t", "prim_id", "instance_id"]
     whole = scene.intersect_all(origins, directions, precision=tier, outputs=fields)
     assert whole.counts[::50].tolist() == [24] * 6 and whole.counts.sum() > 300
-    monkeypatch.setenv("VKRAY_HIT_RECORD_BYTES", str(8 * 32))
-    small = scene.intersect_all(origins, directions, precision=tier, outputs=fields)
-    for max_hits in (3, 30):
-        kept = scene.intersect_all(origins, directions, precision=tier, outputs=fields, max_hits=max_hits)
-        np.testing.assert_array_equal(kept.counts, np.minimum(whole.counts, max_hits))
-        rows = np.concatenate([np.arange(a, a + c) for a, c in zip(whole.offsets[:-1], kept.counts)])
-        np.testing.assert_array_equal(kept.prim_id, whole.prim_id[rows])
-    monkeypatch.delenv("VKRAY_HIT_RECORD_BYTES")
-    for name in ("offsets", "counts", "ray_index") + tuple(fields):
-        np.testing.assert_array_equal(getattr(small, name), getattr(whole, name), err_msg=name)
+    # 8 records; then room for 2 and for 8 of each ray's nearest hits as they are counted (the
+    # rays with more, and those past the room, traced again to store them).
+    for records in (8, 2 * 300, 8 * 300):
+        monkeypatch.setenv("VKRAY_HIT_RECORD_BYTES", str(records * 32))
+        small = scene.intersect_all(origins, directions, precision=tier, outputs=fields)
+        for name in ("offsets", "counts", "ray_index") + tuple(fields):
+            np.testing.assert_array_equal(getattr(small, name), getattr(whole, name), err_msg=f"{records}: {name}")
+        for max_hits in (1, 3, 30):
+            kept = scene.intersect_all(origins, directions, precision=tier, outputs=fields, max_hits=max_hits)
+            np.testing.assert_array_equal(kept.counts, np.minimum(whole.counts, max_hits))
+            rows = np.concatenate([np.arange(a, a + c) for a, c in zip(whole.offsets[:-1], kept.counts)])
+            np.testing.assert_array_equal(kept.prim_id, whole.prim_id[rows])
+            np.testing.assert_array_equal(kept.t, whole.t[rows])
 
 
 @pytest.mark.parametrize("tier", ["fast", "exact"])

@@ -139,6 +139,34 @@ def test_a_device_keeps_staging_for_as_many_queries_as_ran_at_once(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_all_hits_records_are_kept_for_the_next_query(backend):
+    """The host's records of an all-hits answer are kept for the next query (their pages touched
+    already) and counted in idle_memory; four threads at once get answers equal to one thread's;
+    release_idle_memory frees them."""
+    device = vkray.Device(backend=backend, validation=VALIDATION)
+    v, f = oracle.load_mesh("cow")
+    scene = device.scene(device.mesh(v, f))
+    o, d = oracle.random_rays(v, 20_000, seed=7)
+    want = scene.intersect_all(o, d, outputs=["t", "prim_id"])
+    records = 32 * len(want.t)
+    before = device.idle_memory["bytes"]
+    scene.intersect_all(o, d, outputs=["t", "prim_id"])
+    assert device.idle_memory["bytes"] == before  # the same records, filled again
+
+    def work(_k):
+        return [scene.intersect_all(o, d, outputs=["t", "prim_id"]) for _ in range(3)]
+
+    for answers in oracle.in_threads(4, work):
+        for got in answers:
+            for name in ("offsets", "t", "prim_id"):
+                np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    device.release_idle_memory()
+    assert device.idle_memory["bytes"] == 0
+    scene.intersect_all(o, d, outputs=["t", "prim_id"])
+    assert device.idle_memory["bytes"] >= records
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_queries_of_two_kinds_in_turn_find_their_staging_kept(backend):
     """One thread, fast and exact queries in turn (their staging differs: f32 or f64 rays): after
     the first of each, neither allocates again, though one query at a time is the peak."""

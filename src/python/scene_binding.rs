@@ -510,7 +510,9 @@ impl PyScene {
             self.tracer.write_all(scene, &rays, &all, &mut sink)?;
             interrupt.check()?;
             let ray_index = crate::trace::host_tiers::ray_indices(&all.offsets)?;
-            Ok((all.offsets, ray_index, columns))
+            let crate::trace::host_tiers::AllHits { offsets, hits, .. } = all;
+            self.tracer.recycle_hits(hits);
+            Ok((offsets, ray_index, columns))
         })?;
         // Each ray's count beside the offsets, on all cores (numpy's diff took a millisecond of a
         // million rays on one).

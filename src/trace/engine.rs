@@ -7,6 +7,7 @@ use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::build_options::BuildOptions;
 use crate::geometry::rays::PerRay;
+use crate::geometry::reference::ReferenceHit;
 use crate::scene::{Instance, Mesh, MeshBatch, Scene};
 use crate::trace::hit_fields::HitSink;
 use crate::trace::host_tiers::AllHits;
@@ -74,6 +75,10 @@ pub trait Engine: Send + Sync + 'static {
     /// `host_bytes_per_hit`: what the caller will need per hit, for refusing a result that cannot
     /// fit before it is stored.
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits>;
+
+    /// Takes back the records of an `all_hits` answer the caller is done with, for the next
+    /// query to fill (their pages already touched), where the engine keeps them.
+    fn recycle_hits(&self, _hits: Vec<ReferenceHit>) {}
 
     /// The surface point nearest each point within distance `within`, measured at `precision`
     /// (`Exact`: f64; `Fast`: f32), its fields written into `sink`.

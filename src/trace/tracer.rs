@@ -21,6 +21,7 @@ use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel::try_vec;
 use crate::geometry::parallel::{self, OwnPool};
 use crate::geometry::rays::Rays;
+use crate::geometry::reference::ReferenceHit;
 use crate::scene::Scene;
 
 /// Dispatches queries on one device to its engine `E` and the host tiers. Any number of threads
@@ -352,6 +353,11 @@ impl<E: Engine + ?Sized> Tracer<E> {
     /// rays).
     pub fn write_all(&self, scene: &Scene, rays: &Rays, all: &AllHits, sink: &mut HitSink) -> Result<()> {
         host_tiers::write_all_hits(scene, rays, all, sink)
+    }
+
+    /// Hands the records of a `trace_all` answer back to the engine, once written out.
+    pub fn recycle_hits(&self, hits: Vec<ReferenceHit>) {
+        self.engine.recycle_hits(hits)
     }
 
     /// The number of hits of each ray, into `out`: as `trace_all` finds them, without storing

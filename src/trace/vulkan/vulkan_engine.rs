@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use super::all_hits::{AllHitsPath, IDLE_LISTS};
+use super::all_hits::{AllHitsPath, SpareRecords, IDLE_LISTS};
 use super::closest_points::{ClosestPoints, PointPipelines};
 use super::containment::Containment;
 use super::cuda_rays::{CudaRaysPath, CudaState};
@@ -20,6 +20,7 @@ use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::build_options::BuildOptions;
 use crate::geometry::rays::PerRay;
+use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::{Backend, Context};
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{build_vulkan_meshes, build_vulkan_scene, build_vulkan_spheres, Instance, Mesh, MeshBatch, Scene};
@@ -48,6 +49,8 @@ pub struct VulkanEngine {
     shared: Arc<Shared>,
     rays: Arc<GpuRays>,
     all_hits: Arc<AllHitsPath>,
+    /// The last all-hits answer's records, for the next to fill.
+    spare_records: Arc<SpareRecords>,
     points: Arc<ClosestPoints>,
     signed: SignedDistancePath,
     containment: Containment,
@@ -60,14 +63,16 @@ impl VulkanEngine {
         let points = Arc::new(PointPipelines::new(ctx)?);
         let packing = Arc::new(PackPipelines::new(ctx)?);
         let lists = Arc::new(IdlePool::new(IDLE_LISTS.0, IDLE_LISTS.1));
+        let spare_records = Arc::new(SpareRecords::default());
         let cuda = Arc::new(CudaState::default());
-        let pools: Vec<Arc<dyn Idle>> = vec![points.clone(), packing.clone(), lists.clone(), cuda.clone()];
+        let pools: Vec<Arc<dyn Idle>> =
+            vec![points.clone(), packing.clone(), lists.clone(), cuda.clone(), spare_records.clone()];
         let shared = Arc::new(Shared::new(ctx, pools)?);
         let chunks = RayChunks::new(&shared);
         let probes = Arc::new(Probes::new(&shared, &chunks));
         let packed = Arc::new(PackedRays::new(&shared, &probes, &packing));
         let rays = Arc::new(GpuRays { chunks, packed: packed.clone(), probes: probes.clone() });
-        let all_hits = Arc::new(AllHitsPath::new(&shared, &rays, &lists)?);
+        let all_hits = Arc::new(AllHitsPath::new(&shared, &rays, &lists, &spare_records)?);
         let points = Arc::new(ClosestPoints::new(&shared, &points));
         Ok(VulkanEngine {
             signed: SignedDistancePath::new(&shared, &points, &probes),
@@ -76,6 +81,7 @@ impl VulkanEngine {
             shared,
             rays,
             all_hits,
+            spare_records,
             points,
         })
     }
@@ -185,6 +191,10 @@ impl Engine for VulkanEngine {
 
     fn trace_rays(&self, batch: RayBatch, exact: bool, sink: &mut HitSink, profile: &mut TraceProfile) -> Result<()> {
         self.rays.run(batch, exact, sink, profile)
+    }
+
+    fn recycle_hits(&self, hits: Vec<ReferenceHit>) {
+        self.spare_records.keep(hits);
     }
 
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
