@@ -21,6 +21,21 @@ struct Ray64 {
   double tmax;
 };
 
+// The exact tier's leaner layouts of plain rays (f32, one interval; geometry::rays::RayLayout,
+// RAY_SOURCE 3 and 4 as rays.glsl's): a header of 64 bytes (the shift into the scene's frame and
+// the interval in f64, then the shared origin in f32), then 6 floats a ray (its origin and
+// direction as given, in the world) or 3 (its direction). The origin moves into the scene's
+// frame here in f64, as the host moves it (Rays::ray64).
+const uint EXACT_FROM_COMPACT = 3u;
+const uint EXACT_FROM_DIRECTIONS = 4u;
+layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer ExactRayHeader {
+  double shift[3];
+  double tmin;
+  double tmax;
+  double unused;
+  vec4 origin;
+};
+
 // The ray (and output row) invocation `launch` serves: itself, or with rays from points in an
 // order, the point's own.
 uint ray_index(uint launch) {
@@ -45,6 +60,16 @@ Ray64 load_ray64(uint i) {
     dvec3 shift = dvec3(packDouble2x32(r.shift[0]), packDouble2x32(r.shift[1]), packDouble2x32(r.shift[2]));
     dvec3 d = dvec3(packDouble2x32(r.direction[0]), packDouble2x32(r.direction[1]), packDouble2x32(r.direction[2]));
     return Ray64(p - shift, packDouble2x32(r.tmin), d, packDouble2x32(r.tmax));
+  }
+  if (RAY_SOURCE == EXACT_FROM_COMPACT || RAY_SOURCE == EXACT_FROM_DIRECTIONS) {
+    ExactRayHeader h = ExactRayHeader(params.rays);
+    Floats f = Floats(params.rays + 64ul);
+    bool shared_origin = RAY_SOURCE == EXACT_FROM_DIRECTIONS;
+    uint at = (shared_origin ? 3u : 6u) * i;
+    vec3 o = shared_origin ? h.origin.xyz : vec3(f.v[at], f.v[at + 1u], f.v[at + 2u]);
+    uint d = shared_origin ? at : at + 3u;
+    dvec3 shift = dvec3(h.shift[0], h.shift[1], h.shift[2]);
+    return Ray64(dvec3(o) - shift, h.tmin, dvec3(f.v[d], f.v[d + 1u], f.v[d + 2u]), h.tmax);
   }
   Ray64Buffer rays = Ray64Buffer(params.rays);
   dvec4 a = rays.v[2u * i];

@@ -1199,6 +1199,41 @@ def test_exact_count_through_shared_vertices_and_edges(device, offset):
     assert (counts == 1).all(), f"{np.sum(counts == 0)} misses, {np.sum(counts > 1)} double counts"
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e3, 1e5, 1e7])
+def test_exact_tier_of_f32_rays_equals_the_reference(device, offset):
+    """f32 rays of one interval go to the GPU's exact tier as given (24 bytes a ray, 12 from one
+    origin) and are moved into the scene's frame there in f64: closest hits, occlusion, counts
+    and all hits equal the reference tier's on the same f32 rays, through the vertices and edges
+    a heightfield's triangles share, far from the origin, with per-ray masks, from one origin,
+    and with an interval of their own."""
+    if not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    n = 10
+    v, f, _ = heightfield(n, seed=3, offset=offset)
+    origins, directions = rays_through(shared_targets(v, f, n), seed=4)
+    origins, directions = origins.astype(np.float32), directions.astype(np.float32)
+    scene = device.scene(device.mesh(v, f))
+    # One origin above the field's middle, aimed at the same targets.
+    apex = (v.min(axis=0) + v.max(axis=0)) / 2 + [0.0, 0.0, 2.0]
+    camera = np.float32(apex), (shared_targets(v, f, n) - apex).astype(np.float32)
+    masks = np.where(np.arange(len(origins)) % 3 == 0, 0, 0xFF).astype(np.uint8)
+    for label, (o, d), keywords in [
+        ("rays", (origins, directions), {}),
+        ("masks", (origins, directions), {"mask": masks}),
+        ("camera", camera, {}),
+        ("interval", (origins, directions), {"tmin": 0.5, "tmax": 50.0}),
+    ]:
+        for query in ("intersect", "occluded", "count", "intersect_all"):
+            got = getattr(scene, query)(o, d, precision="exact", **keywords)
+            want = getattr(scene, query)(o, d, precision="reference", **keywords)
+            if query in ("intersect", "intersect_all"):
+                for name in ("t", "prim_id", "uv") + (("offsets",) if query == "intersect_all" else ()):
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=f"{label} {query} {name}")
+            else:
+                np.testing.assert_array_equal(got, want, err_msg=f"{label} {query}")
+    assert (scene.count(origins, directions, precision="exact") == 1).all()
+
+
 @pytest.mark.parametrize("name", ["fandisk", "spot", "cow"])
 def test_exact_contains_equals_the_reference(device, name):
     """contains(precision="exact") counts each point's crossings on the GPU (one instance) or on

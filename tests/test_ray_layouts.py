@@ -109,6 +109,39 @@ def test_leaner_layouts_answer_as_the_full_layout(pair, shift):
         assert (lean_bytes, full_bytes) == (expected_bytes, 32 * len(directions)), what
 
 
+@pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (3e6, -2e6, 1e6)], ids=["at the origin", "far from it"])
+def test_exact_tier_takes_the_leaner_layouts(pair, shift):
+    """The exact tier packs float32 rays of one interval as given (24 bytes a ray, 12 from one
+    origin, a header of 64 per chunk), which the shaders move into the scene's frame in f64;
+    per-ray bounds and float64 rays take 64. Closest hits, counts and all hits equal the full
+    layout's, bit for bit (the full layout's f64 rays are the host's)."""
+    (lean, full), v = bunny_scenes(pair, shift)
+    if "exact" not in _tiers(lean):
+        pytest.skip("no exact tier here")
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, N, seed=8))
+    eye, dirs = oracle.camera_rays(v, 80, 60)
+    eye, dirs = eye.astype(np.float32), dirs.astype(np.float32)
+    tmax = np.random.default_rng(8).uniform(0.05, 0.4, N)
+    cases = [
+        ("random", o, d, {}, 24 * N + 64),
+        ("camera", eye, dirs, {}, 12 * len(dirs) + 64),
+        ("per-ray tmax", o, d, {"tmax": tmax}, 64 * N),
+        ("float64", o.astype(np.float64), d.astype(np.float64), {}, 64 * N),
+    ]
+    for what, origins, directions, bounds, expected_bytes in cases:
+        answers = []
+        for scene in (lean, full):
+            hits = scene.intersect(origins, directions, outputs=["t", "prim_id", "uv"], precision="exact", **bounds)
+            packed = scene.device.last_trace_profile["ray_bytes"]
+            every = scene.intersect_all(origins, directions, outputs=["t", "prim_id"], precision="exact", **bounds)
+            counts = scene.count(origins, directions, precision="exact", **bounds)
+            answers.append((packed, {"t": hits.t, "prim_id": hits.prim_id, "uv": hits.uv, "all t": every.t,
+                                     "all offsets": every.offsets, "counts": counts}))
+        (lean_bytes, got), (full_bytes, want) = answers
+        assert_bitwise(got, want, what)
+        assert (lean_bytes, full_bytes) == (expected_bytes, 64 * len(directions)), what
+
+
 def test_a_chunk_with_a_far_ray_takes_the_full_layout(pair):
     """Chunks of 1000 rays, the third holding a ray from 1e6 radii away (advanced towards the
     scene before packing): that chunk and those after it are packed in full, the two before lean;

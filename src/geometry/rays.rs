@@ -77,6 +77,11 @@ pub enum RayLayout {
 /// Floats of the header of the `Compact` and `Directions` layouts (two aligned vec4).
 pub const RAY_HEADER_FLOATS: usize = 8;
 
+/// Floats of the header of the exact tier's `Compact` and `Directions` layouts (shaders/exact.glsl
+/// `ExactRayHeader`): the shift into the scene's frame, tmin and tmax in f64, then the shared
+/// origin in f32.
+pub const EXACT_HEADER_FLOATS: usize = 16;
+
 impl RayLayout {
     pub fn floats_per_ray(self) -> usize {
         match self {
@@ -90,6 +95,15 @@ impl RayLayout {
     pub fn bytes(self, n: usize) -> usize {
         let header = if self == RayLayout::Full { 0 } else { RAY_HEADER_FLOATS };
         4 * (header + n * self.floats_per_ray())
+    }
+
+    /// Bytes `n` rays of the exact tier take in this layout, with its header (f64 rays in the full
+    /// one).
+    pub fn exact_bytes(self, n: usize) -> usize {
+        match self {
+            RayLayout::Full => 8 * RAY_FLOATS * n,
+            _ => 4 * (EXACT_HEADER_FLOATS + n * self.floats_per_ray()),
+        }
     }
 }
 
@@ -367,6 +381,55 @@ impl Rays<'_> {
             RayLayout::Full => unreachable!("the full layout packs by `pack`"),
         }?;
         Ok(packed.map(|_| ()))
+    }
+
+    /// The leaner layout the exact tier packs these rays in, if any (`pack_exact_compact`):
+    /// plain rays (f32, one interval), from one origin or each from its own.
+    pub fn exact_layout(&self) -> Option<RayLayout> {
+        let plain = PlainRays::of(self)?;
+        if !plain.shared_origin {
+            return Some(RayLayout::Compact);
+        }
+        plain.origins[..3].iter().all(|c| c.is_finite()).then_some(RayLayout::Directions)
+    }
+
+    /// Packs rays `start..` for the exact tier in `layout` (from `exact_layout`) into `out`,
+    /// header first, as many as fit after it: each ray's f32 origin (unless shared) and direction
+    /// as given, which the shaders move into the scene's frame by `shift` in f64, as `pack_f64`
+    /// does (`ray64`). The error names the first invalid ray.
+    pub fn pack_exact_compact(&self, layout: RayLayout, start: usize, out: &mut [f32], shift: DVec3) -> Result<()> {
+        let plain = PlainRays::of(self).expect("compact layouts are for plain rays");
+        let (PerRay::All(tmin), PerRay::All(tmax)) = (self.tmin, self.tmax) else {
+            unreachable!("plain rays share one interval")
+        };
+        let PlainRays { origins, directions, .. } = plain;
+        let (header, out) = out.split_at_mut(EXACT_HEADER_FLOATS);
+        let (wide, narrow) = header.split_at_mut(12);
+        bytemuck::cast_slice_mut::<f32, f64>(wide).copy_from_slice(&[shift.x, shift.y, shift.z, tmin, tmax, 0.0]);
+        let shared = if layout == RayLayout::Directions { [origins[0], origins[1], origins[2]] } else { [0.0; 3] };
+        narrow.copy_from_slice(&[shared[0], shared[1], shared[2], 0.0]);
+        let valid = |o: &[f32], d: &[f32]| o.iter().chain(d).all(|c| c.is_finite()) && d != [0.0; 3];
+        let packed = match layout {
+            RayLayout::Directions => self.pack_strided(start, out, 3, |i, ray| {
+                let d = &directions[3 * i..3 * i + 3];
+                if !valid(&shared, d) {
+                    return Err(Refused::Invalid);
+                }
+                ray.copy_from_slice(d);
+                Ok(None)
+            }),
+            RayLayout::Compact => self.pack_strided(start, out, 6, |i, ray| {
+                let (o, d) = (&origins[3 * i..3 * i + 3], &directions[3 * i..3 * i + 3]);
+                if !valid(o, d) {
+                    return Err(Refused::Invalid);
+                }
+                ray[..3].copy_from_slice(o);
+                ray[3..].copy_from_slice(d);
+                Ok(None)
+            }),
+            RayLayout::Full => unreachable!("the full layout packs by `pack_f64`"),
+        }?;
+        packed.map(|_| ()).ok_or_else(|| crate::error::Error::Internal("an exact ray refused as far".into()))
     }
 
     /// A far ray's origin and interval after `Frame::advance`, and how far it moved.

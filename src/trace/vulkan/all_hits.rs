@@ -219,7 +219,7 @@ impl AllHitsPath {
         let (count, all) = (Request { query: Query::Count, ..request }, Request { query: Query::All, ..request });
         let (counting_variant, sensor) = shared.gpu_variant(scene, rays, count, exact, outputs)?;
         let storing_variant = shared.variants.get(shared.variant_key(scene, all, exact, outputs, sensor.is_some()))?;
-        let compact = |request| shared.compact_variant(scene, rays, request, outputs, exact || sensor.is_some());
+        let compact = |request| shared.compact_variant(scene, rays, request, outputs, exact, sensor.is_some());
         let (counting_compact, storing_compact) = match (compact(count)?, compact(all)?) {
             // Both passes read the rays as packed once: compact only where both variants can.
             (Some(a), Some(b)) if a.0 == b.0 => (Some(a), Some(b)),

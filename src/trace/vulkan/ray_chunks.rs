@@ -109,7 +109,7 @@ impl RayChunks {
         };
         let (exact, cap) = (exact_scene.as_deref(), cap.as_deref());
         let compact_variant =
-            shared.compact_variant(scene, rays, request, outputs, exact_scene.is_some() || sensor.is_some())?;
+            shared.compact_variant(scene, rays, request, outputs, exact_scene.is_some(), sensor.is_some())?;
         let compact = compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant));
         let compact_refused = Default::default();
         // Taken last: nothing fails between here and their return.
@@ -395,6 +395,19 @@ pub(super) fn pack_chunk(job: &GpuJob, slot: RayStaging, start: usize, len: usiz
     *slot_layout = RayLayout::Full;
     let packed = rays.mapped_mut().expect("ray staging is host-visible");
     let (rays_bytes, masks_bytes) = packed.split_at_mut(masks_at);
+    if exact {
+        // Plain rays in a leaner layout, which the shaders move into the scene's frame in f64.
+        if let Some((layout, _)) = job.compact.filter(|(layout, _)| layout.exact_bytes(len) < len * RAY_FLOATS * 8) {
+            let out: &mut [f32] = bytemuck::cast_slice_mut(&mut rays_bytes[..layout.exact_bytes(len)]);
+            job.rays.pack_exact_compact(layout, start, out, job.frame.shift)?;
+            *slot_layout = layout;
+        } else {
+            let out: &mut [f64] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 8]);
+            job.rays.pack_f64(start, out, job.frame.shift)?;
+        }
+        pack_masks(job, masks_bytes, start, len);
+        return Ok(Vec::new());
+    }
     let refused = job.compact_refused.load(Ordering::Relaxed);
     let compact = job.compact.filter(|(layout, _)| !refused && layout.bytes(len) <= len * RAY_FLOATS * 4);
     let mut packed_compact = false;
@@ -403,26 +416,27 @@ pub(super) fn pack_chunk(job: &GpuJob, slot: RayStaging, start: usize, len: usiz
         packed_compact = job.rays.pack_compact(layout, start, out, &job.frame)?.is_some();
         job.compact_refused.store(!packed_compact, Ordering::Relaxed);
     }
-    let advances = if exact {
-        let out: &mut [f64] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 8]);
-        job.rays.pack_f64(start, out, job.frame.shift)?;
-        Vec::new()
-    } else if packed_compact {
+    let advances = if packed_compact {
         Vec::new()
     } else {
         let out: &mut [f32] = bytemuck::cast_slice_mut(&mut rays_bytes[..len * RAY_FLOATS * 4]);
         job.rays.pack(start, out, &job.frame)?
     };
+    pack_masks(job, masks_bytes, start, len);
+    if let (true, Some((layout, _))) = (packed_compact, compact) {
+        *slot_layout = layout;
+    }
+    Ok(advances)
+}
+
+/// The per-ray masks of rays `start..start + len`, one word each, where the rays have them.
+fn pack_masks(job: &GpuJob, masks_bytes: &mut [u8], start: usize, len: usize) {
     if let Masks::Each(masks) = job.rays.mask {
         let words: &mut [u32] = bytemuck::cast_slice_mut(&mut masks_bytes[..4 * len]);
         parallel::install(|| {
             words.par_iter_mut().zip(&masks[start..start + len]).for_each(|(dst, m)| *dst = *m as u32)
         });
     }
-    if let (true, Some((layout, _))) = (packed_compact, compact) {
-        *slot_layout = layout;
-    }
-    Ok(advances)
 }
 
 /// A finished chunk: its timestamps into the profile, its hits into the caller's arrays.

@@ -199,22 +199,24 @@ impl Shared {
         Ok((variant, sensor))
     }
 
-    /// The leaner layout a GPU query's host-packed f32 rays take, if any (rays of the common
-    /// shape; not the exact tier's f64 rays, nor rays a sensor generates on the GPU), and the
-    /// variant of `request` that reads it.
+    /// The leaner layout a GPU query's host-packed rays take, if any (rays of the common shape,
+    /// f32 or, in the exact tier, f32 rays moved into the scene's frame in f64 by the shaders;
+    /// not rays a sensor generates on the GPU), and the variant of `request` that reads it.
     pub fn compact_variant(
         &self,
         scene: &Scene,
         rays: &Rays,
         request: Request,
         outputs: u32,
-        exact_or_sensor: bool,
+        exact: bool,
+        sensor: bool,
     ) -> Result<Option<(RayLayout, Arc<Variant>)>> {
-        if exact_or_sensor || !self.pack_compact {
+        if sensor || !self.pack_compact {
             return Ok(None);
         }
-        let Some(layout) = rays.compact_layout(&scene.frame()) else { return Ok(None) };
-        let key = self.variant_key(scene, request, false, outputs, false);
+        let layout = if exact { rays.exact_layout() } else { rays.compact_layout(&scene.frame()) };
+        let Some(layout) = layout else { return Ok(None) };
+        let key = self.variant_key(scene, request, exact, outputs, false);
         Ok(Some((layout, self.variants.get(VariantKey { ray_source: ray_source(layout), ..key })?)))
     }
 

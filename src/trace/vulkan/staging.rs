@@ -110,7 +110,7 @@ impl Slot {
     /// Bytes of the chunk of `len` rays now in the slot's ray staging.
     pub fn packed_bytes(&self, len: usize) -> usize {
         if self.exact {
-            len * Slot::ray_bytes(true)
+            self.layout.exact_bytes(len)
         } else {
             self.layout.bytes(len)
         }
