@@ -507,9 +507,9 @@ impl PyScene {
                     None => sink.position = Some(column.bytes()),
                 }
             }
-            self.tracer.write_all(scene, &rays, &all, &mut sink)?;
+            let mut ray_index = try_zeroed(h, "the hits' ray indices")?;
+            self.tracer.write_all(scene, &rays, &all, &mut sink, &mut ray_index)?;
             interrupt.check()?;
-            let ray_index = crate::trace::host_tiers::ray_indices(&all.offsets)?;
             let crate::trace::host_tiers::AllHits { offsets, hits, .. } = all;
             self.tracer.recycle_hits(hits);
             Ok((offsets, ray_index, columns))

@@ -350,9 +350,16 @@ impl<E: Engine + ?Sized> Tracer<E> {
     }
 
     /// Writes the fields `sink` asks for, one entry per hit of `trace_all` (on the same scene and
-    /// rays).
-    pub fn write_all(&self, scene: &Scene, rays: &Rays, all: &AllHits, sink: &mut HitSink) -> Result<()> {
-        host_tiers::write_all_hits(scene, rays, all, sink)
+    /// rays), and each hit's ray into `ray_index`.
+    pub fn write_all(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        all: &AllHits,
+        sink: &mut HitSink,
+        ray_index: &mut [i64],
+    ) -> Result<()> {
+        host_tiers::write_all_hits_and_rays(scene, rays, all, sink, ray_index)
     }
 
     /// Hands the records of a `trace_all` answer back to the engine, once written out.
