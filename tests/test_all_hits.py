@@ -1236,7 +1236,8 @@ def test_exact_tier_of_f32_rays_equals_the_reference(device, offset):
             want = getattr(scene, query)(o, d, precision="reference", **keywords)
             if query in ("intersect", "intersect_all"):
                 for name in ("t", "prim_id", "uv") + (("offsets",) if query == "intersect_all" else ()):
-                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=f"{label} {query} {name}")
+                    what = f"{label} {query} {name}"
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=what)
             else:
                 np.testing.assert_array_equal(got, want, err_msg=f"{label} {query}")
     assert (scene.count(origins, directions, precision="exact") == 1).all()

@@ -138,12 +138,15 @@ def test_a_device_keeps_staging_for_as_many_queries_as_ran_at_once(backend):
     assert device.idle_memory == {**alone, "made": after["made"] + alone["made"]}
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", [*BACKENDS, "cpu"])
 def test_all_hits_records_are_kept_for_the_next_query(backend):
     """The host's records of an all-hits answer are kept for the next query (their pages touched
-    already) and counted in idle_memory; four threads at once get answers equal to one thread's;
-    release_idle_memory frees them."""
-    device = vkray.Device(backend=backend, validation=VALIDATION)
+    already) and counted in idle_memory, on both engines; four threads at once get answers equal
+    to one thread's; release_idle_memory frees them."""
+    if backend == "cpu":
+        device = vkray.Device("cpu")
+    else:
+        device = vkray.Device(backend=backend, validation=VALIDATION)
     v, f = oracle.load_mesh("cow")
     scene = device.scene(device.mesh(v, f))
     o, d = oracle.random_rays(v, 20_000, seed=7)

@@ -1,10 +1,13 @@
-//! Idle GPU resources kept between queries (staging slots, packing scratch, list buffers, CUDA
-//! leases): allocating them costs more than a chunk's trace on discrete GPUs, so a device keeps
-//! what its queries used, as many as were ever in use at once (up to a cap). A fixed number
+//! Idle resources kept between queries (staging slots, packing scratch, list buffers, CUDA
+//! leases; and the host's records of all hits, `SpareRecords`): allocating them costs more than a
+//! chunk's trace on discrete GPUs, so a device keeps what its queries used, as many as were ever
+//! in use at once (up to a cap). A fixed number
 //! made every query beyond it allocate anew when more threads queried one device at once: with
 //! four threads, a 4M-ray call went from 7 to 45 ms on an H200 (docs/benchmarks.md, session 15).
 
 use std::sync::Mutex;
+
+use crate::geometry::reference::ReferenceHit;
 
 /// What an idle item holds: the bytes of its buffers (host-visible staging and device copies).
 pub trait Held {
@@ -199,5 +202,52 @@ mod tests {
         pool.clear();
         assert!(pool.lock().idle.is_empty());
         assert_eq!(pool.lock().out, 1);
+    }
+}
+
+/// Most bytes of records kept for the next query.
+const MOST_SPARE_BYTES: usize = 256 << 20;
+
+/// The records of the last answer its caller handed back (`Engine::recycle_hits`), for the next
+/// query to fill: a million hits' records in fresh memory cost their pages' first touch, about
+/// as much again as their copying (and their release as much).
+#[derive(Default)]
+pub struct SpareRecords(Mutex<Vec<ReferenceHit>>);
+
+impl SpareRecords {
+    /// The spare records (empty, with their room), or a new vector.
+    pub fn take(&self) -> Vec<ReferenceHit> {
+        let mut records = std::mem::take(&mut *self.0.lock().unwrap_or_else(|e| e.into_inner()));
+        records.clear();
+        records
+    }
+
+    /// Keeps `records` for the next query where they have more room than the spare ones (and at
+    /// most `MOST_SPARE_BYTES`).
+    pub fn keep(&self, records: Vec<ReferenceHit>) {
+        if records.capacity() * std::mem::size_of::<ReferenceHit>() > MOST_SPARE_BYTES {
+            return;
+        }
+        let mut spare = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        let dropped =
+            if records.capacity() > spare.capacity() { std::mem::replace(&mut *spare, records) } else { records };
+        drop(spare);
+        // Freed outside the lock.
+        drop(dropped);
+    }
+}
+
+impl Idle for SpareRecords {
+    fn memory(&self) -> IdleMemory {
+        let capacity = self.0.lock().unwrap_or_else(|e| e.into_inner()).capacity();
+        IdleMemory {
+            bytes: (capacity * std::mem::size_of::<ReferenceHit>()) as u64,
+            items: (capacity > 0) as usize,
+            made: 0,
+        }
+    }
+
+    fn clear(&self) {
+        drop(std::mem::take(&mut *self.0.lock().unwrap_or_else(|e| e.into_inner())));
     }
 }

@@ -19,12 +19,12 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::build_options::BuildOptions;
 use crate::geometry::parallel::try_vec;
 use crate::geometry::rays::PerRay;
-use crate::geometry::reference::Filter;
+use crate::geometry::reference::{Filter, ReferenceHit};
 use crate::scene::{build_cpu_meshes, build_cpu_scene, build_cpu_spheres, CpuScene, Instance, Mesh, MeshBatch, Scene};
 use crate::trace::engine::{Engine, EngineLimits};
 use crate::trace::hit_fields::{hits_from_prims, Field, HitSink};
 use crate::trace::host_tiers::{self, AllHits};
-use crate::trace::idle::IdleMemory;
+use crate::trace::idle::{Idle, IdleMemory, SpareRecords};
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
 
@@ -41,6 +41,8 @@ pub struct CpuEngine {
     /// Rays a packet of the fast tier's plain closest hits and occlusion takes: Embree's widest
     /// native packet on this CPU (16 with AVX-512, 8 with AVX2; 1: one ray at a time).
     packet_width: usize,
+    /// The last all-hits answer's records, for the next to fill.
+    spare_records: SpareRecords,
 }
 
 impl CpuEngine {
@@ -62,7 +64,8 @@ impl CpuEngine {
         let name = format!("CPU ({cores} cores, Embree {}.{}.{})", v / 10000, v / 100 % 100, v % 100);
         let packet_width = device.packet_width();
         let chunk_rays = AtomicUsize::new(DEFAULT_CHUNK_RAYS);
-        Ok(CpuEngine { device, name, chunk_rays, profile: Default::default(), packet_width })
+        let spare_records = SpareRecords::default();
+        Ok(CpuEngine { device, name, chunk_rays, profile: Default::default(), packet_width, spare_records })
     }
 
     /// What a query of `request` on `scene` runs, as `Scene.explain` shows it: its stages, and the
@@ -178,10 +181,12 @@ impl Engine for CpuEngine {
     }
 
     fn idle_memory(&self) -> IdleMemory {
-        IdleMemory::default()
+        self.spare_records.memory()
     }
 
-    fn release_idle_memory(&self) {}
+    fn release_idle_memory(&self) {
+        self.spare_records.clear()
+    }
 
     fn chunk_rays(&self) -> usize {
         self.chunk_rays.load(Ordering::Relaxed)
@@ -217,6 +222,10 @@ impl Engine for CpuEngine {
         trace_fast(batch, CpuScene::of(batch.scene)?, sink, widths, profile)
     }
 
+    fn recycle_hits(&self, hits: Vec<ReferenceHit>) {
+        self.spare_records.keep(hits);
+    }
+
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
         let RayBatch { scene, rays, request, interrupt } = batch;
         let _in_use = scene.hold_meshes();
@@ -226,7 +235,8 @@ impl Engine for CpuEngine {
             rays.check()?;
             host_tiers::all_hits(scene, rays, request.filter(), max_hits, host_bytes_per_hit, interrupt)?
         } else {
-            all_hits_fast(batch, CpuScene::of(scene)?, max_hits, host_bytes_per_hit, self.chunk_rays())?
+            let records = self.spare_records.take();
+            all_hits_fast(batch, CpuScene::of(scene)?, (max_hits, host_bytes_per_hit), self.chunk_rays(), records)?
         };
         self.keep_host_profile(rays.len(), started);
         Ok(all)

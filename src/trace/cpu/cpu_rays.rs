@@ -13,7 +13,7 @@ use crate::embree::api::{
     RAY_QUERY_FLAG_COHERENT, RAY_QUERY_FLAG_INCOHERENT,
 };
 use crate::error::{invalid_value, Error, Result};
-use crate::geometry::parallel::{self, try_vec};
+use crate::geometry::parallel::{self, try_vec, try_zeroed};
 use crate::geometry::rays::{Advance, RAY_FLOATS};
 use crate::geometry::reference::ReferenceHit;
 use crate::scene::{CpuScene, MeshKind, Scene};
@@ -444,9 +444,9 @@ fn fill<T: bytemuck::Pod>(out: &mut [u8], answers: &[RayAnswer], value: impl Fn(
 pub fn all_hits_fast(
     batch: RayBatch,
     hierarchy: &CpuScene,
-    max_hits: usize,
-    host_bytes_per_hit: usize,
+    (max_hits, host_bytes_per_hit): (usize, usize),
     chunk: usize,
+    mut hits: Vec<ReferenceHit>,
 ) -> Result<AllHits> {
     let RayBatch { scene, rays, request, interrupt } = batch;
     if request.cull != crate::geometry::precision::Cull::None && max_hits == 0 {
@@ -455,8 +455,8 @@ pub fn all_hits_fast(
     let (n, frame) = (rays.len(), scene.frame());
     let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
     let units = Units::of(hierarchy);
-    let mut offsets = try_vec(n + 1, 0i64, "the offsets of all hits")?;
-    let mut hits: Vec<ReferenceHit> = Vec::new();
+    let mut offsets: Vec<i64> = try_zeroed(n + 1, "the offsets of all hits")?;
+    hits.clear();
     in_paced_blocks(n, (FIRST_ON_CPU, chunk), interrupt, |range| {
         let (start, len) = (range.start, range.len());
         let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
@@ -486,14 +486,7 @@ pub fn all_hits_fast(
         check_hits_fit(hits.len() + added, std::mem::size_of::<ReferenceHit>() + host_bytes_per_hit)?;
         hits.try_reserve(added)
             .map_err(|_| Error::OutOfMemory(format!("{} hits do not fit in host memory", hits.len() + added)))?;
-        let mut ray = start;
-        for (counts, found) in blocks {
-            hits.extend(found);
-            for count in counts {
-                offsets[ray + 1] = offsets[ray] + i64::from(count);
-                ray += 1;
-            }
-        }
+        place_blocks(&blocks, &mut offsets[start..start + len + 1], &mut hits);
         for advance in &advances {
             let r = start + advance.ray;
             for hit in &mut hits[offsets[r] as usize..offsets[r + 1] as usize] {
@@ -503,6 +496,36 @@ pub fn all_hits_fast(
         Ok(())
     })?;
     Ok(AllHits { offsets, hits, wide: false })
+}
+
+/// Appends each block's hits to `hits` (room reserved) and writes its rays' offsets after
+/// `offsets[0]` (the first ray's, written already), the blocks side by side on all cores.
+fn place_blocks(blocks: &[(Vec<u32>, Vec<ReferenceHit>)], offsets: &mut [i64], hits: &mut Vec<ReferenceHit>) {
+    let base = hits.len();
+    let mut parts = Vec::with_capacity(blocks.len());
+    let mut at = offsets[0];
+    let (mut rest, mut rays) = (&mut hits.spare_capacity_mut()[..], &mut offsets[1..]);
+    for (counts, found) in blocks {
+        let (part, tail) = std::mem::take(&mut rest).split_at_mut(found.len());
+        let (ends, more) = std::mem::take(&mut rays).split_at_mut(counts.len());
+        parts.push((at, part, ends, counts, found));
+        (rest, rays, at) = (tail, more, at + found.len() as i64);
+    }
+    parallel::install(|| {
+        parts.into_par_iter().for_each(|(at, part, ends, counts, found)| {
+            for (slot, hit) in part.iter_mut().zip(found) {
+                slot.write(*hit);
+            }
+            let mut end = at;
+            for (out, &count) in ends.iter_mut().zip(counts.iter()) {
+                end += i64::from(count);
+                *out = end;
+            }
+        })
+    });
+    let added: usize = blocks.iter().map(|(_, found)| found.len()).sum();
+    // SAFETY: the parts cover the `added` entries after the first `base`, each written above.
+    unsafe { hits.set_len(base + added) };
 }
 
 /// A fast-tier hit as every-hit answers hold it: f32 values, the triangle among all parts (`t`

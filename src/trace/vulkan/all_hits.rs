@@ -31,11 +31,11 @@ use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{Scene, VulkanScene};
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
-use crate::trace::idle::{Idle, IdleMemory, IdlePool};
+use crate::trace::idle::{IdlePool, SpareRecords};
 use crate::trace::pacer::{in_paced_blocks, ChunkPacer, FIRST_ON_CPU};
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Precision, Query, RayBatch, Request};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// What the storing pass found: ray i's hits are `records[offsets[i]..offsets[i + 1]]` (the CPU
 /// tracer's records, each turned into one as it came back), of which the first `seen[i]` are
@@ -73,49 +73,6 @@ pub struct AllHitsPath {
     lists: Arc<IdlePool<ListBuffers>>,
     spare: Arc<SpareRecords>,
     offsets: ListOffsets,
-}
-
-/// Most bytes of records kept for the next query.
-const MOST_SPARE_BYTES: usize = 256 << 20;
-
-/// The records of the last answer its caller handed back (`Engine::recycle_hits`), for the next
-/// query to fill: a million hits' records in fresh memory cost their pages' first touch, about
-/// as much again as their copying (and their release as much).
-#[derive(Default)]
-pub struct SpareRecords(Mutex<Vec<ReferenceHit>>);
-
-impl SpareRecords {
-    /// The spare records (empty, with their room), or a new vector.
-    fn take(&self) -> Vec<ReferenceHit> {
-        let mut records = std::mem::take(&mut *self.0.lock().unwrap_or_else(|e| e.into_inner()));
-        records.clear();
-        records
-    }
-
-    /// Keeps `records` for the next query where they have more room than the spare ones (and at
-    /// most `MOST_SPARE_BYTES`).
-    pub fn keep(&self, records: Vec<ReferenceHit>) {
-        if records.capacity() * size_of::<ReferenceHit>() > MOST_SPARE_BYTES {
-            return;
-        }
-        let mut spare = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        let dropped =
-            if records.capacity() > spare.capacity() { std::mem::replace(&mut *spare, records) } else { records };
-        drop(spare);
-        // Freed outside the lock.
-        drop(dropped);
-    }
-}
-
-impl Idle for SpareRecords {
-    fn memory(&self) -> IdleMemory {
-        let capacity = self.0.lock().unwrap_or_else(|e| e.into_inner()).capacity();
-        IdleMemory { bytes: (capacity * size_of::<ReferenceHit>()) as u64, items: (capacity > 0) as usize, made: 0 }
-    }
-
-    fn clear(&self) {
-        drop(std::mem::take(&mut *self.0.lock().unwrap_or_else(|e| e.into_inner())));
-    }
 }
 
 /// A query's two passes over each chunk: the counting pass's job and the storing pass's, which

@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use super::all_hits::{AllHitsPath, SpareRecords, IDLE_LISTS};
+use super::all_hits::{AllHitsPath, IDLE_LISTS};
 use super::closest_points::{ClosestPoints, PointPipelines};
 use super::containment::Containment;
 use super::cuda_rays::{CudaRaysPath, CudaState};
@@ -27,7 +27,7 @@ use crate::scene::{build_vulkan_meshes, build_vulkan_scene, build_vulkan_spheres
 use crate::trace::engine::{Engine, EngineLimits};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::AllHits;
-use crate::trace::idle::{Idle, IdleMemory, IdlePool};
+use crate::trace::idle::{Idle, IdleMemory, IdlePool, SpareRecords};
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
 
