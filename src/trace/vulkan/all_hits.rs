@@ -1,10 +1,12 @@
 //! All hits of each ray on the GPU (fast and exact tiers), chunk by chunk. Each chunk's rays are
-//! packed once; a counting pass (the all-hits shaders with lists of no room) finds how many hits
-//! each ray meets, and list_offsets.comp turns the counts into each ray's list among the chunk's
-//! records, all in one submission; the host reads back only the chunk's total. A storing pass then
-//! keeps each ray's hits (its nearest `max_hits`), sorted, in its list, and the records come back
-//! with their offsets: straight after the chunks before. Memory is bounded by the chunks (a chunk
-//! whose records do not fit stores only the rays whose lists do) and nothing is truncated.
+//! packed once. A counting pass (the all-hits shaders with fixed lists of a few records a ray)
+//! finds how many hits each ray meets and keeps its nearest few; list_offsets.comp turns the
+//! counts into each ray's list among the chunk's records and copies into place the hits of rays
+//! the counting pass kept whole, all in one submission; the host reads back only the chunk's
+//! total. A storing pass then keeps the hits (the nearest `max_hits`) of the other rays, sorted,
+//! in their lists, if there are any, and the records come back with their offsets: straight after
+//! the chunks before. Memory is bounded by the chunks (a chunk whose records do not fit stores
+//! only the rays whose lists do) and nothing is truncated.
 
 use std::cmp::Ordering;
 use std::mem::size_of;

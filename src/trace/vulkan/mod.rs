@@ -1,9 +1,10 @@
 //! The Vulkan engine (`VulkanEngine`, the `Engine` seam over one Vulkan device). Its files, lowest
 //! first (each imports only files above it in this list): the device's timestamps, pipeline
-//! variants, staging, sensor records and the all-hits lists; the value every path shares; then each path, owning its
-//! state and borrowing the shared value: the host-packed chunk loop (closest hit and the other ray
-//! queries), the probes, GPU-packed rays, the two together, CUDA rays, all hits, closest points,
-//! signed distances and `contains`; last the engine that makes them and dispatches to them.
+//! variants, staging, sensor records and the all-hits lists; the value every path shares; then
+//! each path, owning its state and borrowing the shared value: the host-packed chunk loop
+//! (closest hit and the other ray queries), the probes, GPU-packed rays, the two together, CUDA
+//! rays, all hits, closest points, signed distances and `contains`; last the engine that makes
+//! them and dispatches to them.
 
 pub mod timestamps;
 
