@@ -30,9 +30,26 @@ layout(buffer_reference, std430, buffer_reference_align = 16) buffer Records { A
 
 shared uint64_t partial[gl_WorkGroupSize.x];
 
-// The records ray i keeps.
+// The hits the counting pass met on ray i.
+uint met_hits(uint i) {
+  return uint(max(Counts(list_params.counts).v[i], 0));
+}
+
+// Whether a list of `capacity` records is appended to (sorted by the host): long, and holding
+// every hit of its ray (hit_lists.rs `appends`).
+bool appended(uint capacity) {
+  return capacity > list_params.insertion_limit && capacity < list_params.max_hits;
+}
+
+// The records ray i keeps. With fixed lists, the counting pass counts a hit met twice once where
+// it kept it; an appended list counts every hit the storing pass meets: it has room for as many
+// repeats as the counting pass kept hits (the host drops them).
 uint kept(uint i) {
-  return uint(clamp(Counts(list_params.counts).v[i], 0, int(list_params.max_hits)));
+  uint capacity = min(met_hits(i), list_params.max_hits);
+  if (list_params.nearest != 0ul && appended(capacity)) {
+    capacity = min(capacity + list_params.nearest_hits, list_params.max_hits);
+  }
+  return capacity;
 }
 
 uint runs() {
@@ -97,7 +114,7 @@ void write_run(uint j) {
   uint k_nearest = list_params.nearest != 0ul ? list_params.nearest_hits : 0u;
   for (uint i = first; i < last; ++i) {
     uint capacity = kept(i);
-    uint met = uint(max(Counts(list_params.counts).v[i], 0));
+    uint met = met_hits(i);
     // Kept whole by the counting pass: every hit it met, or the nearest max_hits of them.
     bool whole = capacity <= k_nearest && (met <= k_nearest || list_params.max_hits <= k_nearest);
     // Only lists the host will keep are read by the storing pass: their `first` fits 32 bits
@@ -106,8 +123,7 @@ void write_run(uint j) {
       copy_nearest(i, capacity, at);
       lists.l[i] = HitList(HIT_LIST_DONE, capacity);
     } else {
-      bool appends = capacity > list_params.insertion_limit && capacity < list_params.max_hits;
-      lists.l[i] = HitList(uint(at), capacity | (appends ? HIT_LIST_APPEND : 0u));
+      lists.l[i] = HitList(uint(at), capacity | (appended(capacity) ? HIT_LIST_APPEND : 0u));
       storing = true;
     }
     offsets.v[i] = at;

@@ -236,7 +236,8 @@ pub const POINT_ORDER_SCATTER: u32 = 2;
 pub struct ListParams {
     /// i32 per ray: the hits the counting pass met.
     pub counts: u64,
-    /// u64 per run of `run` rays, and one more: the chunk's records.
+    /// u64 per run of `run` rays, then the chunk's records and whether any ray needs the storing
+    /// pass.
     pub sums: u64,
     /// Out: `HitList` per ray.
     pub lists: u64,

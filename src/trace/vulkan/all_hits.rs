@@ -3,7 +3,7 @@
 //! finds how many hits each ray meets and keeps its nearest few; list_offsets.comp turns the
 //! counts into each ray's list among the chunk's records and copies into place the hits of rays
 //! the counting pass kept whole, all in one submission; the host reads back only the chunk's
-//! total. A storing pass then keeps the hits (the nearest `max_hits`) of the other rays, sorted,
+//! total (and the offsets, where the records have no room for every ray's). A storing pass then keeps the hits (the nearest `max_hits`) of the other rays, sorted,
 //! in their lists, if there are any, and the records come back with their offsets: straight after
 //! the chunks before. Memory is bounded by the chunks (a chunk whose records do not fit stores
 //! only the rays whose lists do) and nothing is truncated.
@@ -63,8 +63,9 @@ fn record_budget(unified_memory: bool) -> usize {
 }
 
 /// Idle lists kept between queries: as many as were in use at once, at least one and at most
-/// eight, each of at most `IDLE_RECORD_BYTES` of records.
-pub const IDLE_LISTS: (usize, usize) = (1, 8);
+/// two (each holds its chunk's nearest hits, the records on the device and their host copy:
+/// three times `IDLE_RECORD_BYTES` at most), each of at most `IDLE_RECORD_BYTES` of records.
+pub const IDLE_LISTS: (usize, usize) = (1, 2);
 const IDLE_RECORD_BYTES: usize = 256 << 20;
 
 /// The all-hits path. Owns the idle lists and records of the storing pass and the kernel that
@@ -103,6 +104,11 @@ impl AllHitsPath {
             spare: spare.clone(),
             offsets,
         })
+    }
+
+    /// Takes back the records of an answer its caller is done with, for the next query.
+    pub fn recycle(&self, hits: Vec<ReferenceHit>) {
+        self.spare.keep(hits);
     }
 
     /// Every hit of every ray (the nearest `max_hits` of each) as the GPU tier `request` names
@@ -244,7 +250,10 @@ impl AllHitsPath {
             let lists = (&mut *lists, &mut room);
             let stored_rays =
                 self.trace_chunk::<R>(passes, slot, lists, &mut commands, (start, len), stored, profile)?;
-            pacer.finished(stored_rays.max(1));
+            // A chunk that only grew the records stored nothing: its time is the next one's.
+            if stored_rays > 0 {
+                pacer.finished(stored_rays);
+            }
             start += stored_rays;
             interrupt.progress(start, n);
         }
@@ -340,6 +349,10 @@ impl AllHitsPath {
         // a vector grown chunk by chunk would copy its records again each time it doubles.
         let n = stored.seen.len();
         let expected = (total as f64 * (n - start) as f64 / len as f64 * 1.1) as usize;
+        if base == 0 && stored.records.capacity() < total as usize {
+            // Spare records too small: growing them would copy them whole, unused as they are.
+            stored.records = Vec::new();
+        }
         if base == 0 && expected > total as usize && stored.records.try_reserve_exact(expected).is_ok() {
             parallel::advise_huge_pages(&mut stored.records);
         }
@@ -478,13 +491,17 @@ impl HitRecord for FastHit {
     const WIDE: bool = false;
 
     fn reference(&self, scene: &Scene) -> ReferenceHit {
-        let triangles = &scene.placements[self.instance as usize].triangles;
+        // Checked: the end of a list written short holds bytes no shader wrote (dropped later).
+        let part = scene
+            .placements
+            .get(self.instance as usize)
+            .and_then(|p| p.triangles.part_offsets.get(self.geometry as usize));
         ReferenceHit {
             t: self.t as f64,
             u: self.u as f64,
             v: self.v as f64,
             instance: self.instance as u32,
-            prim: triangles.global(self.geometry as usize, self.prim as usize) as u32,
+            prim: part.map_or(0, |&first| first.wrapping_add(self.prim as u32)),
         }
     }
 }
@@ -544,7 +561,8 @@ impl StoredHits {
     }
 
     /// Keeps the first `kept[i]` hits of each ray's list, contiguous: new offsets by a blocked
-    /// scan, the records gathered into a new array on all cores.
+    /// scan, the records gathered into a new array on all cores (or moved in place, one ray
+    /// after another, where the host has no room for a second array).
     fn compact(&mut self, kept: &[usize]) -> Result<()> {
         let n = kept.len();
         let sums: Vec<usize> = parallel::install(|| kept.par_chunks(SCAN_BLOCK).map(|b| b.iter().sum()).collect());
@@ -555,9 +573,10 @@ impl StoredHits {
             total += sum;
         }
         let mut records: Vec<ReferenceHit> = Vec::new();
-        records
-            .try_reserve_exact(total)
-            .map_err(|_| Error::OutOfMemory(format!("the {total} hits' records do not fit in host memory")))?;
+        if records.try_reserve_exact(total).is_err() {
+            self.compact_in_place(kept);
+            return Ok(());
+        }
         parallel::advise_huge_pages(&mut records);
         // Each block's records go to their own part of the new array.
         let mut parts = Vec::with_capacity(starts.len());
@@ -592,6 +611,22 @@ impl StoredHits {
         self.offsets[n] = running;
         self.records = records;
         Ok(())
+    }
+}
+
+impl StoredHits {
+    /// `compact` without a second array: each ray's kept hits moved down in turn.
+    fn compact_in_place(&mut self, kept: &[usize]) {
+        let mut to = 0;
+        for (i, &kept) in kept.iter().enumerate() {
+            let from = self.offsets[i] as usize;
+            self.records.copy_within(from..from + kept, to);
+            self.offsets[i] = to as i64;
+            to += kept;
+        }
+        let n = kept.len();
+        self.offsets[n] = to as i64;
+        self.records.truncate(to);
     }
 }
 
@@ -631,7 +666,40 @@ fn sort_unique(list: &mut [ReferenceHit]) -> usize {
 
 #[cfg(test)]
 mod tests {
-    use super::rays_that_fit;
+    use super::{rays_that_fit, StoredHits, SCAN_BLOCK};
+    use crate::geometry::reference::ReferenceHit;
+
+    /// Lists of 0 to 4 records over several blocks, each keeping its first 0 to `capacity`.
+    fn stored(rays: usize) -> (StoredHits, Vec<usize>) {
+        let (mut offsets, mut records, mut kept) = (vec![0i64], Vec::new(), Vec::new());
+        for i in 0..rays {
+            let capacity = i * 7 % 5;
+            for k in 0..capacity {
+                records.push(ReferenceHit { t: k as f64, u: 0.0, v: 0.0, instance: 0, prim: i as u32 });
+            }
+            offsets.push(records.len() as i64);
+            kept.push(capacity.min(i * 3 % 4));
+        }
+        let hits =
+            StoredHits { offsets, records, seen: vec![0; rays], advances: vec![], unsettled: true, overflowed: None };
+        (hits, kept)
+    }
+
+    #[test]
+    fn compaction_keeps_each_rays_first_hits_in_place_or_not() {
+        let rays = 2 * SCAN_BLOCK + 99;
+        let (mut gathered, kept) = stored(rays);
+        let (mut moved, _) = stored(rays);
+        gathered.compact(&kept).unwrap();
+        moved.compact_in_place(&kept);
+        assert_eq!(gathered.offsets, moved.offsets);
+        assert_eq!(gathered.records, moved.records);
+        for i in 0..rays {
+            let list = &moved.records[moved.offsets[i] as usize..moved.offsets[i + 1] as usize];
+            assert_eq!(list.len(), kept[i]);
+            assert!(list.iter().enumerate().all(|(k, h)| h.prim == i as u32 && h.t == k as f64));
+        }
+    }
 
     #[test]
     fn a_chunk_stores_the_rays_whose_lists_fit() {

@@ -146,6 +146,7 @@ impl Containment {
                 scene.placements.len(),
             ));
         }
+        self.all_hits.recycle(all.hits);
         let _in_use = scene.hold_meshes();
         host_tiers::inside_by_counts(scene, points, &odd, out, interrupt)
     }

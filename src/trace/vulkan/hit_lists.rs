@@ -39,7 +39,7 @@ pub struct ListBuffers {
     lists: Buffer,
     /// The counting pass's records: its nearest few hits of each ray (as many bytes as `records`).
     nearest: Buffer,
-    /// u64 per run of rays, and one more: the chunk's total.
+    /// u64 per run of rays, then the chunk's total and whether any ray needs the storing pass.
     sums: Buffer,
     /// u64 per ray: its list's first record among the chunk's.
     offsets: Buffer,
@@ -118,7 +118,7 @@ impl ListBuffers {
     }
 
     /// Records the counting pass may keep per ray of a chunk of `rays` (at most
-    /// `MOST_NEAREST_HITS`; none where a chunk's are too many for the room).
+    /// `MOST_NEAREST_HITS`; none where the buffer has no room for one a ray).
     pub fn nearest_hits(&self, rays: usize) -> usize {
         (self.record_bytes / RECORD_BYTES / rays.max(1)).min(MOST_NEAREST_HITS)
     }
@@ -239,7 +239,7 @@ impl ListOffsets {
     /// Records the copy of `len` rays' offsets to the host (after what `record` found).
     pub fn record_offsets(&self, cmd: vk::CommandBuffer, buffers: &ListBuffers, len: usize) {
         let region = [vk::BufferCopy::default().dst_offset(16).size(8 * len as u64)];
-        // SAFETY: `cmd` is recording; the offsets hold `rays + 1`, the readback `rays + 2`; the
+        // SAFETY: `cmd` is recording; the offsets hold `rays + 2` entries, the readback too; the
         // offsets were written by an earlier command whose writes `record` made visible to
         // transfers.
         unsafe { self.ctx.device.cmd_copy_buffer(cmd, buffers.offsets.raw(), buffers.offsets_host.raw(), &region) };

@@ -49,8 +49,6 @@ pub struct VulkanEngine {
     shared: Arc<Shared>,
     rays: Arc<GpuRays>,
     all_hits: Arc<AllHitsPath>,
-    /// The last all-hits answer's records, for the next to fill.
-    spare_records: Arc<SpareRecords>,
     points: Arc<ClosestPoints>,
     signed: SignedDistancePath,
     containment: Containment,
@@ -81,7 +79,6 @@ impl VulkanEngine {
             shared,
             rays,
             all_hits,
-            spare_records,
             points,
         })
     }
@@ -194,7 +191,7 @@ impl Engine for VulkanEngine {
     }
 
     fn recycle_hits(&self, hits: Vec<ReferenceHit>) {
-        self.spare_records.keep(hits);
+        self.all_hits.recycle(hits);
     }
 
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
