@@ -694,9 +694,9 @@ mod tests {
         moved.compact_in_place(&kept);
         assert_eq!(gathered.offsets, moved.offsets);
         assert_eq!(gathered.records, moved.records);
-        for i in 0..rays {
+        for (i, &kept) in kept.iter().enumerate() {
             let list = &moved.records[moved.offsets[i] as usize..moved.offsets[i + 1] as usize];
-            assert_eq!(list.len(), kept[i]);
+            assert_eq!(list.len(), kept);
             assert!(list.iter().enumerate().all(|(k, h)| h.prim == i as u32 && h.t == k as f64));
         }
     }
