@@ -236,7 +236,13 @@ impl Engine for CpuEngine {
             host_tiers::all_hits(scene, rays, request.filter(), max_hits, host_bytes_per_hit, interrupt)?
         } else {
             let records = self.spare_records.take();
-            all_hits_fast(batch, CpuScene::of(scene)?, (max_hits, host_bytes_per_hit), self.chunk_rays(), records)?
+            all_hits_fast(
+                batch,
+                CpuScene::of(scene)?,
+                (max_hits, host_bytes_per_hit),
+                (self.chunk_rays(), self.packet_width),
+                records,
+            )?
         };
         self.keep_host_profile(rays.len(), started);
         Ok(all)

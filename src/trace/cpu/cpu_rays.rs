@@ -14,6 +14,7 @@ use crate::embree::api::{
 };
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::parallel::{self, try_vec, try_zeroed};
+use crate::geometry::precision::Cull;
 use crate::geometry::rays::{Advance, RAY_FLOATS};
 use crate::geometry::reference::ReferenceHit;
 use crate::scene::{CpuScene, MeshKind, Scene};
@@ -44,13 +45,22 @@ const MISS: RayAnswer =
 struct Units {
     unit: f64,
     inverse: f64,
+    /// `log2(inverse)`: the packing scales in f32 where every factor is a normal f32.
+    inverse_exponent: i32,
 }
 
 impl Units {
     fn of(hierarchy: &CpuScene) -> Units {
         let unit = hierarchy.unit();
-        Units { unit, inverse: 1.0 / unit }
+        let inverse = 1.0 / unit;
+        Units { unit, inverse, inverse_exponent: ((inverse.to_bits() >> 52) & 0x7ff) as i32 - 1023 }
     }
+}
+
+/// 2^k as an f32, where it is a normal one.
+#[inline(always)]
+fn normal_power_of_two(k: i32) -> Option<f32> {
+    (-126..=127).contains(&k).then(|| f32::from_bits(((k + 127) as u32) << 23))
 }
 
 /// A packed ray (`RAY_FLOATS`: origin, tmin, direction, tmax) as Embree takes it, and what its
@@ -67,20 +77,41 @@ fn embree_ray(packed: &[f32], mask: u8, units: Units) -> (RtcRay, f64) {
     let (down, back_up) = (power_of_two(-up), power_of_two(up));
     // A point at t lies at (o + t d) / unit = o / unit + t' (d / 2^up).
     let (t_unit, inverse_t_unit) = (units.unit * down, units.inverse * back_up);
-    // Scaled in f64 (exact), so that neither factor leaves f32's range on its own.
-    let scaled = |v: f32, by: f64| (f64::from(v) * by) as f32;
-    let t = |t: f32| scaled(t, inverse_t_unit).min(f32::MAX);
+    let k = units.inverse_exponent;
+    let (Some(o), Some(d), Some(t)) = (normal_power_of_two(k), normal_power_of_two(-up), normal_power_of_two(k + up))
+    else {
+        return (embree_ray_in_f64(packed, mask, (units.inverse, down, inverse_t_unit)), t_unit);
+    };
+    // Every factor a normal f32: the f32 product is the exact one rounded once, as the f64
+    // product (exact) rounded to f32 is, bit for bit, without two conversions a value (a
+    // tenth of a closest hit's time).
     let ray = RtcRay {
-        org: [0, 1, 2].map(|k| scaled(packed[k], units.inverse)),
-        tnear: t(packed[3]),
-        dir: [4, 5, 6].map(|k| scaled(packed[k], down)),
+        org: [packed[0] * o, packed[1] * o, packed[2] * o],
+        tnear: (packed[3] * t).min(f32::MAX),
+        dir: [packed[4] * d, packed[5] * d, packed[6] * d],
         time: 0.0,
-        tfar: t(packed[7]),
+        tfar: (packed[7] * t).min(f32::MAX),
         mask: u32::from(mask),
         id: 0,
         flags: 0,
     };
     (ray, t_unit)
+}
+
+/// `embree_ray` scaled in f64 (exact), where a factor (origin, direction, t) is no normal f32
+/// while the products may be.
+fn embree_ray_in_f64(packed: &[f32], mask: u8, (origin, direction, t): (f64, f64, f64)) -> RtcRay {
+    let scaled = |v: f32, by: f64| (f64::from(v) * by) as f32;
+    RtcRay {
+        org: [0, 1, 2].map(|k| scaled(packed[k], origin)),
+        tnear: scaled(packed[3], t).min(f32::MAX),
+        dir: [4, 5, 6].map(|k| scaled(packed[k], direction)),
+        time: 0.0,
+        tfar: scaled(packed[7], t).min(f32::MAX),
+        mask: u32::from(mask),
+        id: 0,
+        flags: 0,
+    }
 }
 
 /// `ceil(log2 |x|)`, read from the bits (a logarithm a ray cost a tenth of the trace): None for
@@ -139,16 +170,18 @@ pub fn trace_fast(
     let every = matches!(query, Query::Count | Query::Transmit);
     // Transmittance multiplies over every crossing, whatever its opacity.
     let threshold = if query == Query::Transmit { 0.0 } else { request.opacity_threshold };
-    // Closest hits and occlusion with nothing for the filter to do trace in Embree's packets.
+    // Closest hits and occlusion with nothing for the filter to do trace in Embree's packets; so
+    // do counts and transmittance where the filter needs no ray's direction (no culling).
     let plain = matches!(query, Query::Closest | Query::Occluded)
         && !QueryContext::new(scene, request.cull, threshold, false).needs_filter();
+    let every_in_packets = every && request.cull == Cull::None;
     let plan = Plan {
         hierarchy,
         scene,
         query,
         coherent: rays.sensor.is_some(),
         normals: sink.field(Field::Normal).is_some(),
-        packets: if plain { packet_width } else { 1 },
+        packets: if plain || every_in_packets { packet_width } else { 1 },
     };
     let (n, frame) = (rays.len(), scene.frame());
     let mut hit = sink.hit.take();
@@ -168,9 +201,11 @@ pub fn trace_fast(
                     let (packed, answers) = (&mut packed[..count * RAY_FLOATS], &mut answers[..count]);
                     let advances = rays.pack(first, packed, &frame)?;
                     let mask = |k: usize| rays.mask.get(first + k);
-                    match plan.packets {
-                        16 => trace_packets::<16>(&plan, packed, answers, mask),
-                        8 => trace_packets::<8>(&plan, packed, answers, mask),
+                    match (plan.packets, every) {
+                        (16, false) => trace_packets::<16>(&plan, packed, answers, mask),
+                        (8, false) => trace_packets::<8>(&plan, packed, answers, mask),
+                        (16, true) => trace_every_packets::<16>(&plan, context, packed, answers, mask),
+                        (8, true) => trace_every_packets::<8>(&plan, context, packed, answers, mask),
                         _ => trace_rays(&plan, context, packed, answers, mask),
                     }
                     if query == Query::Closest {
@@ -257,6 +292,65 @@ fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [Ray
     }
 }
 
+/// Counts or transmittance (`plan.query`) of a block's packed rays in Embree's packets of `K`
+/// rays, each hit met through the query's filter (which needs no ray's direction: no culling).
+fn trace_every_packets<const K: usize>(
+    plan: &Plan,
+    context: &mut QueryContext,
+    packed: &[f32],
+    answers: &mut [RayAnswer],
+    mask: impl Fn(usize) -> u8,
+) {
+    let units = Units::of(plan.hierarchy);
+    for (p, (answers, rays)) in answers.chunks_mut(K).zip(packed.chunks(K * RAY_FLOATS)).enumerate() {
+        every_hit_of_packet::<K>(plan.hierarchy, context, rays, |lane| mask(p * K + lane), plan.coherent, units);
+        let scene = context.scene();
+        let mut found = context.sorted_found();
+        for (lane, answer) in answers.iter_mut().enumerate() {
+            let (mine, rest) = found.split_at(hits_of_lane(found, lane));
+            *answer = match plan.query {
+                Query::Count => RayAnswer { prim: mine.len() as i32, ..MISS },
+                _ => RayAnswer { t: light_through(scene, mine), ..MISS },
+            };
+            found = rest;
+        }
+    }
+}
+
+/// Traces `rays` (packed, at most `K`) as one packet of Embree's through `context`'s filter,
+/// which keeps every hit in `context.found` under its lane (`Candidate::ray`); returns each
+/// lane's `t_unit` (`embree_ray`).
+fn every_hit_of_packet<const K: usize>(
+    hierarchy: &CpuScene,
+    context: &mut QueryContext,
+    rays: &[f32],
+    mask: impl Fn(usize) -> u8,
+    coherent: bool,
+    units: Units,
+) -> [f64; K] {
+    let mut packet = RtcRayHitPacket::<K>::default();
+    let mut valid = RtcValid([0i32; K]);
+    let mut t_units = [1.0f64; K];
+    for (lane, ray) in rays.chunks_exact(RAY_FLOATS).enumerate() {
+        let (r, t_unit) = embree_ray(ray, mask(lane), units);
+        [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
+        [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
+        (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
+        // The filter files each hit under its ray's id.
+        (packet.id[lane], valid.0[lane], t_units[lane]) = (lane as u32, -1, t_unit);
+    }
+    context.found.clear();
+    let mut args = context.arguments(coherent);
+    // SAFETY: the scene is committed and held; `args` points into `context`, alive here.
+    unsafe { hierarchy.scene().trace_packet(&valid, &mut packet, &mut args, false) };
+    t_units
+}
+
+/// How many of `found` (sorted by lane, the lanes before `lane` taken off) are lane `lane`'s.
+fn hits_of_lane(found: &[Candidate], lane: usize) -> usize {
+    found.iter().position(|c| c.ray != lane as u32).unwrap_or(found.len())
+}
+
 /// Lane `lane` of a packet, as one ray and its hit.
 #[inline(always)]
 fn lane_hit<const K: usize>(packet: &RtcRayHitPacket<K>, lane: usize) -> RtcRayHit {
@@ -317,16 +411,16 @@ fn trace_one(
     unsafe { hierarchy.scene().intersect(&mut rayhit, &mut args) };
     match query {
         Query::Count => RayAnswer { prim: context.sorted_found().len() as i32, ..MISS },
-        Query::Transmit => RayAnswer { t: light_kept(context), ..MISS },
+        Query::Transmit => RayAnswer { t: light_through(context.scene(), context.sorted_found()), ..MISS },
         _ if rayhit.hit.geom_id == INVALID_ID => MISS,
         _ => nearest(context.scene(), &rayhit, normals, unit),
     }
 }
 
-/// The light a ray keeps: the product of (1 - opacity) over the triangles it crossed.
-fn light_kept(context: &mut QueryContext) -> f32 {
-    let scene = context.scene();
-    let kept = context.sorted_found().iter().fold(1.0f64, |left, c| {
+/// The light a ray keeps: the product of (1 - opacity) over the triangles it crossed (`found`,
+/// sorted, without repeats).
+fn light_through(scene: &Scene, found: &[Candidate]) -> f32 {
+    let kept = found.iter().fold(1.0f64, |left, c| {
         let placement = &scene.placements[c.instance as usize];
         let opacity = match (&placement.mesh.opacity, placement.flags.force_opaque) {
             (Some(o), false) => f64::from(o[placement.triangles.global(c.geometry as usize, c.prim as usize)]),
@@ -445,7 +539,7 @@ pub fn all_hits_fast(
     batch: RayBatch,
     hierarchy: &CpuScene,
     (max_hits, host_bytes_per_hit): (usize, usize),
-    chunk: usize,
+    (chunk, packet_width): (usize, usize),
     mut hits: Vec<ReferenceHit>,
 ) -> Result<AllHits> {
     let RayBatch { scene, rays, request, interrupt } = batch;
@@ -454,7 +548,9 @@ pub fn all_hits_fast(
     }
     let (n, frame) = (rays.len(), scene.frame());
     let mut packed = try_vec(chunk.min(n) * RAY_FLOATS, 0f32, "the CPU engine's rays")?;
-    let units = Units::of(hierarchy);
+    // Packets where the filter needs no ray's direction (no culling).
+    let packets = if request.cull == Cull::None { packet_width } else { 1 };
+    let coherent = rays.sensor.is_some();
     let mut offsets: Vec<i64> = try_zeroed(n + 1, "the offsets of all hits")?;
     hits.clear();
     in_paced_blocks(n, (FIRST_ON_CPU, chunk), interrupt, |range| {
@@ -468,16 +564,15 @@ pub fn all_hits_fast(
                 .map_init(
                     || QueryContext::new(scene, request.cull, request.opacity_threshold, true),
                     |context, (b, block)| {
-                        let (mut counts, mut found) = (Vec::with_capacity(BLOCK_RAYS), Vec::new());
-                        for (k, ray) in block.chunks_exact(RAY_FLOATS).enumerate() {
-                            let (ray, t_unit) = embree_ray(ray, rays.mask.get(start + b * BLOCK_RAYS + k), units);
-                            trace_one(hierarchy, context, ray, Query::Count, false, false, units.unit);
-                            let kept = context.sorted_found();
-                            let kept = &kept[..kept.len().min(max_hits)];
-                            found.extend(kept.iter().map(|c| reference_hit(scene, c, t_unit)));
-                            counts.push(kept.len() as u32);
+                        let mask = |k: usize| rays.mask.get(start + b * BLOCK_RAYS + k);
+                        let mut kept =
+                            KeptHits { scene, max_hits, counts: Vec::with_capacity(BLOCK_RAYS), found: Vec::new() };
+                        match packets {
+                            16 => kept.trace_packets::<16>(hierarchy, context, block, mask, coherent),
+                            8 => kept.trace_packets::<8>(hierarchy, context, block, mask, coherent),
+                            _ => kept.trace_rays(hierarchy, context, block, mask),
                         }
-                        (counts, found)
+                        (kept.counts, kept.found)
                     },
                 )
                 .collect()
@@ -496,6 +591,61 @@ pub fn all_hits_fast(
         Ok(())
     })?;
     Ok(AllHits { offsets, hits, wide: false })
+}
+
+/// A block's hits as all hits keep them: the nearest `max_hits` of each ray, with its count.
+struct KeptHits<'a> {
+    scene: &'a Scene,
+    max_hits: usize,
+    counts: Vec<u32>,
+    found: Vec<ReferenceHit>,
+}
+
+impl KeptHits<'_> {
+    /// Keeps the hits of the sorted `found` (one ray's) at `t_unit` (`embree_ray`).
+    fn keep(&mut self, found: &[Candidate], t_unit: f64) {
+        let kept = &found[..found.len().min(self.max_hits)];
+        self.found.extend(kept.iter().map(|c| reference_hit(self.scene, c, t_unit)));
+        self.counts.push(kept.len() as u32);
+    }
+
+    /// The block's packed rays one at a time (culling asks each ray's direction).
+    fn trace_rays(
+        &mut self,
+        hierarchy: &CpuScene,
+        context: &mut QueryContext,
+        block: &[f32],
+        mask: impl Fn(usize) -> u8,
+    ) {
+        let units = Units::of(hierarchy);
+        for (k, ray) in block.chunks_exact(RAY_FLOATS).enumerate() {
+            let (ray, t_unit) = embree_ray(ray, mask(k), units);
+            trace_one(hierarchy, context, ray, Query::Count, false, false, units.unit);
+            self.keep(context.sorted_found(), t_unit);
+        }
+    }
+
+    /// The block's packed rays in Embree's packets of `K`.
+    fn trace_packets<const K: usize>(
+        &mut self,
+        hierarchy: &CpuScene,
+        context: &mut QueryContext,
+        block: &[f32],
+        mask: impl Fn(usize) -> u8,
+        coherent: bool,
+    ) {
+        let units = Units::of(hierarchy);
+        for (p, rays) in block.chunks(K * RAY_FLOATS).enumerate() {
+            let t_units =
+                every_hit_of_packet::<K>(hierarchy, context, rays, |lane| mask(p * K + lane), coherent, units);
+            let mut found = context.sorted_found();
+            for (lane, &t_unit) in t_units.iter().enumerate().take(rays.len() / RAY_FLOATS) {
+                let (mine, rest) = found.split_at(hits_of_lane(found, lane));
+                self.keep(mine, t_unit);
+                found = rest;
+            }
+        }
+    }
 }
 
 /// Appends each block's hits to `hits` (room reserved) and writes its rays' offsets after
@@ -556,5 +706,42 @@ mod tests {
         for x in [0.0f32, -0.0, f32::INFINITY, f32::NAN] {
             assert_eq!(exponent_at_or_above(x), None);
         }
+    }
+
+    /// The f32 scaling gives the f64 one's rays bit for bit, subnormal products, infinite
+    /// intervals and the largest scales too.
+    #[test]
+    fn rays_scaled_in_f32_equal_those_scaled_in_f64() {
+        let values = [0.0f32, -0.0, 1.0, -0.7, 0.3, 1e-30, -1e-38, 1e-44, 3e38, -2.5e37, 123.456, f32::INFINITY];
+        let mut checked = 0;
+        for unit_exponent in [-120, -20, -2, 0, 3, 60, 126] {
+            let unit = 2f64.powi(unit_exponent);
+            let units = Units { unit, inverse: 1.0 / unit, inverse_exponent: -unit_exponent };
+            for (i, &a) in values.iter().enumerate() {
+                for (j, &b) in values.iter().enumerate() {
+                    let direction = [a, b, values[(i + j) % values.len()]];
+                    if !direction.iter().all(|c| c.is_finite()) || direction == [0.0; 3] {
+                        continue;
+                    }
+                    let origin =
+                        [b, a, values[(i * 3 + j) % values.len()]].map(|c| if c.is_finite() { c } else { 1.0 });
+                    let packed =
+                        [origin[0], origin[1], origin[2], a.abs(), direction[0], direction[1], direction[2], b.abs()];
+                    let (ray, t_unit) = embree_ray(&packed, 3, units);
+                    let longest = direction.iter().fold(0f32, |m, c| m.max(c.abs()));
+                    let up = exponent_at_or_above(longest).unwrap();
+                    let wide = embree_ray_in_f64(
+                        &packed,
+                        3,
+                        (units.inverse, power_of_two(-up), units.inverse * power_of_two(up)),
+                    );
+                    let bits = |r: &RtcRay| [r.org, [r.tnear; 3], r.dir, [r.tfar; 3]].map(|v| v.map(f32::to_bits));
+                    assert_eq!(bits(&ray), bits(&wide), "{packed:?} in units of {unit}");
+                    assert_eq!(t_unit, unit * power_of_two(-up));
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 500);
     }
 }

@@ -18,17 +18,20 @@ pub struct Candidate {
     pub instance: u32,
     pub geometry: u32,
     pub prim: u32,
+    /// The ray's `id` as traced: its lane in a packet (0 for a ray traced alone).
+    pub ray: u32,
 }
 
 impl Candidate {
-    /// The order of every-hit answers: nearer first, then the lower (instance, geometry, prim).
+    /// The order of every-hit answers, a ray's together: nearer first, then the lower
+    /// (instance, geometry, prim).
     fn order(&self, other: &Candidate) -> std::cmp::Ordering {
         let ids = |c: &Candidate| (c.instance, c.geometry, c.prim);
-        self.t.total_cmp(&other.t).then(ids(self).cmp(&ids(other)))
+        self.ray.cmp(&other.ray).then(self.t.total_cmp(&other.t)).then(ids(self).cmp(&ids(other)))
     }
 
     fn same_triangle(&self, other: &Candidate) -> bool {
-        (self.instance, self.geometry, self.prim) == (other.instance, other.geometry, other.prim)
+        (self.ray, self.instance, self.geometry, self.prim) == (other.ray, other.instance, other.geometry, other.prim)
     }
 }
 
@@ -136,7 +139,7 @@ impl<'a> QueryContext<'a> {
     }
 
     /// Drops repeats of one triangle (a ray meeting an edge can be handed the same triangle
-    /// twice) and sorts the hits met into the answers' order.
+    /// twice) and sorts the hits met into the answers' order (a packet's rays one after another).
     pub fn sorted_found(&mut self) -> &[Candidate] {
         self.found.sort_by(Candidate::order);
         self.found.dedup_by(|a, b| a.same_triangle(b));
@@ -177,7 +180,9 @@ unsafe extern "C" fn filter_hit(args: *const RtcFilterArguments) {
             if context.every {
                 let t = *args.ray.add(8 * n + i);
                 let (u, v) = (*args.hit.add(3 * n + i), *args.hit.add(4 * n + i));
-                context.found.push(Candidate { t, u, v, instance, geometry, prim });
+                // The ray's `id` (RTCRayN's eleventh member): its lane where traced in a packet.
+                let ray = *(args.ray as *const u32).add(10 * n + i);
+                context.found.push(Candidate { t, u, v, instance, geometry, prim, ray });
                 *valid = 0;
             }
         }
