@@ -192,6 +192,7 @@ def main() -> None:
     parser.add_argument("--meshes", default="stanford-bunny,fandisk,bunny-x16")
     parser.add_argument("--no-lavapipe", action="store_true", help="skip vkray on lavapipe (slow)")
     parser.add_argument("--no-rays", action="store_true", help="only the point queries")
+    parser.add_argument("--no-points", action="store_true", help="only the ray queries")
     parser.add_argument("--out", default=None)
     parser.add_argument("--device", default="cpu", help="the vkray device timed: 'cpu' (default), 'default' (vkray.Device()) or a name")
     parser.add_argument("--distance-precision", default="reference", help="the tier of distances (default 'reference')")
@@ -226,12 +227,13 @@ def main() -> None:
         lo, hi = vertices.min(0), vertices.max(0)
         grow = 0.1 * (hi - lo)
         points = np.random.default_rng(1).uniform(lo - grow, hi + grow, (args.points, 3)).astype(np.float32)
-        prows = point_table(report, engines, points, args.repeat)
+        prows = [] if args.no_points else point_table(report, engines, points, args.repeat)
         if rows:
             report("")
             report(markdown(rows))
-        report("")
-        report(markdown(prows))
+        if prows:
+            report("")
+            report(markdown(prows))
     report.save(args.out)
 
 

@@ -298,6 +298,11 @@ impl Rays<'_> {
         })
     }
 
+    /// A packer of these rays one at a time (`PlainPacker`), where they are plain.
+    pub fn plain_packer(&self, frame: &Frame) -> Option<PlainPacker<'_>> {
+        PlainRays::of(self).map(|plain| PlainPacker { plain, frame: *frame })
+    }
+
     /// `pack` for `PlainRays`: the same rays, bit for bit, in a loop with no per-ray dispatch on
     /// the arrays' types and shapes (about twice as fast: the host's packing pass is what bounds
     /// numpy in, numpy out on a GPU; docs/benchmarks.md, issue 14).
@@ -490,23 +495,24 @@ impl Rays<'_> {
         floats: usize,
         write: impl Fn(usize, &mut [T]) -> std::result::Result<Option<f64>, Refused> + Sync,
     ) -> Result<Option<Vec<Advance>>> {
-        let pieces: Vec<std::result::Result<Vec<Advance>, (Refused, usize)>> = parallel::install(|| {
-            out.par_chunks_mut(PACK_PIECE * floats)
-                .enumerate()
-                .map(|(piece, out)| {
-                    let first = piece * PACK_PIECE;
-                    let mut advances = Vec::new();
-                    for (k, ray) in out.chunks_exact_mut(floats).enumerate() {
-                        match write(start + first + k, ray) {
-                            Err(refused) => return Err((refused, start + first + k)),
-                            Ok(Some(t)) => advances.push(Advance { ray: first + k, t }),
-                            Ok(None) => {}
-                        }
-                    }
-                    Ok(advances)
-                })
-                .collect()
-        });
+        let pack_piece = |(piece, out): (usize, &mut [T])| {
+            let first = piece * PACK_PIECE;
+            let mut advances = Vec::new();
+            for (k, ray) in out.chunks_exact_mut(floats).enumerate() {
+                match write(start + first + k, ray) {
+                    Err(refused) => return Err((refused, start + first + k)),
+                    Ok(Some(t)) => advances.push(Advance { ray: first + k, t }),
+                    Ok(None) => {}
+                }
+            }
+            Ok(advances)
+        };
+        // One piece (a block of a caller already on every core) is packed where it is called.
+        let pieces: Vec<std::result::Result<Vec<Advance>, (Refused, usize)>> = if out.len() <= PACK_PIECE * floats {
+            vec![pack_piece((0, out))]
+        } else {
+            parallel::install(|| out.par_chunks_mut(PACK_PIECE * floats).enumerate().map(pack_piece).collect())
+        };
         let refused = |kind| pieces.iter().filter_map(|p| p.as_ref().err()).filter(move |(r, _)| *r == kind);
         if refused(Refused::Far).next().is_some() {
             return Ok(None);
@@ -554,6 +560,36 @@ impl<'a> PlainRays<'a> {
             directions,
             interval: widened(tmin, tmax),
         })
+    }
+}
+
+/// Packs plain rays (`PlainRays`) one at a time where the caller asks, for a caller that packs
+/// into its own records (the CPU engine's packets): each ray exactly as `Rays::pack` packs it,
+/// or None where `pack` is needed (an invalid ray, whose error it names, or a far one).
+#[derive(Clone, Copy)]
+pub struct PlainPacker<'a> {
+    plain: PlainRays<'a>,
+    frame: Frame,
+}
+
+impl PlainPacker<'_> {
+    /// Ray `i` packed (`RAY_FLOATS`), where it is valid and near the scene.
+    #[inline(always)]
+    pub fn ray(&self, i: usize) -> Option<[f32; RAY_FLOATS]> {
+        let PlainRays { origins, shared_origin, directions, interval } = self.plain;
+        let at = if shared_origin { 0 } else { 3 * i };
+        let o: [f32; 3] = origins[at..at + 3].try_into().expect("three floats");
+        let d: [f32; 3] = directions[3 * i..3 * i + 3].try_into().expect("three floats");
+        if !o.iter().chain(&d).all(|c| c.is_finite()) || d == [0.0; 3] {
+            return None;
+        }
+        // As `pack_plain`: the origin into the frame in f64, then to f32.
+        let near = DVec3::new(f64::from(o[0]), f64::from(o[1]), f64::from(o[2])) - self.frame.shift;
+        if self.frame.is_far(near) {
+            return None;
+        }
+        let o = near.as_vec3();
+        Some([o.x, o.y, o.z, interval[0], d[0], d[1], d[2], interval[1]])
     }
 }
 

@@ -15,7 +15,7 @@ use crate::embree::api::{
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::parallel::{self, try_vec, try_zeroed};
 use crate::geometry::precision::Cull;
-use crate::geometry::rays::{Advance, RAY_FLOATS};
+use crate::geometry::rays::{Advance, Frame, PlainPacker, Rays, RAY_FLOATS};
 use crate::geometry::reference::ReferenceHit;
 use crate::scene::{CpuScene, MeshKind, Scene};
 use crate::trace::hit_fields::{Field, HitSink};
@@ -185,6 +185,7 @@ pub fn trace_fast(
     };
     let (n, frame) = (rays.len(), scene.frame());
     let mut hit = sink.hit.take();
+    let packer = rays.plain_packer(&frame);
     let began = Instant::now();
     in_paced_blocks(n, (FIRST_ON_CPU, chunk), interrupt, |range| {
         let (start, len) = (range.start, range.len());
@@ -199,7 +200,7 @@ pub fn trace_fast(
                     let first = start + b * BLOCK_RAYS;
                     let count = BLOCK_RAYS.min(start + len - first);
                     let (packed, answers) = (&mut packed[..count * RAY_FLOATS], &mut answers[..count]);
-                    let advances = rays.pack(first, packed, &frame)?;
+                    let advances = pack_block(rays, packer.as_ref(), first, packed, &frame)?;
                     let mask = |k: usize| rays.mask.get(first + k);
                     match (plan.packets, every) {
                         (16, false) => trace_packets::<16>(&plan, packed, answers, mask),
@@ -226,6 +227,31 @@ pub fn trace_fast(
     })?;
     profile.host_f64 = began.elapsed().as_secs_f64();
     Ok(())
+}
+
+/// Packs the block of rays from `first` into `packed` as `Rays::pack` does: by `packer` where
+/// the rays are plain and every one of the block is valid and near the scene (no pass of
+/// `pack`'s own, which a block of a query already on every core need not pay), else by `pack`.
+fn pack_block(
+    rays: &Rays,
+    packer: Option<&PlainPacker>,
+    first: usize,
+    packed: &mut [f32],
+    frame: &Frame,
+) -> Result<Vec<Advance>> {
+    if let Some(packer) = packer {
+        let direct = packed.chunks_exact_mut(RAY_FLOATS).enumerate().all(|(k, out)| match packer.ray(first + k) {
+            Some(ray) => {
+                out.copy_from_slice(&ray);
+                true
+            }
+            None => false,
+        });
+        if direct {
+            return Ok(Vec::new());
+        }
+    }
+    rays.pack(first, packed, frame)
 }
 
 /// Rays one at a time (through the query's filter where it needs one).
