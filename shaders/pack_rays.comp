@@ -6,6 +6,9 @@
 // the first such row is kept in PackFrame.first_invalid for the host to report. A ray starting
 // far from the scene is advanced towards it in f64 (Frame::advance), and how far is written to
 // `advances`; after the trace, the same shader specialized to FINISH adds it back to its t.
+// Specialized to EXACT_RAYS, it packs the exact tier's f64 rays instead (Rays::pack_f64: the origin
+// moved into the scene's frame in f64, the direction and interval as given; far origins stay,
+// the exact tier's traversal starts where the ray enters the scene).
 #extension GL_EXT_buffer_reference : require
 #extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
 #define VKRAY_PACK_RAYS
@@ -13,12 +16,15 @@
 #include "point_triangle.glsl"
 
 layout(local_size_x_id = 0) in;
-// 0: pack the chunk's rays; 1: add each far ray's advance back to its hit distance (a miss stays).
+// 0: pack the chunk's rays; 1: add each far ray's advance back to its hit distance (a miss stays);
+// 2 (EXACT_RAYS): pack the chunk's rays for the exact tier.
 layout(constant_id = 1) const uint FINISH = 0u;
+const uint EXACT_RAYS = 2u;
 
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer FloatAt { float v; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer DoubleAt { double v; };
 layout(buffer_reference, std430, buffer_reference_align = 16) writeonly buffer PackedRays { vec4 v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 32) writeonly buffer PackedRays64 { dvec4 v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) buffer Advances { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) buffer Distances { float v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) buffer Frames { PackFrame f; };
@@ -97,6 +103,19 @@ void main() {
   double tmax = pack_params.tmax == 0ul ? frame.tmax
       : read_scalar(pack_params.tmax + uint64_t(i) * uint64_t(pack_params.tmax_stride), (formats & PACK_TMAX_F64) != 0u);
   precise dvec3 origin = world - shift;
+  if (FINISH == EXACT_RAYS) {
+    PackedRays64 rays64 = PackedRays64(pack_params.packed);
+    if (is_valid(world, d, tmin, tmax)) {
+      rays64.v[2u * i] = dvec4(origin, tmin);
+      rays64.v[2u * i + 1u] = dvec4(d, tmax);
+    } else {
+      // An empty interval (tmin above tmax): the ray enters nothing and is answered as a miss.
+      atomicMin(frames.f.first_invalid, pack_params.first_row + i);
+      rays64.v[2u * i] = dvec4(0.0, 0.0, 0.0, 1.0);
+      rays64.v[2u * i + 1u] = dvec4(1.0, 0.0, 0.0, 0.0);
+    }
+    return;
+  }
   double advanced = 0.0;
   vec2 interval;
   if (!is_valid(world, d, tmin, tmax)) {

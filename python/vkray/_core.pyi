@@ -190,6 +190,7 @@ class Scene:
         cull: Cull = None,
         mask: int = 255,
         opacity_threshold: float = 0.5,
+        precision: Precision = "fast",
     ) -> Dict[str, CudaArray]: ...
     def cuda_batch(
         self,

@@ -836,7 +836,7 @@ class Scene(SceneLike):
         return cast(
             Dict[str, Any],
             self._core.trace_cuda(q.origins, q.directions, q.tmin, q.tmax, core_query, list(q.outputs), q.cull,
-                                  ray_mask, q.opacity_threshold),
+                                  ray_mask, q.opacity_threshold, q.precision),
         )
 
     def split_cuda_rays(self, q: RayQuery) -> Any:

@@ -57,12 +57,13 @@ class RayQuery:
     def stays_on_gpu(self) -> bool:
         """Whether CUDA rays of this query are traced without leaving the GPU (the GPU-resident
         path: copied device to device, packed and traced there): `intersect`, `occluded` and
-        `count` in the fast tier, of one mask for every ray, without ``position`` (computed on the
-        host), ``out=`` or a progress bar. Other queries of CUDA arrays go through the host."""
+        `count` in the fast tier, and `count` in the exact tier, of one mask for every ray,
+        without ``position`` (computed on the host), ``out=`` or a progress bar. Other queries of
+        CUDA arrays go through the host."""
         one_mask = np.ndim(self.mask) == 0 and _arrays.dlpack_device(self.mask, "mask") is None
         return (
             self.kind in ("intersect", "occluded", "count")
-            and self.precision == "fast"
+            and (self.precision == "fast" or (self.precision == "exact" and self.kind == "count"))
             and "position" not in self.outputs
             and self.out is None
             and not self.progress

@@ -364,11 +364,12 @@ impl PyScene {
         Ok(result)
     }
 
-    /// Traces rays that live in CUDA memory (DLPack arrays on this device's GPU) in the fast
-    /// tier; returns {field name: vkray.CudaArray} for the fields asked for, in CUDA memory.
-    /// `query` is "closest" or "occluded"; origins and directions of shape S + (3,) (one of
-    /// them may be a single row); tmin and tmax numbers or CUDA arrays of shape S.
-    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, cull=None, mask=255, opacity_threshold=0.5))]
+    /// Traces rays that live in CUDA memory (DLPack arrays on this device's GPU) in `precision`
+    /// ("fast", or "exact" for counts); returns {field name: vkray.CudaArray} for the fields
+    /// asked for, in CUDA memory. `query` is "closest", "occluded" or "count"; origins and
+    /// directions of shape S + (3,) (one of them may be a single row); tmin and tmax numbers or
+    /// CUDA arrays of shape S.
+    #[pyo3(signature = (origins, directions, tmin, tmax, query, fields, cull=None, mask=255, opacity_threshold=0.5, precision="fast"))]
     #[allow(clippy::too_many_arguments)]
     fn trace_cuda<'py>(
         &self,
@@ -382,8 +383,9 @@ impl PyScene {
         cull: Option<&str>,
         mask: u8,
         opacity_threshold: f32,
+        precision: &str,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let request = request(Query::parse(query)?, "fast", cull, false, opacity_threshold)?;
+        let request = request(Query::parse(query)?, precision, cull, false, opacity_threshold)?;
         let wanted = cuda_fields(&fields)?;
         let tracer = &self.tracer;
         let (Some(path), Some(cuda)) = cuda_of(tracer)? else {

@@ -25,7 +25,7 @@ use crate::gpu::records::{
     PackFrame, PackParams, Params, PACK_DIRECTIONS_F64, PACK_ORIGINS_F64, PACK_TMAX_F64, PACK_TMIN_F64,
 };
 use crate::gpu::shaders;
-use crate::scene::{Scene, VulkanScene};
+use crate::scene::{ExactScene, Scene, VulkanScene};
 use crate::trace::hit_fields::{Field, HitSink, FIELDS, FIELD_COUNT};
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
 use crate::trace::pacer::ChunkPacer;
@@ -126,20 +126,22 @@ impl PackPipelines {
         self.kernel.available()
     }
 
-    /// The packing (`finish` false) or finishing pipeline.
-    fn pipeline(&self, finish: bool) -> Result<vk::Pipeline> {
-        self.kernel.pipeline(&[finish as u32])
+    /// The pipeline of pack_rays.comp's `mode`.
+    fn pipeline(&self, mode: PackMode) -> Result<vk::Pipeline> {
+        self.kernel.pipeline(&[mode as u32])
     }
 
     /// Scratch for `capacity` rays: an idle one where it fits, a new one (allocated outside the
     /// lock) otherwise.
-    fn take_scratch(&self, capacity: usize) -> Result<PackScratch> {
-        if let Some(scratch) = self.idle.take(1, |s| s.capacity >= capacity, |_| true).pop() {
+    fn take_scratch(&self, capacity: usize, exact: bool) -> Result<PackScratch> {
+        // The exact tier's rays are f64 (`Rays::pack_f64`), the others' f32.
+        let ray_bytes = (capacity * RAY_FLOATS * if exact { 8 } else { 4 }) as u64;
+        let fits = |s: &PackScratch| s.capacity >= capacity && s.packed.size() >= ray_bytes;
+        if let Some(scratch) = self.idle.take(1, fits, |_| true).pop() {
             return Ok(scratch);
         }
         use vk::BufferUsageFlags as U;
         let usage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
-        let ray_bytes = (capacity * RAY_FLOATS * 4) as u64;
         let made = (|| {
             Ok(PackScratch {
                 packed: Buffer::new(&self.ctx, ray_bytes, usage, MemoryLocation::GpuOnly, "packed rays")?,
@@ -175,16 +177,27 @@ impl PackPipelines {
     }
 }
 
-/// Why a query cannot take the device-rays path, if it cannot: the fast tier's closest-hit and
-/// occlusion queries on triangles and spheres, without a position output.
+/// What pack_rays.comp does (its specialization constant FINISH).
+#[derive(Clone, Copy)]
+enum PackMode {
+    /// Packs the fast tier's f32 rays, far ones advanced.
+    Pack = 0,
+    /// Adds each far ray's advance back to its hit distance.
+    Finish = 1,
+    /// Packs the exact tier's f64 rays.
+    PackExact = 2,
+}
+
+/// Why a query cannot take the device-rays path, if it cannot: the fast tier's closest hits,
+/// occlusion and counts, and the exact tier's counts (whose answers are integers).
 pub fn device_rays_refusal(request: Request) -> Option<&'static str> {
-    if request.precision != Precision::Fast {
-        return Some("only precision='fast' traces rays the GPU packs itself");
+    match (request.precision, request.query) {
+        (Precision::Fast, Query::Closest | Query::Occluded | Query::Count) | (Precision::Exact, Query::Count) => None,
+        (Precision::Fast | Precision::Exact, _) => {
+            Some("only closest hits, occlusion and counts (exact: counts) trace rays the GPU packs itself")
+        }
+        _ => Some("only precision='fast' and 'exact' (counts) trace rays the GPU packs itself"),
     }
-    if !matches!(request.query, Query::Closest | Query::Occluded | Query::Count) {
-        return Some("only closest hits, occlusion and counts trace rays the GPU packs itself");
-    }
-    None
 }
 
 /// The GPU-packed rays path: the caller's arrays read where they lie, packed, traced and finished
@@ -230,7 +243,7 @@ impl PackedRays {
         // trace through `run_gpu`.
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
-        self.probes.check_paths(scene, false)?;
+        self.probes.check_paths(scene, request.precision == Precision::Exact)?;
         let mut profile = TraceProfile { rays: rays.count, ..Default::default() };
         let started = Instant::now();
         let invalid = self.trace_packed(query, order, interrupt, &mut profile)?;
@@ -259,16 +272,20 @@ impl PackedRays {
         }
         self.shared.ctx.check_usable()?;
         let bits = FIELDS.iter().filter(|f| outputs[**f as usize] != 0).fold(0, |b, f| b | f.bit());
-        let variant = self.shared.variants.get(self.shared.variant_key(scene, request, false, bits, false))?;
+        let exact = request.precision == Precision::Exact;
+        // Before the exact variant: this fails on devices without shaderFloat64 (no exact modules).
+        let exact_scene = if exact { Some(VulkanScene::of(scene)?.exact(scene)?) } else { None };
+        let variant = self.shared.variants.get(self.shared.variant_key(scene, request, exact, bits, false))?;
         let frame_buffer = self.pack_frame(scene, rays)?;
         // Chunks as the host path's (`Device.chunk_rays`): the interrupt is asked between them.
         let capacity = match order.as_ref().and_then(|o| o.chunk_rays) {
             Some(rays) => rays.clamp(1, self.packing.max_rays()),
             None => self.device_chunk_capacity(rays.count),
         };
-        let scratch = self.shared.with_memory(|| self.packing.take_scratch(capacity))?;
+        let scratch = self.shared.with_memory(|| self.packing.take_scratch(capacity, exact))?;
         let job = PackedJob {
             hierarchy: VulkanScene::of(scene)?,
+            exact: exact_scene.as_deref(),
             rays,
             outputs,
             variant: &variant,
@@ -295,7 +312,9 @@ impl PackedRays {
         interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<()> {
-        let (pack, finish) = (self.packing.pipeline(false)?, self.packing.pipeline(true)?);
+        let exact = job.exact.is_some();
+        let pack = self.packing.pipeline(if exact { PackMode::PackExact } else { PackMode::Pack })?;
+        let finish = self.packing.pipeline(PackMode::Finish)?;
         let stamps = Stamps::new(&self.shared.ctx)?;
         let mut commands = Commands::new(&self.shared.ctx)?;
         let count = job.rays.count;
@@ -314,7 +333,8 @@ impl PackedRays {
             let params = job.trace_params(start, len);
             self.shared.record_trace(cmd, job.variant, &params, len);
             stamp(Stamp::Traced);
-            if params.outputs[Field::T as usize] != 0 {
+            // The exact tier advances no ray.
+            if params.outputs[Field::T as usize] != 0 && !exact {
                 self.barrier(cmd, self.trace_stage(), vk::PipelineStageFlags::COMPUTE_SHADER);
                 pack_params.t = params.outputs[Field::T as usize];
                 self.packing.record(cmd, finish, &pack_params);
@@ -423,6 +443,8 @@ pub struct DeviceQuery<'a> {
 struct PackedJob<'a> {
     /// The Vulkan engine's hierarchy of the scene traced.
     hierarchy: &'a VulkanScene,
+    /// The exact tier's structures, for exact queries.
+    exact: Option<&'a ExactScene>,
     rays: &'a DeviceRays,
     outputs: &'a DeviceOutputs,
     variant: &'a Variant,
@@ -442,6 +464,11 @@ impl PackedJob<'_> {
             tlas: self.hierarchy.tlas_address(),
             ..Default::default()
         };
+        if let Some(exact) = self.exact {
+            // Counts only (`device_rays_refusal`): no scratch records (QUERY_ALL's counting pass).
+            (params.instances, params.tlas, params.bounds) =
+                (exact.instances_address(), exact.tlas_address(), exact.bounds_f32());
+        }
         for field in FIELDS {
             let address = self.outputs[field as usize];
             if address != 0 {
@@ -571,6 +598,8 @@ impl PackedRays {
         let eligible = self.pack_on_gpu
             && self.packing.available()
             && rays.sensor.is_none()
+            // The exact tier packs host rays on the host (its leaner layouts).
+            && request.precision == Precision::Fast
             && device_rays_refusal(request).is_none()
             && rays.len() < u32::MAX as usize;
         if !eligible {
