@@ -1,6 +1,6 @@
 """Every query of CUDA arrays (torch, cupy) answers in CUDA memory: the queries and tiers without
-a GPU-resident path (all hits, transmittance, the exact tier but for counts, the refined tier,
-the point queries) go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same
+a GPU-resident path (all hits, the exact tier but for counts, the refined tier, the point
+queries) go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same
 query of numpy arrays, which must agree bit for bit (checked against Embree, brute force and
 analytic answers elsewhere). Runs where torch sees a CUDA GPU that is the vkray device."""
 
@@ -255,6 +255,32 @@ def test_exact_counts_of_cuda_rays_through_shared_edges(offset):
     broken[7] = 0.0
     with pytest.raises(ValueError, match="7"):
         scene.count(cuda(origins), cuda(broken), precision="exact")
+
+
+@pytest.mark.parametrize("distance", [2.0, 1e6])
+def test_transmittance_of_cuda_rays_stays_on_the_gpu(distance):
+    """Transmittance of CUDA rays in the fast tier, traced where they lie: two veils of opacity
+    0.25 and 0.5 keep 0.375 of the light, none beside them is lost, an opaque plate keeps none;
+    a far ray's advance never touches the light (the numpy path's answers, bit for bit); and a
+    scene with nothing translucent answers as the numpy path's occlusion does."""
+    if DEVICE.cuda_device is None:
+        pytest.skip("this vkray device shares no memory with CUDA")
+    v = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    lifted, plate = np.eye(4), np.eye(4)
+    lifted[2, 3], plate[:3, 3] = 0.5, [4.0, 0.0, 1.0]
+    veils = [DEVICE.mesh(v, f, opacity=0.25), vkray.Instance(DEVICE.mesh(v, f, opacity=0.5), lifted)]
+    scene = DEVICE.scene(veils + [vkray.Instance(DEVICE.mesh(v, f), plate)])
+    origins = np.array([[0.1, 0.2, -distance], [0.5, -0.5, -distance], [2.5, 0.0, -distance], [4.2, 0.3, -distance]])
+    directions = np.tile([0.0, 0.0, 1.0], (4, 1))
+    for dtype in (np.float32, np.float64):
+        o, d = origins.astype(dtype), directions.astype(dtype)
+        kept = on_host(scene.transmittance(cuda(o), cuda(d)))
+        assert_same(kept, scene.transmittance(o, d), err_msg=str(dtype))
+        np.testing.assert_allclose(kept, [0.375, 0.375, 1.0, 0.0], rtol=1e-6)
+    opaque = DEVICE.scene([vkray.Instance(DEVICE.mesh(v, f), plate)])
+    light = opaque.transmittance(cuda(origins), cuda(directions))
+    assert_same(on_host(light), opaque.transmittance(origins, directions))
 
 
 def test_errors_name_the_argument(bunny):

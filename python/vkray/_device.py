@@ -802,6 +802,9 @@ class Scene(SceneLike):
         return cast(np.ndarray, arrays[field].reshape(batch.shape))
 
     def _transmittance(self, q: RayQuery) -> np.ndarray:
+        if _arrays.on_cuda(q.origins, q.directions):
+            # Typed as the numpy path's result: CUDA rays are the exception, and documented.
+            return cast(np.ndarray, self._trace_cuda(replace(q, outputs=("t",)), "transmittance")["t"])
         batch = _RayBatch(q)
         arrays = self._traced(q, batch, lambda bar: self._core.trace(
             *batch.arrays, "transmittance", ["t"], q.precision, q.cull, batch.mask, progress=bar, sensor=batch.sensor))

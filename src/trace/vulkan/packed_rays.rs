@@ -189,13 +189,14 @@ enum PackMode {
 }
 
 /// Why a query cannot take the device-rays path, if it cannot: the fast tier's closest hits,
-/// occlusion and counts, and the exact tier's counts (whose answers are integers).
+/// occlusion, counts and transmittance, and the exact tier's counts (whose answers are integers).
 pub fn device_rays_refusal(request: Request) -> Option<&'static str> {
     match (request.precision, request.query) {
-        (Precision::Fast, Query::Closest | Query::Occluded | Query::Count) | (Precision::Exact, Query::Count) => None,
-        (Precision::Fast | Precision::Exact, _) => {
-            Some("only closest hits, occlusion and counts (exact: counts) trace rays the GPU packs itself")
-        }
+        (Precision::Fast, Query::Closest | Query::Occluded | Query::Count | Query::Transmit)
+        | (Precision::Exact, Query::Count) => None,
+        (Precision::Fast | Precision::Exact, _) => Some(
+            "only closest hits, occlusion, counts and transmittance (exact: counts) trace rays the GPU packs itself",
+        ),
         _ => Some("only precision='fast' and 'exact' (counts) trace rays the GPU packs itself"),
     }
 }
@@ -286,6 +287,7 @@ impl PackedRays {
         let job = PackedJob {
             hierarchy: VulkanScene::of(scene)?,
             exact: exact_scene.as_deref(),
+            t_is_distance: request.query != Query::Transmit,
             rays,
             outputs,
             variant: &variant,
@@ -333,8 +335,8 @@ impl PackedRays {
             let params = job.trace_params(start, len);
             self.shared.record_trace(cmd, job.variant, &params, len);
             stamp(Stamp::Traced);
-            // The exact tier advances no ray.
-            if params.outputs[Field::T as usize] != 0 && !exact {
+            // The exact tier advances no ray; transmittance's t is the light a ray keeps.
+            if params.outputs[Field::T as usize] != 0 && !exact && job.t_is_distance {
                 self.barrier(cmd, self.trace_stage(), vk::PipelineStageFlags::COMPUTE_SHADER);
                 pack_params.t = params.outputs[Field::T as usize];
                 self.packing.record(cmd, finish, &pack_params);
@@ -445,6 +447,9 @@ struct PackedJob<'a> {
     hierarchy: &'a VulkanScene,
     /// The exact tier's structures, for exact queries.
     exact: Option<&'a ExactScene>,
+    /// `t` is a distance along the ray, to which a far ray's advance is added back; not the
+    /// light a transmittance query keeps.
+    t_is_distance: bool,
     rays: &'a DeviceRays,
     outputs: &'a DeviceOutputs,
     variant: &'a Variant,
