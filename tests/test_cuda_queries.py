@@ -42,6 +42,17 @@ def assert_same(found, expected, err_msg=""):
     np.testing.assert_array_equal(found, expected, err_msg=err_msg, strict=True)
 
 
+@pytest.fixture
+def never_through_host(monkeypatch):
+    """Fails a query that would copy CUDA arrays through the host: a test of the GPU-resident path
+    must not pass by the host path's (equal) answers."""
+
+    def refuse(self, query, run):
+        raise AssertionError(f"{query.kind} (precision={query.precision!r}) went through the host")
+
+    monkeypatch.setattr(vkray._device.Scene, "_through_host", refuse)
+
+
 def points_around(v: np.ndarray, n: int, seed: int) -> np.ndarray:
     lo, hi = v.min(axis=0), v.max(axis=0)
     pad = 0.1 * (hi - lo)
@@ -231,7 +242,7 @@ def test_the_host_path_answers_in_the_resident_paths_types(bunny):
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e7])
-def test_exact_counts_of_cuda_rays_through_shared_edges(offset):
+def test_exact_counts_of_cuda_rays_through_shared_edges(offset, never_through_host):
     """The exact tier's counts of CUDA rays, packed in f64 by the GPU (no trip through the host):
     rays through the vertices and edges a heightfield's triangles share cross it once, at every
     offset, float32 and float64 rays alike; the numpy path's answers, bit for bit; an invalid ray
@@ -258,7 +269,7 @@ def test_exact_counts_of_cuda_rays_through_shared_edges(offset):
 
 
 @pytest.mark.parametrize("distance", [2.0, 1e6])
-def test_transmittance_of_cuda_rays_stays_on_the_gpu(distance):
+def test_transmittance_of_cuda_rays_stays_on_the_gpu(distance, never_through_host):
     """Transmittance of CUDA rays in the fast tier, traced where they lie: two veils of opacity
     0.25 and 0.5 keep 0.375 of the light, none beside them is lost, an opaque plate keeps none;
     a far ray's advance never touches the light (the numpy path's answers, bit for bit); and a
@@ -281,6 +292,30 @@ def test_transmittance_of_cuda_rays_stays_on_the_gpu(distance):
     opaque = DEVICE.scene([vkray.Instance(DEVICE.mesh(v, f), plate)])
     light = opaque.transmittance(cuda(origins), cuda(directions))
     assert_same(on_host(light), opaque.transmittance(origins, directions))
+
+
+def test_a_scene_with_spheres_answers_cuda_rays_as_numpy(bunny):
+    """Counts and transmittance of a scene with spheres are the host's in every tier (the GPU
+    traces spheres for closest hits and occlusion in the fast tier only): CUDA rays of those
+    queries go through the host, and every query answers as for numpy rays."""
+    v, _ = bunny
+    spheres = DEVICE.spheres([[0.0, 0.0, 0.0], [0.0, 0.0, 3.0]], [1.0, 0.5])
+    plate = np.eye(4)
+    plate[2, 3] = 5.0
+    quad = DEVICE.mesh(np.array([[-2.0, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]]), np.array([[0, 1, 2], [0, 2, 3]]),
+                       opacity=0.5)
+    scene = DEVICE.scene([spheres, vkray.Instance(quad, plate)])
+    offsets = np.array([[0.0, 0, 0], [0.3, 0.2, 0], [1.5, 0, 0], [0.7, 0.6, 0], [3, 3, 0]])
+    o = np.tile([0.0, 0.0, -10.0], (5, 1)) + offsets
+    d = np.tile([0.0, 0.0, 1.0], (5, 1))
+    for precision in ("fast", "exact"):
+        counts = on_host(scene.count(cuda(o), cuda(d), precision=precision))
+        assert_same(counts, scene.count(o, d, precision=precision), err_msg=precision)
+        assert counts.tolist() == [5, 5, 1, 3, 0]
+        light = on_host(scene.transmittance(cuda(o), cuda(d), precision=precision))
+        assert_same(light, scene.transmittance(o, d, precision=precision), err_msg=precision)
+    hits = scene.intersect(cuda(o), cuda(d))
+    assert_same(on_host(hits.prim_id), scene.intersect(o, d).prim_id)
 
 
 def test_errors_name_the_argument(bunny):

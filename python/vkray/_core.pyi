@@ -179,6 +179,7 @@ class Scene:
         sensor: Optional[Dict[str, Any]] = None,
         out: Optional[Dict[str, NDArray[Any]]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
+    def stays_on_gpu(self, query: str, precision: Precision = "fast") -> bool: ...
     def trace_cuda(
         self,
         origins: Any,

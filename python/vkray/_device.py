@@ -691,11 +691,21 @@ class Scene(SceneLike):
         run = _ANSWERS.get(query.kind)
         if run is None:
             raise ValueError(f"no query named {query.kind!r}")
-        if _cuda_query(query) and not (isinstance(query, RayQuery) and query.stays_on_gpu):
+        if _cuda_query(query) and not self._stays_on_gpu(query):
             return self._through_host(query, run)
         if isinstance(query, RayQuery) and query.cuda:
             return self._onto_gpu(query, run)
         return run(self, query)
+
+    def _stays_on_gpu(self, query: Query) -> bool:
+        """Whether CUDA rays of ``query`` are traced where they lie: `RayQuery.stays_on_gpu`, and
+        a query the GPU answers for what this scene holds (not counts or transmittance of a scene
+        with spheres, whose answers are the host's)."""
+        return (
+            isinstance(query, RayQuery)
+            and query.stays_on_gpu
+            and bool(self._core.stays_on_gpu(_CORE_QUERIES[query.kind], query.precision))
+        )
 
     def _onto_gpu(self, query: RayQuery, run: Callable[[Scene, Any], Any]) -> Any:
         """A query of host rays (arrays or a sensor) answered in CUDA memory (``cuda=True``): as
@@ -1047,6 +1057,10 @@ class _RayBatch:
         self.shape = shape
         self.arrays = (o, d, lo, hi)
         self.mask = _arrays.masks(q.mask, shape)
+
+
+#: The core's name of each ray query that may stay on the GPU (`Scene._stays_on_gpu`).
+_CORE_QUERIES = {"intersect": "closest", "occluded": "occluded", "count": "count", "transmittance": "transmittance"}
 
 
 def _cuda_query(q: Query) -> bool:

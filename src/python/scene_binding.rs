@@ -25,6 +25,8 @@ use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
 use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
+use crate::trace::request::spheres_on_host;
+use crate::trace::vulkan::packed_rays::device_rays_refusal;
 use crate::trace::{CpuEngine, Cull, Field, HitSink, Precision, Query, Request, SignedDistance, VulkanEngine};
 
 /// Instances under a top-level acceleration structure, ready for queries.
@@ -364,6 +366,17 @@ impl PyScene {
         Ok(result)
     }
 
+    /// Whether CUDA rays of `query` ("closest", "occluded", "count", "transmittance") in
+    /// `precision` are traced on the GPU where they lie (`trace_cuda`), for what this scene
+    /// holds; else they go through the host.
+    #[pyo3(signature = (query, precision="fast"))]
+    fn stays_on_gpu(&self, py: Python<'_>, query: &str, precision: &str) -> PyResult<bool> {
+        let request = request(Query::parse(query)?, precision, None, false, 0.5)?;
+        // The scene's lock is taken without the GIL (a writer may hold it while it waits).
+        let spheres = py.detach(|| spheres_on_host(&self.scene.read().unwrap_or_else(|e| e.into_inner()), request));
+        Ok(device_rays_refusal(request).is_none() && !spheres)
+    }
+
     /// Traces rays that live in CUDA memory (DLPack arrays on this device's GPU) in `precision`
     /// ("fast", or "exact" for counts); returns {field name: vkray.CudaArray} for the fields
     /// asked for, in CUDA memory. `query` is "closest", "occluded" or "count"; origins and
@@ -387,6 +400,16 @@ impl PyScene {
     ) -> PyResult<Bound<'py, PyDict>> {
         let request = request(Query::parse(query)?, precision, cull, false, opacity_threshold)?;
         let wanted = cuda_fields(&fields)?;
+        // Counts and occlusion write prim_id alone, transmittance t alone: no other array may
+        // come back unwritten.
+        let only = match request.query {
+            Query::Count | Query::Occluded => Some(Field::Prim),
+            Query::Transmit => Some(Field::T),
+            _ => None,
+        };
+        if let Some(field) = only.filter(|field| wanted.iter().any(|w| w != field)) {
+            return Err(PyValueError::new_err(format!("a {query} query of CUDA rays answers {} alone", field.name())));
+        }
         let tracer = &self.tracer;
         let (Some(path), Some(cuda)) = cuda_of(tracer)? else {
             return Err(dlpack::unreadable(tracer.device_name(), [("origins", origins), ("directions", directions)]));
@@ -694,7 +717,7 @@ fn cuda_fields(names: &[String]) -> PyResult<Vec<Field>> {
     fields_named(names)?
         .into_iter()
         .map(|(name, field)| {
-            field.ok_or_else(|| PyValueError::new_err(format!("{name} is not computed for CUDA rays (fast tier)")))
+            field.ok_or_else(|| PyValueError::new_err(format!("{name} is not computed on the GPU for CUDA rays")))
         })
         .collect()
 }

@@ -218,3 +218,11 @@ pub struct PointBatch<'a> {
     pub points: Vec3s<'a>,
     pub interrupt: &'a dyn Interrupt,
 }
+
+/// Whether a query on `scene` runs on the host because of its spheres: the GPU traces spheres
+/// for closest hits and occlusion in the fast tier; every f64 tier of a scene with spheres is the
+/// reference tier's tracer (the GPU's f64 structures hold triangles), and so are the other ray
+/// queries (counts, transmittance through opacity) in every tier.
+pub fn spheres_on_host(scene: &Scene, request: Request) -> bool {
+    scene.has_spheres() && (request.precision.is_f64() || !matches!(request.query, Query::Closest | Query::Occluded))
+}

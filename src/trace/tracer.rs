@@ -14,7 +14,7 @@ use super::hit_fields::{hits_from_prims, position_bytes_per_ray, Field, HitSink,
 use super::host_tiers::{self, AllHits};
 use super::idle::IdleMemory;
 use super::profile::TraceProfile;
-use super::request::{PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
+use super::request::{spheres_on_host, PointBatch, Precision, Query, RayBatch, Request, SignedDistance};
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
@@ -568,14 +568,6 @@ impl<E: Engine + ?Sized> Tracer<E> {
         scene.check_current()?;
         host_tiers::contains(scene, points, winding, out, interrupt)
     }
-}
-
-/// Whether a query on `scene` runs on the host because of its spheres: the GPU traces spheres
-/// for closest hits and occlusion in the fast tier; every f64 tier of a scene with spheres is the
-/// reference tier's tracer (the GPU's f64 structures hold triangles), and so are the other ray
-/// queries (counts, transmittance through opacity) in every tier.
-fn spheres_on_host(scene: &Scene, request: Request) -> bool {
-    scene.has_spheres() && (request.precision.is_f64() || !matches!(request.query, Query::Closest | Query::Occluded))
 }
 
 /// Closest points on spheres are measured in the scene's frame, where an instance must keep a

@@ -51,7 +51,11 @@ struct Units {
 
 impl Units {
     fn of(hierarchy: &CpuScene) -> Units {
-        let unit = hierarchy.unit();
+        Units::new(hierarchy.unit())
+    }
+
+    /// The units of `unit`, a power of two (normal in f64).
+    fn new(unit: f64) -> Units {
         let inverse = 1.0 / unit;
         Units { unit, inverse, inverse_exponent: ((inverse.to_bits() >> 52) & 0x7ff) as i32 - 1023 }
     }
@@ -739,10 +743,11 @@ mod tests {
     #[test]
     fn rays_scaled_in_f32_equal_those_scaled_in_f64() {
         let values = [0.0f32, -0.0, 1.0, -0.7, 0.3, 1e-30, -1e-38, 1e-44, 3e38, -2.5e37, 123.456, f32::INFINITY];
-        let mut checked = 0;
+        let (mut checked, mut in_f32) = (0, 0);
         for unit_exponent in [-120, -20, -2, 0, 3, 60, 126] {
             let unit = 2f64.powi(unit_exponent);
-            let units = Units { unit, inverse: 1.0 / unit, inverse_exponent: -unit_exponent };
+            let units = Units::new(unit);
+            assert_eq!(units.inverse_exponent, -unit_exponent);
             for (i, &a) in values.iter().enumerate() {
                 for (j, &b) in values.iter().enumerate() {
                     let direction = [a, b, values[(i + j) % values.len()]];
@@ -756,6 +761,8 @@ mod tests {
                     let (ray, t_unit) = embree_ray(&packed, 3, units);
                     let longest = direction.iter().fold(0f32, |m, c| m.max(c.abs()));
                     let up = exponent_at_or_above(longest).unwrap();
+                    let k = units.inverse_exponent;
+                    in_f32 += [k, -up, k + up].iter().all(|&e| normal_power_of_two(e).is_some()) as usize;
                     let wide = embree_ray_in_f64(
                         &packed,
                         3,
@@ -768,6 +775,6 @@ mod tests {
                 }
             }
         }
-        assert!(checked > 500);
+        assert!(checked > 500 && in_f32 > 300, "{checked} rays, {in_f32} scaled in f32");
     }
 }

@@ -12,7 +12,7 @@ use super::probes::Probes;
 use super::shared::Shared;
 use super::timestamps::{start_stamps, Stamp, Stamps};
 use super::variants::Variant;
-use crate::error::{invalid_value, Result};
+use crate::error::{invalid_value, Error, Result};
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
@@ -30,7 +30,7 @@ use crate::trace::hit_fields::{Field, HitSink, FIELDS, FIELD_COUNT};
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
 use crate::trace::pacer::ChunkPacer;
 use crate::trace::profile::TraceProfile;
-use crate::trace::request::{Precision, Query, RayBatch, Request};
+use crate::trace::request::{spheres_on_host, Precision, Query, RayBatch, Request};
 
 /// One array of the caller's rays on the device: rows of 3 (origins, directions) or 1 (bounds)
 /// numbers, f32 or f64 (`wide`), `stride` bytes apart (0: row 0 for every ray).
@@ -239,6 +239,10 @@ impl PackedRays {
         if let Some(why) = device_rays_refusal(request) {
             return Err(invalid_value(why));
         }
+        if spheres_on_host(scene, request) {
+            // The caller asks `stays_on_gpu` first: this query of this scene is the host's.
+            return Err(Error::Unsupported("the GPU does not trace this query of a scene with spheres".into()));
+        }
         // Here, not in `trace_packed`: `trace` holds the meshes already (holding them twice on
         // one thread would deadlock behind a waiting update), and the intersection-shader probes
         // trace through `run_gpu`.
@@ -316,7 +320,8 @@ impl PackedRays {
     ) -> Result<()> {
         let exact = job.exact.is_some();
         let pack = self.packing.pipeline(if exact { PackMode::PackExact } else { PackMode::Pack })?;
-        let finish = self.packing.pipeline(PackMode::Finish)?;
+        // The exact tier advances no ray, transmittance's t is no distance: nothing to finish.
+        let finish = if exact || !job.t_is_distance { None } else { Some(self.packing.pipeline(PackMode::Finish)?) };
         let stamps = Stamps::new(&self.shared.ctx)?;
         let mut commands = Commands::new(&self.shared.ctx)?;
         let count = job.rays.count;
@@ -335,8 +340,7 @@ impl PackedRays {
             let params = job.trace_params(start, len);
             self.shared.record_trace(cmd, job.variant, &params, len);
             stamp(Stamp::Traced);
-            // The exact tier advances no ray; transmittance's t is the light a ray keeps.
-            if params.outputs[Field::T as usize] != 0 && !exact && job.t_is_distance {
+            if let (Some(finish), true) = (finish, params.outputs[Field::T as usize] != 0) {
                 self.barrier(cmd, self.trace_stage(), vk::PipelineStageFlags::COMPUTE_SHADER);
                 pack_params.t = params.outputs[Field::T as usize];
                 self.packing.record(cmd, finish, &pack_params);
