@@ -1,5 +1,5 @@
 """Every query of CUDA arrays (torch, cupy) answers in CUDA memory: the queries and tiers without
-a GPU-resident path (all hits, the exact tier but for counts, the refined tier, the point
+a GPU-resident path (all hits, the exact tier's transmittance, the refined tier, the point
 queries) go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same
 query of numpy arrays, which must agree bit for bit (checked against Embree, brute force and
 analytic answers elsewhere). Runs where torch sees a CUDA GPU that is the vkray device."""
@@ -242,30 +242,39 @@ def test_the_host_path_answers_in_the_resident_paths_types(bunny):
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e7])
-def test_exact_counts_of_cuda_rays_through_shared_edges(offset, never_through_host):
-    """The exact tier's counts of CUDA rays, packed in f64 by the GPU (no trip through the host):
-    rays through the vertices and edges a heightfield's triangles share cross it once, at every
-    offset, float32 and float64 rays alike; the numpy path's answers, bit for bit; an invalid ray
-    named by its row."""
+def test_exact_tier_of_cuda_rays_through_shared_edges(offset, never_through_host):
+    """The exact tier's closest hits, occlusion and counts of CUDA rays, packed in f64 by the GPU
+    (no trip through the host): rays through the vertices and edges a heightfield's triangles
+    share cross it once, at every offset, float32 and float64 rays alike; every field the numpy
+    path's, bit for bit (t and uv float64); an invalid ray named by its row."""
     if DEVICE.cuda_device is None:
         pytest.skip("this vkray device shares no memory with CUDA")
     n = 10
     v, f, _ = oracle.heightfield(n, seed=3, offset=offset)
     origins, directions = oracle.rays_through(oracle.shared_targets(v, f, n), seed=4)
     scene = DEVICE.scene(DEVICE.mesh(v, f))
+    fields = ["t", "prim_id", "uv", "normal", "geometry_id", "instance_id", "custom_index"]
     for dtype in (np.float64, np.float32):
         o, d = origins.astype(dtype), directions.astype(dtype)
         counts = on_host(scene.count(cuda(o), cuda(d), precision="exact"))
         assert_same(counts, scene.count(o, d, precision="exact"), err_msg=str(dtype))
         if dtype == np.float64:
             assert (counts == 1).all(), f"{np.sum(counts == 0)} misses, {np.sum(counts > 1)} double counts"
+        hits = scene.intersect(cuda(o), cuda(d), outputs=fields, precision="exact")
+        want = scene.intersect(o, d, outputs=fields, precision="exact")
+        for name in fields:
+            assert_same(on_host(getattr(hits, name)), getattr(want, name), err_msg=f"{name} {dtype}")
+        assert (want.prim_id >= 0).all() and want.t.dtype == np.float64
+        blocked = on_host(scene.occluded(cuda(o), cuda(d), precision="exact"))
+        assert_same(blocked >= 0, scene.occluded(o, d, precision="exact"), err_msg=str(dtype))
     tmax = np.full(len(origins), 4.0)
     assert_same(on_host(scene.count(cuda(origins), cuda(directions), tmax=cuda(tmax), precision="exact")),
                 scene.count(origins, directions, tmax=tmax, precision="exact"))
     broken = directions.copy()
     broken[7] = 0.0
-    with pytest.raises(ValueError, match="7"):
-        scene.count(cuda(origins), cuda(broken), precision="exact")
+    for query in (scene.count, scene.intersect):
+        with pytest.raises(ValueError, match="7"):
+            query(cuda(origins), cuda(broken), precision="exact")
 
 
 @pytest.mark.parametrize("distance", [2.0, 1e6])

@@ -82,7 +82,7 @@ pub(super) fn hits_dict<'py>(
     let result = PyDict::new(py);
     if let Some(hits) = hits {
         for (field, allocation) in hits.fields {
-            let array = PyCudaArray::new(field, allocation, hits.ready.clone(), leading);
+            let array = PyCudaArray::new((field, hits.wide), allocation, hits.ready.clone(), leading);
             result.set_item(field.name(), Py::new(py, array)?)?;
         }
     }

@@ -324,14 +324,21 @@ struct HitMemory {
 }
 
 impl PyCudaArray {
-    /// The array of `field` for rays of shape `leading`.
-    pub(super) fn new(field: Field, allocation: CudaAllocation, ready: Arc<Event>, leading: &[usize]) -> PyCudaArray {
+    /// The array of `field` for rays of shape `leading` (`wide`: the exact tier's f64 t and uv).
+    pub(super) fn new(
+        (field, wide): (Field, bool),
+        allocation: CudaAllocation,
+        ready: Arc<Event>,
+        leading: &[usize],
+    ) -> PyCudaArray {
         let mut shape = leading.to_vec();
         if field.components() > 1 {
             shape.push(field.components());
         }
+        let float = |bits| DLDataType { code: DLPACK_FLOAT, bits, lanes: 1 };
         let dtype = match field {
-            Field::T | Field::Uv | Field::Normal => DLDataType { code: DLPACK_FLOAT, bits: 32, lanes: 1 },
+            Field::T | Field::Uv => float(8 * (field.bytes_per_ray(wide) / field.components()) as u8),
+            Field::Normal => float(32),
             _ => DLDataType { code: DLPACK_INT, bits: 32, lanes: 1 },
         };
         PyCudaArray { memory: Arc::new(HitMemory { allocation, ready }), shape, dtype }

@@ -82,6 +82,8 @@ pub struct CudaRays {
 pub struct CudaHits {
     pub fields: Vec<(Field, CudaAllocation)>,
     pub ready: Arc<Event>,
+    /// `t` and `uv` are f64 (the exact tier's).
+    pub wide: bool,
 }
 
 /// What one GPU-resident query at a time uses: vkray's CUDA stream, the semaphore that orders
@@ -269,7 +271,9 @@ impl CudaRaysPath {
         let cuda = self.cuda()?.expect("a lease implies CUDA");
         let arrays = arrays_of(rays);
         let input_bytes = layout_bytes(arrays.iter().map(|a| a.packed_bytes()));
-        let output_bytes = layout_bytes(fields.iter().map(|f| rays.count * f.bytes_per_ray(false)));
+        // The exact tier's t and uv are f64.
+        let wide = request.precision.is_f64();
+        let output_bytes = layout_bytes(fields.iter().map(|f| rays.count * f.bytes_per_ray(wide)));
         let stream = &lease.stream;
         self.shared.with_memory(|| {
             grow(&self.shared.ctx, &cuda, stream, &mut lease.input, input_bytes, "rays shared with CUDA")
@@ -320,7 +324,7 @@ impl CudaRaysPath {
         for field in fields {
             outputs[*field as usize] = output.vulkan.address() + at;
             offsets.push(at);
-            at = align_up(at + (rays.count * field.bytes_per_ray(false)) as u64, SHARED_ALIGN);
+            at = align_up(at + (rays.count * field.bytes_per_ray(wide)) as u64, SHARED_ALIGN);
         }
         let mut hits = Vec::new();
         let (stream, semaphore) = (&lease.stream, &lease.semaphore);
@@ -328,7 +332,7 @@ impl CudaRaysPath {
         let mut after_submit = || -> Result<()> {
             semaphore.wait(stream, signal)?;
             for (k, (field, offset)) in fields.iter().zip(&offsets).enumerate() {
-                let bytes = rays.count * field.bytes_per_ray(false);
+                let bytes = rays.count * field.bytes_per_ray(wide);
                 let src = (&*cuda, output.pointer + offset, bytes);
                 if let Some(into) = places.into {
                     // SAFETY: `into[k]` has room for this piece's rows of the field in the home
@@ -363,7 +367,7 @@ impl CudaRaysPath {
             return Err(error);
         }
         let ready = Arc::new(lease.stream.record()?);
-        Ok(CudaHits { fields: hits, ready })
+        Ok(CudaHits { fields: hits, ready, wide })
     }
 }
 
@@ -466,7 +470,8 @@ impl CudaBatch {
             self.stream.wait_for(event)?;
         }
         let ready = Arc::new(self.stream.record()?);
-        Ok(CudaHits { fields: self.fields.iter().copied().zip(allocations).collect(), ready })
+        // A batch traced in pieces is the fast tier's (`trace_cuda_piece`).
+        Ok(CudaHits { fields: self.fields.iter().copied().zip(allocations).collect(), ready, wide: false })
     }
 }
 

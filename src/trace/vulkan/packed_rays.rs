@@ -22,7 +22,7 @@ use crate::gpu::context::{Backend, Commands, Context, Timeline};
 use crate::gpu::external::HostImport;
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{
-    PackFrame, PackParams, Params, PACK_DIRECTIONS_F64, PACK_ORIGINS_F64, PACK_TMAX_F64, PACK_TMIN_F64,
+    ExactBest, PackFrame, PackParams, Params, PACK_DIRECTIONS_F64, PACK_ORIGINS_F64, PACK_TMAX_F64, PACK_TMIN_F64,
 };
 use crate::gpu::shaders;
 use crate::scene::{ExactScene, Scene, VulkanScene};
@@ -96,12 +96,15 @@ impl Idle for PackPipelines {
 struct PackScratch {
     packed: Buffer,
     advances: Buffer,
+    /// The exact tier's best hit of each ray so far (`ExactBest`), for its closest hits and
+    /// occlusion on the pipeline backend; None for the fast tier's scratch.
+    best: Option<Buffer>,
     capacity: usize,
 }
 
 impl Held for PackScratch {
     fn bytes(&self) -> u64 {
-        self.packed.size() + self.advances.size()
+        self.packed.size() + self.advances.size() + self.best.as_ref().map_or(0, Buffer::size)
     }
 }
 
@@ -136,7 +139,8 @@ impl PackPipelines {
     fn take_scratch(&self, capacity: usize, exact: bool) -> Result<PackScratch> {
         // The exact tier's rays are f64 (`Rays::pack_f64`), the others' f32.
         let ray_bytes = (capacity * RAY_FLOATS * if exact { 8 } else { 4 }) as u64;
-        let fits = |s: &PackScratch| s.capacity >= capacity && s.packed.size() >= ray_bytes;
+        let fits =
+            |s: &PackScratch| s.capacity >= capacity && s.packed.size() >= ray_bytes && (s.best.is_some() || !exact);
         if let Some(scratch) = self.idle.take(1, fits, |_| true).pop() {
             return Ok(scratch);
         }
@@ -146,6 +150,12 @@ impl PackPipelines {
             Ok(PackScratch {
                 packed: Buffer::new(&self.ctx, ray_bytes, usage, MemoryLocation::GpuOnly, "packed rays")?,
                 advances: Buffer::new(&self.ctx, 8 * capacity as u64, usage, MemoryLocation::GpuOnly, "ray advances")?,
+                best: if exact {
+                    let bytes = (capacity * size_of::<ExactBest>()) as u64;
+                    Some(Buffer::new(&self.ctx, bytes, usage, MemoryLocation::GpuOnly, "exact best hits")?)
+                } else {
+                    None
+                },
                 capacity,
             })
         })();
@@ -189,13 +199,14 @@ enum PackMode {
 }
 
 /// Why a query cannot take the device-rays path, if it cannot: the fast tier's closest hits,
-/// occlusion, counts and transmittance, and the exact tier's counts (whose answers are integers).
+/// occlusion, counts and transmittance, and the exact tier's closest hits, occlusion and counts.
 pub fn device_rays_refusal(request: Request) -> Option<&'static str> {
     match (request.precision, request.query) {
         (Precision::Fast, Query::Closest | Query::Occluded | Query::Count | Query::Transmit)
-        | (Precision::Exact, Query::Count) => None,
+        | (Precision::Exact, Query::Closest | Query::Occluded | Query::Count) => None,
         (Precision::Fast | Precision::Exact, _) => Some(
-            "only closest hits, occlusion, counts and transmittance (exact: counts) trace rays the GPU packs itself",
+            "only closest hits, occlusion, counts and transmittance (exact: not transmittance) trace rays the GPU \
+             packs itself",
         ),
         _ => Some("only precision='fast' and 'exact' (counts) trace rays the GPU packs itself"),
     }
@@ -292,6 +303,7 @@ impl PackedRays {
             hierarchy: VulkanScene::of(scene)?,
             exact: exact_scene.as_deref(),
             t_is_distance: request.query != Query::Transmit,
+            counts: request.query.counts_hits(),
             rays,
             outputs,
             variant: &variant,
@@ -454,6 +466,8 @@ struct PackedJob<'a> {
     /// `t` is a distance along the ray, to which a far ray's advance is added back; not the
     /// light a transmittance query keeps.
     t_is_distance: bool,
+    /// The query counts hits (QUERY_ALL's counting pass).
+    counts: bool,
     rays: &'a DeviceRays,
     outputs: &'a DeviceOutputs,
     variant: &'a Variant,
@@ -474,14 +488,18 @@ impl PackedJob<'_> {
             ..Default::default()
         };
         if let Some(exact) = self.exact {
-            // Counts only (`device_rays_refusal`): no scratch records (QUERY_ALL's counting pass).
             (params.instances, params.tlas, params.bounds) =
                 (exact.instances_address(), exact.tlas_address(), exact.bounds_f32());
+            // Each ray's best hit so far (closest hits and occlusion on the pipeline backend; a
+            // count, QUERY_ALL's counting pass, reads none).
+            if !self.counts {
+                params.scratch = self.scratch.best.as_ref().map_or(0, Buffer::address);
+            }
         }
         for field in FIELDS {
             let address = self.outputs[field as usize];
             if address != 0 {
-                params.outputs[field as usize] = address + (start * field.bytes_per_ray(false)) as u64;
+                params.outputs[field as usize] = address + (start * field.bytes_per_ray(self.exact.is_some())) as u64;
             }
         }
         params
