@@ -820,6 +820,7 @@ class GroupScene(SceneLike):
 
         splittable = (
             q.kind in ("intersect", "occluded")
+            and q.precision == "fast"  # the pieces trace in the fast tier (`trace_cuda_piece`)
             and q.stays_on_gpu
             and len(self.per_device) > 1
             and all(d.cuda_device is not None for d in self.group.devices)
