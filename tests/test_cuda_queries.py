@@ -342,8 +342,9 @@ def test_errors_name_the_argument(bunny):
         scene.intersect_all(cuda(o), cuda(d), tmax=np.ones(100))
     with pytest.raises(TypeError, match="float32 or float64"):
         scene.distance(cuda(p[:42]).half())
-    with pytest.raises(TypeError, match="directions are needed"):
-        scene.intersect(cuda(o), precision="exact")
+    for precision in ("fast", "exact", "refined"):
+        with pytest.raises(TypeError, match="directions are needed"):
+            scene.intersect(cuda(o), precision=precision)
 
 
 def test_several_threads(bunny):

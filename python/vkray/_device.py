@@ -1088,6 +1088,8 @@ def _to_cuda(core: Any, answer: Any) -> Any:
 def _check_cuda_query(q: RayQuery) -> int:
     """The one mask of a GPU-resident query (`RayQuery.stays_on_gpu`; `Scene.answer` sends the
     others through the host)."""
+    if q.directions is None:
+        raise TypeError("directions are needed, unless origins is a sensor (vkray.PinholeCamera ...)")
     if not q.stays_on_gpu:
         raise _core.UnsupportedError(
             f"this {q.kind} query (precision={q.precision!r}) does not stay on the GPU: Scene.answer takes it "
