@@ -348,26 +348,33 @@ def test_errors_name_the_argument(bunny):
 
 
 def test_several_threads(bunny):
-    """Six threads at once, each array large enough to cross through page-locked memory both ways
-    (points of 1.2 MB in; counts of 1.2 MB out), the pools shared among them."""
+    """Six threads at once: signed distances through the host (points of 1.2 MB in through
+    page-locked memory), and the GPU-resident exact counts, exact closest hits and transmittance
+    of 300k rays each, the pools and leases shared among them."""
     v, scene = bunny
     sets = [points_around(v, 50_000, seed=20 + k) for k in range(6)]
     expected = [scene.signed_distance(p, precision="exact") for p in sets]
     rays = [tuple(a.astype(np.float32) for a in oracle.random_rays(v, 300_000, seed=30 + k)) for k in range(6)]
     counted = [scene.count(o, d, precision="exact") for o, d in rays]
+    nearest = [scene.intersect(o, d, outputs=["t"], precision="exact").t for o, d in rays]
+    light = [scene.transmittance(o, d) for o, d in rays]
 
     def work(k):
         runs = []
+        o, d = cuda(rays[k][0]), cuda(rays[k][1])
         for _ in range(3):
             signed = on_host(scene.signed_distance(cuda(sets[k]), precision="exact"))
-            counts = on_host(scene.count(cuda(rays[k][0]), cuda(rays[k][1]), precision="exact"))
-            runs.append((signed, counts))
+            counts = on_host(scene.count(o, d, precision="exact"))
+            t = on_host(scene.intersect(o, d, outputs=["t"], precision="exact").t)
+            runs.append((signed, counts, t, on_host(scene.transmittance(o, d))))
         return runs
 
-    for runs, want, want_counts in zip(oracle.in_threads(len(sets), work), expected, counted):
-        for signed, counts in runs:
-            assert_same(signed, want)
-            assert_same(counts, want_counts)
+    for k, runs in enumerate(oracle.in_threads(len(sets), work)):
+        for signed, counts, t, kept in runs:
+            assert_same(signed, expected[k])
+            assert_same(counts, counted[k])
+            assert_same(t, nearest[k])
+            assert_same(kept, light[k])
 
 
 def test_cupy_arrays(bunny):
