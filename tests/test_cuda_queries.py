@@ -1,6 +1,5 @@
 """Every query of CUDA arrays (torch, cupy) answers in CUDA memory: the queries and tiers without
-a GPU-resident path (all hits, the exact tier's transmittance, the refined tier, the point
-queries) go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same
+a GPU-resident path (all hits, the refined tier, the point queries) go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same
 query of numpy arrays, which must agree bit for bit (checked against Embree, brute force and
 analytic answers elsewhere). Runs where torch sees a CUDA GPU that is the vkray device."""
 
@@ -279,10 +278,10 @@ def test_exact_tier_of_cuda_rays_through_shared_edges(offset, never_through_host
 
 @pytest.mark.parametrize("distance", [2.0, 1e6])
 def test_transmittance_of_cuda_rays_stays_on_the_gpu(distance, never_through_host):
-    """Transmittance of CUDA rays in the fast tier, traced where they lie: two veils of opacity
-    0.25 and 0.5 keep 0.375 of the light, none beside them is lost, an opaque plate keeps none;
-    a far ray's advance never touches the light (the numpy path's answers, bit for bit); and a
-    scene with nothing translucent answers as the numpy path's occlusion does."""
+    """Transmittance of CUDA rays in the fast and exact tiers, traced where they lie: two veils
+    of opacity 0.25 and 0.5 keep 0.375 of the light, none beside them is lost, an opaque plate
+    keeps none; a far ray's advance never touches the light (the numpy path's answers, bit for
+    bit); and a scene with nothing translucent answers as the numpy path's occlusion does."""
     if DEVICE.cuda_device is None:
         pytest.skip("this vkray device shares no memory with CUDA")
     v = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
@@ -295,12 +294,14 @@ def test_transmittance_of_cuda_rays_stays_on_the_gpu(distance, never_through_hos
     directions = np.tile([0.0, 0.0, 1.0], (4, 1))
     for dtype in (np.float32, np.float64):
         o, d = origins.astype(dtype), directions.astype(dtype)
-        kept = on_host(scene.transmittance(cuda(o), cuda(d)))
-        assert_same(kept, scene.transmittance(o, d), err_msg=str(dtype))
-        np.testing.assert_allclose(kept, [0.375, 0.375, 1.0, 0.0], rtol=1e-6)
+        for precision in ("fast", "exact"):
+            kept = on_host(scene.transmittance(cuda(o), cuda(d), precision=precision))
+            assert_same(kept, scene.transmittance(o, d, precision=precision), err_msg=f"{dtype} {precision}")
+            np.testing.assert_allclose(kept, [0.375, 0.375, 1.0, 0.0], rtol=1e-6)
     opaque = DEVICE.scene([vkray.Instance(DEVICE.mesh(v, f), plate)])
-    light = opaque.transmittance(cuda(origins), cuda(directions))
-    assert_same(on_host(light), opaque.transmittance(origins, directions))
+    for precision in ("fast", "exact"):
+        light = opaque.transmittance(cuda(origins), cuda(directions), precision=precision)
+        assert_same(on_host(light), opaque.transmittance(origins, directions, precision=precision))
 
 
 def test_a_scene_with_spheres_answers_cuda_rays_as_numpy(bunny):

@@ -57,13 +57,14 @@ class RayQuery:
     def stays_on_gpu(self) -> bool:
         """Whether CUDA rays of this query are traced without leaving the GPU (the GPU-resident
         path: copied device to device, packed and traced there): `intersect`, `occluded`, `count`
-        and `transmittance` in the fast tier, and all but `transmittance` in the exact tier, of one
-        mask for every ray, without ``position`` (computed on the host), ``out=`` or a progress
-        bar. Other queries of CUDA arrays go through the host."""
+        and `transmittance` in the fast and exact tiers, of one mask for every ray, without
+        ``position`` (computed on the host), ``out=`` or a progress bar (and not counts or
+        transmittance of a scene with spheres: `Scene._stays_on_gpu`). Other queries of CUDA
+        arrays go through the host."""
         one_mask = np.ndim(self.mask) == 0 and _arrays.dlpack_device(self.mask, "mask") is None
         return (
             self.kind in ("intersect", "occluded", "count", "transmittance")
-            and (self.precision == "fast" or (self.precision == "exact" and self.kind != "transmittance"))
+            and self.precision in ("fast", "exact")
             and "position" not in self.outputs
             and self.out is None
             and not self.progress
@@ -108,8 +109,8 @@ class SceneLike(abc.ABC):
     Every query takes CUDA arrays (torch, cupy, jax: DLPack on the device's GPU) for its rays or
     points, in every tier, and answers with `vkray.CudaArray`s on that GPU (in `Hits`, `AllHits`
     and `Closest` each field is one), read in the caller's stream order. `intersect`, `occluded`,
-    `count` and `transmittance` in the fast tier and all but `transmittance` in the exact tier, of
-    one mask, never leave the GPU (`RayQuery.stays_on_gpu`); the other queries and tiers copy
+    `count` and `transmittance` in the fast and exact tiers, of one mask, never leave the GPU
+    (`RayQuery.stays_on_gpu`); the other queries and tiers copy
     the arrays to the host and the answers back (one copy each way over the bus, 1-2 ms for 1M
     float32 rays on an H200: docs/benchmarks.md)."""
 

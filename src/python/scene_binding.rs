@@ -378,7 +378,7 @@ impl PyScene {
     }
 
     /// Traces rays that live in CUDA memory (DLPack arrays on this device's GPU) in `precision`
-    /// ("fast", or "exact" but for transmittance); returns {field name: vkray.CudaArray} for the fields
+    /// ("fast" or "exact"); returns {field name: vkray.CudaArray} for the fields
     /// asked for, in CUDA memory. `query` is "closest", "occluded" or "count"; origins and
     /// directions of shape S + (3,) (one of them may be a single row); tmin and tmax numbers or
     /// CUDA arrays of shape S.

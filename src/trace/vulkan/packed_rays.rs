@@ -198,16 +198,14 @@ enum PackMode {
     PackExact = 2,
 }
 
-/// Why a query cannot take the device-rays path, if it cannot: the fast tier's closest hits,
-/// occlusion, counts and transmittance, and the exact tier's closest hits, occlusion and counts.
+/// Why a query cannot take the device-rays path, if it cannot: closest hits, occlusion, counts
+/// and transmittance in the fast and exact tiers.
 pub fn device_rays_refusal(request: Request) -> Option<&'static str> {
     match (request.precision, request.query) {
-        (Precision::Fast, Query::Closest | Query::Occluded | Query::Count | Query::Transmit)
-        | (Precision::Exact, Query::Closest | Query::Occluded | Query::Count) => None,
-        (Precision::Fast | Precision::Exact, _) => Some(
-            "only closest hits, occlusion, counts and transmittance (exact: not transmittance) trace rays the GPU \
-             packs itself",
-        ),
+        (Precision::Fast | Precision::Exact, Query::Closest | Query::Occluded | Query::Count | Query::Transmit) => None,
+        (Precision::Fast | Precision::Exact, _) => {
+            Some("only closest hits, occlusion, counts and transmittance trace rays the GPU packs itself")
+        }
         _ => Some("only precision='fast' and 'exact' (counts) trace rays the GPU packs itself"),
     }
 }
