@@ -1,7 +1,8 @@
 """Every query of CUDA arrays (torch, cupy) answers in CUDA memory: the queries and tiers without
-a GPU-resident path (all hits, the refined tier, the point queries) go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same
-query of numpy arrays, which must agree bit for bit (checked against Embree, brute force and
-analytic answers elsewhere). Runs where torch sees a CUDA GPU that is the vkray device."""
+a GPU-resident path (all hits, the refined tier, the point queries) go through the host and hand
+back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same query of numpy arrays, which
+must agree bit for bit (checked against Embree, brute force and analytic answers elsewhere). Runs
+where torch sees a CUDA GPU that is the vkray device."""
 
 from __future__ import annotations
 
