@@ -32,6 +32,7 @@ const SHADERS: &[&str] = &[
     "point_order.comp",
     "sign_points.comp",
     "list_offsets.comp",
+    "hit_columns.comp",
 ];
 
 /// How long glslc may take over one shader (each takes well under 5 s): some shapes of code with

@@ -86,6 +86,24 @@ layout(push_constant, std430) uniform ListParams {
 const uint LIST_SUMS = 0u;
 const uint LIST_SCAN = 1u;
 const uint LIST_WRITE = 2u;
+#elif defined(VKRAY_HIT_COLUMNS)
+// The push constants of hit_columns.comp (records.rs ColumnParams): one stored chunk of an
+// all-hits query, its records written out as the answer's columns. Each column's address is 0
+// where the caller did not ask for it.
+layout(push_constant, std430) uniform ColumnParams {
+  uint64_t records;    // the chunk's FastHit or ExactHit records
+  uint64_t offsets;    // uint64 per ray: its list's first record among the chunk's
+  uint64_t total;      // the chunk's records (one uint64, list_offsets.comp's total)
+  uint64_t first_ray;  // the chunk's first ray among the query's
+  uint64_t ray_index;  // out: int64 per hit, its ray among the query's
+  uint64_t t;          // out: float per hit (double from ExactHit)
+  uint64_t uv;         // out: 2 floats per hit (doubles from ExactHit)
+  uint64_t prim;       // out: int per hit, the triangle within its geometry
+  uint64_t instance;   // out: int per hit
+  uint64_t geometry;   // out: int per hit
+  uint count;          // rays in the chunk
+  uint unused;
+} column_params;
 #elif defined(VKRAY_SIGN_POINTS)
 // The push constants of sign_points.comp (records.rs SignPointsParams): one chunk of a signed
 // distance query, its distances signed in place from its sign's crossings (and cap's winding

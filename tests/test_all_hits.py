@@ -1422,6 +1422,53 @@ def test_long_lists(device, tier):
         np.testing.assert_allclose(got.t, want.t, rtol=0, atol=2e-6 * 60 if tier == "fast" else 0)
 
 
+@pytest.mark.parametrize("tier", ["fast", "exact"])
+@pytest.mark.parametrize("parts", [1, 2])
+def test_columns_written_on_the_gpu_equal_the_hosts(device, tier, parts, monkeypatch):
+    """The GPU writes the answer's columns (t, uv, prim_id, instance_id, geometry_id and each
+    hit's ray) from its hit records; asking for positions too sends the answer through the host,
+    which writes them from the records instead. Both are the same, bit for bit: the cow (in one
+    part or two) beside 40 boxes in a row, in chunks of 64 rays (the first holding rays through
+    the boxes, whose 80-hit lists the host sorts: that chunk's columns are the host's), far rays
+    among them (their t advanced back in the fast tier), with records for the whole query and
+    for 100 hits a chunk. The CPU engine writes every answer's columns on the host."""
+    if tier == "exact" and not _exact_on(device):
+        pytest.skip("this device does not answer precision='exact'")
+    v, f = mesh_data("cow")
+    half = len(f) // 2
+    cow = device.mesh(v, f) if parts == 1 else device.mesh_from_parts([(v, f[:half]), (v, f[half:])])
+    boxes = device.mesh(*box())
+    row = [vkray.Instance(boxes, _affine(np.eye(3), [50.0, 0.0, 1.5 * k])) for k in range(40)]
+    scene = device.scene([vkray.Instance(cow)] + row)
+    origins, directions = random_rays(v, 400, seed=53)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    _, radius = bounds(v)
+    origins[200::20] -= 1e5 * radius * directions[200::20]
+    origins[[5, 40]] = [50.3, 0.6, -1.0]
+    directions[[5, 40]] = [0.0, 0.0, 1.0]
+    fields = ["t", "uv", "prim_id", "instance_id", "geometry_id"]
+    # The exact tier's records name a triangle among all parts: the GPU writes one-part meshes'.
+    on_gpu = device.info.engine == "vulkan" and (parts == 1 or tier == "fast")
+    previous = device.chunk_rays
+    try:
+        device.chunk_rays = 64
+        for records in (None, 100):
+            if records is not None:
+                monkeypatch.setenv("VKRAY_HIT_RECORD_BYTES", str(records * 32))
+            gpu = scene.intersect_all(origins, directions, precision=tier, outputs=fields)
+            written = device.last_trace_profile["gpu_columns"]
+            host = scene.intersect_all(origins, directions, precision=tier, outputs=fields + ["position"])
+            assert device.last_trace_profile["gpu_columns"] == 0
+            assert (written > 0) == on_gpu
+            assert gpu.counts[[5, 40]].tolist() == [80, 80] and gpu.counts.sum() > 400
+            for name in ("offsets", "counts", "ray_index") + tuple(fields):
+                got, want = getattr(gpu, name), getattr(host, name)
+                assert got.dtype == want.dtype, name
+                np.testing.assert_array_equal(got, want, err_msg=f"{records}: {name}")
+    finally:
+        device.chunk_rays = previous
+
+
 @pytest.mark.parametrize("offset", [0.0, 1e5])
 def test_gpu_tells_points_on_the_surface(device, offset):
     """contains(precision="exact") on one instance tests on the GPU whether each point lies on the

@@ -219,7 +219,9 @@ class Device:
         ``chunks``, ``host_threads`` (the threads its host passes ran on: `host_threads`, or the
         shared pool's) and ``ray_bytes`` (the rays the host packed for the GPU, in bytes: 32 a
         ray, 24 for float32 rays of one interval, 12 for those from one origin, each chunk of the
-        leaner two with 32 more; 64 a ray in the exact tier)."""
+        leaner two with 32 more; 64 a ray in the exact tier), and ``gpu_columns`` (all hits: the
+        chunks whose answer columns the GPU wrote; the host writes those of a chunk whose lists
+        it must sort, and of answers asking position, normal or custom_index)."""
         return dict(self._core.last_trace_profile)
 
     @property

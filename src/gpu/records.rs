@@ -268,6 +268,34 @@ pub const LIST_SUMS: u32 = 0;
 pub const LIST_SCAN: u32 = 1;
 pub const LIST_WRITE: u32 = 2;
 
+/// The push constants of hit_columns.comp (`ColumnParams` in shaders/records.glsl): one stored
+/// chunk of an all-hits query, its records written out as the answer's columns (each column's
+/// address 0 where not asked).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct ColumnParams {
+    /// The chunk's `FastHit` or `ExactHit` records.
+    pub records: u64,
+    /// u64 per ray: its list's first record among the chunk's.
+    pub offsets: u64,
+    /// One u64: where the last ray's list ends (the chunk's records).
+    pub total: u64,
+    /// The chunk's first ray among the query's.
+    pub first_ray: u64,
+    /// Out: i64 per hit.
+    pub ray_index: u64,
+    /// Out: f32 per hit (f64 from `ExactHit`).
+    pub t: u64,
+    /// Out: 2 f32 per hit (f64 from `ExactHit`).
+    pub uv: u64,
+    /// Out: i32 per hit each.
+    pub prim: u64,
+    pub instance: u64,
+    pub geometry: u64,
+    pub count: u32,
+    pub unused: u32,
+}
+
 /// The push constants of pack_rays.comp (`PackParams` in shaders/records.glsl): one chunk of the
 /// caller's rays in its own layout, and where their packed form goes.
 #[repr(C)]
@@ -489,6 +517,8 @@ layout!(PointParams, size 128, points @ 0, distances @ 8, hits @ 16, nodes @ 24,
 layout!(PointOrderParams, size 80, points @ 0, cells @ 8, order @ 16, corner @ 24, scale @ 48, count @ 72, pass @ 76);
 layout!(ListParams, size 80, counts @ 0, sums @ 8, lists @ 16, offsets @ 24, nearest @ 32, records @ 40, count @ 48,
     max_hits @ 52, insertion_limit @ 56, run @ 60, pass @ 64, nearest_hits @ 68, room @ 72, unused @ 76);
+layout!(ColumnParams, size 88, records @ 0, offsets @ 8, total @ 16, first_ray @ 24, ray_index @ 32, t @ 40,
+    uv @ 48, prim @ 56, instance @ 64, geometry @ 72, count @ 80, unused @ 84);
 layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
     outside_below @ 40, count @ 48, unused @ 52);
 layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
@@ -720,6 +750,24 @@ mod tests {
                     pass,
                     nearest_hits,
                     room,
+                    unused
+                ),
+            ),
+            (
+                "ColumnParams",
+                size_of::<ColumnParams>(),
+                members!(
+                    ColumnParams: records,
+                    offsets,
+                    total,
+                    first_ray,
+                    ray_index,
+                    t,
+                    uv,
+                    prim,
+                    instance,
+                    geometry,
+                    count,
                     unused
                 ),
             ),

@@ -22,6 +22,7 @@ pub const PACK_RAYS: &[u8] = spirv!("pack_rays.comp");
 pub const POINT_ORDER: &[u8] = spirv!("point_order.comp");
 pub const SIGN_POINTS: &[u8] = spirv!("sign_points.comp");
 pub const LIST_OFFSETS: &[u8] = spirv!("list_offsets.comp");
+pub const HIT_COLUMNS: &[u8] = spirv!("hit_columns.comp");
 
 /// Every embedded module with its source name (for `spirv-val` in the tests).
 pub const ALL: &[(&str, &[u8])] = &[
@@ -41,6 +42,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("point_order.comp", POINT_ORDER),
     ("sign_points.comp", SIGN_POINTS),
     ("list_offsets.comp", LIST_OFFSETS),
+    ("hit_columns.comp", HIT_COLUMNS),
 ];
 
 /// A module's words, copied to u32 alignment (`include_bytes!` guarantees none).

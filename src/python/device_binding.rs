@@ -192,6 +192,7 @@ impl PyDevice {
         d.set_item("order", p.order)?;
         d.set_item("host_threads", p.host_threads)?;
         d.set_item("ray_bytes", p.ray_bytes)?;
+        d.set_item("gpu_columns", p.gpu_columns)?;
         Ok(d)
     }
 

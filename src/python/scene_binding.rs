@@ -19,11 +19,11 @@ use super::numpy_views::{Bound1, MaskArray, Vec3Array};
 use super::{cuda_batch, dlpack};
 use crate::geometry::arrays::instance_transform;
 use crate::geometry::interrupt::Interrupt;
-use crate::geometry::parallel::try_zeroed;
 use crate::geometry::rays::Rays;
 use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
+use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns};
 use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
 use crate::trace::request::spheres_on_host;
 use crate::trace::vulkan::packed_rays::device_rays_refusal;
@@ -509,36 +509,14 @@ impl PyScene {
             return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
         }
         let named = fields_named(&fields)?;
-        let wide = request.precision.is_f64();
-        // Each hit's fields, and its ray index.
-        let bytes_per_hit = 8 + named
-            .iter()
-            .map(|(_, field)| field.map_or(position_bytes_per_ray(wide), |f| f.bytes_per_ray(wide)))
-            .sum::<usize>();
+        let asked: Vec<AskedColumn> = named.iter().map(|(_, field)| *field).collect();
         let batch = RayArrays::extract(origins, directions, tmin, tmax, mask, sensor)?;
         let rays = batch.rays()?;
-        let (offsets, ray_index, columns) = self.query(py, progress, |scene, interrupt| {
+        let answer = self.query(py, progress, |scene, interrupt| {
             let limit = max_hits.unwrap_or(usize::MAX);
-            let all = self.tracer.trace_all(scene, &rays, request, limit, bytes_per_hit, interrupt)?;
-            // Hundreds of millions of hits take a pass each to write out: Ctrl-C between them.
-            interrupt.check()?;
-            let h = all.hits.len();
-            let mut columns =
-                named.iter().map(|(_, f)| Column::new(*f, h, all.wide)).collect::<crate::Result<Vec<_>>>()?;
-            let mut sink = HitSink::default();
-            for ((_, field), column) in named.iter().zip(columns.iter_mut()) {
-                match field {
-                    Some(field) => sink.set(*field, column.bytes()),
-                    None => sink.position = Some(column.bytes()),
-                }
-            }
-            let mut ray_index = try_zeroed(h, "the hits' ray indices")?;
-            self.tracer.write_all(scene, &rays, &all, &mut sink, &mut ray_index)?;
-            interrupt.check()?;
-            let crate::trace::host_tiers::AllHits { offsets, hits, .. } = all;
-            self.tracer.recycle_hits(hits);
-            Ok((offsets, ray_index, columns))
+            self.tracer.all_hit_columns(scene, &rays, request, limit, &asked, interrupt)
         })?;
+        let HitColumns { offsets, ray_index, columns } = answer;
         // Each ray's count beside the offsets, on all cores (numpy's diff took a millisecond of a
         // million rays on one).
         let counts = py.detach(|| crate::geometry::parallel::install(|| counts_of(&offsets)));
@@ -547,7 +525,7 @@ impl PyScene {
         result.set_item("counts", PyArray1::from_vec(py, counts))?;
         result.set_item("ray_index", PyArray1::from_vec(py, ray_index))?;
         for ((name, _), column) in named.into_iter().zip(columns) {
-            result.set_item(name, column.into_array(py)?)?;
+            result.set_item(name, column_array(py, column)?)?;
         }
         Ok(result)
     }
@@ -739,53 +717,17 @@ fn request(
     Ok(request)
 }
 
-/// One field of all hits, as the core writes it: typed, so that it becomes a numpy array without
-/// a copy.
-enum Column {
-    F64(Vec<f64>, usize),
-    F32(Vec<f32>, usize),
-    I32(Vec<i32>),
-}
-
-impl Column {
-    /// A column of `hits` entries for `field` (None: `position`): `t`, `uv` and `position` in
-    /// f64 where `wide` (the f64 tiers), else f32.
-    fn new(field: Option<Field>, hits: usize, wide: bool) -> crate::Result<Column> {
-        let floats = |k: usize, what: &str| -> crate::Result<Column> {
-            Ok(if wide {
-                Column::F64(try_zeroed(k * hits, what)?, k)
-            } else {
-                Column::F32(try_zeroed(k * hits, what)?, k)
-            })
-        };
-        Ok(match field {
-            None => floats(3, "the hits' positions")?,
-            Some(Field::T) => floats(1, "the hits' t")?,
-            Some(Field::Uv) => floats(2, "the hits' uv")?,
-            Some(Field::Normal) => Column::F32(try_zeroed(3 * hits, "the hits' normals")?, 3),
-            Some(_) => Column::I32(try_zeroed(hits, "the hits' ids")?),
-        })
+/// One column of all hits as a numpy array (`(hits, k)` for fields of k numbers), without a copy.
+fn column_array(py: Python<'_>, column: HitColumn) -> PyResult<Bound<'_, PyAny>> {
+    fn shaped<'py, T: numpy::Element>(py: Python<'py>, v: Vec<T>, k: usize) -> PyResult<Bound<'py, PyAny>> {
+        let rows = v.len() / k;
+        let array = PyArray1::from_vec(py, v);
+        Ok(if k == 1 { array.into_any() } else { array.reshape([rows, k])?.into_any() })
     }
-
-    fn bytes(&mut self) -> &mut [u8] {
-        match self {
-            Column::F64(v, _) => bytemuck::cast_slice_mut(v),
-            Column::F32(v, _) => bytemuck::cast_slice_mut(v),
-            Column::I32(v) => bytemuck::cast_slice_mut(v),
-        }
-    }
-
-    fn into_array(self, py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
-        fn shaped<'py, T: numpy::Element>(py: Python<'py>, v: Vec<T>, k: usize) -> PyResult<Bound<'py, PyAny>> {
-            let rows = v.len() / k;
-            let array = PyArray1::from_vec(py, v);
-            Ok(if k == 1 { array.into_any() } else { array.reshape([rows, k])?.into_any() })
-        }
-        match self {
-            Column::F64(v, k) => shaped(py, v, k),
-            Column::F32(v, k) => shaped(py, v, k),
-            Column::I32(v) => shaped(py, v, 1),
-        }
+    match column {
+        HitColumn::F64(v, k) => shaped(py, v, k),
+        HitColumn::F32(v, k) => shaped(py, v, k),
+        HitColumn::I32(v) => shaped(py, v, 1),
     }
 }
 

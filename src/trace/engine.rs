@@ -9,6 +9,7 @@ use crate::geometry::build_options::BuildOptions;
 use crate::geometry::rays::PerRay;
 use crate::geometry::reference::ReferenceHit;
 use crate::scene::{Instance, Mesh, MeshBatch, Scene};
+use crate::trace::hit_columns::{AskedColumn, HitColumns};
 use crate::trace::hit_fields::HitSink;
 use crate::trace::host_tiers::AllHits;
 use crate::trace::idle::IdleMemory;
@@ -75,6 +76,18 @@ pub trait Engine: Send + Sync + 'static {
     /// `host_bytes_per_hit`: what the caller will need per hit, for refusing a result that cannot
     /// fit before it is stored.
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits>;
+
+    /// `all_hits` written straight into the answer's `asked` columns, where the engine can for
+    /// this batch and these columns (None: it cannot; the dispatcher writes them from
+    /// `all_hits`'s records). Asked only in the fast and exact tiers, on scenes without spheres.
+    fn all_hit_columns(
+        &self,
+        _batch: RayBatch,
+        _max_hits: usize,
+        _asked: &[AskedColumn],
+    ) -> Result<Option<HitColumns>> {
+        Ok(None)
+    }
 
     /// Takes back the records of an `all_hits` answer the caller is done with, for the next
     /// query to fill (their pages already touched), where the engine keeps them.

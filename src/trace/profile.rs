@@ -37,4 +37,7 @@ pub struct TraceProfile {
     /// Bytes of rays the host packed into staging (the layouts of `RayLayout`; f64 rays in the
     /// exact tier), for the queries whose chunks it packs.
     pub ray_bytes: usize,
+    /// All hits as columns: the chunks whose columns the GPU wrote (the host writes the others'
+    /// from their records).
+    pub gpu_columns: usize,
 }

@@ -10,6 +10,7 @@ use rayon::prelude::*;
 
 use super::engine::Engine;
 use super::grid_contains;
+use super::hit_columns::{AskedColumn, HitColumns};
 use super::hit_fields::{hits_from_prims, position_bytes_per_ray, Field, HitSink, FIELDS};
 use super::host_tiers::{self, AllHits};
 use super::idle::IdleMemory;
@@ -302,7 +303,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         Ok(())
     }
 
-    /// Every hit of every ray (the nearest `max_hits` of each), for `write_all`: on the GPU in the
+    /// Every hit of every ray (the nearest `max_hits` of each), as records: on the GPU in the
     /// fast and exact tiers (the refined tier re-intersects the fast tier's hits in f64), on the
     /// CPU in the reference tier. `host_bytes_per_hit`: what the caller will need per hit, for
     /// refusing a result that cannot fit before it is stored.
@@ -316,6 +317,36 @@ impl<E: Engine + ?Sized> Tracer<E> {
         interrupt: &dyn Interrupt,
     ) -> Result<AllHits> {
         self.all_hits(RayBatch { scene, rays, request, interrupt }, max_hits, host_bytes_per_hit)
+    }
+
+    /// Every hit of every ray (the nearest `max_hits` of each) as the answer's `asked` columns and
+    /// each hit's ray: written by the engine where it can (the GPU's columns), else from
+    /// `trace_all`'s records on all cores.
+    pub fn all_hit_columns(
+        &self,
+        scene: &Scene,
+        rays: &Rays,
+        request: Request,
+        max_hits: usize,
+        asked: &[AskedColumn],
+        interrupt: &dyn Interrupt,
+    ) -> Result<HitColumns> {
+        let batch = RayBatch { scene, rays, request, interrupt };
+        if matches!(request.precision, Precision::Fast | Precision::Exact) && !scene.has_spheres() {
+            self.engine.check_usable()?;
+            check_contacts(request)?;
+            if let Some(columns) = self.engine.all_hit_columns(batch, max_hits, asked)? {
+                return Ok(columns);
+            }
+        }
+        let bytes_per_hit = HitColumns::bytes_per_hit(asked, request.precision.is_f64());
+        let all = self.all_hits(batch, max_hits, bytes_per_hit)?;
+        // Hundreds of millions of hits take a pass each to write out: Ctrl-C between them.
+        interrupt.check()?;
+        let (columns, records) = HitColumns::from_records(scene, rays, all, asked)?;
+        self.engine.recycle_hits(records);
+        interrupt.check()?;
+        Ok(columns)
     }
 
     /// `trace_all` of a batch.
@@ -347,19 +378,6 @@ impl<E: Engine + ?Sized> Tracer<E> {
                 host_tiers::all_hits(scene, rays, request.filter(), max_hits, host_bytes_per_hit, interrupt)
             }
         }
-    }
-
-    /// Writes the fields `sink` asks for, one entry per hit of `trace_all` (on the same scene and
-    /// rays), and each hit's ray into `ray_index`.
-    pub fn write_all(
-        &self,
-        scene: &Scene,
-        rays: &Rays,
-        all: &AllHits,
-        sink: &mut HitSink,
-        ray_index: &mut [i64],
-    ) -> Result<()> {
-        host_tiers::write_all_hits_and_rays(scene, rays, all, sink, ray_index)
     }
 
     /// Hands the records of a `trace_all` answer back to the engine, once written out.

@@ -3,10 +3,13 @@
 //! finds how many hits each ray meets and keeps its nearest few; list_offsets.comp turns the
 //! counts into each ray's list among the chunk's records and copies into place the hits of rays
 //! the counting pass kept whole, all in one submission; the host reads back only the chunk's
-//! total (and the offsets, where the records have no room for every ray's). A storing pass then keeps the hits (the nearest `max_hits`) of the other rays, sorted,
-//! in their lists, if there are any, and the records come back with their offsets: straight after
-//! the chunks before. Memory is bounded by the chunks (a chunk whose records do not fit stores
-//! only the rays whose lists do) and nothing is truncated.
+//! total (and the offsets, where the records have no room for every ray's). A storing pass then
+//! keeps the hits (the nearest `max_hits`) of the other rays, sorted, in their lists, if there
+//! are any. Then either the records come back with their offsets, straight after the chunks
+//! before (`gpu_all_hits`), or hit_columns.comp writes them out as the answer's columns, which
+//! come back instead and are copied once (`gpu_all_hit_columns`). Memory is bounded by the chunks
+//! (a chunk whose records do not fit stores only the rays whose lists do) and nothing is
+//! truncated.
 
 use std::cmp::Ordering;
 use std::mem::size_of;
@@ -18,6 +21,7 @@ use rayon::prelude::*;
 
 use super::gpu_rays::GpuRays;
 use super::hit_lists::{appends, ListBuffers, ListOffsets, Placed};
+use super::list_columns::{ChunkRays, ColumnLayout, ListColumns};
 use super::ray_chunks::{pack_chunk, record_readback, trace_stage, ChunkLists, GpuJob};
 use super::shared::Shared;
 use super::staging::Slot;
@@ -31,6 +35,7 @@ use crate::gpu::context::Commands;
 use crate::gpu::memory::memory_barrier;
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{Scene, VulkanScene};
+use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns};
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::{IdlePool, SpareRecords};
@@ -53,6 +58,58 @@ struct StoredHits {
     unsettled: bool,
     /// The first ray that met more hits storing than counting (a driver's fault), if any.
     overflowed: Option<usize>,
+    /// The columns' way (`gpu_all_hit_columns`): each chunk's hits go straight into the answer's
+    /// columns, and `records` stays empty.
+    columns: Option<ColumnWay>,
+}
+
+/// The answer's columns, each stored chunk's appended as it comes back: copied from the columns
+/// hit_columns.comp wrote where every list of the chunk is settled, else written from its records
+/// once the host settled them.
+struct ColumnWay {
+    asked: Vec<Field>,
+    ray_index: Vec<i64>,
+    /// In the order asked.
+    columns: Vec<HitColumn>,
+    /// Hits appended so far.
+    hits: usize,
+}
+
+impl ColumnWay {
+    fn new(asked: &[Field]) -> ColumnWay {
+        ColumnWay { asked: asked.to_vec(), ray_index: Vec::new(), columns: Vec::new(), hits: 0 }
+    }
+
+    /// Appends a chunk's `total` hits as hit_columns.comp wrote them (`written`, laid out as
+    /// `layout`), each column copied once on all cores; then adds back the advances of far rays
+    /// (chunk's ray, t) to their hits' t, as `StoredHits::settled` does.
+    fn append_written(
+        &mut self,
+        written: &[u8],
+        layout: &ColumnLayout,
+        firsts: &[u64],
+        total: usize,
+        advances: &[(usize, f64)],
+    ) {
+        let rays: &[i64] = bytemuck::cast_slice(&written[..8 * total]);
+        let ray_index = &mut self.ray_index;
+        parallel::install(|| ray_index.par_extend(rays.par_iter().with_min_len(1 << 14).copied()));
+        for (column, &(_, at, bytes)) in self.columns.iter_mut().zip(&layout.fields) {
+            column.append_bytes(&written[at..at + bytes]);
+        }
+        if let Some(k) = self.asked.iter().position(|&f| f == Field::T) {
+            for &(ray, t) in advances {
+                let end = firsts.get(ray + 1).map_or(total, |&e| e as usize);
+                let hits = self.hits + firsts[ray] as usize..self.hits + end;
+                match &mut self.columns[k] {
+                    HitColumn::F32(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h as f64 + t) as f32),
+                    HitColumn::F64(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h + t) as f32 as f64),
+                    HitColumn::I32(_) => unreachable!("t is a float column"),
+                }
+            }
+        }
+        self.hits += total;
+    }
 }
 
 /// Bytes of hit records a chunk may hold: CPU devices share the host's memory. `VKRAY_HIT_RECORD_BYTES`
@@ -76,6 +133,7 @@ pub struct AllHitsPath {
     lists: Arc<IdlePool<ListBuffers>>,
     spare: Arc<SpareRecords>,
     offsets: ListOffsets,
+    columns: ListColumns,
 }
 
 /// A query's two passes over each chunk: the counting pass's job and the storing pass's, which
@@ -87,6 +145,7 @@ struct Passes<'a> {
     max_hits: usize,
     /// What the caller will need per hit besides the records (`check_hits_fit`).
     host_bytes_per_hit: usize,
+    interrupt: &'a dyn Interrupt,
 }
 
 impl AllHitsPath {
@@ -97,12 +156,14 @@ impl AllHitsPath {
         spare: &Arc<SpareRecords>,
     ) -> Result<AllHitsPath> {
         let offsets = ListOffsets::new(&shared.ctx)?;
+        let columns = ListColumns::new(&shared.ctx)?;
         Ok(AllHitsPath {
             shared: shared.clone(),
             rays: rays.clone(),
             lists: lists.clone(),
             spare: spare.clone(),
             offsets,
+            columns,
         })
     }
 
@@ -120,8 +181,51 @@ impl AllHitsPath {
         max_hits: usize,
         host_bytes_per_hit: usize,
     ) -> Result<AllHits> {
-        let RayBatch { scene, rays, request, interrupt } = batch;
         let started = Instant::now();
+        let mut profile = TraceProfile { rays: batch.rays.len(), ..Default::default() };
+        let stored = self.store::<R>(batch, max_hits, host_bytes_per_hit, None, &mut profile)?;
+        let settling = Instant::now();
+        let (offsets, records) = stored.settled(max_hits, batch.interrupt)?;
+        profile.unpack += settling.elapsed().as_secs_f64();
+        profile.total = started.elapsed().as_secs_f64();
+        self.shared.keep_profile(profile);
+        self.shared.ctx.check_validation()?;
+        Ok(AllHits { offsets, hits: records, wide: R::WIDE })
+    }
+
+    /// `gpu_all_hits` written straight into the answer's columns of the `asked` fields (among
+    /// `GPU_COLUMN_FIELDS`; the exact tier's `ExactHit`s only on scenes of one-part meshes),
+    /// each hit's ray beside them: hit_columns.comp writes each chunk's columns, which the host
+    /// copies once (the records of a chunk with a list the shaders could not settle come back
+    /// and are written out by the host, as `gpu_all_hits` would).
+    pub fn gpu_all_hit_columns<R: HitRecord>(
+        &self,
+        batch: RayBatch,
+        max_hits: usize,
+        asked: &[Field],
+    ) -> Result<HitColumns> {
+        let started = Instant::now();
+        let mut profile = TraceProfile { rays: batch.rays.len(), ..Default::default() };
+        let way = ColumnWay::new(asked);
+        let stored = self.store::<R>(batch, max_hits, 0, Some(way), &mut profile)?;
+        let StoredHits { offsets, columns, .. } = stored;
+        let ColumnWay { ray_index, columns, .. } = columns.expect("stored the columns' way");
+        profile.total = started.elapsed().as_secs_f64();
+        self.shared.keep_profile(profile);
+        self.shared.ctx.check_validation()?;
+        Ok(HitColumns { offsets, ray_index, columns })
+    }
+
+    /// Both passes over the batch's rays, their hits stored as records or (`columns`) columns.
+    fn store<R: HitRecord>(
+        &self,
+        batch: RayBatch,
+        max_hits: usize,
+        host_bytes_per_hit: usize,
+        columns: Option<ColumnWay>,
+        profile: &mut TraceProfile,
+    ) -> Result<StoredHits> {
+        let RayBatch { scene, rays, request, interrupt } = batch;
         self.shared.ctx.check_usable()?;
         rays.check_shapes()?;
         let n = rays.len();
@@ -131,15 +235,15 @@ impl AllHitsPath {
         self.rays.probes.check_paths(scene, request.precision == Precision::Exact)?;
         let mut stored = StoredHits {
             offsets: try_zeroed(n + 1, "the hits' offsets")?,
-            records: self.spare.take(),
+            records: if columns.is_some() { Vec::new() } else { self.spare.take() },
             seen: try_zeroed(n, "the hits' counts")?,
             advances: Vec::new(),
             unsettled: false,
             overflowed: None,
+            columns,
         };
-        let mut profile = TraceProfile { rays: n, ..Default::default() };
         if n > 0 {
-            self.trace_lists::<R>(batch, max_hits, host_bytes_per_hit, &mut stored, &mut profile)?;
+            self.trace_lists::<R>(batch, max_hits, host_bytes_per_hit, &mut stored, profile)?;
         }
         if let Some(i) = stored.overflowed {
             let (offsets, seen) = (&stored.offsets, &stored.seen);
@@ -150,21 +254,7 @@ impl AllHitsPath {
             )));
         }
         interrupt.check()?;
-        let settling = Instant::now();
-        stored.settle(max_hits, interrupt)?;
-        interrupt.check()?;
-        let StoredHits { offsets, mut records, advances, .. } = stored;
-        for (ray, t) in advances {
-            let range = offsets[ray] as usize..offsets[ray + 1] as usize;
-            for hit in &mut records[range] {
-                hit.t = (hit.t + t) as f32 as f64;
-            }
-        }
-        profile.unpack += settling.elapsed().as_secs_f64();
-        profile.total = started.elapsed().as_secs_f64();
-        self.shared.keep_profile(profile);
-        self.shared.ctx.check_validation()?;
-        Ok(AllHits { offsets, hits: records, wide: R::WIDE })
+        Ok(stored)
     }
 
     /// Both passes over every chunk of the batch's rays, in one slot and one set of lists.
@@ -210,6 +300,7 @@ impl AllHitsPath {
             storing: job(&storing_variant, storing_compact.as_ref().map(|(layout, v)| (*layout, &**v))),
             max_hits,
             host_bytes_per_hit,
+            interrupt,
         };
         let ray_capacity = shared.chunk_capacity(rays.len());
         let record_bytes = (record_budget(shared.ctx.unified_memory) / size_of::<R>()).max(1) * size_of::<R>();
@@ -241,7 +332,9 @@ impl AllHitsPath {
         let n = stored.seen.len();
         // Dropping this on an error waits for the chunk in flight before its memory goes.
         let mut commands = Commands::new(&self.shared.ctx)?;
-        let mut pacer = ChunkPacer::on_device(lists.rays.min(slot.capacity), self.shared.ctx.info.is_software);
+        // Idle lists and slots may hold more rays than the device's chunk allows.
+        let capacity = lists.rays.min(slot.capacity).min(self.shared.chunk_capacity(n));
+        let mut pacer = ChunkPacer::on_device(capacity, self.shared.ctx.info.is_software);
         let mut start = 0;
         while start < n {
             interrupt.check()?;
@@ -276,7 +369,7 @@ impl AllHitsPath {
     ) -> Result<usize> {
         let ctx = &self.shared.ctx;
         let chunks = &self.rays.chunks;
-        let Passes { scene, counting, storing, max_hits, host_bytes_per_hit } = passes;
+        let Passes { scene, counting, storing, max_hits, host_bytes_per_hit, .. } = passes;
         let mut clock = Instant::now();
         let mut lap = |into: &mut f64| {
             let now = Instant::now();
@@ -324,6 +417,7 @@ impl AllHitsPath {
         // The budget's, not the idle lists': they may have more.
         let capacity = *room as u64;
         let Placed { mut total, storing: needs_storing } = lists.read_placed();
+        let counted = len;
         let mut len = len;
         if total > capacity {
             // Only the rays whose lists fit in the records.
@@ -343,26 +437,26 @@ impl AllHitsPath {
             }
             total = firsts[len];
         }
-        let base = stored.records.len();
-        check_hits_fit(base + total as usize, size_of::<R>() + host_bytes_per_hit)?;
+        let base = stored.hits();
+        check_hits_fit(base + total as usize, stored.bytes_per_hit(size_of::<R>() + host_bytes_per_hit))?;
         // The first chunk's rate of hits for all the rays (the memory untouched until written):
         // a vector grown chunk by chunk would copy its records again each time it doubles.
         let n = stored.seen.len();
         let expected = (total as f64 * (n - start) as f64 / len as f64 * 1.1) as usize;
-        if base == 0 && stored.records.capacity() < total as usize {
-            // Spare records too small: growing them would copy them whole, unused as they are.
-            stored.records = Vec::new();
-        }
-        if base == 0 && expected > total as usize && stored.records.try_reserve_exact(expected).is_ok() {
-            parallel::advise_huge_pages(&mut stored.records);
-        }
-        stored.records.try_reserve(total as usize).map_err(|_| {
-            Error::OutOfMemory(format!("the {} hits' records do not fit in host memory", base + total as usize))
-        })?;
-        parallel::advise_huge_pages(&mut stored.records);
+        stored.reserve(total as usize, expected, R::WIDE)?;
+        // The columns' layout, their host-visible memory and pipeline, before recording.
+        let columns = match &stored.columns {
+            Some(way) => {
+                let layout = ColumnLayout::new(&way.asked, R::WIDE, total as usize);
+                let at =
+                    self.shared.with_memory(|| lists.columns(&self.shared.ctx, layout.bytes).map(|b| b.address()))?;
+                Some((layout, at, self.columns.pipeline(R::WIDE)?))
+            }
+            None => None,
+        };
         lap(&mut profile.unpack);
         // The storing pass (of the rays the counting pass did not keep whole, if any), and the
-        // records, counts and offsets back.
+        // records (or their columns), counts and offsets back.
         let storing_since = Instant::now();
         let bytes = total as usize * size_of::<R>();
         commands.begin()?;
@@ -373,7 +467,16 @@ impl AllHitsPath {
             chunks.record_trace(cmd, storing, slot, start, len, ChunkLists::Lists(lists));
         }
         stamp(Stamp::Traced);
-        record_readback(ctx, cmd, slot, storing.outputs, len, Some((lists, bytes)));
+        match &columns {
+            Some((layout, at, pipeline)) => {
+                if total > 0 {
+                    let chunk = ChunkRays { first: start, len, counted };
+                    self.columns.record(cmd, *pipeline, lists, (*at, layout), chunk, trace_stage(ctx));
+                }
+                record_readback(ctx, cmd, slot, storing.outputs, len, None);
+            }
+            None => record_readback(ctx, cmd, slot, storing.outputs, len, Some((lists, bytes))),
+        }
         self.offsets.record_offsets(cmd, lists, len);
         stamp(Stamp::ReadBack);
         commands.submit()?;
@@ -391,18 +494,105 @@ impl AllHitsPath {
         let placed = StoredChunk { seen, firsts, total, base: base as u64, max_hits: *max_hits };
         let (unsettled, overflowed) = placed.place(&mut stored.seen[range.clone()], &mut stored.offsets[range]);
         stored.offsets[start + len] = (base as u64 + total) as i64;
-        stored.unsettled |= unsettled;
         stored.overflowed = stored.overflowed.or(overflowed.map(|k| start + k));
-        let records = lists.records_host.mapped().expect("hit records are host-visible");
-        let src: &[R] = bytemuck::cast_slice(&records[..bytes]);
-        // Appended on all cores (room was reserved), each the CPU tracer's record as it goes: the
-        // pages' first touch is spread too.
-        parallel::install(|| stored.records.par_extend(src.par_iter().with_min_len(4096).map(|r| r.reference(scene))));
-        stored.advances.extend(advances.into_iter().filter(|a| a.ray < len).map(|a| (start + a.ray, a.t)));
+        let advances: Vec<(usize, f64)> = advances.into_iter().filter(|a| a.ray < len).map(|a| (a.ray, a.t)).collect();
+        match (&mut stored.columns, &columns) {
+            (Some(way), Some((layout, ..))) if !unsettled => {
+                let written = lists.written_columns(layout.bytes);
+                way.append_written(written, layout, firsts, total as usize, &advances);
+                profile.gpu_columns += 1;
+            }
+            (Some(_), _) => {
+                let chunk = BackChunk { start, seen, firsts, total, advances };
+                self.append_from_records::<R>(passes, commands, lists, chunk, stored)?;
+            }
+            (None, _) => {
+                stored.unsettled |= unsettled;
+                let records = lists.records_host.mapped().expect("hit records are host-visible");
+                let src: &[R] = bytemuck::cast_slice(&records[..bytes]);
+                // Appended on all cores (room was reserved), each the CPU tracer's record as it
+                // goes: the pages' first touch is spread too.
+                let records = &mut stored.records;
+                parallel::install(|| records.par_extend(src.par_iter().with_min_len(4096).map(|r| r.reference(scene))));
+                stored.advances.extend(advances.into_iter().map(|(ray, t)| (start + ray, t)));
+            }
+        }
         lap(&mut profile.unpack);
         profile.store += storing_since.elapsed().as_secs_f64();
         Ok(len)
     }
+
+    /// The columns' way for a chunk with a list the shaders could not settle: its records back
+    /// (from the device, where they live there), settled and written out by the host as
+    /// `gpu_all_hits` would, their columns appended.
+    fn append_from_records<R: HitRecord>(
+        &self,
+        passes: &Passes,
+        commands: &mut Commands,
+        lists: &ListBuffers,
+        chunk: BackChunk,
+        stored: &mut StoredHits,
+    ) -> Result<()> {
+        let ctx = &self.shared.ctx;
+        let BackChunk { start, seen, firsts, total, advances } = chunk;
+        let bytes = total as usize * size_of::<R>();
+        if let (Some(device), true) = (&lists.records_device, bytes > 0) {
+            commands.begin()?;
+            let region = [vk::BufferCopy::default().size(bytes as u64)];
+            // SAFETY: `cmd` is recording; both buffers hold at least `bytes` of records, which
+            // the storing submission (waited for) wrote.
+            unsafe { ctx.device.cmd_copy_buffer(commands.buffer, device.raw(), lists.records_host.raw(), &region) };
+            memory_barrier(
+                ctx,
+                commands.buffer,
+                (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_WRITE),
+                (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ),
+            );
+            commands.submit()?;
+            commands.wait()?;
+        }
+        let scene = passes.scene;
+        let mapped = lists.records_host.mapped().expect("hit records are host-visible");
+        let src: &[R] = bytemuck::cast_slice(&mapped[..bytes]);
+        let records: Vec<ReferenceHit> =
+            parallel::install(|| src.par_iter().with_min_len(4096).map(|r| r.reference(scene)).collect());
+        let offsets: Vec<i64> = firsts.iter().map(|&f| f as i64).chain([total as i64]).collect();
+        let chunk_hits = StoredHits {
+            offsets,
+            records,
+            seen: seen.to_vec(),
+            advances,
+            unsettled: true,
+            overflowed: None,
+            columns: None,
+        };
+        let (offsets, records) = chunk_hits.settled(passes.max_hits, passes.interrupt)?;
+        let way = stored.columns.as_mut().expect("the columns' way");
+        let asked: Vec<AskedColumn> = way.asked.iter().map(|&f| Some(f)).collect();
+        let all = AllHits { offsets, hits: records, wide: R::WIDE };
+        let (mut written, _) = HitColumns::from_records(scene, passes.storing.rays, all, &asked)?;
+        let base = way.hits as i64;
+        for (out, &offset) in stored.offsets[start..].iter_mut().zip(&written.offsets) {
+            *out = base + offset;
+        }
+        way.hits += *written.offsets.last().expect("offsets end with the total") as usize;
+        let ray_index = &mut way.ray_index;
+        parallel::install(|| ray_index.par_extend(written.ray_index.par_iter().map(|&ray| start as i64 + ray)));
+        for (column, part) in way.columns.iter_mut().zip(written.columns.iter_mut()) {
+            column.append(part);
+        }
+        Ok(())
+    }
+}
+
+/// A stored chunk back on the host: its first ray, each ray's hits seen by the storing pass and
+/// its list's first record among the chunk's `total`, and its far rays' advances (ray, t).
+struct BackChunk<'a> {
+    start: usize,
+    seen: &'a [i32],
+    firsts: &'a [u64],
+    total: u64,
+    advances: Vec<(usize, f64)>,
 }
 
 /// A stored chunk as it came back: each ray's hits seen by the storing pass and its list's first
@@ -520,6 +710,62 @@ fn hit_order(a: &ReferenceHit, b: &ReferenceHit) -> Ordering {
 }
 
 impl StoredHits {
+    /// Hits stored so far.
+    fn hits(&self) -> usize {
+        self.columns.as_ref().map_or(self.records.len(), |way| way.hits)
+    }
+
+    /// Bytes a hit takes on the host: its columns and ray, or its record and `record_and_more`.
+    fn bytes_per_hit(&self, record_and_more: usize) -> usize {
+        match &self.columns {
+            // Its columns at most twice: written by the host from a chunk's records.
+            Some(way) => 8 + way.asked.iter().map(|f| f.bytes_per_ray(true)).sum::<usize>(),
+            None => record_and_more,
+        }
+    }
+
+    /// Room for a chunk of `total` hits more, and at the first chunk for `expected` in all,
+    /// where the host has it: asked before storing, so that a query that cannot fit fails first.
+    fn reserve(&mut self, total: usize, expected: usize, wide: bool) -> Result<()> {
+        let base = self.hits();
+        let refused = || Error::OutOfMemory(format!("the {} hits do not fit in host memory", base + total));
+        if let Some(way) = &mut self.columns {
+            if base == 0 {
+                let room = expected.max(total);
+                way.columns = way.asked.iter().map(|&f| HitColumn::with_room(Some(f), room, wide)).collect();
+                if way.ray_index.try_reserve_exact(room).is_ok() {
+                    parallel::advise_huge_pages(&mut way.ray_index);
+                }
+            }
+            return way.ray_index.try_reserve(total).map_err(|_| refused());
+        }
+        if base == 0 && self.records.capacity() < total {
+            // Spare records too small: growing them would copy them whole, unused as they are.
+            self.records = Vec::new();
+        }
+        if base == 0 && expected > total && self.records.try_reserve_exact(expected).is_ok() {
+            parallel::advise_huge_pages(&mut self.records);
+        }
+        self.records.try_reserve(total).map_err(|_| refused())?;
+        parallel::advise_huge_pages(&mut self.records);
+        Ok(())
+    }
+
+    /// The offsets and records once settled (`settle`), with the advances of far rays added
+    /// back to their hits' t.
+    fn settled(mut self, max_hits: usize, interrupt: &dyn Interrupt) -> Result<(Vec<i64>, Vec<ReferenceHit>)> {
+        self.settle(max_hits, interrupt)?;
+        interrupt.check()?;
+        let StoredHits { offsets, mut records, advances, .. } = self;
+        for (ray, t) in advances {
+            let range = offsets[ray] as usize..offsets[ray + 1] as usize;
+            for hit in &mut records[range] {
+                hit.t = (hit.t + t) as f32 as f64;
+            }
+        }
+        Ok((offsets, records))
+    }
+
     /// Sorts the appended lists (dropping hits met twice), then drops the unwritten ends of lists
     /// whose ray met fewer hits than counted (a primitive reported twice by traversal and kept
     /// once), so that each ray's hits are contiguous. On all cores, in blocks of rays.
@@ -680,8 +926,15 @@ mod tests {
             offsets.push(records.len() as i64);
             kept.push(capacity.min(i * 3 % 4));
         }
-        let hits =
-            StoredHits { offsets, records, seen: vec![0; rays], advances: vec![], unsettled: true, overflowed: None };
+        let hits = StoredHits {
+            offsets,
+            records,
+            seen: vec![0; rays],
+            advances: vec![],
+            unsettled: true,
+            overflowed: None,
+            columns: None,
+        };
         (hits, kept)
     }
 

@@ -51,6 +51,9 @@ pub struct ListBuffers {
     pub records_host: Buffer,
     /// The records' device copy (discrete GPUs).
     pub records_device: Option<Buffer>,
+    /// Host-visible: a stored chunk's columns, as hit_columns.comp writes them (made on first
+    /// use, grown as needed).
+    columns: Option<Buffer>,
     /// Lists, and bytes of records, they have room for.
     pub rays: usize,
     pub record_bytes: usize,
@@ -63,6 +66,7 @@ impl Held for ListBuffers {
             .map(|b| b.size())
             .sum::<u64>()
             + self.records_device.as_ref().map_or(0, Buffer::size)
+            + self.columns.as_ref().map_or(0, Buffer::size)
     }
 }
 
@@ -100,9 +104,44 @@ impl ListBuffers {
             )?,
             records_host,
             records_device,
+            columns: None,
             rays,
             record_bytes,
         })
+    }
+
+    /// Host-visible memory for at least `bytes` of a chunk's columns: the buffer kept from an
+    /// earlier chunk or query where it is large enough, else a new one (a quarter larger, for
+    /// the chunks after).
+    pub fn columns(&mut self, ctx: &Arc<Context>, bytes: usize) -> Result<&Buffer> {
+        if self.columns.as_ref().is_none_or(|b| (b.size() as usize) < bytes) {
+            self.columns = None;
+            use vk::BufferUsageFlags as U;
+            let usage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
+            let grown = (bytes + bytes / 4).max(1 << 16) as u64;
+            self.columns = Some(Buffer::new(ctx, grown, usage, MemoryLocation::GpuToCpu, "hit columns")?);
+        }
+        Ok(self.columns.as_ref().expect("made above"))
+    }
+
+    /// The first `bytes` of the columns hit_columns.comp wrote, once its submission finished.
+    pub fn written_columns(&self, bytes: usize) -> &[u8] {
+        let columns = self.columns.as_ref().expect("columns were written");
+        &columns.mapped().expect("hit columns are host-visible")[..bytes]
+    }
+
+    /// The address of the u64 where the list of ray `len - 1` ends, of a chunk of `counted` rays
+    /// placed by `ListOffsets::record`: the next ray's offset, or the chunk's total.
+    pub fn end_address(&self, counted: usize, len: usize) -> u64 {
+        if len < counted {
+            self.offsets.address() + 8 * len as u64
+        } else {
+            self.sums.address() + 8 * counted.div_ceil(LIST_RUN) as u64
+        }
+    }
+
+    pub fn offsets_address(&self) -> u64 {
+        self.offsets.address()
     }
 
     pub fn lists_address(&self) -> u64 {

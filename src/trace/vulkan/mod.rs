@@ -1,6 +1,6 @@
 //! The Vulkan engine (`VulkanEngine`, the `Engine` seam over one Vulkan device). Its files, lowest
 //! first (each imports only files above it in this list): the device's timestamps, pipeline
-//! variants, staging, sensor records and the all-hits lists; the value every path shares; then
+//! variants, staging, sensor records, the all-hits lists and their columns; the value every path shares; then
 //! each path, owning its state and borrowing the shared value: the host-packed chunk loop
 //! (closest hit and the other ray queries), the probes, GPU-packed rays, the two together, CUDA
 //! rays, all hits, closest points, signed distances and `contains`; last the engine that makes
@@ -15,6 +15,8 @@ pub mod staging;
 pub mod sensor_upload;
 
 pub mod hit_lists;
+
+pub mod list_columns;
 
 pub mod shared;
 

@@ -9,6 +9,7 @@ use super::closest_points::{ClosestPoints, PointPipelines};
 use super::containment::Containment;
 use super::cuda_rays::{CudaRaysPath, CudaState};
 use super::gpu_rays::GpuRays;
+use super::list_columns::GPU_COLUMN_FIELDS;
 use super::packed_rays::{PackPipelines, PackedRays};
 use super::probes::Probes;
 use super::ray_chunks::RayChunks;
@@ -25,6 +26,7 @@ use crate::gpu::context::{Backend, Context};
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{build_vulkan_meshes, build_vulkan_scene, build_vulkan_spheres, Instance, Mesh, MeshBatch, Scene};
 use crate::trace::engine::{Engine, EngineLimits};
+use crate::trace::hit_columns::{AskedColumn, HitColumns};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::AllHits;
 use crate::trace::idle::{Idle, IdleMemory, IdlePool, SpareRecords};
@@ -194,6 +196,25 @@ impl Engine for VulkanEngine {
         self.all_hits.recycle(hits);
     }
 
+    fn all_hit_columns(&self, batch: RayBatch, max_hits: usize, asked: &[AskedColumn]) -> Result<Option<HitColumns>> {
+        // Fields the GPU writes (not positions, normals or custom indices, which need the host).
+        let Some(fields) =
+            asked.iter().map(|c| c.filter(|f| GPU_COLUMN_FIELDS.contains(f))).collect::<Option<Vec<_>>>()
+        else {
+            return Ok(None);
+        };
+        let path = &self.all_hits;
+        Ok(match batch.request.precision {
+            // ExactHit names its triangle among all parts of the mesh: the GPU tells its geometry
+            // only where each mesh has one.
+            Precision::Exact if one_part_meshes(batch.scene) => {
+                Some(path.gpu_all_hit_columns::<ExactHit>(batch, max_hits, &fields)?)
+            }
+            Precision::Fast => Some(path.gpu_all_hit_columns::<FastHit>(batch, max_hits, &fields)?),
+            _ => None,
+        })
+    }
+
     fn all_hits(&self, batch: RayBatch, max_hits: usize, host_bytes_per_hit: usize) -> Result<AllHits> {
         if batch.request.precision == Precision::Exact {
             return self.all_hits.gpu_all_hits::<ExactHit>(batch, max_hits, host_bytes_per_hit);
@@ -212,4 +233,9 @@ impl Engine for VulkanEngine {
     fn signed_distance(&self, batch: PointBatch, query: SignedDistance, out: &mut [f64]) -> Result<bool> {
         self.signed.run(batch, query, out)
     }
+}
+
+/// Whether every mesh of the scene has one part (geometry).
+fn one_part_meshes(scene: &Scene) -> bool {
+    scene.placements.iter().all(|p| p.triangles.part_offsets.len() <= 2)
 }

@@ -1,0 +1,134 @@
+//! A stored chunk of all hits written out as the answer's columns on the GPU
+//! (shaders/hit_columns.comp): each hit's ray, t, uv, prim, instance and geometry, as many as
+//! asked, into the lists' host-visible columns buffer, from which the host copies each column
+//! once into the answer's.
+
+use std::mem::size_of;
+use std::sync::Arc;
+
+use ash::vk;
+
+use super::hit_lists::ListBuffers;
+use crate::error::Result;
+use crate::gpu::compute::ComputeKernel;
+use crate::gpu::context::Context;
+use crate::gpu::memory::memory_barrier;
+use crate::gpu::records::ColumnParams;
+use crate::gpu::shaders;
+use crate::trace::hit_fields::Field;
+
+/// The fields hit_columns.comp writes (the others need the host: position, normal, custom index).
+pub const GPU_COLUMN_FIELDS: [Field; 5] = [Field::T, Field::Uv, Field::Prim, Field::Instance, Field::Geometry];
+
+/// Where a chunk's columns lie in the columns buffer: each hit's ray (i64) first, then each asked
+/// field, 16-byte aligned.
+pub struct ColumnLayout {
+    pub hits: usize,
+    /// (field, its first byte, its bytes), in the order asked.
+    pub fields: Vec<(Field, usize, usize)>,
+    pub bytes: usize,
+}
+
+impl ColumnLayout {
+    /// The layout of `hits` hits' `asked` fields (f64 t and uv where `wide`).
+    pub fn new(asked: &[Field], wide: bool, hits: usize) -> ColumnLayout {
+        let mut at = (8 * hits).next_multiple_of(16);
+        let fields = asked
+            .iter()
+            .map(|&field| {
+                let bytes = hits * field.bytes_per_ray(wide);
+                let placed = (field, at, bytes);
+                at = (at + bytes).next_multiple_of(16);
+                placed
+            })
+            .collect();
+        ColumnLayout { hits, fields, bytes: at }
+    }
+
+    /// The address of `field`'s column in a buffer at `base`, or 0 where not asked.
+    fn address(&self, base: u64, field: Field) -> u64 {
+        self.fields.iter().find(|(f, ..)| *f == field).map_or(0, |&(_, at, _)| base + at as u64)
+    }
+}
+
+/// Rays of a chunk whose hits hit_columns.comp writes: the first's index among the query's, how
+/// many, and how many the counting pass placed (`len` of them, or more where the records' room
+/// held only the first `len`'s lists).
+pub struct ChunkRays {
+    pub first: usize,
+    pub len: usize,
+    pub counted: usize,
+}
+
+/// hit_columns.comp's pipelines (compiled on first use).
+pub struct ListColumns {
+    ctx: Arc<Context>,
+    kernel: ComputeKernel,
+}
+
+impl ListColumns {
+    pub fn new(ctx: &Arc<Context>) -> Result<ListColumns> {
+        let kernel = ComputeKernel::new(ctx, shaders::HIT_COLUMNS, size_of::<ColumnParams>(), None)?;
+        Ok(ListColumns { ctx: ctx.clone(), kernel })
+    }
+
+    /// The pipeline for `ExactHit` records where `exact`, else `FastHit`.
+    pub fn pipeline(&self, exact: bool) -> Result<vk::Pipeline> {
+        self.kernel.pipeline(&[exact as u32])
+    }
+
+    /// Records the dispatch (of `pipeline`) that writes the columns of the hits of `chunk`'s
+    /// rays, as `layout` places them in the buffer at `columns`, once the trace shaders' (and
+    /// list_offsets.comp's) writes to the records are done; then makes them visible to the host.
+    pub fn record(
+        &self,
+        cmd: vk::CommandBuffer,
+        pipeline: vk::Pipeline,
+        lists: &ListBuffers,
+        (columns, layout): (u64, &ColumnLayout),
+        chunk: ChunkRays,
+        trace_stage: vk::PipelineStageFlags,
+    ) {
+        let ctx = &self.ctx;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        let writers = trace_stage | compute;
+        memory_barrier(ctx, cmd, (writers, vk::AccessFlags::SHADER_WRITE), (compute, vk::AccessFlags::SHADER_READ));
+        let ChunkRays { first, len, counted } = chunk;
+        let params = ColumnParams {
+            records: lists.records_address(),
+            offsets: lists.offsets_address(),
+            total: lists.end_address(counted, len),
+            first_ray: first as u64,
+            ray_index: columns,
+            t: layout.address(columns, Field::T),
+            uv: layout.address(columns, Field::Uv),
+            prim: layout.address(columns, Field::Prim),
+            instance: layout.address(columns, Field::Instance),
+            geometry: layout.address(columns, Field::Geometry),
+            count: len as u32,
+            unused: 0,
+        };
+        let groups =
+            (len.div_ceil(self.kernel.local_size as usize) as u32).clamp(1, ctx.limits.max_compute_work_group_count[0]);
+        // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
+        // cover exactly the layout's range; `groups` is within maxComputeWorkGroupCount (the
+        // shader strides over the rays the groups do not cover).
+        unsafe {
+            ctx.device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
+            ctx.device.cmd_push_constants(
+                cmd,
+                self.kernel.layout(),
+                vk::ShaderStageFlags::COMPUTE,
+                0,
+                bytemuck::bytes_of(&params),
+            );
+            ctx.device.cmd_dispatch(cmd, groups, 1, 1);
+        }
+        memory_barrier(
+            ctx,
+            cmd,
+            (compute, vk::AccessFlags::SHADER_WRITE),
+            (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ),
+        );
+    }
+}
