@@ -1431,7 +1431,7 @@ def test_columns_written_on_the_gpu_equal_the_hosts(device, tier, parts, monkeyp
     part or two) beside 40 boxes in a row, in chunks of 64 rays (the first holding rays through
     the boxes, whose 80-hit lists the host sorts: that chunk's columns are the host's), far rays
     among them (their t advanced back in the fast tier), with records for the whole query and
-    for 100 hits a chunk. The CPU engine writes every answer's columns on the host."""
+    for 100 hits a chunk; and no rays. The CPU engine writes every answer's columns on the host."""
     if tier == "exact" and not _exact_on(device):
         pytest.skip("this device does not answer precision='exact'")
     v, f = mesh_data("cow")
@@ -1467,6 +1467,11 @@ def test_columns_written_on_the_gpu_equal_the_hosts(device, tier, parts, monkeyp
                 np.testing.assert_array_equal(got, want, err_msg=f"{records}: {name}")
     finally:
         device.chunk_rays = previous
+    # No rays: every asked column, empty.
+    none = scene.intersect_all(np.zeros((0, 3)), [0.0, 0.0, 1.0], precision=tier, outputs=fields)
+    for name in fields:
+        column = getattr(none, name)
+        assert column is not None and len(column) == 0 and column.dtype == getattr(host, name).dtype, name
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e5])

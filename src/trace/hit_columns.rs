@@ -56,6 +56,15 @@ impl HitColumn {
         column.map_or(position_bytes_per_ray(wide), |f| f.bytes_per_ray(wide))
     }
 
+    /// Room for `hits` more entries (amortized growth), or an error where the host has none.
+    pub fn try_reserve(&mut self, hits: usize) -> std::result::Result<(), std::collections::TryReserveError> {
+        match self {
+            HitColumn::F64(v, k) => v.try_reserve(hits * *k),
+            HitColumn::F32(v, k) => v.try_reserve(hits * *k),
+            HitColumn::I32(v) => v.try_reserve(hits),
+        }
+    }
+
     /// Entries (hits) it holds.
     pub fn hits(&self) -> usize {
         match self {

@@ -76,8 +76,10 @@ struct ColumnWay {
 }
 
 impl ColumnWay {
-    fn new(asked: &[Field]) -> ColumnWay {
-        ColumnWay { asked: asked.to_vec(), ray_index: Vec::new(), columns: Vec::new(), hits: 0 }
+    /// Empty columns of the `asked` fields (f64 t and uv where `wide`).
+    fn new(asked: &[Field], wide: bool) -> ColumnWay {
+        let columns = asked.iter().map(|&f| HitColumn::with_room(Some(f), 0, wide)).collect();
+        ColumnWay { asked: asked.to_vec(), ray_index: Vec::new(), columns, hits: 0 }
     }
 
     /// Appends a chunk's `total` hits as hit_columns.comp wrote them (`written`, laid out as
@@ -206,7 +208,7 @@ impl AllHitsPath {
     ) -> Result<HitColumns> {
         let started = Instant::now();
         let mut profile = TraceProfile { rays: batch.rays.len(), ..Default::default() };
-        let way = ColumnWay::new(asked);
+        let way = ColumnWay::new(asked, R::WIDE);
         let stored = self.store::<R>(batch, max_hits, 0, Some(way), &mut profile)?;
         let StoredHits { offsets, columns, .. } = stored;
         let ColumnWay { ray_index, columns, .. } = columns.expect("stored the columns' way");
@@ -448,9 +450,8 @@ impl AllHitsPath {
         let columns = match &stored.columns {
             Some(way) => {
                 let layout = ColumnLayout::new(&way.asked, R::WIDE, total as usize);
-                let at =
-                    self.shared.with_memory(|| lists.columns(&self.shared.ctx, layout.bytes).map(|b| b.address()))?;
-                Some((layout, at, self.columns.pipeline(R::WIDE)?))
+                self.shared.with_memory(|| lists.columns(&self.shared.ctx, layout.bytes).map(|_| ()))?;
+                Some((layout, self.columns.pipeline(R::WIDE)?))
             }
             None => None,
         };
@@ -468,10 +469,10 @@ impl AllHitsPath {
         }
         stamp(Stamp::Traced);
         match &columns {
-            Some((layout, at, pipeline)) => {
+            Some((layout, pipeline)) => {
                 if total > 0 {
                     let chunk = ChunkRays { first: start, len, counted };
-                    self.columns.record(cmd, *pipeline, lists, (*at, layout), chunk, trace_stage(ctx));
+                    self.columns.record(cmd, *pipeline, lists, layout, chunk, trace_stage(ctx));
                 }
                 record_readback(ctx, cmd, slot, storing.outputs, len, None);
             }
@@ -538,9 +539,16 @@ impl AllHitsPath {
         let bytes = total as usize * size_of::<R>();
         if let (Some(device), true) = (&lists.records_device, bytes > 0) {
             commands.begin()?;
+            // The records' writers: the storing pass's shaders and list_offsets.comp's copies.
+            memory_barrier(
+                ctx,
+                commands.buffer,
+                (trace_stage(ctx) | vk::PipelineStageFlags::COMPUTE_SHADER, vk::AccessFlags::SHADER_WRITE),
+                (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_READ),
+            );
             let region = [vk::BufferCopy::default().size(bytes as u64)];
             // SAFETY: `cmd` is recording; both buffers hold at least `bytes` of records, which
-            // the storing submission (waited for) wrote.
+            // the storing submission (waited for, its writes made visible above) wrote.
             unsafe { ctx.device.cmd_copy_buffer(commands.buffer, device.raw(), lists.records_host.raw(), &region) };
             memory_barrier(
                 ctx,
@@ -657,8 +665,11 @@ impl AllHitsPath {
         ListBuffers::new(&self.shared.ctx, rays, record_bytes).inspect_err(|_| self.lists.give_back(1, []))
     }
 
-    fn give_back_lists(&self, lists: Vec<ListBuffers>) {
+    fn give_back_lists(&self, mut lists: Vec<ListBuffers>) {
         let returned = lists.len();
+        for l in &mut lists {
+            l.drop_columns_over(IDLE_RECORD_BYTES);
+        }
         self.lists.give_back(returned, lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
     }
 }
@@ -737,7 +748,11 @@ impl StoredHits {
                     parallel::advise_huge_pages(&mut way.ray_index);
                 }
             }
-            return way.ray_index.try_reserve(total).map_err(|_| refused());
+            way.ray_index.try_reserve(total).map_err(|_| refused())?;
+            for column in &mut way.columns {
+                column.try_reserve(total).map_err(|_| refused())?;
+            }
+            return Ok(());
         }
         if base == 0 && self.records.capacity() < total {
             // Spare records too small: growing them would copy them whole, unused as they are.

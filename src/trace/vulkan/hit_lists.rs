@@ -51,9 +51,9 @@ pub struct ListBuffers {
     pub records_host: Buffer,
     /// The records' device copy (discrete GPUs).
     pub records_device: Option<Buffer>,
-    /// Host-visible: a stored chunk's columns, as hit_columns.comp writes them (made on first
-    /// use, grown as needed).
-    columns: Option<Buffer>,
+    /// A stored chunk's columns, as hit_columns.comp writes them (made on first use, grown as
+    /// needed).
+    columns: Option<ColumnBuffers>,
     /// Lists, and bytes of records, they have room for.
     pub rays: usize,
     pub record_bytes: usize,
@@ -66,7 +66,7 @@ impl Held for ListBuffers {
             .map(|b| b.size())
             .sum::<u64>()
             + self.records_device.as_ref().map_or(0, Buffer::size)
-            + self.columns.as_ref().map_or(0, Buffer::size)
+            + self.columns.as_ref().map_or(0, ColumnBuffers::bytes)
     }
 }
 
@@ -110,24 +110,33 @@ impl ListBuffers {
         })
     }
 
-    /// Host-visible memory for at least `bytes` of a chunk's columns: the buffer kept from an
-    /// earlier chunk or query where it is large enough, else a new one (a quarter larger, for
-    /// the chunks after).
-    pub fn columns(&mut self, ctx: &Arc<Context>, bytes: usize) -> Result<&Buffer> {
-        if self.columns.as_ref().is_none_or(|b| (b.size() as usize) < bytes) {
+    /// Memory for at least `bytes` of a chunk's columns: the buffers kept from an earlier chunk
+    /// or query where they are large enough, else new ones (a quarter larger, for the chunks
+    /// after).
+    pub fn columns(&mut self, ctx: &Arc<Context>, bytes: usize) -> Result<&ColumnBuffers> {
+        if self.columns.as_ref().is_none_or(|c| (c.host.size() as usize) < bytes) {
             self.columns = None;
-            use vk::BufferUsageFlags as U;
-            let usage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
-            let grown = (bytes + bytes / 4).max(1 << 16) as u64;
-            self.columns = Some(Buffer::new(ctx, grown, usage, MemoryLocation::GpuToCpu, "hit columns")?);
+            self.columns = Some(ColumnBuffers::new(ctx, (bytes + bytes / 4).max(1 << 16))?);
         }
         Ok(self.columns.as_ref().expect("made above"))
     }
 
-    /// The first `bytes` of the columns hit_columns.comp wrote, once its submission finished.
+    /// Drops the column buffers where they hold more than `bytes` (before going idle).
+    pub fn drop_columns_over(&mut self, bytes: usize) {
+        if self.columns.as_ref().is_some_and(|c| c.host.size() as usize > bytes) {
+            self.columns = None;
+        }
+    }
+
+    /// The column buffers, once `columns` made them.
+    pub fn column_buffers(&self) -> Option<&ColumnBuffers> {
+        self.columns.as_ref()
+    }
+
+    /// The first `bytes` of the columns hit_columns.comp wrote, once they reached the host.
     pub fn written_columns(&self, bytes: usize) -> &[u8] {
         let columns = self.columns.as_ref().expect("columns were written");
-        &columns.mapped().expect("hit columns are host-visible")[..bytes]
+        &columns.host.mapped().expect("hit columns are host-visible")[..bytes]
     }
 
     /// The address of the u64 where the list of ray `len - 1` ends, of a chunk of `counted` rays
@@ -173,6 +182,37 @@ impl ListBuffers {
     pub fn read_offsets(&self, len: usize) -> &[u64] {
         let bytes = self.offsets_host.mapped().expect("offsets readback is host-visible");
         &bytemuck::cast_slice(&bytes[16..8 * (self.rays + 2)])[..len]
+    }
+}
+
+/// Where hit_columns.comp writes a chunk's columns: device memory copied to the host's on a
+/// discrete GPU (shader writes across the bus cost four times the copy: 2.4 ms for 334k hits on
+/// an H200), the host-visible memory itself on a shared-memory device.
+pub struct ColumnBuffers {
+    pub host: Buffer,
+    pub device: Option<Buffer>,
+}
+
+impl ColumnBuffers {
+    fn new(ctx: &Arc<Context>, bytes: usize) -> Result<ColumnBuffers> {
+        use vk::BufferUsageFlags as U;
+        let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
+        if ctx.unified_memory {
+            let host = Buffer::new(ctx, bytes as u64, storage, MemoryLocation::GpuToCpu, "hit columns")?;
+            return Ok(ColumnBuffers { host, device: None });
+        }
+        let host = Buffer::new(ctx, bytes as u64, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hit columns readback")?;
+        let device = Buffer::new(ctx, bytes as u64, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hit columns")?;
+        Ok(ColumnBuffers { host, device: Some(device) })
+    }
+
+    fn bytes(&self) -> u64 {
+        self.host.size() + self.device.as_ref().map_or(0, Buffer::size)
+    }
+
+    /// Where the shader writes.
+    pub fn address(&self) -> u64 {
+        self.device.as_ref().unwrap_or(&self.host).address()
     }
 }
 

@@ -78,17 +78,20 @@ impl ListColumns {
     }
 
     /// Records the dispatch (of `pipeline`) that writes the columns of the hits of `chunk`'s
-    /// rays, as `layout` places them in the buffer at `columns`, once the trace shaders' (and
-    /// list_offsets.comp's) writes to the records are done; then makes them visible to the host.
+    /// rays, as `layout` places them in the lists' column buffers, once the trace shaders' (and
+    /// list_offsets.comp's) writes to the records are done; then their copy to the host (on a
+    /// discrete GPU) and what makes them visible there.
     pub fn record(
         &self,
         cmd: vk::CommandBuffer,
         pipeline: vk::Pipeline,
         lists: &ListBuffers,
-        (columns, layout): (u64, &ColumnLayout),
+        layout: &ColumnLayout,
         chunk: ChunkRays,
         trace_stage: vk::PipelineStageFlags,
     ) {
+        let buffers = lists.column_buffers().expect("made before recording");
+        let columns = buffers.address();
         let ctx = &self.ctx;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         let writers = trace_stage | compute;
@@ -124,11 +127,17 @@ impl ListColumns {
             );
             ctx.device.cmd_dispatch(cmd, groups, 1, 1);
         }
-        memory_barrier(
-            ctx,
-            cmd,
-            (compute, vk::AccessFlags::SHADER_WRITE),
-            (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ),
-        );
+        let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
+        let Some(device) = &buffers.device else {
+            memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), host);
+            return;
+        };
+        let transfer = vk::PipelineStageFlags::TRANSFER;
+        memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), (transfer, vk::AccessFlags::TRANSFER_READ));
+        let region = [vk::BufferCopy::default().size(layout.bytes.max(1) as u64)];
+        // SAFETY: `cmd` is recording; both buffers hold at least the layout's bytes (`columns`
+        // made them so), written by the dispatch above.
+        unsafe { ctx.device.cmd_copy_buffer(cmd, device.raw(), buffers.host.raw(), &region) };
+        memory_barrier(ctx, cmd, (transfer, vk::AccessFlags::TRANSFER_WRITE), host);
     }
 }

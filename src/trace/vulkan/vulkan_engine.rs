@@ -203,6 +203,10 @@ impl Engine for VulkanEngine {
         else {
             return Ok(None);
         };
+        if fields.iter().enumerate().any(|(k, f)| fields[..k].contains(f)) {
+            // A field asked twice: the host writes each copy.
+            return Ok(None);
+        }
         let path = &self.all_hits;
         Ok(match batch.request.precision {
             // ExactHit names its triangle among all parts of the mesh: the GPU tells its geometry
