@@ -44,25 +44,9 @@ impl HitColumn {
         })
     }
 
-    /// An empty column for `column`, with room for `hits` entries where the host has it.
-    pub fn with_room(column: AskedColumn, hits: usize, wide: bool) -> HitColumn {
-        let mut empty = HitColumn::zeroed(column, 0, wide).expect("an empty column needs no memory");
-        empty.reserve(hits);
-        empty
-    }
-
     /// Bytes a hit takes in `column`.
     pub fn bytes_per_hit(column: AskedColumn, wide: bool) -> usize {
         column.map_or(position_bytes_per_ray(wide), |f| f.bytes_per_ray(wide))
-    }
-
-    /// Room for `hits` more entries (amortized growth), or an error where the host has none.
-    pub fn try_reserve(&mut self, hits: usize) -> std::result::Result<(), std::collections::TryReserveError> {
-        match self {
-            HitColumn::F64(v, k) => v.try_reserve(hits * *k),
-            HitColumn::F32(v, k) => v.try_reserve(hits * *k),
-            HitColumn::I32(v) => v.try_reserve(hits),
-        }
     }
 
     /// Entries (hits) it holds.
@@ -82,41 +66,58 @@ impl HitColumn {
         }
     }
 
-    /// Room for `hits` more entries, where the host has it (else the vector grows as appended).
-    fn reserve(&mut self, hits: usize) {
-        let reserved = match self {
-            HitColumn::F64(v, k) => v.try_reserve_exact(hits * *k).is_ok(),
-            HitColumn::F32(v, k) => v.try_reserve_exact(hits * *k).is_ok(),
-            HitColumn::I32(v) => v.try_reserve_exact(hits).is_ok(),
-        };
-        if reserved {
-            match self {
-                HitColumn::F64(v, _) => parallel::advise_huge_pages(v),
-                HitColumn::F32(v, _) => parallel::advise_huge_pages(v),
-                HitColumn::I32(v) => parallel::advise_huge_pages(v),
-            }
-        }
-    }
-
-    /// Appends the entries in `bytes` (this column's type, tightly packed, 4-byte aligned; 8 for
-    /// f64), on all cores: the pages' first touch is spread too.
-    pub fn append_bytes(&mut self, bytes: &[u8]) {
-        fn extend<T: bytemuck::Pod + Send + Sync>(v: &mut Vec<T>, bytes: &[u8]) {
-            let src: &[T] = bytemuck::cast_slice(bytes);
-            parallel::install(|| v.par_extend(src.par_iter().with_min_len(1 << 14).copied()));
-        }
+    pub fn bytes(&self) -> &[u8] {
         match self {
-            HitColumn::F64(v, _) => extend(v, bytes),
-            HitColumn::F32(v, _) => extend(v, bytes),
-            HitColumn::I32(v) => extend(v, bytes),
+            HitColumn::F64(v, _) => bytemuck::cast_slice(v),
+            HitColumn::F32(v, _) => bytemuck::cast_slice(v),
+            HitColumn::I32(v) => bytemuck::cast_slice(v),
         }
     }
 
-    /// Appends another column of the same type's entries.
-    pub fn append(&mut self, other: &mut HitColumn) {
-        let bytes = other.bytes_mut();
-        self.append_bytes(bytes);
+    /// A column for `column` holding the entries in `bytes` (its type's, tightly packed),
+    /// copied on all cores: the pages' first touch is spread too.
+    pub fn from_bytes(column: AskedColumn, bytes: &[u8], wide: bool) -> Result<HitColumn> {
+        let mut out = HitColumn::zeroed(column, bytes.len() / HitColumn::bytes_per_hit(column, wide), wide)?;
+        copy_parts(out.bytes_mut(), &[bytes]);
+        Ok(out)
     }
+
+    /// `parts` (columns for `column`) one after another, copied on all cores.
+    pub fn joined(column: AskedColumn, parts: Vec<HitColumn>, wide: bool) -> Result<HitColumn> {
+        let mut out = HitColumn::zeroed(column, parts.iter().map(HitColumn::hits).sum(), wide)?;
+        let bytes: Vec<&[u8]> = parts.iter().map(HitColumn::bytes).collect();
+        copy_parts(out.bytes_mut(), &bytes);
+        Ok(out)
+    }
+
+    /// A copy of `values`, made on all cores.
+    pub fn copied<T: bytemuck::Pod>(values: &[T]) -> Result<Vec<T>> {
+        let mut out = try_zeroed(values.len(), "the hits' columns")?;
+        copy_parts(bytemuck::cast_slice_mut(&mut out), &[bytemuck::cast_slice(values)]);
+        Ok(out)
+    }
+
+    /// `parts` one after another, copied on all cores.
+    pub fn joined_vecs<T: bytemuck::Pod>(parts: Vec<Vec<T>>) -> Result<Vec<T>> {
+        let mut out = try_zeroed(parts.iter().map(Vec::len).sum(), "the hits' columns")?;
+        let bytes: Vec<&[u8]> = parts.iter().map(|p| bytemuck::cast_slice(p)).collect();
+        copy_parts(bytemuck::cast_slice_mut(&mut out), &bytes);
+        Ok(out)
+    }
+}
+
+/// Copies `parts` one after another into `out` (as long as they are together), in blocks on
+/// all cores.
+fn copy_parts(out: &mut [u8], parts: &[&[u8]]) {
+    const BLOCK: usize = 1 << 18;
+    let mut pieces: Vec<(&mut [u8], &[u8])> = Vec::new();
+    let mut rest = out;
+    for part in parts {
+        let (to, tail) = std::mem::take(&mut rest).split_at_mut(part.len());
+        rest = tail;
+        pieces.extend(to.chunks_mut(BLOCK).zip(part.chunks(BLOCK)));
+    }
+    parallel::install(|| pieces.into_par_iter().for_each(|(to, from)| to.copy_from_slice(from)));
 }
 
 /// Every hit of every ray, as columns: ray i's hits are entries `offsets[i]..offsets[i + 1]` of
