@@ -7,7 +7,7 @@ use rayon::prelude::*;
 
 use super::hit_fields::{position_bytes_per_ray, Field, HitSink};
 use super::host_tiers::{write_all_hits_and_rays, AllHits};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::geometry::parallel::{self, try_zeroed};
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::ReferenceHit;
@@ -74,50 +74,60 @@ impl HitColumn {
         }
     }
 
-    /// A column for `column` holding the entries in `bytes` (its type's, tightly packed),
-    /// copied on all cores: the pages' first touch is spread too.
-    pub fn from_bytes(column: AskedColumn, bytes: &[u8], wide: bool) -> Result<HitColumn> {
-        let mut out = HitColumn::zeroed(column, bytes.len() / HitColumn::bytes_per_hit(column, wide), wide)?;
-        copy_parts(out.bytes_mut(), &[bytes]);
-        Ok(out)
+    /// An empty column for `column` with room for `hits` entries (untouched: the host's
+    /// allocator gives recycled memory without zeroing it again), or `OutOfMemory`.
+    pub fn with_room(column: AskedColumn, hits: usize, wide: bool) -> Result<HitColumn> {
+        fn room<T>(hits: usize) -> Result<Vec<T>> {
+            let mut v = Vec::new();
+            v.try_reserve_exact(hits).map_err(|_| {
+                Error::OutOfMemory(format!("the hits' columns need room for {hits} more values, which the host lacks"))
+            })?;
+            parallel::advise_huge_pages(&mut v);
+            Ok(v)
+        }
+        Ok(match HitColumn::zeroed(column, 0, wide)? {
+            HitColumn::F64(_, k) => HitColumn::F64(room(hits * k)?, k),
+            HitColumn::F32(_, k) => HitColumn::F32(room(hits * k)?, k),
+            HitColumn::I32(_) => HitColumn::I32(room(hits)?),
+        })
+    }
+
+    /// Appends the entries in `bytes` (this column's type, tightly packed and aligned), on all
+    /// cores: where the column has room, each core writes its part in place.
+    pub fn extend_from_bytes(&mut self, bytes: &[u8]) {
+        match self {
+            HitColumn::F64(v, _) => extend(v, bytemuck::cast_slice(bytes)),
+            HitColumn::F32(v, _) => extend(v, bytemuck::cast_slice(bytes)),
+            HitColumn::I32(v) => extend(v, bytemuck::cast_slice(bytes)),
+        }
     }
 
     /// `parts` (columns for `column`) one after another, copied on all cores.
     pub fn joined(column: AskedColumn, parts: Vec<HitColumn>, wide: bool) -> Result<HitColumn> {
-        let mut out = HitColumn::zeroed(column, parts.iter().map(HitColumn::hits).sum(), wide)?;
-        let bytes: Vec<&[u8]> = parts.iter().map(HitColumn::bytes).collect();
-        copy_parts(out.bytes_mut(), &bytes);
-        Ok(out)
-    }
-
-    /// A copy of `values`, made on all cores.
-    pub fn copied<T: bytemuck::Pod>(values: &[T]) -> Result<Vec<T>> {
-        let mut out = try_zeroed(values.len(), "the hits' columns")?;
-        copy_parts(bytemuck::cast_slice_mut(&mut out), &[bytemuck::cast_slice(values)]);
+        let mut out = HitColumn::with_room(column, parts.iter().map(HitColumn::hits).sum(), wide)?;
+        for part in &parts {
+            out.extend_from_bytes(part.bytes());
+        }
         Ok(out)
     }
 
     /// `parts` one after another, copied on all cores.
-    pub fn joined_vecs<T: bytemuck::Pod>(parts: Vec<Vec<T>>) -> Result<Vec<T>> {
-        let mut out = try_zeroed(parts.iter().map(Vec::len).sum(), "the hits' columns")?;
-        let bytes: Vec<&[u8]> = parts.iter().map(|p| bytemuck::cast_slice(p)).collect();
-        copy_parts(bytemuck::cast_slice_mut(&mut out), &bytes);
+    pub fn joined_vecs<T: bytemuck::Pod + Send + Sync>(parts: Vec<Vec<T>>) -> Result<Vec<T>> {
+        let mut out = Vec::new();
+        let total = parts.iter().map(Vec::len).sum();
+        out.try_reserve_exact(total)
+            .map_err(|_| Error::OutOfMemory(format!("the hits' ray indices need room for {total} values")))?;
+        parallel::advise_huge_pages(&mut out);
+        for part in &parts {
+            extend(&mut out, part);
+        }
         Ok(out)
     }
 }
 
-/// Copies `parts` one after another into `out` (as long as they are together), in blocks on
-/// all cores.
-fn copy_parts(out: &mut [u8], parts: &[&[u8]]) {
-    const BLOCK: usize = 1 << 18;
-    let mut pieces: Vec<(&mut [u8], &[u8])> = Vec::new();
-    let mut rest = out;
-    for part in parts {
-        let (to, tail) = std::mem::take(&mut rest).split_at_mut(part.len());
-        rest = tail;
-        pieces.extend(to.chunks_mut(BLOCK).zip(part.chunks(BLOCK)));
-    }
-    parallel::install(|| pieces.into_par_iter().for_each(|(to, from)| to.copy_from_slice(from)));
+/// Appends `values` to `v` on all cores (in place where `v` has room).
+pub fn extend<T: bytemuck::Pod + Send + Sync>(v: &mut Vec<T>, values: &[T]) {
+    parallel::install(|| v.par_extend(values.par_iter().with_min_len(1 << 14).copied()));
 }
 
 /// Every hit of every ray, as columns: ray i's hits are entries `offsets[i]..offsets[i + 1]` of

@@ -35,7 +35,7 @@ use crate::gpu::context::Commands;
 use crate::gpu::memory::memory_barrier;
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{Scene, VulkanScene};
-use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns};
+use crate::trace::hit_columns::{extend, AskedColumn, HitColumn, HitColumns};
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::{IdlePool, SpareRecords};
@@ -83,26 +83,42 @@ impl ColumnWay {
         ColumnWay { asked: asked.to_vec(), wide, segments: Vec::new(), hits: 0 }
     }
 
-    /// A segment of a chunk's `total` hits as hit_columns.comp wrote them (`written`, laid out as
-    /// `layout`), each column copied once on all cores; with the advances of far rays (chunk's
-    /// ray, t) added back to their hits' t, as `StoredHits::settled` does.
+    /// A chunk's `total` hits as hit_columns.comp wrote them (`written`, laid out as
+    /// `layout`), each column copied once on all cores into the last segment where it has room,
+    /// else into a new one with room for `room` hits (the query's rate of hits so far, for the
+    /// rays left); with the advances of far rays (chunk's ray, t) added back to their hits' t, as
+    /// `StoredHits::settled` does.
     fn append_written(
         &mut self,
         written: &[u8],
         layout: &ColumnLayout,
         firsts: &[u64],
-        total: usize,
+        (total, room): (usize, usize),
         advances: &[(usize, f64)],
     ) -> Result<()> {
-        let rays = HitColumn::copied(bytemuck::cast_slice::<u8, i64>(&written[..8 * total]))?;
-        let mut columns = Vec::with_capacity(self.asked.len());
-        for (&field, &(_, at, bytes)) in self.asked.iter().zip(&layout.fields) {
-            columns.push(HitColumn::from_bytes(Some(field), &written[at..at + bytes], self.wide)?);
+        let fits = self.segments.last().is_some_and(|(rays, _)| rays.capacity() - rays.len() >= total);
+        if !fits {
+            let room = room.max(total);
+            let mut segment: (Vec<i64>, Vec<HitColumn>) = (Vec::new(), Vec::with_capacity(self.asked.len()));
+            segment.0.try_reserve_exact(room).map_err(|_| {
+                Error::OutOfMemory(format!("the hits' ray indices need room for {room} values, which the host lacks"))
+            })?;
+            parallel::advise_huge_pages(&mut segment.0);
+            for &field in &self.asked {
+                segment.1.push(HitColumn::with_room(Some(field), room, self.wide)?);
+            }
+            self.segments.push(segment);
+        }
+        let (rays, columns) = self.segments.last_mut().expect("a segment with room");
+        let before = rays.len();
+        extend(rays, bytemuck::cast_slice(&written[..8 * total]));
+        for (column, &(_, at, bytes)) in columns.iter_mut().zip(&layout.fields) {
+            column.extend_from_bytes(&written[at..at + bytes]);
         }
         if let Some(k) = self.asked.iter().position(|&f| f == Field::T) {
             for &(ray, t) in advances {
                 let end = firsts.get(ray + 1).map_or(total, |&e| e as usize);
-                let hits = firsts[ray] as usize..end;
+                let hits = before + firsts[ray] as usize..before + end;
                 match &mut columns[k] {
                     HitColumn::F32(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h as f64 + t) as f32),
                     HitColumn::F64(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h + t) as f32 as f64),
@@ -110,9 +126,13 @@ impl ColumnWay {
                 }
             }
         }
-        self.segments.push((rays, columns));
         self.hits += total;
         Ok(())
+    }
+
+    /// Room for the hits of `rays` more rays at `rate` hits a ray, and a tenth more.
+    fn hits_left(&self, rate: f64, rays: usize) -> usize {
+        (rate * rays as f64 * 1.1) as usize
     }
 
     /// The segments joined: each hit's ray and the asked columns.
@@ -524,7 +544,10 @@ impl AllHitsPath {
         match (&mut stored.columns, &columns) {
             (Some(way), Some((layout, ..))) if !unsettled => {
                 let written = lists.written_columns(layout.bytes);
-                way.append_written(written, layout, firsts, total as usize, &advances)?;
+                // The query's rate of hits so far, for the rays left (this chunk's included).
+                let rate = (way.hits as u64 + total) as f64 / (start + len) as f64;
+                let room = way.hits_left(rate, n - start);
+                way.append_written(written, layout, firsts, (total as usize, room), &advances)?;
                 profile.gpu_columns += 1;
             }
             (Some(_), _) => {
