@@ -166,8 +166,9 @@ fn record_budget(unified_memory: bool) -> usize {
 }
 
 /// Idle lists kept between queries: as many as were in use at once, at least one and at most
-/// two (each holds its chunk's nearest hits, the records on the device and their host copy:
-/// three times `IDLE_RECORD_BYTES` at most), each of at most `IDLE_RECORD_BYTES` of records.
+/// two (each holds its chunk's nearest hits, the records on the device and their host copy, and
+/// the columns on the device and their host copy: five times `IDLE_RECORD_BYTES` at most), each
+/// of at most `IDLE_RECORD_BYTES` of records and of columns.
 pub const IDLE_LISTS: (usize, usize) = (1, 2);
 const IDLE_RECORD_BYTES: usize = 256 << 20;
 
