@@ -26,8 +26,8 @@ pub struct TraceProfile {
     pub gpu_readback: Option<f64>,
     /// Host time in f64 work: refining hits (`"refined"`) or the CPU tracer (`"reference"`).
     pub host_f64: f64,
-    /// All hits on the GPU: the storing passes (wall time, from their submission to their
-    /// records copied out; the phases above cover both passes of each chunk).
+    /// All hits on the GPU: the storing passes (wall time preparing and submitting them, waiting
+    /// for them and copying their hits out; the phases above cover both passes of each chunk).
     pub store: f64,
     /// `contains` in grid order: the host's sort of the points, gathering them in that order and
     /// scattering the answers back (outside `total`).

@@ -30,6 +30,7 @@ use crate::error::{Error, Result};
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::parallel;
 use crate::geometry::parallel::try_zeroed;
+use crate::geometry::rays::Advance;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::Commands;
 use crate::gpu::memory::memory_barrier;
@@ -352,7 +353,7 @@ impl AllHitsPath {
         let ray_capacity = shared.chunk_capacity(rays.len());
         let record_bytes = (record_budget(shared.ctx.unified_memory) / size_of::<R>()).max(1) * size_of::<R>();
         let mut slots = shared.with_memory(|| shared.slots.take(ray_capacity, exact))?;
-        let mut lists = match shared.with_memory(|| self.take_lists(ray_capacity, record_bytes)) {
+        let lists = match shared.with_memory(|| self.take_lists(ray_capacity, record_bytes)) {
             Ok(lists) => lists,
             Err(error) => {
                 shared.slots.give_back(slots);
@@ -360,79 +361,123 @@ impl AllHitsPath {
             }
         };
         let room = record_bytes / size_of::<R>();
-        let result = self.trace_chunks::<R>(&passes, &mut slots[0], (&mut lists, room), stored, interrupt, profile);
+        let [first, second] = &mut slots;
+        let mut sets = match (Commands::new(&shared.ctx), Commands::new(&shared.ctx)) {
+            (Ok(a), Ok(b)) => [
+                ChunkSet { slot: first, lists: Some(lists), room, commands: a },
+                ChunkSet { slot: second, lists: None, room, commands: b },
+            ],
+            (Err(error), _) | (_, Err(error)) => {
+                shared.slots.give_back(slots);
+                self.give_back_lists(vec![lists]);
+                return Err(error);
+            }
+        };
+        let result = self.trace_chunks::<R>(&passes, &mut sets, record_bytes, stored, profile);
+        // Each set's commands wait for their work in flight (after an error) before its memory goes.
+        let lists: Vec<ListBuffers> = sets.into_iter().filter_map(|set| set.lists).collect();
         shared.slots.give_back(slots);
-        self.give_back_lists(vec![lists]);
+        self.give_back_lists(lists);
         result
     }
 
-    /// Chunk after chunk, each sized by the time the last took.
+    /// Chunk after chunk, each sized by the time the last took, in two sets that take turns:
+    /// while the GPU stores one chunk's hits the host packs the next chunk's rays, and while it
+    /// counts the next chunk's hits the host copies out the stored ones (one submission in
+    /// flight at a time, the host's passes beside the GPU's).
     fn trace_chunks<R: HitRecord>(
         &self,
         passes: &Passes,
-        slot: &mut Slot,
-        (lists, mut room): (&mut ListBuffers, usize),
+        sets: &mut [ChunkSet; 2],
+        record_bytes: usize,
         stored: &mut StoredHits,
-        interrupt: &dyn Interrupt,
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let n = stored.seen.len();
-        // Dropping this on an error waits for the chunk in flight before its memory goes.
-        let mut commands = Commands::new(&self.shared.ctx)?;
+        let interrupt = passes.interrupt;
         // Idle lists and slots may hold more rays than the device's chunk allows.
-        let capacity = lists.rays.min(slot.capacity).min(self.shared.chunk_capacity(n));
-        let mut pacer = ChunkPacer::on_device(capacity, self.shared.ctx.info.is_software);
-        let mut start = 0;
-        while start < n {
+        let lists_rays = sets[0].lists.as_ref().map_or(0, |l| l.rays);
+        let capacity = lists_rays.min(sets[0].slot.capacity).min(sets[1].slot.capacity);
+        let mut pacer =
+            ChunkPacer::on_device(capacity.min(self.shared.chunk_capacity(n)), self.shared.ctx.info.is_software);
+        let [mut set, mut other] = sets.each_mut();
+        let len = pacer.next_len(n);
+        pacer.started();
+        let mut pending = (0, len, self.pack_rays(passes, set, 0, len, profile)?);
+        self.submit_count(passes, set, (0, len), profile)?;
+        loop {
             interrupt.check()?;
-            let len = pacer.next_len(n - start);
-            pacer.started();
-            let lists = (&mut *lists, &mut room);
-            let stored_rays =
-                self.trace_chunk::<R>(passes, slot, lists, &mut commands, (start, len), stored, profile)?;
-            // A chunk that only grew the records stored nothing: its time is the next one's.
-            if stored_rays > 0 {
-                pacer.finished(stored_rays);
+            let (start, len, advances) = pending;
+            let Some(chunk) = self.finish_count::<R>(set, (start, len), advances, profile)? else {
+                // Records grown to hold the first ray's hits: its chunk is counted again.
+                pending = (start, len, self.pack_rays(passes, set, start, len, profile)?);
+                self.submit_count(passes, set, (start, len), profile)?;
+                continue;
+            };
+            let columns = self.submit_store::<R>(passes, set, &chunk, stored, profile)?;
+            let next_start = chunk.start + chunk.len;
+            let next = if next_start < n {
+                let len = pacer.next_len(n - next_start);
+                if other.lists.is_none() {
+                    let lists = self.shared.with_memory(|| self.take_lists(capacity, record_bytes))?;
+                    other.lists = Some(lists);
+                }
+                Some((next_start, len, self.pack_rays(passes, other, next_start, len, profile)?))
+            } else {
+                None
+            };
+            self.wait_store(set, profile)?;
+            if let Some((start, len, _)) = &next {
+                self.submit_count(passes, other, (*start, *len), profile)?;
             }
-            start += stored_rays;
-            interrupt.progress(start, n);
+            let stored_rays = chunk.len;
+            self.unpack_store::<R>(passes, set, chunk, columns, stored, profile)?;
+            pacer.finished(stored_rays);
+            interrupt.progress(next_start, n);
+            match next {
+                Some(next) => pending = next,
+                None => return Ok(()),
+            }
+            std::mem::swap(&mut set, &mut other);
         }
-        Ok(())
     }
 
-    /// Counts, places and stores the hits of the `len` rays from `start` (or of as many of the
-    /// first as the lists' `room` of records holds): returns how many rays it stored (none where
-    /// it grew the records to hold the first ray's hits, which the next call then stores).
-    #[allow(clippy::too_many_arguments)]
-    fn trace_chunk<R: HitRecord>(
+    /// Packs rays `start..start + len` into the set's staging.
+    fn pack_rays(
         &self,
         passes: &Passes,
-        slot: &mut Slot,
-        (lists, room): (&mut ListBuffers, &mut usize),
-        commands: &mut Commands,
-        (start, len): (usize, usize),
-        stored: &mut StoredHits,
+        set: &mut ChunkSet,
+        start: usize,
+        len: usize,
         profile: &mut TraceProfile,
-    ) -> Result<usize> {
+    ) -> Result<Vec<Advance>> {
+        let packing = Instant::now();
+        let advances = pack_chunk(&passes.counting, set.slot.split().0, start, len)?;
+        if passes.counting.sensor.is_none() {
+            profile.ray_bytes += set.slot.packed_bytes(len);
+        }
+        profile.pack += packing.elapsed().as_secs_f64();
+        Ok(advances)
+    }
+
+    /// Submits the counting pass of the set's packed rays (`start`, `len`), and the lists placed
+    /// from its counts (list_offsets.comp), with the chunk's total back to the host.
+    fn submit_count(
+        &self,
+        passes: &Passes,
+        set: &mut ChunkSet,
+        (start, len): (usize, usize),
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let submitting = Instant::now();
         let ctx = &self.shared.ctx;
         let chunks = &self.rays.chunks;
-        let Passes { scene, counting, storing, max_hits, host_bytes_per_hit, .. } = passes;
-        let mut clock = Instant::now();
-        let mut lap = |into: &mut f64| {
-            let now = Instant::now();
-            *into += (now - clock).as_secs_f64();
-            clock = now;
-        };
-        let advances = pack_chunk(counting, slot.split().0, start, len)?;
-        if counting.sensor.is_none() {
-            profile.ray_bytes += slot.packed_bytes(len);
-        }
-        lap(&mut profile.pack);
-        // The counting pass, and the lists placed from its counts.
+        let ChunkSet { slot, lists, room, commands } = set;
+        let lists = lists.as_ref().expect("the set's lists");
         commands.begin()?;
         let cmd = commands.buffer;
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
-        chunks.record_upload(cmd, counting, slot, len);
+        chunks.record_upload(cmd, &passes.counting, slot, len);
         stamp(Stamp::Uploaded);
         // Each ray's nearest few hits kept as it is counted: most rays need no storing pass.
         let nearest_hits = lists.nearest_hits(len);
@@ -440,7 +485,7 @@ impl AllHitsPath {
             0 => ChunkLists::Counted,
             hits => ChunkLists::Nearest { records: lists.nearest_address(), hits },
         };
-        chunks.record_trace(cmd, counting, slot, start, len, kept);
+        chunks.record_trace(cmd, &passes.counting, slot, start, len, kept);
         stamp(Stamp::Traced);
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         memory_barrier(
@@ -450,42 +495,79 @@ impl AllHitsPath {
             (compute, vk::AccessFlags::SHADER_READ),
         );
         let counts = slot.hits_address() + slot.field_offset(Field::Prim) as u64;
-        self.offsets.record(cmd, counts, lists, len, *max_hits, nearest_hits, *room)?;
+        self.offsets.record(cmd, counts, lists, len, passes.max_hits, nearest_hits, *room)?;
         // (Every stamp written: their results are waited for.)
         stamp(Stamp::ReadBack);
         commands.submit()?;
-        lap(&mut profile.submit);
+        profile.submit += submitting.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Waits for the set's counting pass of rays (`start`, `len`) and reads what it found: the
+    /// chunk to store (the rays whose lists fit in the records' room: all, or as many of the
+    /// first), or None where the first ray's hits alone exceed the room, which the set's lists
+    /// then grow to hold (the chunk is counted again).
+    fn finish_count<R: HitRecord>(
+        &self,
+        set: &mut ChunkSet,
+        (start, len): (usize, usize),
+        advances: Vec<Advance>,
+        profile: &mut TraceProfile,
+    ) -> Result<Option<CountedChunk>> {
+        let waiting = Instant::now();
+        let ChunkSet { slot, lists, room, commands } = set;
         commands.wait()?;
-        lap(&mut profile.wait);
+        profile.wait += waiting.elapsed().as_secs_f64();
         profile.chunks += 1;
         if let Some(stamps) = &slot.stamps {
             stamps.add_to(profile)?;
         }
+        let lists_now = lists.as_mut().expect("the set's lists");
         // The budget's, not the idle lists': they may have more.
         let capacity = *room as u64;
-        let Placed { mut total, storing: needs_storing } = lists.read_placed();
-        let counted = len;
-        let mut len = len;
+        let Placed { mut total, storing: needs_storing } = lists_now.read_placed();
+        let mut stored_len = len;
         if total > capacity {
             // Only the rays whose lists fit in the records.
             commands.begin()?;
-            self.offsets.record_offsets(commands.buffer, lists, len);
+            self.offsets.record_offsets(commands.buffer, lists_now, len);
             commands.submit()?;
             commands.wait()?;
-            let firsts = lists.read_offsets(len);
-            len = rays_that_fit(firsts, capacity);
-            if len == 0 {
+            let firsts = lists_now.read_offsets(len);
+            stored_len = rays_that_fit(firsts, capacity);
+            if stored_len == 0 {
                 // The first ray's alone: in records that hold them, after counting it again.
                 let first = firsts.get(1).copied().unwrap_or(total) as usize;
-                let grown = self.shared.with_memory(|| self.take_lists(lists.rays, first * size_of::<R>()))?;
-                self.give_back_lists(vec![std::mem::replace(lists, grown)]);
+                let rays = lists_now.rays;
+                let grown = self.shared.with_memory(|| self.take_lists(rays, first * size_of::<R>()))?;
+                let old = lists.replace(grown).expect("the set's lists");
+                self.give_back_lists(vec![old]);
                 *room = first;
-                return Ok(0);
+                return Ok(None);
             }
-            total = firsts[len];
+            total = firsts[stored_len];
         }
+        Ok(Some(CountedChunk { start, len: stored_len, counted: len, total, needs_storing, advances }))
+    }
+
+    /// Submits the storing pass of a counted chunk (of the rays the counting pass did not keep
+    /// whole, if any), and the records (or their columns), counts and offsets back; returns the
+    /// columns' layout and pipeline in the columns' way.
+    fn submit_store<R: HitRecord>(
+        &self,
+        passes: &Passes,
+        set: &mut ChunkSet,
+        chunk: &CountedChunk,
+        stored: &mut StoredHits,
+        profile: &mut TraceProfile,
+    ) -> Result<Option<(ColumnLayout, vk::Pipeline)>> {
+        let preparing = Instant::now();
+        let ctx = &self.shared.ctx;
+        let ChunkSet { slot, lists, commands, .. } = set;
+        let lists = lists.as_mut().expect("the set's lists");
+        let &CountedChunk { start, len, counted, total, needs_storing, .. } = chunk;
         let base = stored.hits();
-        check_hits_fit(base + total as usize, stored.bytes_per_hit(size_of::<R>() + host_bytes_per_hit))?;
+        check_hits_fit(base + total as usize, stored.bytes_per_hit(size_of::<R>() + passes.host_bytes_per_hit))?;
         // The first chunk's rate of hits for all the rays (the memory untouched until written):
         // a vector grown chunk by chunk would copy its records again each time it doubles.
         let n = stored.seen.len();
@@ -495,49 +577,75 @@ impl AllHitsPath {
         let columns = match &stored.columns {
             Some(way) => {
                 let layout = ColumnLayout::new(&way.asked, R::WIDE, total as usize);
-                self.shared.with_memory(|| lists.columns(&self.shared.ctx, layout.bytes).map(|_| ()))?;
+                self.shared.with_memory(|| lists.columns(ctx, layout.bytes).map(|_| ()))?;
                 Some((layout, self.columns.pipeline(R::WIDE)?))
             }
             None => None,
         };
-        lap(&mut profile.unpack);
-        // The storing pass (of the rays the counting pass did not keep whole, if any), and the
-        // records (or their columns), counts and offsets back.
-        let storing_since = Instant::now();
+        profile.unpack += preparing.elapsed().as_secs_f64();
+        let submitting = Instant::now();
         let bytes = total as usize * size_of::<R>();
         commands.begin()?;
         let cmd = commands.buffer;
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         stamp(Stamp::Uploaded);
         if needs_storing {
-            chunks.record_trace(cmd, storing, slot, start, len, ChunkLists::Lists(lists));
+            self.rays.chunks.record_trace(cmd, &passes.storing, slot, start, len, ChunkLists::Lists(lists));
         }
         stamp(Stamp::Traced);
         match &columns {
             Some((layout, pipeline)) => {
                 if total > 0 {
-                    let chunk = ChunkRays { first: start, len, counted };
-                    self.columns.record(cmd, *pipeline, lists, layout, chunk, trace_stage(ctx));
+                    let rays = ChunkRays { first: start, len, counted };
+                    self.columns.record(cmd, *pipeline, lists, layout, rays, trace_stage(ctx));
                 }
-                record_readback(ctx, cmd, slot, storing.outputs, len, None);
+                record_readback(ctx, cmd, slot, passes.storing.outputs, len, None);
             }
-            None => record_readback(ctx, cmd, slot, storing.outputs, len, Some((lists, bytes))),
+            None => record_readback(ctx, cmd, slot, passes.storing.outputs, len, Some((lists, bytes))),
         }
         self.offsets.record_offsets(cmd, lists, len);
         stamp(Stamp::ReadBack);
         commands.submit()?;
-        lap(&mut profile.submit);
-        commands.wait()?;
-        lap(&mut profile.wait);
-        if let Some(stamps) = &slot.stamps {
+        profile.submit += submitting.elapsed().as_secs_f64();
+        profile.store += preparing.elapsed().as_secs_f64();
+        Ok(columns)
+    }
+
+    /// Waits for the set's storing submission.
+    fn wait_store(&self, set: &mut ChunkSet, profile: &mut TraceProfile) -> Result<()> {
+        let waiting = Instant::now();
+        set.commands.wait()?;
+        profile.wait += waiting.elapsed().as_secs_f64();
+        profile.store += waiting.elapsed().as_secs_f64();
+        if let Some(stamps) = &set.slot.stamps {
             stamps.add_to(profile)?;
         }
+        Ok(())
+    }
+
+    /// A stored chunk's hits, back: its counts and offsets placed among the query's, its records
+    /// (or columns) copied out.
+    fn unpack_store<R: HitRecord>(
+        &self,
+        passes: &Passes,
+        set: &mut ChunkSet,
+        chunk: CountedChunk,
+        columns: Option<(ColumnLayout, vk::Pipeline)>,
+        stored: &mut StoredHits,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        let unpacking = Instant::now();
+        let ChunkSet { slot, lists, commands, .. } = set;
+        let lists = lists.as_ref().expect("the set's lists");
+        let CountedChunk { start, len, total, advances, .. } = chunk;
+        let n = stored.seen.len();
+        let base = stored.hits();
         let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
         let at = slot.field_offset(Field::Prim);
         let seen: &[i32] = bytemuck::cast_slice(&hits[at..at + 4 * len]);
         let firsts = lists.read_offsets(len);
         let range = start..start + len;
-        let placed = StoredChunk { seen, firsts, total, base: base as u64, max_hits: *max_hits };
+        let placed = StoredChunk { seen, firsts, total, base: base as u64, max_hits: passes.max_hits };
         let (unsettled, overflowed) = placed.place(&mut stored.seen[range.clone()], &mut stored.offsets[range]);
         stored.offsets[start + len] = (base as u64 + total) as i64;
         stored.overflowed = stored.overflowed.or(overflowed.map(|k| start + k));
@@ -557,18 +665,21 @@ impl AllHitsPath {
             }
             (None, _) => {
                 stored.unsettled |= unsettled;
+                let bytes = total as usize * size_of::<R>();
                 let records = lists.records_host.mapped().expect("hit records are host-visible");
                 let src: &[R] = bytemuck::cast_slice(&records[..bytes]);
                 // Appended on all cores (room was reserved), each the CPU tracer's record as it
                 // goes: the pages' first touch is spread too.
+                let scene = passes.scene;
                 let records = &mut stored.records;
                 parallel::install(|| records.par_extend(src.par_iter().with_min_len(4096).map(|r| r.reference(scene))));
                 stored.advances.extend(advances.into_iter().map(|(ray, t)| (start + ray, t)));
             }
         }
-        lap(&mut profile.unpack);
-        profile.store += storing_since.elapsed().as_secs_f64();
-        Ok(len)
+        let spent = unpacking.elapsed().as_secs_f64();
+        profile.unpack += spent;
+        profile.store += spent;
+        Ok(())
     }
 
     /// The columns' way for a chunk with a list the shaders could not settle: its records back
@@ -637,6 +748,26 @@ impl AllHitsPath {
         way.segments.push((written.ray_index, written.columns));
         Ok(())
     }
+}
+
+/// One of the two sets of a query's chunks, which take turns: its staging slot (rays, counts),
+/// its lists (made when a second chunk first needs them) with the records' room, and its commands.
+struct ChunkSet<'s> {
+    slot: &'s mut Slot,
+    lists: Option<ListBuffers>,
+    room: usize,
+    commands: Commands<'s>,
+}
+
+/// A counted chunk, to store: its first ray, the rays whose lists fit in the records (`len`) of
+/// those counted, its records, whether any ray needs the storing pass, and its far rays' advances.
+struct CountedChunk {
+    start: usize,
+    len: usize,
+    counted: usize,
+    total: u64,
+    needs_storing: bool,
+    advances: Vec<Advance>,
 }
 
 /// A stored chunk back on the host: its first ray, each ray's hits seen by the storing pass and
