@@ -305,7 +305,8 @@ impl AllHitsPath {
         Ok(stored)
     }
 
-    /// Both passes over every chunk of the batch's rays, in one slot and one set of lists.
+    /// Both passes over every chunk of the batch's rays, in two sets of staging and lists that
+    /// take turns (the second set's lists made when a second chunk needs them).
     fn trace_lists<R: HitRecord>(
         &self,
         batch: RayBatch,
@@ -383,8 +384,9 @@ impl AllHitsPath {
 
     /// Chunk after chunk, each sized by the time the last took, in two sets that take turns:
     /// while the GPU stores one chunk's hits the host packs the next chunk's rays, and while it
-    /// counts the next chunk's hits the host copies out the stored ones (one submission in
-    /// flight at a time, the host's passes beside the GPU's).
+    /// counts the next chunk's hits the host copies out the stored ones (the host's passes beside
+    /// the GPU's; besides the next chunk's counting pass, only a copy of a chunk's records for
+    /// the host to settle, in its own set's memory, may be in flight).
     fn trace_chunks<R: HitRecord>(
         &self,
         passes: &Passes,
@@ -397,9 +399,9 @@ impl AllHitsPath {
         let interrupt = passes.interrupt;
         // Idle lists and slots may hold more rays than the device's chunk allows.
         let lists_rays = sets[0].lists.as_ref().map_or(0, |l| l.rays);
-        let capacity = lists_rays.min(sets[0].slot.capacity).min(sets[1].slot.capacity);
-        let mut pacer =
-            ChunkPacer::on_device(capacity.min(self.shared.chunk_capacity(n)), self.shared.ctx.info.is_software);
+        let capacity =
+            lists_rays.min(sets[0].slot.capacity).min(sets[1].slot.capacity).min(self.shared.chunk_capacity(n));
+        let mut pacer = ChunkPacer::on_device(capacity, self.shared.ctx.info.is_software);
         let [mut set, mut other] = sets.each_mut();
         let len = pacer.next_len(n);
         pacer.started();
@@ -414,6 +416,9 @@ impl AllHitsPath {
                 self.submit_count(passes, set, (start, len), profile)?;
                 continue;
             };
+            // A chunk's turn: from one chunk counted to the next (the next chunk's length, sized
+            // by it, is chosen now).
+            pacer.finished(chunk.len);
             let columns = self.submit_store::<R>(passes, set, &chunk, stored, profile)?;
             let next_start = chunk.start + chunk.len;
             let next = if next_start < n {
@@ -430,9 +435,7 @@ impl AllHitsPath {
             if let Some((start, len, _)) = &next {
                 self.submit_count(passes, other, (*start, *len), profile)?;
             }
-            let stored_rays = chunk.len;
             self.unpack_store::<R>(passes, set, chunk, columns, stored, profile)?;
-            pacer.finished(stored_rays);
             interrupt.progress(next_start, n);
             match next {
                 Some(next) => pending = next,
@@ -517,7 +520,8 @@ impl AllHitsPath {
         let waiting = Instant::now();
         let ChunkSet { slot, lists, room, commands } = set;
         commands.wait()?;
-        profile.wait += waiting.elapsed().as_secs_f64();
+        let reading = Instant::now();
+        profile.wait += (reading - waiting).as_secs_f64();
         profile.chunks += 1;
         if let Some(stamps) = &slot.stamps {
             stamps.add_to(profile)?;
@@ -527,12 +531,17 @@ impl AllHitsPath {
         let capacity = *room as u64;
         let Placed { mut total, storing: needs_storing } = lists_now.read_placed();
         let mut stored_len = len;
+        // The host's time reading what the pass found is `unpack`'s, its waits `wait`'s.
+        let mut cut_wait = 0.0;
         if total > capacity {
             // Only the rays whose lists fit in the records.
             commands.begin()?;
             self.offsets.record_offsets(commands.buffer, lists_now, len);
             commands.submit()?;
+            let waiting = Instant::now();
             commands.wait()?;
+            cut_wait = waiting.elapsed().as_secs_f64();
+            profile.wait += cut_wait;
             let firsts = lists_now.read_offsets(len);
             stored_len = rays_that_fit(firsts, capacity);
             if stored_len == 0 {
@@ -543,10 +552,12 @@ impl AllHitsPath {
                 let old = lists.replace(grown).expect("the set's lists");
                 self.give_back_lists(vec![old]);
                 *room = first;
+                profile.unpack += reading.elapsed().as_secs_f64() - cut_wait;
                 return Ok(None);
             }
             total = firsts[stored_len];
         }
+        profile.unpack += reading.elapsed().as_secs_f64() - cut_wait;
         Ok(Some(CountedChunk { start, len: stored_len, counted: len, total, needs_storing, advances }))
     }
 
@@ -615,8 +626,9 @@ impl AllHitsPath {
     fn wait_store(&self, set: &mut ChunkSet, profile: &mut TraceProfile) -> Result<()> {
         let waiting = Instant::now();
         set.commands.wait()?;
-        profile.wait += waiting.elapsed().as_secs_f64();
-        profile.store += waiting.elapsed().as_secs_f64();
+        let waited = waiting.elapsed().as_secs_f64();
+        profile.wait += waited;
+        profile.store += waited;
         if let Some(stamps) = &set.slot.stamps {
             stamps.add_to(profile)?;
         }
