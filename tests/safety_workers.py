@@ -651,8 +651,11 @@ def interrupt_child(backend: str, validation: bool, precision: str, seconds: flo
     run = _interrupted_query(scene, query, precision)
     # Points among the squares (rays start below them).
     z = 0.5013 if query in ("contains", "distance") else -3.0
-    # Calibrate: rays per second of this query on this machine, now.
+    # Calibrate: rays per second of this query on this machine, now, warm (a first run builds
+    # pipelines and staging: timed alone it made an H200's rate look slower than it is, so that a
+    # query sized from it ended before the interrupt).
     probe = grid_rays(200_000, z)
+    run(probe)
     began = time.monotonic()
     run(probe)
     rate = len(probe) / (time.monotonic() - began)
