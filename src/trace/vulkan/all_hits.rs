@@ -421,15 +421,28 @@ impl AllHitsPath {
             pacer.finished(chunk.len);
             let columns = self.submit_store::<R>(passes, set, &chunk, stored, profile)?;
             let next_start = chunk.start + chunk.len;
-            let next = if next_start < n {
-                let len = pacer.next_len(n - next_start);
-                if other.lists.is_none() {
-                    let lists = self.shared.with_memory(|| self.take_lists(capacity, record_bytes))?;
-                    other.lists = Some(lists);
+            let next_len = (next_start < n).then(|| pacer.next_len(n - next_start));
+            if next_len.is_some() && other.lists.is_none() {
+                // The second set's lists; where the memory is short, the chunks go one at a time.
+                match self.shared.with_memory(|| self.take_lists(capacity, record_bytes)) {
+                    Ok(lists) => other.lists = Some(lists),
+                    Err(Error::OutOfMemory(_)) => {}
+                    Err(error) => return Err(error),
                 }
-                Some((next_start, len, self.pack_rays(passes, other, next_start, len, profile)?))
-            } else {
-                None
+            }
+            if other.lists.is_none() {
+                // One set: this chunk stored and copied out, then the next counted in its place.
+                self.wait_store(set, profile)?;
+                self.unpack_store::<R>(passes, set, chunk, columns, stored, profile)?;
+                interrupt.progress(next_start, n);
+                let Some(len) = next_len else { return Ok(()) };
+                pending = (next_start, len, self.pack_rays(passes, set, next_start, len, profile)?);
+                self.submit_count(passes, set, (next_start, len), profile)?;
+                continue;
+            }
+            let next = match next_len {
+                Some(len) => Some((next_start, len, self.pack_rays(passes, other, next_start, len, profile)?)),
+                None => None,
             };
             self.wait_store(set, profile)?;
             if let Some((start, len, _)) = &next {
@@ -588,7 +601,16 @@ impl AllHitsPath {
         let columns = match &stored.columns {
             Some(way) => {
                 let layout = ColumnLayout::new(&way.asked, R::WIDE, total as usize);
-                self.shared.with_memory(|| lists.columns(ctx, layout.bytes).map(|_| ()))?;
+                self.shared.with_memory(|| lists.columns(ctx, layout.bytes).map(|_| ())).map_err(
+                    |error| match error {
+                        Error::OutOfMemory(why) => Error::OutOfMemory(format!(
+                        "the {total} hits of a chunk of this query need {:.2} GB for their columns, which could not \
+                         be allocated ({why}): trace fewer rays at a time, set max_hits, or ask fewer outputs",
+                        layout.bytes as f64 / 1e9
+                    )),
+                        other => other,
+                    },
+                )?;
                 Some((layout, self.columns.pipeline(R::WIDE)?))
             }
             None => None,
