@@ -131,6 +131,11 @@ impl ColumnWay {
         Ok(())
     }
 
+    /// The asked fields as the host's writer names them.
+    fn asked_columns(&self) -> Vec<AskedColumn> {
+        self.asked.iter().map(|&f| Some(f)).collect()
+    }
+
     /// Room for the hits of `rays` more rays at `rate` hits a ray, and a tenth more.
     fn hits_left(&self, rate: f64, rays: usize) -> usize {
         (rate * rays as f64 * 1.1) as usize
@@ -755,8 +760,16 @@ impl AllHitsPath {
         let scene = passes.scene;
         let mapped = lists.records_host.mapped().expect("hit records are host-visible");
         let src: &[R] = bytemuck::cast_slice(&mapped[..bytes]);
-        let records: Vec<ReferenceHit> =
-            parallel::install(|| src.par_iter().with_min_len(4096).map(|r| r.reference(scene)).collect());
+        // The host's records and then their columns: refused before either is made where the
+        // host has no room for both.
+        let asked_bytes =
+            stored.columns.as_ref().map_or(0, |way| HitColumns::bytes_per_hit(&way.asked_columns(), true));
+        check_hits_fit(total as usize, size_of::<ReferenceHit>() + asked_bytes)?;
+        let mut records: Vec<ReferenceHit> = Vec::new();
+        records.try_reserve_exact(total as usize).map_err(|_| {
+            Error::OutOfMemory(format!("the {total} hits of a chunk of this query do not fit in host memory"))
+        })?;
+        parallel::install(|| records.par_extend(src.par_iter().with_min_len(4096).map(|r| r.reference(scene))));
         let offsets: Vec<i64> = firsts.iter().map(|&f| f as i64).chain([total as i64]).collect();
         let chunk_hits = StoredHits {
             offsets,
@@ -769,7 +782,7 @@ impl AllHitsPath {
         };
         let (offsets, records) = chunk_hits.settled(passes.max_hits, passes.interrupt)?;
         let way = stored.columns.as_mut().expect("the columns' way");
-        let asked: Vec<AskedColumn> = way.asked.iter().map(|&f| Some(f)).collect();
+        let asked = way.asked_columns();
         let all = AllHits { offsets, hits: records, wide: R::WIDE };
         let (mut written, _) = HitColumns::from_records(scene, passes.storing.rays, all, &asked)?;
         let base = way.hits as i64;
