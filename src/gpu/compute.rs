@@ -23,6 +23,8 @@ pub struct ComputeKernel {
     pub local_size: u32,
     /// (the other specialization constants, the pipeline).
     compiled: Mutex<Vec<(Vec<u32>, vk::Pipeline)>>,
+    /// Bytes of its push constants.
+    push_bytes: usize,
 }
 
 impl ComputeKernel {
@@ -58,7 +60,8 @@ impl ComputeKernel {
         let local_size = WORKGROUP_SIZE
             .min(ctx.limits.max_compute_work_group_size[0])
             .min(ctx.limits.max_compute_work_group_invocations);
-        Ok(ComputeKernel { ctx: ctx.clone(), layout, module, refusal, local_size, compiled: Mutex::new(Vec::new()) })
+        let compiled = Mutex::new(Vec::new());
+        Ok(ComputeKernel { ctx: ctx.clone(), layout, module, refusal, local_size, compiled, push_bytes })
     }
 
     pub fn layout(&self) -> vk::PipelineLayout {
@@ -68,6 +71,28 @@ impl ComputeKernel {
     /// Whether the device loaded the shader.
     pub fn available(&self) -> bool {
         self.refusal.is_none()
+    }
+
+    /// Records into `cmd` (recording) one dispatch of `groups` workgroups of `pipeline` (one of
+    /// this kernel's, from `pipeline`) with `params` as its push constants.
+    pub fn record_dispatch<P: bytemuck::Pod>(
+        &self,
+        cmd: vk::CommandBuffer,
+        pipeline: vk::Pipeline,
+        params: &P,
+        groups: u32,
+    ) {
+        assert_eq!(std::mem::size_of::<P>(), self.push_bytes, "push constants of the kernel's layout");
+        assert!(groups <= self.ctx.limits.max_compute_work_group_count[0], "{groups} workgroups in one dispatch");
+        let device = &self.ctx.device;
+        // SAFETY: `cmd` is recording (the caller's promise); the pipeline was made by this kernel
+        // with its live layout; the push constants cover exactly the layout's range (asserted);
+        // `groups` is within maxComputeWorkGroupCount (asserted).
+        unsafe {
+            device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
+            device.cmd_push_constants(cmd, self.layout, vk::ShaderStageFlags::COMPUTE, 0, bytemuck::bytes_of(params));
+            device.cmd_dispatch(cmd, groups, 1, 1);
+        }
     }
 
     /// Most invocations one dispatch of `local_size` workgroups along x may cover.

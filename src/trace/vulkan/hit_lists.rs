@@ -283,21 +283,8 @@ impl ListOffsets {
                 room: room.min(u32::MAX as usize) as u32,
                 unused: 0,
             };
-            // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push
-            // constants cover exactly the layout's range; `groups` is within
-            // maxComputeWorkGroupCount (runs are a 64th of a chunk's rays, which a dispatch
-            // covers).
-            unsafe {
-                ctx.device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
-                ctx.device.cmd_push_constants(
-                    cmd,
-                    self.kernel.layout(),
-                    vk::ShaderStageFlags::COMPUTE,
-                    0,
-                    bytemuck::bytes_of(&params),
-                );
-                ctx.device.cmd_dispatch(cmd, groups, 1, 1);
-            }
+            // (Runs are a 64th of a chunk's rays, which a dispatch covers.)
+            self.kernel.record_dispatch(cmd, pipeline, &params, groups);
         };
         let groups = (runs as u32).div_ceil(self.kernel.local_size);
         let between = |src, dst| memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), (src, dst));

@@ -113,20 +113,8 @@ impl ListColumns {
         };
         let groups =
             (len.div_ceil(self.kernel.local_size as usize) as u32).clamp(1, ctx.limits.max_compute_work_group_count[0]);
-        // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
-        // cover exactly the layout's range; `groups` is within maxComputeWorkGroupCount (the
-        // shader strides over the rays the groups do not cover).
-        unsafe {
-            ctx.device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, pipeline);
-            ctx.device.cmd_push_constants(
-                cmd,
-                self.kernel.layout(),
-                vk::ShaderStageFlags::COMPUTE,
-                0,
-                bytemuck::bytes_of(&params),
-            );
-            ctx.device.cmd_dispatch(cmd, groups, 1, 1);
-        }
+        // (The shader strides over the rays the groups do not cover.)
+        self.kernel.record_dispatch(cmd, pipeline, &params, groups);
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
         let Some(device) = &buffers.device else {
             memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), host);
