@@ -1,6 +1,7 @@
 """`contains` at the exact tier through a scene's inside grid (src/scene/inside_grid.rs): a query
-of 32768 points or more builds it, and then every query of any size answers most points with one
-lookup, the rest by short rays to the nearest region's answer. The grid must change no answer:
+of 32768 points or more builds it (on a GPU, the scene's second such query), and then every query
+of any size answers most points with one lookup, the rest by short rays to the nearest region's
+answer (on a GPU, by the GPU's own exact test). The grid must change no answer:
 each test holds the exact tier against the reference tier (the host's f64 test, which never uses
 the grid) or against an analytic oracle, on every engine, with points near and on the surfaces,
 far from the origin, under transforms and mirrors, across scene updates and from several threads.
@@ -43,17 +44,22 @@ def mesh_of(name: str):
 
 
 def on_host(device) -> bool:
-    """Whether `device` runs queries on the host's cores (the CPU engine, Vulkan on a CPU): only
-    there does `contains` build and use the grid."""
+    """Whether `device` runs queries on the host's cores (the CPU engine, Vulkan on a CPU): there
+    the first large query of a scene builds the grid, on a GPU the second."""
     return device.info.device_type == "cpu"
 
 
 def assert_grid_used(device, scene, method: str) -> None:
-    """On the host's engines the query kept a grid that decides most cells; elsewhere none."""
+    """After a scene's first large query: on the host's engines it kept a grid that decides most
+    cells; on a GPU none yet."""
     grid = scene._core.inside_grid(method == "winding")
     if not on_host(device):
         assert grid is None
         return
+    assert_grid_decides(grid)
+
+
+def assert_grid_decides(grid) -> None:
     assert grid is not None and grid["cells"] > 100_000 and grid["regions"] >= 1
     assert grid["undecided"] < 0.1, grid
 
@@ -79,6 +85,45 @@ def test_grid_answers_equal_the_reference_tier(device, name, method):
     assert_same(scene.contains(points[-3000:], method=method), reference[-3000:], "a small query after")
     # Sanity: the sets are neither all inside nor all outside.
     assert 0.05 < exact[:40000].mean() < 0.9
+
+
+@pytest.mark.parametrize(
+    "name, method", [("fandisk", "parity"), ("stanford-bunny", "winding"), ("cow", "winding")]
+)
+def test_grid_with_the_engines_own_test_near_surfaces(device, monkeypatch, name, method):
+    """`VKRAY_CONTAINS_GRID=engine`, the way a GPU uses the grid, on every engine: the first large
+    query builds it and the engine's own exact test answers the points of undecided cells (and,
+    by winding number, of the cells near a cap's holes), not the host's short rays."""
+    monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
+    v, f = mesh_of(name)
+    scene = device.scene([device.mesh(v, f)])
+    points = hard_points(v, f, seed=3)
+    exact = scene.contains(points, method=method)
+    assert_grid_decides(scene._core.inside_grid(method == "winding"))
+    reference = scene.contains(points, method=method, precision="reference")
+    assert_same(exact, reference, f"{name} by {method}, undecided points by the engine")
+    assert_same(scene.contains(points[-3000:], method=method), reference[-3000:], "a small query after")
+    assert 0.05 < exact[:40000].mean() < 0.9
+
+
+def test_a_gpus_second_large_query_builds_the_grid(device):
+    """On a GPU the grid's build (several GPU queries' time) waits for the scene's second query
+    of 32768 points or more; both answers equal the reference tier's, and so does a third's
+    after an update drops the grid (the update's first query builds none again)."""
+    if on_host(device):
+        pytest.skip("the engines of the host's cores build the grid at the first large query")
+    v, f = mesh_of("stanford-bunny")
+    scene = device.scene([device.mesh(v, f)], allow_update=True)
+    points = hard_points(v, f, seed=5)
+    reference = scene.contains(points, method="winding", precision="reference")
+    assert_same(scene.contains(points, method="winding"), reference, "the first query, by the GPU alone")
+    assert scene._core.inside_grid(True) is None
+    assert_same(scene.contains(points, method="winding"), reference, "the second query, through the grid")
+    assert_grid_decides(scene._core.inside_grid(True))
+    scene.update()
+    assert scene._core.inside_grid(True) is None
+    assert_same(scene.contains(points, method="winding"), reference, "the first query after an update")
+    assert scene._core.inside_grid(True) is None
 
 
 def convex_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, margin: float) -> np.ndarray:

@@ -52,6 +52,8 @@ pub struct InsideGrid {
     dims: [usize; 3],
     /// Each cell's region's value (`CellValue`, packed by `pack`).
     cells: Vec<u16>,
+    /// Each cell's answer, as `mark` gives it (`GRID_OUTSIDE`, `GRID_INSIDE`, `GRID_UNDECIDED`).
+    marks: Vec<u8>,
     counts: bool,
     /// The caps the grid was built with (the winding method of a scene of one instance).
     cap: Option<CapGeometry>,
@@ -76,21 +78,26 @@ pub struct GridSurfaces<'a> {
 
 impl InsideGrid {
     /// The answer of the cell holding `p` (the scene's frame): a point beyond the grid, which
-    /// holds the scene's bounds grown by a cell, is outside.
+    /// holds the scene's bounds grown by a cell, is outside. Without branches on the point: the
+    /// answers of random points are unpredictable, and a mispredicted branch also discards the
+    /// loads begun for the points after it (1M random points in a grid of 2.2M cells, on one
+    /// core: 24–29 ms against 78 ms with branches on this project's 2-core AMD machine, 12.2
+    /// against 13.5 ms on the H200 machine's Xeon).
     #[inline]
     pub fn mark(&self, p: DVec3) -> u8 {
         let q = (p - self.min) * self.inverse_cell;
         let [nx, ny, nz] = self.dims;
         // NaN compares false: such a point is outside the grid (the caller checked points finite).
         let inside = |v: f64, n: usize| v >= 0.0 && v < n as f64;
-        if !(inside(q.x, nx) && inside(q.y, ny) && inside(q.z, nz)) {
-            return GRID_OUTSIDE;
-        }
+        let within = inside(q.x, nx) & inside(q.y, ny) & inside(q.z, nz);
+        // `as` saturates: any point's index is computed, one beyond the grid's read as cell 0.
         let (x, y, z) = (q.x as usize, q.y as usize, q.z as usize);
-        match unpack(self.cells[(z * ny + y) * nx + x]) {
-            CellValue::Decided(v) if self.counts => u8::from(v >= 1),
-            CellValue::Decided(v) => v as u8,
-            CellValue::Undecided | CellValue::NearCaps(_) => GRID_UNDECIDED,
+        let cell = (z * ny + y) * nx + x;
+        let mark = self.marks[if within { cell } else { 0 }];
+        if within {
+            mark
+        } else {
+            GRID_OUTSIDE
         }
     }
 
@@ -186,11 +193,22 @@ impl InsideGrid {
                 .collect()
         });
         let undecided = cells.iter().filter(|&&c| c == UNDECIDED_CELL).count() as f64 / cells.len() as f64;
+        let marks = parallel::install(|| {
+            cells
+                .par_iter()
+                .map(|&cell| match unpack(cell) {
+                    CellValue::Decided(v) if counts => u8::from(v >= 1),
+                    CellValue::Decided(v) => v as u8,
+                    CellValue::Undecided | CellValue::NearCaps(_) => GRID_UNDECIDED,
+                })
+                .collect()
+        });
         Ok(InsideGrid {
             min: layout.min,
             inverse_cell: 1.0 / layout.cell,
             dims: layout.dims,
             cells,
+            marks,
             counts,
             cap: surfaces.cap,
             undecided,

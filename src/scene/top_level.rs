@@ -3,6 +3,7 @@
 //! `SceneHierarchy` (the Vulkan engine's TLAS, a CPU engine's top-level BVH).
 
 use std::any::Any;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, RwLockReadGuard};
 use std::time::Instant;
 
@@ -50,6 +51,9 @@ pub struct Scene {
     /// The grids `contains` answers most points from (by parity, by winding number), kept from
     /// the first query that built them until the scene's next update.
     inside_grids: Mutex<[Option<Arc<InsideGrid>>; 2]>,
+    /// Large `contains` queries (by parity, by winding number) that found no grid kept, since
+    /// the scene's last update (`count_gridless_query`).
+    gridless_queries: [AtomicU32; 2],
 }
 
 impl Scene {
@@ -79,6 +83,7 @@ impl Scene {
             last_update_seconds: 0.0,
             hierarchy,
             inside_grids: Mutex::new([None, None]),
+            gridless_queries: Default::default(),
         })
     }
 
@@ -128,6 +133,7 @@ impl Scene {
         self.bounds = bounds_of(&placements);
         self.placements = placements;
         *self.inside_grids.get_mut().unwrap_or_else(|e| e.into_inner()) = [None, None];
+        self.gridless_queries = Default::default();
         self.mesh_generations = self.meshes.iter().map(|m| m.generation()).collect();
         self.last_update_seconds = started.elapsed().as_secs_f64();
         Ok(())
@@ -150,6 +156,12 @@ impl Scene {
     /// The grid kept for `contains` by winding number (or parity), if a query built one.
     pub fn inside_grid(&self, winding: bool) -> Option<Arc<InsideGrid>> {
         self.inside_grids.lock().unwrap_or_else(|e| e.into_inner())[usize::from(winding)].clone()
+    }
+
+    /// Counts a large `contains` query by winding number (or parity) that found no grid kept;
+    /// returns how many did since the scene was built or last updated, this one included.
+    pub fn count_gridless_query(&self, winding: bool) -> u32 {
+        self.gridless_queries[usize::from(winding)].fetch_add(1, Ordering::Relaxed).saturating_add(1)
     }
 
     /// Keeps `grid` (built outside the lock) for `contains` by winding number (or parity), unless

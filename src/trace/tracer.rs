@@ -543,15 +543,15 @@ impl<E: Engine + ?Sized> Tracer<E> {
         let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
         let points = moved.as_deref().map_or(points, Vec3s::F64);
         if precision == Precision::Exact {
-            let grid = match self.engine.limits().on_host {
-                true => grid_contains::inside_grid(scene, winding, points.rows(), interrupt)?,
-                false => None,
-            };
-            if let Some(grid) = grid {
-                scene.check_current()?;
-                return grid_contains::contains_by_grid(scene, &grid, points, winding, out, interrupt, |rest, out| {
-                    self.contains_exact(scene, rest, winding, out, interrupt)
-                });
+            if let Some(grid_use) = grid_contains::GridUse::of_engine(self.engine.limits().on_host) {
+                if let Some(grid) = grid_contains::inside_grid(scene, winding, points.rows(), grid_use, interrupt)? {
+                    scene.check_current()?;
+                    let exact = |rest: Vec3s, out: &mut [u8]| self.contains_exact(scene, rest, winding, out, interrupt);
+                    let segments = grid_use.segments;
+                    return grid_contains::contains_by_grid(
+                        scene, &grid, points, winding, segments, out, interrupt, exact,
+                    );
+                }
             }
             return self.contains_exact(scene, points, winding, out, interrupt);
         }
