@@ -106,6 +106,32 @@ def test_grid_with_the_engines_own_test_near_surfaces(device, monkeypatch, name,
     assert 0.05 < exact[:40000].mean() < 0.9
 
 
+def test_grid_checks_the_points_and_puts_far_ones_outside(device, monkeypatch):
+    """The grid's one pass over the points checks them (a NaN or an infinity is refused, naming
+    its row, as without the grid) and answers points far beyond the scene, even beyond float32's
+    range, outside; points inside keep their answers."""
+    monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
+    v, f = mesh_of("fandisk")
+    scene = device.scene([device.mesh(v, f)])
+    points = hard_points(v, f, seed=6)
+    reference = scene.contains(points, precision="reference")
+    assert_same(scene.contains(points), reference, "fandisk")
+    assert_grid_decides(scene._core.inside_grid(False))
+    for bad in (np.nan, np.inf, -np.inf):
+        broken = points.copy()
+        broken[40001, 1] = bad
+        with pytest.raises(ValueError, match="points row 40001 is not finite"):
+            scene.contains(broken)
+    far = points.copy()
+    far[[5, 6, 7, 8]] = [[1e300, 0.0, 0.0], [0.0, -1e39, 0.0], [0.0, 0.0, 3e38], [-1e20, 1e20, 1e20]]
+    expected = reference.copy()
+    expected[[5, 6, 7, 8]] = False
+    assert_same(scene.contains(far), expected, "far points")
+    far32 = points.astype(np.float32)
+    far32[[5, 6, 7, 8]] = [[3.4e38, 0.0, 0.0], [0.0, -3e38, 0.0], [0.0, 0.0, 3e38], [-1e20, 1e20, 1e20]]
+    assert_same(scene.contains(far32), scene.contains(far32, precision="reference"), "float32")
+
+
 def test_a_gpus_second_large_query_builds_the_grid(device):
     """On a GPU the grid's build (several GPU queries' time) waits for the scene's second query
     of 32768 points or more; both answers equal the reference tier's, and so does a third's

