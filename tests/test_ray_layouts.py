@@ -109,6 +109,31 @@ def test_leaner_layouts_answer_as_the_full_layout(pair, shift):
         assert (lean_bytes, full_bytes) == (expected_bytes, 32 * len(directions)), what
 
 
+def test_repeated_origins_take_the_camera_layout(pair):
+    """A camera's rays with the origin repeated on every row (as trimesh's `camera_rays` gives
+    them) are packed as rays from one origin (12 bytes a ray); one row whose origin differs, even
+    by the sign of a zero, keeps every origin (24). Every query kind answers as the full layout,
+    bit for bit."""
+    (lean, full), v = bunny_scenes(pair)
+    eye, dirs = oracle.camera_rays(v, 80, 60)
+    dirs = dirs.astype(np.float32)
+    n = len(dirs)
+    repeated = np.repeat(eye.astype(np.float32).reshape(1, 3), n, axis=0)
+    cases = [("repeated", repeated, 12 * n + HEADER)]
+    for row in (1, n // 2, n - 1):
+        moved = repeated.copy()
+        moved[row, 1] = np.nextafter(moved[row, 1], np.float32(np.inf))
+        cases.append((f"row {row} moved by an ulp", moved, 24 * n + HEADER))
+    signed = repeated.copy()
+    signed[:, 0] = 0.0
+    signed[n - 1, 0] = -0.0
+    cases.append(("a negative zero in the last row", signed, 24 * n + HEADER))
+    for what, origins, expected_bytes in cases:
+        want = queries(full, origins, dirs)
+        assert_bitwise(queries(lean, origins, dirs), want, what)
+        assert packed_bytes(lean, origins, dirs) == expected_bytes, what
+
+
 def test_exact_tier_takes_the_leaner_layouts(pair):
     """The exact tier packs float32 rays of one interval as given (24 bytes a ray, 12 from one
     origin, a header of 64 per chunk), which the shaders move into the scene's frame in f64;

@@ -111,6 +111,39 @@ impl RayLayout {
 /// to spread a chunk over every core.
 const PACK_PIECE: usize = 1 << 14;
 
+impl<'a> Rays<'a> {
+    /// These rays with their origins as one row shared by every ray where each ray's origin is
+    /// the first's, bit for bit (a camera's rays with their origin repeated, as trimesh's
+    /// `camera_rays` gives them): the GPU then packs and uploads only the directions (12 bytes a
+    /// ray, not 24) and the CPU engine reads one origin. A pass over the origins on all cores,
+    /// after the first rows show them equal (other rays differ at once).
+    pub fn sharing_origin(self) -> Rays<'a> {
+        let n = self.len();
+        if self.sensor.is_some() || n < 2 || self.origins.rows() != n {
+            return self;
+        }
+        let origins = match self.origins {
+            Vec3s::F32(o) if same_rows(o) => Vec3s::F32(&o[..3]),
+            Vec3s::F64(o) if same_rows(o) => Vec3s::F64(&o[..3]),
+            _ => return self,
+        };
+        Rays { origins, ..self }
+    }
+}
+
+/// Whether every row of the 3-column `values` is the first, bit for bit.
+fn same_rows<T: bytemuck::Pod + Sync>(values: &[T]) -> bool {
+    let bytes: &[u8] = bytemuck::cast_slice(values);
+    let row = 3 * std::mem::size_of::<T>();
+    let (first, rest) = bytes.split_at(row);
+    // A few rows first: rays from different origins differ at once, without waking the cores.
+    let (head, tail) = rest.split_at(rest.len().min(64 * row));
+    if !head.chunks_exact(row).all(|r| r == first) {
+        return false;
+    }
+    parallel::install(|| tail.par_chunks(row << 12).all(|block| block.chunks_exact(row).all(|r| r == first)))
+}
+
 impl Rays<'_> {
     /// The batch size: the longest of the four arrays (the others have one row or value).
     pub fn len(&self) -> usize {
