@@ -119,7 +119,8 @@ impl<'a> Rays<'a> {
     /// after the first rows show them equal (other rays differ at once).
     pub fn sharing_origin(self) -> Rays<'a> {
         let n = self.len();
-        if self.sensor.is_some() || n < 2 || self.origins.rows() != n {
+        // The directions keep the batch's length (one row of each would make it one ray).
+        if self.sensor.is_some() || n < 2 || self.origins.rows() != n || self.directions.rows() != n {
             return self;
         }
         let origins = match self.origins {
@@ -802,6 +803,29 @@ mod tests {
 
     fn rays<'a>(o: &'a [f32], d: &'a [f32], tmin: PerRay<'a>, tmax: PerRay<'a>) -> Rays<'a> {
         Rays { origins: Vec3s::F32(o), directions: Vec3s::F32(d), tmin, tmax, mask: Masks::All(0xFF), sensor: None }
+    }
+
+    #[test]
+    fn origins_equal_bit_for_bit_are_shared() {
+        let n = 70_000;
+        let o: Vec<f32> = (0..n).flat_map(|_| [0.5f32, -0.0, 2.0]).collect();
+        let d: Vec<f32> = (0..n).flat_map(|i| [0.0f32, i as f32, 1.0]).collect();
+        let shared = |o: &[f32], d: &[f32]| {
+            let r = rays(o, d, PerRay::All(0.0), PerRay::All(1.0)).sharing_origin();
+            (r.origins.rows(), r.len())
+        };
+        assert_eq!(shared(&o, &d), (1, n));
+        // One direction for all: the origins keep the batch's length.
+        assert_eq!(shared(&o, &d[..3]), (n, n));
+        // A row that differs, among the first rows or in a later block, even by a zero's sign.
+        for (row, column, value) in [(1, 0, 0.25f32), (n - 1, 2, 2.0000002), (40_000, 1, 0.0)] {
+            let mut moved = o.clone();
+            moved[3 * row + column] = value;
+            assert_eq!(shared(&moved, &d), (n, n), "row {row}");
+        }
+        let wide: Vec<f64> = o.iter().map(|&c| f64::from(c)).collect();
+        let r = Rays { origins: Vec3s::F64(&wide), ..rays(&o, &d, PerRay::All(0.0), PerRay::All(1.0)) };
+        assert_eq!(r.sharing_origin().origins.rows(), 1);
     }
 
     #[test]
