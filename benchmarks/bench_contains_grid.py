@@ -7,7 +7,7 @@ must be equal (the row says so).
     python benchmarks/bench_contains_grid.py                          # CPU engine, 1M points
     python benchmarks/bench_contains_grid.py --device default         # vkray.Device(): the GPU
 
-"Without": ``VKRAY_CONTAINS_GRID=off`` while that scene is asked (no grid is built for it).
+"Without": ``VKRAY_CONTAINS_GRID=off`` while that scene is asked (no grid is built or used).
 "Grid build": the grid's build (once a scene, by its first query of 32,768 points or more on the
 engines of the host's cores, by its second on a GPU), `Scene`'s ``inside_grid`` record. Times are the best of ``--repeat``
 after a warm-up; "× open3d" is Open3D's time over vkray's (above 1: vkray is faster).

@@ -98,8 +98,11 @@ def test_grid_with_the_engines_own_test_near_surfaces(device, monkeypatch, name,
     v, f = mesh_of(name)
     scene = device.scene([device.mesh(v, f)])
     points = hard_points(v, f, seed=3)
+    scene.intersect(points[:7], np.ones((7, 3)))
     exact = scene.contains(points, method=method)
     assert_grid_decides(scene._core.inside_grid(method == "winding"))
+    # The engine's profile counts the points it answered: those of undecided cells only.
+    assert 7 < device.last_trace_profile["rays"] < len(points) - 20000
     reference = scene.contains(points, method=method, precision="reference")
     assert_same(exact, reference, f"{name} by {method}, undecided points by the engine")
     assert_same(scene.contains(points[-3000:], method=method), reference[-3000:], "a small query after")
@@ -132,24 +135,26 @@ def test_grid_checks_the_points_and_puts_far_ones_outside(device, monkeypatch):
     assert_same(scene.contains(far32), scene.contains(far32, precision="reference"), "float32")
 
 
-def test_a_gpus_second_large_query_builds_the_grid(device):
-    """On a GPU the grid's build (several GPU queries' time) waits for the scene's second query
-    of 32768 points or more; both answers equal the reference tier's, and so does a third's
-    after an update drops the grid (the update's first query builds none again)."""
+def test_the_gpus_way_builds_the_grid_at_the_second_large_query(device, monkeypatch):
+    """A GPU's grid (on the host's engines, `VKRAY_CONTAINS_GRID=gpu`): its build (several GPU
+    queries' time) waits for the scene's second query of 32768 points or more, and again after
+    an update drops it; every answer equals the reference tier's, and the points of undecided
+    cells go to the engine's own exact test (its profile counts them)."""
     if on_host(device):
-        pytest.skip("the engines of the host's cores build the grid at the first large query")
+        monkeypatch.setenv("VKRAY_CONTAINS_GRID", "gpu")
     v, f = mesh_of("stanford-bunny")
     scene = device.scene([device.mesh(v, f)], allow_update=True)
     points = hard_points(v, f, seed=5)
     reference = scene.contains(points, method="winding", precision="reference")
-    assert_same(scene.contains(points, method="winding"), reference, "the first query, by the GPU alone")
-    assert scene._core.inside_grid(True) is None
-    assert_same(scene.contains(points, method="winding"), reference, "the second query, through the grid")
-    assert_grid_decides(scene._core.inside_grid(True))
-    scene.update()
-    assert scene._core.inside_grid(True) is None
-    assert_same(scene.contains(points, method="winding"), reference, "the first query after an update")
-    assert scene._core.inside_grid(True) is None
+    for when in ("built", "updated"):
+        assert_same(scene.contains(points, method="winding"), reference, f"the first query once {when}, no grid")
+        assert scene._core.inside_grid(True) is None
+        scene.intersect(points[:7], np.ones((7, 3)))
+        assert_same(scene.contains(points, method="winding"), reference, f"the second query once {when}, a grid")
+        assert_grid_decides(scene._core.inside_grid(True))
+        assert 7 < device.last_trace_profile["rays"] < len(points) - 20000, "the undecided points by the engine"
+        scene.update()
+        assert scene._core.inside_grid(True) is None
 
 
 def convex_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, margin: float) -> np.ndarray:

@@ -132,6 +132,9 @@ def test_repeated_origins_take_the_camera_layout(pair):
         want = queries(full, origins, dirs)
         assert_bitwise(queries(lean, origins, dirs), want, what)
         assert packed_bytes(lean, origins, dirs) == expected_bytes, what
+        for query in (lean.count, lean.intersect_all):
+            query(origins, dirs)
+            assert lean.device.last_trace_profile["ray_bytes"] == expected_bytes, (what, query.__name__)
 
 
 def test_exact_tier_takes_the_leaner_layouts(pair):

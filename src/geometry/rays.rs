@@ -116,19 +116,20 @@ impl<'a> Rays<'a> {
     /// the first's, bit for bit (a camera's rays with their origin repeated, as trimesh's
     /// `camera_rays` gives them): the GPU then packs and uploads only the directions (12 bytes a
     /// ray, not 24) and the CPU engine reads one origin. A pass over the origins on all cores,
-    /// after the first rows show them equal (other rays differ at once).
-    pub fn sharing_origin(self) -> Rays<'a> {
+    /// after the first rows show them equal (other rays differ at once); `Tracer`'s ray queries
+    /// take it (with the GIL released, on the device's host threads).
+    pub fn sharing_origin(&self) -> Rays<'a> {
         let n = self.len();
         // The directions keep the batch's length (one row of each would make it one ray).
         if self.sensor.is_some() || n < 2 || self.origins.rows() != n || self.directions.rows() != n {
-            return self;
+            return *self;
         }
         let origins = match self.origins {
             Vec3s::F32(o) if same_rows(o) => Vec3s::F32(&o[..3]),
             Vec3s::F64(o) if same_rows(o) => Vec3s::F64(&o[..3]),
-            _ => return self,
+            _ => return *self,
         };
-        Rays { origins, ..self }
+        Rays { origins, ..*self }
     }
 }
 

@@ -111,18 +111,16 @@ impl<'py> RayArrays<'py> {
         })
     }
 
-    /// The core's view of the batch (no copies), its origins one shared row where every ray's
-    /// is the same (`Rays::sharing_origin`).
+    /// The core's view of the batch (no copies).
     fn rays(&self) -> PyResult<Rays<'_>> {
-        let rays = Rays {
+        Ok(Rays {
             origins: self.origins.view()?,
             directions: self.directions.view()?,
             tmin: self.tmin.view()?,
             tmax: self.tmax.view()?,
             mask: self.mask.view()?,
             sensor: self.sensor.as_ref(),
-        };
-        Ok(rays.sharing_origin())
+        })
     }
 }
 

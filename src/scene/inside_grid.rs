@@ -28,7 +28,8 @@ pub const GRID_INSIDE: u8 = 1;
 /// The cell lies near a surface (or a cap): its points take the exact test.
 pub const GRID_UNDECIDED: u8 = 2;
 
-/// The most cells a grid holds (a byte each): 128³. Undecided points fall as the cells shrink
+/// The most cells a grid holds (two bytes each for the build's values, two bits for the marks
+/// the queries read): 128³. Undecided points fall as the cells shrink
 /// (as the cube root of their count), the build's time grows with the count.
 pub const GRID_CELLS: usize = 1 << 21;
 

@@ -3,7 +3,7 @@
 //! `SceneHierarchy` (the Vulkan engine's TLAS, a CPU engine's top-level BVH).
 
 use std::any::Any;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, RwLockReadGuard};
 use std::time::Instant;
 
@@ -54,6 +54,19 @@ pub struct Scene {
     /// Large `contains` queries (by parity, by winding number) that found no grid kept, since
     /// the scene's last update (`count_gridless_query`).
     gridless_queries: [AtomicU32; 2],
+    /// A grid's build under way (`start_grid_build`), by parity and by winding number.
+    grid_builds: [AtomicBool; 2],
+}
+
+/// A build of a scene's inside grid under way (`Scene::start_grid_build`), until dropped.
+pub struct GridBuild<'a> {
+    under_way: &'a AtomicBool,
+}
+
+impl Drop for GridBuild<'_> {
+    fn drop(&mut self) {
+        self.under_way.store(false, Ordering::Release);
+    }
 }
 
 impl Scene {
@@ -84,6 +97,7 @@ impl Scene {
             hierarchy,
             inside_grids: Mutex::new([None, None]),
             gridless_queries: Default::default(),
+            grid_builds: Default::default(),
         })
     }
 
@@ -162,6 +176,14 @@ impl Scene {
     /// returns how many did since the scene was built or last updated, this one included.
     pub fn count_gridless_query(&self, winding: bool) -> u32 {
         self.gridless_queries[usize::from(winding)].fetch_add(1, Ordering::Relaxed).saturating_add(1)
+    }
+
+    /// Marks a build of the grid by winding number (or parity) under way, unless another is:
+    /// then None (the caller may go on without the grid, or build beside it).
+    pub fn start_grid_build(&self, winding: bool) -> Option<GridBuild<'_>> {
+        let under_way = &self.grid_builds[usize::from(winding)];
+        under_way.compare_exchange(false, true, Ordering::Acquire, Ordering::Relaxed).ok()?;
+        Some(GridBuild { under_way })
     }
 
     /// Keeps `grid` (built outside the lock) for `contains` by winding number (or parity), unless

@@ -1,9 +1,9 @@
-//! `contains` at the exact tier through the scene's inside grid (`scene::InsideGrid`), on the
-//! engines of the host's cores: one lookup answers a point whose cell lies away from every
-//! surface; a point near a surface (an undecided cell) casts a short exact ray to the next decided
-//! cell in a scene of one instance, and is answered by the engine's exact test otherwise. The grid
-//! is built by the first query of at least `GRID_MIN_POINTS` points on a scene it suits, its
-//! regions' values from the host's exact test, and kept until the scene's next update.
+//! `contains` at the exact tier through the scene's inside grid (`scene::InsideGrid`): one lookup
+//! answers a point whose cell lies away from every surface; a point near a surface (an undecided
+//! cell) is answered, on the engines of the host's cores, by a short exact ray to the next decided
+//! cell in a scene of one instance, and otherwise (and on a GPU) by the engine's exact test. The
+//! grid is built by a large query on a scene it suits (`GridUse`), its regions' values from the
+//! host's exact test, and kept until the scene's next update.
 
 use std::sync::Arc;
 
@@ -36,23 +36,30 @@ pub struct GridUse {
     /// The points of undecided cells take the host's short rays to the next decided cell (in a
     /// scene of one instance); else the engine's own exact test answers them.
     pub segments: bool,
+    /// One build at a time: a query that finds another's build under way goes on without the
+    /// grid rather than building one beside it (a GPU answers alone about as fast as it would
+    /// wait). Else each builds its own and the first kept wins (the host's cores answer without
+    /// the grid far more slowly).
+    pub one_build: bool,
 }
 
 impl GridUse {
     /// For an engine whose queries run on the host's cores (`on_host`) or on a GPU: on the host,
     /// the first large query builds the grid and undecided points take short rays there. On a
     /// GPU, the grid answers most points at a lookup each and the GPU's exact test the rest (1M
-    /// points on an H200: 2.2–3.1× faster than the GPU alone); its build (about 85 ms on 16
-    /// cores, several GPU queries' time) waits for a scene's second large query, so that a
-    /// single query does not pay it. `VKRAY_CONTAINS_GRID`: "off", no grid (for measuring what
-    /// it saves); "engine", every engine's first large query builds it and its own exact test
-    /// answers the undecided points (the GPU's way, for tests on any engine).
+    /// points on an H200: 1.5–3.7× faster than the GPU alone); its build (50–80 ms on 16 cores,
+    /// several GPU queries' time) waits for a scene's second large query, so that a single query
+    /// does not pay it. `VKRAY_CONTAINS_GRID`: "off", no grid is built or used (for measuring
+    /// what it saves); "gpu", every engine uses it as a GPU does (for tests on any engine);
+    /// "engine", as "gpu" but built by the first large query.
     pub fn of_engine(on_host: bool) -> Option<GridUse> {
+        let gpu = |build_at| Some(GridUse { build_at, segments: false, one_build: true });
         match std::env::var("VKRAY_CONTAINS_GRID").as_deref() {
             Ok("off") => None,
-            Ok("engine") => Some(GridUse { build_at: 1, segments: false }),
-            _ if on_host => Some(GridUse { build_at: 1, segments: true }),
-            _ => Some(GridUse { build_at: 2, segments: false }),
+            Ok("engine") => gpu(1),
+            Ok("gpu") => gpu(2),
+            _ if on_host => Some(GridUse { build_at: 1, segments: true, one_build: false }),
+            _ => gpu(2),
         }
     }
 }
@@ -71,6 +78,10 @@ pub fn inside_grid(
         return Ok(Some(grid));
     }
     if points < GRID_MIN_POINTS || scene.count_gridless_query(winding) < grid_use.build_at {
+        return Ok(None);
+    }
+    let build = scene.start_grid_build(winding);
+    if grid_use.one_build && build.is_none() {
         return Ok(None);
     }
     let _in_use = scene.hold_meshes();

@@ -136,6 +136,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         interrupt: &dyn Interrupt,
     ) -> Result<()> {
         let started = Instant::now();
+        let rays = &rays.sharing_origin();
         self.engine.check_usable()?;
         check_request(rays, request, sink)?;
         let _in_use = scene.hold_meshes();
@@ -316,6 +317,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         host_bytes_per_hit: usize,
         interrupt: &dyn Interrupt,
     ) -> Result<AllHits> {
+        let rays = &rays.sharing_origin();
         self.all_hits(RayBatch { scene, rays, request, interrupt }, max_hits, host_bytes_per_hit)
     }
 
@@ -331,6 +333,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         asked: &[AskedColumn],
         interrupt: &dyn Interrupt,
     ) -> Result<HitColumns> {
+        let rays = &rays.sharing_origin();
         let batch = RayBatch { scene, rays, request, interrupt };
         if matches!(request.precision, Precision::Fast | Precision::Exact) && !scene.has_spheres() {
             self.engine.check_usable()?;
@@ -398,6 +401,7 @@ impl<E: Engine + ?Sized> Tracer<E> {
         if out.len() != rays.len() {
             return Err(invalid_value(format!("count's output has {} entries for {} rays", out.len(), rays.len())));
         }
+        let rays = &rays.sharing_origin();
         self.engine.check_usable()?;
         match request.precision {
             _ if scene.has_spheres() => {
