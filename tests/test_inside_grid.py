@@ -253,9 +253,13 @@ def test_grid_after_a_mesh_update_raises_until_the_scene_updates(device):
     assert_same(scene.contains(points), scene.contains(points, precision="reference"), "after the mesh update")
 
 
-def test_grid_built_by_several_threads_at_once(device):
-    """Four threads ask a fresh scene at once (each may build a grid; one is kept): every answer
-    is the reference tier's."""
+@pytest.mark.parametrize("way", ["the engine's", "a GPU's"])
+def test_grid_built_by_several_threads_at_once(device, monkeypatch, way):
+    """Four threads ask a fresh scene at once (on the host's engines each may build a grid, one
+    is kept; the GPU's way builds one at a time, the others going on without it): every answer
+    is the reference tier's, and a grid is kept."""
+    if way == "a GPU's" and on_host(device):
+        monkeypatch.setenv("VKRAY_CONTAINS_GRID", "gpu")
     v, f = mesh_of("stanford-bunny")
     scene = device.scene([device.mesh(v, f)])
     points = hard_points(v, f, n=30000, seed=6)
@@ -277,3 +281,6 @@ def test_grid_built_by_several_threads_at_once(device):
     assert not errors, errors
     for k, a in enumerate(answers):
         assert_same(a, reference, f"thread {k}")
+    if on_host(device) or way == "a GPU's":
+        # Four large queries (and the reference tier's, which counts none): a build by now.
+        assert_grid_decides(scene._core.inside_grid(True))
