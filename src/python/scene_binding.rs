@@ -304,6 +304,7 @@ impl PyScene {
         let d = PyDict::new(py);
         d.set_item("cells", grid.cell_count())?;
         d.set_item("undecided", grid.undecided)?;
+        d.set_item("near_caps", grid.near_caps)?;
         d.set_item("regions", grid.regions)?;
         d.set_item("build_seconds", grid.build_seconds)?;
         Ok(Some(d))
