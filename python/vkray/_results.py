@@ -4,7 +4,7 @@ dtype and width in each tier, fresh arrays to fill and a caller's ``out=`` array
 
 from __future__ import annotations
 
-from typing import Any, Dict, Iterable, Optional, Sequence, Tuple, cast
+from typing import Any, Callable, Dict, Iterable, Optional, Sequence, Tuple, cast
 
 import numpy as np
 
@@ -178,17 +178,36 @@ class AllHits(_HitFields):
     geometry_id, prim_id). ``hits[i]`` is ray i's hits as `Hits` of shape ``(count,)``.
     """
 
-    def __init__(self, shape: Tuple[int, ...], arrays: Dict[str, np.ndarray], precision: Precision) -> None:
+    def __init__(
+        self,
+        shape: Tuple[int, ...],
+        arrays: Dict[str, np.ndarray],
+        precision: Precision,
+        counts: Optional[Callable[[], Any]] = None,
+    ) -> None:
+        """``counts``: makes the counts where ``arrays`` has none (CUDA answers: on the host, then
+        copied to the GPU); else they are ``offsets``' differences. Either way at first use:
+        a million rays' counts cost about as much again as copying their hits out."""
         self.shape = shape
         self.precision: Precision = precision
         self.offsets: np.ndarray = arrays["offsets"]
         self.ray_index: np.ndarray = arrays["ray_index"]
-        counts = arrays.get("counts")  # the core's, or on the GPU
-        if counts is None:
-            counts = np.diff(self.offsets)
-        self.counts: np.ndarray = counts.reshape(shape) if isinstance(counts, np.ndarray) else counts
+        counts_given = arrays.get("counts")  # the core's, or on the GPU
+        if isinstance(counts_given, np.ndarray):
+            counts_given = counts_given.reshape(shape)
+        self._counts: Optional[np.ndarray] = counts_given
+        self._make_counts = counts
         for name in HIT_FIELDS:
             setattr(self, name, arrays.get(name))
+
+    @property
+    def counts(self) -> np.ndarray:
+        """int64 ``S``: hits per ray (made at first use)."""
+        if self._counts is None:
+            made = self._make_counts() if self._make_counts is not None else np.diff(self.offsets)
+            self._counts = made.reshape(self.shape) if isinstance(made, np.ndarray) else made
+            self._make_counts = None
+        return self._counts
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
