@@ -186,8 +186,9 @@ class AllHits(_HitFields):
         counts: Optional[Callable[[], Any]] = None,
     ) -> None:
         """``counts``: makes the counts where ``arrays`` has none (CUDA answers: on the host, then
-        copied to the GPU); else they are ``offsets``' differences. Either way at first use:
-        a million rays' counts cost about as much again as copying their hits out."""
+        copied to the GPU); else they are ``offsets``' differences. Either way at first use: a
+        million rays' counts are 8 MB (0.66 ms over the bus of an H200), which a caller who
+        reads only the offsets or the hits does not pay for."""
         self.shape = shape
         self.precision: Precision = precision
         self.offsets: np.ndarray = arrays["offsets"]
