@@ -111,8 +111,8 @@ def test_grid_with_the_engines_own_test_near_surfaces(device, monkeypatch, name,
 
 def hole_points(vertices: np.ndarray, faces: np.ndarray, n: int = 40000, seed: int = 5) -> np.ndarray:
     """Points about a mesh's holes, where the caps over them add their winding number: about
-    each boundary vertex at 1e-4 to 5% of the mesh's size, in every direction (the caps' fans
-    span the holes from their mean corners)."""
+    boundary vertices in every direction (the caps' fans span the holes from their mean corners),
+    half at 1e-4 to 5% of the mesh's size (log-uniform), half at up to 25% (uniform)."""
     rng = np.random.default_rng(seed)
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     _, inverse, counts = np.unique(np.sort(edges, 1), axis=0, return_inverse=True, return_counts=True)
@@ -121,7 +121,9 @@ def hole_points(vertices: np.ndarray, faces: np.ndarray, n: int = 40000, seed: i
     at = vertices[rng.choice(corners, n)]
     direction = rng.normal(size=(n, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    return at + direction * size * 10.0 ** rng.uniform(-4, np.log10(0.05), (n, 1))
+    near = 10.0 ** rng.uniform(-4, np.log10(0.05), (n, 1))
+    wide = rng.uniform(0, 0.25, (n, 1))
+    return at + direction * size * np.where(np.arange(n)[:, None] % 2 == 0, near, wide)
 
 
 @pytest.mark.parametrize("way", ["host", "engine"])
@@ -137,6 +139,10 @@ def test_grid_near_the_caps_over_holes(device, monkeypatch, way):
     points = hole_points(v, f)
     if way == "engine" or on_host(device):
         exact = scene.contains(points, method="winding")
+        if way == "engine":
+            # The engine answered the undecided points only: 67% of these (79% where the area's
+            # bound alone decided the cells about the caps).
+            assert device.last_trace_profile["rays"] < 0.72 * len(points)
     else:
         scene.contains(points, method="winding")
         exact = scene.contains(points, method="winding")

@@ -1077,14 +1077,13 @@ def _to_cuda(core: Any, answer: Any) -> Any:
     to the GPU of ``core`` (a `_core.Device`) as a `vkray.CudaArray`."""
     if isinstance(answer, np.ndarray):
         return _arrays.numpy_to_cuda(core, answer)
-    # All hits' counts are made (and copied) at first use, as for numpy answers.
+    # All hits' counts are copied at first use (the host's kept till then).
     names = ("offsets", "ray_index", "distance") + tuple(HIT_FIELDS)
     arrays = {name: getattr(answer, name, None) for name in names}
     on_gpu = {name: _arrays.numpy_to_cuda(core, a) for name, a in arrays.items() if isinstance(a, np.ndarray)}
     if isinstance(answer, AllHits):
-        offsets, shape = answer.offsets, answer.shape
-        return AllHits(shape, on_gpu, answer.precision,
-                       counts=lambda: _arrays.numpy_to_cuda(core, np.diff(offsets).reshape(shape)))
+        host_counts = answer.counts
+        return AllHits(answer.shape, on_gpu, answer.precision, counts=lambda: _arrays.numpy_to_cuda(core, host_counts))
     if isinstance(answer, Closest):
         return Closest(answer.shape, on_gpu, answer.precision)
     return Hits(answer.shape, on_gpu, answer.precision)

@@ -185,10 +185,10 @@ class AllHits(_HitFields):
         precision: Precision,
         counts: Optional[Callable[[], Any]] = None,
     ) -> None:
-        """``counts``: makes the counts where ``arrays`` has none (CUDA answers: on the host, then
-        copied to the GPU); else they are ``offsets``' differences. Either way at first use: a
-        million rays' counts are 8 MB (0.66 ms over the bus of an H200), which a caller who
-        reads only the offsets or the hits does not pay for."""
+        """``counts``: makes the counts where ``arrays`` has none, at first use (CUDA answers:
+        the host's counts copied to the GPU, 8 MB for a million rays, 0.66 ms over an H200's bus,
+        which a caller who reads only the offsets or the hits does not pay for); without either,
+        the offsets' differences, at first use."""
         self.shape = shape
         self.precision: Precision = precision
         self.offsets: np.ndarray = arrays["offsets"]
@@ -203,12 +203,26 @@ class AllHits(_HitFields):
 
     @property
     def counts(self) -> np.ndarray:
-        """int64 ``S``: hits per ray (made at first use)."""
-        if self._counts is None:
+        """int64 ``S``: hits per ray (where the answer came without them, made at first use)."""
+        counts = self._counts
+        if counts is None:
+            # Made in a local and then kept: threads that read it at once each make the same.
             made = self._make_counts() if self._make_counts is not None else np.diff(self.offsets)
-            self._counts = made.reshape(self.shape) if isinstance(made, np.ndarray) else made
-            self._make_counts = None
-        return self._counts
+            counts = made.reshape(self.shape) if isinstance(made, np.ndarray) else made
+            self._counts = counts
+        return counts
+
+    def __getstate__(self) -> Dict[str, Any]:
+        # The counts made now: the maker (a closure over the device) does not pickle.
+        state = dict(self.__dict__)
+        state["_counts"], state["_make_counts"] = self.counts, None
+        return state
+
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        if "counts" in state:  # pickled when counts was a plain attribute
+            state["_counts"] = state.pop("counts")
+        state.setdefault("_make_counts", None)
+        self.__dict__.update(state)
 
     def __len__(self) -> int:
         return len(self.offsets) - 1

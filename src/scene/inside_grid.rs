@@ -297,8 +297,9 @@ fn unpack(cell: u16) -> CellValue {
 struct CapMarks<'a> {
     /// Cells the caps' winding number may reach the limit in (cleared as bounds show otherwise).
     near_caps: &'a [AtomicBool],
-    /// Cells near a fan (where the caps' winding number jumps) and near any surface.
+    /// Cells near a fan (where the caps' winding number jumps).
     near_fans: &'a [AtomicBool],
+    /// Cells near any surface (the mesh's or a fan): undecided whatever the caps add.
     near_surfaces: &'a [AtomicBool],
 }
 
@@ -407,11 +408,10 @@ impl CellLayout {
         surfaces: &GridSurfaces,
         pad: f64,
         near_fans: &[AtomicBool],
-        near: &[AtomicBool],
+        near_surfaces: &[AtomicBool],
     ) -> Vec<AtomicBool> {
-        let near_surfaces = near;
-        let near: Vec<AtomicBool> = (0..self.count()).map(|_| AtomicBool::new(false)).collect();
-        let Some(cap) = &surfaces.cap else { return near };
+        let near_caps: Vec<AtomicBool> = (0..self.count()).map(|_| AtomicBool::new(false)).collect();
+        let Some(cap) = &surfaces.cap else { return near_caps };
         let holes = &cap.holes[..];
         let total_area: f64 = holes.iter().map(|h| h.area_scene).sum();
         for hole in holes.iter().filter(|hole| hole.area_scene > 0.0) {
@@ -429,7 +429,7 @@ impl CellLayout {
                         let center = self.center(self.index([x, y, z]));
                         let cell = Aabb { min: center - 0.5 * self.cell, max: center + 0.5 * self.cell };
                         if cell.distance_to(apex) <= reach {
-                            near[self.index([x, y, z])].store(true, Ordering::Relaxed);
+                            near_caps[self.index([x, y, z])].store(true, Ordering::Relaxed);
                         }
                     }
                 }
@@ -439,11 +439,11 @@ impl CellLayout {
         parallel::install(|| {
             (0..bx * by * bz).into_par_iter().for_each(|b| {
                 let corner = [b % bx, (b / bx) % by, b / (bx * by)].map(|k| k * CAP_BOX);
-                let marks = CapMarks { near_caps: &near, near_fans, near_surfaces };
+                let marks = CapMarks { near_caps: &near_caps, near_fans, near_surfaces };
                 self.clear_far_from_caps(cap, &marks, (corner, CAP_BOX), pad);
             })
         });
-        near
+        near_caps
     }
 
     /// Clears the `near_caps` marks of the cells of the box of `size` cells a side from `corner`
@@ -451,7 +451,7 @@ impl CellLayout {
     /// whole where its bound says so (and no fan passes through it), else its eight halves in
     /// turn, down to `SMALLEST_CAP_BOX`; only where a cell would gain (one away from surfaces).
     fn clear_far_from_caps(&self, cap: &CapGeometry, marks: &CapMarks, (corner, size): ([usize; 3], usize), pad: f64) {
-        let CapMarks { near_caps: near, near_fans, near_surfaces } = *marks;
+        let CapMarks { near_caps, near_fans, near_surfaces } = *marks;
         let end: [usize; 3] = std::array::from_fn(|k| (corner[k] + size).min(self.dims[k]));
         if (0..3).any(|k| corner[k] >= end[k]) {
             return;
@@ -461,16 +461,18 @@ impl CellLayout {
                 (corner[1]..end[1]).flat_map(move |y| (corner[0]..end[0]).map(move |x| self.index([x, y, z])))
             })
         };
-        if !cells().any(|i| near[i].load(Ordering::Relaxed) && !near_surfaces[i].load(Ordering::Relaxed)) {
+        if !cells().any(|i| near_caps[i].load(Ordering::Relaxed) && !near_surfaces[i].load(Ordering::Relaxed)) {
             return;
         }
         if !cells().any(|i| near_fans[i].load(Ordering::Relaxed)) {
             let lo = self.min + DVec3::new(corner[0] as f64, corner[1] as f64, corner[2] as f64) * self.cell;
             let hi = self.min + DVec3::new(end[0] as f64, end[1] as f64, end[2] as f64) * self.cell;
-            // Past the box by the pad: its points' rounding into their cells.
+            // Past the box by the pad: its points' rounding into their cells. Every such point
+            // lies in the box grown by the pad, convex and met by no fan (none comes within the
+            // pad of its cells), so the segment from the centre to it meets no fan either.
             let reach = 0.5 * (hi - lo).length() + pad;
             if cap.winding_stays_within(0.5 * (lo + hi), reach, CAP_WINDING_LIMIT) {
-                cells().for_each(|i| near[i].store(false, Ordering::Relaxed));
+                cells().for_each(|i| near_caps[i].store(false, Ordering::Relaxed));
                 return;
             }
         }
