@@ -1341,63 +1341,6 @@ def test_fast_tier_far_from_the_scene(device):
 
 
 @pytest.mark.parametrize("tier", ["fast", "exact"])
-def test_one_chunks_columns_are_lent_without_a_copy(device, monkeypatch, tier):
-    """A Vulkan engine's query of one chunk, every list settled by the shaders, answers in the
-    host-visible memory its GPU wrote the columns to (each array's base keeps that memory): the
-    same answer as copied out (VKRAY_LEND_COLUMNS=0) and as several chunks' (copied), writable,
-    alive after its scene and device are gone, and from several threads at once."""
-    if tier == "exact" and not _exact_on(device):
-        pytest.skip("this device does not answer precision='exact'")
-    own = vkray.Device(device.name) if device.info.engine == "vulkan" else device
-    v, f = mesh_data("cow")
-    scene = own.scene(own.mesh(v, f))
-    origins, directions = random_rays(v, 3000, seed=61)
-    names = ("offsets", "ray_index", "t", "prim_id", "uv", "instance_id", "geometry_id")
-    outputs = ["t", "prim_id", "uv", "instance_id", "geometry_id"]
-    lent = scene.intersect_all(origins, directions, precision=tier, outputs=outputs)
-    assert len(lent.ray_index) > 1000
-    lends = own.info.engine == "vulkan"
-
-    def owner(a):
-        while isinstance(a.base, np.ndarray):
-            a = a.base
-        return type(a.base).__name__
-
-    for name in names[1:]:
-        assert (owner(getattr(lent, name)) == "LentColumn") == lends, name
-    monkeypatch.setenv("VKRAY_LEND_COLUMNS", "0")
-    copied = scene.intersect_all(origins, directions, precision=tier, outputs=outputs)
-    monkeypatch.delenv("VKRAY_LEND_COLUMNS")
-    assert owner(copied.t) != "LentColumn"
-    own.chunk_rays, previous = 256, own.chunk_rays
-    try:
-        chunked = scene.intersect_all(origins, directions, precision=tier, outputs=outputs)
-    finally:
-        own.chunk_rays = previous
-    assert owner(chunked.t) != "LentColumn"
-    answers = [None] * 4
-
-    def ask(k, scene=scene):
-        answers[k] = scene.intersect_all(origins, directions, precision=tier, outputs=outputs)
-
-    threads = [threading.Thread(target=ask, args=(k,)) for k in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    expected = {name: getattr(copied, name).copy() for name in names}
-    del scene, own, ask
-    import gc
-
-    gc.collect()
-    for answer in [lent, chunked] + answers:
-        for name in names:
-            np.testing.assert_array_equal(getattr(answer, name), expected[name], err_msg=name)
-    lent.t[:] = 7
-    assert (lent.t == 7).all() and (answers[0].t != 7).any()
-
-
-@pytest.mark.parametrize("tier", ["fast", "exact"])
 def test_gpu_count_does_not_depend_on_chunks(device, tier):
     """Counts and all hits over several chunks (a chunk of 64 rays, lists of every length) are the
     ones of a single chunk."""

@@ -23,7 +23,7 @@ use crate::geometry::rays::Rays;
 use crate::geometry::sensor::{SensorKind, SensorRays};
 use crate::gpu::memory::host_memory_available;
 use crate::scene::Scene;
-use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns, LentColumn, LentNumbers};
+use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns};
 use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
 use crate::trace::request::spheres_on_host;
 use crate::trace::vulkan::packed_rays::device_rays_refusal;
@@ -524,7 +524,7 @@ impl PyScene {
         let result = PyDict::new(py);
         result.set_item("offsets", PyArray1::from_vec(py, offsets))?;
         result.set_item("counts", PyArray1::from_vec(py, counts))?;
-        result.set_item("ray_index", column_array(py, ray_index)?)?;
+        result.set_item("ray_index", PyArray1::from_vec(py, ray_index))?;
         for ((name, _), column) in named.into_iter().zip(columns) {
             result.set_item(name, column_array(py, column)?)?;
         }
@@ -718,47 +718,18 @@ fn request(
     Ok(request)
 }
 
-/// One column of all hits as a numpy array (`(hits, k)` for fields of k numbers), without a copy
-/// (a lent column's array views its engine's memory, which it keeps).
+/// One column of all hits as a numpy array (`(hits, k)` for fields of k numbers), without a copy.
 fn column_array(py: Python<'_>, column: HitColumn) -> PyResult<Bound<'_, PyAny>> {
-    fn shaped<'py, T: numpy::Element>(array: Bound<'py, PyArray1<T>>, k: usize) -> PyResult<Bound<'py, PyAny>> {
-        let rows = array.len() / k;
+    fn shaped<'py, T: numpy::Element>(py: Python<'py>, v: Vec<T>, k: usize) -> PyResult<Bound<'py, PyAny>> {
+        let rows = v.len() / k;
+        let array = PyArray1::from_vec(py, v);
         Ok(if k == 1 { array.into_any() } else { array.reshape([rows, k])?.into_any() })
     }
-    fn lent<T: numpy::Element + bytemuck::Pod>(py: Python<'_>, column: LentColumn) -> PyResult<Bound<'_, PyAny>> {
-        let per_hit = column.per_hit;
-        let bytes = column.bytes();
-        let (pointer, count) = (bytes.as_ptr() as *const T, bytes.len() / std::mem::size_of::<T>());
-        if (pointer as usize) % std::mem::align_of::<T>() != 0 {
-            // (Never so far: the layout aligns each column to 16 bytes.) Copied instead.
-            return shaped(PyArray1::from_vec(py, bytemuck::pod_collect_to_vec::<u8, T>(bytes)), per_hit);
-        }
-        let owner = Bound::new(py, LentColumnOwner { _column: column })?;
-        // SAFETY: `count` elements of T at `pointer` (aligned, checked above) lie in the lent
-        // memory, which `owner` keeps (the array's base) and nothing else writes: the engine
-        // wrote it before lending it.
-        let view = unsafe { numpy::ndarray::ArrayView1::from_shape_ptr(count, pointer) };
-        // SAFETY: as above: `owner` is the array's base and keeps the memory unmoved.
-        shaped(unsafe { PyArray1::borrow_from_array(&view, owner.into_any()) }, per_hit)
-    }
     match column {
-        HitColumn::F64(v, k) => shaped(PyArray1::from_vec(py, v), k),
-        HitColumn::F32(v, k) => shaped(PyArray1::from_vec(py, v), k),
-        HitColumn::I32(v) => shaped(PyArray1::from_vec(py, v), 1),
-        HitColumn::I64(v) => shaped(PyArray1::from_vec(py, v), 1),
-        HitColumn::Lent(column) => match column.numbers {
-            LentNumbers::F64 => lent::<f64>(py, column),
-            LentNumbers::F32 => lent::<f32>(py, column),
-            LentNumbers::I32 => lent::<i32>(py, column),
-            LentNumbers::I64 => lent::<i64>(py, column),
-        },
+        HitColumn::F64(v, k) => shaped(py, v, k),
+        HitColumn::F32(v, k) => shaped(py, v, k),
+        HitColumn::I32(v) => shaped(py, v, 1),
     }
-}
-
-/// The Python object that keeps a lent column's memory (an answer's array's base).
-#[pyclass(name = "LentColumn", module = "vkray._core", frozen)]
-struct LentColumnOwner {
-    _column: LentColumn,
 }
 
 /// The fields named in `names` (None for `position`).

@@ -3,8 +3,6 @@
 //! columns itself (the Vulkan engine's GPU does, chunk by chunk); otherwise they are written from
 //! the CPU tracer's records (`HitColumns::from_records`).
 
-use std::sync::Arc;
-
 use rayon::prelude::*;
 
 use super::hit_fields::{position_bytes_per_ray, Field, HitSink};
@@ -18,55 +16,12 @@ use crate::scene::Scene;
 /// One asked column: a hit field, or None for `position`.
 pub type AskedColumn = Option<Field>;
 
-/// Memory an engine lends an answer's columns in, kept as long as the arrays made of it: the
-/// Vulkan engine's host-visible buffer that the GPU wrote a query's columns to, which becomes the
-/// answer's without a copy.
-pub trait LentMemory: Send + Sync {
-    fn bytes(&self) -> &[u8];
-}
-
-/// The numbers of a column in lent memory.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum LentNumbers {
-    F64,
-    F32,
-    I32,
-    I64,
-}
-
-impl LentNumbers {
-    pub fn size(self) -> usize {
-        match self {
-            LentNumbers::F64 | LentNumbers::I64 => 8,
-            LentNumbers::F32 | LentNumbers::I32 => 4,
-        }
-    }
-}
-
-/// A column in lent memory: `len` bytes from `at`, of `per_hit` numbers a hit.
-#[derive(Clone)]
-pub struct LentColumn {
-    pub memory: Arc<dyn LentMemory>,
-    pub at: usize,
-    pub len: usize,
-    pub numbers: LentNumbers,
-    pub per_hit: usize,
-}
-
-impl LentColumn {
-    pub fn bytes(&self) -> &[u8] {
-        &self.memory.bytes()[self.at..self.at + self.len]
-    }
-}
-
 /// One column of all hits, typed, so that it becomes an array of its caller's without a copy:
-/// its numbers and how many a hit has (or lent by the engine that wrote it).
+/// its numbers and how many a hit has.
 pub enum HitColumn {
     F64(Vec<f64>, usize),
     F32(Vec<f32>, usize),
     I32(Vec<i32>),
-    I64(Vec<i64>),
-    Lent(LentColumn),
 }
 
 impl HitColumn {
@@ -94,38 +49,20 @@ impl HitColumn {
         column.map_or(position_bytes_per_ray(wide), |f| f.bytes_per_ray(wide))
     }
 
-    /// The same column's type in `memory`, `hits` entries from `at` (lent by its engine).
-    pub fn lent(&self, memory: &Arc<dyn LentMemory>, at: usize, hits: usize) -> HitColumn {
-        let (numbers, per_hit) = match self {
-            HitColumn::F64(_, k) => (LentNumbers::F64, *k),
-            HitColumn::F32(_, k) => (LentNumbers::F32, *k),
-            HitColumn::I32(_) => (LentNumbers::I32, 1),
-            HitColumn::I64(_) => (LentNumbers::I64, 1),
-            HitColumn::Lent(c) => (c.numbers, c.per_hit),
-        };
-        let len = hits * per_hit * numbers.size();
-        HitColumn::Lent(LentColumn { memory: memory.clone(), at, len, numbers, per_hit })
-    }
-
     /// Entries (hits) it holds.
     pub fn hits(&self) -> usize {
         match self {
             HitColumn::F64(v, k) => v.len() / k,
             HitColumn::F32(v, k) => v.len() / k,
             HitColumn::I32(v) => v.len(),
-            HitColumn::I64(v) => v.len(),
-            HitColumn::Lent(c) => c.len / (c.numbers.size() * c.per_hit),
         }
     }
 
-    /// Its numbers to write, where it owns them (a lent column is its engine's, written).
-    pub fn bytes_mut(&mut self) -> Option<&mut [u8]> {
+    pub fn bytes_mut(&mut self) -> &mut [u8] {
         match self {
-            HitColumn::F64(v, _) => Some(bytemuck::cast_slice_mut(v)),
-            HitColumn::F32(v, _) => Some(bytemuck::cast_slice_mut(v)),
-            HitColumn::I32(v) => Some(bytemuck::cast_slice_mut(v)),
-            HitColumn::I64(v) => Some(bytemuck::cast_slice_mut(v)),
-            HitColumn::Lent(_) => None,
+            HitColumn::F64(v, _) => bytemuck::cast_slice_mut(v),
+            HitColumn::F32(v, _) => bytemuck::cast_slice_mut(v),
+            HitColumn::I32(v) => bytemuck::cast_slice_mut(v),
         }
     }
 
@@ -134,8 +71,6 @@ impl HitColumn {
             HitColumn::F64(v, _) => bytemuck::cast_slice(v),
             HitColumn::F32(v, _) => bytemuck::cast_slice(v),
             HitColumn::I32(v) => bytemuck::cast_slice(v),
-            HitColumn::I64(v) => bytemuck::cast_slice(v),
-            HitColumn::Lent(c) => c.bytes(),
         }
     }
 
@@ -153,24 +88,17 @@ impl HitColumn {
         Ok(match HitColumn::zeroed(column, 0, wide)? {
             HitColumn::F64(_, k) => HitColumn::F64(room(hits * k)?, k),
             HitColumn::F32(_, k) => HitColumn::F32(room(hits * k)?, k),
-            HitColumn::I32(_) | HitColumn::Lent(_) => HitColumn::I32(room(hits)?),
-            HitColumn::I64(_) => HitColumn::I64(room(hits)?),
+            HitColumn::I32(_) => HitColumn::I32(room(hits)?),
         })
     }
 
     /// Appends the entries in `bytes` (this column's type, tightly packed and aligned), on all
-    /// cores: where the column has room, each core writes its part in place. A lent column
-    /// (which is never extended) becomes its own copy first.
+    /// cores: where the column has room, each core writes its part in place.
     pub fn extend_from_bytes(&mut self, bytes: &[u8]) {
-        if let HitColumn::Lent(c) = self {
-            *self = owned_copy(c);
-        }
         match self {
             HitColumn::F64(v, _) => extend(v, bytemuck::cast_slice(bytes)),
             HitColumn::F32(v, _) => extend(v, bytemuck::cast_slice(bytes)),
             HitColumn::I32(v) => extend(v, bytemuck::cast_slice(bytes)),
-            HitColumn::I64(v) => extend(v, bytemuck::cast_slice(bytes)),
-            HitColumn::Lent(_) => unreachable!("copied above"),
         }
     }
 
@@ -197,27 +125,16 @@ impl HitColumn {
     }
 }
 
-/// A lent column's numbers in a column of their own.
-fn owned_copy(c: &LentColumn) -> HitColumn {
-    let bytes = c.bytes();
-    match c.numbers {
-        LentNumbers::F64 => HitColumn::F64(bytemuck::pod_collect_to_vec(bytes), c.per_hit),
-        LentNumbers::F32 => HitColumn::F32(bytemuck::pod_collect_to_vec(bytes), c.per_hit),
-        LentNumbers::I32 => HitColumn::I32(bytemuck::pod_collect_to_vec(bytes)),
-        LentNumbers::I64 => HitColumn::I64(bytemuck::pod_collect_to_vec(bytes)),
-    }
-}
-
 /// Appends `values` to `v` on all cores (in place where `v` has room).
 pub fn extend<T: bytemuck::Pod + Send + Sync>(v: &mut Vec<T>, values: &[T]) {
     parallel::install(|| v.par_extend(values.par_iter().with_min_len(1 << 14).copied()));
 }
 
 /// Every hit of every ray, as columns: ray i's hits are entries `offsets[i]..offsets[i + 1]` of
-/// `ray_index` (each hit's ray, i64) and of each asked column, in the order asked.
+/// `ray_index` (each hit's ray) and of each asked column, in the order asked.
 pub struct HitColumns {
     pub offsets: Vec<i64>,
-    pub ray_index: HitColumn,
+    pub ray_index: Vec<i64>,
     pub columns: Vec<HitColumn>,
 }
 
@@ -239,15 +156,13 @@ impl HitColumns {
         let mut columns = asked.iter().map(|&c| HitColumn::zeroed(c, h, all.wide)).collect::<Result<Vec<_>>>()?;
         let mut sink = HitSink::default();
         for (&asked, column) in asked.iter().zip(columns.iter_mut()) {
-            let bytes = column.bytes_mut().expect("zeroed columns are owned");
             match asked {
-                Some(field) => sink.set(field, bytes),
-                None => sink.position = Some(bytes),
+                Some(field) => sink.set(field, column.bytes_mut()),
+                None => sink.position = Some(column.bytes_mut()),
             }
         }
         let mut ray_index = try_zeroed(h, "the hits' ray indices")?;
         write_all_hits_and_rays(scene, rays, &all, &mut sink, &mut ray_index)?;
-        let ray_index = HitColumn::I64(ray_index);
         Ok((HitColumns { offsets: all.offsets, ray_index, columns }, all.hits))
     }
 }

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 
 use super::gpu_rays::GpuRays;
 use super::hit_lists::{appends, ListBuffers, ListOffsets, Placed};
-use super::list_columns::{ChunkRays, ColumnLayout, LentColumnBuffer, ListColumns};
+use super::list_columns::{ChunkRays, ColumnLayout, ListColumns};
 use super::ray_chunks::{pack_chunk, record_readback, trace_stage, ChunkLists, GpuJob};
 use super::shared::Shared;
 use super::staging::Slot;
@@ -74,8 +74,6 @@ struct ColumnWay {
     wide: bool,
     /// Each chunk's hits' rays, and their columns in the order asked.
     segments: Vec<(Vec<i64>, Vec<HitColumn>)>,
-    /// Or the whole query's, lent where the GPU wrote them (`LentColumnBuffer`).
-    lent: Option<LentColumnBuffer>,
     /// Hits stored so far.
     hits: usize,
 }
@@ -83,18 +81,7 @@ struct ColumnWay {
 impl ColumnWay {
     /// No columns yet of the `asked` fields (f64 t and uv where `wide`).
     fn new(asked: &[Field], wide: bool) -> ColumnWay {
-        ColumnWay { asked: asked.to_vec(), wide, segments: Vec::new(), lent: None, hits: 0 }
-    }
-
-    /// Whether a chunk's columns (its rays `start..start + len` of `n`, settled, with no far
-    /// rays' advances to add) may be lent rather than copied: the query's one chunk.
-    /// `VKRAY_LEND_COLUMNS=0` copies them (for measuring what lending saves).
-    fn lends(&self, (start, len, n): (usize, usize, usize), advances: &[(usize, f64)]) -> bool {
-        start == 0
-            && len == n
-            && self.hits == 0
-            && advances.is_empty()
-            && std::env::var("VKRAY_LEND_COLUMNS").as_deref() != Ok("0")
+        ColumnWay { asked: asked.to_vec(), wide, segments: Vec::new(), hits: 0 }
     }
 
     /// A chunk's `total` hits as hit_columns.comp wrote them (`written`, laid out as
@@ -136,7 +123,7 @@ impl ColumnWay {
                 match &mut columns[k] {
                     HitColumn::F32(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h as f64 + t) as f32),
                     HitColumn::F64(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h + t) as f32 as f64),
-                    _ => unreachable!("t is a float column of its own"),
+                    HitColumn::I32(_) => unreachable!("t is a float column"),
                 }
             }
         }
@@ -154,15 +141,11 @@ impl ColumnWay {
         (rate * rays as f64 * 1.1) as usize
     }
 
-    /// The segments joined (or the lent columns): each hit's ray and the asked columns.
-    fn joined(self) -> Result<(HitColumn, Vec<HitColumn>)> {
-        let ColumnWay { asked, wide, mut segments, lent, .. } = self;
-        if let Some(lent) = lent {
-            return lent.columns(wide);
-        }
+    /// The segments joined: each hit's ray and the asked columns.
+    fn joined(self) -> Result<(Vec<i64>, Vec<HitColumn>)> {
+        let ColumnWay { asked, wide, mut segments, .. } = self;
         if segments.len() == 1 {
-            let (rays, columns) = segments.pop().expect("one segment");
-            return Ok((HitColumn::I64(rays), columns));
+            return Ok(segments.pop().expect("one segment"));
         }
         let mut rays = Vec::with_capacity(segments.len());
         let mut columns: Vec<Vec<HitColumn>> = asked.iter().map(|_| Vec::with_capacity(segments.len())).collect();
@@ -177,7 +160,7 @@ impl ColumnWay {
             .zip(columns)
             .map(|(&field, parts)| HitColumn::joined(Some(field), parts, wide))
             .collect::<Result<Vec<_>>>()?;
-        Ok((HitColumn::I64(HitColumn::joined_vecs(rays)?), joined))
+        Ok((HitColumn::joined_vecs(rays)?, joined))
     }
 }
 
@@ -691,8 +674,8 @@ impl AllHitsPath {
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let unpacking = Instant::now();
-        let ChunkSet { slot, lists: set_lists, commands, .. } = set;
-        let lists = set_lists.as_ref().expect("the set's lists");
+        let ChunkSet { slot, lists, commands, .. } = set;
+        let lists = lists.as_ref().expect("the set's lists");
         let CountedChunk { start, len, total, advances, .. } = chunk;
         let n = stored.seen.len();
         let base = stored.hits();
@@ -706,20 +689,13 @@ impl AllHitsPath {
         stored.offsets[start + len] = (base as u64 + total) as i64;
         stored.overflowed = stored.overflowed.or(overflowed.map(|k| start + k));
         let advances: Vec<(usize, f64)> = advances.into_iter().filter(|a| a.ray < len).map(|a| (a.ray, a.t)).collect();
-        match (&mut stored.columns, columns) {
-            (Some(way), Some((layout, ..))) if !unsettled && way.lends((start, len, n), &advances) => {
-                let host = set_lists.as_mut().and_then(ListBuffers::take_host_columns);
-                let buffer = host.ok_or_else(|| Error::Internal("the hits' columns were not made".into()))?;
-                way.hits = total as usize;
-                way.lent = Some(LentColumnBuffer::new(buffer, layout));
-                profile.gpu_columns += 1;
-            }
+        match (&mut stored.columns, &columns) {
             (Some(way), Some((layout, ..))) if !unsettled => {
                 let written = lists.written_columns(layout.bytes);
                 // The query's rate of hits so far, for the rays left (this chunk's included).
                 let rate = (way.hits as u64 + total) as f64 / (start + len) as f64;
                 let room = way.hits_left(rate, n - start);
-                way.append_written(written, &layout, firsts, (total as usize, room), &advances)?;
+                way.append_written(written, layout, firsts, (total as usize, room), &advances)?;
                 profile.gpu_columns += 1;
             }
             (Some(_), _) => {
@@ -808,18 +784,15 @@ impl AllHitsPath {
         let way = stored.columns.as_mut().expect("the columns' way");
         let asked = way.asked_columns();
         let all = AllHits { offsets, hits: records, wide: R::WIDE };
-        let (written, _) = HitColumns::from_records(scene, passes.storing.rays, all, &asked)?;
+        let (mut written, _) = HitColumns::from_records(scene, passes.storing.rays, all, &asked)?;
         let base = way.hits as i64;
         for (out, &offset) in stored.offsets[start..].iter_mut().zip(&written.offsets) {
             *out = base + offset;
         }
         way.hits += *written.offsets.last().expect("offsets end with the total") as usize;
         let first = start as i64;
-        let HitColumn::I64(mut ray_index) = written.ray_index else {
-            return Err(Error::Internal("the host's hit columns hold their rays".into()));
-        };
-        parallel::install(|| ray_index.par_iter_mut().with_min_len(1 << 14).for_each(|ray| *ray += first));
-        way.segments.push((ray_index, written.columns));
+        parallel::install(|| written.ray_index.par_iter_mut().with_min_len(1 << 14).for_each(|ray| *ray += first));
+        way.segments.push((written.ray_index, written.columns));
         Ok(())
     }
 }

@@ -128,12 +128,6 @@ impl ListBuffers {
         }
     }
 
-    /// The column buffers' host-visible one, taken (the next query's are made anew): a whole
-    /// query's columns, lent as its answer's arrays.
-    pub fn take_host_columns(&mut self) -> Option<Buffer> {
-        self.columns.take().map(|c| c.host)
-    }
-
     /// The column buffers, once `columns` made them.
     pub fn column_buffers(&self) -> Option<&ColumnBuffers> {
         self.columns.as_ref()

@@ -12,10 +12,9 @@ use super::hit_lists::ListBuffers;
 use crate::error::Result;
 use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::Context;
-use crate::gpu::memory::{memory_barrier, Buffer};
+use crate::gpu::memory::memory_barrier;
 use crate::gpu::records::ColumnParams;
 use crate::gpu::shaders;
-use crate::trace::hit_columns::{HitColumn, LentMemory};
 use crate::trace::hit_fields::Field;
 
 /// The fields hit_columns.comp writes (the others need the host: position, normal, custom index).
@@ -49,38 +48,6 @@ impl ColumnLayout {
     /// The address of `field`'s column in a buffer at `base`, or 0 where not asked.
     fn address(&self, base: u64, field: Field) -> u64 {
         self.fields.iter().find(|(f, ..)| *f == field).map_or(0, |&(_, at, _)| base + at as u64)
-    }
-}
-
-/// A query's columns as hit_columns.comp wrote them into host-visible memory, lent as its
-/// answer's arrays (the query one chunk, every list settled by the shaders): no copy out.
-pub struct LentColumnBuffer {
-    buffer: Buffer,
-    layout: ColumnLayout,
-}
-
-impl LentMemory for LentColumnBuffer {
-    fn bytes(&self) -> &[u8] {
-        self.buffer.mapped().map_or(&[], |m| &m[..self.layout.bytes.min(m.len())])
-    }
-}
-
-impl LentColumnBuffer {
-    pub fn new(buffer: Buffer, layout: ColumnLayout) -> LentColumnBuffer {
-        LentColumnBuffer { buffer, layout }
-    }
-
-    /// Each hit's ray and the asked columns (f64 t and uv where `wide`), lent.
-    pub fn columns(self, wide: bool) -> Result<(HitColumn, Vec<HitColumn>)> {
-        let hits = self.layout.hits;
-        let fields: Vec<(Field, usize)> = self.layout.fields.iter().map(|&(field, at, _)| (field, at)).collect();
-        let memory: Arc<dyn LentMemory> = Arc::new(self);
-        let ray_index = HitColumn::I64(Vec::new()).lent(&memory, 0, hits);
-        let columns = fields
-            .into_iter()
-            .map(|(field, at)| Ok(HitColumn::zeroed(Some(field), 0, wide)?.lent(&memory, at, hits)))
-            .collect::<Result<Vec<_>>>()?;
-        Ok((ray_index, columns))
     }
 }
 
