@@ -42,6 +42,35 @@ def test_tmin_tmax_bound_the_interval(triangle_scene):
     assert triangle_scene.occluded(o, d, tmin=tmin).tolist() == [True, True, False, False]
 
 
+def test_one_origin_repeated_by_broadcasting_is_neither_copied_nor_answered_differently(device):
+    """A camera's eye as ``np.broadcast_to(eye, (n, 3))`` (a stride-0 view, in a batch of any
+    shape) answers as the same rays written out, and vkray does not write the n rows out itself
+    (numpy's allocations, which tracemalloc sees, stay far below the rows' size)."""
+    import tracemalloc
+
+    v, f = load_mesh("fandisk")
+    scene = device.scene(device.mesh(v, f))
+    eye = v.mean(axis=0) + np.array([0.0, 0.0, 3.0]) * np.ptp(v, axis=0).max()
+    directions = (v.mean(axis=0) - eye) + np.random.default_rng(3).uniform(-0.5, 0.5, (200, 1000, 3))
+    repeated = np.broadcast_to(eye, directions.shape)
+    written = np.ascontiguousarray(repeated)
+    want_hits, want_counts = scene.intersect(written, directions), scene.count(written, directions)
+    tracemalloc.start()
+    try:
+        hits, counts = scene.intersect(repeated, directions), scene.count(repeated, directions)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert want_hits.hit.mean() > 0.3
+    np.testing.assert_array_equal(hits.t, want_hits.t)
+    np.testing.assert_array_equal(hits.prim_id, want_hits.prim_id)
+    np.testing.assert_array_equal(counts, want_counts)
+    # The answers' own arrays take about 7 MB; the eye written out would add 4.8 MB.
+    answers = sum(getattr(hits, name).nbytes for name in vkray.HIT_FIELDS if getattr(hits, name) is not None)
+    answers += counts.nbytes
+    assert peak < answers + 2_000_000, (peak, answers)
+
+
 def test_rays_from_behind_and_missing(triangle_scene):
     hits = triangle_scene.intersect(
         [[0.2, 0.2, 2.0], [0.9, 0.9, 0.0], [0.2, 0.2, 0.0]], [[0, 0, -1], [0, 0, 1], [0, 0, -1]]
