@@ -107,6 +107,38 @@ impl InsideGrid {
         }
     }
 
+    /// `mark` of each of the 3-column `rows` (world frame; the scene's frame is `center` away)
+    /// into `marks`; whether every row was finite. Batches of points take two loops: their cells'
+    /// indices (arithmetic alone, no branch, which the compiler unrolls and vectorizes), then the
+    /// cells' lookups. 1M random points against `mark` a point: 12–14 against 23–29 ms on one
+    /// core of this project's machine, 1.0 against 2.0 ms on the H200 machine's 16 cores.
+    pub fn mark_rows<T: Copy + Into<f64>>(&self, rows: &[T], center: DVec3, marks: &mut [u8]) -> bool {
+        const BATCH: usize = 256;
+        let [nx, ny, nz] = self.dims;
+        let inside = |v: f64, n: usize| v >= 0.0 && v < n as f64;
+        let (mut finite, mut cells) = (true, [0u32; BATCH]);
+        for (marks, rows) in marks.chunks_mut(BATCH).zip(rows.chunks(3 * BATCH)) {
+            for (cell, p) in cells.iter_mut().zip(rows.chunks_exact(3)) {
+                let p = DVec3::new(p[0].into(), p[1].into(), p[2].into());
+                finite &= p.is_finite();
+                let q = (p - center - self.min) * self.inverse_cell;
+                // NaN compares false: outside. `as` saturates; the index of a cell beyond the
+                // grid is not used.
+                let within = inside(q.x, nx) & inside(q.y, ny) & inside(q.z, nz);
+                let (x, y, z) = (q.x as u32, q.y as u32, q.z as u32);
+                let index = (z.wrapping_mul(ny as u32).wrapping_add(y)).wrapping_mul(nx as u32).wrapping_add(x);
+                *cell = if within { index } else { u32::MAX };
+            }
+            for (mark, &cell) in marks.iter_mut().zip(&cells) {
+                let within = cell != u32::MAX;
+                let at = if within { cell as usize } else { 0 };
+                let value = (self.marks[at >> 2] >> (2 * (at & 3))) & 3;
+                *mark = if within { value } else { GRID_OUTSIDE };
+            }
+        }
+        finite
+    }
+
     /// The value of the cell holding `p` (the scene's frame; `Undecided` beyond the grid).
     #[inline]
     pub fn cell(&self, p: DVec3) -> CellValue {

@@ -120,23 +120,19 @@ const MARK_BLOCK: usize = 1 << 14;
 /// gathers the points of undecided cells, in order. A point far beyond the scene (even beyond
 /// f32's range) lies beyond the grid: outside. On an H200's 16 cores, 1M points: separate
 /// passes took 0.4 ms (the check), 0.45 (far points moved in), 1.6 (the marks) and 0.5 (the
-/// undecided points).
+/// undecided points); this pass 2.0 ms a point at a time, 1.0 by `InsideGrid::mark_rows`' batches.
 fn mark_points(grid: &InsideGrid, points: Vec3s, center: DVec3, out: &mut [u8]) -> Result<Vec<usize>> {
     let blocks: Vec<(bool, Vec<usize>)> = parallel::install(|| {
         out.par_chunks_mut(MARK_BLOCK)
             .enumerate()
             .map(|(b, marks)| {
-                let (mut finite, mut undecided) = (true, Vec::new());
-                for (k, mark) in marks.iter_mut().enumerate() {
-                    let i = b * MARK_BLOCK + k;
-                    let p = points.row_f64(i);
-                    finite &= p[0].is_finite() & p[1].is_finite() & p[2].is_finite();
-                    *mark = grid.mark(DVec3::from_array(p) - center);
-                    if *mark == GRID_UNDECIDED {
-                        undecided.push(i);
-                    }
-                }
-                (finite, undecided)
+                let rows = b * MARK_BLOCK..b * MARK_BLOCK + marks.len();
+                let finite = match points {
+                    Vec3s::F32(v) => grid.mark_rows(&v[3 * rows.start..3 * rows.end], center, marks),
+                    Vec3s::F64(v) => grid.mark_rows(&v[3 * rows.start..3 * rows.end], center, marks),
+                };
+                let undecided = marks.iter().enumerate().filter(|(_, &m)| m == GRID_UNDECIDED);
+                (finite, undecided.map(|(k, _)| rows.start + k).collect())
             })
             .collect()
     });
