@@ -71,6 +71,45 @@ def test_one_origin_repeated_by_broadcasting_is_neither_copied_nor_answered_diff
     assert peak < answers + 2_000_000, (peak, answers)
 
 
+def one_row_batches(v):
+    """(origins, directions) pairs whose inputs are each one row repeated by broadcasting (or a
+    single (3,) vector): the batch's size comes from the broadcast shapes alone."""
+    eye = v.mean(axis=0) + np.array([0.0, 0.0, 3.0]) * np.ptp(v, axis=0).max()
+    toward = v.mean(axis=0) - eye
+    return [
+        (np.broadcast_to(eye, (500, 3)), toward),
+        (eye, np.broadcast_to(toward, (500, 3))),
+        (np.broadcast_to(eye, (500, 3)), np.broadcast_to(toward, (500, 3))),
+        (np.broadcast_to(eye, (2, 1, 3)), np.broadcast_to(toward, (1, 250, 3))),
+    ]
+
+
+def check_one_row_batches(scene, v):
+    for origins, directions in one_row_batches(v):
+        shape = np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1])
+        written = [np.ascontiguousarray(np.broadcast_to(a, shape + (3,))) for a in (origins, directions)]
+        hits, want = scene.intersect(origins, directions), scene.intersect(*written)
+        assert hits.t.shape == shape and np.isfinite(hits.t).all()
+        np.testing.assert_array_equal(hits.t, want.t)
+        np.testing.assert_array_equal(scene.count(origins, directions), scene.count(*written))
+        np.testing.assert_array_equal(scene.occluded(origins, directions), np.ones(shape, bool))
+
+
+def test_inputs_each_one_row_answer_the_whole_broadcast_batch(device):
+    """Origins and directions each one row (a single vector, or a row repeated by broadcasting)
+    answer every ray of the batch their shapes broadcast to, as the rays written out do."""
+    v, f = load_mesh("fandisk")
+    check_one_row_batches(device.scene(device.mesh(v, f)), v)
+
+
+def test_a_group_answers_inputs_each_one_row_for_the_whole_batch():
+    """The same through a DeviceGroup, which splits the batch's rays over its devices: every
+    piece answers its own rows (a piece that answered fewer would leave rows unwritten)."""
+    v, f = load_mesh("fandisk")
+    group = vkray.DeviceGroup(["cpu", "cpu"])
+    check_one_row_batches(group.scene([group.mesh(v, f)]), v)
+
+
 def test_rays_from_behind_and_missing(triangle_scene):
     hits = triangle_scene.intersect(
         [[0.2, 0.2, 2.0], [0.9, 0.9, 0.0], [0.2, 0.2, 0.0]], [[0, 0, -1], [0, 0, 1], [0, 0, -1]]

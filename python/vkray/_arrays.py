@@ -282,7 +282,13 @@ def rays(
             return float(array)
         return np.ascontiguousarray(np.broadcast_to(array, shape).reshape(n), dtype=np.float64)
 
-    return shape, flat(o), flat(d), bound(lo), bound(hi)
+    origins_flat, directions_flat, lo_flat, hi_flat = flat(o), flat(d), bound(lo), bound(hi)
+    # The core counts the rays as its longest input: where every input is one row, the
+    # directions are written out to the batch's n (the origin stays one, the leanest layout).
+    if n > 1 and len(origins_flat) == len(directions_flat) == 1 and not isinstance(lo_flat, np.ndarray):
+        if not isinstance(hi_flat, np.ndarray):
+            directions_flat = np.ascontiguousarray(np.broadcast_to(directions_flat, (n, 3)))
+    return shape, origins_flat, directions_flat, lo_flat, hi_flat
 
 
 def _one_row(array: np.ndarray) -> bool:

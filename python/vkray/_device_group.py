@@ -914,7 +914,7 @@ class GroupScene(SceneLike):
         rows = _Rows(int(np.prod(shape, dtype=np.int64)), into)
 
         def write(device: int, start: int, stop: int) -> None:
-            rows.put(start, assembly.arrays(piece(device, start, stop)))
+            rows.put(start, stop, assembly.arrays(piece(device, start, stop)))
 
         self._run(kind, pieces, write, progress)
         return assembly.whole(shape, rows.arrays())
@@ -1047,9 +1047,13 @@ class _Rows:
         self._arrays: Optional[Dict[str, np.ndarray]] = into
         self._lock = threading.Lock()
 
-    def put(self, start: int, arrays: Dict[str, np.ndarray]) -> None:
-        """Writes a piece's arrays (its rays from ``start`` on) into the batch's; those that are
-        already the batch's rows (the piece wrote them there itself) stay as they are."""
+    def put(self, start: int, stop: int, arrays: Dict[str, np.ndarray]) -> None:
+        """Writes a piece's arrays (its rays ``start:stop``) into the batch's; those that are
+        already the batch's rows (the piece wrote them there itself) stay as they are. A piece
+        that answered another number of rays is refused: its rows would leave others unwritten."""
+        short = [name for name, array in arrays.items() if len(array) != stop - start]
+        if short:
+            raise VkrayError(f"a piece of rays {start}:{stop} answered {len(arrays[short[0]])} rows of {short[0]}")
         with self._lock:
             if self._arrays is None:
                 self._arrays = {
