@@ -541,8 +541,10 @@ impl Rays<'_> {
         floats: usize,
         write: impl Fn(usize, &mut [T]) -> std::result::Result<Option<f64>, Refused> + Sync,
     ) -> Result<Option<Vec<Advance>>> {
-        let rays = out.len() / floats;
-        let piece_rays = pack_piece_rays(rays);
+        // A pack of one piece runs where it is called (a block of a caller already on every
+        // core): only a larger one asks its pool's size.
+        let one_piece = out.len() <= PACK_PIECE * floats;
+        let piece_rays = if one_piece { PACK_PIECE } else { pack_piece_rays(out.len() / floats) };
         let pack_piece = |(piece, out): (usize, &mut [T])| {
             let first = piece * piece_rays;
             let mut advances = Vec::new();
@@ -555,8 +557,7 @@ impl Rays<'_> {
             }
             Ok(advances)
         };
-        // One piece (a block of a caller already on every core) is packed where it is called.
-        let pieces: Vec<std::result::Result<Vec<Advance>, (Refused, usize)>> = if out.len() <= PACK_PIECE * floats {
+        let pieces: Vec<std::result::Result<Vec<Advance>, (Refused, usize)>> = if one_piece {
             vec![pack_piece((0, out))]
         } else {
             parallel::install(|| out.par_chunks_mut(piece_rays * floats).enumerate().map(pack_piece).collect())

@@ -116,6 +116,7 @@ impl InsideGrid {
         const BATCH: usize = 256;
         let [nx, ny, nz] = self.dims;
         let inside = |v: f64, n: usize| v >= 0.0 && v < n as f64;
+        debug_assert_eq!(rows.len(), 3 * marks.len(), "a mark for every row");
         let (mut finite, mut cells) = (true, [0u32; BATCH]);
         for (marks, rows) in marks.chunks_mut(BATCH).zip(rows.chunks(3 * BATCH)) {
             for (cell, p) in cells.iter_mut().zip(rows.chunks_exact(3)) {
@@ -608,3 +609,88 @@ impl CellLayout {
 
 /// A cell away from surfaces whose region is not labelled yet.
 const UNSEEN: u32 = u32::MAX - 1;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A grid of `dims` cells of size 0.25 from `min`, each cell's mark `(i * 7) % 3`.
+    fn striped_grid(min: DVec3, dims: [usize; 3]) -> InsideGrid {
+        let cells = dims.iter().product::<usize>();
+        let mut marks = vec![0u8; cells.div_ceil(4)];
+        for i in 0..cells {
+            marks[i >> 2] |= (((i * 7) % 3) as u8) << (2 * (i & 3));
+        }
+        InsideGrid {
+            min,
+            inverse_cell: 4.0,
+            dims,
+            cells: Vec::new(),
+            marks,
+            counts: false,
+            cap: None,
+            undecided: 0.0,
+            near_caps: 0.0,
+            regions: 0,
+            build_seconds: 0.0,
+        }
+    }
+
+    #[test]
+    fn the_marks_in_batches_are_each_points_own_mark() {
+        for center in [DVec3::new(0.125, -3.0, 1e3), DVec3::new(0.1, 1e5 + 0.3, -7.7)] {
+            marks_in_batches_match(center);
+        }
+    }
+
+    /// `mark_rows` against `mark` about a grid whose frame is `center` away: edge values, points
+    /// on and beside every cell boundary (where the order of the subtractions rounds), random ones.
+    fn marks_in_batches_match(center: DVec3) {
+        let (min, dims) = (DVec3::new(-1.0, -0.5, 2.0), [9, 5, 13]);
+        let grid = striped_grid(min, dims);
+        let top = min + DVec3::new(9.0, 5.0, 13.0) / 4.0;
+        let mut points: Vec<[f64; 3]> = vec![
+            (min + center).to_array(),
+            (top + center).to_array(), // q == n on every axis: beyond the grid
+            [(top.x + center.x).next_down(), min.y + center.y, min.z + center.z],
+            [f64::NAN, 0.0, 0.0],
+            [f64::INFINITY, 0.0, 0.0],
+            [0.0, f64::NEG_INFINITY, 0.0],
+            [-0.0, -0.0, -0.0],
+            [1e300, -1e300, 3e38],
+            [(min.x + center.x).next_down(), min.y + center.y, min.z + center.z],
+        ];
+        let mut seed = 12345u64;
+        let mut random = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for k in 0..=dims[0] {
+            let x = min.x + k as f64 * 0.25 + center.x;
+            for x in [x.next_down(), x, x.next_up()] {
+                points.push([x, min.y + 0.3 + center.y, min.z + 1.1 + center.z]);
+            }
+        }
+        let edges = points.len();
+        // 700 points about the grid (past the first batch of 256, a last one partial).
+        for _ in 0..700 {
+            let p = min + center + DVec3::new(random() * 2.8 - 0.2, random() * 1.7 - 0.2, random() * 3.7 - 0.2);
+            points.push(p.to_array());
+        }
+        let flat: Vec<f64> = points.iter().flatten().copied().collect();
+        let want: Vec<u8> = points.iter().map(|p| grid.mark(DVec3::from_array(*p) - center)).collect();
+        let mut got = vec![9u8; points.len()];
+        assert!(!grid.mark_rows(&flat, center, &mut got));
+        assert_eq!(got, want);
+        assert!(want.contains(&GRID_UNDECIDED) && want.contains(&GRID_INSIDE));
+        // f32 rows, finite: the same marks as their f64 values, and finite.
+        let narrow: Vec<f32> = flat[3 * edges..].iter().map(|&v| v as f32).collect();
+        let want: Vec<u8> = narrow
+            .chunks_exact(3)
+            .map(|p| grid.mark(DVec3::new(p[0].into(), p[1].into(), p[2].into()) - center))
+            .collect();
+        let mut got = vec![9u8; want.len()];
+        assert!(grid.mark_rows(&narrow, center, &mut got));
+        assert_eq!(got, want);
+    }
+}
