@@ -828,6 +828,9 @@ def memory_worker(backend: str, validation: bool, skip: List[str]) -> None:
     copies = dev.scene([vkray.Instance(scene.instances[0].mesh)] * 100)
     through = np.column_stack([np.random.default_rng(5).uniform(-0.5, 0.5, (20_000, 2)), np.full(20_000, -3.0)])
     run("all_hits_4M", 0.25 * gb, lambda: copies.intersect_all(through, up, outputs=vkray.HIT_FIELDS))
+    # (e') The same hits as the columns the GPU writes (t, prim_id), in 0.2 GB: refused as a
+    # chunk's count comes, before its hits outgrow the headroom.
+    run("all_hits_4M_columns", 0.2 * gb, lambda: copies.intersect_all(through, up, outputs=["t", "prim_id"]))
     print("START final", flush=True)
     emit(case="final", usable_after=usable(), mesh_after=dev.scene(dev.mesh(v, f)).intersect(small_o, small_d).t
          .tolist() == small["t"].tolist())
