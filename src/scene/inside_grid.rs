@@ -53,7 +53,7 @@ pub struct InsideGrid {
     dims: [usize; 3],
     /// Each cell's region's value (`CellValue`, packed by `pack`).
     cells: Vec<u16>,
-    /// Each cell's answer as `mark` gives it (`GRID_OUTSIDE`, `GRID_INSIDE`, `GRID_UNDECIDED`),
+    /// Each cell's answer as `mark_rows` gives it (`GRID_OUTSIDE`, `GRID_INSIDE`, `GRID_UNDECIDED`),
     /// two bits a cell, four cells a byte (cell i in bits 2(i % 4) of byte i / 4): 2.2M cells
     /// take 0.55 MB, which a core's cache holds (a byte a cell: 1M points' lookups 12 against 17
     /// ms on one core of this project's machine).
@@ -83,35 +83,15 @@ pub struct GridSurfaces<'a> {
 }
 
 impl InsideGrid {
-    /// The answer of the cell holding `p` (the scene's frame): a point beyond the grid, which
-    /// holds the scene's bounds grown by a cell, is outside. Without branches on the point: the
-    /// answers of random points are unpredictable, and a mispredicted branch also discards the
-    /// loads begun for the points after it (1M random points in a grid of 2.2M cells, on one
-    /// core: 24–29 ms against 78 ms with branches on this project's 2-core AMD machine, 12.2
-    /// against 13.5 ms on the H200 machine's Xeon).
-    #[inline]
-    pub fn mark(&self, p: DVec3) -> u8 {
-        let q = (p - self.min) * self.inverse_cell;
-        let [nx, ny, nz] = self.dims;
-        // NaN compares false: such a point is outside the grid (the caller checked points finite).
-        let inside = |v: f64, n: usize| v >= 0.0 && v < n as f64;
-        let within = inside(q.x, nx) & inside(q.y, ny) & inside(q.z, nz);
-        // `as` saturates: any point's index is computed, one beyond the grid's read as cell 0.
-        let (x, y, z) = (q.x as usize, q.y as usize, q.z as usize);
-        let cell = if within { (z * ny + y) * nx + x } else { 0 };
-        let mark = (self.marks[cell >> 2] >> (2 * (cell & 3))) & 3;
-        if within {
-            mark
-        } else {
-            GRID_OUTSIDE
-        }
-    }
-
-    /// `mark` of each of the 3-column `rows` (world frame; the scene's frame is `center` away)
-    /// into `marks`; whether every row was finite. Batches of points take two loops: their cells'
-    /// indices (arithmetic alone, no branch, which the compiler unrolls and vectorizes), then the
-    /// cells' lookups. 1M random points against `mark` a point: 12–14 against 23–29 ms on one
-    /// core of this project's machine, 1.0 against 2.0 ms on the H200 machine's 16 cores.
+    /// The answer of the cell holding each of the 3-column `rows` (world frame; the scene's frame
+    /// is `center` away) into `marks`; whether every row was finite. A point beyond the grid,
+    /// which holds the scene's bounds grown by a cell, is outside. Batches of points take two
+    /// loops: their cells' indices (arithmetic alone, which the compiler unrolls and vectorizes),
+    /// then the cells' lookups, without branches on the point: the answers of random points are
+    /// unpredictable, and a mispredicted branch also discards the loads begun for the points after
+    /// it. 1M random points in a grid of 2.2M cells: 12–14 ms on one core of this project's
+    /// machine (24–29 a point at a time, 78 with branches), 1.0 ms on the H200 machine's 16 cores
+    /// (2.0 a point at a time).
     pub fn mark_rows<T: Copy + Into<f64>>(&self, rows: &[T], center: DVec3, marks: &mut [u8]) -> bool {
         const BATCH: usize = 256;
         let [nx, ny, nz] = self.dims;
@@ -614,6 +594,19 @@ const UNSEEN: u32 = u32::MAX - 1;
 mod tests {
     use super::*;
 
+    /// The answer of the cell holding `p` (the scene's frame), a point at a time with usize
+    /// indices: the pass before `mark_rows`, its oracle.
+    fn mark(grid: &InsideGrid, p: DVec3) -> u8 {
+        let q = (p - grid.min) * grid.inverse_cell;
+        let [nx, ny, nz] = grid.dims;
+        let inside = |v: f64, n: usize| v >= 0.0 && v < n as f64;
+        if !(inside(q.x, nx) && inside(q.y, ny) && inside(q.z, nz)) {
+            return GRID_OUTSIDE;
+        }
+        let cell = (q.z as usize * ny + q.y as usize) * nx + q.x as usize;
+        (grid.marks[cell >> 2] >> (2 * (cell & 3))) & 3
+    }
+
     /// A grid of `dims` cells of size 0.25 from `min`, each cell's mark `(i * 7) % 3`.
     fn striped_grid(min: DVec3, dims: [usize; 3]) -> InsideGrid {
         let cells = dims.iter().product::<usize>();
@@ -678,7 +671,7 @@ mod tests {
             points.push(p.to_array());
         }
         let flat: Vec<f64> = points.iter().flatten().copied().collect();
-        let want: Vec<u8> = points.iter().map(|p| grid.mark(DVec3::from_array(*p) - center)).collect();
+        let want: Vec<u8> = points.iter().map(|p| mark(&grid, DVec3::from_array(*p) - center)).collect();
         let mut got = vec![9u8; points.len()];
         assert!(!grid.mark_rows(&flat, center, &mut got));
         assert_eq!(got, want);
@@ -687,7 +680,7 @@ mod tests {
         let narrow: Vec<f32> = flat[3 * edges..].iter().map(|&v| v as f32).collect();
         let want: Vec<u8> = narrow
             .chunks_exact(3)
-            .map(|p| grid.mark(DVec3::new(p[0].into(), p[1].into(), p[2].into()) - center))
+            .map(|p| mark(&grid, DVec3::new(p[0].into(), p[1].into(), p[2].into()) - center))
             .collect();
         let mut got = vec![9u8; want.len()];
         assert!(grid.mark_rows(&narrow, center, &mut got));
