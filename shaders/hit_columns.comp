@@ -4,7 +4,9 @@
 // list_offsets.comp placed from `offsets[i]` and the storing pass (or the counting pass) filled,
 // sorted, to its end. The columns index hits among the chunk's, as the records do. The host uses
 // these columns only where every list of the chunk is settled (as long as its ray's hits, not
-// appended to); it writes the others' from the records.
+// appended to); it writes the others' from the records. Each invocation checks its rays' lists:
+// where every one is settled the host places the chunk's offsets from the hits seen alone, without
+// reading back the offsets (8 MB a million rays).
 // The records are read as words and their bits copied: no float arithmetic (and no shaderFloat64
 // for ExactHit's doubles).
 #extension GL_EXT_buffer_reference : require
@@ -26,6 +28,7 @@ layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Re
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Offsets { uint64_t v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Words { uint v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer Wide { uint64_t v[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Seen { int v[]; };
 
 // Hit j (of the chunk's, within 32 bits as the lists' `first` are) of ray `ray`.
 void write_hit(uint j, uint64_t ray, RecordWords r) {
@@ -66,5 +69,11 @@ void main() {
     uint end = uint(i + 1u < count ? offsets.v[i + 1u] : Offsets(column_params.total).v[0]);
     uint64_t ray = column_params.first_ray + uint64_t(i);
     for (uint j = first; j < end; ++j) write_hit(j, ray, records.v[j]);
+    // Settled: as long as the hits seen, up to max_hits, and not appended to (all_hits.rs
+    // `StoredChunk::place` decides the same from the offsets). Every writer writes the same 1.
+    uint capacity = end - first;
+    uint seen = uint(max(Seen(column_params.seen).v[i], 0));
+    bool appended = capacity > column_params.insertion_limit && capacity < column_params.max_hits;
+    if (appended || capacity != min(seen, column_params.max_hits)) Words(column_params.check).v[0] = 1u;
   }
 }

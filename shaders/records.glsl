@@ -101,7 +101,12 @@ layout(push_constant, std430) uniform ColumnParams {
   uint64_t prim;       // out: int per hit, the triangle within its geometry
   uint64_t instance;   // out: int per hit
   uint64_t geometry;   // out: int per hit
+  uint64_t seen;       // int per ray: the hits the storing pass (or the counting pass) met
+  uint64_t check;      // out: one uint, set to 1 where some ray's list is not settled (cleared
+                       // by the host's commands)
   uint count;          // rays in the chunk
+  uint max_hits;       // hits a ray keeps (at most 2^31 - 1)
+  uint insertion_limit;  // lists longer than this are appended to (hit_lists.rs INSERTION_LIMIT)
   uint unused;
 } column_params;
 #elif defined(VKRAY_SIGN_POINTS)

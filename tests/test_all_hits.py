@@ -373,6 +373,18 @@ def test_batch_shapes_and_indexing(any_device, tier):
     assert miss.offsets.tolist() == [0] * 6 and miss.t.shape == (0,) and miss.uv.shape == (0, 2)
 
 
+def test_counts_are_made_from_the_offsets_at_first_use():
+    """`AllHits.counts` comes from the offsets when first read (the core's difference on all
+    cores): numpy's diff, at every length about the core's blocks, in the batch's shape."""
+    rng = np.random.default_rng(9)
+    for n in (0, 1, 2, 16383, 16384, 16385, 100_003):
+        offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 40, n))]).astype(np.int64)
+        np.testing.assert_array_equal(vkray._core.counts_of_offsets(offsets), np.diff(offsets))
+    offsets = np.array([0, 2, 2, 7, 9, 9, 12], dtype=np.int64)
+    hits = vkray.AllHits((2, 3), {"offsets": offsets, "ray_index": np.repeat(np.arange(6), np.diff(offsets))}, "fast")
+    assert hits.counts.dtype == np.int64 and hits.counts.tolist() == [[2, 0, 5], [2, 0, 3]]
+
+
 def test_outputs_ask_for_fields(any_device, tier):
     v, f = box()
     scene = any_device.scene(any_device.mesh(v, f))

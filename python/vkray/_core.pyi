@@ -15,6 +15,7 @@ __all__ = [
     "devices",
     "spirv_modules",
     "host_memory_available",
+    "counts_of_offsets",
     "Device",
     "Mesh",
     "Scene",
@@ -61,6 +62,9 @@ def spirv_modules() -> Dict[str, bytes]:
 
 def host_memory_available() -> Optional[int]:
     """Host memory a new allocation can still count on (bytes), or None where unknown."""
+
+def counts_of_offsets(offsets: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Each ray's count of hits (int64, N) from CSR offsets (int64, N + 1), on all cores."""
 
 @final
 class Device:

@@ -188,12 +188,12 @@ class AllHits(_HitFields):
         """``counts``: makes the counts where ``arrays`` has none, at first use (CUDA answers:
         the host's counts copied to the GPU, 8 MB for a million rays, 0.66 ms over an H200's bus,
         which a caller who reads only the offsets or the hits does not pay for); without either,
-        the offsets' differences, at first use."""
+        the offsets' differences, at first use (numpy answers: 8 MB a million rays too)."""
         self.shape = shape
         self.precision: Precision = precision
         self.offsets: np.ndarray = arrays["offsets"]
         self.ray_index: np.ndarray = arrays["ray_index"]
-        counts_given = arrays.get("counts")  # the core's, or on the GPU
+        counts_given = arrays.get("counts")  # CUDA answers' (on the GPU)
         if isinstance(counts_given, np.ndarray):
             counts_given = counts_given.reshape(shape)
         self._counts: Optional[np.ndarray] = counts_given
@@ -207,7 +207,7 @@ class AllHits(_HitFields):
         counts = self._counts
         if counts is None:
             # Made in a local and then kept: threads that read it at once each make the same.
-            made = self._make_counts() if self._make_counts is not None else np.diff(self.offsets)
+            made = self._make_counts() if self._make_counts is not None else _counts_of(self.offsets)
             counts = made.reshape(self.shape) if isinstance(made, np.ndarray) else made
             self._counts = counts
         return counts
@@ -281,3 +281,11 @@ class Closest(_SurfaceFields):
             return f"<vkray.Closest shape={self.shape} on cuda precision={self.precision!r} fields={asked}>"
         found = int(self.hit.sum())
         return f"<vkray.Closest shape={self.shape} found={found} precision={self.precision!r} fields={asked}>"
+
+
+def _counts_of(offsets: np.ndarray) -> np.ndarray:
+    """int64: each ray's hits, the differences of CSR ``offsets`` (the core's on all cores where
+    they are int64 as it makes them, else numpy's)."""
+    if isinstance(offsets, np.ndarray) and offsets.dtype == np.int64 and offsets.ndim == 1 and len(offsets) > 0:
+        return _core.counts_of_offsets(np.ascontiguousarray(offsets))
+    return np.diff(offsets)

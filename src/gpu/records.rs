@@ -292,7 +292,14 @@ pub struct ColumnParams {
     pub prim: u64,
     pub instance: u64,
     pub geometry: u64,
+    /// i32 per ray: the hits the storing pass (or the counting pass) met.
+    pub seen: u64,
+    /// Out: one u32, 1 where some ray's list is not settled (its capacity other than its seen
+    /// hits up to `max_hits`, or appended to); cleared before the dispatch.
+    pub check: u64,
     pub count: u32,
+    pub max_hits: u32,
+    pub insertion_limit: u32,
     pub unused: u32,
 }
 
@@ -517,8 +524,9 @@ layout!(PointParams, size 128, points @ 0, distances @ 8, hits @ 16, nodes @ 24,
 layout!(PointOrderParams, size 80, points @ 0, cells @ 8, order @ 16, corner @ 24, scale @ 48, count @ 72, pass @ 76);
 layout!(ListParams, size 80, counts @ 0, sums @ 8, lists @ 16, offsets @ 24, nearest @ 32, records @ 40, count @ 48,
     max_hits @ 52, insertion_limit @ 56, run @ 60, pass @ 64, nearest_hits @ 68, room @ 72, unused @ 76);
-layout!(ColumnParams, size 88, records @ 0, offsets @ 8, total @ 16, first_ray @ 24, ray_index @ 32, t @ 40,
-    uv @ 48, prim @ 56, instance @ 64, geometry @ 72, count @ 80, unused @ 84);
+layout!(ColumnParams, size 112, records @ 0, offsets @ 8, total @ 16, first_ray @ 24, ray_index @ 32, t @ 40,
+    uv @ 48, prim @ 56, instance @ 64, geometry @ 72, seen @ 80, check @ 88, count @ 96, max_hits @ 100,
+    insertion_limit @ 104, unused @ 108);
 layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
     outside_below @ 40, count @ 48, unused @ 52);
 layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
@@ -767,7 +775,11 @@ mod tests {
                     prim,
                     instance,
                     geometry,
+                    seen,
+                    check,
                     count,
+                    max_hits,
+                    insertion_limit,
                     unused
                 ),
             ),

@@ -518,12 +518,10 @@ impl PyScene {
             self.tracer.all_hit_columns(scene, &rays, request, limit, &asked, interrupt)
         })?;
         let HitColumns { offsets, ray_index, columns } = answer;
-        // Each ray's count beside the offsets, on all cores (numpy's diff took a millisecond of a
-        // million rays on one).
-        let counts = py.detach(|| crate::geometry::parallel::install(|| counts_of(&offsets)));
+        // No counts: `AllHits.counts` makes them from the offsets at first use
+        // (`counts_of_offsets`), 8 MB a million rays that a caller of the hits alone does not pay.
         let result = PyDict::new(py);
         result.set_item("offsets", PyArray1::from_vec(py, offsets))?;
-        result.set_item("counts", PyArray1::from_vec(py, counts))?;
         result.set_item("ray_index", PyArray1::from_vec(py, ray_index))?;
         for ((name, _), column) in named.into_iter().zip(columns) {
             result.set_item(name, column_array(py, column)?)?;
@@ -742,12 +740,6 @@ fn fields_named(names: &[String]) -> PyResult<Vec<(String, Option<Field>)>> {
             None => Err(PyValueError::new_err(format!("unknown hit field {name:?}"))),
         })
         .collect()
-}
-
-/// Each ray's number of hits from the CSR offsets.
-fn counts_of(offsets: &[i64]) -> Vec<i64> {
-    use rayon::prelude::*;
-    offsets.par_windows(2).with_min_len(1 << 14).map(|w| w[1] - w[0]).collect()
 }
 
 /// Refuses a query whose outputs and working memory exceed the host memory available, before

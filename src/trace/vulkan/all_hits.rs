@@ -7,7 +7,9 @@
 //! keeps the hits (the nearest `max_hits`) of the other rays, sorted, in their lists, if there
 //! are any. Then either the records come back with their offsets, straight after the chunks
 //! before (`gpu_all_hits`), or hit_columns.comp writes them out as the answer's columns, which
-//! come back instead and are copied once (`gpu_all_hit_columns`). Memory is bounded by the chunks
+//! come back instead and are copied once (`gpu_all_hit_columns`); there the offsets come back
+//! only where a list is not settled (hit_columns.comp checks each), the host placing them from
+//! each ray's hits otherwise. Memory is bounded by the chunks
 //! (a chunk whose records do not fit stores only the rays whose lists do) and nothing is
 //! truncated.
 
@@ -85,7 +87,8 @@ impl ColumnWay {
     }
 
     /// A chunk's `total` hits as hit_columns.comp wrote them (`written`, laid out as
-    /// `layout`), each column copied once on all cores into the last segment where it has room,
+    /// `layout`; `offsets`, its rays' among the query's, and where the last ray's end), each
+    /// column copied once on all cores into the last segment where it has room,
     /// else into a new one with room for `room` hits (the query's rate of hits so far, for the
     /// rays left); with the advances of far rays (chunk's ray, t) added back to their hits' t, as
     /// `StoredHits::settled` does.
@@ -93,7 +96,7 @@ impl ColumnWay {
         &mut self,
         written: &[u8],
         layout: &ColumnLayout,
-        firsts: &[u64],
+        offsets: &[i64],
         (total, room): (usize, usize),
         advances: &[(usize, f64)],
     ) -> Result<()> {
@@ -117,9 +120,10 @@ impl ColumnWay {
             column.extend_from_bytes(&written[at..at + bytes]);
         }
         if let Some(k) = self.asked.iter().position(|&f| f == Field::T) {
+            // (The chunk's offsets start at its first hit's among the query's.)
+            let first = |ray: usize| before + (offsets[ray] - offsets[0]) as usize;
             for &(ray, t) in advances {
-                let end = firsts.get(ray + 1).map_or(total, |&e| e as usize);
-                let hits = before + firsts[ray] as usize..before + end;
+                let hits = first(ray)..first(ray + 1);
                 match &mut columns[k] {
                     HitColumn::F32(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h as f64 + t) as f32),
                     HitColumn::F64(v, _) => v[hits].iter_mut().for_each(|h| *h = (*h + t) as f32 as f64),
@@ -633,15 +637,19 @@ impl AllHitsPath {
         stamp(Stamp::Traced);
         match &columns {
             Some((layout, pipeline)) => {
-                if total > 0 {
-                    let rays = ChunkRays { first: start, len, counted };
-                    self.columns.record(cmd, *pipeline, lists, layout, rays, trace_stage(ctx));
-                }
+                // (With no hits too: it checks that no ray saw any.)
+                let seen = slot.hits_address() + slot.field_offset(Field::Prim) as u64;
+                let rays = ChunkRays { first: start, len, counted, seen, max_hits: passes.max_hits };
+                self.columns.record(cmd, *pipeline, lists, layout, rays, trace_stage(ctx));
+                // The offsets stay on the GPU: where every list is settled, the host places them
+                // from the hits seen (`place_settled`), else it reads them back then.
                 record_readback(ctx, cmd, slot, passes.storing.outputs, len, None);
             }
-            None => record_readback(ctx, cmd, slot, passes.storing.outputs, len, Some((lists, bytes))),
+            None => {
+                record_readback(ctx, cmd, slot, passes.storing.outputs, len, Some((lists, bytes)));
+                self.offsets.record_offsets(cmd, lists, len);
+            }
         }
-        self.offsets.record_offsets(cmd, lists, len);
         stamp(Stamp::ReadBack);
         commands.submit()?;
         profile.submit += submitting.elapsed().as_secs_f64();
@@ -682,20 +690,40 @@ impl AllHitsPath {
         let hits = slot.hits_host.mapped().expect("hit readback is host-visible");
         let at = slot.field_offset(Field::Prim);
         let seen: &[i32] = bytemuck::cast_slice(&hits[at..at + 4 * len]);
-        let firsts = lists.read_offsets(len);
         let range = start..start + len;
+        let advances: Vec<(usize, f64)> = advances.into_iter().filter(|a| a.ray < len).map(|a| (a.ray, a.t)).collect();
+        if let (Some(way), Some((layout, ..))) = (&mut stored.columns, &columns) {
+            let written = lists.written_columns(layout.bytes);
+            let (seen_out, offsets_out) =
+                (&mut stored.seen[range.clone()], &mut stored.offsets[start..start + len + 1]);
+            if layout.settled(written)
+                && place_settled(seen, passes.max_hits, (base as u64, total), seen_out, offsets_out)
+            {
+                // The query's rate of hits so far, for the rays left (this chunk's included).
+                let rate = (way.hits as u64 + total) as f64 / (start + len) as f64;
+                let room = way.hits_left(rate, n - start);
+                way.append_written(written, layout, offsets_out, (total as usize, room), &advances)?;
+                profile.gpu_columns += 1;
+                let spent = unpacking.elapsed().as_secs_f64();
+                profile.unpack += spent;
+                profile.store += spent;
+                return Ok(());
+            }
+            // A list the shaders did not settle: the offsets, back now.
+            self.read_back_offsets(commands, lists, len, profile)?;
+        }
+        let firsts = lists.read_offsets(len);
         let placed = StoredChunk { seen, firsts, total, base: base as u64, max_hits: passes.max_hits };
         let (unsettled, overflowed) = placed.place(&mut stored.seen[range.clone()], &mut stored.offsets[range]);
         stored.offsets[start + len] = (base as u64 + total) as i64;
         stored.overflowed = stored.overflowed.or(overflowed.map(|k| start + k));
-        let advances: Vec<(usize, f64)> = advances.into_iter().filter(|a| a.ray < len).map(|a| (a.ray, a.t)).collect();
         match (&mut stored.columns, &columns) {
             (Some(way), Some((layout, ..))) if !unsettled => {
                 let written = lists.written_columns(layout.bytes);
-                // The query's rate of hits so far, for the rays left (this chunk's included).
                 let rate = (way.hits as u64 + total) as f64 / (start + len) as f64;
                 let room = way.hits_left(rate, n - start);
-                way.append_written(written, layout, firsts, (total as usize, room), &advances)?;
+                let offsets = &stored.offsets[start..start + len + 1];
+                way.append_written(written, layout, offsets, (total as usize, room), &advances)?;
                 profile.gpu_columns += 1;
             }
             (Some(_), _) => {
@@ -718,6 +746,24 @@ impl AllHitsPath {
         let spent = unpacking.elapsed().as_secs_f64();
         profile.unpack += spent;
         profile.store += spent;
+        Ok(())
+    }
+
+    /// Reads back the offsets of the set's `len` rays (the columns' way leaves them on the GPU
+    /// where every list is settled), once its storing submission finished.
+    fn read_back_offsets(
+        &self,
+        commands: &mut Commands,
+        lists: &ListBuffers,
+        len: usize,
+        profile: &mut TraceProfile,
+    ) -> Result<()> {
+        commands.begin()?;
+        self.offsets.record_offsets(commands.buffer, lists, len);
+        commands.submit()?;
+        let waiting = Instant::now();
+        commands.wait()?;
+        profile.wait += waiting.elapsed().as_secs_f64();
         Ok(())
     }
 
@@ -870,6 +916,50 @@ impl StoredChunk<'_> {
                 .reduce(|| (false, None), either)
         })
     }
+}
+
+/// A stored chunk's counts and offsets where hit_columns.comp found every list settled: each
+/// ray's list as long as the hits it saw, up to `max_hits`, after the lists before it from `base`
+/// (the chunk's first hit among the query's), written on all cores with the end of the last
+/// (`offsets_out` has a ray more); false, and nothing to trust, where the lists do not add up to
+/// the chunk's `total`.
+fn place_settled(
+    seen: &[i32],
+    max_hits: usize,
+    (base, total): (u64, u64),
+    seen_out: &mut [i32],
+    offsets_out: &mut [i64],
+) -> bool {
+    let kept = |s: i32| (s.max(0) as u64).min(max_hits as u64);
+    let sums: Vec<u64> =
+        parallel::install(|| seen.par_chunks(SCAN_BLOCK).map(|block| block.iter().map(|&s| kept(s)).sum()).collect());
+    let mut firsts = Vec::with_capacity(sums.len());
+    let mut at = base;
+    for sum in sums {
+        firsts.push(at);
+        at += sum;
+    }
+    if at - base != total {
+        return false;
+    }
+    let (offsets_out, end) = offsets_out.split_at_mut(seen.len());
+    end[0] = at as i64;
+    parallel::install(|| {
+        seen_out
+            .par_chunks_mut(SCAN_BLOCK)
+            .zip(offsets_out.par_chunks_mut(SCAN_BLOCK))
+            .zip(seen.par_chunks(SCAN_BLOCK))
+            .zip(firsts)
+            .for_each(|(((seen_out, offsets_out), seen), first)| {
+                let mut at = first;
+                for ((seen_out, offset_out), &s) in seen_out.iter_mut().zip(offsets_out).zip(seen) {
+                    *seen_out = s;
+                    *offset_out = at as i64;
+                    at += kept(s);
+                }
+            })
+    });
+    true
 }
 
 /// How many of a chunk's first rays have lists that end within `capacity` records, from each

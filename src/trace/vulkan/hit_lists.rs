@@ -4,7 +4,8 @@
 //! dispatches. The counting pass may keep each ray's nearest few hits (`nearest`): the rays it
 //! kept whole have them copied into place by the last dispatch, and the storing pass skips them.
 //! The host reads back only the chunk's total (and whether any ray needs the storing pass) before
-//! the storing pass, and the offsets with the hits.
+//! the storing pass, and the offsets with the records (the columns' way: where a list is not
+//! settled).
 
 use std::mem::size_of;
 use std::sync::Arc;
@@ -198,11 +199,19 @@ impl ColumnBuffers {
         use vk::BufferUsageFlags as U;
         let storage = U::STORAGE_BUFFER | U::SHADER_DEVICE_ADDRESS;
         if ctx.unified_memory {
-            let host = Buffer::new(ctx, bytes as u64, storage, MemoryLocation::GpuToCpu, "hit columns")?;
+            // (Transfers clear the check word: `ListColumns::record`.)
+            let host =
+                Buffer::new(ctx, bytes as u64, storage | U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hit columns")?;
             return Ok(ColumnBuffers { host, device: None });
         }
         let host = Buffer::new(ctx, bytes as u64, U::TRANSFER_DST, MemoryLocation::GpuToCpu, "hit columns readback")?;
-        let device = Buffer::new(ctx, bytes as u64, storage | U::TRANSFER_SRC, MemoryLocation::GpuOnly, "hit columns")?;
+        let device = Buffer::new(
+            ctx,
+            bytes as u64,
+            storage | U::TRANSFER_SRC | U::TRANSFER_DST,
+            MemoryLocation::GpuOnly,
+            "hit columns",
+        )?;
         Ok(ColumnBuffers { host, device: Some(device) })
     }
 

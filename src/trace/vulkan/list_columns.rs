@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use ash::vk;
 
-use super::hit_lists::ListBuffers;
+use super::hit_lists::{ListBuffers, INSERTION_LIMIT};
 use crate::error::Result;
 use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::Context;
@@ -21,11 +21,13 @@ use crate::trace::hit_fields::Field;
 pub const GPU_COLUMN_FIELDS: [Field; 5] = [Field::T, Field::Uv, Field::Prim, Field::Instance, Field::Geometry];
 
 /// Where a chunk's columns lie in the columns buffer: each hit's ray (i64) first, then each asked
-/// field, 16-byte aligned.
+/// field, 16-byte aligned, then the check (a u32: 1 where some list of the chunk is not settled).
 pub struct ColumnLayout {
     pub hits: usize,
     /// (field, its first byte, its bytes), in the order asked.
     pub fields: Vec<(Field, usize, usize)>,
+    /// The check's first byte.
+    pub check_at: usize,
     pub bytes: usize,
 }
 
@@ -42,7 +44,14 @@ impl ColumnLayout {
                 placed
             })
             .collect();
-        ColumnLayout { hits, fields, bytes: at }
+        ColumnLayout { hits, fields, check_at: at, bytes: at + 16 }
+    }
+
+    /// Whether hit_columns.comp found every list of the chunk settled, in `written` (the
+    /// layout's bytes, back on the host).
+    pub fn settled(&self, written: &[u8]) -> bool {
+        let check: &[u32] = bytemuck::cast_slice(&written[self.check_at..self.check_at + 4]);
+        check[0] == 0
     }
 
     /// The address of `field`'s column in a buffer at `base`, or 0 where not asked.
@@ -53,11 +62,14 @@ impl ColumnLayout {
 
 /// Rays of a chunk whose hits hit_columns.comp writes: the first's index among the query's, how
 /// many, and how many the counting pass placed (`len` of them, or more where the records' room
-/// held only the first `len`'s lists).
+/// held only the first `len`'s lists); where the hits each met lie (i32 a ray), and how many a ray
+/// keeps.
 pub struct ChunkRays {
     pub first: usize,
     pub len: usize,
     pub counted: usize,
+    pub seen: u64,
+    pub max_hits: usize,
 }
 
 /// hit_columns.comp's pipelines (compiled on first use).
@@ -94,9 +106,15 @@ impl ListColumns {
         let columns = buffers.address();
         let ctx = &self.ctx;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        let transfer = vk::PipelineStageFlags::TRANSFER;
+        let check = buffers.device.as_ref().unwrap_or(&buffers.host);
+        // SAFETY: `cmd` is recording; the buffer holds the layout's bytes, the check's 4 among
+        // them (4-aligned), and no command in flight uses it (its set's last one was waited for).
+        unsafe { ctx.device.cmd_fill_buffer(cmd, check.raw(), layout.check_at as u64, 4, 0) };
         let writers = trace_stage | compute;
         memory_barrier(ctx, cmd, (writers, vk::AccessFlags::SHADER_WRITE), (compute, vk::AccessFlags::SHADER_READ));
-        let ChunkRays { first, len, counted } = chunk;
+        memory_barrier(ctx, cmd, (transfer, vk::AccessFlags::TRANSFER_WRITE), (compute, vk::AccessFlags::SHADER_WRITE));
+        let ChunkRays { first, len, counted, seen, max_hits } = chunk;
         let params = ColumnParams {
             records: lists.records_address(),
             offsets: lists.offsets_address(),
@@ -108,7 +126,11 @@ impl ListColumns {
             prim: layout.address(columns, Field::Prim),
             instance: layout.address(columns, Field::Instance),
             geometry: layout.address(columns, Field::Geometry),
+            seen,
+            check: columns + layout.check_at as u64,
             count: len as u32,
+            max_hits: max_hits.min(i32::MAX as usize) as u32,
+            insertion_limit: INSERTION_LIMIT as u32,
             unused: 0,
         };
         let groups =
@@ -120,7 +142,6 @@ impl ListColumns {
             memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), host);
             return;
         };
-        let transfer = vk::PipelineStageFlags::TRANSFER;
         memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), (transfer, vk::AccessFlags::TRANSFER_READ));
         let region = [vk::BufferCopy::default().size(layout.bytes.max(1) as u64)];
         // SAFETY: `cmd` is recording; both buffers hold at least the layout's bytes (`columns`
