@@ -7,6 +7,7 @@
 // ExactInstance and ExactBest, the records this tier shares with the host, are in records.glsl.
 #include "point_triangle.glsl"
 #include "solid_angle.glsl"
+#include "points.glsl"
 layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer ExactInstances { ExactInstance x[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer DoubleOut { double v[]; };
@@ -55,8 +56,7 @@ Ray64 load_ray64(uint i) {
   }
   if (RAY_SOURCE == RAYS_FROM_POINTS) {
     PointRays r = PointRaysRecord(params.rays).r;
-    Doubles points = Doubles(r.points);
-    dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]);
+    dvec3 p = load_point(r.points, i);
     dvec3 shift = dvec3(packDouble2x32(r.shift[0]), packDouble2x32(r.shift[1]), packDouble2x32(r.shift[2]));
     dvec3 d = dvec3(packDouble2x32(r.direction[0]), packDouble2x32(r.direction[1]), packDouble2x32(r.direction[2]));
     return Ray64(p - shift, packDouble2x32(r.tmin), d, packDouble2x32(r.tmax));

@@ -11,12 +11,12 @@
 #extension GL_EXT_shader_explicit_arithmetic_types_int64 : require
 #define VKRAY_POINT_ORDER
 #include "records.glsl"
+#include "points.glsl"
 
 layout(local_size_x_id = 0) in;
 // Cells per axis: a power of two, at most 1024 (trace/closest.rs ORDER_GRID).
 layout(constant_id = 1) const uint GRID = 32u;
 
-layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) buffer Counters { uint v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Order { uint v[]; };
 
@@ -33,8 +33,7 @@ uint spread(uint x) {
 
 // Point i's cell along the Morton curve; points outside the grid (or NaN) go to its border.
 uint cell_of(uint i) {
-  Doubles points = Doubles(order_params.points);
-  dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]);
+  dvec3 p = load_point(order_params.points, i);
   dvec3 corner = dvec3(order_params.corner[0], order_params.corner[1], order_params.corner[2]);
   dvec3 scale = dvec3(order_params.scale[0], order_params.scale[1], order_params.scale[2]);
   dvec3 g = (p - corner) * scale;

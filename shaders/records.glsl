@@ -51,7 +51,7 @@ const uint PACK_TMAX_F64 = 8u;
 // xyz, world), its cells' counters, the order it writes, the grid's corner and cells per unit
 // along each axis (world), the chunk's point count and the pass (POINT_ORDER_*).
 layout(push_constant, std430) uniform PointOrderParams {
-  uint64_t points;
+  uint64_t points;        // as PointParams' (points.glsl)
   uint64_t cells;         // uint per cell: its points' count, then (scanned) its next slot
   uint64_t order;         // uint per point: the points' indices, cell by cell
   double corner[3];
@@ -152,7 +152,7 @@ layout(push_constant, std430) uniform Params {
 // world), its outputs, the scene's hierarchies (records below), its frame's offset and the search's
 // limit.
 layout(push_constant, std430) uniform PointParams {
-  uint64_t points;        // f64 xyz per point, tightly packed
+  uint64_t points;        // xyz per point, tightly packed: f64, or f32 where bit 0 is set (points.glsl)
   uint64_t distances;     // f64 per point: the distance, +inf where nothing is within max_distance
                           // (winding.comp: the largest winding number of any instance)
   uint64_t hits;          // PointHit per point, or 0: only distances asked
@@ -377,7 +377,7 @@ struct Sensor {
 // `order` (point_order.comp's, for the search), invocation k casts the ray of point order[k] and
 // writes its outputs to that point's row: neighbours in space trace side by side.
 struct PointRays {
-  uint64_t points;
+  uint64_t points;      // as PointParams' (points.glsl)
   uint64_t order;       // uint per point, or 0: as they come
   uvec2 shift[3];       // f64 bits: scene frame = world - shift
   uvec2 direction[3];   // f64 bits (trace::tiers::PARITY_DIRECTION)

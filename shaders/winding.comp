@@ -17,6 +17,7 @@
 #include "point_triangle.glsl"
 #include "point_scene.glsl"
 #include "solid_angle.glsl"
+#include "points.glsl"
 
 layout(local_size_x_id = 0) in;
 // geometry/winding.rs CAP_MARGIN_DIVISOR: a node's boundary stands in for its triangles where the
@@ -81,9 +82,8 @@ void main() {
   if (i >= point_params.count) return;
   // The point this invocation searches (point_order.comp: neighbours in space side by side).
   if (point_params.order != 0ul) i = Words(point_params.order).v[i];
-  Doubles points = Doubles(point_params.points);
   dvec3 center = dvec3(point_params.center[0], point_params.center[1], point_params.center[2]);
-  precise dvec3 p = dvec3(points.v[3u * i], points.v[3u * i + 1u], points.v[3u * i + 2u]) - center;
+  precise dvec3 p = load_point(point_params.points, i) - center;
   BvhInstances instances = BvhInstances(point_params.instances);
   double largest = point_params.instance_count > 0u ? -1.0 / 0.0 : 0.0;
   for (uint k = 0u; k < point_params.instance_count; ++k) {

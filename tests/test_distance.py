@@ -529,3 +529,30 @@ def test_host_search_from_a_neighbours_nearest_answers_each_point_alone(any_devi
         alone = scene.closest_points(points[i : i + 1], outputs=vkray.CLOSEST_FIELDS, precision="reference")
         for field in vkray.CLOSEST_FIELDS:
             np.testing.assert_array_equal(getattr(alone, field)[0], getattr(batch, field)[i], err_msg=f"{field} of {i}")
+
+
+@pytest.mark.parametrize("chunk", [None, "1000"])
+def test_float32_points_answer_as_their_float64_values(device, bunny, monkeypatch, chunk):
+    """Points given as float32 reach a GPU as they are (12 bytes a point) and are widened there;
+    every point query answers them exactly as it answers the same values given as float64 (numpy's
+    widening): distances and closest points in both GPU tiers, signed distances (the sign's rays)
+    and contains by winding number. One chunk of 6,000 points is searched in grid order, chunks of
+    1,000 as they come."""
+    if chunk is not None:
+        monkeypatch.setenv("VKRAY_POINT_CHUNK", chunk)
+    v, f = bunny
+    scene = device.scene(device.mesh(v, f))
+    p32 = points_around(v, 6000, seed=21).astype(np.float32)
+    p64 = p32.astype(np.float64)
+    for tier in ("fast", "exact"):
+        np.testing.assert_array_equal(scene.distance(p32, precision=tier), scene.distance(p64, precision=tier))
+        a, b = scene.closest_points(p32, precision=tier), scene.closest_points(p64, precision=tier)
+        for name in ("distance", "position", "prim_id", "uv"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{tier} {name}")
+    signed = scene.signed_distance(p32, precision="exact", method="winding")
+    np.testing.assert_array_equal(signed, scene.signed_distance(p64, precision="exact", method="winding"))
+    inside = scene.contains(p32, method="winding")
+    np.testing.assert_array_equal(inside, scene.contains(p64, method="winding"))
+    # Not a vacuous equality: points on both sides, and the distances themselves right.
+    assert 0 < inside.sum() < len(inside) and (signed < 0).sum() == inside.sum()
+    np.testing.assert_array_equal(np.abs(signed), scene.distance(p64, precision="exact"))

@@ -154,7 +154,7 @@ pub const SENSOR_LIDAR: u32 = 3;
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct PointParams {
-    /// f64 xyz per point, world.
+    /// xyz per point, world: f64, or f32 where bit 0 is set (shaders/points.glsl).
     pub points: u64,
     /// f64 distance per point.
     pub distances: u64,
@@ -188,7 +188,7 @@ pub struct PointParams {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct PointOrderParams {
-    /// f64 xyz per point, world.
+    /// As `PointParams`'.
     pub points: u64,
     /// u32 per cell.
     pub cells: u64,
@@ -346,6 +346,7 @@ pub const PACK_TMAX_F64: u32 = 8;
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct PointRays {
+    /// As `PointParams`'.
     pub points: u64,
     /// u32 per point (point_order.comp's), or 0: as they come.
     pub order: u64,
