@@ -62,6 +62,7 @@ layout(push_constant, std430) uniform PointOrderParams {
 const uint POINT_ORDER_COUNT = 0u;
 const uint POINT_ORDER_SCAN = 1u;
 const uint POINT_ORDER_SCATTER = 2u;
+const uint POINT_ORDER_SCAN_BLOCKS = 3u;
 #elif defined(VKRAY_LIST_OFFSETS)
 // The push constants of list_offsets.comp (records.rs ListParams): one chunk of an all-hits query,
 // from the counting pass's counts to the storing pass's lists and their offsets, in three passes

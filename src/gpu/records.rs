@@ -228,6 +228,7 @@ pub struct SignPointsParams {
 pub const POINT_ORDER_COUNT: u32 = 0;
 pub const POINT_ORDER_SCAN: u32 = 1;
 pub const POINT_ORDER_SCATTER: u32 = 2;
+pub const POINT_ORDER_SCAN_BLOCKS: u32 = 3;
 
 /// The push constants of list_offsets.comp (`ListParams` in shaders/records.glsl): one chunk of
 /// an all-hits query, from the counting pass's counts to the storing pass's lists and offsets.

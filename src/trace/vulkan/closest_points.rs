@@ -27,7 +27,7 @@ use crate::gpu::context::{Backend, Commands, Context};
 use crate::gpu::memory::{memory_barrier, upload_staging, Buffer, MemoryLocation};
 use crate::gpu::records::{
     Params, PointHit, PointOrderParams, PointParams, PointRays, SignPointsParams, POINT_ORDER_COUNT, POINT_ORDER_SCAN,
-    POINT_ORDER_SCATTER,
+    POINT_ORDER_SCAN_BLOCKS, POINT_ORDER_SCATTER,
 };
 use crate::gpu::shaders;
 use crate::scene::{ClosestScene, Scene, VulkanScene, WindingScene, WINDING_MARGIN, WINDING_TERM_ERROR};
@@ -206,7 +206,8 @@ impl PointSlot {
                 )),
             )
         };
-        let cells = (4 * ORDER_GRID.pow(3)) as u64;
+        // The cells' counters, then their blocks' (point_order.comp: at most one a 64 cells).
+        let cells = (4 * (ORDER_GRID.pow(3) + ORDER_GRID.pow(3) / 64)) as u64;
         let cells = Buffer::new(ctx, cells, storage | U::TRANSFER_DST, MemoryLocation::GpuOnly, "point order cells")?;
         let order = Buffer::new(ctx, 4 * capacity as u64, storage, MemoryLocation::GpuOnly, "point order")?;
         let rays_record = match signs {
@@ -796,7 +797,8 @@ impl ClosestPoints {
         };
         let groups = (len as u32).div_ceil(kernel.local_size);
         pass(POINT_ORDER_COUNT, groups);
-        pass(POINT_ORDER_SCAN, 1);
+        pass(POINT_ORDER_SCAN, order_blocks(kernel.local_size));
+        pass(POINT_ORDER_SCAN_BLOCKS, 1);
         pass(POINT_ORDER_SCATTER, groups);
     }
 
@@ -819,6 +821,12 @@ impl ClosestPoints {
             pipeline: self.points.order.pipeline(&[ORDER_GRID])?,
         }))
     }
+}
+
+/// Blocks of cells point_order.comp's POINT_ORDER_SCAN scans, a workgroup of `local_size` each
+/// (its BLOCK: 16 cells a thread).
+fn order_blocks(local_size: u32) -> u32 {
+    ORDER_GRID.pow(3).div_ceil(16 * local_size)
 }
 
 fn size_of_hit() -> usize {
