@@ -217,15 +217,17 @@ def run_open3d(args, data, tasks):
 
 
 def run_trimesh(v, f, points):
-    """{seconds and answers of trimesh.proximity on `points`}, or None where trimesh is missing."""
+    """{seconds and answers of trimesh.proximity on `points`}, or None where trimesh (or the
+    r-tree its proximity queries import on first use) is missing."""
     try:
         import trimesh
+
+        mesh = trimesh.Trimesh(v, f, process=False)
+        trimesh.proximity.closest_point(mesh, points[:16])  # builds its r-tree
+        trimesh.proximity.signed_distance(mesh, points[:16])  # and its ray intersector
     except ImportError as e:
         print(f"no trimesh ({e}): no trimesh figures", file=sys.stderr)
         return None
-    mesh = trimesh.Trimesh(v, f, process=False)
-    trimesh.proximity.closest_point(mesh, points[:16])  # builds its r-tree
-    trimesh.proximity.signed_distance(mesh, points[:16])  # and its ray intersector
     start = time.perf_counter()
     position, distance, _ = trimesh.proximity.closest_point(mesh, points)
     closest_s = time.perf_counter() - start
