@@ -16,7 +16,7 @@ import numpy as np
 from . import _arrays, _core, _pictures, _progress
 from ._options import HIT_FIELDS, Backend, Build, Cull, Precision, VertexFormat, check_outputs
 from ._queries import PointQuery, Query, RayQuery, SceneLike
-from ._results import AllHits, Closest, Hits, out_arrays
+from ._results import AllHits, Closest, Hits, counts_of, out_arrays
 
 
 class MeshObject(Protocol):
@@ -1082,8 +1082,10 @@ def _to_cuda(core: Any, answer: Any) -> Any:
     arrays = {name: getattr(answer, name, None) for name in names}
     on_gpu = {name: _arrays.numpy_to_cuda(core, a) for name, a in arrays.items() if isinstance(a, np.ndarray)}
     if isinstance(answer, AllHits):
-        host_counts = answer.counts
-        return AllHits(answer.shape, on_gpu, answer.precision, counts=lambda: _arrays.numpy_to_cuda(core, host_counts))
+        # The host's offsets kept (not its counts, made only if asked for).
+        host_offsets, shape = answer.offsets, answer.shape
+        return AllHits(shape, on_gpu, answer.precision,
+                       counts=lambda: _arrays.numpy_to_cuda(core, counts_of(host_offsets).reshape(shape)))
     if isinstance(answer, Closest):
         return Closest(answer.shape, on_gpu, answer.precision)
     return Hits(answer.shape, on_gpu, answer.precision)

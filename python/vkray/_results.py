@@ -207,7 +207,7 @@ class AllHits(_HitFields):
         counts = self._counts
         if counts is None:
             # Made in a local and then kept: threads that read it at once each make the same.
-            made = self._make_counts() if self._make_counts is not None else _counts_of(self.offsets)
+            made = self._make_counts() if self._make_counts is not None else counts_of(self.offsets)
             counts = made.reshape(self.shape) if isinstance(made, np.ndarray) else made
             self._counts = counts
         return counts
@@ -283,7 +283,7 @@ class Closest(_SurfaceFields):
         return f"<vkray.Closest shape={self.shape} found={found} precision={self.precision!r} fields={asked}>"
 
 
-def _counts_of(offsets: np.ndarray) -> np.ndarray:
+def counts_of(offsets: np.ndarray) -> np.ndarray:
     """int64: each ray's hits, the differences of CSR ``offsets`` (the core's on all cores where
     they are int64 as it makes them, else numpy's)."""
     if isinstance(offsets, np.ndarray) and offsets.dtype == np.int64 and offsets.ndim == 1 and len(offsets) > 0:
