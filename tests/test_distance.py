@@ -556,3 +556,22 @@ def test_float32_points_answer_as_their_float64_values(device, bunny, monkeypatc
     # Not a vacuous equality: points on both sides, and the distances themselves right.
     assert 0 < inside.sum() < len(inside) and (signed < 0).sum() == inside.sum()
     np.testing.assert_array_equal(np.abs(signed), scene.distance(p64, precision="exact"))
+
+
+def test_float32_points_with_subnormal_coordinates_are_measured_as_given(device):
+    """A float32 point whose coordinate is subnormal keeps it on a GPU (whose conversions may
+    flush such inputs to zero): its distances equal those of the same values in float64, and the
+    first point's, to a square through the origin in the plane x = 0, is that coordinate."""
+    v = np.array([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]], dtype=np.float64)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    scene = device.scene(device.mesh(v, f))
+    tiny = np.float32(1e-40)
+    assert 0 < tiny < np.finfo(np.float32).tiny  # subnormal
+    p32 = np.array([[tiny, 0.2, 0.3], [-tiny, -0.4, 0.1], [0.5, 0.25, 0.0]], dtype=np.float32)
+    p64 = p32.astype(np.float64)
+    for tier in ("exact", "reference"):
+        got = scene.distance(p32, precision=tier)
+        np.testing.assert_array_equal(got, scene.distance(p64, precision=tier), err_msg=tier)
+        assert got[0] == np.float64(tiny), tier
+        signed = scene.signed_distance(p32, precision=tier, method="winding")
+        np.testing.assert_array_equal(signed, scene.signed_distance(p64, precision=tier, method="winding"))

@@ -834,16 +834,45 @@ fn size_of_hit() -> usize {
 }
 
 /// Points `start..start + len` into the slot's staging as they are (f32 or f64 xyz), on all
-/// cores.
+/// cores. A chunk of f32 points with a subnormal coordinate goes as f64, widened here: a GPU may
+/// flush subnormal f32 inputs of its conversions to zero (Vulkan asks no `DenormPreserve` of it),
+/// which the host's widening never does.
 fn pack_points(points: Vec3s, start: usize, len: usize, slot: &mut PointSlot) {
-    slot.points_f32 = matches!(points, Vec3s::F32(_));
-    let bytes = slot.points_bytes(len);
+    let rows = 3 * start..3 * (start + len);
     let staging = slot.points_host.mapped_mut().expect("point staging is host-visible");
-    let values: &[u8] = match points {
-        Vec3s::F64(values) => bytemuck::cast_slice(&values[3 * start..3 * (start + len)]),
-        Vec3s::F32(values) => bytemuck::cast_slice(&values[3 * start..3 * (start + len)]),
+    let subnormal = match points {
+        Vec3s::F64(values) => {
+            parallel::copy(&mut staging[..24 * len], bytemuck::cast_slice(&values[rows]));
+            slot.points_f32 = false;
+            return;
+        }
+        Vec3s::F32(values) => copy_finding_subnormals(&mut staging[..12 * len], &values[rows]),
     };
-    parallel::copy(&mut staging[..bytes], values);
+    slot.points_f32 = !subnormal;
+    if subnormal {
+        let out: &mut [f64] = bytemuck::cast_slice_mut(&mut staging[..24 * len]);
+        parallel::install(|| {
+            out.par_chunks_exact_mut(3).enumerate().with_min_len(4096).for_each(|(k, dst)| {
+                dst.copy_from_slice(&points.row_f64(start + k));
+            })
+        });
+    }
+}
+
+/// Copies `values` into `out` (their bytes) on all cores, and tells whether any is subnormal
+/// (each piece checked as it is copied, while it is in the cache).
+fn copy_finding_subnormals(out: &mut [u8], values: &[f32]) -> bool {
+    const PIECE: usize = 1 << 16;
+    let out: &mut [f32] = bytemuck::cast_slice_mut(out);
+    parallel::install(|| {
+        out.par_chunks_mut(PIECE)
+            .zip(values.par_chunks(PIECE))
+            .map(|(dst, src)| {
+                dst.copy_from_slice(src);
+                src.iter().any(|v| v.is_subnormal())
+            })
+            .reduce(|| false, |a, b| a || b)
+    })
 }
 
 /// VKRAY_POINT_CHUNK: points per chunk asked for (to measure what the chunks' size buys).
