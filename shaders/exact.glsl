@@ -34,8 +34,14 @@ layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Ex
   double tmin;
   double tmax;
   double unused;
-  vec4 origin;
+  uvec4 origin;  // f32 bits: xyz (Rays::pack_exact_compact's shared origin)
 };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer FloatBits { uint v[]; };
+
+// Three f32s (their bits) from `at` of `f`, in f64.
+dvec3 widen3(FloatBits f, uint at) {
+  return dvec3(widen_f32(f.v[at]), widen_f32(f.v[at + 1u]), widen_f32(f.v[at + 2u]));
+}
 
 // The ray (and output row) invocation `launch` serves: itself, or with rays from points in an
 // order, the point's own.
@@ -63,13 +69,13 @@ Ray64 load_ray64(uint i) {
   }
   if (RAY_SOURCE == EXACT_FROM_COMPACT || RAY_SOURCE == EXACT_FROM_DIRECTIONS) {
     ExactRayHeader h = ExactRayHeader(params.rays);
-    Floats f = Floats(params.rays + 64ul);
+    FloatBits f = FloatBits(params.rays + 64ul);
     bool shared_origin = RAY_SOURCE == EXACT_FROM_DIRECTIONS;
     uint at = (shared_origin ? 3u : 6u) * i;
-    vec3 o = shared_origin ? h.origin.xyz : vec3(f.v[at], f.v[at + 1u], f.v[at + 2u]);
+    dvec3 o = shared_origin ? dvec3(widen_f32(h.origin.x), widen_f32(h.origin.y), widen_f32(h.origin.z)) : widen3(f, at);
     uint d = shared_origin ? at : at + 3u;
     dvec3 shift = dvec3(h.shift[0], h.shift[1], h.shift[2]);
-    return Ray64(dvec3(o) - shift, h.tmin, dvec3(f.v[d], f.v[d + 1u], f.v[d + 2u]), h.tmax);
+    return Ray64(o - shift, h.tmin, widen3(f, d), h.tmax);
   }
   Ray64Buffer rays = Ray64Buffer(params.rays);
   dvec4 a = rays.v[2u * i];

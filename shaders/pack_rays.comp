@@ -14,6 +14,7 @@
 #define VKRAY_PACK_RAYS
 #include "records.glsl"
 #include "point_triangle.glsl"
+#include "widen.glsl"
 
 layout(local_size_x_id = 0) in;
 // 0: pack the chunk's rays; 1: add each far ray's advance back to its hit distance (a miss stays);
@@ -21,7 +22,7 @@ layout(local_size_x_id = 0) in;
 layout(constant_id = 1) const uint FINISH = 0u;
 const uint EXACT_RAYS = 2u;
 
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer FloatAt { float v; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer FloatAt { uint v; };  // f32 bits
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer DoubleAt { double v; };
 layout(buffer_reference, std430, buffer_reference_align = 16) writeonly buffer PackedRays { vec4 v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 32) writeonly buffer PackedRays64 { dvec4 v[]; };
@@ -34,7 +35,7 @@ const int ADVANCE_STEPS = 24;
 const float FLOAT_MAX = 3.4028234663852886e38;
 
 double read_scalar(uint64_t address, bool wide) {
-  return wide ? DoubleAt(address).v : double(FloatAt(address).v);
+  return wide ? DoubleAt(address).v : widen_f32(FloatAt(address).v);
 }
 
 // Row `row` of an array of xyz rows.

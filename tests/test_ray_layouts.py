@@ -232,3 +232,28 @@ def test_several_threads_at_once(pair):
         got = list(threads.map(lambda batch: queries(lean, *batch), batches))
     for k, (a, b) in enumerate(zip(got, want)):
         assert_bitwise(a, b, f"batch {k}")
+
+
+def test_subnormal_float32_coordinates_reach_the_exact_tier_as_given(pair):
+    """Float32 rays whose origin or direction has a subnormal coordinate (1e-40) are traced by
+    the exact tier as those values (the shaders widen them from their bits: a GPU's conversion may
+    flush them to zero): rays one such coordinate away from the edge x = 0 that two squares share
+    hit the square on its side, as the full layout (the host's f64 rays) and the reference tier
+    find, from one origin and each from its own."""
+    v = np.array([[-1, -1, 0], [0, -1, 0], [0, 1, 0], [-1, 1, 0], [1, -1, 0], [1, 1, 0]], dtype=np.float64)
+    f = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])  # left square 0-1, right square 2-3
+    scenes = [device.scene(device.mesh(v, f)) for device in pair]
+    if "exact" not in _tiers(scenes[0]):
+        pytest.skip("no exact tier here")
+    tiny = np.float32(1e-40)
+    assert 0 < tiny < np.finfo(np.float32).tiny
+    one_origin = np.array([0.0, 0.3, -1.0], dtype=np.float32)
+    directions = np.array([[tiny, 0, 1], [-tiny, 0, 1]], dtype=np.float32)
+    own_origins = np.array([[tiny, 0.3, -1.0], [-tiny, 0.3, -1.0]], dtype=np.float32)
+    straight = np.array([0, 0, 1], dtype=np.float32)
+    for origins, dirs in ((one_origin, directions), (own_origins, straight)):
+        answers = [scene.intersect(origins, dirs, outputs=["prim_id"], precision="exact").prim_id for scene in scenes]
+        reference = scenes[1].intersect(origins, dirs, outputs=["prim_id"], precision="reference")
+        np.testing.assert_array_equal(reference.prim_id // 2, [1, 0])  # right square, then left
+        np.testing.assert_array_equal(answers[0], reference.prim_id)
+        np.testing.assert_array_equal(answers[1], reference.prim_id)

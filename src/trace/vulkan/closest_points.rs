@@ -167,7 +167,7 @@ pub(super) struct PointSlot {
 /// Bit 0 of a points address (shaders/points.glsl): the points are f32 xyz, not f64. An f32
 /// caller's points travel as they are, 12 bytes a point rather than 24 (a million points: 12 MB
 /// less to pack, 0.8 → 0.4 ms on an H200's 16 cores), and the shaders widen them
-/// exactly, as the host's f64 would.
+/// exactly, subnormals included (shaders/widen.glsl), as the host's f64 would.
 const POINTS_F32_TAG: u64 = 1;
 
 impl Held for PointSlot {
@@ -834,45 +834,16 @@ fn size_of_hit() -> usize {
 }
 
 /// Points `start..start + len` into the slot's staging as they are (f32 or f64 xyz), on all
-/// cores. A chunk of f32 points with a subnormal coordinate goes as f64, widened here: a GPU may
-/// flush subnormal f32 inputs of its conversions to zero (Vulkan asks no `DenormPreserve` of it),
-/// which the host's widening never does.
+/// cores.
 fn pack_points(points: Vec3s, start: usize, len: usize, slot: &mut PointSlot) {
-    let rows = 3 * start..3 * (start + len);
+    slot.points_f32 = matches!(points, Vec3s::F32(_));
+    let bytes = slot.points_bytes(len);
     let staging = slot.points_host.mapped_mut().expect("point staging is host-visible");
-    let subnormal = match points {
-        Vec3s::F64(values) => {
-            parallel::copy(&mut staging[..24 * len], bytemuck::cast_slice(&values[rows]));
-            slot.points_f32 = false;
-            return;
-        }
-        Vec3s::F32(values) => copy_finding_subnormals(&mut staging[..12 * len], &values[rows]),
+    let values: &[u8] = match points {
+        Vec3s::F64(values) => bytemuck::cast_slice(&values[3 * start..3 * (start + len)]),
+        Vec3s::F32(values) => bytemuck::cast_slice(&values[3 * start..3 * (start + len)]),
     };
-    slot.points_f32 = !subnormal;
-    if subnormal {
-        let out: &mut [f64] = bytemuck::cast_slice_mut(&mut staging[..24 * len]);
-        parallel::install(|| {
-            out.par_chunks_exact_mut(3).enumerate().with_min_len(4096).for_each(|(k, dst)| {
-                dst.copy_from_slice(&points.row_f64(start + k));
-            })
-        });
-    }
-}
-
-/// Copies `values` into `out` (their bytes) on all cores, and tells whether any is subnormal
-/// (each piece checked as it is copied, while it is in the cache).
-fn copy_finding_subnormals(out: &mut [u8], values: &[f32]) -> bool {
-    const PIECE: usize = 1 << 16;
-    let out: &mut [f32] = bytemuck::cast_slice_mut(out);
-    parallel::install(|| {
-        out.par_chunks_mut(PIECE)
-            .zip(values.par_chunks(PIECE))
-            .map(|(dst, src)| {
-                dst.copy_from_slice(src);
-                src.iter().any(|v| v.is_subnormal())
-            })
-            .reduce(|| false, |a, b| a || b)
-    })
+    parallel::copy(&mut staging[..bytes], values);
 }
 
 /// VKRAY_POINT_CHUNK: points per chunk asked for (to measure what the chunks' size buys).
