@@ -98,9 +98,10 @@ def test_committed_spirv_is_that_of_the_shaders():
 
 def test_shader_hashes_follow_includes():
     # A change to a header counts for the shaders that include it, through other headers too
-    # (trace_ray_query.comp includes common.glsl, which includes records.glsl), and for no other.
+    # (trace_ray_query.comp includes common.glsl, which includes records.glsl; point_order.comp
+    # points.glsl, which includes widen.glsl), and for no other.
     assert "records.glsl" in source_hash("trace_ray_query.comp")[1]
-    assert source_hash("point_order.comp")[1] == ["records.glsl"]
+    assert source_hash("point_order.comp")[1] == ["points.glsl", "records.glsl", "widen.glsl"]
     assert "exact.glsl" not in source_hash("trace_ray_query.comp")[1]
 
 
