@@ -146,15 +146,33 @@ impl<'a> Rays<'a> {
 
 /// Whether every row of the 3-column `values` is the first, bit for bit.
 fn same_rows<T: bytemuck::Pod + Sync>(values: &[T]) -> bool {
-    let bytes: &[u8] = bytemuck::cast_slice(values);
-    let row = 3 * std::mem::size_of::<T>();
-    let (first, rest) = bytes.split_at(row);
+    // As rows of 32-bit words (an f32 row is 3 of them, an f64 row 6), compared without a call:
+    // a byte slice's `==` calls memcmp, a row of 12 bytes each (3% of a CPU engine's camera
+    // query; 0.13 ms of an H200's count of 1M camera rays).
+    let rows = match std::mem::size_of::<T>() {
+        4 => bytemuck::try_cast_slice::<T, [u32; 3]>(values).ok().map(rows_equal),
+        8 => bytemuck::try_cast_slice::<T, [u32; 6]>(values).ok().map(rows_equal),
+        _ => None,
+    };
+    rows.unwrap_or_else(|| {
+        let bytes: &[u8] = bytemuck::cast_slice(values);
+        let row = 3 * std::mem::size_of::<T>();
+        bytes.chunks_exact(row).all(|r| r == &bytes[..row])
+    })
+}
+
+/// Whether every one of `rows` is the first.
+fn rows_equal<const N: usize>(rows: &[[u32; N]]) -> bool {
+    let Some((first, rest)) = rows.split_first() else { return true };
+    // Differences OR-ed over a block of rows (no branch a row: vectorized), the block's verdict
+    // then.
+    let differ = |block: &[[u32; N]]| block.iter().fold(0u32, |acc, r| (0..N).fold(acc, |a, k| a | (r[k] ^ first[k])));
     // A few rows first: rays from different origins differ at once, without waking the cores.
-    let (head, tail) = rest.split_at(rest.len().min(64 * row));
-    if !head.chunks_exact(row).all(|r| r == first) {
+    let (head, tail) = rest.split_at(rest.len().min(64));
+    if differ(head) != 0 {
         return false;
     }
-    parallel::install(|| tail.par_chunks(row << 12).all(|block| block.chunks_exact(row).all(|r| r == first)))
+    parallel::install(|| tail.par_chunks(1 << 14).all(|block| differ(block) == 0))
 }
 
 impl Rays<'_> {
@@ -841,6 +859,11 @@ mod tests {
         let wide: Vec<f64> = o.iter().map(|&c| f64::from(c)).collect();
         let r = Rays { origins: Vec3s::F64(&wide), ..rays(&o, &d, PerRay::All(0.0), PerRay::All(1.0)) };
         assert_eq!(r.sharing_origin().origins.rows(), 1);
+        // float64 rows compared as six words: a low word that differs in the last row.
+        let mut wide = wide;
+        wide[3 * (n - 1) + 1] = f64::from_bits(1);
+        let r = Rays { origins: Vec3s::F64(&wide), ..rays(&o, &d, PerRay::All(0.0), PerRay::All(1.0)) };
+        assert_eq!(r.sharing_origin().origins.rows(), n);
     }
 
     #[test]

@@ -20,7 +20,7 @@ use crate::geometry::reference::ReferenceHit;
 use crate::scene::{CpuScene, MeshKind, Scene};
 use crate::trace::hit_fields::{Field, HitSink};
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
-use crate::trace::pacer::{in_paced_blocks, FIRST_ON_CPU};
+use crate::trace::pacer::{first_on_cpu, in_paced_blocks};
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{Query, RayBatch};
 
@@ -191,7 +191,8 @@ pub fn trace_fast(
     let mut hit = sink.hit.take();
     let packer = rays.plain_packer(&frame);
     let began = Instant::now();
-    in_paced_blocks(n, (FIRST_ON_CPU, chunk), interrupt, |range| {
+    let first = first_on_cpu(parallel::install(rayon::current_num_threads));
+    in_paced_blocks(n, (first, chunk), interrupt, |range| {
         let (start, len) = (range.start, range.len());
         let blocks = block_sinks(sink, hit.as_deref_mut(), start, len);
         let traced = parallel::install(|| {
@@ -583,7 +584,8 @@ pub fn all_hits_fast(
     let coherent = rays.sensor.is_some();
     let mut offsets: Vec<i64> = try_zeroed(n + 1, "the offsets of all hits")?;
     hits.clear();
-    in_paced_blocks(n, (FIRST_ON_CPU, chunk), interrupt, |range| {
+    let first = first_on_cpu(parallel::install(rayon::current_num_threads));
+    in_paced_blocks(n, (first, chunk), interrupt, |range| {
         let (start, len) = (range.start, range.len());
         let advances = rays.pack(start, &mut packed[..len * RAY_FLOATS], &frame)?;
         // Each block's hits in one list and its rays' counts (no list a ray).
