@@ -367,7 +367,17 @@ impl AllHitsPath {
             Ok(lists) => lists,
             Err(error) => {
                 shared.slots.give_back(slots);
-                return Err(error);
+                return Err(match error {
+                    // Before any hit is counted: a chunk's records come back through memory the
+                    // host maps (NVIDIA's driver fails it first under an address-space limit).
+                    Error::OutOfMemory(why) => Error::OutOfMemory(format!(
+                        "the hits of this query need room for a chunk's records ({:.2} GB, in memory the \
+                         host reads) and its rays' lists, which could not be allocated ({why}): trace \
+                         fewer rays at a time or set max_hits",
+                        record_bytes as f64 / 1e9
+                    )),
+                    other => other,
+                });
             }
         };
         let room = record_bytes / size_of::<R>();
