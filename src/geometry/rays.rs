@@ -148,7 +148,7 @@ impl<'a> Rays<'a> {
 fn same_rows<T: bytemuck::Pod + Sync>(values: &[T]) -> bool {
     // As rows of 32-bit words (an f32 row is 3 of them, an f64 row 6), compared without a call:
     // a byte slice's `==` calls memcmp, a row of 12 bytes each (3% of a CPU engine's camera
-    // query; 0.13 ms of an H200's count of 1M camera rays).
+    // query; on an H200's 16 cores 0.35 ms of a count of 1M camera rays, 0.13 now).
     let rows = match std::mem::size_of::<T>() {
         4 => bytemuck::try_cast_slice::<T, [u32; 3]>(values).ok().map(rows_equal),
         8 => bytemuck::try_cast_slice::<T, [u32; 6]>(values).ok().map(rows_equal),
