@@ -69,6 +69,11 @@ void main() {
     uint end = uint(i + 1u < count ? offsets.v[i + 1u] : Offsets(column_params.total).v[0]);
     uint64_t ray = column_params.first_ray + uint64_t(i);
     for (uint j = first; j < end; ++j) write_hit(j, ray, records.v[j]);
+    if (column_params.offsets_out != 0ul) {
+      // CUDA rays' answers: the offsets among the query's hits, the last ray's end too.
+      Wide(column_params.offsets_out).v[i] = column_params.base + uint64_t(first);
+      if (i + 1u == count) Wide(column_params.offsets_out).v[count] = column_params.base + uint64_t(end);
+    }
     // Settled: as long as the hits seen, up to max_hits, and not appended to (all_hits.rs
     // `StoredChunk::place` decides the same from the offsets). Every writer writes the same 1.
     uint capacity = end - first;

@@ -18,9 +18,11 @@
 
 layout(local_size_x_id = 0) in;
 // 0: pack the chunk's rays; 1: add each far ray's advance back to its hit distance (a miss stays);
-// 2 (EXACT_RAYS): pack the chunk's rays for the exact tier.
+// 2 (EXACT_RAYS): pack the chunk's rays for the exact tier; 3 (FINISH_HITS): add each hit's ray's
+// advance back to its distance (all hits' columns, invocation j for hit j).
 layout(constant_id = 1) const uint FINISH = 0u;
 const uint EXACT_RAYS = 2u;
+const uint FINISH_HITS = 3u;
 
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer FloatAt { uint v; };  // f32 bits
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer DoubleAt { double v; };
@@ -29,6 +31,7 @@ layout(buffer_reference, std430, buffer_reference_align = 32) writeonly buffer P
 layout(buffer_reference, std430, buffer_reference_align = 8) buffer Advances { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) buffer Distances { float v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) buffer Frames { PackFrame f; };
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer RayIndex { int64_t v[]; };
 
 // Rays::pack's Frame: ADVANCE_STEPS.
 const int ADVANCE_STEPS = 24;
@@ -85,11 +88,24 @@ void finish(uint i) {
   if (!isinf(hit) && !isnan(hit)) t.v[i] = float(double(hit) + advanced);
 }
 
+// `finish` for hit j of an all-hits chunk's columns: its ray's advance, from the hit's ray index.
+void finish_hit(uint j) {
+  uint ray = uint(RayIndex(pack_params.ray_index).v[j] - int64_t(pack_params.first_row));
+  double advanced = Advances(pack_params.advances).v[ray];
+  if (advanced == 0.0) return;
+  Distances t = Distances(pack_params.t);
+  t.v[j] = float(double(t.v[j]) + advanced);
+}
+
 void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= pack_params.count) return;
   if (FINISH == 1u) {
     finish(i);
+    return;
+  }
+  if (FINISH == FINISH_HITS) {
+    finish_hit(i);
     return;
   }
   Frames frames = Frames(pack_params.frame);

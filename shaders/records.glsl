@@ -41,6 +41,8 @@ layout(push_constant, std430) uniform PackParams {
   uint first_row;         // the chunk's first row among all the rays (for first_invalid)
   uint formats;           // PACK_*_F64 bits
   uint unused;
+  uint64_t ray_index;     // finish hits: int64 per hit, its ray among the query's (the chunk's
+                          // from first_row), whose advance goes back to the hit's t
 } pack_params;
 const uint PACK_ORIGINS_F64 = 1u;
 const uint PACK_DIRECTIONS_F64 = 2u;
@@ -109,6 +111,9 @@ layout(push_constant, std430) uniform ColumnParams {
   uint max_hits;       // hits a ray keeps (at most 2^31 - 1)
   uint insertion_limit;  // lists longer than this are appended to (hit_lists.rs INSERTION_LIMIT)
   uint unused;
+  uint64_t offsets_out;  // out, or 0: int64 per ray and one after the last, each list's first hit
+                         // among the query's (`base` + the chunk's offset; CUDA's answers)
+  uint64_t base;         // the chunk's first hit among the query's
 } column_params;
 #elif defined(VKRAY_SIGN_POINTS)
 // The push constants of sign_points.comp (records.rs SignPointsParams): one chunk of a signed

@@ -1,8 +1,8 @@
 """Every query of CUDA arrays (torch, cupy) answers in CUDA memory: the queries and tiers without
-a GPU-resident path (all hits, the refined tier, the point queries) go through the host and hand
-back `vkray.CudaArray`s on the arrays' GPU. The oracle: the same query of numpy arrays, which
-must agree bit for bit (checked against Embree, brute force and analytic answers elsewhere). Runs
-where torch sees a CUDA GPU that is the vkray device."""
+a GPU-resident path (the refined tier, the point queries, all hits a ray of which the GPU cannot
+settle) go through the host and hand back `vkray.CudaArray`s on the arrays' GPU. The oracle: the
+same query of numpy arrays, which must agree bit for bit (checked against Embree, brute force and
+analytic answers elsewhere). Runs where torch sees a CUDA GPU that is the vkray device."""
 
 from __future__ import annotations
 
@@ -90,6 +90,111 @@ def test_all_hits_come_back_as_cuda_csr_arrays(bunny, precision):
     assert want.counts.max() >= 4  # rays through the bunny cross it several times
     with pytest.raises(TypeError, match="on the GPU"):
         found[0]
+
+
+ALL_HIT_FIELDS = ["t", "uv", "prim_id", "instance_id", "geometry_id"]
+
+
+def assert_same_all_hits(found, want, fields, err_msg=""):
+    """Every array of two `AllHits`, one in CUDA memory, equal bit for bit."""
+    for name in ["offsets", "ray_index", "counts"] + fields:
+        assert_same(on_host(getattr(found, name)), getattr(want, name), err_msg=f"{name} {err_msg}")
+    assert found.shape == want.shape
+
+
+@pytest.mark.parametrize("precision", ["fast", "exact"])
+def test_all_hits_of_cuda_rays_stay_on_the_gpu(bunny, precision, never_through_host):
+    """All hits of CUDA rays, traced, stored and written as columns without the host: every field
+    equal to the numpy path's bit for bit, for random and camera rays, float32 and float64, a
+    tmax array, max_hits, and rays 1e6 away (the fast tier's
+    far rays, advanced before tracing and their hits' t moved back on the GPU), and one field
+    alone."""
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 20_000, seed=40)
+    eye, directions = oracle.camera_rays(v, 96, 64)
+    far = o + 1e6 * np.array([0.6, 0.0, 0.8])
+    cases = {
+        "random": (o, d, {}),
+        "float32": (o.astype(np.float32), d.astype(np.float32), {}),
+        "camera": (np.broadcast_to(eye, directions.shape), directions, {}),
+        "tmax": (o, d, {"tmax": np.random.default_rng(41).uniform(0.0, 3.0, len(o))}),
+        "max_hits": (o, d, {"max_hits": 2}),
+        "far": (far, o - far, {}),
+    }
+    for name, (origins, dirs, options) in cases.items():
+        on_gpu = {k: cuda(a) if isinstance(a, np.ndarray) else a for k, a in options.items()}
+        found = scene.intersect_all(cuda(origins), cuda(dirs), outputs=ALL_HIT_FIELDS, precision=precision, **on_gpu)
+        want = scene.intersect_all(origins, dirs, outputs=ALL_HIT_FIELDS, precision=precision, **options)
+        assert_same_all_hits(found, want, ALL_HIT_FIELDS, name)
+        assert want.ray_index.size > 1000, name
+    one = scene.intersect_all(cuda(o), cuda(d), outputs=["geometry_id"], precision=precision)
+    assert_same_all_hits(one, scene.intersect_all(o, d, outputs=["geometry_id"], precision=precision), ["geometry_id"])
+    profile = DEVICE.last_trace_profile
+    assert profile["gpu_columns"] >= 1 and profile["rays"] == len(o), profile
+
+
+def test_all_hits_of_cuda_rays_in_chunks(bunny, never_through_host):
+    """Many chunks of CUDA rays (each its own columns, joined on the GPU at the end), and an
+    invalid ray named by its row as the numpy path names it."""
+    v, scene = bunny
+    o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 30_000, seed=42))
+    before = DEVICE.chunk_rays
+    DEVICE.chunk_rays = 4096
+    try:
+        for precision in ("fast", "exact"):
+            found = scene.intersect_all(cuda(o), cuda(d), outputs=["t", "prim_id"], precision=precision)
+            assert DEVICE.last_trace_profile["chunks"] >= 8
+            want = scene.intersect_all(o, d, outputs=["t", "prim_id"], precision=precision)
+            assert_same_all_hits(found, want, ["t", "prim_id"], precision)
+    finally:
+        DEVICE.chunk_rays = before
+    broken = d.copy()
+    broken[12_345] = np.nan
+    for precision in ("fast", "exact"):
+        with pytest.raises(ValueError, match="12345"):
+            scene.intersect_all(cuda(o), cuda(broken), outputs=["t"], precision=precision)
+
+
+def test_all_hits_the_gpu_cannot_settle_go_through_the_host(monkeypatch):
+    """Rays through 40 stacked squares meet more hits than the GPU's lists settle (32): the query
+    goes through the host and answers as numpy's; rays that meet few stay on the GPU. An exact
+    query of a two-part mesh (whose exact hits name their part on the host) goes through the host
+    too, as do no rays."""
+    if DEVICE.cuda_device is None:
+        pytest.skip("this vkray device shares no memory with CUDA")
+    through = []
+    original = vkray._device.Scene._through_host
+
+    def counted(self, query, run):
+        through.append(query.kind)
+        return original(self, query, run)
+
+    monkeypatch.setattr(vkray._device.Scene, "_through_host", counted)
+    square = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    v = np.concatenate([square + [0.0, 0.0, 0.1 * k] for k in range(40)])
+    f = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]) + 4 * k for k in range(40)])
+    scene = DEVICE.scene(DEVICE.mesh(v, f))
+    rng = np.random.default_rng(43)
+    o = np.column_stack([rng.uniform(-0.9, 0.9, (500, 2)), np.full(500, -1.0)])
+    d = np.tile([0.0, 0.0, 1.0], (500, 1))
+    for precision in ("fast", "exact"):
+        found = scene.intersect_all(cuda(o), cuda(d), outputs=["t", "prim_id"], precision=precision)
+        want = scene.intersect_all(o, d, outputs=["t", "prim_id"], precision=precision)
+        assert_same_all_hits(found, want, ["t", "prim_id"], precision)
+        assert (want.counts == 40).all()
+    assert through == ["intersect_all", "intersect_all"]
+    few = scene.intersect_all(cuda(o), cuda(d), tmax=1.35, outputs=["t"])
+    assert_same(on_host(few.counts), np.full(500, 4, dtype=np.int64))
+    assert len(through) == 2
+    two = [(v[:4], f[:2]), (v[4:8], f[:2])]
+    parts = DEVICE.scene(DEVICE.mesh_from_parts(two))
+    found = parts.intersect_all(cuda(o), cuda(d), outputs=["geometry_id"], precision="exact")
+    want = parts.intersect_all(o, d, outputs=["geometry_id"], precision="exact")
+    assert_same(on_host(found.geometry_id), want.geometry_id)
+    assert set(want.geometry_id.tolist()) == {0, 1}
+    assert len(through) == 3
+    empty = scene.intersect_all(cuda(o[:0]), cuda(d[:0]))
+    assert on_host(empty.offsets).tolist() == [0] and len(through) == 4
 
 
 @pytest.mark.parametrize("precision", ["fast", "exact", "reference"])
@@ -351,8 +456,8 @@ def test_errors_name_the_argument(bunny):
 
 def test_several_threads(bunny):
     """Six threads at once: signed distances through the host (points of 1.2 MB in through
-    page-locked memory), and the GPU-resident exact counts, exact closest hits and transmittance
-    of 300k rays each, the pools and leases shared among them."""
+    page-locked memory), and the GPU-resident exact counts, exact closest hits, transmittance and
+    all hits of 300k rays each, the pools, lists and leases shared among them."""
     v, scene = bunny
     sets = [points_around(v, 50_000, seed=20 + k) for k in range(6)]
     expected = [scene.signed_distance(p, precision="exact") for p in sets]
@@ -360,6 +465,7 @@ def test_several_threads(bunny):
     counted = [scene.count(o, d, precision="exact") for o, d in rays]
     nearest = [scene.intersect(o, d, outputs=["t"], precision="exact").t for o, d in rays]
     light = [scene.transmittance(o, d) for o, d in rays]
+    every = [scene.intersect_all(o, d, outputs=["t"]) for o, d in rays]
 
     def work(k):
         runs = []
@@ -368,15 +474,19 @@ def test_several_threads(bunny):
             signed = on_host(scene.signed_distance(cuda(sets[k]), precision="exact"))
             counts = on_host(scene.count(o, d, precision="exact"))
             t = on_host(scene.intersect(o, d, outputs=["t"], precision="exact").t)
-            runs.append((signed, counts, t, on_host(scene.transmittance(o, d))))
+            hits = scene.intersect_all(o, d, outputs=["t"])
+            listed = (on_host(hits.offsets), on_host(hits.t))
+            runs.append((signed, counts, t, on_host(scene.transmittance(o, d)), listed))
         return runs
 
     for k, runs in enumerate(oracle.in_threads(len(sets), work)):
-        for signed, counts, t, kept in runs:
+        for signed, counts, t, kept, (offsets, hit_t) in runs:
             assert_same(signed, expected[k])
             assert_same(counts, counted[k])
             assert_same(t, nearest[k])
             assert_same(kept, light[k])
+            assert_same(offsets, every[k].offsets)
+            assert_same(hit_t, every[k].t)
 
 
 def test_cupy_arrays(bunny):

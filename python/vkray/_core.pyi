@@ -183,7 +183,7 @@ class Scene:
         sensor: Optional[Dict[str, Any]] = None,
         out: Optional[Dict[str, NDArray[Any]]] = None,
     ) -> Dict[str, NDArray[Any]]: ...
-    def stays_on_gpu(self, query: str, precision: Precision = "fast") -> bool: ...
+    def stays_on_gpu(self, query: str, precision: Precision = "fast", fields: List[str] = ...) -> bool: ...
     def trace_cuda(
         self,
         origins: Any,
@@ -197,6 +197,19 @@ class Scene:
         opacity_threshold: float = 0.5,
         precision: Precision = "fast",
     ) -> Dict[str, CudaArray]: ...
+    def trace_cuda_all(
+        self,
+        origins: Any,
+        directions: Any,
+        tmin: Any,
+        tmax: Any,
+        fields: List[str],
+        cull: Cull = None,
+        mask: int = 255,
+        opacity_threshold: float = 0.5,
+        precision: Precision = "fast",
+        max_hits: Optional[int] = None,
+    ) -> Optional[Tuple[List[int], Dict[str, CudaArray]]]: ...
     def cuda_batch(
         self,
         origins: Any,

@@ -706,7 +706,7 @@ class Scene(SceneLike):
         return (
             isinstance(query, RayQuery)
             and query.stays_on_gpu
-            and bool(self._core.stays_on_gpu(_CORE_QUERIES[query.kind], query.precision))
+            and bool(self._core.stays_on_gpu(_CORE_QUERIES[query.kind], query.precision, list(query.outputs)))
         )
 
     def _onto_gpu(self, query: RayQuery, run: Callable[[Scene, Any], Any]) -> Any:
@@ -823,6 +823,13 @@ class Scene(SceneLike):
         return cast(np.ndarray, arrays["t"].reshape(batch.shape))
 
     def _intersect_all(self, q: RayQuery) -> AllHits:
+        if _arrays.on_cuda(q.origins, q.directions):
+            resident = self._trace_cuda_all(q)
+            if resident is not None:
+                return resident
+            # A list the GPU cannot settle (a ray of more than 32 hits, a triangle reported
+            # twice): the query again through the host.
+            return cast(AllHits, self._through_host(q, _ANSWERS["intersect_all"]))
         batch = _RayBatch(q)
         arrays = self._traced(q, batch, lambda bar: self._core.trace_all(
             *batch.arrays, list(q.outputs), q.precision, q.cull, batch.mask, q.max_hits, progress=bar,
@@ -853,6 +860,24 @@ class Scene(SceneLike):
             self._core.trace_cuda(q.origins, q.directions, q.tmin, q.tmax, core_query, list(q.outputs), q.cull,
                                   ray_mask, q.opacity_threshold, q.precision),
         )
+
+    def _trace_cuda_all(self, q: RayQuery) -> Optional[AllHits]:
+        """All hits of CUDA rays left on the GPU (the GPU-resident path), or None where a list
+        needs the host. The counts are made at first use from the offsets (read to the host, 8
+        MB a million rays, and the counts written back)."""
+        ray_mask = _check_cuda_query(q)
+        answer = self._core.trace_cuda_all(q.origins, q.directions, q.tmin, q.tmax, list(q.outputs), q.cull, ray_mask,
+                                           q.opacity_threshold, q.precision, q.max_hits)
+        if answer is None:
+            return None
+        shape, arrays = tuple(answer[0]), cast(Dict[str, Any], answer[1])
+        core, offsets = self.device._core, arrays["offsets"]
+
+        def counts() -> Any:
+            host_offsets = _arrays.cuda_to_numpy(core, offsets, "offsets")
+            return _arrays.numpy_to_cuda(core, counts_of(host_offsets).reshape(shape))
+
+        return AllHits(shape, arrays, q.precision, counts=counts)
 
     def split_cuda_rays(self, q: RayQuery) -> Any:
         """A batch of CUDA rays on this device's GPU for several devices to trace in pieces
@@ -1062,7 +1087,10 @@ class _RayBatch:
 
 
 #: The core's name of each ray query that may stay on the GPU (`Scene._stays_on_gpu`).
-_CORE_QUERIES = {"intersect": "closest", "occluded": "occluded", "count": "count", "transmittance": "transmittance"}
+_CORE_QUERIES = {
+    "intersect": "closest", "occluded": "occluded", "count": "count", "transmittance": "transmittance",
+    "intersect_all": "all",
+}
 
 
 def _cuda_query(q: Query) -> bool:

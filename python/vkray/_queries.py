@@ -30,6 +30,9 @@ from ._results import AllHits, Closest, Hits
 
 __all__ = ["PointQuery", "RayQuery", "SceneLike"]
 
+#: The fields of all hits the GPU writes for CUDA rays (the others are the host's).
+_GPU_HIT_COLUMNS = frozenset(("t", "uv", "prim_id", "instance_id", "geometry_id"))
+
 
 @dataclasses.dataclass(frozen=True)
 class RayQuery:
@@ -56,16 +59,20 @@ class RayQuery:
     @property
     def stays_on_gpu(self) -> bool:
         """Whether CUDA rays of this query are traced without leaving the GPU (the GPU-resident
-        path: copied device to device, packed and traced there): `intersect`, `occluded`, `count`
-        and `transmittance` in the fast and exact tiers, of one mask for every ray, without
-        ``position`` (computed on the host), ``out=`` or a progress bar (and not counts or
-        transmittance of a scene with spheres: `Scene._stays_on_gpu`). Other queries of CUDA
-        arrays go through the host."""
+        path: copied device to device, packed and traced there): `intersect`, `occluded`, `count`,
+        `transmittance` and `intersect_all` in the fast and exact tiers, of one mask for every
+        ray, without ``position`` (computed on the host), ``out=`` or a progress bar; all hits
+        only of fields the GPU writes (t, uv, prim_id, instance_id, geometry_id). Not counts,
+        transmittance or all hits of a scene with spheres, nor the exact tier's all hits of
+        multi-part meshes (`Scene._stays_on_gpu`). Other queries of CUDA arrays go through the
+        host."""
         one_mask = np.ndim(self.mask) == 0 and _arrays.dlpack_device(self.mask, "mask") is None
+        columns = self.kind != "intersect_all" or set(self.outputs) <= _GPU_HIT_COLUMNS
         return (
-            self.kind in ("intersect", "occluded", "count", "transmittance")
+            self.kind in ("intersect", "occluded", "count", "transmittance", "intersect_all")
             and self.precision in ("fast", "exact")
             and "position" not in self.outputs
+            and columns
             and self.out is None
             and not self.progress
             and one_mask

@@ -302,6 +302,11 @@ pub struct ColumnParams {
     pub max_hits: u32,
     pub insertion_limit: u32,
     pub unused: u32,
+    /// Out, or 0: i64 per ray and one after the last, each ray's first hit among the query's
+    /// (`base` plus its offset among the chunk's): the offsets of CUDA rays' answers.
+    pub offsets_out: u64,
+    /// The chunk's first hit among the query's.
+    pub base: u64,
 }
 
 /// The push constants of pack_rays.comp (`PackParams` in shaders/records.glsl): one chunk of the
@@ -334,6 +339,9 @@ pub struct PackParams {
     /// `PACK_*_F64` bits.
     pub formats: u32,
     pub unused: u32,
+    /// FINISH_HITS: i64 per hit, its ray among the query's (the chunk's from `first_row`), whose
+    /// advance is added back to the hit's `t`.
+    pub ray_index: u64,
 }
 
 pub const PACK_ORIGINS_F64: u32 = 1;
@@ -526,14 +534,14 @@ layout!(PointParams, size 128, points @ 0, distances @ 8, hits @ 16, nodes @ 24,
 layout!(PointOrderParams, size 80, points @ 0, cells @ 8, order @ 16, corner @ 24, scale @ 48, count @ 72, pass @ 76);
 layout!(ListParams, size 80, counts @ 0, sums @ 8, lists @ 16, offsets @ 24, nearest @ 32, records @ 40, count @ 48,
     max_hits @ 52, insertion_limit @ 56, run @ 60, pass @ 64, nearest_hits @ 68, room @ 72, unused @ 76);
-layout!(ColumnParams, size 112, records @ 0, offsets @ 8, total @ 16, first_ray @ 24, ray_index @ 32, t @ 40,
+layout!(ColumnParams, size 128, records @ 0, offsets @ 8, total @ 16, first_ray @ 24, ray_index @ 32, t @ 40,
     uv @ 48, prim @ 56, instance @ 64, geometry @ 72, seen @ 80, check @ 88, count @ 96, max_hits @ 100,
-    insertion_limit @ 104, unused @ 108);
+    insertion_limit @ 104, unused @ 108, offsets_out @ 112, base @ 120);
 layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
     outside_below @ 40, count @ 48, unused @ 52);
-layout!(PackParams, size 96, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
+layout!(PackParams, size 104, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
     frame @ 48, t @ 56, origin_stride @ 64, direction_stride @ 68, tmin_stride @ 72, tmax_stride @ 76, count @ 80,
-    first_row @ 84, formats @ 88, unused @ 92);
+    first_row @ 84, formats @ 88, unused @ 92, ray_index @ 96);
 layout!(PackFrame, size 88, shift @ 0, bounds_center @ 24, radius @ 48, far_squared @ 56, tmin @ 64, tmax @ 72,
     first_invalid @ 80, unused @ 84);
 layout!(PointRays, size 80, points @ 0, order @ 8, shift @ 16, direction @ 40, tmin @ 64, tmax @ 72);

@@ -11,6 +11,7 @@ use pyo3::types::{PyCapsule, PyDict, PyTuple};
 
 use super::dlpack::{self, Borrowed, PyCudaArray};
 use crate::gpu::cuda::{Cuda, Stream};
+use crate::trace::vulkan::cuda_all_hits::CudaAllHits;
 use crate::trace::vulkan::cuda_rays::{CudaBatch, CudaHits, CudaRays};
 use crate::trace::Field;
 
@@ -85,6 +86,20 @@ pub(super) fn hits_dict<'py>(
             let array = PyCudaArray::new((field, hits.wide), allocation, hits.ready.clone(), leading);
             result.set_item(field.name(), Py::new(py, array)?)?;
         }
+    }
+    Ok(result)
+}
+
+/// All hits of `rays` CUDA rays as {"offsets": int64 (rays + 1), "ray_index": int64 (H), field
+/// name: vkray.CudaArray of shape (H,) (+ components)}.
+pub(super) fn all_hits_dict<'py>(py: Python<'py>, hits: CudaAllHits, rays: usize) -> PyResult<Bound<'py, PyDict>> {
+    let result = PyDict::new(py);
+    let CudaAllHits { offsets, ray_index, fields, hits, ready, wide } = hits;
+    result.set_item("offsets", Py::new(py, PyCudaArray::int64(offsets, ready.clone(), vec![rays + 1]))?)?;
+    result.set_item("ray_index", Py::new(py, PyCudaArray::int64(ray_index, ready.clone(), vec![hits]))?)?;
+    for (field, allocation) in fields {
+        let array = PyCudaArray::new((field, wide), allocation, ready.clone(), &[hits]);
+        result.set_item(field.name(), Py::new(py, array)?)?;
     }
     Ok(result)
 }

@@ -1,10 +1,11 @@
 //! Which engine a device runs: the dispatcher over either engine (`DeviceTracer`), and what only
-//! one engine has (the Vulkan engine's CUDA rays path).
+//! one engine has (the Vulkan engine's CUDA rays paths).
 
 use std::sync::Arc;
 
 use crate::error::Result;
 use crate::gpu::cuda::Cuda;
+use crate::trace::vulkan::cuda_all_hits::CudaAllHitsPath;
 use crate::trace::vulkan::cuda_rays::CudaRaysPath;
 use crate::trace::{Engine, Tracer, VulkanEngine};
 
@@ -24,4 +25,9 @@ pub(super) fn cuda_of(tracer: &DeviceTracer) -> Result<(Option<&CudaRaysPath>, O
         Some(engine) => Ok((Some(&engine.cuda), engine.cuda.cuda()?)),
         None => Ok((None, None)),
     }
+}
+
+/// The device's path for all hits of CUDA rays, where its engine has one (the Vulkan engine).
+pub(super) fn cuda_all_hits_of(tracer: &DeviceTracer) -> Option<&CudaAllHitsPath> {
+    tracer.engine().as_any().downcast_ref::<VulkanEngine>().map(|engine| &engine.cuda_all_hits)
 }

@@ -344,6 +344,12 @@ impl PyCudaArray {
         PyCudaArray { memory: Arc::new(HitMemory { allocation, ready }), shape, dtype }
     }
 
+    /// An int64 array of `shape` in `allocation`, written once `ready` is reached (all hits'
+    /// offsets and rays).
+    pub(super) fn int64(allocation: CudaAllocation, ready: Arc<Event>, shape: Vec<usize>) -> PyCudaArray {
+        PyCudaArray::of_type(allocation, ready, shape, dl_type(DLPACK_INT, 64))
+    }
+
     /// An array of `shape` and element type `dtype` in `allocation`, written once `ready` is
     /// reached (a query's answer copied from the host).
     pub(super) fn of_type(allocation: CudaAllocation, ready: Arc<Event>, shape: Vec<usize>, dtype: DLDataType) -> Self {

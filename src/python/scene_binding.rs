@@ -12,7 +12,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::calls::{run, run_reporting};
-use super::device_engines::{cuda_of, DeviceTracer};
+use super::device_engines::{cuda_all_hits_of, cuda_of, DeviceTracer};
 use super::mesh_binding::stats_dict;
 use super::mesh_binding::PyMesh;
 use super::numpy_views::{Bound1, MaskArray, Vec3Array};
@@ -26,6 +26,7 @@ use crate::scene::Scene;
 use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns};
 use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
 use crate::trace::request::spheres_on_host;
+use crate::trace::vulkan::cuda_all_hits::{cuda_all_hits_refusal, CudaAllHitsOutcome};
 use crate::trace::vulkan::packed_rays::device_rays_refusal;
 use crate::trace::{CpuEngine, Cull, Field, HitSink, Precision, Query, Request, SignedDistance, VulkanEngine};
 
@@ -367,13 +368,22 @@ impl PyScene {
         Ok(result)
     }
 
-    /// Whether CUDA rays of `query` ("closest", "occluded", "count", "transmittance") in
-    /// `precision` are traced on the GPU where they lie (`trace_cuda`), for what this scene
-    /// holds; else they go through the host.
-    #[pyo3(signature = (query, precision="fast"))]
-    fn stays_on_gpu(&self, py: Python<'_>, query: &str, precision: &str) -> PyResult<bool> {
+    /// Whether CUDA rays of `query` ("closest", "occluded", "count", "transmittance", "all")
+    /// in `precision` are traced on the GPU where they lie (`trace_cuda`, `trace_cuda_all`: all
+    /// hits of the `fields` given, which the GPU writes), for what this scene holds; else they go
+    /// through the host.
+    #[pyo3(signature = (query, precision="fast", fields=Vec::new()))]
+    fn stays_on_gpu(&self, py: Python<'_>, query: &str, precision: &str, fields: Vec<String>) -> PyResult<bool> {
         let request = request(Query::parse(query)?, precision, None, false, 0.5)?;
-        // The scene's lock is taken without the GIL (a writer may hold it while it waits).
+        if request.query == Query::All {
+            let Ok(fields) = cuda_all_fields(&fields) else { return Ok(false) };
+            // The scene's lock is taken without the GIL (a writer may hold it while it waits).
+            let scene = &self.scene;
+            let refusal = py.detach(|| {
+                cuda_all_hits_refusal(&scene.read().unwrap_or_else(|e| e.into_inner()), request, &fields).is_some()
+            });
+            return Ok(!refusal);
+        }
         let spheres = py.detach(|| spheres_on_host(&self.scene.read().unwrap_or_else(|e| e.into_inner()), request));
         Ok(device_rays_refusal(request).is_none() && !spheres)
     }
@@ -427,6 +437,59 @@ impl PyScene {
                 })?)
             };
             cuda_batch::hits_dict(py, hits, &borrowed.leading)
+        })();
+        py.detach(|| path.give_back_lease(lease)); // may wait for its stream
+        result
+    }
+
+    /// Every hit of rays that live in CUDA memory (DLPack arrays on this device's GPU), in
+    /// `precision` ("fast" or "exact"), left in CUDA memory: (the rays' shape S, {"offsets":
+    /// int64 (N + 1), "ray_index": int64 (H), field: vkray.CudaArray of (H,) (+ components)} for
+    /// the `fields` asked among t, uv, prim_id, instance_id and geometry_id), or None where the
+    /// query must go through the host (a ray's list the GPU cannot settle: more than 32 hits, or
+    /// a triangle reported twice; no rays). Arguments as `trace_cuda`'s; `max_hits` as
+    /// `trace_all`'s.
+    #[pyo3(signature = (origins, directions, tmin, tmax, fields, cull=None, mask=255, opacity_threshold=0.5, precision="fast", max_hits=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn trace_cuda_all<'py>(
+        &self,
+        py: Python<'py>,
+        origins: &Bound<'py, PyAny>,
+        directions: &Bound<'py, PyAny>,
+        tmin: &Bound<'py, PyAny>,
+        tmax: &Bound<'py, PyAny>,
+        fields: Vec<String>,
+        cull: Option<&str>,
+        mask: u8,
+        opacity_threshold: f32,
+        precision: &str,
+        max_hits: Option<usize>,
+    ) -> PyResult<Option<(Vec<usize>, Bound<'py, PyDict>)>> {
+        let request = request(Query::All, precision, cull, false, opacity_threshold)?;
+        if max_hits == Some(0) {
+            return Err(PyValueError::new_err("max_hits must be at least 1 (or None: every hit)"));
+        }
+        let wanted = cuda_all_fields(&fields)?;
+        let tracer = &self.tracer;
+        let (path, cuda) = cuda_of(tracer)?;
+        let (Some(path), Some(cuda), Some(all_hits)) = (path, cuda, cuda_all_hits_of(tracer)) else {
+            return Err(dlpack::unreadable(tracer.device_name(), [("origins", origins), ("directions", directions)]));
+        };
+        let mut lease = py.detach(|| path.cuda_lease())?; // may free idle leases, which wait
+        let result = (|| -> PyResult<Option<(Vec<usize>, Bound<'py, PyDict>)>> {
+            let borrowed =
+                cuda_batch::borrow_rays(&cuda, lease.stream_handle(), origins, directions, (tmin, tmax), mask)?;
+            let limit = max_hits.unwrap_or(usize::MAX);
+            let outcome = self.query(py, None, |scene, interrupt| {
+                all_hits.trace(scene, &mut lease, &borrowed.rays, request, limit, &wanted, interrupt)
+            })?;
+            match outcome {
+                CudaAllHitsOutcome::ThroughHost(_) => Ok(None),
+                CudaAllHitsOutcome::Answered(hits) => {
+                    let arrays = cuda_batch::all_hits_dict(py, hits, borrowed.rays.count)?;
+                    Ok(Some((borrowed.leading.clone(), arrays)))
+                }
+            }
         })();
         py.detach(|| path.give_back_lease(lease)); // may wait for its stream
         result
@@ -697,6 +760,14 @@ fn cuda_fields(names: &[String]) -> PyResult<Vec<Field>> {
             field.ok_or_else(|| PyValueError::new_err(format!("{name} is not computed on the GPU for CUDA rays")))
         })
         .collect()
+}
+
+/// The fields of all hits of CUDA rays (none: the offsets and the hits' rays alone).
+fn cuda_all_fields(names: &[String]) -> PyResult<Vec<Field>> {
+    if names.is_empty() {
+        return Ok(Vec::new());
+    }
+    cuda_fields(names)
 }
 
 /// A query's request from the option strings it was called with.

@@ -23,7 +23,7 @@ use rayon::prelude::*;
 
 use super::gpu_rays::GpuRays;
 use super::hit_lists::{appends, ListBuffers, ListOffsets, Placed};
-use super::list_columns::{ChunkRays, ColumnLayout, ListColumns};
+use super::list_columns::{ChunkRays, ColumnLayout, ListColumns, GPU_COLUMN_FIELDS};
 use super::ray_chunks::{pack_chunk, record_readback, trace_stage, ChunkLists, GpuJob};
 use super::shared::Shared;
 use super::staging::Slot;
@@ -170,7 +170,7 @@ impl ColumnWay {
 
 /// Bytes of hit records a chunk may hold: CPU devices share the host's memory. `VKRAY_HIT_RECORD_BYTES`
 /// sets another (the tests' way to chunks that store part of their rays).
-fn record_budget(unified_memory: bool) -> usize {
+pub(super) fn record_budget(unified_memory: bool) -> usize {
     let set = std::env::var("VKRAY_HIT_RECORD_BYTES").ok().and_then(|v| v.parse().ok());
     set.unwrap_or(if unified_memory { 64 << 20 } else { 256 << 20 })
 }
@@ -185,12 +185,12 @@ const IDLE_RECORD_BYTES: usize = 256 << 20;
 /// The all-hits path. Owns the idle lists and records of the storing pass and the kernel that
 /// places the lists.
 pub struct AllHitsPath {
-    shared: Arc<Shared>,
-    rays: Arc<GpuRays>,
+    pub(super) shared: Arc<Shared>,
+    pub(super) rays: Arc<GpuRays>,
     lists: Arc<IdlePool<ListBuffers>>,
     spare: Arc<SpareRecords>,
-    offsets: ListOffsets,
-    columns: ListColumns,
+    pub(super) offsets: ListOffsets,
+    pub(super) columns: ListColumns,
 }
 
 /// A query's two passes over each chunk: the counting pass's job and the storing pass's, which
@@ -351,6 +351,7 @@ impl AllHitsPath {
             sensor: sensor.as_ref(),
             cap: None,
             t_is_distance: true,
+            packed_on_device: None,
         };
         let passes = Passes {
             scene,
@@ -981,7 +982,7 @@ fn rays_that_fit(firsts: &[u64], capacity: u64) -> usize {
 impl AllHitsPath {
     /// Lists for `rays` rays and `record_bytes` of records: idle ones where they fit, new ones
     /// (allocated outside the lock) otherwise.
-    fn take_lists(&self, rays: usize, record_bytes: usize) -> Result<ListBuffers> {
+    pub(super) fn take_lists(&self, rays: usize, record_bytes: usize) -> Result<ListBuffers> {
         let fits = |l: &ListBuffers| l.rays >= rays && l.record_bytes >= record_bytes;
         if let Some(lists) = self.lists.take(1, fits, |_| true).pop() {
             return Ok(lists);
@@ -989,13 +990,27 @@ impl AllHitsPath {
         ListBuffers::new(&self.shared.ctx, rays, record_bytes).inspect_err(|_| self.lists.give_back(1, []))
     }
 
-    fn give_back_lists(&self, mut lists: Vec<ListBuffers>) {
+    pub(super) fn give_back_lists(&self, mut lists: Vec<ListBuffers>) {
         let returned = lists.len();
         for l in &mut lists {
             l.drop_columns_over(IDLE_RECORD_BYTES);
         }
         self.lists.give_back(returned, lists.into_iter().filter(|l| l.record_bytes <= IDLE_RECORD_BYTES));
     }
+}
+
+/// The fields of `asked` as hit_columns.comp writes them, where it writes every one, each once
+/// (not positions, normals or custom indices, which need the host).
+pub fn gpu_column_fields(asked: &[AskedColumn]) -> Option<Vec<Field>> {
+    let fields = asked.iter().map(|c| c.filter(|f| GPU_COLUMN_FIELDS.contains(f))).collect::<Option<Vec<_>>>()?;
+    // A field asked twice: the host writes each copy.
+    (!fields.iter().enumerate().any(|(k, f)| fields[..k].contains(f))).then_some(fields)
+}
+
+/// Whether every mesh of the scene has one part (geometry): `ExactHit` names its triangle among
+/// all parts of its mesh, so the GPU tells the exact tier's geometry only there.
+pub fn one_part_meshes(scene: &Scene) -> bool {
+    scene.placements.iter().all(|p| p.triangles.part_offsets.len() <= 2)
 }
 
 /// Rays a block of the host's passes over every ray covers (a task each, on all cores).

@@ -17,6 +17,7 @@ use crate::scene::Scene;
 use crate::trace::hit_fields::{Field, FIELD_COUNT};
 use crate::trace::idle::{Held, Idle, IdleMemory, IdlePool};
 use crate::trace::request::Request;
+use ash::vk;
 
 /// One of the caller's CUDA arrays: `rows` rows of `columns` numbers (f32, or f64 where `wide`),
 /// with byte strides between rows and between a row's numbers (a stride of 0 repeats one row).
@@ -108,6 +109,39 @@ impl CudaLease {
     /// its pending writes before this stream's work.
     pub fn stream_handle(&self) -> usize {
         self.stream.raw as usize
+    }
+
+    /// Makes the shared output at least `bytes` (a larger one replaces it once the stream's
+    /// copies out of it are done).
+    pub fn grow_output(&mut self, shared: &Shared, cuda: &Arc<Cuda>, bytes: u64) -> Result<()> {
+        let stream = &self.stream;
+        shared.with_memory(|| grow(&shared.ctx, cuda, stream, &mut self.output, bytes, "hits shared with CUDA"))
+    }
+
+    /// The shared output (`grow_output` made it).
+    pub fn output(&self) -> &SharedBuffer {
+        self.output.as_ref().expect("grown before use")
+    }
+
+    /// The semaphore's next value, taken.
+    pub fn next_value(&mut self) -> u64 {
+        self.value += 1;
+        self.value
+    }
+
+    /// The Vulkan side of the semaphore that orders the lease's work.
+    pub fn vulkan_semaphore(&self) -> vk::Semaphore {
+        self.semaphore.vulkan.semaphore
+    }
+
+    /// Makes the stream wait until the semaphore reaches `value` (Vulkan's work done).
+    pub fn wait_on_stream(&self, value: u64) -> Result<()> {
+        self.semaphore.wait(&self.stream, value)
+    }
+
+    /// Signals the semaphore at `value` once the stream's work queued so far is done.
+    pub fn signal_on_stream(&self, value: u64) -> Result<()> {
+        self.semaphore.signal(&self.stream, value)
     }
 }
 
@@ -269,55 +303,15 @@ impl CudaRaysPath {
             return Err(invalid_value(why));
         }
         let cuda = self.cuda()?.expect("a lease implies CUDA");
-        let arrays = arrays_of(rays);
-        let input_bytes = layout_bytes(arrays.iter().map(|a| a.packed_bytes()));
         // The exact tier's t and uv are f64.
         let wide = request.precision.is_f64();
         let output_bytes = layout_bytes(fields.iter().map(|f| rays.count * f.bytes_per_ray(wide)));
-        let stream = &lease.stream;
-        self.shared.with_memory(|| {
-            grow(&self.shared.ctx, &cuda, stream, &mut lease.input, input_bytes, "rays shared with CUDA")
-        })?;
-        self.shared.with_memory(|| {
-            grow(&self.shared.ctx, &cuda, stream, &mut lease.output, output_bytes, "hits shared with CUDA")
-        })?;
-        let (input, output) = (lease.input.as_ref().expect("grown"), lease.output.as_ref().expect("grown"));
-        let _current = cuda.enter()?;
-        // The caller's rays into the shared buffer, tightly packed (each array in one place), in
-        // the stream's order, chunk by chunk as Vulkan traces them: chunk k waits for `wait + k`,
-        // so that tracing one chunk overlaps copying the next (over NVLink from another GPU).
+        lease.grow_output(&self.shared, &cuda, output_bytes)?;
         let chunk_rays = self.packed.device_chunk_capacity(rays.count);
-        let chunks = rays.count.div_ceil(chunk_rays).max(1) as u64;
-        let (wait, signal) = (lease.value + 1, lease.value + 1 + chunks);
-        lease.value = signal;
-        let mut placed = Vec::new();
-        let mut at = 0u64;
-        for array in &arrays {
-            placed.push(at);
-            at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
-        }
-        let copied = (|| -> Result<()> {
-            if let Some(event) = places.after {
-                lease.stream.wait_for(event)?;
-            }
-            for k in 0..chunks {
-                let start = k as usize * chunk_rays;
-                let stop = (start + chunk_rays).min(rays.count);
-                for (array, at) in arrays.iter().zip(&placed) {
-                    let Some(rows) = array.rows_of_chunk(start, stop, rays.count) else { continue };
-                    let dst = input.pointer + at + (start.min(array.rows - 1) * array.packed_row_bytes()) as u64;
-                    copy_packed(&lease.stream, (&cuda, dst), (places.home, &rows))?;
-                }
-                lease.semaphore.signal(&lease.stream, wait + k)?;
-            }
-            Ok(())
-        })();
-        if let Err(error) = copied {
-            // Copies already queued read the caller's memory: done before the caller lets it go.
-            let _ = lease.stream.synchronize();
-            return Err(error);
-        }
-        let device_rays = device_rays_in(rays, input.vulkan.address(), &placed);
+        let (device_rays, wait) = self.copy_rays_in(&cuda, lease, rays, places, chunk_rays)?;
+        let signal = lease.next_value();
+        let _current = cuda.enter()?;
+        let output = lease.output.as_ref().expect("grown");
         let mut outputs: DeviceOutputs = [0; FIELD_COUNT];
         let mut offsets = Vec::new();
         let mut at = 0u64;
@@ -371,14 +365,71 @@ impl CudaRaysPath {
     }
 }
 
+impl CudaRaysPath {
+    /// Queues the copy of `rays` (CUDA memory of `places.home`) into the lease's shared input,
+    /// tightly packed (each array in one place), in the lease stream's order (after
+    /// `places.after`), in chunks of `chunk_rays`: chunk k signals the lease's semaphore at
+    /// `wait + k`, so that tracing one chunk overlaps copying the next (over NVLink from another
+    /// GPU). Returns the rays as the GPU reads them there, and `wait`; the lease's value is then
+    /// the last chunk's.
+    pub fn copy_rays_in(
+        &self,
+        cuda: &Arc<Cuda>,
+        lease: &mut CudaLease,
+        rays: &CudaRays,
+        places: &CudaPlaces,
+        chunk_rays: usize,
+    ) -> Result<(DeviceRays, u64)> {
+        let arrays = arrays_of(rays);
+        let input_bytes = layout_bytes(arrays.iter().map(|a| a.packed_bytes()));
+        let stream = &lease.stream;
+        self.shared.with_memory(|| {
+            grow(&self.shared.ctx, cuda, stream, &mut lease.input, input_bytes, "rays shared with CUDA")
+        })?;
+        let input = lease.input.as_ref().expect("grown");
+        let _current = cuda.enter()?;
+        let chunks = rays.count.div_ceil(chunk_rays.max(1)).max(1) as u64;
+        let wait = lease.value + 1;
+        lease.value += chunks;
+        let mut placed = Vec::new();
+        let mut at = 0u64;
+        for array in &arrays {
+            placed.push(at);
+            at = align_up(at + array.packed_bytes() as u64, SHARED_ALIGN);
+        }
+        let copied = (|| -> Result<()> {
+            if let Some(event) = places.after {
+                lease.stream.wait_for(event)?;
+            }
+            for k in 0..chunks {
+                let start = k as usize * chunk_rays;
+                let stop = (start + chunk_rays).min(rays.count);
+                for (array, at) in arrays.iter().zip(&placed) {
+                    let Some(rows) = array.rows_of_chunk(start, stop, rays.count) else { continue };
+                    let dst = input.pointer + at + (start.min(array.rows - 1) * array.packed_row_bytes()) as u64;
+                    copy_packed(&lease.stream, (cuda, dst), (places.home, &rows))?;
+                }
+                lease.semaphore.signal(&lease.stream, wait + k)?;
+            }
+            Ok(())
+        })();
+        if let Err(error) = copied {
+            // Copies already queued read the caller's memory: done before the caller lets it go.
+            let _ = lease.stream.synchronize();
+            return Err(error);
+        }
+        Ok((device_rays_in(rays, input.vulkan.address(), &placed), wait))
+    }
+}
+
 /// Where a GPU-resident query's rays are read and its hits written.
-struct CudaPlaces<'a> {
+pub struct CudaPlaces<'a> {
     /// The CUDA device whose memory holds the rays (and `into`): this device, or a peer.
-    home: &'a Arc<Cuda>,
+    pub home: &'a Arc<Cuda>,
     /// What the lease's stream waits for before it reads the rays (a batch's start).
-    after: Option<&'a Event>,
+    pub after: Option<&'a Event>,
     /// Each field's destination in `home`'s memory; None: new allocations on this device.
-    into: Option<&'a [u64]>,
+    pub into: Option<&'a [u64]>,
 }
 
 /// One batch of CUDA rays split over several devices (a `DeviceGroup`): the caller's rays and
@@ -609,7 +660,7 @@ fn device_rays_in(rays: &CudaRays, base: u64, placed: &[u64]) -> DeviceRays {
 }
 
 /// Why ray `row` is invalid, from its values read back (the numpy path's message).
-fn invalid_ray(home: &Cuda, rays: &CudaRays, row: usize) -> Error {
+pub fn invalid_ray(home: &Cuda, rays: &CudaRays, row: usize) -> Error {
     let read = |array: &CudaArray| -> Result<Vec<f64>> {
         let row = if array.rows == 1 { 0 } else { row };
         // The rays were copied before Vulkan read them, so they are written by now.

@@ -12,7 +12,7 @@ use super::hit_lists::{ListBuffers, INSERTION_LIMIT};
 use crate::error::Result;
 use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::Context;
-use crate::gpu::memory::memory_barrier;
+use crate::gpu::memory::{memory_barrier, Buffer};
 use crate::gpu::records::ColumnParams;
 use crate::gpu::shaders;
 use crate::trace::hit_fields::Field;
@@ -72,6 +72,19 @@ pub struct ChunkRays {
     pub max_hits: usize,
 }
 
+/// Where hit_columns.comp writes a chunk's columns (each address 0 where not asked) and, for
+/// CUDA rays' answers, each ray's offset among the query's hits (`base`: the chunk's first hit).
+pub struct ColumnTargets {
+    pub ray_index: u64,
+    pub t: u64,
+    pub uv: u64,
+    pub prim: u64,
+    pub instance: u64,
+    pub geometry: u64,
+    pub offsets_out: u64,
+    pub base: u64,
+}
+
 /// hit_columns.comp's pipelines (compiled on first use).
 pub struct ListColumns {
     ctx: Arc<Context>,
@@ -107,36 +120,18 @@ impl ListColumns {
         let ctx = &self.ctx;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         let transfer = vk::PipelineStageFlags::TRANSFER;
-        let check = buffers.device.as_ref().unwrap_or(&buffers.host);
-        // SAFETY: `cmd` is recording; the buffer holds the layout's bytes, the check's 4 among
-        // them (4-aligned), and no command in flight uses it (its set's last one was waited for).
-        unsafe { ctx.device.cmd_fill_buffer(cmd, check.raw(), layout.check_at as u64, 4, 0) };
-        let writers = trace_stage | compute;
-        memory_barrier(ctx, cmd, (writers, vk::AccessFlags::SHADER_WRITE), (compute, vk::AccessFlags::SHADER_READ));
-        memory_barrier(ctx, cmd, (transfer, vk::AccessFlags::TRANSFER_WRITE), (compute, vk::AccessFlags::SHADER_WRITE));
-        let ChunkRays { first, len, counted, seen, max_hits } = chunk;
-        let params = ColumnParams {
-            records: lists.records_address(),
-            offsets: lists.offsets_address(),
-            total: lists.end_address(counted, len),
-            first_ray: first as u64,
+        let targets = ColumnTargets {
             ray_index: columns,
             t: layout.address(columns, Field::T),
             uv: layout.address(columns, Field::Uv),
             prim: layout.address(columns, Field::Prim),
             instance: layout.address(columns, Field::Instance),
             geometry: layout.address(columns, Field::Geometry),
-            seen,
-            check: columns + layout.check_at as u64,
-            count: len as u32,
-            max_hits: max_hits.min(i32::MAX as usize) as u32,
-            insertion_limit: INSERTION_LIMIT as u32,
-            unused: 0,
+            offsets_out: 0,
+            base: 0,
         };
-        let groups =
-            (len.div_ceil(self.kernel.local_size as usize) as u32).clamp(1, ctx.limits.max_compute_work_group_count[0]);
-        // (The shader strides over the rays the groups do not cover.)
-        self.kernel.record_dispatch(cmd, pipeline, &params, groups);
+        let check = buffers.device.as_ref().unwrap_or(&buffers.host);
+        self.record_into(cmd, pipeline, lists, &targets, (check, layout.check_at), chunk, trace_stage);
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
         let Some(device) = &buffers.device else {
             memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), host);
@@ -148,5 +143,56 @@ impl ListColumns {
         // made them so), written by the dispatch above.
         unsafe { ctx.device.cmd_copy_buffer(cmd, device.raw(), buffers.host.raw(), &region) };
         memory_barrier(ctx, cmd, (transfer, vk::AccessFlags::TRANSFER_WRITE), host);
+    }
+
+    /// Records the dispatch (of `pipeline`) that writes the columns of the hits of `chunk`'s
+    /// rays into `targets`, once the trace shaders' (and list_offsets.comp's) writes to the records
+    /// are done; the check word (cleared first) at byte `check.1` of `check.0` (a buffer that
+    /// transfers may write). What reads the columns orders itself after the compute stage.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_into(
+        &self,
+        cmd: vk::CommandBuffer,
+        pipeline: vk::Pipeline,
+        lists: &ListBuffers,
+        targets: &ColumnTargets,
+        (check, check_at): (&Buffer, usize),
+        chunk: ChunkRays,
+        trace_stage: vk::PipelineStageFlags,
+    ) {
+        let ctx = &self.ctx;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        let transfer = vk::PipelineStageFlags::TRANSFER;
+        // SAFETY: `cmd` is recording; the buffer holds the check's 4 bytes at `check_at`
+        // (4-aligned), and no command in flight uses it (its set's last one was waited for).
+        unsafe { ctx.device.cmd_fill_buffer(cmd, check.raw(), check_at as u64, 4, 0) };
+        let writers = trace_stage | compute;
+        memory_barrier(ctx, cmd, (writers, vk::AccessFlags::SHADER_WRITE), (compute, vk::AccessFlags::SHADER_READ));
+        memory_barrier(ctx, cmd, (transfer, vk::AccessFlags::TRANSFER_WRITE), (compute, vk::AccessFlags::SHADER_WRITE));
+        let ChunkRays { first, len, counted, seen, max_hits } = chunk;
+        let params = ColumnParams {
+            records: lists.records_address(),
+            offsets: lists.offsets_address(),
+            total: lists.end_address(counted, len),
+            first_ray: first as u64,
+            ray_index: targets.ray_index,
+            t: targets.t,
+            uv: targets.uv,
+            prim: targets.prim,
+            instance: targets.instance,
+            geometry: targets.geometry,
+            seen,
+            check: check.address() + check_at as u64,
+            count: len as u32,
+            max_hits: max_hits.min(i32::MAX as usize) as u32,
+            insertion_limit: INSERTION_LIMIT as u32,
+            unused: 0,
+            offsets_out: targets.offsets_out,
+            base: targets.base,
+        };
+        let groups =
+            (len.div_ceil(self.kernel.local_size as usize) as u32).clamp(1, ctx.limits.max_compute_work_group_count[0]);
+        // (The shader strides over the rays the groups do not cover.)
+        self.kernel.record_dispatch(cmd, pipeline, &params, groups);
     }
 }

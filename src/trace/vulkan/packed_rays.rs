@@ -196,6 +196,8 @@ enum PackMode {
     Finish = 1,
     /// Packs the exact tier's f64 rays.
     PackExact = 2,
+    /// Adds each hit's ray's advance back to its distance (all hits' columns).
+    FinishHits = 3,
 }
 
 /// Why a query cannot take the device-rays path, if it cannot: closest hits, occlusion, counts
@@ -501,6 +503,99 @@ impl PackedJob<'_> {
             }
         }
         params
+    }
+}
+
+/// A query's device rays packed chunk by chunk for another path (all hits of CUDA rays, whose
+/// passes read the packed rays twice): the query's frame, one chunk's scratch, and the pipelines.
+/// The scratch goes back to the idle pool when it is dropped.
+pub struct DevicePacking<'a> {
+    packing: &'a PackPipelines,
+    rays: &'a DeviceRays,
+    scratch: Option<PackScratch>,
+    frame: Buffer,
+    pack: vk::Pipeline,
+    /// The fast tier's: far rays' advances added back to their hits' t.
+    finish_hits: Option<vk::Pipeline>,
+}
+
+impl DevicePacking<'_> {
+    fn scratch(&self) -> &PackScratch {
+        self.scratch.as_ref().expect("kept until dropped")
+    }
+
+    /// Where a chunk's packed rays lie (as `Rays::pack` or, exact, `Rays::pack_f64` lays them).
+    pub fn rays_address(&self) -> u64 {
+        self.scratch().packed.address()
+    }
+
+    /// Records the packing of rays `start..start + len`, made visible to `trace_stage`.
+    pub fn record_pack(&self, cmd: vk::CommandBuffer, start: usize, len: usize, trace_stage: vk::PipelineStageFlags) {
+        let params = pack_params(self.rays, start, len, self.scratch(), self.frame.address());
+        self.packing.record(cmd, self.pack, &params);
+        use vk::AccessFlags as A;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        memory_barrier(&self.packing.ctx, cmd, (compute, A::SHADER_WRITE), (trace_stage, A::SHADER_READ));
+    }
+
+    /// Records, after `writer`'s writes of a chunk's `hits` columns (rays from `start`), the
+    /// addition of each far ray's advance back to its hits' t (f32, at `t`; each hit's ray at
+    /// `ray_index`); nothing in the exact tier, which advances no ray.
+    pub fn record_finish_hits(&self, cmd: vk::CommandBuffer, start: usize, hits: usize, (t, ray_index): (u64, u64)) {
+        let Some(pipeline) = self.finish_hits.filter(|_| hits > 0 && t != 0) else { return };
+        use vk::AccessFlags as A;
+        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
+        memory_barrier(&self.packing.ctx, cmd, (compute, A::SHADER_WRITE), (compute, A::SHADER_READ | A::SHADER_WRITE));
+        let params = PackParams {
+            advances: self.scratch().advances.address(),
+            t,
+            ray_index,
+            count: hits as u32,
+            first_row: start as u32,
+            ..Default::default()
+        };
+        self.packing.record(cmd, pipeline, &params);
+    }
+
+    /// The first invalid ray's row, once every chunk was packed and waited for.
+    pub fn first_invalid(&self) -> Option<usize> {
+        let frame: PackFrame =
+            *bytemuck::from_bytes(&self.frame.mapped().expect("the frame is host-visible")[..size_of::<PackFrame>()]);
+        (frame.first_invalid != u32::MAX).then_some(frame.first_invalid as usize)
+    }
+}
+
+impl Drop for DevicePacking<'_> {
+    fn drop(&mut self) {
+        if let Some(scratch) = self.scratch.take() {
+            self.packing.give_back(scratch);
+        }
+    }
+}
+
+impl PackedRays {
+    /// Packing for `rays` (on the device, fewer than 2^32) traced against `scene` in chunks of at
+    /// most `capacity` (`max_pack_rays` at most), f64 rays where `exact`.
+    pub fn device_packing<'a>(
+        &'a self,
+        scene: &Scene,
+        rays: &'a DeviceRays,
+        exact: bool,
+        capacity: usize,
+    ) -> Result<DevicePacking<'a>> {
+        if rays.count >= u32::MAX as usize {
+            return Err(invalid_value("at most 2^32 - 2 rays a query when the GPU packs them"));
+        }
+        let pack = self.packing.pipeline(if exact { PackMode::PackExact } else { PackMode::Pack })?;
+        let finish_hits = if exact { None } else { Some(self.packing.pipeline(PackMode::FinishHits)?) };
+        let frame = self.pack_frame(scene, rays)?;
+        let scratch = self.shared.with_memory(|| self.packing.take_scratch(capacity, exact))?;
+        Ok(DevicePacking { packing: &self.packing, rays, scratch: Some(scratch), frame, pack, finish_hits })
+    }
+
+    /// Most rays one chunk of `device_packing` may hold.
+    pub fn max_pack_rays(&self) -> usize {
+        self.packing.max_rays()
     }
 }
 

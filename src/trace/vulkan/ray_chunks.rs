@@ -55,6 +55,9 @@ pub(super) struct GpuJob<'a> {
     /// `t` is a distance along the ray, to which a far ray's advance is added back; not the
     /// light a transmittance query keeps.
     pub t_is_distance: bool,
+    /// Where the GPU packed the chunk's rays itself (all hits of CUDA rays: `DevicePacking`),
+    /// read there rather than from the slot; `rays` then holds only their mask.
+    pub packed_on_device: Option<u64>,
 }
 
 /// Where a chunk's all hits go (QUERY_ALL), in `scratch` and `out_t`.
@@ -127,6 +130,7 @@ impl RayChunks {
             sensor,
             cap,
             t_is_distance: request.query != Query::Transmit,
+            packed_on_device: None,
         };
         let result = self.trace_chunks(&job, sink, &mut slots, capacity, interrupt, profile);
         shared.slots.give_back(slots);
@@ -306,7 +310,8 @@ pub(super) fn trace_stage(ctx: &Context) -> vk::PipelineStageFlags {
 
 /// The push constants of the chunk of `len` rays from `start`.
 fn chunk_params(job: &GpuJob, slot: &Slot, start: usize, len: usize) -> Params {
-    let mut params = Params { rays: slot.rays_address(), count: len as u32, ..Default::default() };
+    let rays = job.packed_on_device.unwrap_or_else(|| slot.rays_address());
+    let mut params = Params { rays, count: len as u32, ..Default::default() };
     match job.rays.mask {
         Masks::All(m) => params.ray_mask = m as u32,
         Masks::Each(_) => params.masks = slot.rays_address() + slot.masks_offset() as u64,

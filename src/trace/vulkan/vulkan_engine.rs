@@ -4,12 +4,12 @@
 
 use std::sync::Arc;
 
-use super::all_hits::{AllHitsPath, IDLE_LISTS};
+use super::all_hits::{gpu_column_fields, one_part_meshes, AllHitsPath, IDLE_LISTS};
 use super::closest_points::{ClosestPoints, PointPipelines};
 use super::containment::Containment;
+use super::cuda_all_hits::CudaAllHitsPath;
 use super::cuda_rays::{CudaRaysPath, CudaState};
 use super::gpu_rays::GpuRays;
-use super::list_columns::GPU_COLUMN_FIELDS;
 use super::packed_rays::{PackPipelines, PackedRays};
 use super::probes::Probes;
 use super::ray_chunks::RayChunks;
@@ -56,6 +56,8 @@ pub struct VulkanEngine {
     containment: Containment,
     /// The CUDA rays path (GPU-resident rays and hits).
     pub cuda: CudaRaysPath,
+    /// All hits of CUDA rays, left in CUDA memory.
+    pub cuda_all_hits: CudaAllHitsPath,
 }
 
 impl VulkanEngine {
@@ -78,6 +80,7 @@ impl VulkanEngine {
             signed: SignedDistancePath::new(&shared, &points, &probes),
             containment: Containment::new(&shared, &rays, &all_hits, &points),
             cuda: CudaRaysPath::new(&shared, &packed, &cuda),
+            cuda_all_hits: CudaAllHitsPath::new(CudaRaysPath::new(&shared, &packed, &cuda), &all_hits),
             shared,
             rays,
             all_hits,
@@ -197,20 +200,9 @@ impl Engine for VulkanEngine {
     }
 
     fn all_hit_columns(&self, batch: RayBatch, max_hits: usize, asked: &[AskedColumn]) -> Result<Option<HitColumns>> {
-        // Fields the GPU writes (not positions, normals or custom indices, which need the host).
-        let Some(fields) =
-            asked.iter().map(|c| c.filter(|f| GPU_COLUMN_FIELDS.contains(f))).collect::<Option<Vec<_>>>()
-        else {
-            return Ok(None);
-        };
-        if fields.iter().enumerate().any(|(k, f)| fields[..k].contains(f)) {
-            // A field asked twice: the host writes each copy.
-            return Ok(None);
-        }
+        let Some(fields) = gpu_column_fields(asked) else { return Ok(None) };
         let path = &self.all_hits;
         Ok(match batch.request.precision {
-            // ExactHit names its triangle among all parts of the mesh: the GPU tells its geometry
-            // only where each mesh has one.
             Precision::Exact if one_part_meshes(batch.scene) => {
                 Some(path.gpu_all_hit_columns::<ExactHit>(batch, max_hits, &fields)?)
             }
@@ -237,9 +229,4 @@ impl Engine for VulkanEngine {
     fn signed_distance(&self, batch: PointBatch, query: SignedDistance, out: &mut [f64]) -> Result<bool> {
         self.signed.run(batch, query, out)
     }
-}
-
-/// Whether every mesh of the scene has one part (geometry).
-fn one_part_meshes(scene: &Scene) -> bool {
-    scene.placements.iter().all(|p| p.triangles.part_offsets.len() <= 2)
 }
