@@ -133,19 +133,24 @@ def test_all_hits_of_cuda_rays_stay_on_the_gpu(bunny, precision, never_through_h
     assert profile["gpu_columns"] >= 1 and profile["rays"] == len(o), profile
 
 
-def test_all_hits_of_cuda_rays_in_chunks(bunny, never_through_host):
-    """Many chunks of CUDA rays (each its own columns, joined on the GPU at the end), and an
-    invalid ray named by its row as the numpy path names it."""
+def test_all_hits_of_cuda_rays_in_chunks(bunny, never_through_host, monkeypatch):
+    """Many chunks of CUDA rays (each its own columns, joined on the GPU at the end), chunks cut
+    short where their hits exceed the records' room (2,000 hits: the rest of the chunk traced
+    again as the next), and an invalid ray named by its row as the numpy path names it."""
     v, scene = bunny
     o, d = (a.astype(np.float32) for a in oracle.random_rays(v, 30_000, seed=42))
     before = DEVICE.chunk_rays
     DEVICE.chunk_rays = 4096
     try:
-        for precision in ("fast", "exact"):
-            found = scene.intersect_all(cuda(o), cuda(d), outputs=["t", "prim_id"], precision=precision)
-            assert DEVICE.last_trace_profile["chunks"] >= 8
-            want = scene.intersect_all(o, d, outputs=["t", "prim_id"], precision=precision)
-            assert_same_all_hits(found, want, ["t", "prim_id"], precision)
+        for room in (None, 2000):
+            if room is not None:
+                monkeypatch.setenv("VKRAY_HIT_RECORD_BYTES", str(32 * room))
+            for precision in ("fast", "exact"):
+                found = scene.intersect_all(cuda(o), cuda(d), outputs=["t", "prim_id"], precision=precision)
+                chunks = DEVICE.last_trace_profile["chunks"]
+                want = scene.intersect_all(o, d, outputs=["t", "prim_id"], precision=precision)
+                assert_same_all_hits(found, want, ["t", "prim_id"], f"{precision} room {room}")
+                assert chunks >= (len(want.ray_index) // room if room else 8), chunks
     finally:
         DEVICE.chunk_rays = before
     broken = d.copy()
@@ -193,7 +198,7 @@ def test_all_hits_the_gpu_cannot_settle_go_through_the_host(monkeypatch):
     assert_same(on_host(found.geometry_id), want.geometry_id)
     assert set(want.geometry_id.tolist()) == {0, 1}
     assert len(through) == 3
-    empty = scene.intersect_all(cuda(o[:0]), cuda(d[:0]))
+    empty = scene.intersect_all(cuda(o[:0]), cuda(d[:0]), outputs=["t"])
     assert on_host(empty.offsets).tolist() == [0] and len(through) == 4
 
 

@@ -727,8 +727,9 @@ class Scene(SceneLike):
         return _to_cuda(core, run(self, on_host))
 
     def _through_host(self, query: Query, run: Callable[[Scene, Any], Any]) -> Any:
-        """A query of CUDA arrays that has no GPU-resident path (every tier but the fast one, all
-        hits, transmittance, the point queries, the host-made ``position``): its CUDA arrays are
+        """A query of CUDA arrays that has no GPU-resident path (the refined and reference tiers,
+        all hits of fields the GPU does not write or lists it cannot settle, the point queries,
+        the host-made ``position``): its CUDA arrays are
         copied to the host in stream order, it runs as for numpy, and its answer is copied to new
         `vkray.CudaArray`s on the same GPU (one copy each way over the bus: docs/benchmarks.md)."""
         if isinstance(query, RayQuery) and query.out is not None:

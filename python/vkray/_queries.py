@@ -116,8 +116,9 @@ class SceneLike(abc.ABC):
     Every query takes CUDA arrays (torch, cupy, jax: DLPack on the device's GPU) for its rays or
     points, in every tier, and answers with `vkray.CudaArray`s on that GPU (in `Hits`, `AllHits`
     and `Closest` each field is one), read in the caller's stream order. `intersect`, `occluded`,
-    `count` and `transmittance` in the fast and exact tiers, of one mask, never leave the GPU
-    (`RayQuery.stays_on_gpu`); the other queries and tiers copy
+    `count`, `transmittance` and `intersect_all` (of the fields the GPU writes) in the fast and
+    exact tiers, of one mask, never leave the GPU (`RayQuery.stays_on_gpu`; all hits a ray of
+    which the GPU cannot settle, more than 32, go through the host); the other queries and tiers copy
     the arrays to the host and the answers back (one copy each way over the bus, 1-2 ms for 1M
     float32 rays on an H200: docs/benchmarks.md)."""
 
@@ -312,6 +313,10 @@ class SceneLike(abc.ABC):
         by a tangent ray); spheres are opaque and not culled. Scenes with spheres answer every tier
         on the host (f64; the fast and refined tiers' values as theirs). Triangles below
         ``opacity_threshold`` are not hits. Other arguments (rays or a sensor) as in `intersect`.
+
+        CUDA rays' hits stay on the GPU in the fast and exact tiers where ``outputs`` are among
+        t, uv, prim_id, instance_id and geometry_id (the default's custom_index and normal are
+        the host's): the GPU writes every array (`counts` is made at first use).
         """
         fields = check_outputs(outputs)
         limit = None if max_hits is None else _arrays.integer("max_hits", max_hits, 1, _arrays.U64_MAX)

@@ -638,6 +638,9 @@ impl Drop for SharedSemaphore {
     }
 }
 
+/// CUDA's handle of the legacy default stream (on which `CudaAllocation`s are freed).
+pub const LEGACY_STREAM: usize = 1;
+
 /// Device memory CUDA allocated for the caller (the hits of a GPU-resident query): stream-ordered,
 /// freed on the legacy default stream when dropped (so that work the caller queued on blocking
 /// streams before dropping it finishes first).
@@ -691,7 +694,7 @@ impl Drop for CudaAllocation {
         if let Ok(_current) = self.cuda.enter() {
             // SAFETY: allocated by cuMemAllocAsync, freed once, after the legacy default stream's
             // queued work.
-            unsafe { sys::cuMemFreeAsync(self.pointer, 1 as sys::CUstream) };
+            unsafe { sys::cuMemFreeAsync(self.pointer, LEGACY_STREAM as sys::CUstream) };
         }
     }
 }

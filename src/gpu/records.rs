@@ -711,7 +711,8 @@ mod tests {
                     count,
                     first_row,
                     formats,
-                    unused
+                    unused,
+                    ray_index
                 ),
             ),
             (
@@ -790,7 +791,9 @@ mod tests {
                     count,
                     max_hits,
                     insertion_limit,
-                    unused
+                    unused,
+                    offsets_out,
+                    base
                 ),
             ),
             (

@@ -10,7 +10,7 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyCapsule, PyTuple};
 
-use crate::gpu::cuda::{CudaAllocation, Event};
+use crate::gpu::cuda::{CudaAllocation, Event, LEGACY_STREAM};
 use crate::trace::vulkan::cuda_rays::{CudaArray, CudaBound};
 use crate::trace::Field;
 
@@ -364,9 +364,6 @@ impl Drop for HitMemory {
         let _ = self.ready.order_before(LEGACY_STREAM);
     }
 }
-
-/// CUDA's handle of the legacy default stream.
-const LEGACY_STREAM: usize = 1;
 
 /// What a capsule's DLManagedTensor owns: its shape and strides, and the memory.
 #[repr(C)]

@@ -975,7 +975,7 @@ fn place_settled(
 
 /// How many of a chunk's first rays have lists that end within `capacity` records, from each
 /// ray's first record among the chunk's (`firsts`; the last ray's list ends past `capacity`).
-fn rays_that_fit(firsts: &[u64], capacity: u64) -> usize {
+pub(super) fn rays_that_fit(firsts: &[u64], capacity: u64) -> usize {
     firsts[1..].partition_point(|&end| end <= capacity)
 }
 

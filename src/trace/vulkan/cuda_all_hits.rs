@@ -15,12 +15,13 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::all_hits::{one_part_meshes, record_budget, AllHitsPath, HitRecord};
+use super::all_hits::{one_part_meshes, rays_that_fit, record_budget, AllHitsPath, HitRecord};
 use super::cuda_rays::{invalid_ray, CudaLease, CudaPlaces, CudaRays, CudaRaysPath};
 use super::hit_lists::{ListBuffers, Placed};
 use super::list_columns::{ChunkRays, ColumnTargets, GPU_COLUMN_FIELDS};
 use super::packed_rays::{DevicePacking, DeviceRays};
 use super::ray_chunks::{trace_stage, ChunkLists, GpuJob};
+use super::shared::Shared;
 use super::staging::Slot;
 use super::timestamps::{start_stamps, Stamp};
 use crate::error::{invalid_value, Error, Result};
@@ -29,7 +30,7 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::rays::{Masks, PerRay, Rays};
 use crate::gpu::context::{Commands, Timeline};
-use crate::gpu::cuda::{Cuda, CudaAllocation, Event};
+use crate::gpu::cuda::{Cuda, CudaAllocation, Event, LEGACY_STREAM};
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{Scene, VulkanScene};
@@ -144,25 +145,45 @@ impl CudaAllHitsPath {
         fields: &[Field],
         interrupt: &dyn Interrupt,
     ) -> Result<CudaAllHitsOutcome> {
+        let shared = &*self.all_hits.shared;
+        let _current = placed.cuda.enter()?;
+        let offsets = shared.with_memory(|| CudaAllocation::new(&lease.stream, 8 * (placed.rays.count + 1)))?;
+        let mut out = CudaColumns {
+            shared,
+            cuda: placed.cuda,
+            lease,
+            fields,
+            wide: request.precision.is_f64(),
+            offsets: Some(offsets),
+            chunks: Vec::new(),
+            free_at: placed.ready,
+            hits: 0,
+        };
+        let outcome = self.trace_into(scene, &mut out, placed, (request, max_hits), interrupt);
+        if !matches!(outcome, Ok(CudaAllHitsOutcome::Answered(_))) {
+            // The copies queued into the query's allocations finish before they are freed (on
+            // the legacy default stream, which does not wait for vkray's).
+            let _ = out.lease.stream.synchronize();
+        }
+        outcome
+    }
+
+    /// Both passes over every chunk of the placed rays, written into `out`.
+    fn trace_into(
+        &self,
+        scene: &Scene,
+        out: &mut CudaColumns,
+        placed: PlacedRays,
+        (request, max_hits): (Request, usize),
+        interrupt: &dyn Interrupt,
+    ) -> Result<CudaAllHitsOutcome> {
         let started = Instant::now();
         let PlacedRays { cuda, rays, device, ready } = placed;
         let path = &*self.all_hits;
         let shared = &*path.shared;
         let exact = request.precision == Precision::Exact;
         let capacity = shared.chunk_capacity(rays.count).min(path.rays.packed.max_pack_rays());
-        let _current = cuda.enter()?;
-        let offsets = shared.with_memory(|| CudaAllocation::new(&lease.stream, 8 * (rays.count + 1)))?;
         let packing = path.rays.packed.device_packing(scene, device, exact, capacity)?;
-        let mut out = CudaColumns {
-            cuda,
-            lease,
-            fields,
-            wide: request.precision.is_f64(),
-            offsets,
-            chunks: Vec::new(),
-            free_at: ready,
-            hits: 0,
-        };
         let passes = DevicePasses {
             scene,
             request,
@@ -176,9 +197,9 @@ impl CudaAllHitsPath {
         };
         let mut profile = TraceProfile { rays: rays.count, ..Default::default() };
         let traced = if exact {
-            trace_on_device::<ExactHit>(path, &passes, &mut out, &mut profile)
+            trace_on_device::<ExactHit>(path, &passes, out, &mut profile)
         } else {
-            trace_on_device::<FastHit>(path, &passes, &mut out, &mut profile)
+            trace_on_device::<FastHit>(path, &passes, out, &mut profile)
         };
         profile.total = started.elapsed().as_secs_f64();
         shared.keep_profile(profile);
@@ -330,19 +351,26 @@ impl DeviceChunks<'_> {
             passes.interrupt.check()?;
             let len = pacer.next_len(n - start);
             pacer.started();
-            let Placed { total, storing } = self.count(commands, out, (start, len), profile)?;
+            let Placed { mut total, storing } = self.count(commands, out, (start, len), profile)?;
+            let mut stored = len;
             if total > self.room as u64 {
-                return Ok(Some("a chunk's hits exceed its records' room"));
+                // Only the rays whose lists fit in the records (as the numpy path cuts a chunk).
+                let firsts = self.read_offsets(commands, len, profile)?;
+                stored = rays_that_fit(firsts, self.room as u64);
+                if stored == 0 {
+                    return Ok(Some("a ray's hits exceed a chunk's records"));
+                }
+                total = firsts[stored];
             }
-            self.store(commands, out, (start, len), (total as usize, storing), profile)?;
-            pacer.finished(len);
+            self.store(commands, out, (start, stored, len), (total as usize, storing), profile)?;
+            pacer.finished(stored);
             profile.chunks += 1;
             let check: &[u32] = bytemuck::cast_slice(&self.check.mapped().expect("host-visible")[..4]);
             if check[0] != 0 {
                 return Ok(Some("a list the shaders did not settle"));
             }
             profile.gpu_columns += 1;
-            start += len;
+            start += stored;
             passes.interrupt.progress(start, n);
         }
         Ok(None)
@@ -396,28 +424,40 @@ impl DeviceChunks<'_> {
         Ok(lists.read_placed())
     }
 
-    /// Stores the hits of rays `start..start + len` (`total`; the storing pass where `storing`)
-    /// and writes them into `out` as columns, with each ray's offset among the query's hits and
-    /// far rays' advances added back; CUDA's copies out are queued behind the submission.
+    /// The first `len` rays' lists' first records among the chunk's, back on the host.
+    fn read_offsets(&self, commands: &mut Commands, len: usize, profile: &mut TraceProfile) -> Result<&[u64]> {
+        commands.begin()?;
+        self.path.offsets.record_offsets(commands.buffer, self.lists, len);
+        commands.submit()?;
+        let waiting = Instant::now();
+        commands.wait()?;
+        profile.wait += waiting.elapsed().as_secs_f64();
+        Ok(self.lists.read_offsets(len))
+    }
+
+    /// Stores the hits of the first `len` of the `counted` rays from `start` (`total`; the
+    /// storing pass where `storing`) and writes them into `out` as columns, with each ray's
+    /// offset among the query's hits and far rays' advances added back; CUDA's copies out are
+    /// queued behind the submission.
     fn store(
         &self,
         commands: &mut Commands,
         out: &mut CudaColumns,
-        (start, len): (usize, usize),
+        (start, len, counted): (usize, usize, usize),
         (total, storing): (usize, bool),
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let storing_started = Instant::now();
         let ctx = &self.path.shared.ctx;
         let (slot, lists) = (self.slot, self.lists);
-        let targets = out.room(self.path, len, total)?;
+        let targets = out.room(len, total)?;
         commands.begin()?;
         let cmd = commands.buffer;
         if storing {
             self.path.rays.chunks.record_trace(cmd, self.jobs.1, slot, start, len, ChunkLists::Lists(lists));
         }
         let seen = slot.hits_address() + slot.field_offset(Field::Prim) as u64;
-        let rays = ChunkRays { first: start, len, counted: len, seen, max_hits: self.passes.max_hits };
+        let rays = ChunkRays { first: start, len, counted, seen, max_hits: self.passes.max_hits };
         self.path.columns.record_into(cmd, self.pipeline, lists, &targets, (self.check, 0), rays, trace_stage(ctx));
         self.passes.packing.record_finish_hits(cmd, start, total, (targets.t, targets.ray_index));
         let compute = (vk::PipelineStageFlags::COMPUTE_SHADER, vk::AccessFlags::SHADER_WRITE);
@@ -469,12 +509,13 @@ struct ChunkColumns {
 /// Where a GPU-resident all-hits query's columns go: chunk by chunk through the lease's shared
 /// output, copied by its stream into CUDA allocations (the offsets into one of the query's).
 struct CudaColumns<'a> {
+    shared: &'a Shared,
     cuda: &'a Arc<Cuda>,
     lease: &'a mut CudaLease,
     fields: &'a [Field],
     wide: bool,
-    /// i64 per ray and one more.
-    offsets: CudaAllocation,
+    /// i64 per ray and one more (taken by `finish`).
+    offsets: Option<CudaAllocation>,
     /// Each chunk's hits.
     chunks: Vec<ChunkColumns>,
     /// The semaphore's value once the shared output is free (the last chunk's copies out of it
@@ -486,9 +527,9 @@ struct CudaColumns<'a> {
 
 impl CudaColumns<'_> {
     /// The addresses hit_columns.comp writes a chunk of `len` rays and `hits` hits to.
-    fn room(&mut self, path: &AllHitsPath, len: usize, hits: usize) -> Result<ColumnTargets> {
+    fn room(&mut self, len: usize, hits: usize) -> Result<ColumnTargets> {
         let layout = OutputLayout::new(self.fields, self.wide, len, hits);
-        self.lease.grow_output(&path.shared, self.cuda, layout.bytes)?;
+        self.lease.grow_output(self.shared, self.cuda, layout.bytes)?;
         let base = self.lease.output().vulkan.address();
         let field = |wanted: Field| {
             self.fields.iter().zip(&layout.fields).find(|(f, _)| **f == wanted).map_or(0, |(_, at)| base + at)
@@ -530,8 +571,10 @@ impl CudaColumns<'_> {
             // users queue on the same stream.
             unsafe { stream.copy_2d(dst, bytes, src, bytes, bytes, 1) }
         };
-        copy(self.offsets.pointer + 8 * start as u64, output, 8 * (len + 1))?;
-        let allocate = |bytes: usize| CudaAllocation::new(stream, bytes);
+        let offsets = self.offsets.as_ref().expect("taken by finish only");
+        copy(offsets.pointer + 8 * start as u64, output, 8 * (len + 1))?;
+        let shared = self.shared;
+        let allocate = |bytes: usize| shared.with_memory(|| CudaAllocation::new(stream, bytes));
         let ray_index = allocate(8 * hits)?;
         copy(ray_index.pointer, output + layout.ray_index, 8 * hits)?;
         let mut columns = Vec::new();
@@ -549,40 +592,53 @@ impl CudaColumns<'_> {
         Ok(())
     }
 
-    /// The query's answer: each column joined from its chunks' (in the stream's order).
-    fn finish(self) -> Result<CudaAllHits> {
-        let CudaColumns { lease, fields, wide, offsets, mut chunks, hits, .. } = self;
-        let stream = &lease.stream;
+    /// The query's answer: each column joined from its chunks' (in the stream's order; the
+    /// chunks' own freed after the copies, on the legacy default stream made to wait for them).
+    fn finish(&mut self) -> Result<CudaAllHits> {
+        let mut chunks = std::mem::take(&mut self.chunks);
+        let (shared, stream, hits, wide) = (self.shared, &self.lease.stream, self.hits, self.wide);
         let (ray_index, columns) = if chunks.len() == 1 {
             let only = chunks.pop().expect("one chunk");
             (only.ray_index, only.columns)
         } else {
             // Column k's (None: the hits' rays).
             let join = |bytes_per_hit: usize, column: Option<usize>| {
-                let joined = CudaAllocation::new(stream, hits * bytes_per_hit)?;
+                let joined = shared.with_memory(|| CudaAllocation::new(stream, hits * bytes_per_hit))?;
                 let mut at = joined.pointer;
                 for chunk in &chunks {
                     let piece = column.map_or(&chunk.ray_index, |k| &chunk.columns[k]);
                     if piece.bytes > 0 {
                         // SAFETY: both are device memory of this context, the joined array with
-                        // room for every chunk's piece, live until the copy runs (the pieces go
-                        // after the stream's copies: the caller synchronizes on failure, and a
-                        // CUDA allocation is freed in stream order).
+                        // room for every chunk's piece; the pieces are freed only after the
+                        // stream's copies (below, or the caller's synchronize on failure).
                         unsafe { stream.copy_2d(at, piece.bytes, piece.pointer, piece.bytes, piece.bytes, 1)? };
                     }
                     at += piece.bytes as u64;
                 }
                 Ok::<_, Error>(joined)
             };
-            let ray_index = join(8, None)?;
-            let columns = fields
-                .iter()
-                .enumerate()
-                .map(|(k, field)| join(field.bytes_per_ray(wide), Some(k)))
-                .collect::<Result<Vec<_>>>()?;
-            (ray_index, columns)
+            let joined = join(8, None).and_then(|ray_index| {
+                let columns = (0..self.fields.len())
+                    .map(|k| join(self.fields[k].bytes_per_ray(wide), Some(k)))
+                    .collect::<Result<Vec<_>>>()?;
+                Ok((ray_index, columns))
+            });
+            match joined {
+                Ok(joined) => joined,
+                Err(error) => {
+                    // The pieces go with this frame: the copies reading them finish first.
+                    let _ = stream.synchronize();
+                    return Err(error);
+                }
+            }
         };
         let ready = Arc::new(stream.record()?);
-        Ok(CudaAllHits { offsets, ray_index, fields: fields.iter().copied().zip(columns).collect(), hits, ready, wide })
+        if !chunks.is_empty() {
+            // The pieces are freed on the legacy default stream: after the copies out of them.
+            ready.order_before(LEGACY_STREAM)?;
+        }
+        let offsets = self.offsets.take().expect("finished once");
+        let fields = self.fields.iter().copied().zip(columns).collect();
+        Ok(CudaAllHits { offsets, ray_index, fields, hits, ready, wide })
     }
 }

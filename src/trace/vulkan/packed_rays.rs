@@ -546,15 +546,19 @@ impl DevicePacking<'_> {
         use vk::AccessFlags as A;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         memory_barrier(&self.packing.ctx, cmd, (compute, A::SHADER_WRITE), (compute, A::SHADER_READ | A::SHADER_WRITE));
-        let params = PackParams {
-            advances: self.scratch().advances.address(),
-            t,
-            ray_index,
-            count: hits as u32,
-            first_row: start as u32,
-            ..Default::default()
-        };
-        self.packing.record(cmd, pipeline, &params);
+        // A dispatch covers at most `max_rays` invocations: more hits go in several.
+        let most = self.packing.max_rays().max(1);
+        for first in (0..hits).step_by(most) {
+            let params = PackParams {
+                advances: self.scratch().advances.address(),
+                t: t + 4 * first as u64,
+                ray_index: ray_index + 8 * first as u64,
+                count: (hits - first).min(most) as u32,
+                first_row: start as u32,
+                ..Default::default()
+            };
+            self.packing.record(cmd, pipeline, &params);
+        }
     }
 
     /// The first invalid ray's row, once every chunk was packed and waited for.
