@@ -3,10 +3,15 @@
 // min(count, max_hits) records, from the sum of those of the rays before it in its chunk. The
 // host reads only the total (to size the records) and, with the hits, the offsets.
 //   LIST_SUMS: invocation j sums the records of the rays of run j.
-//   LIST_SCAN: one workgroup turns the runs' sums into each run's first record (each thread
-//     scans a stretch of runs, the stretches' sums are scanned in shared memory), and writes the
-//     total after the last run.
-//   LIST_WRITE: invocation j writes the lists and offsets of run j's rays from its first record.
+//   LIST_SCAN_BLOCKS: workgroup b turns the sums of its block of runs (BLOCK_STRETCH a thread)
+//     into each run's first record within the block, and writes the block's records after the
+//     runs'. (One workgroup scanning every run, a stretch of 256 a thread for a million rays, took
+//     most of this kernel's 0.19 ms on an H200.)
+//   LIST_SCAN: one workgroup turns the blocks' records into each block's first record (each
+//     thread scans a stretch of blocks, the stretches' sums are scanned in shared memory), and
+//     writes the total after the last run.
+//   LIST_WRITE: invocation j writes the lists and offsets of run j's rays from its first record
+//     (its block's first and its own within the block).
 //     Where the counting pass kept each ray's nearest hits, a ray it kept whole (all its hits, or
 //     its nearest max_hits) has them copied into place and its list marked HIT_LIST_DONE; any
 //     other ray sets the flag after the total: the storing pass must trace it.
@@ -56,6 +61,23 @@ uint runs() {
   return (list_params.count + list_params.run - 1u) / list_params.run;
 }
 
+// Runs each thread of LIST_SCAN_BLOCKS sums (hit_lists.rs BLOCK_STRETCH).
+const uint BLOCK_STRETCH = 4u;
+
+uint block_runs() {
+  return gl_WorkGroupSize.x * BLOCK_STRETCH;
+}
+
+uint blocks() {
+  return (runs() + block_runs() - 1u) / block_runs();
+}
+
+// Where block b's records (then its first record) lie among the sums: after the runs', the
+// chunk's total and the storing flag.
+uint block_at(uint b) {
+  return runs() + 2u + b;
+}
+
 void sum_run(uint j) {
   uint first = j * list_params.run;
   uint last = min(first + list_params.run, list_params.count);
@@ -64,16 +86,11 @@ void sum_run(uint j) {
   Sums(list_params.sums).v[j] = sum;
 }
 
-void scan_runs() {
-  Sums sums = Sums(list_params.sums);
+// The values v[first..last) (a stretch of thread t's, `sum` in all) turned into each one's first
+// record, from the stretches before t's in this workgroup; returns the workgroup's total.
+uint64_t scan_stretches(Sums sums, uint first, uint last, uint64_t sum) {
   uint threads = gl_WorkGroupSize.x;
-  uint total_runs = runs();
-  uint stretch = (total_runs + threads - 1u) / threads;
   uint t = gl_LocalInvocationID.x;
-  uint first = min(t * stretch, total_runs);
-  uint last = min(first + stretch, total_runs);
-  uint64_t sum = 0ul;
-  for (uint j = first; j < last; ++j) sum += sums.v[j];
   partial[t] = sum;
   barrier();
   for (uint step = 1u; step < threads; step <<= 1) {
@@ -88,9 +105,31 @@ void scan_runs() {
     sums.v[j] = at;
     at += records;
   }
-  if (t == threads - 1u) {
-    sums.v[total_runs] = partial[t];
-    sums.v[total_runs + 1u] = 0ul;
+  return partial[threads - 1u];
+}
+
+void scan_block(uint b) {
+  Sums sums = Sums(list_params.sums);
+  uint first = min(b * block_runs() + gl_LocalInvocationID.x * BLOCK_STRETCH, runs());
+  uint last = min(first + BLOCK_STRETCH, runs());
+  uint64_t sum = 0ul;
+  for (uint j = first; j < last; ++j) sum += sums.v[j];
+  uint64_t total = scan_stretches(sums, first, last, sum);
+  if (gl_LocalInvocationID.x == 0u) sums.v[block_at(b)] = total;
+}
+
+void scan_blocks() {
+  Sums sums = Sums(list_params.sums);
+  uint threads = gl_WorkGroupSize.x;
+  uint stretch = (blocks() + threads - 1u) / threads;
+  uint first = min(gl_LocalInvocationID.x * stretch, blocks());
+  uint last = min(first + stretch, blocks());
+  uint64_t sum = 0ul;
+  for (uint b = first; b < last; ++b) sum += sums.v[block_at(b)];
+  uint64_t total = scan_stretches(sums, block_at(first), block_at(last), sum);
+  if (gl_LocalInvocationID.x == 0u) {
+    sums.v[runs()] = total;
+    sums.v[runs() + 1u] = 0ul;
   }
 }
 
@@ -107,7 +146,8 @@ void copy_nearest(uint i, uint kept, uint64_t at) {
 void write_run(uint j) {
   uint first = j * list_params.run;
   uint last = min(first + list_params.run, list_params.count);
-  uint64_t at = Sums(list_params.sums).v[j];
+  Sums sums = Sums(list_params.sums);
+  uint64_t at = sums.v[block_at(j / block_runs())] + sums.v[j];
   Lists lists = Lists(list_params.lists);
   Offsets offsets = Offsets(list_params.offsets);
   bool storing = false;
@@ -134,8 +174,12 @@ void write_run(uint j) {
 }
 
 void main() {
+  if (list_params.pass == LIST_SCAN_BLOCKS) {
+    scan_block(gl_WorkGroupID.x);
+    return;
+  }
   if (list_params.pass == LIST_SCAN) {
-    scan_runs();
+    scan_blocks();
     return;
   }
   uint j = gl_GlobalInvocationID.x;

@@ -67,12 +67,14 @@ const uint POINT_ORDER_SCATTER = 2u;
 const uint POINT_ORDER_SCAN_BLOCKS = 3u;
 #elif defined(VKRAY_LIST_OFFSETS)
 // The push constants of list_offsets.comp (records.rs ListParams): one chunk of an all-hits query,
-// from the counting pass's counts to the storing pass's lists and their offsets, in three passes
+// from the counting pass's counts to the storing pass's lists and their offsets, in four passes
 // (LIST_*) over runs of `run` rays.
 layout(push_constant, std430) uniform ListParams {
   uint64_t counts;          // int per ray: the hits the counting pass met
-  uint64_t sums;            // uint64 per run: its lists' records, then (scanned) its first record;
-                            // then the chunk's records, then whether any ray needs the storing pass
+  uint64_t sums;            // uint64 per run: its lists' records, then (scanned) its first record
+                            // within its block; then the chunk's records, then whether any ray
+                            // needs the storing pass; then per block of runs its records, then
+                            // (scanned) its first record
   uint64_t lists;           // out: HitList per ray
   uint64_t offsets;         // out: uint64 per ray, its first record among the chunk's
   uint64_t nearest;         // the counting pass's records: `nearest_hits` per ray, or 0: none kept
@@ -89,6 +91,7 @@ layout(push_constant, std430) uniform ListParams {
 const uint LIST_SUMS = 0u;
 const uint LIST_SCAN = 1u;
 const uint LIST_WRITE = 2u;
+const uint LIST_SCAN_BLOCKS = 3u;
 #elif defined(VKRAY_HIT_COLUMNS)
 // The push constants of hit_columns.comp (records.rs ColumnParams): one stored chunk of an
 // all-hits query, its records written out as the answer's columns. Each column's address is 0

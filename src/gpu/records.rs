@@ -268,6 +268,7 @@ pub struct ListParams {
 pub const LIST_SUMS: u32 = 0;
 pub const LIST_SCAN: u32 = 1;
 pub const LIST_WRITE: u32 = 2;
+pub const LIST_SCAN_BLOCKS: u32 = 3;
 
 /// The push constants of hit_columns.comp (`ColumnParams` in shaders/records.glsl): one stored
 /// chunk of an all-hits query, its records written out as the answer's columns (each column's

@@ -16,13 +16,24 @@ use crate::error::Result;
 use crate::gpu::compute::ComputeKernel;
 use crate::gpu::context::Context;
 use crate::gpu::memory::{memory_barrier, Buffer, MemoryLocation};
-use crate::gpu::records::{HitList, ListParams, LIST_SCAN, LIST_SUMS, LIST_WRITE};
+use crate::gpu::records::{HitList, ListParams, LIST_SCAN, LIST_SCAN_BLOCKS, LIST_SUMS, LIST_WRITE};
 use crate::gpu::shaders;
 use crate::trace::idle::Held;
 
-/// Rays a run of list_offsets.comp covers: an invocation each in its first and last passes (one
-/// workgroup scans the runs, a stretch a thread: a million rays make 16k runs).
+/// Rays a run of list_offsets.comp covers: an invocation each in its first and last passes (a
+/// million rays make 16k runs; 16 or 32 were no faster on an H200).
 const LIST_RUN: usize = 64;
+
+/// Runs each thread of list_offsets.comp's LIST_SCAN_BLOCKS sums (its `BLOCK_STRETCH`): a block
+/// of runs a workgroup.
+const BLOCK_STRETCH: usize = 4;
+
+/// Sums list_offsets.comp keeps for a chunk of `rays` rays in workgroups of `local_size`: each
+/// run's, the chunk's total and the storing flag, and each block's.
+fn sums_len(rays: usize, local_size: usize) -> usize {
+    let runs = rays.div_ceil(LIST_RUN);
+    runs + 2 + runs.div_ceil(local_size * BLOCK_STRETCH)
+}
 
 /// Lists longer than this are filled in the order traversal meets their hits and sorted by the
 /// host (`HIT_LIST_APPEND`): insertion costs the square of a list's length.
@@ -94,7 +105,8 @@ impl ListBuffers {
         Ok(ListBuffers {
             lists: gpu(rays * size_of::<HitList>(), U::empty(), "hit lists")?,
             nearest: gpu(record_bytes, U::empty(), "nearest hit records")?,
-            sums: gpu(8 * (rays.div_ceil(LIST_RUN) + 2), U::TRANSFER_SRC, "hit list sums")?,
+            // (Blocks of one run each: room for any workgroup size.)
+            sums: gpu(8 * sums_len(rays, 1), U::TRANSFER_SRC, "hit list sums")?,
             offsets: gpu(offsets_bytes, U::TRANSFER_SRC, "hit list offsets")?,
             offsets_host: Buffer::new(
                 ctx,
@@ -253,7 +265,7 @@ impl ListOffsets {
         Ok(ListOffsets { ctx: ctx.clone(), kernel })
     }
 
-    /// Records the three passes that turn `counts` (i32 per ray, written by the counting pass in
+    /// Records the four passes that turn `counts` (i32 per ray, written by the counting pass in
     /// an earlier command of `cmd`, whose writes a barrier made visible to compute shaders) into
     /// the lists and offsets of `len` rays keeping at most `max_hits` hits each, copying into
     /// place (within `room` records) the hits of rays the counting pass kept whole
@@ -296,8 +308,11 @@ impl ListOffsets {
             self.kernel.record_dispatch(cmd, pipeline, &params, groups);
         };
         let groups = (runs as u32).div_ceil(self.kernel.local_size);
+        let blocks = (runs as u32).div_ceil(self.kernel.local_size * BLOCK_STRETCH as u32);
         let between = |src, dst| memory_barrier(ctx, cmd, (compute, vk::AccessFlags::SHADER_WRITE), (src, dst));
         pass(LIST_SUMS, groups);
+        between(compute, read_write);
+        pass(LIST_SCAN_BLOCKS, blocks);
         between(compute, read_write);
         pass(LIST_SCAN, 1);
         between(compute, read_write);
