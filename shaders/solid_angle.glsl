@@ -7,21 +7,28 @@
 const double FOUR_PI = 12.566370614359172lf;
 
 // Van Oosterom and Strackee's pair for triangle (a, b, c) seen from the origin (the corners
-// relative to the point): tan(Ω / 2) = numerator / denominator.
-dvec2 solid_angle_pair(dvec3 a, dvec3 b, dvec3 c) {
-  double la = sqrt(dot3(a, a));
-  double lb = sqrt(dot3(b, b));
-  double lc = sqrt(dot3(c, c));
+// relative to the point), from the corners' lengths (|a|, |b|, |c|): tan(Ω / 2) = numerator /
+// denominator. (A fan's triangles share their apex: its length is taken once.)
+dvec2 solid_angle_pair(dvec3 a, dvec3 b, dvec3 c, dvec3 lengths) {
   double numerator = dot3(a, cross(b, c));
-  double denominator = la * lb * lc + dot3(a, b) * lc + dot3(b, c) * la + dot3(c, a) * lb;
+  double denominator = lengths.x * lengths.y * lengths.z + dot3(a, b) * lengths.z + dot3(b, c) * lengths.x +
+                       dot3(c, a) * lengths.y;
   return dvec2(numerator, denominator);
 }
 
-// Whether the point lies on the triangle, or within 1e-10 of its size of its inside (|Ω| near
-// 2π), whose solid angle jumps by 4π there: on which side f64 puts the point is then uncertain.
-bool near_inside(dvec3 a, dvec3 b, dvec3 c, dvec2 pair) {
-  double size = sqrt(dot3(a, a)) * sqrt(dot3(b, b)) * sqrt(dot3(c, c));
+dvec2 solid_angle_pair(dvec3 a, dvec3 b, dvec3 c) {
+  return solid_angle_pair(a, b, c, dvec3(sqrt(dot3(a, a)), sqrt(dot3(b, b)), sqrt(dot3(c, c))));
+}
+
+// Whether the point lies on the triangle, or within 1e-10 of its size (the product of its
+// corners' lengths) of its inside (|Ω| near 2π), whose solid angle jumps by 4π there: on which
+// side f64 puts the point is then uncertain.
+bool near_inside(dvec2 pair, double size) {
   return pair.y <= 0.0 && abs(pair.x) <= 1e-10 * size;
+}
+
+bool near_inside(dvec3 a, dvec3 b, dvec3 c, dvec2 pair) {
+  return near_inside(pair, sqrt(dot3(a, a)) * sqrt(dot3(b, b)) * sqrt(dot3(c, c)));
 }
 
 // Twice the signed solid angle from a solid_angle_pair: 2 atan2(numerator, denominator), the
