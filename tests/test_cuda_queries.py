@@ -119,6 +119,7 @@ def test_all_hits_of_cuda_rays_stay_on_the_gpu(bunny, precision, never_through_h
         "camera": (np.broadcast_to(eye, directions.shape), directions, {}),
         "tmax": (o, d, {"tmax": np.random.default_rng(41).uniform(0.0, 3.0, len(o))}),
         "max_hits": (o, d, {"max_hits": 2}),
+        "cull": (o, d, {"cull": "back"}),
         "far": (far, o - far, {}),
     }
     for name, (origins, dirs, options) in cases.items():
@@ -131,6 +132,34 @@ def test_all_hits_of_cuda_rays_stay_on_the_gpu(bunny, precision, never_through_h
     assert_same_all_hits(one, scene.intersect_all(o, d, outputs=["geometry_id"], precision=precision), ["geometry_id"])
     profile = DEVICE.last_trace_profile
     assert profile["gpu_columns"] >= 1 and profile["rays"] == len(o), profile
+
+
+def test_all_hits_of_cuda_rays_through_translucent_and_placed_instances(never_through_host):
+    """A scene of instances (one mirrored, one translucent): the GPU-resident all hits keep the
+    opaque hits only (and the translucent ones where the threshold lets them count), each with
+    its instance, as numpy's do."""
+    if DEVICE.cuda_device is None:
+        pytest.skip("this vkray device shares no memory with CUDA")
+    v = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    lifted, mirrored = np.eye(4), np.diag([-1.0, 1.0, 1.0, 1.0])
+    lifted[2, 3], mirrored[2, 3] = 0.5, 1.0
+    scene = DEVICE.scene([
+        DEVICE.mesh(v, f),
+        vkray.Instance(DEVICE.mesh(v, f, opacity=0.25), lifted),
+        vkray.Instance(DEVICE.mesh(v, f), mirrored),
+    ])
+    rng = np.random.default_rng(44)
+    o = np.column_stack([rng.uniform(-1.2, 1.2, (2000, 2)), np.full(2000, -1.0)])
+    d = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    fields = ["t", "uv", "prim_id", "instance_id", "geometry_id"]
+    for precision in ("fast", "exact"):
+        for threshold in (0.5, 0.2):
+            found = scene.intersect_all(cuda(o), cuda(d), outputs=fields, precision=precision,
+                                        opacity_threshold=threshold)
+            want = scene.intersect_all(o, d, outputs=fields, precision=precision, opacity_threshold=threshold)
+            assert_same_all_hits(found, want, fields, f"{precision} {threshold}")
+            assert set(want.instance_id.tolist()) == ({0, 2} if threshold == 0.5 else {0, 1, 2})
 
 
 def test_all_hits_of_cuda_rays_in_chunks(bunny, never_through_host, monkeypatch):
