@@ -566,6 +566,27 @@ def test_open3d_cuda_tensors_stay_on_their_gpu():
     np.testing.assert_allclose(distance.cpu().numpy(), theirs.compute_distance(points).numpy(), rtol=1e-5, atol=1e-6)
 
 
+def test_torch_cuda_rays_counted_on_their_gpu(monkeypatch):
+    """count_intersections of torch CUDA rays runs vkray's GPU-resident exact count: neither the
+    drop-in nor vkray copies the rays to the host, and the counts are Open3D's (numpy out)."""
+    torch = pytest.importorskip("torch")
+    device = vkray.Device()
+    if device.cuda_device is None or not torch.cuda.is_available():
+        pytest.skip("the vkray device is no CUDA GPU torch sees")
+    theirs, ours = both(device, closed_meshes())
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("CUDA rays went through the host")
+
+    monkeypatch.setattr(vo3d, "_host", refuse)
+    monkeypatch.setattr(vkray._device.Scene, "_through_host", refuse)
+    rays = scene_rays(3000, seed=19)
+    counts = ours.count_intersections(torch.from_numpy(rays).to(f"cuda:{device.cuda_device}"))
+    assert isinstance(counts, np.ndarray) and counts.dtype == np.int32
+    np.testing.assert_array_equal(counts, theirs.count_intersections(rays).numpy())
+    assert counts.max() >= 2
+
+
 def test_torch_cuda_rays_give_numpy():
     torch = pytest.importorskip("torch")
     theirs, ours, gpu = _cuda_scene()

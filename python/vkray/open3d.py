@@ -23,10 +23,11 @@ out, on the input's device; other inputs give numpy arrays, also for CUDA arrays
 libraries (``results="open3d"`` gives Open3D tensors for every input, as Open3D's class does:
 that is what `enable` installs). The drop-in copies nothing in host memory: tensors are read and
 answered through shared memory, and ids are int32 viewed as Open3D's uint32 (vkray's own call
-then packs the rays, as when called directly). CUDA rays stay on the GPU in `cast_rays` and
-`test_occlusions` (the fast tier; their hits come back as Open3D tensors on the same GPU); the
-other queries copy CUDA inputs through the host for now (`_host`, the one place to change when
-vkray's other queries take CUDA arrays). Open3D's own class runs on the CPU only.
+then packs the rays, as when called directly). CUDA rays stay on the GPU in `cast_rays`,
+`test_occlusions` (the fast tier) and `count_intersections` (the exact tier; their answers come
+back as Open3D tensors on the same GPU); the other queries copy CUDA inputs through the host here
+(`_host`): `list_intersections` asks vkray for the geometry ids (custom indices), which its
+GPU-resident all hits do not write. Open3D's own class runs on the CPU only.
 
 Precision (``precision=None``, the default): `cast_rays` and `test_occlusions` run vkray's
 ``"fast"`` tier (float32 hardware traversal, as Embree's float32 answers); `count_intersections`
@@ -105,10 +106,10 @@ _INSTALL = (
 )
 
 #: The queries whose vkray call takes CUDA arrays without leaving the GPU (Scene.intersect and
-#: Scene.occluded, in the fast tier). The others copy CUDA inputs through the host here (`_host`),
-#: as vkray's own queries would (results convert from vkray's CUDA arrays for any query:
-#: `_Result`).
-_CUDA_QUERIES = frozenset({"cast_rays", "test_occlusions"})
+#: Scene.occluded in the fast tier, Scene.count in the fast and exact tiers). The others copy
+#: CUDA inputs through the host here (`_host`), as vkray's own queries would (results convert
+#: from vkray's CUDA arrays for any query: `_Result`).
+_CUDA_QUERIES = frozenset({"cast_rays", "test_occlusions", "count_intersections"})
 
 _DLPACK_CUDA = 2
 
@@ -494,7 +495,8 @@ class RaycastingScene:
     def count_intersections(self, rays: Any, nthreads: int = 0) -> Any:
         """int32 (...): how many times each ray crosses the scene's surfaces (each crossing once)."""
         _threads(nthreads)
-        given = self._input("rays", rays, 6, "count_intersections")
+        # vkray's tiers other than "fast" and "exact" read rays from the host.
+        given = self._input("rays", rays, 6, "count_intersections", cuda=self._tier("exact") in ("fast", "exact"))
         scene, _ = self._scene()
         o, d = given.split()
         counts = self._run("exact", lambda tier: scene.count(o, d, precision=tier))
