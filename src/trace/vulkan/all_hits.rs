@@ -506,7 +506,6 @@ impl AllHitsPath {
         profile: &mut TraceProfile,
     ) -> Result<()> {
         let submitting = Instant::now();
-        let ctx = &self.shared.ctx;
         let chunks = &self.rays.chunks;
         let ChunkSet { slot, lists, room, commands } = set;
         let lists = lists.as_ref().expect("the set's lists");
@@ -515,13 +514,32 @@ impl AllHitsPath {
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         chunks.record_upload(cmd, &passes.counting, slot, len);
         stamp(Stamp::Uploaded);
+        let counting = Counting { job: &passes.counting, slot, lists, max_hits: passes.max_hits, room: *room };
+        self.record_counting(cmd, &counting, (start, len), &stamp)?;
+        commands.submit()?;
+        profile.submit += submitting.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Records the counting pass of a chunk's rays (`start`, `len`), already on the device, and
+    /// the lists placed from its counts (list_offsets.comp), with the chunk's total back to the
+    /// host; the stamps after `Uploaded`.
+    pub(super) fn record_counting(
+        &self,
+        cmd: vk::CommandBuffer,
+        counting: &Counting,
+        (start, len): (usize, usize),
+        stamp: &dyn Fn(Stamp),
+    ) -> Result<()> {
+        let ctx = &self.shared.ctx;
+        let Counting { job, slot, lists, max_hits, room } = *counting;
         // Each ray's nearest few hits kept as it is counted: most rays need no storing pass.
         let nearest_hits = lists.nearest_hits(len);
         let kept = match nearest_hits {
             0 => ChunkLists::Counted,
             hits => ChunkLists::Nearest { records: lists.nearest_address(), hits },
         };
-        chunks.record_trace(cmd, &passes.counting, slot, start, len, kept);
+        self.rays.chunks.record_trace(cmd, job, slot, start, len, kept);
         stamp(Stamp::Traced);
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         memory_barrier(
@@ -531,11 +549,9 @@ impl AllHitsPath {
             (compute, vk::AccessFlags::SHADER_READ),
         );
         let counts = slot.hits_address() + slot.field_offset(Field::Prim) as u64;
-        self.offsets.record(cmd, counts, lists, len, passes.max_hits, nearest_hits, *room)?;
+        self.offsets.record(cmd, counts, lists, len, max_hits, nearest_hits, room)?;
         // (Every stamp written: their results are waited for.)
         stamp(Stamp::ReadBack);
-        commands.submit()?;
-        profile.submit += submitting.elapsed().as_secs_f64();
         Ok(())
     }
 
@@ -861,6 +877,17 @@ struct ChunkSet<'s> {
     lists: Option<ListBuffers>,
     room: usize,
     commands: Commands<'s>,
+}
+
+/// What a chunk's counting pass records with: the counting job, the slot its counts go to, the
+/// lists placed from them, the hits a ray keeps and the records the lists hold.
+#[derive(Clone, Copy)]
+pub(super) struct Counting<'a> {
+    pub job: &'a GpuJob<'a>,
+    pub slot: &'a Slot,
+    pub lists: &'a ListBuffers,
+    pub max_hits: usize,
+    pub room: usize,
 }
 
 /// A counted chunk, to store: its first ray, the rays whose lists fit in the records (`len`) of

@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::all_hits::{one_part_meshes, rays_that_fit, record_budget, AllHitsPath, HitRecord};
+use super::all_hits::{one_part_meshes, rays_that_fit, record_budget, AllHitsPath, Counting, HitRecord};
 use super::cuda_rays::{invalid_ray, CudaLease, CudaPlaces, CudaRays, CudaRaysPath};
 use super::hit_lists::{ListBuffers, Placed};
 use super::list_columns::{ChunkRays, ColumnTargets, GPU_COLUMN_FIELDS};
@@ -394,24 +394,8 @@ impl DeviceChunks<'_> {
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
         self.passes.packing.record_pack(cmd, start, len, trace_stage(ctx));
         stamp(Stamp::Uploaded);
-        // Each ray's nearest few hits kept as it is counted: most rays need no storing pass.
-        let nearest_hits = lists.nearest_hits(len);
-        let kept = match nearest_hits {
-            0 => ChunkLists::Counted,
-            hits => ChunkLists::Nearest { records: lists.nearest_address(), hits },
-        };
-        self.path.rays.chunks.record_trace(cmd, self.jobs.0, slot, start, len, kept);
-        stamp(Stamp::Traced);
-        let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
-        memory_barrier(
-            ctx,
-            cmd,
-            (trace_stage(ctx), vk::AccessFlags::SHADER_WRITE),
-            (compute, vk::AccessFlags::SHADER_READ),
-        );
-        let counts = slot.hits_address() + slot.field_offset(Field::Prim) as u64;
-        self.path.offsets.record(cmd, counts, lists, len, self.passes.max_hits, nearest_hits, self.room)?;
-        stamp(Stamp::ReadBack);
+        let counting = Counting { job: self.jobs.0, slot, lists, max_hits: self.passes.max_hits, room: self.room };
+        self.path.record_counting(cmd, &counting, (start, len), &stamp)?;
         let timeline = Timeline { semaphore: out.lease.vulkan_semaphore(), wait: self.passes.rays_ready, signal: None };
         commands.submit_ordered(Some(timeline))?;
         let waiting = Instant::now();
