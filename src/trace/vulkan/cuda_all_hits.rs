@@ -6,8 +6,10 @@
 //! (its hits, and whether every list is settled) and waits for Vulkan only.
 //!
 //! A chunk whose lists the shaders cannot settle (a ray of more than 32 hits, whose list the host
-//! sorts; a triangle traversal reported twice; more hits than a chunk's records hold) is not
-//! answered here: the caller takes the query through the host instead (`CudaAllHitsOutcome`).
+//! sorts; a triangle traversal reported twice; a ray whose hits alone exceed a chunk's records) is
+//! not answered here: the caller takes the query through the host instead
+//! (`CudaAllHitsOutcome`). A chunk whose hits exceed its records stores the rays whose lists fit,
+//! and the next chunk starts after them.
 
 use std::mem::size_of;
 use std::sync::Arc;
