@@ -31,6 +31,7 @@ const SHADERS: &[&str] = &[
     "pack_rays.comp",
     "point_order.comp",
     "sign_points.comp",
+    "cap_winding.comp",
     "list_offsets.comp",
     "hit_columns.comp",
 ];

@@ -8,6 +8,7 @@
 #include "point_triangle.glsl"
 #include "solid_angle.glsl"
 #include "points.glsl"
+#include "cap.glsl"
 layout(buffer_reference, std430, buffer_reference_align = 32) readonly buffer ExactInstances { ExactInstance x[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer Doubles { double v[]; };
 layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer DoubleOut { double v[]; };
@@ -402,27 +403,7 @@ int exact_crossing(Ray64 ray, int instance, int prim) {
   return origin_on_triangle(ray, instance, prim) ? count | ON_SURFACE : count;
 }
 
-// WINDING: the caps of instance 0 (a WindingCapHeader, its holes and their edges), at
-// params.scratch.
-layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCapHead {
-  WindingCapHeader head;
-};
-layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCapHoles {
-  WindingCapHole h[];
-};
-layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer WindingCapEdges {
-  WindingCapEdge e[];
-};
-
-dvec3 dvec3_of(double v[3]) {
-  return dvec3(v[0], v[1], v[2]);
-}
-
-// A hole's winding number whose bound (below) is at most this is not summed at first: the bounds
-// of those passed over are summed instead, and only where they could move the winding number
-// into the band about 1/2 is it summed after all. Most points' winding numbers lie near 0 or 1:
-// with up to 5 holes passed over (0.4), those never are.
-const double CAP_SKIP_BOUND = 0.08;
+// WINDING: the caps of instance 0 (cap.glsl) at params.scratch.
 
 // Whether the sheared ray may cross the fan of hole `h`: the fan lies within `radius` of its apex,
 // and shearing stretches lengths by at most sqrt(1 + sx² + sy²) (both shears are at most 1), so
@@ -437,96 +418,64 @@ bool may_cross_fan(ShearedRay s, WindingCapHoles holes, uint h) {
   return dot(c.xy, c.xy) <= reach * reach;
 }
 
-// A bound on the size of hole `h`'s winding number about `origin`: each point of the fan lies at
-// least (distance to the apex - radius) from it, so each triangle's solid angle is at most its
-// area over that squared (the integrand of the solid angle is at most 1 / r²). 1e300 where the
-// origin lies within the radius (not a constant infinity: records.glsl PointRays).
-double fan_winding_bound(dvec3 origin, WindingCapHoles holes, uint h) {
-  double gap = length(dvec3_of(holes.h[h].apex_scene) - origin) - holes.h[h].radius_scene;
-  return gap > 0.0 ? holes.h[h].area_scene / (FOUR_PI * gap * gap) : 1e300lf;
-}
-
-// What one hole's fan adds to a ray's winding query (add_fan).
-struct FanSum {
-  double twice_angle;  // twice the fan's solid angle about the origin
-  int count;           // its crossings, as exact_crossing counts them
-  bool unsure;         // the origin lies within rounding of the fan
-};
-
-// The fan of hole `h` from its apex over each of its boundary edges a -> b: where `crossings`, its
-// crossings, tested as the mesh's triangles are (the same sheared ray, the boundary's own
-// vertices: a ray through a boundary edge meets either the mesh or the fan); where `angles`, its
-// solid angle.
-FanSum add_fan(ShearedRay s, Ray64 ray, WindingCapHoles holes, uint h, WindingCapEdges edges, bool crossings,
-               bool angles) {
-  FanSum fan = FanSum(0.0, 0, false);
+// The crossings of the fan of hole `h` from its apex over each of its boundary edges a -> b,
+// tested as the mesh's triangles are (the same sheared ray, the boundary's own vertices: a ray
+// through a boundary edge meets either the mesh or the fan), as exact_crossing counts them.
+int fan_crossings(ShearedRay s, Ray64 ray, WindingCapHoles holes, uint h, WindingCapEdges edges) {
+  int count = 0;
   dvec3 p[3];
   p[0] = sheared_corner(s, dvec3_of(holes.h[h].apex));
-  dvec3 apex = dvec3_of(holes.h[h].apex_scene) - ray.origin;
-  // The apex's length, shared by the fan's triangles: two square roots an edge rather than six
-  // (bunny-x16's 892 edges took most of its winding query's 9 ms on an H200).
-  double apex_length = sqrt(dot3(apex, apex));
-  uint first = holes.h[h].first;
-  uint end = first + holes.h[h].count;
-  for (uint k = first; k < end; ++k) {
-    if (crossings) {
-      p[1] = sheared_corner(s, dvec3_of(edges.e[k].a));
-      p[2] = sheared_corner(s, dvec3_of(edges.e[k].b));
-      dvec3 uvw;
-      double det;
-      double t;
-      if (watertight(p, uvw, det, t) && t >= ray.tmin && t <= ray.tmax) fan.count += det > 0.0 ? -CROSSING : CROSSING;
-    }
-    if (angles) {
-      dvec3 a = dvec3_of(edges.e[k].a_scene) - ray.origin;
-      dvec3 b = dvec3_of(edges.e[k].b_scene) - ray.origin;
-      dvec3 lengths = dvec3(apex_length, sqrt(dot3(a, a)), sqrt(dot3(b, b)));
-      dvec2 pair = solid_angle_pair(apex, a, b, lengths);
-      fan.unsure = fan.unsure || near_inside(pair, lengths.x * lengths.y * lengths.z);
-      fan.twice_angle += twice_solid_angle(pair);
-    }
+  uint end = holes.h[h].first + holes.h[h].count;
+  for (uint k = holes.h[h].first; k < end; ++k) {
+    p[1] = sheared_corner(s, dvec3_of(edges.e[k].a));
+    p[2] = sheared_corner(s, dvec3_of(edges.e[k].b));
+    dvec3 uvw;
+    double det;
+    double t;
+    if (watertight(p, uvw, det, t) && t >= ray.tmin && t <= ray.tmax) count += det > 0.0 ? -CROSSING : CROSSING;
   }
-  return fan;
+  return count;
 }
 
+// Where a winding query's ray pass leaves each ray's origin for cap_winding.comp: 3 doubles a ray.
+layout(buffer_reference, std430, buffer_reference_align = 8) writeonly buffer CapOrigins { double v[]; };
+
 // WINDING, after the mesh's crossings are in `count`: takes away the crossings of the caps from
-// it, and writes the caps' winding number about the origin to out_t (NaN where the origin lies
-// within rounding of a cap). The mesh less the caps has no boundary: its winding number is the
-// integer count, and the mesh's is that plus the caps'. A ray passes over a hole's fan where it
-// cannot cross it and the fan's winding number is bounded by CAP_SKIP_BOUND; where the bounds of
-// those passed over could bring the sum within the band about 1/2, they are summed after all, so
-// the host's mark (trace::tiers::mark_by_crossings) is the one the whole sum would give.
-// Keep this shape (the holes' fields read through their buffer reference, one call of add_fan,
-// the caps added through memory in trace_exact_ray_query.comp): on other shapes, glslang
-// 2023.2's pass over precise values took minutes and gigabytes (a budget of bounds shared by the
-// holes, struct copies of a hole, or an inout count did). Time glslc after changing it.
+// it, and leaves the caps' winding number about the origin to cap_winding.comp. The mesh less the
+// caps has no boundary: its winding number is the integer count, and the mesh's is that plus the
+// caps'. Where no hole's fan needs its solid angle (each bounded by CAP_SKIP_BOUND, and their
+// bounds cannot bring the sum within the band about 1/2), the caps' winding number is written as
+// 0 here; else as +infinity, for cap_winding.comp, whose workgroups sum each such ray's fans over
+// many invocations (one invocation a ray took most of bunny-x16's `contains` on an H200), and the
+// origin goes to params.out_uv (rays from points: cap_winding.comp reads the points).
+// Keep this shape (the holes' fields read through their buffer reference, one call of
+// fan_crossings, the caps added through memory in trace_exact_ray_query.comp): on other shapes,
+// glslang 2023.2's pass over precise values took minutes and gigabytes (a budget of bounds shared
+// by the holes, struct copies of a hole, or an inout count did). Time glslc after changing it.
 int add_cap(uint i, Ray64 ray, int count) {
   WindingCapHead cap = WindingCapHead(params.scratch);
   WindingCapHoles holes = WindingCapHoles(cap.head.holes);
   WindingCapEdges edges = WindingCapEdges(cap.head.edges);
   ShearedRay s = shear_ray(ExactInstances(params.instances).x[0], ray);
   double sign = cap.head.mirrored != 0u ? -1.0 : 1.0;
-  double sum = 0.0;
+  bool angles = false;
   double passed_over = 0.0;
-  bool unsure = false;
-  for (int pass = 0; pass < 2; ++pass) {
-    if (pass == 1) {
-      double near_half = abs(double(count >> 1) + sign * sum / FOUR_PI - 0.5);
-      if (passed_over == 0.0 || (count & ON_SURFACE) != 0 || near_half > cap.head.band + passed_over) break;
+  for (uint h = 0u; h < cap.head.hole_count; ++h) {
+    double bound = fan_winding_bound(ray.origin, holes, h);
+    if (bound > CAP_SKIP_BOUND) {
+      angles = true;
+    } else {
+      passed_over += bound;
     }
-    for (uint h = 0u; h < cap.head.hole_count; ++h) {
-      double bound = fan_winding_bound(ray.origin, holes, h);
-      bool crossings = pass == 0 && may_cross_fan(s, holes, h);
-      bool angles = pass == 0 ? bound > CAP_SKIP_BOUND : bound <= CAP_SKIP_BOUND;
-      if (pass == 0 && !angles) passed_over += bound;
-      if (crossings || angles) {
-        FanSum fan = add_fan(s, ray, holes, h, edges, crossings, angles);
-        sum += fan.twice_angle;
-        count -= fan.count;
-        unsure = unsure || fan.unsure;
-      }
-    }
+    if (may_cross_fan(s, holes, h)) count -= fan_crossings(s, ray, holes, h, edges);
   }
-  DoubleOut(params.out_t).v[i] = unsure ? 0.0 / 0.0 : sign * sum / FOUR_PI;
+  angles = angles || cap_second_pass(count, 0.0, passed_over, cap.head.band);
+  DoubleOut(params.out_t).v[i] = angles ? 1.0 / 0.0 : sign * 0.0 / FOUR_PI;
+  if (angles && RAY_SOURCE != RAYS_FROM_POINTS) {
+    CapOrigins origins = CapOrigins(params.out_uv);
+    origins.v[3u * i] = ray.origin.x;
+    origins.v[3u * i + 1u] = ray.origin.y;
+    origins.v[3u * i + 2u] = ray.origin.z;
+  }
   return count;
 }

@@ -133,11 +133,24 @@ layout(push_constant, std430) uniform SignPointsParams {
   uint count;
   uint unused;
 } sign_params;
+#elif defined(VKRAY_CAP_WINDING)
+// The push constants of cap_winding.comp (records.rs CapWindingParams): one chunk of a winding
+// query after its ray pass, whose rays' caps' winding numbers it sums.
+layout(push_constant, std430) uniform CapWindingParams {
+  uint64_t cap;        // the WindingCapHeader (cap.glsl)
+  uint64_t origins;    // each ray's origin, as points.glsl reads points (tagged f32 or f64), less `shift`
+  uint64_t counts;     // int per ray: its crossings (Crossings), as the ray pass left them
+  uint64_t winding;    // double per ray: the caps' winding number; +infinity where this pass sums it
+  double shift[3];
+  uint count;          // rays in the chunk
+  uint unused;
+} cap_params;
 #elif !defined(VKRAY_POINT_QUERY)
 // The push constants of every query (records.rs Params, whose `outputs` array holds out_t ..
 // out_geometry in trace::Field order). QUERY_ALL writes no hit fields: out_t points at the
 // chunk's FastHit or ExactHit records, out_prim at one int per ray (the hits it met), scratch at
-// one HitList per ray (0: none stored, only counted).
+// one HitList per ray (0: none stored, only counted). QUERY_WINDING reads scratch as the cap
+// (cap.glsl) and leaves at out_uv the origins cap_winding.comp reads (3 doubles a ray).
 layout(push_constant, std430) uniform Params {
   uint64_t rays;
   uint64_t instances;  // InstanceGeometries (fast tier) or ExactInstances (exact tier)

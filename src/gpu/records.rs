@@ -202,6 +202,24 @@ pub struct PointOrderParams {
     pub pass: u32,
 }
 
+/// The push constants of cap_winding.comp (`CapWindingParams` in shaders/records.glsl): one
+/// chunk of a winding query after its ray pass, whose caps' winding numbers it sums.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct CapWindingParams {
+    /// The cap's `WindingCapHeader`.
+    pub cap: u64,
+    /// Each ray's origin less `shift`: xyz per ray, f64 (or f32 where tagged, as points are).
+    pub origins: u64,
+    /// i32 per ray: its crossings (`trace::Crossings`), as the ray pass left them.
+    pub counts: u64,
+    /// f64 per ray: the caps' winding number; +infinity where the pass sums it.
+    pub winding: u64,
+    pub shift: [f64; 3],
+    pub count: u32,
+    pub unused: u32,
+}
+
 /// The push constants of sign_points.comp (`SignPointsParams` in shaders/records.glsl): one
 /// chunk of a signed distance query, signed in place on the GPU.
 #[repr(C)]
@@ -538,6 +556,8 @@ layout!(ListParams, size 80, counts @ 0, sums @ 8, lists @ 16, offsets @ 24, nea
 layout!(ColumnParams, size 128, records @ 0, offsets @ 8, total @ 16, first_ray @ 24, ray_index @ 32, t @ 40,
     uv @ 48, prim @ 56, instance @ 64, geometry @ 72, seen @ 80, check @ 88, count @ 96, max_hits @ 100,
     insertion_limit @ 104, unused @ 108, offsets_out @ 112, base @ 120);
+layout!(CapWindingParams, size 64, cap @ 0, origins @ 8, counts @ 16, winding @ 24, shift @ 32, count @ 56,
+    unused @ 60);
 layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
     outside_below @ 40, count @ 48, unused @ 52);
 layout!(PackParams, size 104, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
@@ -810,6 +830,11 @@ mod tests {
                     count,
                     unused
                 ),
+            ),
+            (
+                "CapWindingParams",
+                size_of::<CapWindingParams>(),
+                members!(CapWindingParams: cap, origins, counts, winding, shift, count, unused),
             ),
             ("WindingSpan", size_of::<WindingSpan>(), members!(WindingSpan: first, count)),
             ("WindingEdge", size_of::<WindingEdge>(), members!(WindingEdge: a, b)),

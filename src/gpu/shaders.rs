@@ -21,6 +21,7 @@ pub const WINDING: &[u8] = spirv!("winding.comp");
 pub const PACK_RAYS: &[u8] = spirv!("pack_rays.comp");
 pub const POINT_ORDER: &[u8] = spirv!("point_order.comp");
 pub const SIGN_POINTS: &[u8] = spirv!("sign_points.comp");
+pub const CAP_WINDING: &[u8] = spirv!("cap_winding.comp");
 pub const LIST_OFFSETS: &[u8] = spirv!("list_offsets.comp");
 pub const HIT_COLUMNS: &[u8] = spirv!("hit_columns.comp");
 
@@ -41,6 +42,7 @@ pub const ALL: &[(&str, &[u8])] = &[
     ("pack_rays.comp", PACK_RAYS),
     ("point_order.comp", POINT_ORDER),
     ("sign_points.comp", SIGN_POINTS),
+    ("cap_winding.comp", CAP_WINDING),
     ("list_offsets.comp", LIST_OFFSETS),
     ("hit_columns.comp", HIT_COLUMNS),
 ];

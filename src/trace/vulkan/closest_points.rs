@@ -11,6 +11,7 @@ use ash::vk;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::cap_winding::{CapChunk, CapPass};
 use super::shared::Shared;
 use super::staging::pair_bytes;
 use super::timestamps::{start_stamps, Stamp, Stamps};
@@ -299,8 +300,8 @@ pub(super) struct SignTrace<'a> {
     pub params: Params,
     /// The rays' direction, in the scene's frame.
     pub direction: [f64; 3],
-    /// The cap's winding numbers are written too (`Query::Winding`).
-    pub cap_winding: bool,
+    /// The cap whose winding numbers are written too (`Query::Winding`), and their pass.
+    pub cap: Option<CapPass<'a>>,
     /// sign_points.comp's pipeline, and the band about 1/2 its winding numbers leave unsure.
     pub combine: vk::Pipeline,
     pub band: f64,
@@ -691,10 +692,21 @@ impl ClosestPoints {
         );
         let mut params = Params { rays: record_buffer.address(), count: len as u32, ..sign.params };
         params.outputs[Field::Prim as usize] = results + layout.crossings as u64;
-        if sign.cap_winding {
+        if sign.cap.is_some() {
             params.outputs[Field::T as usize] = results + layout.cap_winding as u64;
         }
         self.shared.record_trace(cmd, sign.variant, &params, len);
+        if let Some(cap) = sign.cap {
+            // The rays' origins are the chunk's points, as the trace read them (RAYS_FROM_POINTS).
+            let chunk = CapChunk {
+                origins: record.points,
+                shift: center,
+                counts: params.outputs[Field::Prim as usize],
+                winding: params.outputs[Field::T as usize],
+                len,
+            };
+            cap.record(ctx, cmd, &chunk, stage);
+        }
         self.record_sign_points(cmd, sign, slot, stage, len);
         vk::PipelineStageFlags::COMPUTE_SHADER
     }
@@ -725,7 +737,7 @@ impl ClosestPoints {
         let params = SignPointsParams {
             distances: results,
             crossings: results + layout.crossings as u64,
-            cap_winding: if sign.cap_winding { results + layout.cap_winding as u64 } else { 0 },
+            cap_winding: if sign.cap.is_some() { results + layout.cap_winding as u64 } else { 0 },
             unsure: results + layout.unsure as u64,
             // As host_tiers::mark_by_crossings computes them.
             inside_from: 0.5 + sign.band,

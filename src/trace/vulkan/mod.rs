@@ -1,6 +1,6 @@
 //! The Vulkan engine (`VulkanEngine`, the `Engine` seam over one Vulkan device). Its files, lowest
 //! first (each imports only files above it in this list): the device's timestamps, pipeline
-//! variants, staging, sensor records, the all-hits lists and their columns; the value every path shares; then
+//! variants, staging, sensor records, the all-hits lists and their columns, the caps' winding pass; the value every path shares; then
 //! each path, owning its state and borrowing the shared value: the host-packed chunk loop
 //! (closest hit and the other ray queries), the probes, GPU-packed rays, the two together, CUDA
 //! rays, all hits, all hits of CUDA rays, closest points, signed distances and `contains`; last the engine that makes
@@ -17,6 +17,8 @@ pub mod sensor_upload;
 pub mod hit_lists;
 
 pub mod list_columns;
+
+pub mod cap_winding;
 
 pub mod shared;
 

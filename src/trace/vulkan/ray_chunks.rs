@@ -6,8 +6,10 @@
 use std::time::Instant;
 
 use ash::vk;
+use glam::DVec3;
 use rayon::prelude::*;
 
+use super::cap_winding::{CapChunk, CapPass};
 use super::hit_lists::ListBuffers;
 use super::shared::Shared;
 use super::staging::{HitReadback, RayStaging, Slot};
@@ -27,7 +29,7 @@ use crate::geometry::interrupt::Interrupt;
 use crate::gpu::context::{Backend, Commands, Context};
 use crate::gpu::memory::{memory_barrier, Buffer};
 use crate::gpu::records::Params;
-use crate::scene::{ExactScene, VulkanScene, WindingCap};
+use crate::scene::{ExactScene, VulkanScene};
 
 /// What every chunk of one query shares.
 pub(super) struct GpuJob<'a> {
@@ -50,8 +52,9 @@ pub(super) struct GpuJob<'a> {
     pub all_hits: bool,
     /// The sensor record the shaders generate the rays from, when they do (nothing uploaded).
     pub sensor: Option<&'a Buffer>,
-    /// The cap a winding query's rays take away (`Query::Winding`).
-    pub cap: Option<&'a WindingCap>,
+    /// The cap a winding query's rays take away (`Query::Winding`), and the pass that sums its
+    /// solid angles after each chunk's trace.
+    pub cap: Option<CapPass<'a>>,
     /// `t` is a distance along the ray, to which a far ray's advance is added back; not the
     /// light a transmittance query keeps.
     pub t_is_distance: bool,
@@ -111,6 +114,7 @@ impl RayChunks {
             _ => None,
         };
         let (exact, cap) = (exact_scene.as_deref(), cap.as_deref());
+        let cap = cap.map(|cap| shared.cap_winding.pass(cap)).transpose()?;
         let compact_variant =
             shared.compact_variant(scene, rays, request, outputs, exact_scene.is_some(), sensor.is_some())?;
         let compact = compact_variant.as_ref().map(|(layout, variant)| (*layout, &**variant));
@@ -289,14 +293,27 @@ impl RayChunks {
             }
         }
         if let Some(cap) = job.cap {
-            // QUERY_WINDING reads `scratch` as the cap.
-            params.scratch = cap.address();
+            // QUERY_WINDING reads `scratch` as the cap, and leaves the origins of the rays whose
+            // caps' solid angles the cap pass sums at `out_uv`: the slot's exact scratch, which it
+            // has no other use for.
+            params.outputs[Field::Uv as usize] = slot.hits_address() + slot.scratch_offset() as u64;
+            params.scratch = cap.cap.address();
         }
         let variant = match job.compact {
             Some((layout, compact)) if slot.layout == layout => compact,
             _ => job.variant,
         };
         self.shared.record_trace(cmd, variant, &params, len);
+        if let Some(cap) = job.cap {
+            let chunk = CapChunk {
+                origins: params.outputs[Field::Uv as usize],
+                shift: DVec3::ZERO,
+                counts: params.outputs[Field::Prim as usize],
+                winding: params.outputs[Field::T as usize],
+                len,
+            };
+            cap.record(&self.shared.ctx, cmd, &chunk, trace_stage(&self.shared.ctx));
+        }
     }
 }
 
@@ -350,7 +367,8 @@ pub(super) fn record_readback(
     len: usize,
     records: Option<(&ListBuffers, usize)>,
 ) {
-    let shader_stage = trace_stage(ctx);
+    // The trace's writes, and a winding query's cap pass's.
+    let shader_stage = trace_stage(ctx) | vk::PipelineStageFlags::COMPUTE_SHADER;
     let Some((_, hits_device)) = &slot.device else {
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
         memory_barrier(ctx, cmd, (shader_stage, vk::AccessFlags::SHADER_WRITE), host);

@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use ash::vk;
 
+use super::cap_winding::CapWinding;
 use super::sensor_upload;
 use super::staging::SlotPool;
 use super::variants::{ray_flags, ray_source, Variant, VariantKey, Variants, RAYS_FROM_BUFFER, RAYS_FROM_SENSOR};
@@ -28,6 +29,8 @@ use crate::trace::request::{Request, DEFAULT_THRESHOLD};
 pub struct Shared {
     pub ctx: Arc<Context>,
     pub variants: Variants,
+    /// cap_winding.comp: the caps' solid angles of winding queries' rays.
+    pub cap_winding: CapWinding,
     pub slots: SlotPool,
     /// Every path's idle pool, in the order the paths were made (summed and freed together).
     pools: Vec<Arc<dyn Idle>>,
@@ -55,6 +58,7 @@ impl Shared {
         Ok(Shared {
             ctx: ctx.clone(),
             variants: Variants::new(ctx)?,
+            cap_winding: CapWinding::new(ctx)?,
             slots: SlotPool::new(ctx),
             pools,
             last_profile: Mutex::new(TraceProfile::default()),

@@ -98,7 +98,7 @@ impl SignedDistancePath {
                 variant: &variant,
                 params,
                 direction: host_tiers::PARITY_DIRECTION.to_array(),
-                cap_winding: cap.is_some(),
+                cap: cap.as_deref().map(|cap| self.shared.cap_winding.pass(cap)).transpose()?,
                 combine: self.points.pipelines().sign.pipeline(&[])?,
                 band: cap.as_ref().map_or(0.0, |cap| cap.band()),
             }),
