@@ -52,6 +52,30 @@ uint ray_index(uint launch) {
   return order == 0ul ? launch : Words(order).v[launch];
 }
 
+layout(buffer_reference, std430, buffer_reference_align = 8) readonly buffer InsideGridRecord { InsideGridHeader g; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer GridMarks { uint v[]; };
+const uint GRID_INSIDE = 1u;
+const uint GRID_UNDECIDED = 2u;
+
+// RAYS_FROM_POINTS with a grid (PointRays.grid): the crossings that give point i the answer of
+// its grid cell (one for inside, none for outside: as the winding query counts them, with a cap
+// winding number of 0), or -1 where the cell is undecided (or there is no grid). The cell is the
+// host's (InsideGrid::mark_rows): the same f64 operations in the same order, so that each point
+// reads the cell the host's `contains` reads; a point beyond the grid is outside.
+int grid_crossings(uint i) {
+  PointRays r = PointRaysRecord(params.rays).r;
+  if (r.grid == 0ul) return -1;
+  InsideGridHeader g = InsideGridRecord(r.grid).g;
+  dvec3 shift = dvec3(packDouble2x32(r.shift[0]), packDouble2x32(r.shift[1]), packDouble2x32(r.shift[2]));
+  dvec3 corner = dvec3(packDouble2x32(g.min[0]), packDouble2x32(g.min[1]), packDouble2x32(g.min[2]));
+  precise dvec3 q = (load_point(r.points, i) - shift - corner) * packDouble2x32(g.inverse_cell);
+  dvec3 dims = dvec3(g.dims[0], g.dims[1], g.dims[2]);
+  if (!(all(greaterThanEqual(q, dvec3(0.0))) && all(lessThan(q, dims)))) return 0;
+  uint cell = (uint(q.z) * g.dims[1] + uint(q.y)) * g.dims[0] + uint(q.x);
+  uint mark = (GridMarks(g.marks).v[cell >> 4u] >> (2u * (cell & 15u))) & 3u;
+  return mark == GRID_UNDECIDED ? -1 : (mark == GRID_INSIDE ? CROSSING : 0);
+}
+
 Ray64 load_ray64(uint i) {
   if (RAY_SOURCE == RAYS_FROM_SENSOR) {
     // The sensor's f32 ray in the world, moved to the scene's frame in f64 (as the host moves the

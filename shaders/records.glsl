@@ -397,7 +397,9 @@ struct Sensor {
 // [tmin, tmax]. `params.rays` points at it. records.rs PointRays. The interval comes from the
 // host: with a constant infinity (1.0 / 0.0) for tmax, the H100's rays met nothing. With an
 // `order` (point_order.comp's, for the search), invocation k casts the ray of point order[k] and
-// writes its outputs to that point's row: neighbours in space trace side by side.
+// writes its outputs to that point's row: neighbours in space trace side by side. With a `grid`
+// (PARITY and WINDING), a point whose cell the grid decides casts no ray (exact.glsl
+// grid_crossings).
 struct PointRays {
   uint64_t points;      // as PointParams' (points.glsl)
   uint64_t order;       // uint per point, or 0: as they come
@@ -405,6 +407,18 @@ struct PointRays {
   uvec2 direction[3];   // f64 bits (trace::tiers::PARITY_DIRECTION)
   uvec2 tmin;           // f64 bits
   uvec2 tmax;
+  uint64_t grid;        // an InsideGridHeader, or 0: every point casts its ray
+};
+
+// The scene's inside grid (scene::InsideGrid) on the device: each cell's answer (GRID_OUTSIDE 0,
+// GRID_INSIDE 1, GRID_UNDECIDED 2), two bits a cell (cell i in bits 2(i % 4) of byte i / 4) at
+// `marks`, the grid's corner and cells per unit in the scene's frame. 56 bytes.
+struct InsideGridHeader {
+  uvec2 min[3];         // f64 bits
+  uvec2 inverse_cell;   // f64 bits
+  uint dims[3];
+  uint unused;
+  uint64_t marks;
 };
 
 const uint SENSOR_PINHOLE = 1u;

@@ -15,6 +15,15 @@ void main() {
   i = ray_index(i);
   // The storing pass of all hits: a ray the counting pass kept whole is done.
   if (QUERY == QUERY_ALL && list_done(i)) return;
+  // A point the scene's inside grid decides casts no ray.
+  if (RAY_SOURCE == RAYS_FROM_POINTS && (QUERY == QUERY_PARITY || QUERY == QUERY_WINDING)) {
+    int decided = grid_crossings(i);
+    if (decided >= 0) {
+      HitCounts(params.out_prim).v[i] = decided;
+      if (QUERY == QUERY_WINDING) DoubleOut(params.out_t).v[i] = 0.0;
+      return;
+    }
+  }
   Ray64 ray = load_ray64(i);
   ExactBest best = exact_miss();
   int seen = 0;

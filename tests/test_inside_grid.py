@@ -109,6 +109,41 @@ def test_grid_with_the_engines_own_test_near_surfaces(device, monkeypatch, name,
     assert 0.05 < exact[:40000].mean() < 0.9
 
 
+def on_cell_faces(points: np.ndarray, grid: dict, seed: int = 11) -> np.ndarray:
+    """`points` with one coordinate each moved onto the nearest face between two of the grid's
+    cells (its corner plus a whole number of cells, in f64): where a device must find the very
+    cell the host finds, or read a neighbour's answer."""
+    rng = np.random.default_rng(seed)
+    corner, cell = np.asarray(grid["corner"]), grid["cell"]
+    moved = points.copy()
+    axis = rng.integers(0, 3, len(points))
+    rows = np.arange(len(points))
+    k = np.round((points[rows, axis] - corner[axis]) / cell)
+    moved[rows, axis] = corner[axis] + k * cell
+    return moved
+
+
+@pytest.mark.parametrize("name, method", [("fandisk", "parity"), ("stanford-bunny", "winding")])
+def test_signed_distances_through_the_grid(device, monkeypatch, name, method):
+    """On a GPU a signed distance's sign rays skip the points whose cells the scene's inside grid
+    decides (exact.glsl grid_crossings: the host's cell arithmetic in f64): every sign equals the
+    reference tier's, for points near and on the surface and on the faces between cells."""
+    monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
+    v, f = mesh_of(name)
+    scene = device.scene([device.mesh(v, f)])
+    points = hard_points(v, f, seed=7)
+    scene.contains(points, method=method)
+    grid = scene._core.inside_grid(method == "winding")
+    assert_grid_decides(grid)
+    points = np.concatenate([points, on_cell_faces(points[:20000], grid)])
+    signed = scene.signed_distance(points, method=method, precision="exact")
+    reference = scene.signed_distance(points, method=method, precision="reference")
+    wrong = np.flatnonzero(np.signbit(signed) != np.signbit(reference))
+    assert wrong.size == 0, f"{name}: {wrong.size} signs differ from the reference tier, first rows {wrong[:8]}"
+    assert 0.05 < np.signbit(signed[:40000]).mean() < 0.9
+    np.testing.assert_allclose(np.abs(signed), np.abs(reference), rtol=1e-12, atol=0)
+
+
 def hole_points(vertices: np.ndarray, faces: np.ndarray, n: int = 40000, seed: int = 5) -> np.ndarray:
     """Points about a mesh's holes, where the caps over them add their winding number: about
     boundary vertices in every direction (the caps' fans span the holes from their mean corners),

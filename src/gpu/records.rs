@@ -384,6 +384,22 @@ pub struct PointRays {
     pub direction: [f64; 3],
     pub tmin: f64,
     pub tmax: f64,
+    /// The scene's `InsideGridHeader` (parity and winding queries: a point whose cell it decides
+    /// casts no ray), or 0.
+    pub grid: u64,
+}
+
+/// The scene's inside grid on the device (`InsideGridHeader` in shaders/records.glsl;
+/// `scene::InsideGrid`): its corner and cells per unit (scene frame), cells per axis, and its
+/// cells' answers, two bits a cell.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct InsideGridHeader {
+    pub min: [f64; 3],
+    pub inverse_cell: f64,
+    pub dims: [u32; 3],
+    pub unused: u32,
+    pub marks: u64,
 }
 
 /// A query's frame for pack_rays.comp (`PackFrame` in shaders/records.glsl; `geometry::rays::Frame`),
@@ -565,7 +581,8 @@ layout!(PackParams, size 104, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24,
     first_row @ 84, formats @ 88, unused @ 92, ray_index @ 96);
 layout!(PackFrame, size 88, shift @ 0, bounds_center @ 24, radius @ 48, far_squared @ 56, tmin @ 64, tmax @ 72,
     first_invalid @ 80, unused @ 84);
-layout!(PointRays, size 80, points @ 0, order @ 8, shift @ 16, direction @ 40, tmin @ 64, tmax @ 72);
+layout!(PointRays, size 88, points @ 0, order @ 8, shift @ 16, direction @ 40, tmin @ 64, tmax @ 72, grid @ 80);
+layout!(InsideGridHeader, size 56, min @ 0, inverse_cell @ 24, dims @ 32, unused @ 44, marks @ 48);
 layout!(BvhNode, size 56, lo @ 0, hi @ 24, first @ 48, count @ 52);
 layout!(BvhTriangle, size 80, a @ 0, b @ 24, c @ 48, prim @ 72, unused @ 76);
 layout!(BvhInstance, size 240, to_local @ 0, to_scene @ 96, weights @ 192, nodes @ 216, triangles @ 220, mask @ 224,
@@ -750,7 +767,16 @@ mod tests {
                     unused
                 ),
             ),
-            ("PointRays", size_of::<PointRays>(), members!(PointRays: points, order, shift, direction, tmin, tmax)),
+            (
+                "PointRays",
+                size_of::<PointRays>(),
+                members!(PointRays: points, order, shift, direction, tmin, tmax, grid),
+            ),
+            (
+                "InsideGridHeader",
+                size_of::<InsideGridHeader>(),
+                members!(InsideGridHeader: min, inverse_cell, dims, unused, marks),
+            ),
             ("BvhNode", size_of::<BvhNode>(), members!(BvhNode: lo, hi, first, count)),
             ("BvhTriangle", size_of::<BvhTriangle>(), members!(BvhTriangle: a, b, c, prim, unused)),
             (

@@ -299,7 +299,8 @@ impl PyScene {
 
     /// The grid `contains` by winding number (or parity) keeps (built by a query of 32768
     /// points or more on an engine of the host's cores), or None: its cells, the share of them
-    /// undecided, its regions (each one exact answer) and its build's seconds.
+    /// undecided, its regions (each one exact answer), its build's seconds, its corner (world),
+    /// cell size and cells per axis.
     fn inside_grid<'py>(&self, py: Python<'py>, winding: bool) -> PyResult<Option<Bound<'py, PyDict>>> {
         let Some(grid) = self.with_scene(py, |scene| scene.inside_grid(winding))? else { return Ok(None) };
         let d = PyDict::new(py);
@@ -308,6 +309,11 @@ impl PyScene {
         d.set_item("near_caps", grid.near_caps)?;
         d.set_item("regions", grid.regions)?;
         d.set_item("build_seconds", grid.build_seconds)?;
+        let (corner, inverse_cell, dims, _) = grid.marks_layout();
+        let center = self.with_scene(py, |scene| scene.center)?;
+        d.set_item("corner", (corner + center).to_array())?;
+        d.set_item("cell", 1.0 / inverse_cell)?;
+        d.set_item("dims", dims)?;
         Ok(Some(d))
     }
 

@@ -6,6 +6,7 @@
 use std::mem::{size_of, size_of_val};
 use std::sync::Arc;
 
+use super::inside_grid::InsideGrid;
 use super::instance::Placement;
 use super::winding_cap::{band_of, cap_geometry, CapGeometry};
 use crate::error::{Error, Result};
@@ -14,7 +15,9 @@ use crate::geometry::precision::{Aabb, Affine};
 use crate::geometry::reference::{gap_weights, TriangleSet};
 use crate::gpu::context::Context;
 use crate::gpu::memory::{Buffer, Uploads, GEOMETRY_INPUT};
-use crate::gpu::records::{BvhInstance, BvhNode, BvhTriangle, WindingCapHeader, WindingEdge, WindingSpan};
+use crate::gpu::records::{
+    BvhInstance, BvhNode, BvhTriangle, InsideGridHeader, WindingCapHeader, WindingEdge, WindingSpan,
+};
 
 /// The device's copy of every hierarchy closest points search.
 pub struct ClosestScene {
@@ -173,6 +176,46 @@ impl WindingCap {
     /// CPU: the bound on the GPU's terms' error, and a margin.
     pub fn band(&self) -> f64 {
         band_of(self.edge_count)
+    }
+}
+
+/// The scene's inside grid on the device (`InsideGridHeader`, then its marks), for the rays that
+/// sign distances: a point whose cell the grid decides casts none (exact.glsl grid_crossings).
+pub struct InsideGridBuffer {
+    buffer: Buffer,
+    /// The grid it holds (kept until the scene's next update, as the grid is).
+    pub grid: Arc<InsideGrid>,
+}
+
+impl InsideGridBuffer {
+    pub(super) fn build(ctx: &Arc<Context>, grid: &Arc<InsideGrid>) -> Result<InsideGridBuffer> {
+        let (min, inverse_cell, dims, marks) = grid.marks_layout();
+        let marks_at = size_of::<InsideGridHeader>();
+        // Whole words: the shaders read the marks as uints.
+        let size = marks_at + marks.len().next_multiple_of(4);
+        let mut uploads = Uploads::default();
+        let buffer = uploads.buffer(ctx, size as u64, GEOMETRY_INPUT, "inside grid", |out, address| {
+            let header = InsideGridHeader {
+                min: min.to_array(),
+                inverse_cell,
+                dims: dims.map(|n| n as u32),
+                unused: 0,
+                marks: address + marks_at as u64,
+            };
+            out[..marks_at].copy_from_slice(bytemuck::bytes_of(&header));
+            out[marks_at..marks_at + marks.len()].copy_from_slice(marks);
+            out[marks_at + marks.len()..].fill(0);
+        })?;
+        ctx.run_commands(|cmd| {
+            uploads.record(ctx, cmd);
+            Ok(())
+        })?;
+        Ok(InsideGridBuffer { buffer, grid: grid.clone() })
+    }
+
+    /// The device address of the header.
+    pub fn address(&self) -> u64 {
+        self.buffer.address()
     }
 }
 

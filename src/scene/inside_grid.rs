@@ -131,6 +131,12 @@ impl InsideGrid {
         unpack(self.cells[(z * self.dims[1] + y) * self.dims[0] + x])
     }
 
+    /// What a device needs to read the grid as `mark_rows` does: its corner and cells per unit
+    /// (the scene's frame), its cells per axis, and its cells' answers (two bits a cell).
+    pub fn marks_layout(&self) -> (DVec3, f64, [usize; 3], &[u8]) {
+        (self.min, self.inverse_cell, self.dims, &self.marks)
+    }
+
     /// The caps the grid was built with, where it counts crossings of the mesh and its caps.
     pub fn cap(&self) -> Option<&CapGeometry> {
         self.cap.as_ref().filter(|_| self.counts)

@@ -3,12 +3,13 @@
 //! closest points and winding numbers build on their first query.
 
 use std::any::Any;
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use ash::vk;
 
-use super::closest::{ClosestScene, WindingCap, WindingScene};
+use super::closest::{ClosestScene, InsideGridBuffer, WindingCap, WindingScene};
 use super::exact::ExactScene;
+use super::inside_grid::InsideGrid;
 use super::instance::{Instance, Placement};
 use super::top_level::{Scene, SceneHierarchy};
 use super::vulkan_instance::{instance_bits, MAX_CUSTOM_INDEX};
@@ -33,6 +34,9 @@ pub struct VulkanScene {
     /// Winding numbers' boundaries on the device, built on their first query.
     winding: OnceLock<Arc<WindingScene>>,
     winding_cap: OnceLock<Option<Arc<WindingCap>>>,
+    /// The scene's inside grids on the device (by parity, by winding number), each the copy of
+    /// the grid the scene keeps (`Scene::inside_grid`), made on a signed distance's first use.
+    inside_grids: Mutex<[Option<Arc<InsideGridBuffer>>; 2]>,
 }
 
 /// Builds a scene of `instances` on the Vulkan device `ctx`.
@@ -76,6 +80,7 @@ impl VulkanScene {
             closest: OnceLock::new(),
             winding: OnceLock::new(),
             winding_cap: OnceLock::new(),
+            inside_grids: Default::default(),
         })
     }
 
@@ -125,6 +130,24 @@ impl VulkanScene {
     /// The cap that closes the holes of the scene's one mesh, for the exact tier's winding query,
     /// built on first use (outside any lock, as `exact`); None where the scene has none
     /// (`WindingCap::build`).
+    /// The device's copy of `grid` (the scene's inside grid by winding number or by parity),
+    /// made on first use (outside the lock) and kept while the scene keeps that grid.
+    pub fn inside_grid_buffer(&self, grid: &Arc<InsideGrid>, winding: bool) -> Result<Arc<InsideGridBuffer>> {
+        let kept = |grids: &[Option<Arc<InsideGridBuffer>>; 2]| {
+            grids[winding as usize].as_ref().filter(|b| Arc::ptr_eq(&b.grid, grid)).cloned()
+        };
+        if let Some(buffer) = kept(&self.inside_grids.lock().unwrap_or_else(|e| e.into_inner())) {
+            return Ok(buffer);
+        }
+        let built = Arc::new(InsideGridBuffer::build(self.tlas.context(), grid)?);
+        let mut grids = self.inside_grids.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(buffer) = kept(&grids) {
+            return Ok(buffer);
+        }
+        grids[winding as usize] = Some(built.clone());
+        Ok(built)
+    }
+
     pub fn winding_cap(&self, scene: &Scene) -> Result<Option<Arc<WindingCap>>> {
         if let Some(cap) = self.winding_cap.get() {
             return Ok(cap.clone());
@@ -158,6 +181,7 @@ impl SceneHierarchy for VulkanScene {
         self.closest = OnceLock::new();
         self.winding = OnceLock::new();
         self.winding_cap = OnceLock::new();
+        self.inside_grids = Default::default();
         Ok(())
     }
 

@@ -4,7 +4,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::hit_fields::{Field, HitSink};
+use super::hit_fields::{position_bytes_per_ray, Field, HitSink};
 use super::host_winding::winding_ray;
 use super::pacer::in_paced_blocks;
 use super::request::Crossings;
@@ -18,16 +18,6 @@ use crate::geometry::precision::{plane_hit, sphere_normal, world_normal, Cull, R
 use crate::geometry::rays::Rays;
 use crate::geometry::reference::{ClosestHit, Filter, ReferenceHit};
 use crate::scene::{cap_geometry, CapGeometry, MeshKind, Scene};
-
-/// Writes one field for every ray, on all cores: `value(i, out)` fills ray i's bytes.
-fn write_field(sink: &mut HitSink, field: Field, wide: bool, value: impl Fn(usize, &mut [u8]) + Sync) {
-    if let Some(out) = sink.field_mut(field) {
-        let width = field.bytes_per_ray(wide);
-        parallel::install(|| {
-            out.par_chunks_exact_mut(width).enumerate().with_min_len(1024).for_each(|(i, dst)| value(i, dst))
-        });
-    }
-}
 
 fn put_f64s(dst: &mut [u8], values: &[f64]) {
     for (d, v) in dst.chunks_exact_mut(8).zip(values) {
@@ -154,10 +144,23 @@ fn put_floats(dst: &mut [u8], values: &[f64], wide: bool) {
     }
 }
 
+/// Rows of `write_hit_fields`' block: every field of a block's rows is written before the next
+/// block's, its hits still in the cache (a pass a field over a million closest points read their
+/// 48 MB of hits seven times: 13 ms of an H200 machine's 16 cores, most of the query).
+const FIELD_BLOCK_ROWS: usize = 2048;
+
+/// An output `write_hit_fields` writes: a hit field, or the hit's position.
+#[derive(Clone, Copy)]
+enum HitColumn {
+    Field(Field),
+    Position,
+}
+
 /// Writes every field the sink asks for of the hit `hit(i)` of entry i (None: a miss; its
 /// `prim` counts among all parts of the mesh): `t`, `uv` and `position` as f64 where `wide`, else
 /// f32; normals from the f64 vertices; (geometry, triangle in it). `point(i)`: where a sphere hit
-/// lies, in the scene's frame (a sphere's normal and position are its ray's at `t`).
+/// lies, in the scene's frame (a sphere's normal and position are its ray's at `t`). On all cores,
+/// a block of rows at a time (`FIELD_BLOCK_ROWS`); the sink's `position` is taken.
 fn write_hit_fields(
     scene: &Scene,
     sink: &mut HitSink,
@@ -165,45 +168,81 @@ fn write_hit_fields(
     hit: impl Fn(usize) -> Option<ReferenceHit> + Sync,
     point: impl Fn(usize) -> Option<DVec3> + Sync,
 ) {
-    let (hit, point) = (&hit, &point);
-    write_field(sink, Field::T, wide, |i, dst| put_floats(dst, &[hit(i).map_or(f64::INFINITY, |h| h.t)], wide));
-    write_field(sink, Field::Uv, wide, |i, dst| put_floats(dst, &hit(i).map_or([f64::NAN; 2], |h| [h.u, h.v]), wide));
-    let ids = |value: fn(&Scene, &ReferenceHit) -> i32| {
-        move |i: usize, dst: &mut [u8]| dst.copy_from_slice(&hit(i).map_or(-1, |h| value(scene, &h)).to_ne_bytes())
-    };
+    let mut columns: Vec<(HitColumn, usize, &mut [u8])> = Vec::new();
+    let position = sink.position.take();
+    for (field, out) in sink.fields_mut() {
+        columns.push((HitColumn::Field(field), field.bytes_per_ray(wide), out));
+    }
+    if let Some(out) = position {
+        columns.push((HitColumn::Position, position_bytes_per_ray(wide), out));
+    }
+    let Some(rows) = columns.first().map(|(_, width, out)| out.len() / width) else { return };
+    // Each block's piece of every column.
+    let mut blocks: Vec<Vec<(HitColumn, usize, &mut [u8])>> =
+        (0..rows.div_ceil(FIELD_BLOCK_ROWS)).map(|_| Vec::with_capacity(columns.len())).collect();
+    for (column, width, out) in columns {
+        for (block, piece) in blocks.iter_mut().zip(out.chunks_mut(FIELD_BLOCK_ROWS * width)) {
+            block.push((column, width, piece));
+        }
+    }
+    parallel::install(|| {
+        blocks.into_par_iter().enumerate().for_each(|(b, pieces)| {
+            for (column, width, piece) in pieces {
+                for (k, dst) in piece.chunks_exact_mut(width).enumerate() {
+                    let i = b * FIELD_BLOCK_ROWS + k;
+                    write_hit_column(scene, column, wide, hit(i), || point(i), dst);
+                }
+            }
+        })
+    });
+}
+
+/// One row's `column` of the hit `hit` (None: a miss) into `dst` (see `write_hit_fields`).
+fn write_hit_column(
+    scene: &Scene,
+    column: HitColumn,
+    wide: bool,
+    hit: Option<ReferenceHit>,
+    point: impl Fn() -> Option<DVec3>,
+    dst: &mut [u8],
+) {
     fn split(s: &Scene, h: &ReferenceHit) -> (usize, usize) {
         s.placements[h.instance as usize].triangles.split(h.prim as usize)
     }
-    write_field(sink, Field::Prim, true, ids(|s, h| split(s, h).1 as i32));
-    write_field(sink, Field::Instance, true, ids(|_, h| h.instance as i32));
-    write_field(sink, Field::Custom, true, ids(|s, h| s.placements[h.instance as usize].custom_index as i32));
-    write_field(sink, Field::Geometry, true, ids(|s, h| split(s, h).0 as i32));
-    write_field(sink, Field::Normal, true, |i, dst| {
-        let n = hit(i).map_or(DVec3::NAN, |h| {
-            let placement = &scene.placements[h.instance as usize];
-            if let Some(&(center, radius)) = placement.triangles.spheres.get(h.prim as usize) {
-                let local = placement.to_local.point(point(i).unwrap_or(DVec3::NAN));
-                return sphere_normal(&placement.to_local, center, radius, local);
-            }
-            let [a, b, c] = placement.triangles.triangle(h.prim as usize);
-            world_normal(&placement.to_local, a, b, c)
-        });
-        put_f32s(dst, &n.as_vec3().to_array())
-    });
-    if let Some(out) = sink.position.as_deref_mut() {
-        parallel::install(|| {
-            out.par_chunks_exact_mut(if wide { 24 } else { 12 }).enumerate().with_min_len(1024).for_each(|(i, dst)| {
-                let point = hit(i).map_or(DVec3::NAN, |h| {
-                    let placement = &scene.placements[h.instance as usize];
-                    if placement.triangles.is_spheres() {
-                        return point(i).unwrap_or(DVec3::NAN) + scene.center;
-                    }
-                    let [a, b, c] = placement.triangles.triangle(h.prim as usize);
-                    placement.to_scene.point(a + h.u * (b - a) + h.v * (c - a)) + scene.center
-                });
-                put_floats(dst, &point.to_array(), wide)
-            })
-        });
+    let id = |value: &dyn Fn(&ReferenceHit) -> i32| hit.as_ref().map_or(-1, value).to_ne_bytes();
+    let field = match column {
+        HitColumn::Position => {
+            let position = hit.map_or(DVec3::NAN, |h| {
+                let placement = &scene.placements[h.instance as usize];
+                if placement.triangles.is_spheres() {
+                    return point().unwrap_or(DVec3::NAN) + scene.center;
+                }
+                let [a, b, c] = placement.triangles.triangle(h.prim as usize);
+                placement.to_scene.point(a + h.u * (b - a) + h.v * (c - a)) + scene.center
+            });
+            return put_floats(dst, &position.to_array(), wide);
+        }
+        HitColumn::Field(field) => field,
+    };
+    match field {
+        Field::T => put_floats(dst, &[hit.map_or(f64::INFINITY, |h| h.t)], wide),
+        Field::Uv => put_floats(dst, &hit.map_or([f64::NAN; 2], |h| [h.u, h.v]), wide),
+        Field::Prim => dst.copy_from_slice(&id(&|h| split(scene, h).1 as i32)),
+        Field::Instance => dst.copy_from_slice(&id(&|h| h.instance as i32)),
+        Field::Custom => dst.copy_from_slice(&id(&|h| scene.placements[h.instance as usize].custom_index as i32)),
+        Field::Geometry => dst.copy_from_slice(&id(&|h| split(scene, h).0 as i32)),
+        Field::Normal => {
+            let n = hit.map_or(DVec3::NAN, |h| {
+                let placement = &scene.placements[h.instance as usize];
+                if let Some(&(center, radius)) = placement.triangles.spheres.get(h.prim as usize) {
+                    let local = placement.to_local.point(point().unwrap_or(DVec3::NAN));
+                    return sphere_normal(&placement.to_local, center, radius, local);
+                }
+                let [a, b, c] = placement.triangles.triangle(h.prim as usize);
+                world_normal(&placement.to_local, a, b, c)
+            });
+            put_f32s(dst, &n.as_vec3().to_array())
+        }
     }
 }
 

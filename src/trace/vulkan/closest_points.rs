@@ -39,13 +39,14 @@ use crate::trace::pacer::ChunkPacer;
 use crate::trace::profile::TraceProfile;
 use crate::trace::request::{PointBatch, Precision};
 
-/// Points per chunk at most (two chunks in flight: the copies of one overlap the search of the
-/// other): 2 × 20 MB of staging at full outputs.
+/// Points per chunk at most on a software device (two chunks in flight: the copies of one
+/// overlap the search of the other), so that Ctrl-C and progress come between chunks of seconds,
+/// not tens of seconds: 2 × 20 MB of staging at full outputs.
 const CHUNK_POINTS: usize = 1 << 18;
-/// Points per chunk at most where only one f64 a point comes back (distances, winding numbers) on
-/// a hardware GPU: 2 × 32 MB of staging. Denser chunks put nearer neighbours side by side in the
-/// grid order (docs/benchmarks.md); a software device keeps CHUNK_POINTS, so that Ctrl-C and
-/// progress come between chunks of seconds, not tens of seconds.
+/// Points per chunk at most on a hardware GPU: denser chunks put nearer neighbours side by side
+/// in the grid order (docs/benchmarks.md): 1M closest points on fandisk took 10.5 ms of an H200's
+/// time in chunks of 2^18 points, 6.2 in one of 2^20. 2 × 32 MB of staging for distances and
+/// winding numbers, 2 × 80 MB at full outputs.
 const LEAN_CHUNK_POINTS: usize = 1 << 20;
 /// Cells per axis of the grid that orders each chunk's points (point_order.comp's GRID): 64³
 /// cells (1 MB of counters), a few points each at full chunks; points crowded near a surface
@@ -302,6 +303,9 @@ pub(super) struct SignTrace<'a> {
     pub direction: [f64; 3],
     /// The cap whose winding numbers are written too (`Query::Winding`), and their pass.
     pub cap: Option<CapPass<'a>>,
+    /// The scene's inside grid on the device (`InsideGridBuffer`'s address), or 0: the points
+    /// whose cells it decides cast no ray.
+    pub grid: u64,
     /// sign_points.comp's pipeline, and the band about 1/2 its winding numbers leave unsure.
     pub combine: vk::Pipeline,
     pub band: f64,
@@ -367,7 +371,7 @@ impl ClosestPoints {
         let mut distances = sink.take(Field::T);
         let mut hits: Vec<PointHit> =
             if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
-        let capacity = self.point_capacity(n, full);
+        let capacity = self.point_capacity(n);
         let mut slots = self.shared.with_memory(|| self.points.take_slots(capacity, full, false))?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
@@ -376,8 +380,10 @@ impl ClosestPoints {
             }
             if full {
                 let from = slot.results_layout().hits;
-                let records: &[PointHit] = bytemuck::cast_slice(&results[from..from + len * size_of_hit()]);
-                hits[start..start + len].copy_from_slice(records);
+                // On every core: one core's copy into fresh pages took most of a million points'
+                // host time.
+                let records = bytemuck::cast_slice_mut(&mut hits[start..start + len]);
+                parallel::copy(records, &results[from..from + len * size_of_hit()]);
             }
         });
         self.points.give_back(slots);
@@ -387,7 +393,11 @@ impl ClosestPoints {
                 sink.set(Field::T, out);
             }
             let t: Vec<f64> = match sink.field(Field::T) {
-                Some(bytes) => bytemuck::cast_slice::<u8, f64>(bytes).to_vec(),
+                Some(bytes) => {
+                    let mut t = try_vec(n, 0.0, "the closest points' distances")?;
+                    parallel::copy(bytemuck::cast_slice_mut(&mut t), bytes);
+                    t
+                }
                 None => Vec::new(),
             };
             host_tiers::write_closest(scene, sink, |i| {
@@ -453,7 +463,7 @@ impl ClosestPoints {
             sign: None,
         };
         let mut winding = try_vec(n, 0.0f64, "winding numbers")?;
-        let capacity = self.point_capacity(n, false);
+        let capacity = self.point_capacity(n);
         let mut slots = self.shared.with_memory(|| self.points.take_slots(capacity, false, false))?;
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
@@ -472,9 +482,9 @@ impl ClosestPoints {
         )
     }
 
-    /// Points per chunk for a query of `n` points (with `full` outputs, or one f64 a point).
-    pub(super) fn point_capacity(&self, n: usize, full: bool) -> usize {
-        let most = if full || self.shared.ctx.info.is_software { CHUNK_POINTS } else { LEAN_CHUNK_POINTS };
+    /// Points per chunk for a query of `n` points.
+    pub(super) fn point_capacity(&self, n: usize) -> usize {
+        let most = if self.shared.ctx.info.is_software { CHUNK_POINTS } else { LEAN_CHUNK_POINTS };
         let most = chunk_points_asked().unwrap_or(most);
         most.min(self.points.kernels[0].max_invocations()).min(n).max(1)
     }
@@ -675,6 +685,7 @@ impl ClosestPoints {
             direction: sign.direction,
             tmin: 0.0,
             tmax: f64::INFINITY,
+            grid: sign.grid,
         };
         // SAFETY: `cmd` is recording outside a render pass; the buffer is TRANSFER_DST, holds one
         // record, and the record is a multiple of 4 bytes and at most 65,536.

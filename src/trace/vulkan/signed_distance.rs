@@ -93,18 +93,25 @@ impl SignedDistancePath {
             ray_mask: 0xFF,
             ..Default::default()
         };
+        // The grid a `contains` of this scene keeps (the tracer asks for one first): the points it
+        // decides cast no sign's ray.
+        let grid = match scene.inside_grid(winding) {
+            Some(grid) => Some(vulkan.inside_grid_buffer(&grid, winding)?),
+            None => None,
+        };
         let job = PointJob {
             sign: Some(SignTrace {
                 variant: &variant,
                 params,
                 direction: host_tiers::PARITY_DIRECTION.to_array(),
                 cap: cap.as_deref().map(|cap| self.shared.cap_winding.pass(cap)).transpose()?,
+                grid: grid.as_ref().map_or(0, |grid| grid.address()),
                 combine: self.points.pipelines().sign.pipeline(&[])?,
                 band: cap.as_ref().map_or(0.0, |cap| cap.band()),
             }),
             ..self.points.closest_job(scene, &structures, points, max_distance, precision, false)?
         };
-        let capacity = self.points.point_capacity(points.rows(), false).min(self.shared.max_dispatch_rays());
+        let capacity = self.points.point_capacity(points.rows()).min(self.shared.max_dispatch_rays());
         let pipelines = self.points.pipelines();
         let mut slots = self.shared.with_memory(|| pipelines.take_slots(capacity, false, true))?;
         let mut unsure: Vec<Unsure> = Vec::new();
