@@ -172,6 +172,11 @@ impl WindingCap {
         self.buffer.address()
     }
 
+    /// Whether the mesh has holes for the cap to close (a closed mesh's cap has none).
+    pub fn has_holes(&self) -> bool {
+        self.edge_count > 0
+    }
+
     /// Winding numbers within this of 1/2 (the mesh's crossings plus the caps') are decided on the
     /// CPU: the bound on the GPU's terms' error, and a margin.
     pub fn band(&self) -> f64 {

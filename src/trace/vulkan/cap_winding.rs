@@ -65,7 +65,8 @@ impl CapPass<'_> {
     /// Records the pass over `chunk`, whose ray pass ran in `after` (its writes made visible
     /// here); its own writes are the compute stage's.
     pub fn record(&self, ctx: &Context, cmd: vk::CommandBuffer, chunk: &CapChunk, after: vk::PipelineStageFlags) {
-        if chunk.len == 0 {
+        // Without holes the ray pass wrote every winding number (0) itself.
+        if chunk.len == 0 || !self.cap.has_holes() {
             return;
         }
         memory_barrier(
