@@ -101,6 +101,26 @@ impl<'a> HitSink<'a> {
         self.fields[field as usize].as_deref()
     }
 
+    /// The outputs of rows `start..start + len` of the `total` this sink holds (each output's
+    /// rows are `total` equal slices of it).
+    pub fn rows(&mut self, start: usize, len: usize, total: usize) -> HitSink<'_> {
+        fn part<'s>(out: &'s mut Option<&mut [u8]>, start: usize, len: usize, total: usize) -> Option<&'s mut [u8]> {
+            out.as_deref_mut().map(|out| {
+                let width = out.len() / total.max(1);
+                &mut out[start * width..(start + len) * width]
+            })
+        }
+        let mut fields: [Option<&mut [u8]>; FIELD_COUNT] = Default::default();
+        for (to, from) in fields.iter_mut().zip(self.fields.iter_mut()) {
+            *to = part(from, start, len, total);
+        }
+        HitSink {
+            fields,
+            position: part(&mut self.position, start, len, total),
+            hit: part(&mut self.hit, start, len, total),
+        }
+    }
+
     /// Every field asked for, and its output, each borrowed for writing at once.
     pub fn fields_mut(&mut self) -> impl Iterator<Item = (Field, &mut [u8])> + use<'_, 'a> {
         FIELDS.iter().zip(self.fields.iter_mut()).filter_map(|(&field, out)| out.as_deref_mut().map(|out| (field, out)))

@@ -369,46 +369,34 @@ impl ClosestPoints {
                 .any(|f| sink.field(*f).is_some());
         let job = self.closest_job(scene, &structures, points, max_distance, precision, full)?;
         let mut distances = sink.take(Field::T);
-        let mut hits: Vec<PointHit> =
-            if full { try_vec(n, PointHit::default(), "the closest points")? } else { Vec::new() };
         let capacity = self.point_capacity(n);
         let mut slots = self.shared.with_memory(|| self.points.take_slots(capacity, full, false))?;
+        // Each chunk's fields are written from its readback as it finishes (while the next one is
+        // searched), straight into the caller's arrays.
         let result = self.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
             let results = slot.results_host.mapped().expect("readback is host-visible");
+            let found = &results[..8 * len];
             if let Some(out) = distances.as_deref_mut() {
-                parallel::copy(&mut out[8 * start..8 * (start + len)], &results[..8 * len]);
+                parallel::copy(&mut out[8 * start..8 * (start + len)], found);
             }
             if full {
                 let from = slot.results_layout().hits;
-                // On every core: one core's copy into fresh pages took most of a million points'
-                // host time.
-                let records = bytemuck::cast_slice_mut(&mut hits[start..start + len]);
-                parallel::copy(records, &results[from..from + len * size_of_hit()]);
+                let records: &[PointHit] = bytemuck::cast_slice(&results[from..from + len * size_of_hit()]);
+                let found: &[f64] = bytemuck::cast_slice(found);
+                host_tiers::write_closest(scene, &mut sink.rows(start, len, n), |k| {
+                    let h = &records[k];
+                    (h.instance >= 0).then(|| {
+                        let record =
+                            ReferenceHit { t: found[k], u: h.u, v: h.v, instance: h.instance as u32, prim: h.prim };
+                        (record, DVec3::from_array(h.position))
+                    })
+                });
             }
         });
         self.points.give_back(slots);
         result?;
-        if full {
-            if let Some(out) = distances {
-                sink.set(Field::T, out);
-            }
-            let t: Vec<f64> = match sink.field(Field::T) {
-                Some(bytes) => {
-                    let mut t = try_vec(n, 0.0, "the closest points' distances")?;
-                    parallel::copy(bytemuck::cast_slice_mut(&mut t), bytes);
-                    t
-                }
-                None => Vec::new(),
-            };
-            host_tiers::write_closest(scene, sink, |i| {
-                let h = &hits[i];
-                (h.instance >= 0).then(|| {
-                    let distance = t.get(i).copied().unwrap_or(0.0);
-                    let record =
-                        ReferenceHit { t: distance, u: h.u, v: h.v, instance: h.instance as u32, prim: h.prim };
-                    (record, DVec3::from_array(h.position))
-                })
-            });
+        if let Some(out) = distances {
+            sink.set(Field::T, out);
         }
         Ok(())
     }
