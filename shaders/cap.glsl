@@ -29,9 +29,11 @@ const double CAP_SKIP_BOUND = 0.08;
 // least (distance to the apex - radius) from it, so each triangle's solid angle is at most its
 // area over that squared (the integrand of the solid angle is at most 1 / r²). 1e300 where the
 // origin lies within the radius (not a constant infinity: records.glsl PointRays).
+// `precise`: the ray pass and cap_winding.comp must class each hole alike (summed, or passed over).
 double fan_winding_bound(dvec3 origin, WindingCapHoles holes, uint h) {
-  double gap = length(dvec3_of(holes.h[h].apex_scene) - origin) - holes.h[h].radius_scene;
-  return gap > 0.0 ? holes.h[h].area_scene / (FOUR_PI * gap * gap) : 1e300lf;
+  precise double gap = length(dvec3_of(holes.h[h].apex_scene) - origin) - holes.h[h].radius_scene;
+  precise double bound = holes.h[h].area_scene / (FOUR_PI * gap * gap);
+  return gap > 0.0 ? bound : 1e300lf;
 }
 
 // Whether the caps' winding number about a ray's origin needs a second pass over the holes it

@@ -302,7 +302,8 @@ impl PyScene {
     /// undecided, its regions (each one exact answer), its build's seconds, its corner (world),
     /// cell size and cells per axis.
     fn inside_grid<'py>(&self, py: Python<'py>, winding: bool) -> PyResult<Option<Bound<'py, PyDict>>> {
-        let Some(grid) = self.with_scene(py, |scene| scene.inside_grid(winding))? else { return Ok(None) };
+        let found = self.with_scene(py, |scene| scene.inside_grid(winding).map(|grid| (grid, scene.center)))?;
+        let Some((grid, center)) = found else { return Ok(None) };
         let d = PyDict::new(py);
         d.set_item("cells", grid.cell_count())?;
         d.set_item("undecided", grid.undecided)?;
@@ -310,7 +311,6 @@ impl PyScene {
         d.set_item("regions", grid.regions)?;
         d.set_item("build_seconds", grid.build_seconds)?;
         let (corner, inverse_cell, dims, _) = grid.marks_layout();
-        let center = self.with_scene(py, |scene| scene.center)?;
         d.set_item("corner", (corner + center).to_array())?;
         d.set_item("cell", 1.0 / inverse_cell)?;
         d.set_item("dims", dims)?;

@@ -127,9 +127,6 @@ impl VulkanScene {
         Ok(self.winding.get_or_init(|| built).clone())
     }
 
-    /// The cap that closes the holes of the scene's one mesh, for the exact tier's winding query,
-    /// built on first use (outside any lock, as `exact`); None where the scene has none
-    /// (`WindingCap::build`).
     /// The device's copy of `grid` (the scene's inside grid by winding number or by parity),
     /// made on first use (outside the lock) and kept while the scene keeps that grid.
     pub fn inside_grid_buffer(&self, grid: &Arc<InsideGrid>, winding: bool) -> Result<Arc<InsideGridBuffer>> {
@@ -148,6 +145,9 @@ impl VulkanScene {
         Ok(built)
     }
 
+    /// The cap that closes the holes of the scene's one mesh, for the exact tier's winding query,
+    /// built on first use (outside any lock, as `exact`); None where the scene has none
+    /// (`WindingCap::build`).
     pub fn winding_cap(&self, scene: &Scene) -> Result<Option<Arc<WindingCap>>> {
         if let Some(cap) = self.winding_cap.get() {
             return Ok(cap.clone());

@@ -121,11 +121,6 @@ impl<'a> HitSink<'a> {
         }
     }
 
-    /// Every field asked for, and its output, each borrowed for writing at once.
-    pub fn fields_mut(&mut self) -> impl Iterator<Item = (Field, &mut [u8])> + use<'_, 'a> {
-        FIELDS.iter().zip(self.fields.iter_mut()).filter_map(|(&field, out)| out.as_deref_mut().map(|out| (field, out)))
-    }
-
     pub fn field_mut(&mut self, field: Field) -> Option<&mut [u8]> {
         self.fields[field as usize].as_deref_mut()
     }

@@ -170,7 +170,7 @@ fn write_hit_fields(
 ) {
     let mut columns: Vec<(HitColumn, usize, &mut [u8])> = Vec::new();
     let position = sink.position.take();
-    for (field, out) in sink.fields_mut() {
+    for (field, out) in sink.iter_mut() {
         columns.push((HitColumn::Field(field), field.bytes_per_ray(wide), out));
     }
     if let Some(out) = position {

@@ -504,15 +504,6 @@ impl<E: Engine + ?Sized> Tracer<E> {
         }
         self.check_point_query(points, max_distance)?;
         let on_gpu = !scene.has_spheres();
-        if on_gpu && contains_precision == Precision::Exact {
-            // The grid `contains` would use (built as it would build it): the GPU's sign rays
-            // skip the points whose cells it decides.
-            if let Some(grid_use) = grid_contains::GridUse::of_engine(self.engine.limits().on_host) {
-                if !grid_use.segments {
-                    grid_contains::inside_grid(scene, winding, points.rows(), grid_use, interrupt)?;
-                }
-            }
-        }
         if on_gpu && self.engine.signed_distance(PointBatch { scene, points, interrupt }, query, out)? {
             return Ok(());
         }

@@ -19,6 +19,7 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::gpu::records::Params;
 use crate::scene::VulkanScene;
+use crate::trace::grid_contains::{inside_grid, GridUse};
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers;
 use crate::trace::request::{Cull, PointBatch, Precision, Query, Request, SignedDistance};
@@ -93,12 +94,13 @@ impl SignedDistancePath {
             ray_mask: 0xFF,
             ..Default::default()
         };
-        // The grid a `contains` of this scene keeps (the tracer asks for one first): the points it
-        // decides cast no sign's ray.
-        let grid = match scene.inside_grid(winding) {
-            Some(grid) => Some(vulkan.inside_grid_buffer(&grid, winding)?),
+        // The grid `contains` would use (kept, or built as `contains` on this device builds it):
+        // the points whose cells it decides cast no sign's ray.
+        let grid = match GridUse::of_engine(self.shared.ctx.info.is_software) {
+            Some(grid_use) => inside_grid(scene, winding, points.rows(), grid_use, interrupt)?,
             None => None,
         };
+        let grid = grid.map(|grid| vulkan.inside_grid_buffer(&grid, winding)).transpose()?;
         let job = PointJob {
             sign: Some(SignTrace {
                 variant: &variant,
