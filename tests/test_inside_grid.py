@@ -142,6 +142,22 @@ def test_signed_distances_through_the_grid(device, monkeypatch, name, method):
     assert wrong.size == 0, f"{name}: {wrong.size} signs differ from the reference tier, first rows {wrong[:8]}"
     assert 0.05 < np.signbit(signed[:40000]).mean() < 0.9
     np.testing.assert_allclose(np.abs(signed), np.abs(reference), rtol=1e-12, atol=0)
+    # Several threads at once on a scene of the same mesh whose grid is on the device yet (each
+    # may copy it there; the first copy kept): every thread's signs equal the reference tier's.
+    scene = device.scene([device.mesh(v, f)])
+    scene.contains(points, method=method)
+    found = [None] * 4
+
+    def sign(k: int) -> None:
+        found[k] = scene.signed_distance(points[k::4], method=method, precision="exact")
+
+    threads = [threading.Thread(target=sign, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for k in range(4):
+        np.testing.assert_array_equal(np.signbit(found[k]), np.signbit(reference[k::4]), err_msg=f"thread {k}")
 
 
 def hole_points(vertices: np.ndarray, faces: np.ndarray, n: int = 40000, seed: int = 5) -> np.ndarray:
