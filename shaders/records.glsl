@@ -121,7 +121,8 @@ layout(push_constant, std430) uniform ColumnParams {
 #elif defined(VKRAY_SIGN_POINTS)
 // The push constants of sign_points.comp (records.rs SignPointsParams): one chunk of a signed
 // distance query, its distances signed in place from its sign's crossings (and cap's winding
-// numbers), the points the GPU cannot tell marked for the CPU.
+// numbers), or of `contains`, its answers written as bytes; the points the GPU cannot tell marked
+// for the CPU.
 layout(push_constant, std430) uniform SignPointsParams {
   uint64_t distances;    // double per point: in, the distances; out, negated where inside
   uint64_t crossings;    // int per point (Crossings: the sum << 1 | on a surface)
@@ -130,6 +131,8 @@ layout(push_constant, std430) uniform SignPointsParams {
                          // where the winding number lies within the band about 1/2 (or is NaN)
   double inside_from;    // winding numbers at least this are inside (1/2 + the band)
   double outside_below;  // winding numbers below this are outside (1/2 - the band)
+  uint64_t points;       // contains: the chunk's points (points.glsl, tagged), checked finite
+  uint64_t inside;       // contains: a byte per point (1 inside), 4 a word; or 0: signed distances
   uint count;
   uint unused;
 } sign_params;

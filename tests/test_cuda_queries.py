@@ -265,6 +265,56 @@ def test_contains_answers_bools_on_the_gpu(bunny):
     assert_same(on_host(winding), scene.contains(p, method="winding"))
 
 
+@pytest.mark.parametrize("name, method", [("fandisk", "parity"), ("stanford-bunny", "winding")])
+def test_contains_reads_the_grid_on_the_gpu(monkeypatch, never_through_host, name, method):
+    """Once the scene keeps its inside grid, `contains` of CUDA points never leaves the GPU
+    (trace/vulkan/inside_points.rs): the points are copied into memory Vulkan shares, sorted by
+    cell, a ray cast from each point of an undecided cell, the answers copied into CUDA memory.
+    Equal to numpy's answers for f32 and f64 points, strided and shaped views, cupy arrays and
+    several threads; the points near the surface that the CPU decides come back too; a point that
+    is not finite is named."""
+    if DEVICE.cuda_device is None:
+        pytest.skip("this vkray device shares no memory with CUDA")
+    monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")  # the first large query builds the grid
+    v, f = oracle.load_mesh(name)
+    scene = DEVICE.scene([DEVICE.mesh(v, f)])
+    p = points_around(v, 60_000, seed=21)
+    # Points on the surface (vertices and edge midpoints), which the GPU's rays leave to the CPU
+    # where their winding numbers round near 1/2.
+    p = np.concatenate([p, v[:3000], 0.5 * (v[f[:3000, 0]] + v[f[:3000, 1]])])
+    want = scene.contains(p, method=method)  # numpy: builds the grid
+    assert scene._core.inside_grid(method == "winding") is not None
+    assert 0 < want.sum() < len(want)
+    for kind in (np.float64, np.float32):
+        inside = scene.contains(cuda(p.astype(kind)), method=method)
+        assert inside.dtype == "bool" and inside.shape == (len(p),)
+        assert_same(on_host(inside), scene.contains(p.astype(kind), method=method), err_msg=kind.__name__)
+    shaped = scene.contains(cuda(p[:60_000]).reshape(20, 3000, 3), method=method)
+    assert_same(on_host(shaped), want[:60_000].reshape(20, 3000))
+    transposed = cuda(np.ascontiguousarray(p.T)).T
+    assert_same(on_host(scene.contains(transposed, method=method)), want)
+    few = scene.contains(cuda(p[:100]), method=method)  # the kept grid serves small queries too
+    assert_same(on_host(few), want[:100])
+    cupy = pytest.importorskip("cupy")
+    assert_same(cupy.from_dlpack(scene.contains(cupy.asarray(p), method=method)).get(), want)
+    bad = p.copy()
+    bad[4321, 2] = np.nan
+    with pytest.raises(ValueError, match="points row 4321 is not finite"):
+        scene.contains(cuda(bad), method=method)
+
+    def work(k: int):
+        return on_host(scene.contains(cuda(p[k::4]), method=method))
+
+    for k, found in enumerate(oracle.in_threads(4, work)):
+        assert_same(found, want[k::4], err_msg=f"thread {k}")
+    # The point slots CUDA points went through serve host points next (a slot once kept the CUDA
+    # points' address and read them in place of numpy's).
+    q = points_around(v, 40_000, seed=22)
+    assert_same(scene.contains(q, method=method), scene.contains(q, method=method, precision="reference"))
+    signed = scene.signed_distance(q, method=method, precision="exact")
+    assert_same(np.signbit(signed), np.signbit(scene.signed_distance(q, method=method)))
+
+
 def test_shapes_strides_and_expanded_rays(bunny):
     v, scene = bunny
     p = points_around(v, 6_000, seed=5)

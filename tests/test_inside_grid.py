@@ -91,10 +91,13 @@ def test_grid_answers_equal_the_reference_tier(device, name, method):
     "name, method", [("fandisk", "parity"), ("stanford-bunny", "winding"), ("cow", "winding")]
 )
 def test_grid_with_the_engines_own_test_near_surfaces(device, monkeypatch, name, method):
-    """`VKRAY_CONTAINS_GRID=engine`, the way a GPU uses the grid, on every engine: the first large
-    query builds it and the engine's own exact test answers the points of undecided cells (and,
-    by winding number, of the cells near a cap's holes), not the host's short rays."""
+    """`VKRAY_CONTAINS_GRID=engine`, the way a GPU uses the grid, on every engine, the points
+    marked on the host's cores (`VKRAY_GRID_MARKS=host`; a GPU's default reads the grid in its own
+    ray pass, `test_contains_reads_the_grid_on_the_device`): the first large query builds it and
+    the engine's own exact test answers the points of undecided cells (and, by winding number, of
+    the cells near a cap's holes), not the host's short rays."""
     monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
+    monkeypatch.setenv("VKRAY_GRID_MARKS", "host")
     v, f = mesh_of(name)
     scene = device.scene([device.mesh(v, f)])
     points = hard_points(v, f, seed=3)
@@ -160,6 +163,52 @@ def test_signed_distances_through_the_grid(device, monkeypatch, name, method):
         np.testing.assert_array_equal(np.signbit(found[k]), np.signbit(reference[k::4]), err_msg=f"thread {k}")
 
 
+@pytest.mark.parametrize("name, method", [("fandisk", "parity"), ("stanford-bunny", "winding")])
+def test_contains_reads_the_grid_on_the_device(device, monkeypatch, name, method):
+    """`contains` on a GPU reads the scene's inside grid in the sign's ray pass (the points sorted
+    by cell, a decided cell's points casting no ray, sign_points.comp writing a byte a point;
+    trace/vulkan/inside_points.rs) rather than marking every point on the host's cores: every
+    answer equals the reference tier's, for f64 and f32 points near and on the surface and on the
+    faces between cells, in chunks and from several threads; a point that is not finite is named."""
+    monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
+    monkeypatch.setenv("VKRAY_GRID_MARKS", "device")
+    v, f = mesh_of(name)
+    scene = device.scene([device.mesh(v, f)])
+    points = hard_points(v, f, seed=11)
+    scene.contains(points, method=method)
+    grid = scene._core.inside_grid(method == "winding")
+    assert_grid_decides(grid)
+    points = np.concatenate([points, on_cell_faces(points[:20000], grid)])
+    reference = scene.contains(points, method=method, precision="reference")
+    assert 0.05 < reference.mean() < 0.9
+    for kind in (np.float64, np.float32):
+        p = points.astype(kind)
+        expected = reference if kind is np.float64 else scene.contains(p, method=method, precision="reference")
+        inside = scene.contains(p, method=method)
+        wrong = np.flatnonzero(inside != expected)
+        assert wrong.size == 0, f"{name} {kind.__name__}: {wrong.size} answers differ, first rows {wrong[:8]}"
+    # Chunks of 10,000 points (each its own rows of the answers and of the CPU's points).
+    monkeypatch.setenv("VKRAY_POINT_CHUNK", "10000")
+    np.testing.assert_array_equal(scene.contains(points, method=method), reference)
+    monkeypatch.delenv("VKRAY_POINT_CHUNK")
+    bad = points.copy()
+    bad[40001, 1] = np.inf
+    with pytest.raises(ValueError, match="points row 40001 is not finite"):
+        scene.contains(bad, method=method)
+    found = [None] * 4
+
+    def ask(k: int) -> None:
+        found[k] = scene.contains(points[k::4], method=method)
+
+    threads = [threading.Thread(target=ask, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for k in range(4):
+        np.testing.assert_array_equal(found[k], reference[k::4], err_msg=f"thread {k}")
+
+
 def hole_points(vertices: np.ndarray, faces: np.ndarray, n: int = 40000, seed: int = 5) -> np.ndarray:
     """Points about a mesh's holes, where the caps over them add their winding number: about
     boundary vertices in every direction (the caps' fans span the holes from their mean corners),
@@ -185,6 +234,9 @@ def test_grid_near_the_caps_over_holes(device, monkeypatch, way):
     tier answers it, the undecided ones by the host's short rays or by the engine's own test."""
     if way == "engine":
         monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
+        # The points marked on the host's cores, so that the engine's profile counts the points
+        # of undecided cells alone (a GPU's own ray pass reads the grid for every point).
+        monkeypatch.setenv("VKRAY_GRID_MARKS", "host")
     v, f = mesh_of("stanford-bunny")
     scene = device.scene([device.mesh(v, f)])
     points = hole_points(v, f)
@@ -239,6 +291,8 @@ def test_the_gpus_way_builds_the_grid_at_the_second_large_query(device, monkeypa
     cells go to the engine's own exact test (its profile counts them)."""
     if on_host(device):
         monkeypatch.setenv("VKRAY_CONTAINS_GRID", "gpu")
+    # Marked on the host's cores: the engine's profile then counts the undecided points alone.
+    monkeypatch.setenv("VKRAY_GRID_MARKS", "host")
     v, f = mesh_of("stanford-bunny")
     scene = device.scene([device.mesh(v, f)], allow_update=True)
     points = hard_points(v, f, seed=5)

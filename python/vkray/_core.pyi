@@ -281,6 +281,7 @@ class Scene:
         winding: bool = False,
         progress: Optional[Callable[[int, int], object]] = None,
     ) -> NDArray[np.bool_]: ...
+    def contains_cuda(self, points: Any, winding: bool = False) -> Optional[CudaArray]: ...
     def signed_distance(
         self,
         points: _Vec3s,

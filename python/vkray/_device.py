@@ -693,8 +693,12 @@ class Scene(SceneLike):
         run = _ANSWERS.get(query.kind)
         if run is None:
             raise ValueError(f"no query named {query.kind!r}")
-        if _cuda_query(query) and not self._stays_on_gpu(query):
-            return self._through_host(query, run)
+        if _cuda_query(query):
+            on_gpu = self._contains_cuda(query) if isinstance(query, PointQuery) else None
+            if on_gpu is not None:
+                return on_gpu
+            if not self._stays_on_gpu(query):
+                return self._through_host(query, run)
         if isinstance(query, RayQuery) and query.cuda:
             return self._onto_gpu(query, run)
         return run(self, query)
@@ -932,6 +936,17 @@ class Scene(SceneLike):
         )
         signed = signed.reshape(p.shape[:-1])
         return signed.astype(np.float32) if precision == "fast" else signed
+
+    def _contains_cuda(self, q: PointQuery) -> Any:
+        """`contains` of CUDA points answered on the GPU through the scene's inside grid (a bool
+        `vkray.CudaArray`), or None where that path does not answer (another query or tier, no
+        grid kept yet, several instances): the query then goes through the host, which builds
+        the grid as numpy points' queries do."""
+        if q.kind != "contains" or q.precision != "exact" or self.device.cuda_device is None:
+            return None
+        if q.method == "parity":
+            self._check_closed()
+        return self._core.contains_cuda(q.points, q.method == "winding")
 
     def _contains(self, q: PointQuery) -> np.ndarray:
         p = _points(q.points)

@@ -197,6 +197,11 @@ impl ExportedBuffer {
         self.raw.address
     }
 
+    /// The buffer, for Vulkan's copies into and out of it.
+    pub fn raw(&self) -> vk::Buffer {
+        self.raw.buffer
+    }
+
     /// Bytes of the allocation (at least the buffer's).
     pub fn size(&self) -> u64 {
         self.size

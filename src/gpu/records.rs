@@ -221,7 +221,8 @@ pub struct CapWindingParams {
 }
 
 /// The push constants of sign_points.comp (`SignPointsParams` in shaders/records.glsl): one
-/// chunk of a signed distance query, signed in place on the GPU.
+/// chunk of a signed distance query, signed in place on the GPU, or of `contains`, answered in
+/// bytes.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct SignPointsParams {
@@ -237,6 +238,11 @@ pub struct SignPointsParams {
     pub inside_from: f64,
     /// ... and below this outside (1/2 − the band); between, unsure.
     pub outside_below: f64,
+    /// `contains`: the chunk's points (tagged as `PointRays::points`), whose non-finite ones the
+    /// host reports.
+    pub points: u64,
+    /// `contains`: a byte per point (1 inside), four a u32; or 0: signed distances.
+    pub inside: u64,
     pub count: u32,
     pub unused: u32,
 }
@@ -574,8 +580,8 @@ layout!(ColumnParams, size 128, records @ 0, offsets @ 8, total @ 16, first_ray 
     insertion_limit @ 104, unused @ 108, offsets_out @ 112, base @ 120);
 layout!(CapWindingParams, size 64, cap @ 0, origins @ 8, counts @ 16, winding @ 24, shift @ 32, count @ 56,
     unused @ 60);
-layout!(SignPointsParams, size 56, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
-    outside_below @ 40, count @ 48, unused @ 52);
+layout!(SignPointsParams, size 72, distances @ 0, crossings @ 8, cap_winding @ 16, unsure @ 24, inside_from @ 32,
+    outside_below @ 40, points @ 48, inside @ 56, count @ 64, unused @ 68);
 layout!(PackParams, size 104, origins @ 0, directions @ 8, tmin @ 16, tmax @ 24, packed @ 32, advances @ 40,
     frame @ 48, t @ 56, origin_stride @ 64, direction_stride @ 68, tmin_stride @ 72, tmax_stride @ 76, count @ 80,
     first_row @ 84, formats @ 88, unused @ 92, ray_index @ 96);

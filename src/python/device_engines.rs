@@ -7,6 +7,7 @@ use crate::error::Result;
 use crate::gpu::cuda::Cuda;
 use crate::trace::vulkan::cuda_all_hits::CudaAllHitsPath;
 use crate::trace::vulkan::cuda_rays::CudaRaysPath;
+use crate::trace::vulkan::inside_points::InsidePointsPath;
 use crate::trace::{Engine, Tracer, VulkanEngine};
 
 /// What a device's tracer is: a dispatcher over either engine.
@@ -30,4 +31,9 @@ pub(super) fn cuda_of(tracer: &DeviceTracer) -> Result<(Option<&CudaRaysPath>, O
 /// The device's path for all hits of CUDA rays, where its engine has one (the Vulkan engine).
 pub(super) fn cuda_all_hits_of(tracer: &DeviceTracer) -> Option<&CudaAllHitsPath> {
     tracer.engine().as_any().downcast_ref::<VulkanEngine>().map(|engine| &engine.cuda_all_hits)
+}
+
+/// The device's path for `contains` of CUDA points, where its engine has one (the Vulkan engine).
+pub(super) fn inside_points_of(tracer: &DeviceTracer) -> Option<&InsidePointsPath> {
+    tracer.engine().as_any().downcast_ref::<VulkanEngine>().map(|engine| &engine.inside_points)
 }

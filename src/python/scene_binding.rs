@@ -12,7 +12,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::calls::{run, run_reporting};
-use super::device_engines::{cuda_all_hits_of, cuda_of, DeviceTracer};
+use super::device_engines::{cuda_all_hits_of, cuda_of, inside_points_of, DeviceTracer};
 use super::mesh_binding::stats_dict;
 use super::mesh_binding::PyMesh;
 use super::numpy_views::{Bound1, MaskArray, Vec3Array};
@@ -751,6 +751,42 @@ impl PyScene {
             self.tracer.contains(scene, points, precision, winding, out, interrupt)
         })?;
         Ok(inside)
+    }
+
+    /// `contains` at the exact tier of CUDA points (a DLPack array of shape S + (3,) on this
+    /// device's GPU, float32 or float64) by parity or by winding number, answered in CUDA memory:
+    /// a bool vkray.CudaArray of shape S; or None where the GPU's path through the scene's inside
+    /// grid does not answer (no grid kept yet, several instances, no points, no CUDA): the caller
+    /// then goes through the host. The caller checked the method against the meshes.
+    #[pyo3(signature = (points, winding=false))]
+    fn contains_cuda<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        winding: bool,
+    ) -> PyResult<Option<Py<dlpack::PyCudaArray>>> {
+        let tracer = &self.tracer;
+        let (Some(path), Some(cuda)) = cuda_of(tracer)? else { return Ok(None) };
+        let Some(inside_path) = inside_points_of(tracer) else { return Ok(None) };
+        let mut lease = py.detach(|| path.cuda_lease())?; // may free idle leases, which wait
+        let result = (|| -> PyResult<Option<Py<dlpack::PyCudaArray>>> {
+            // This GPU's context current while the producer exports (as for CUDA rays).
+            let entered = cuda.enter()?;
+            let borrowed = dlpack::borrow(points, "points", 3, lease.stream_handle(), cuda.ordinal)?;
+            drop(entered);
+            if borrowed.array.rows == 0 {
+                return Ok(None);
+            }
+            let answered = self.query(py, None, |scene, interrupt| {
+                inside_path.run_cuda(scene, path, &mut lease, &borrowed.array, winding, interrupt)
+            })?;
+            let Some(answer) = answered else { return Ok(None) };
+            let dtype = dlpack::dtype_named("bool").expect("bool is a DLPack type");
+            let array = dlpack::PyCudaArray::of_type(answer.inside, answer.ready, borrowed.leading.clone(), dtype);
+            Ok(Some(Py::new(py, array)?))
+        })();
+        py.detach(|| path.give_back_lease(lease)); // may wait for its stream
+        result
     }
 }
 

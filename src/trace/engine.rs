@@ -8,7 +8,9 @@ use crate::geometry::arrays::Vec3s;
 use crate::geometry::build_options::BuildOptions;
 use crate::geometry::rays::PerRay;
 use crate::geometry::reference::ReferenceHit;
-use crate::scene::{Instance, Mesh, MeshBatch, Scene};
+use std::sync::Arc;
+
+use crate::scene::{InsideGrid, Instance, Mesh, MeshBatch, Scene};
 use crate::trace::hit_columns::{AskedColumn, HitColumns};
 use crate::trace::hit_fields::HitSink;
 use crate::trace::host_tiers::AllHits;
@@ -105,4 +107,17 @@ pub trait Engine: Send + Sync + 'static {
     /// Signed distances in one pass, where the engine has one for `query`: true, `out` written;
     /// false, nothing written (the dispatcher then asks `closest_points` and `contains`).
     fn signed_distance(&self, batch: PointBatch, query: SignedDistance, out: &mut [f64]) -> Result<bool>;
+
+    /// `contains` at the exact tier through the scene's inside `grid`, where the engine reads the
+    /// grid itself: true, `out` written; false, nothing written (the dispatcher then marks the
+    /// points on the host's cores, `grid_contains`).
+    fn contains_through_grid(
+        &self,
+        _batch: PointBatch,
+        _grid: &Arc<InsideGrid>,
+        _winding: bool,
+        _out: &mut [u8],
+    ) -> Result<bool> {
+        Ok(false)
+    }
 }

@@ -546,6 +546,10 @@ impl<E: Engine + ?Sized> Tracer<E> {
             if let Some(grid_use) = grid_contains::GridUse::of_engine(self.engine.limits().on_host) {
                 if let Some(grid) = grid_contains::inside_grid(scene, winding, points.rows(), grid_use, interrupt)? {
                     scene.check_current()?;
+                    let batch = PointBatch { scene, points, interrupt };
+                    if self.engine.contains_through_grid(batch, &grid, winding, out)? {
+                        return Ok(());
+                    }
                     // The grid's pass checks the points; a far one lies beyond the grid (outside).
                     let exact = |rest: Vec3s, out: &mut [u8]| self.contains_exact(scene, rest, winding, out, interrupt);
                     let segments = grid_use.segments;

@@ -164,6 +164,9 @@ pub(super) struct PointSlot {
     stamps: Option<Stamps>,
     /// The points packed last are f32 (else f64): their address carries `POINTS_F32_TAG`.
     points_f32: bool,
+    /// The chunk's points where they already lie on the device (tagged as `points_address`),
+    /// neither packed nor uploaded: memory shared with CUDA.
+    points_on_device: Option<u64>,
 }
 
 /// Bit 0 of a points address (shaders/points.glsl): the points are f32 xyz, not f64. An f32
@@ -234,6 +237,7 @@ impl PointSlot {
             signs,
             stamps: Stamps::new(ctx)?,
             points_f32: false,
+            points_on_device: None,
         })
     }
 
@@ -260,6 +264,9 @@ impl PointSlot {
 
     /// The packed points' address, tagged (`POINTS_F32_TAG`) where they are f32.
     pub(super) fn points_address(&self) -> u64 {
+        if let Some(address) = self.points_on_device {
+            return address;
+        }
         let base = self.device.as_ref().map_or(self.points_host.address(), |(points, _)| points.address());
         debug_assert_eq!(base & POINTS_F32_TAG, 0, "buffer addresses are aligned");
         base | if self.points_f32 { POINTS_F32_TAG } else { 0 }
@@ -309,11 +316,44 @@ pub(super) struct SignTrace<'a> {
     /// sign_points.comp's pipeline, and the band about 1/2 its winding numbers leave unsure.
     pub combine: vk::Pipeline,
     pub band: f64,
+    /// What the chunk answers: signed distances, or `contains`.
+    pub answers: SignAnswers,
+}
+
+/// What a chunk's sign's trace answers.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum SignAnswers {
+    /// The search's distances, negated inside.
+    Distances,
+    /// `contains`, with no search: a byte a point (1 inside) at the results' start, read back,
+    /// or copied into `into` (memory shared with CUDA) at the chunk's first row.
+    Inside { into: Option<vk::Buffer> },
+}
+
+/// A point query's points: the caller's on the host, or already on the device.
+#[derive(Clone, Copy)]
+pub(super) enum JobPoints<'a> {
+    Host(Vec3s<'a>),
+    /// `rows` xyz rows at a device address, f32 (12 bytes a row) or f64 (24), packed.
+    Device {
+        address: u64,
+        f32: bool,
+        rows: usize,
+    },
+}
+
+impl JobPoints<'_> {
+    pub(super) fn rows(&self) -> usize {
+        match self {
+            JobPoints::Host(points) => points.rows(),
+            JobPoints::Device { rows, .. } => *rows,
+        }
+    }
 }
 
 /// What the chunks of one query share.
 pub(super) struct PointJob<'a> {
-    pub(super) points: Vec3s<'a>,
+    pub(super) points: JobPoints<'a>,
     pub(super) structures: &'a ClosestScene,
     /// Winding numbers' boundaries (winding.comp), or none (closest_point.comp).
     pub(super) boundaries: Option<&'a WindingScene>,
@@ -415,7 +455,7 @@ impl ClosestPoints {
         let f32 = precision == Precision::Fast && f32_measurable(scene, points);
         let shader = if f32 { PointShader::ClosestF32 } else { PointShader::Closest };
         Ok(PointJob {
-            points,
+            points: JobPoints::Host(points),
             structures,
             boundaries: None,
             kernel: self.points.kernel(shader),
@@ -439,7 +479,7 @@ impl ClosestPoints {
         let structures = vulkan.closest(scene)?;
         let boundaries = vulkan.winding(scene)?;
         let job = PointJob {
-            points,
+            points: JobPoints::Host(points),
             structures: &structures,
             boundaries: Some(&boundaries),
             kernel: self.points.kernel(PointShader::Winding),
@@ -523,11 +563,18 @@ impl ClosestPoints {
             }
             let len = pacer.next_len(n - start);
             lap(&mut profile.unpack);
-            pack_points(job.points, start, len, &mut slots[s]);
+            match job.points {
+                JobPoints::Host(points) => pack_points(points, start, len, &mut slots[s]),
+                JobPoints::Device { address, f32, .. } => {
+                    let row = if f32 { 12 } else { 24 };
+                    let tag = if f32 { POINTS_F32_TAG } else { 0 };
+                    slots[s].points_on_device = Some((address + (row * start) as u64) | tag);
+                }
+            }
             lap(&mut profile.pack);
             profile.chunks += 1;
             commands[s].begin()?;
-            self.record_points(commands[s].buffer, job, &slots[s], len);
+            self.record_points(commands[s].buffer, job, &slots[s], start, len);
             commands[s].submit()?;
             pacer.started();
             in_flight[s] = Some((start, len));
@@ -547,13 +594,15 @@ impl ClosestPoints {
         Ok(())
     }
 
-    /// Records one chunk: its upload (discrete GPUs), the search, its readback.
-    fn record_points(&self, cmd: vk::CommandBuffer, job: &PointJob, slot: &PointSlot, len: usize) {
+    /// Records one chunk (its first point `start`): its upload (discrete GPUs, host points), the
+    /// search (but for `contains`), the sign's trace, its readback.
+    fn record_points(&self, cmd: vk::CommandBuffer, job: &PointJob, slot: &PointSlot, start: usize, len: usize) {
         let ctx = &self.shared.ctx;
         let device = &ctx.device;
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         let stamp = start_stamps(slot.stamps.as_ref(), cmd);
-        if let Some((points_device, _)) = &slot.device {
+        let answers = job.sign.as_ref().map_or(SignAnswers::Distances, |sign| sign.answers);
+        if let (Some((points_device, _)), None) = (&slot.device, slot.points_on_device) {
             let region = [vk::BufferCopy::default().size(slot.points_bytes(len) as u64)];
             // SAFETY: `cmd` is recording; both buffers hold `capacity` points.
             unsafe { device.cmd_copy_buffer(cmd, slot.points_host.raw(), points_device.raw(), &region) };
@@ -592,19 +641,22 @@ impl ClosestPoints {
             count: len as u32,
             instance_count: job.structures.instance_count,
         };
-        // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
-        // cover exactly the layout's range; the group count is within maxComputeWorkGroupCount
-        // (the chunk's capacity is).
-        unsafe {
-            device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, job.pipeline);
-            device.cmd_push_constants(
-                cmd,
-                job.kernel.layout(),
-                vk::ShaderStageFlags::COMPUTE,
-                0,
-                bytemuck::bytes_of(&params),
-            );
-            device.cmd_dispatch(cmd, (len as u32).div_ceil(job.kernel.local_size), 1, 1);
+        // `contains` searches nothing: its sign's trace answers.
+        if answers == SignAnswers::Distances {
+            // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
+            // cover exactly the layout's range; the group count is within
+            // maxComputeWorkGroupCount (the chunk's capacity is).
+            unsafe {
+                device.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, job.pipeline);
+                device.cmd_push_constants(
+                    cmd,
+                    job.kernel.layout(),
+                    vk::ShaderStageFlags::COMPUTE,
+                    0,
+                    bytemuck::bytes_of(&params),
+                );
+                device.cmd_dispatch(cmd, (len as u32).div_ceil(job.kernel.local_size), 1, 1);
+            }
         }
         // The stages whose writes the readback waits for: the search's, and the sign's trace's.
         let written = match &job.sign {
@@ -613,22 +665,42 @@ impl ClosestPoints {
         };
         stamp(Stamp::Traced);
         let host = (vk::PipelineStageFlags::HOST, vk::AccessFlags::HOST_READ);
-        let Some((_, results_device)) = &slot.device else {
+        let into = match answers {
+            SignAnswers::Inside { into } => into,
+            SignAnswers::Distances => None,
+        };
+        if slot.device.is_none() && into.is_none() {
             memory_barrier(ctx, cmd, (written, vk::AccessFlags::SHADER_WRITE), host);
             stamp(Stamp::ReadBack);
             return;
-        };
+        }
         memory_barrier(
             ctx,
             cmd,
             (written, vk::AccessFlags::SHADER_WRITE),
             (vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::TRANSFER_READ),
         );
+        if let Some(into) = into {
+            let region = [vk::BufferCopy::default().dst_offset(start as u64).size(len as u64)];
+            // SAFETY: `cmd` is recording; the results hold the chunk's `len` answers at 0 and
+            // `into` (TRANSFER_DST) the query's, this chunk's at `start`.
+            unsafe { device.cmd_copy_buffer(cmd, slot.results_buffer(), into, &region) };
+        }
+        let Some((_, results_device)) = &slot.device else {
+            let written = (written | vk::PipelineStageFlags::TRANSFER, vk::AccessFlags::MEMORY_WRITE);
+            memory_barrier(ctx, cmd, written, host);
+            stamp(Stamp::ReadBack);
+            return;
+        };
         let layout = slot.results_layout();
         let region = |at: usize, bytes: usize| {
             vk::BufferCopy::default().src_offset(at as u64).dst_offset(at as u64).size((len * bytes) as u64)
         };
-        let mut regions = vec![region(0, 8)];
+        let mut regions = match answers {
+            SignAnswers::Distances => vec![region(0, 8)],
+            SignAnswers::Inside { into: None } => vec![region(0, 1)],
+            SignAnswers::Inside { into: Some(_) } => Vec::new(),
+        };
         if job.full {
             regions.push(region(layout.hits, size_of_hit()));
         }
@@ -733,6 +805,7 @@ impl ClosestPoints {
         );
         let layout = slot.results_layout();
         let results = slot.results_address();
+        let inside = matches!(sign.answers, SignAnswers::Inside { .. });
         let params = SignPointsParams {
             distances: results,
             crossings: results + layout.crossings as u64,
@@ -741,9 +814,14 @@ impl ClosestPoints {
             // As host_tiers::mark_by_crossings computes them.
             inside_from: 0.5 + sign.band,
             outside_below: 0.5 - sign.band,
+            points: slot.points_address(),
+            // The answers' bytes over the distances' place (no search ran).
+            inside: if inside { results } else { 0 },
             count: len as u32,
             unused: 0,
         };
+        // `contains`: four points an invocation.
+        let invocations = if inside { len.div_ceil(4) } else { len };
         let kernel = &self.points.sign;
         // SAFETY: `cmd` is recording; the pipeline and its layout are live; the push constants
         // cover exactly the layout's range; the group count is within maxComputeWorkGroupCount
@@ -757,7 +835,7 @@ impl ClosestPoints {
                 0,
                 bytemuck::bytes_of(&params),
             );
-            ctx.device.cmd_dispatch(cmd, (len as u32).div_ceil(kernel.local_size), 1, 1);
+            ctx.device.cmd_dispatch(cmd, (invocations as u32).div_ceil(kernel.local_size), 1, 1);
         }
     }
 }
@@ -847,6 +925,8 @@ fn size_of_hit() -> usize {
 /// Points `start..start + len` into the slot's staging as they are (f32 or f64 xyz), on all
 /// cores.
 fn pack_points(points: Vec3s, start: usize, len: usize, slot: &mut PointSlot) {
+    // The slot's own points now, whatever a query of points on the device left in it.
+    slot.points_on_device = None;
     slot.points_f32 = matches!(points, Vec3s::F32(_));
     let bytes = slot.points_bytes(len);
     let staging = slot.points_host.mapped_mut().expect("point staging is host-visible");

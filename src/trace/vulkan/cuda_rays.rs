@@ -422,6 +422,25 @@ impl CudaRaysPath {
     }
 }
 
+impl CudaRaysPath {
+    /// Copies `points` (CUDA memory of this device, ordered before the lease's stream by the
+    /// caller's producer) into the lease's shared input, packed (12 or 24 bytes a row), and waits
+    /// for the copy. Returns their address as Vulkan reads them.
+    pub fn copy_points_in(&self, cuda: &Arc<Cuda>, lease: &mut CudaLease, points: &CudaArray) -> Result<u64> {
+        let stream = &lease.stream;
+        let bytes = points.packed_bytes() as u64;
+        self.shared
+            .with_memory(|| grow(&self.shared.ctx, cuda, stream, &mut lease.input, bytes, "points shared with CUDA"))?;
+        let input = lease.input.as_ref().expect("grown");
+        let _current = cuda.enter()?;
+        let copied = copy_packed(&lease.stream, (cuda, input.pointer), (cuda, points));
+        // Also after a failed copy: one already queued reads the caller's memory.
+        lease.stream.synchronize()?;
+        copied?;
+        Ok(input.vulkan.address())
+    }
+}
+
 /// Where a GPU-resident query's rays are read and its hits written.
 pub struct CudaPlaces<'a> {
     /// The CUDA device whose memory holds the rays (and `into`): this device, or a peer.

@@ -3,7 +3,7 @@
 //! variants, staging, sensor records, the all-hits lists and their columns, the caps' winding pass; the value every path shares; then
 //! each path, owning its state and borrowing the shared value: the host-packed chunk loop
 //! (closest hit and the other ray queries), the probes, GPU-packed rays, the two together, CUDA
-//! rays, all hits, all hits of CUDA rays, closest points, signed distances and `contains`; last the engine that makes
+//! rays, all hits, all hits of CUDA rays, closest points, signed distances, `contains` through the inside grid and `contains`; last the engine that makes
 //! them and dispatches to them.
 
 pub mod timestamps;
@@ -39,6 +39,8 @@ pub mod cuda_all_hits;
 pub mod closest_points;
 
 pub mod signed_distance;
+
+pub mod inside_points;
 
 pub mod containment;
 

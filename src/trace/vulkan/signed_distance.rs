@@ -10,15 +10,16 @@
 
 use std::sync::Arc;
 
-use super::closest_points::{ClosestPoints, PointJob, PointSlot, SignTrace};
+use super::closest_points::{ClosestPoints, PointJob, PointSlot, SignAnswers, SignTrace};
 use super::probes::Probes;
 use super::shared::Shared;
-use super::variants::{VariantKey, RAYS_FROM_POINTS};
+use super::variants::{Variant, VariantKey, RAYS_FROM_POINTS};
 use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::parallel;
 use crate::gpu::records::Params;
-use crate::scene::VulkanScene;
+use crate::scene::closest::InsideGridBuffer;
+use crate::scene::{InsideGrid, Scene, VulkanScene, WindingCap};
 use crate::trace::grid_contains::{inside_grid, GridUse};
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers;
@@ -57,34 +58,83 @@ impl SignedDistancePath {
         let SignedDistance { max_distance, precision, contains_precision, winding } = query;
         let one_pass = contains_precision == Precision::Exact
             && matches!(precision, Precision::Exact | Precision::Fast)
-            && self.shared.ctx.info.shader_float64
-            && scene.placements.len() == 1
             && !signs_separately();
         if !one_pass || out.is_empty() {
             return Ok(false);
         }
         let _in_use = scene.hold_meshes();
         scene.check_current()?;
+        // The grid `contains` would use (kept, or built as `contains` on this device builds it):
+        // the points whose cells it decides cast no sign's ray. Asked only once one pass can sign.
+        let grid = |winding| match GridUse::of_engine(self.shared.ctx.info.is_software) {
+            Some(grid_use) => inside_grid(scene, winding, points.rows(), grid_use, interrupt),
+            None => Ok(None),
+        };
+        let Some(sign) = SignRays::new(&self.shared, &self.probes, scene, winding, grid)? else {
+            return Ok(false);
+        };
+        let structures = VulkanScene::of(scene)?.closest(scene)?;
+        let job = PointJob {
+            sign: Some(sign.trace(&self.shared, &self.points, SignAnswers::Distances)?),
+            ..self.points.closest_job(scene, &structures, points, max_distance, precision, false)?
+        };
+        let capacity = self.points.point_capacity(points.rows()).min(self.shared.max_dispatch_rays());
+        let pipelines = self.points.pipelines();
+        let mut slots = self.shared.with_memory(|| pipelines.take_slots(capacity, false, true))?;
+        let mut unsure: Vec<Unsure> = Vec::new();
+        let result = self.points.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
+            let results = slot.results_host.mapped().expect("readback is host-visible");
+            parallel::copy(bytemuck::cast_slice_mut(&mut out[start..start + len]), &results[..8 * len]);
+            unsure.extend(unsure_rows(slot, len).into_iter().map(|k| (start + k, host_tiers::UNSURE)));
+        });
+        pipelines.give_back(slots);
+        result?;
+        decide_unsure(batch, &unsure, out)?;
+        Ok(true)
+    }
+}
+
+/// What a sign's trace needs, owned for the length of a query: the variant its rays run (exact,
+/// from the points: `RAYS_FROM_POINTS`), their push constants, the cap (by winding number) and
+/// the scene's inside grid on the device.
+pub(super) struct SignRays {
+    variant: Arc<Variant>,
+    params: Params,
+    cap: Option<Arc<WindingCap>>,
+    grid: Option<Arc<InsideGridBuffer>>,
+}
+
+impl SignRays {
+    /// The sign's rays of `scene`'s points, where one ray a point can tell `contains` at the
+    /// exact tier: f64 shaders, one instance, and for winding numbers a cap
+    /// (`VulkanScene::winding_cap`); else None. `grid(winding)`: the scene's inside grid, asked
+    /// only once the rest holds. The caller holds the scene's meshes.
+    pub(super) fn new(
+        shared: &Shared,
+        probes: &Probes,
+        scene: &Scene,
+        winding: bool,
+        grid: impl FnOnce(bool) -> Result<Option<Arc<InsideGrid>>>,
+    ) -> Result<Option<SignRays>> {
+        if !shared.ctx.info.shader_float64 || scene.placements.len() != 1 {
+            return Ok(None);
+        }
+        let vulkan = VulkanScene::of(scene)?;
         let cap = match winding {
-            true => match VulkanScene::of(scene)?.winding_cap(scene)? {
+            true => match vulkan.winding_cap(scene)? {
                 Some(cap) => Some(cap),
-                None => return Ok(false),
+                None => return Ok(None),
             },
             false => None,
         };
-        self.probes.check_paths(scene, true)?;
-        let vulkan = VulkanScene::of(scene)?;
+        probes.check_paths(scene, true)?;
         let exact = vulkan.exact(scene)?;
-        let structures = vulkan.closest(scene)?;
         let query = if cap.is_some() { Query::Winding } else { Query::Parity };
         // Every triangle counts, whatever its opacity: inside is a question of the surface.
         let request = Request { opacity_threshold: 0.0, ..Request::new(query, Precision::Exact, Cull::None) };
         let outputs = Field::Prim.bit() | if cap.is_some() { Field::T.bit() } else { 0 };
-        let key = VariantKey {
-            ray_source: RAYS_FROM_POINTS,
-            ..self.shared.variant_key(scene, request, true, outputs, false)
-        };
-        let variant = self.shared.variants.get(key)?;
+        let key =
+            VariantKey { ray_source: RAYS_FROM_POINTS, ..shared.variant_key(scene, request, true, outputs, false) };
         let params = Params {
             instances: exact.instances_address(),
             tlas: exact.tlas_address(),
@@ -94,58 +144,47 @@ impl SignedDistancePath {
             ray_mask: 0xFF,
             ..Default::default()
         };
-        // The grid `contains` would use (kept, or built as `contains` on this device builds it):
-        // the points whose cells it decides cast no sign's ray.
-        let grid = match GridUse::of_engine(self.shared.ctx.info.is_software) {
-            Some(grid_use) => inside_grid(scene, winding, points.rows(), grid_use, interrupt)?,
-            None => None,
-        };
-        let grid = grid.map(|grid| vulkan.inside_grid_buffer(&grid, winding)).transpose()?;
-        let job = PointJob {
-            sign: Some(SignTrace {
-                variant: &variant,
-                params,
-                direction: host_tiers::PARITY_DIRECTION.to_array(),
-                cap: cap.as_deref().map(|cap| self.shared.cap_winding.pass(cap)).transpose()?,
-                grid: grid.as_ref().map_or(0, |grid| grid.address()),
-                combine: self.points.pipelines().sign.pipeline(&[])?,
-                band: cap.as_ref().map_or(0.0, |cap| cap.band()),
-            }),
-            ..self.points.closest_job(scene, &structures, points, max_distance, precision, false)?
-        };
-        let capacity = self.points.point_capacity(points.rows()).min(self.shared.max_dispatch_rays());
-        let pipelines = self.points.pipelines();
-        let mut slots = self.shared.with_memory(|| pipelines.take_slots(capacity, false, true))?;
-        let mut unsure: Vec<Unsure> = Vec::new();
-        let result = self.points.closest_chunks(&job, &mut slots, capacity, interrupt, |start, len, slot| {
-            let found = sign_chunk(slot, &mut out[start..start + len]);
-            unsure.extend(found.into_iter().map(|(k, mark)| (start + k, mark)));
-        });
-        pipelines.give_back(slots);
-        result?;
-        decide_unsure(batch, &unsure, out)?;
-        Ok(true)
+        let grid = grid(winding)?.map(|grid| vulkan.inside_grid_buffer(&grid, winding)).transpose()?;
+        Ok(Some(SignRays { variant: shared.variants.get(key)?, params, cap, grid }))
+    }
+
+    /// The chunks' sign's trace, answering `answers`.
+    pub(super) fn trace<'a>(
+        &'a self,
+        shared: &'a Shared,
+        points: &ClosestPoints,
+        answers: SignAnswers,
+    ) -> Result<SignTrace<'a>> {
+        Ok(SignTrace {
+            variant: &self.variant,
+            params: self.params,
+            direction: host_tiers::PARITY_DIRECTION.to_array(),
+            cap: self.cap.as_deref().map(|cap| shared.cap_winding.pass(cap)).transpose()?,
+            grid: self.grid.as_ref().map_or(0, |grid| grid.address()),
+            combine: points.pipelines().sign.pipeline(&[])?,
+            band: self.cap.as_ref().map_or(0.0, |cap| cap.band()),
+            answers,
+        })
     }
 }
 
-/// Copies a finished chunk's signed distances into `out`. Returns the chunk's points the CPU
-/// must decide (their distances copied as they are), from the unsure bits.
-fn sign_chunk(slot: &PointSlot, out: &mut [f64]) -> Vec<Unsure> {
-    let len = out.len();
+/// The rows of a finished chunk of `len` points (indices within it) its unsure bits mark: the
+/// points the CPU decides.
+pub(super) fn unsure_rows(slot: &PointSlot, len: usize) -> Vec<usize> {
     let results = slot.results_host.mapped().expect("readback is host-visible");
     let layout = slot.results_layout();
-    parallel::copy(bytemuck::cast_slice_mut(out), &results[..8 * len]);
     let words: &[u32] = bytemuck::cast_slice(&results[layout.unsure..layout.unsure + 4 * len.div_ceil(32)]);
     let mut unsure = Vec::new();
     for (w, &word) in words.iter().enumerate().filter(|(_, &word)| word != 0) {
         let mut bits = word;
         while bits != 0 {
-            unsure.push((32 * w + bits.trailing_zeros() as usize, host_tiers::UNSURE));
+            unsure.push(32 * w + bits.trailing_zeros() as usize);
             bits &= bits - 1;
         }
     }
     unsure
 }
+
 /// Decides the `unsure` points on the CPU (`host_tiers::decide_on_the_cpu`) and negates the
 /// distances of those inside.
 fn decide_unsure(batch: PointBatch, unsure: &[Unsure], out: &mut [f64]) -> Result<()> {

@@ -10,6 +10,7 @@ use super::containment::Containment;
 use super::cuda_all_hits::CudaAllHitsPath;
 use super::cuda_rays::{CudaRaysPath, CudaState};
 use super::gpu_rays::GpuRays;
+use super::inside_points::InsidePointsPath;
 use super::packed_rays::{PackPipelines, PackedRays};
 use super::probes::Probes;
 use super::ray_chunks::RayChunks;
@@ -24,7 +25,9 @@ use crate::geometry::rays::PerRay;
 use crate::geometry::reference::ReferenceHit;
 use crate::gpu::context::{Backend, Context};
 use crate::gpu::records::{ExactHit, FastHit};
-use crate::scene::{build_vulkan_meshes, build_vulkan_scene, build_vulkan_spheres, Instance, Mesh, MeshBatch, Scene};
+use crate::scene::{
+    build_vulkan_meshes, build_vulkan_scene, build_vulkan_spheres, InsideGrid, Instance, Mesh, MeshBatch, Scene,
+};
 use crate::trace::engine::{Engine, EngineLimits};
 use crate::trace::hit_columns::{AskedColumn, HitColumns};
 use crate::trace::hit_fields::{Field, HitSink};
@@ -53,6 +56,8 @@ pub struct VulkanEngine {
     all_hits: Arc<AllHitsPath>,
     points: Arc<ClosestPoints>,
     signed: SignedDistancePath,
+    /// `contains` through the inside grid on the GPU (host points, and CUDA points).
+    pub inside_points: InsidePointsPath,
     containment: Containment,
     /// The CUDA rays path (GPU-resident rays and hits).
     pub cuda: CudaRaysPath,
@@ -78,6 +83,7 @@ impl VulkanEngine {
         let points = Arc::new(ClosestPoints::new(&shared, &points));
         Ok(VulkanEngine {
             signed: SignedDistancePath::new(&shared, &points, &probes),
+            inside_points: InsidePointsPath::new(&shared, &points, &probes),
             containment: Containment::new(&shared, &rays, &all_hits, &points),
             cuda: CudaRaysPath::new(&shared, &packed, &cuda),
             cuda_all_hits: CudaAllHitsPath::new(CudaRaysPath::new(&shared, &packed, &cuda), &all_hits),
@@ -228,5 +234,30 @@ impl Engine for VulkanEngine {
 
     fn signed_distance(&self, batch: PointBatch, query: SignedDistance, out: &mut [f64]) -> Result<bool> {
         self.signed.run(batch, query, out)
+    }
+
+    fn contains_through_grid(
+        &self,
+        batch: PointBatch,
+        grid: &Arc<InsideGrid>,
+        winding: bool,
+        out: &mut [u8],
+    ) -> Result<bool> {
+        if !grid_marks_on_device(self.shared.ctx.info.is_software) {
+            return Ok(false);
+        }
+        self.inside_points.run(batch, grid, winding, out)
+    }
+}
+
+/// Whether `contains` of host points reads the inside grid on the device (`InsidePointsPath`)
+/// rather than marking the points on the host's cores (`grid_contains`): on a hardware GPU, not
+/// on a software device (whose cores are the host's). VKRAY_GRID_MARKS: "host" or "device" asks
+/// for either everywhere (to measure one against the other, and for the tests).
+fn grid_marks_on_device(is_software: bool) -> bool {
+    match std::env::var("VKRAY_GRID_MARKS").as_deref() {
+        Ok("host") => false,
+        Ok("device") => true,
+        _ => !is_software,
     }
 }
