@@ -282,13 +282,17 @@ def test_contains_reads_the_grid_on_the_gpu(monkeypatch, never_through_host, nam
     # Points on the surface (vertices and edge midpoints), which the GPU's rays leave to the CPU
     # where their winding numbers round near 1/2.
     p = np.concatenate([p, v[:3000], 0.5 * (v[f[:3000, 0]] + v[f[:3000, 1]])])
-    want = scene.contains(p, method=method)  # numpy: builds the grid
+    scene.contains(p, method=method)  # numpy: builds the grid
     assert scene._core.inside_grid(method == "winding") is not None
+    want = scene.contains(p, method=method, precision="reference")
     assert 0 < want.sum() < len(want)
+    # Chunks of an odd size: each chunk's answers land at its own first row.
+    monkeypatch.setenv("VKRAY_POINT_CHUNK", "10001")
     for kind in (np.float64, np.float32):
         inside = scene.contains(cuda(p.astype(kind)), method=method)
         assert inside.dtype == "bool" and inside.shape == (len(p),)
-        assert_same(on_host(inside), scene.contains(p.astype(kind), method=method), err_msg=kind.__name__)
+        expected = scene.contains(p.astype(kind), method=method, precision="reference")
+        assert_same(on_host(inside), expected, err_msg=kind.__name__)
     shaped = scene.contains(cuda(p[:60_000]).reshape(20, 3000, 3), method=method)
     assert_same(on_host(shaped), want[:60_000].reshape(20, 3000))
     transposed = cuda(np.ascontiguousarray(p.T)).T
@@ -313,6 +317,27 @@ def test_contains_reads_the_grid_on_the_gpu(monkeypatch, never_through_host, nam
     assert_same(scene.contains(q, method=method), scene.contains(q, method=method, precision="reference"))
     signed = scene.signed_distance(q, method=method, precision="exact")
     assert_same(np.signbit(signed), np.signbit(scene.signed_distance(q, method=method)))
+
+
+def test_contains_of_points_read_through_the_host(monkeypatch):
+    """CUDA points the GPU's `contains` path cannot read in place go through the host, with the
+    same answers, though the scene keeps its grid: one row expanded to every point (stride 0),
+    leading axes that do not flatten into one, a progress bar."""
+    if DEVICE.cuda_device is None:
+        pytest.skip("this vkray device shares no memory with CUDA")
+    monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
+    v, f = oracle.load_mesh("fandisk")
+    scene = DEVICE.scene([DEVICE.mesh(v, f)])
+    p = points_around(v, 40_000, seed=23)
+    want = scene.contains(p)  # builds the grid
+    assert scene._core.inside_grid(False) is not None
+    one = scene.contains(cuda(p[:1]).expand(1000, 3))
+    assert one.shape == (1000,)
+    assert_same(on_host(one), np.repeat(want[:1], 1000))
+    grid = cuda(p.reshape(200, 200, 3))
+    unflattened = grid.permute(1, 0, 2)[:, :150]  # leading axes (200, 150) that do not flatten
+    assert_same(on_host(scene.contains(unflattened)), want.reshape(200, 200).T[:, :150])
+    assert_same(on_host(scene.contains(cuda(p), progress=True)), want)
 
 
 def test_shapes_strides_and_expanded_rays(bunny):

@@ -185,6 +185,10 @@ def test_contains_reads_the_grid_on_the_device(device, monkeypatch, name, method
         p = points.astype(kind)
         expected = reference if kind is np.float64 else scene.contains(p, method=method, precision="reference")
         inside = scene.contains(p, method=method)
+        if device.backend != "cpu":
+            # Every point went through the GPU's ray pass (the host's marks would send only the
+            # points of undecided cells).
+            assert device.last_trace_profile["rays"] == len(p)
         wrong = np.flatnonzero(inside != expected)
         assert wrong.size == 0, f"{name} {kind.__name__}: {wrong.size} answers differ, first rows {wrong[:8]}"
     # Chunks of 10,000 points (each its own rows of the answers and of the CPU's points).

@@ -942,7 +942,8 @@ class Scene(SceneLike):
         `vkray.CudaArray`), or None where that path does not answer (another query or tier, no
         grid kept yet, several instances): the query then goes through the host, which builds
         the grid as numpy points' queries do."""
-        if q.kind != "contains" or q.precision != "exact" or self.device.cuda_device is None:
+        # A progress bar is the host path's (it counts the points' chunks).
+        if q.kind != "contains" or q.precision != "exact" or q.progress or self.device.cuda_device is None:
             return None
         if q.method == "parity":
             self._check_closed()

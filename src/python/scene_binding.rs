@@ -768,13 +768,22 @@ impl PyScene {
         let tracer = &self.tracer;
         let (Some(path), Some(cuda)) = cuda_of(tracer)? else { return Ok(None) };
         let Some(inside_path) = inside_points_of(tracer) else { return Ok(None) };
+        // Before the grid is kept (the host's path builds it) nothing is borrowed.
+        if self.scene.read().unwrap_or_else(|e| e.into_inner()).inside_grid(winding).is_none() {
+            return Ok(None);
+        }
         let mut lease = py.detach(|| path.cuda_lease())?; // may free idle leases, which wait
         let result = (|| -> PyResult<Option<Py<dlpack::PyCudaArray>>> {
             // This GPU's context current while the producer exports (as for CUDA rays).
             let entered = cuda.enter()?;
-            let borrowed = dlpack::borrow(points, "points", 3, lease.stream_handle(), cuda.ordinal)?;
+            let borrowed = dlpack::borrow(points, "points", 3, lease.stream_handle(), cuda.ordinal);
             drop(entered);
-            if borrowed.array.rows == 0 {
+            // Points this path cannot read in place (leading axes that do not flatten, a dtype
+            // that is not float: the host's path copies or refuses them) or one row repeated
+            // (an expanded tensor: every point's own row is the host path's), and no points.
+            let Ok(borrowed) = borrowed else { return Ok(None) };
+            let rows: usize = borrowed.leading.iter().product();
+            if rows == 0 || borrowed.array.rows != rows {
                 return Ok(None);
             }
             let answered = self.query(py, None, |scene, interrupt| {

@@ -192,7 +192,14 @@ impl PointSlot {
         let (points_host, results_host, device) = if ctx.unified_memory {
             (
                 Buffer::new(ctx, points, storage, MemoryLocation::CpuToGpu, "points")?,
-                Buffer::new(ctx, results, storage | U::TRANSFER_DST, MemoryLocation::GpuToCpu, "closest points")?,
+                // TRANSFER_SRC: `contains` of CUDA points copies its answers out of it.
+                Buffer::new(
+                    ctx,
+                    results,
+                    storage | U::TRANSFER_SRC | U::TRANSFER_DST,
+                    MemoryLocation::GpuToCpu,
+                    "closest points",
+                )?,
                 None,
             )
         } else {

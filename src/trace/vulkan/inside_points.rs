@@ -102,17 +102,26 @@ impl InsidePointsPath {
         let _current = cuda.enter()?;
         let stream = &lease.stream;
         let inside = self.shared.with_memory(|| CudaAllocation::new(stream, n))?;
-        // SAFETY: both are device memory of this context: the allocation is the caller's from now
-        // on; the shared buffer stays in the lease, whose later users queue on the same stream
-        // (Vulkan wrote it before the host's wait for the chunks).
-        unsafe { stream.copy_2d(inside.pointer, n, output.pointer, n, n, 1)? };
         static INSIDE: u8 = 1;
-        for (&i, _) in unsure.iter().zip(&decided).filter(|(_, &inside)| inside == 1) {
-            // SAFETY: row `i` of the allocation's `n` bytes; the source is a static.
-            unsafe { stream.copy_from_host(inside.pointer + i as u64, &INSIDE, 1)? };
+        let queued = (|| -> Result<Arc<Event>> {
+            // SAFETY: both are device memory of this context: the allocation is the caller's from
+            // now on; the shared buffer stays in the lease, whose later users queue on the same
+            // stream (Vulkan wrote it before the host's wait for the chunks).
+            unsafe { stream.copy_2d(inside.pointer, n, output.pointer, n, n, 1)? };
+            for (&i, _) in unsure.iter().zip(&decided).filter(|(_, &inside)| inside == 1) {
+                // SAFETY: row `i` of the allocation's `n` bytes; the source is a static.
+                unsafe { stream.copy_from_host(inside.pointer + i as u64, &INSIDE, 1)? };
+            }
+            Ok(Arc::new(stream.record()?))
+        })();
+        match queued {
+            Ok(ready) => Ok(Some(CudaInside { inside, ready })),
+            Err(error) => {
+                // The copies queued write the allocation: done before it is freed.
+                let _ = stream.synchronize();
+                Err(error)
+            }
         }
-        let ready = Arc::new(stream.record()?);
-        Ok(Some(CudaInside { inside, ready }))
     }
 
     /// Runs the chunks of `points` through the sign's trace, `contains`' answers a byte a point:
