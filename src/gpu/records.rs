@@ -859,6 +859,8 @@ mod tests {
                     unsure,
                     inside_from,
                     outside_below,
+                    points,
+                    inside,
                     count,
                     unused
                 ),
