@@ -391,6 +391,32 @@ def test_reads_and_answers_follow_the_callers_streams(bunny):
     assert_same(got.cpu().numpy(), want)
 
 
+def test_each_array_of_a_query_is_ordered_after_its_writes(bunny):
+    """Rays whose second and third arrays (directions, tmax) are written on the caller's stream
+    after a long wait, the first (origins) long ready: vkray asks torch to order the first array
+    only (torch orders every tensor after its current stream, so one export covers the rest) and
+    still reads what the stream wrote. A cupy array beside torch tensors is asked for its own."""
+    v, scene = bunny
+    o, d = oracle.random_rays(v, 200_000, seed=31)
+    tmax = np.random.default_rng(32).uniform(0.5, 3.0, len(o))
+    want = scene.count(o, d, tmax=tmax)
+    side = torch.cuda.Stream()
+    origins, source, limits = cuda(o), cuda(d), cuda(tmax)
+    directions = torch.full_like(source, float("nan"))
+    bounds = torch.full_like(limits, float("nan"))
+    torch.cuda.synchronize()
+    with torch.cuda.stream(side):
+        torch.cuda._sleep(200_000_000)  # ~0.1 s of the GPU's clock before they are written
+        directions.copy_(source)
+        bounds.copy_(limits)
+        counted = scene.count(origins, directions, tmax=bounds)
+        got = torch.from_dlpack(counted).clone()
+    torch.cuda.synchronize()
+    assert_same(got.cpu().numpy(), want)
+    cupy = pytest.importorskip("cupy")
+    assert_same(on_host(scene.count(origins, cupy.asarray(d), tmax=limits)), want)
+
+
 def test_a_cameras_hits_land_in_cuda_memory(bunny):
     """cuda=True: a sensor's (and host rays') answers in CUDA memory, equal to the host's."""
     v, scene = bunny

@@ -36,11 +36,12 @@ pub(super) fn borrow_rays<'py>(
     // This GPU's context current while the producers export: torch refuses to export a tensor
     // of cuda:N for a stream unless cuda:N is its current device.
     let entered = cuda.enter()?;
-    let o = dlpack::borrow(origins, "origins", 3, stream, cuda.ordinal)?;
-    let d = dlpack::borrow(directions, "directions", 3, stream, cuda.ordinal)?;
+    let mut order = dlpack::ExportOrder::new(stream);
+    let o = dlpack::borrow(origins, "origins", 3, &mut order, cuda.ordinal)?;
+    let d = dlpack::borrow(directions, "directions", 3, &mut order, cuda.ordinal)?;
     let mut bounds = Vec::new();
-    let lo = dlpack::bound(tmin, "tmin", stream, cuda.ordinal, &mut bounds)?;
-    let hi = dlpack::bound(tmax, "tmax", stream, cuda.ordinal, &mut bounds)?;
+    let lo = dlpack::bound(tmin, "tmin", &mut order, cuda.ordinal, &mut bounds)?;
+    let hi = dlpack::bound(tmax, "tmax", &mut order, cuda.ordinal, &mut bounds)?;
     drop(entered);
     let leading = broadcast_rays(&o, &d, &bounds)?;
     let count = leading.iter().product();

@@ -28,7 +28,7 @@ pub(super) fn read_to_host<'py>(cuda: &Arc<Cuda>, value: &Bound<'py, PyAny>, nam
     let stream = Stream::new(cuda)?;
     // The GPU's context current while the producer exports (torch's rule, as for rays).
     let entered = cuda.enter()?;
-    let tensor = dlpack::export(value, name, stream.raw as usize, cuda.ordinal)?;
+    let tensor = dlpack::export(value, name, &mut dlpack::ExportOrder::new(stream.raw as usize), cuda.ordinal)?;
     drop(entered);
     let CudaTensor { data, dtype, shape, strides, capsule } = tensor;
     let Some(dtype_name) = dlpack::dtype_name(dtype) else {

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::{PyCapsule, PyTuple};
+use pyo3::types::{PyCapsule, PyTuple, PyType};
 
 use crate::gpu::cuda::{CudaAllocation, Event, LEGACY_STREAM};
 use crate::trace::vulkan::cuda_rays::{CudaArray, CudaBound};
@@ -163,12 +163,52 @@ pub(super) struct CudaTensor<'py> {
     pub capsule: Bound<'py, PyCapsule>,
 }
 
+/// The consumer stream the arrays of one query are exported for (`__dlpack__(stream=...)`: each
+/// producer orders its pending writes before it). torch and cupy order them after their *current*
+/// stream, whatever the array: once one array of such a type was exported for the stream, the
+/// query's other arrays of the same type need no order of their own (`stream=-1`), which spares
+/// torch's export its stream and event (about 45 µs of Python a tensor on an H200's host). Other
+/// producers (jax: each array's own readiness) are asked for every array.
+pub(super) struct ExportOrder<'py> {
+    stream: usize,
+    ordered: Option<Bound<'py, PyType>>,
+}
+
+impl<'py> ExportOrder<'py> {
+    pub(super) fn new(stream: usize) -> ExportOrder<'py> {
+        ExportOrder { stream, ordered: None }
+    }
+
+    /// The `stream` argument of `value`'s export.
+    fn stream_for(&self, value: &Bound<'py, PyAny>) -> i64 {
+        match &self.ordered {
+            Some(kind) if value.get_type().is(kind) => -1,
+            _ => self.stream as i64,
+        }
+    }
+
+    /// After `value` was exported for the stream: its type orders the rest where it orders
+    /// against its framework's current stream.
+    fn exported(&mut self, value: &Bound<'py, PyAny>) {
+        if self.ordered.is_some() {
+            return;
+        }
+        let kind = value.get_type();
+        let module = kind.module().map(|m| m.to_string()).unwrap_or_default();
+        let current_stream = ["torch", "cupy"].iter().any(|f| module == *f || module.starts_with(&format!("{f}.")));
+        if current_stream {
+            self.ordered = Some(kind);
+        }
+    }
+}
+
 /// The CUDA array `value` exported through DLPack (its producer's pending writes ordered before
-/// `stream`), refused with a TypeError naming it (`name`) unless it lives on CUDA device `ordinal`.
+/// `order`'s stream), refused with a TypeError naming it (`name`) unless it lives on CUDA device
+/// `ordinal`.
 pub(super) fn export<'py>(
     value: &Bound<'py, PyAny>,
     name: &str,
-    stream: usize,
+    order: &mut ExportOrder<'py>,
     ordinal: i32,
 ) -> PyResult<CudaTensor<'py>> {
     match dlpack_device(value, name)? {
@@ -193,8 +233,9 @@ pub(super) fn export<'py>(
             )))
         }
     }
-    let kwargs = [("stream", stream)].into_py_dict(value.py())?;
+    let kwargs = [("stream", order.stream_for(value))].into_py_dict(value.py())?;
     let capsule = value.call_method("__dlpack__", (), Some(&kwargs))?.downcast_into::<PyCapsule>()?;
+    order.exported(value);
     // SAFETY: a "dltensor" capsule holds a DLManagedTensor (DLPack's contract), alive while the
     // capsule is (we hold it and never rename it, so its destructor frees it after us).
     let tensor = unsafe {
@@ -222,10 +263,10 @@ pub(super) fn borrow<'py>(
     value: &Bound<'py, PyAny>,
     name: &str,
     columns: usize,
-    stream: usize,
+    order: &mut ExportOrder<'py>,
     ordinal: i32,
 ) -> PyResult<Borrowed<'py>> {
-    let CudaTensor { data, dtype, shape, mut strides, capsule } = export(value, name, stream, ordinal)?;
+    let CudaTensor { data, dtype, shape, mut strides, capsule } = export(value, name, order, ordinal)?;
     let wide = match (dtype.code, dtype.bits, dtype.lanes) {
         (DLPACK_FLOAT, 32, 1) => false,
         (DLPACK_FLOAT, 64, 1) => true,
@@ -295,14 +336,14 @@ pub(super) fn collapsed_stride(shape: &[usize], strides: &[i64]) -> Option<i64> 
 pub(super) fn bound<'py>(
     value: &Bound<'py, PyAny>,
     name: &str,
-    stream: usize,
+    order: &mut ExportOrder<'py>,
     ordinal: i32,
     held: &mut Vec<Borrowed<'py>>,
 ) -> PyResult<CudaBound> {
     if let Ok(number) = value.extract::<f64>() {
         return Ok(CudaBound::All(number));
     }
-    let borrowed = borrow(value, name, 1, stream, ordinal)?;
+    let borrowed = borrow(value, name, 1, order, ordinal)?;
     let array = borrowed.array;
     held.push(borrowed);
     Ok(CudaBound::Each(array))

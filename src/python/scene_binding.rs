@@ -776,7 +776,8 @@ impl PyScene {
         let result = (|| -> PyResult<Option<Py<dlpack::PyCudaArray>>> {
             // This GPU's context current while the producer exports (as for CUDA rays).
             let entered = cuda.enter()?;
-            let borrowed = dlpack::borrow(points, "points", 3, lease.stream_handle(), cuda.ordinal);
+            let mut order = dlpack::ExportOrder::new(lease.stream_handle());
+            let borrowed = dlpack::borrow(points, "points", 3, &mut order, cuda.ordinal);
             drop(entered);
             // Points this path cannot read in place (leading axes that do not flatten, a dtype
             // that is not float: the host's path copies or refuses them) or one row repeated
