@@ -126,6 +126,17 @@ def on_cell_faces(points: np.ndarray, grid: dict, seed: int = 11) -> np.ndarray:
     return moved
 
 
+def scene_with_its_grid(device, v: np.ndarray, f: np.ndarray, method: str, seed: int):
+    """A scene of the mesh whose first large query (`VKRAY_CONTAINS_GRID=engine`) built its
+    inside grid, and `hard_points` with 20,000 of them moved onto the faces between its cells."""
+    scene = device.scene([device.mesh(v, f)])
+    points = hard_points(v, f, seed=seed)
+    scene.contains(points, method=method)
+    grid = scene._core.inside_grid(method == "winding")
+    assert_grid_decides(grid)
+    return scene, np.concatenate([points, on_cell_faces(points[:20000], grid)])
+
+
 @pytest.mark.parametrize("name, method", [("fandisk", "parity"), ("stanford-bunny", "winding")])
 def test_signed_distances_through_the_grid(device, monkeypatch, name, method):
     """On a GPU a signed distance's sign rays skip the points whose cells the scene's inside grid
@@ -133,12 +144,7 @@ def test_signed_distances_through_the_grid(device, monkeypatch, name, method):
     reference tier's, for points near and on the surface and on the faces between cells."""
     monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
     v, f = mesh_of(name)
-    scene = device.scene([device.mesh(v, f)])
-    points = hard_points(v, f, seed=7)
-    scene.contains(points, method=method)
-    grid = scene._core.inside_grid(method == "winding")
-    assert_grid_decides(grid)
-    points = np.concatenate([points, on_cell_faces(points[:20000], grid)])
+    scene, points = scene_with_its_grid(device, v, f, method, seed=7)
     signed = scene.signed_distance(points, method=method, precision="exact")
     reference = scene.signed_distance(points, method=method, precision="reference")
     wrong = np.flatnonzero(np.signbit(signed) != np.signbit(reference))
@@ -173,12 +179,7 @@ def test_contains_reads_the_grid_on_the_device(device, monkeypatch, name, method
     monkeypatch.setenv("VKRAY_CONTAINS_GRID", "engine")
     monkeypatch.setenv("VKRAY_GRID_MARKS", "device")
     v, f = mesh_of(name)
-    scene = device.scene([device.mesh(v, f)])
-    points = hard_points(v, f, seed=11)
-    scene.contains(points, method=method)
-    grid = scene._core.inside_grid(method == "winding")
-    assert_grid_decides(grid)
-    points = np.concatenate([points, on_cell_faces(points[:20000], grid)])
+    scene, points = scene_with_its_grid(device, v, f, method, seed=11)
     reference = scene.contains(points, method=method, precision="reference")
     assert 0.05 < reference.mean() < 0.9
     for kind in (np.float64, np.float32):
