@@ -271,6 +271,12 @@ impl Aabb {
         points.into_iter().fold(Aabb::EMPTY, |b, p| Aabb { min: b.min.min(p), max: b.max.max(p) })
     }
 
+    /// The box of a triangle's three corners.
+    #[inline]
+    pub fn of_corners([a, b, c]: [DVec3; 3]) -> Aabb {
+        Aabb { min: a.min(b).min(c), max: a.max(b).max(c) }
+    }
+
     pub fn union(&self, other: &Aabb) -> Aabb {
         Aabb { min: self.min.min(other.min), max: self.max.max(other.max) }
     }
