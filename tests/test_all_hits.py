@@ -385,6 +385,46 @@ def test_counts_are_made_from_the_offsets_at_first_use():
     assert hits.counts.dtype == np.int64 and hits.counts.tolist() == [[2, 0, 5], [2, 0, 3]]
 
 
+def test_ray_indices_are_made_from_the_offsets_at_first_use(device):
+    """A numpy answer comes without each hit's ray: `AllHits.ray_index` makes it from the offsets
+    when first read (the core's on all cores: numpy's repeat, at every length about its blocks of
+    4,096 rays), the same from several threads at once, and through pickling, old pickles too."""
+    import pickle
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 4095, 4096, 4097, 100_003):
+        offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 5, n))]).astype(np.int64)
+        expected = np.repeat(np.arange(n, dtype=np.int64), np.diff(offsets))
+        np.testing.assert_array_equal(vkray._core.ray_index_of_offsets(offsets), expected)
+    for bad in ([1, 2], [0, 3, 2], []):
+        with pytest.raises(ValueError, match="offsets"):
+            vkray._core.ray_index_of_offsets(np.array(bad, dtype=np.int64))
+    v, f = box()
+    scene = device.scene(device.mesh(v, f))
+    origins = np.column_stack([rng.uniform(-0.5, 1.5, (3000, 2)), np.full(3000, -1.0)])
+    hits = scene.intersect_all(origins, [0, 0, 1], outputs=["t"])
+    assert hits._ray_index is None
+    inside = ((origins[:, :2] > 0) & (origins[:, :2] < 1)).all(axis=1)
+    expected = np.repeat(np.arange(3000), np.where(inside, 2, 0))
+    assert 1000 < expected.size < 6000
+    made = []
+    threads = [threading.Thread(target=lambda: made.append(hits.ray_index)) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for rays in made:
+        np.testing.assert_array_equal(rays, expected)
+    again = pickle.loads(pickle.dumps(hits))
+    np.testing.assert_array_equal(again.ray_index, expected)
+    old = hits.__getstate__()
+    old["ray_index"] = old.pop("_ray_index") if old["_ray_index"] is not None else expected
+    revived = vkray.AllHits.__new__(vkray.AllHits)
+    revived.__setstate__(old)
+    np.testing.assert_array_equal(revived.ray_index, expected)
+    assert f"hits={expected.size}" in repr(again)
+
+
 def test_outputs_ask_for_fields(any_device, tier):
     v, f = box()
     scene = any_device.scene(any_device.mesh(v, f))

@@ -16,6 +16,7 @@ __all__ = [
     "spirv_modules",
     "host_memory_available",
     "counts_of_offsets",
+    "ray_index_of_offsets",
     "Device",
     "Mesh",
     "Scene",
@@ -62,6 +63,9 @@ def spirv_modules() -> Dict[str, bytes]:
 
 def host_memory_available() -> Optional[int]:
     """Host memory a new allocation can still count on (bytes), or None where unknown."""
+
+def ray_index_of_offsets(offsets: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Each hit's ray (int64, H) from CSR offsets (int64, N + 1; nondecreasing from 0), on all cores."""
 
 def counts_of_offsets(offsets: NDArray[np.int64]) -> NDArray[np.int64]:
     """Each ray's count of hits (int64, N) from CSR offsets (int64, N + 1), on all cores."""

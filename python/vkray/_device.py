@@ -16,7 +16,7 @@ import numpy as np
 from . import _arrays, _core, _pictures, _progress
 from ._options import HIT_FIELDS, Backend, Build, Cull, Precision, VertexFormat, check_outputs
 from ._queries import PointQuery, Query, RayQuery, SceneLike
-from ._results import AllHits, Closest, Hits, counts_of, out_arrays
+from ._results import AllHits, Closest, Hits, counts_of, out_arrays, ray_index_of
 
 
 class MeshObject(Protocol):
@@ -795,8 +795,9 @@ class Scene(SceneLike):
             opacity_threshold=q.opacity_threshold, sensor=batch.sensor))
         offsets = arrays["offsets"]
         n = len(offsets) - 1
-        rank = np.arange(len(arrays["ray_index"])) - offsets[arrays["ray_index"]]
-        slot = arrays["ray_index"] * k + rank
+        rays = ray_index_of(offsets)
+        rank = np.arange(len(rays)) - offsets[rays]
+        slot = rays * k + rank
         padded: Dict[str, np.ndarray] = {}
         for name in q.outputs:
             values = arrays[name]

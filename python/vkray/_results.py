@@ -170,7 +170,8 @@ class AllHits(_HitFields):
 
     offsets: int64 ``(N + 1,)``: ray i's hits are entries ``offsets[i]:offsets[i + 1]`` (rays in
     the flattened order of the batch shape ``S``).
-    counts: int64 ``S``: hits per ray. ray_index: int64 ``(H,)``: the ray of each hit.
+    counts: int64 ``S``: hits per ray. ray_index: int64 ``(H,)``: the ray of each hit. (numpy
+    answers make both from the offsets at first use: a caller who reads neither does not pay.)
     t, prim_id, instance_id, custom_index, geometry_id, uv, normal, position: one entry per hit,
     as `Hits` has them per ray (float64 t, uv and position), for the fields asked; else None.
     Rays in CUDA memory give every array (counts too) as a `vkray.CudaArray` on their GPU.
@@ -192,7 +193,7 @@ class AllHits(_HitFields):
         self.shape = shape
         self.precision: Precision = precision
         self.offsets: np.ndarray = arrays["offsets"]
-        self.ray_index: np.ndarray = arrays["ray_index"]
+        self._ray_index: Optional[np.ndarray] = arrays.get("ray_index")  # CUDA answers' (on the GPU)
         counts_given = arrays.get("counts")  # CUDA answers' (on the GPU)
         if isinstance(counts_given, np.ndarray):
             counts_given = counts_given.reshape(shape)
@@ -212,16 +213,32 @@ class AllHits(_HitFields):
             self._counts = counts
         return counts
 
+    @property
+    def ray_index(self) -> np.ndarray:
+        """int64 ``(H,)``: the ray (flat index) of each hit (where the answer came without them,
+        made from the offsets at first use)."""
+        rays = self._ray_index
+        if rays is None:
+            rays = ray_index_of(self.offsets)
+            self._ray_index = rays
+        return rays
+
     def __getstate__(self) -> Dict[str, Any]:
-        # The counts made now: the maker (a closure over the device) does not pickle.
+        # The counts made now: the maker (a closure over the device) does not pickle. The ray
+        # indices are not pickled where the offsets make them.
         state = dict(self.__dict__)
         state["_counts"], state["_make_counts"] = self.counts, None
+        if isinstance(self.offsets, np.ndarray):
+            state["_ray_index"] = None
         return state
 
     def __setstate__(self, state: Dict[str, Any]) -> None:
         if "counts" in state:  # pickled when counts was a plain attribute
             state["_counts"] = state.pop("counts")
+        if "ray_index" in state:  # pickled when ray_index was a plain attribute
+            state["_ray_index"] = state.pop("ray_index")
         state.setdefault("_make_counts", None)
+        state.setdefault("_ray_index", None)
         self.__dict__.update(state)
 
     def __len__(self) -> int:
@@ -240,7 +257,8 @@ class AllHits(_HitFields):
         return Hits((int(hi - lo),), fields, self.precision)
 
     def __repr__(self) -> str:
-        return f"<vkray.AllHits rays={len(self)} hits={len(self.ray_index)} precision={self.precision!r}>"
+        hits = len(self._ray_index) if self._ray_index is not None else int(self.offsets[-1])
+        return f"<vkray.AllHits rays={len(self)} hits={hits} precision={self.precision!r}>"
 
 
 class Closest(_SurfaceFields):
@@ -281,6 +299,15 @@ class Closest(_SurfaceFields):
             return f"<vkray.Closest shape={self.shape} on cuda precision={self.precision!r} fields={asked}>"
         found = int(self.hit.sum())
         return f"<vkray.Closest shape={self.shape} found={found} precision={self.precision!r} fields={asked}>"
+
+
+def ray_index_of(offsets: np.ndarray) -> np.ndarray:
+    """int64: each hit's ray, from CSR ``offsets`` (the core's on all cores where they are int64
+    as it makes them, else numpy's)."""
+    if isinstance(offsets, np.ndarray) and offsets.dtype == np.int64 and offsets.ndim == 1 and len(offsets) > 0:
+        return _core.ray_index_of_offsets(np.ascontiguousarray(offsets))
+    offsets = np.asarray(offsets)
+    return np.repeat(np.arange(len(offsets) - 1, dtype=np.int64), np.diff(offsets))
 
 
 def counts_of(offsets: np.ndarray) -> np.ndarray:

@@ -68,6 +68,21 @@ fn counts_of_offsets<'py>(
     Ok(numpy::PyArray1::from_vec(py, counts))
 }
 
+/// Each hit's ray (int64, H) from CSR offsets (int64, N + 1; nondecreasing from 0), on all cores.
+#[pyfunction]
+fn ray_index_of_offsets<'py>(
+    py: Python<'py>,
+    offsets: numpy::PyReadonlyArray1<'py, i64>,
+) -> PyResult<Bound<'py, numpy::PyArray1<i64>>> {
+    let offsets = offsets.as_slice()?;
+    let valid = offsets.first() == Some(&0) && offsets.windows(2).all(|w| w[0] <= w[1]);
+    if !valid {
+        return Err(pyo3::exceptions::PyValueError::new_err("offsets must start at 0 and never decrease"));
+    }
+    let rays = run(py, |_| crate::trace::host_tiers::ray_indices(offsets))?;
+    Ok(numpy::PyArray1::from_vec(py, rays))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
@@ -75,6 +90,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(spirv_modules, m)?)?;
     m.add_function(wrap_pyfunction!(host_memory_available, m)?)?;
     m.add_function(wrap_pyfunction!(counts_of_offsets, m)?)?;
+    m.add_function(wrap_pyfunction!(ray_index_of_offsets, m)?)?;
     m.add_class::<device_binding::PyDevice>()?;
     m.add_class::<mesh_binding::PyMesh>()?;
     m.add_class::<scene_binding::PyScene>()?;

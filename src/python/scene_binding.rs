@@ -554,7 +554,7 @@ impl PyScene {
         traced
     }
 
-    /// Every hit of every ray: {"offsets": int64 (N+1), "ray_index": int64 (H), field: array}.
+    /// Every hit of every ray: {"offsets": int64 (N+1), field: array (H, ...)}.
     #[pyo3(signature = (origins, directions, tmin, tmax, fields, precision="fast", cull=None, mask=None, max_hits=None, contacts=false, progress=None, opacity_threshold=0.5, sensor=None))]
     #[allow(clippy::too_many_arguments)]
     fn trace_all<'py>(
@@ -586,12 +586,12 @@ impl PyScene {
             let limit = max_hits.unwrap_or(usize::MAX);
             self.tracer.all_hit_columns(scene, &rays, request, limit, &asked, interrupt)
         })?;
-        let HitColumns { offsets, ray_index, columns } = answer;
-        // No counts: `AllHits.counts` makes them from the offsets at first use
-        // (`counts_of_offsets`), 8 MB a million rays that a caller of the hits alone does not pay.
+        let HitColumns { offsets, columns } = answer;
+        // No counts and no ray indices: `AllHits` makes them from the offsets at first use
+        // (`counts_of_offsets`, `ray_index_of_offsets`), 8 MB a million rays and 8 bytes a hit
+        // that a caller of the hits alone does not pay.
         let result = PyDict::new(py);
         result.set_item("offsets", PyArray1::from_vec(py, offsets))?;
-        result.set_item("ray_index", PyArray1::from_vec(py, ray_index))?;
         for ((name, _), column) in named.into_iter().zip(columns) {
             result.set_item(name, column_array(py, column)?)?;
         }

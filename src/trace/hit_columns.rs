@@ -6,7 +6,7 @@
 use rayon::prelude::*;
 
 use super::hit_fields::{position_bytes_per_ray, Field, HitSink};
-use super::host_tiers::{write_all_hits_and_rays, AllHits};
+use super::host_tiers::{write_all_hit_columns, AllHits};
 use crate::error::{Error, Result};
 use crate::geometry::parallel::{self, try_zeroed};
 use crate::geometry::rays::Rays;
@@ -110,19 +110,6 @@ impl HitColumn {
         }
         Ok(out)
     }
-
-    /// `parts` one after another, copied on all cores.
-    pub fn joined_vecs<T: bytemuck::Pod + Send + Sync>(parts: Vec<Vec<T>>) -> Result<Vec<T>> {
-        let mut out = Vec::new();
-        let total = parts.iter().map(Vec::len).sum();
-        out.try_reserve_exact(total)
-            .map_err(|_| Error::OutOfMemory(format!("the hits' ray indices need room for {total} values")))?;
-        parallel::advise_huge_pages(&mut out);
-        for part in &parts {
-            extend(&mut out, part);
-        }
-        Ok(out)
-    }
 }
 
 /// Appends `values` to `v` on all cores (in place where `v` has room).
@@ -131,17 +118,17 @@ pub fn extend<T: bytemuck::Pod + Send + Sync>(v: &mut Vec<T>, values: &[T]) {
 }
 
 /// Every hit of every ray, as columns: ray i's hits are entries `offsets[i]..offsets[i + 1]` of
-/// `ray_index` (each hit's ray) and of each asked column, in the order asked.
+/// each asked column, in the order asked. Each hit's ray follows from the offsets
+/// (`host_tiers::ray_indices`), made where a caller asks for it.
 pub struct HitColumns {
     pub offsets: Vec<i64>,
-    pub ray_index: Vec<i64>,
     pub columns: Vec<HitColumn>,
 }
 
 impl HitColumns {
-    /// What the answer takes per hit: its asked columns and its ray index.
+    /// What the answer takes per hit: its asked columns.
     pub fn bytes_per_hit(asked: &[AskedColumn], wide: bool) -> usize {
-        8 + asked.iter().map(|&c| HitColumn::bytes_per_hit(c, wide)).sum::<usize>()
+        asked.iter().map(|&c| HitColumn::bytes_per_hit(c, wide)).sum::<usize>()
     }
 
     /// The columns of `all`'s hits (of `rays` on `scene`), written on all cores; and the records,
@@ -161,8 +148,7 @@ impl HitColumns {
                 None => sink.position = Some(column.bytes_mut()),
             }
         }
-        let mut ray_index = try_zeroed(h, "the hits' ray indices")?;
-        write_all_hits_and_rays(scene, rays, &all, &mut sink, &mut ray_index)?;
-        Ok((HitColumns { offsets: all.offsets, ray_index, columns }, all.hits))
+        write_all_hit_columns(scene, rays, &all, &mut sink)?;
+        Ok((HitColumns { offsets: all.offsets, columns }, all.hits))
     }
 }

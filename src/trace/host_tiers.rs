@@ -390,52 +390,37 @@ pub fn ray_indices(offsets: &[i64]) -> Result<Vec<i64>> {
     Ok(out)
 }
 
-/// Writes every field the sink asks for, one entry per hit of `all` (of `rays`), and each hit's
-/// ray into `ray_index`: where no field needs the hit's ray or triangle's vertices (`normal`,
-/// `position`), in one pass over the hits on all cores, a block of rays at a time, each record
-/// read from memory once for every field (a pass per field and one for the rays before: the
-/// columns of a million hits took 3 ms on an H200's host); else field by field.
-pub fn write_all_hits_and_rays(
-    scene: &Scene,
-    rays: &Rays,
-    all: &AllHits,
-    sink: &mut HitSink,
-    ray_index: &mut [i64],
-) -> Result<()> {
+/// Writes every field the sink asks for, one entry per hit of `all` (of `rays`): where no field
+/// needs the hit's ray or triangle's vertices (`normal`, `position`), in one pass over the hits on
+/// all cores, a block of rays at a time, each record read from memory once for every field (a
+/// pass per field: the columns of a million hits took 3 ms on an H200's host); else field by
+/// field.
+pub fn write_all_hit_columns(scene: &Scene, rays: &Rays, all: &AllHits, sink: &mut HitSink) -> Result<()> {
     if sink.position.is_some() || sink.field(Field::Normal).is_some() {
-        write_all_hits(scene, rays, all, sink)?;
-        ray_index.copy_from_slice(&ray_indices(&all.offsets)?);
-        return Ok(());
+        return write_all_hits(scene, rays, all, sink);
     }
     const BLOCK: usize = 4096;
     let offsets = &all.offsets;
     let n = offsets.len() - 1;
     let wide = all.wide;
-    // Each column (and the rays) cut at the same blocks of rays' hits.
+    // Each column cut at the same blocks of rays' hits.
     let mut columns: Vec<(Field, &mut [u8])> = sink.iter_mut().collect();
     let mut blocks: Vec<HitsBlock> = Vec::with_capacity(n.div_ceil(BLOCK));
-    let mut rays_rest = ray_index;
     for start in (0..n).step_by(BLOCK) {
         let hits = (offsets[(start + BLOCK).min(n)] - offsets[start]) as usize;
-        let (block_rays, tail) = std::mem::take(&mut rays_rest).split_at_mut(hits);
-        rays_rest = tail;
         let mut parts = Vec::with_capacity(columns.len());
         for (field, column) in columns.iter_mut() {
             let (part, tail) = std::mem::take(column).split_at_mut(hits * field.bytes_per_ray(wide));
             *column = tail;
             parts.push((*field, part));
         }
-        blocks.push((start, block_rays, parts));
+        blocks.push((start, parts));
     }
     let split = |h: &ReferenceHit| scene.placements[h.instance as usize].triangles.split(h.prim as usize);
     parallel::install(|| {
-        blocks.into_par_iter().for_each(|(start, block_rays, parts)| {
+        blocks.into_par_iter().for_each(|(start, parts)| {
             let end = (start + BLOCK).min(n);
-            let first = offsets[start] as usize;
-            let hits = &all.hits[first..offsets[end] as usize];
-            for ray in start..end {
-                block_rays[offsets[ray] as usize - first..offsets[ray + 1] as usize - first].fill(ray as i64);
-            }
+            let hits = &all.hits[offsets[start] as usize..offsets[end] as usize];
             for (field, out) in parts {
                 match field {
                     Field::T => write_floats(out, hits, wide, |h| [h.t]),
@@ -454,8 +439,8 @@ pub fn write_all_hits_and_rays(
     Ok(())
 }
 
-/// A block of rays' hits to write: its first ray, its hits' rays and its part of each column.
-type HitsBlock<'a> = (usize, &'a mut [i64], Vec<(Field, &'a mut [u8])>);
+/// A block of rays' hits to write: its first ray and its part of each column.
+type HitsBlock<'a> = (usize, Vec<(Field, &'a mut [u8])>);
 
 /// Each hit's `K` floats (f64 where `wide`, else f32) into `out`.
 fn write_floats<const K: usize>(

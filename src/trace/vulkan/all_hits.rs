@@ -38,7 +38,7 @@ use crate::gpu::context::Commands;
 use crate::gpu::memory::memory_barrier;
 use crate::gpu::records::{ExactHit, FastHit};
 use crate::scene::{Scene, VulkanScene};
-use crate::trace::hit_columns::{extend, AskedColumn, HitColumn, HitColumns};
+use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns};
 use crate::trace::hit_fields::Field;
 use crate::trace::host_tiers::{check_hits_fit, AllHits};
 use crate::trace::idle::{IdlePool, SpareRecords};
@@ -74,10 +74,17 @@ struct StoredHits {
 struct ColumnWay {
     asked: Vec<Field>,
     wide: bool,
-    /// Each chunk's hits' rays, and their columns in the order asked.
-    segments: Vec<(Vec<i64>, Vec<HitColumn>)>,
+    /// The columns, a segment at a time.
+    segments: Vec<Segment>,
     /// Hits stored so far.
     hits: usize,
+}
+
+/// Some chunks' hits: their columns in the order asked, with room for `room` hits.
+struct Segment {
+    hits: usize,
+    room: usize,
+    columns: Vec<HitColumn>,
 }
 
 impl ColumnWay {
@@ -100,22 +107,16 @@ impl ColumnWay {
         (total, room): (usize, usize),
         advances: &[(usize, f64)],
     ) -> Result<()> {
-        let fits = self.segments.last().is_some_and(|(rays, _)| rays.capacity() - rays.len() >= total);
+        let fits = self.segments.last().is_some_and(|s| s.room - s.hits >= total);
         if !fits {
             let room = room.max(total);
-            let mut segment: (Vec<i64>, Vec<HitColumn>) = (Vec::new(), Vec::with_capacity(self.asked.len()));
-            segment.0.try_reserve_exact(room).map_err(|_| {
-                Error::OutOfMemory(format!("the hits' ray indices need room for {room} values, which the host lacks"))
-            })?;
-            parallel::advise_huge_pages(&mut segment.0);
-            for &field in &self.asked {
-                segment.1.push(HitColumn::with_room(Some(field), room, self.wide)?);
-            }
-            self.segments.push(segment);
+            let columns = self.asked.iter().map(|&f| HitColumn::with_room(Some(f), room, self.wide));
+            self.segments.push(Segment { hits: 0, room, columns: columns.collect::<Result<_>>()? });
         }
-        let (rays, columns) = self.segments.last_mut().expect("a segment with room");
-        let before = rays.len();
-        extend(rays, bytemuck::cast_slice(&written[..8 * total]));
+        let segment = self.segments.last_mut().expect("a segment with room");
+        let before = segment.hits;
+        segment.hits += total;
+        let columns = &mut segment.columns;
         for (column, &(_, at, bytes)) in columns.iter_mut().zip(&layout.fields) {
             column.extend_from_bytes(&written[at..at + bytes]);
         }
@@ -145,26 +146,19 @@ impl ColumnWay {
         (rate * rays as f64 * 1.1) as usize
     }
 
-    /// The segments joined: each hit's ray and the asked columns.
-    fn joined(self) -> Result<(Vec<i64>, Vec<HitColumn>)> {
+    /// The segments joined: the asked columns.
+    fn joined(self) -> Result<Vec<HitColumn>> {
         let ColumnWay { asked, wide, mut segments, .. } = self;
         if segments.len() == 1 {
-            return Ok(segments.pop().expect("one segment"));
+            return Ok(segments.pop().expect("one segment").columns);
         }
-        let mut rays = Vec::with_capacity(segments.len());
         let mut columns: Vec<Vec<HitColumn>> = asked.iter().map(|_| Vec::with_capacity(segments.len())).collect();
-        for (segment_rays, segment_columns) in segments {
-            rays.push(segment_rays);
-            for (parts, column) in columns.iter_mut().zip(segment_columns) {
+        for segment in segments {
+            for (parts, column) in columns.iter_mut().zip(segment.columns) {
                 parts.push(column);
             }
         }
-        let joined = asked
-            .iter()
-            .zip(columns)
-            .map(|(&field, parts)| HitColumn::joined(Some(field), parts, wide))
-            .collect::<Result<Vec<_>>>()?;
-        Ok((HitColumn::joined_vecs(rays)?, joined))
+        asked.iter().zip(columns).map(|(&field, parts)| HitColumn::joined(Some(field), parts, wide)).collect()
     }
 }
 
@@ -266,11 +260,11 @@ impl AllHitsPath {
         let way = ColumnWay::new(asked, R::WIDE);
         let stored = self.store::<R>(batch, max_hits, 0, Some(way), &mut profile)?;
         let StoredHits { offsets, columns, .. } = stored;
-        let (ray_index, columns) = columns.expect("stored the columns' way").joined()?;
+        let columns = columns.expect("stored the columns' way").joined()?;
         profile.total = started.elapsed().as_secs_f64();
         self.shared.keep_profile(profile);
         self.shared.ctx.check_validation()?;
-        Ok(HitColumns { offsets, ray_index, columns })
+        Ok(HitColumns { offsets, columns })
     }
 
     /// Both passes over the batch's rays, their hits stored as records or (`columns`) columns.
@@ -857,15 +851,14 @@ impl AllHitsPath {
         let way = stored.columns.as_mut().expect("the columns' way");
         let asked = way.asked_columns();
         let all = AllHits { offsets, hits: records, wide: R::WIDE };
-        let (mut written, _) = HitColumns::from_records(scene, passes.storing.rays, all, &asked)?;
+        let (written, _) = HitColumns::from_records(scene, passes.storing.rays, all, &asked)?;
         let base = way.hits as i64;
         for (out, &offset) in stored.offsets[start..].iter_mut().zip(&written.offsets) {
             *out = base + offset;
         }
-        way.hits += *written.offsets.last().expect("offsets end with the total") as usize;
-        let first = start as i64;
-        parallel::install(|| written.ray_index.par_iter_mut().with_min_len(1 << 14).for_each(|ray| *ray += first));
-        way.segments.push((written.ray_index, written.columns));
+        let hits = *written.offsets.last().expect("offsets end with the total") as usize;
+        way.hits += hits;
+        way.segments.push(Segment { hits, room: hits, columns: written.columns });
         Ok(())
     }
 }

@@ -1,7 +1,8 @@
 //! A stored chunk of all hits written out as the answer's columns on the GPU
-//! (shaders/hit_columns.comp): each hit's ray, t, uv, prim, instance and geometry, as many as
-//! asked, into the lists' host-visible columns buffer, from which the host copies each column
-//! once into the answer's.
+//! (shaders/hit_columns.comp): each hit's t, uv, prim, instance and geometry, as many as asked,
+//! into the lists' host-visible columns buffer, from which the host copies each column once into
+//! the answer's. (Each hit's ray follows from the offsets: the GPU writes it for CUDA rays'
+//! answers alone, `ColumnTargets::ray_index`.)
 
 use std::mem::size_of;
 use std::sync::Arc;
@@ -20,8 +21,7 @@ use crate::trace::hit_fields::Field;
 /// The fields hit_columns.comp writes (the others need the host: position, normal, custom index).
 pub const GPU_COLUMN_FIELDS: [Field; 5] = [Field::T, Field::Uv, Field::Prim, Field::Instance, Field::Geometry];
 
-/// Where a chunk's columns lie in the columns buffer: each hit's ray (i64) first, then each asked
-/// field, 16-byte aligned, then the check (a u32: 1 where some list of the chunk is not settled).
+/// Where a chunk's columns lie in the columns buffer: each asked field, 16-byte aligned, then the check (a u32: 1 where some list of the chunk is not settled).
 pub struct ColumnLayout {
     pub hits: usize,
     /// (field, its first byte, its bytes), in the order asked.
@@ -34,7 +34,7 @@ pub struct ColumnLayout {
 impl ColumnLayout {
     /// The layout of `hits` hits' `asked` fields (f64 t and uv where `wide`).
     pub fn new(asked: &[Field], wide: bool, hits: usize) -> ColumnLayout {
-        let mut at = (8 * hits).next_multiple_of(16);
+        let mut at = 0;
         let fields = asked
             .iter()
             .map(|&field| {
@@ -121,7 +121,7 @@ impl ListColumns {
         let compute = vk::PipelineStageFlags::COMPUTE_SHADER;
         let transfer = vk::PipelineStageFlags::TRANSFER;
         let targets = ColumnTargets {
-            ray_index: columns,
+            ray_index: 0,
             t: layout.address(columns, Field::T),
             uv: layout.address(columns, Field::Uv),
             prim: layout.address(columns, Field::Prim),
