@@ -715,11 +715,9 @@ impl AllHitsPath {
         let advances: Vec<(usize, f64)> = advances.into_iter().filter(|a| a.ray < len).map(|a| (a.ray, a.t)).collect();
         if let (Some(way), Some((layout, ..))) = (&mut stored.columns, &columns) {
             let written = lists.written_columns(layout.bytes);
-            let (seen_out, offsets_out) =
-                (&mut stored.seen[range.clone()], &mut stored.offsets[start..start + len + 1]);
-            if layout.settled(written)
-                && place_settled(seen, passes.max_hits, (base as u64, total), seen_out, offsets_out)
-            {
+            // (The query's hits seen are not kept: only the records' way settles lists from them.)
+            let offsets_out = &mut stored.offsets[start..start + len + 1];
+            if layout.settled(written) && place_settled(seen, passes.max_hits, (base as u64, total), offsets_out) {
                 // The query's rate of hits so far, for the rays left (this chunk's included).
                 let rate = (way.hits as u64 + total) as f64 / (start + len) as f64;
                 let room = way.hits_left(rate, n - start);
@@ -949,18 +947,11 @@ impl StoredChunk<'_> {
     }
 }
 
-/// A stored chunk's counts and offsets where hit_columns.comp found every list settled: each
-/// ray's list as long as the hits it saw, up to `max_hits`, after the lists before it from `base`
-/// (the chunk's first hit among the query's), written on all cores with the end of the last
-/// (`offsets_out` has a ray more); false, and nothing to trust, where the lists do not add up to
-/// the chunk's `total`.
-fn place_settled(
-    seen: &[i32],
-    max_hits: usize,
-    (base, total): (u64, u64),
-    seen_out: &mut [i32],
-    offsets_out: &mut [i64],
-) -> bool {
+/// A stored chunk's offsets where hit_columns.comp found every list settled: each ray's list as
+/// long as the hits it saw, up to `max_hits`, after the lists before it from `base` (the chunk's
+/// first hit among the query's), written on all cores with the end of the last (`offsets_out` has
+/// a ray more); false, and nothing to trust, where the lists do not add up to the chunk's `total`.
+fn place_settled(seen: &[i32], max_hits: usize, (base, total): (u64, u64), offsets_out: &mut [i64]) -> bool {
     let kept = |s: i32| (s.max(0) as u64).min(max_hits as u64);
     let sums: Vec<u64> =
         parallel::install(|| seen.par_chunks(SCAN_BLOCK).map(|block| block.iter().map(|&s| kept(s)).sum()).collect());
@@ -976,19 +967,15 @@ fn place_settled(
     let (offsets_out, end) = offsets_out.split_at_mut(seen.len());
     end[0] = at as i64;
     parallel::install(|| {
-        seen_out
-            .par_chunks_mut(SCAN_BLOCK)
-            .zip(offsets_out.par_chunks_mut(SCAN_BLOCK))
-            .zip(seen.par_chunks(SCAN_BLOCK))
-            .zip(firsts)
-            .for_each(|(((seen_out, offsets_out), seen), first)| {
+        offsets_out.par_chunks_mut(SCAN_BLOCK).zip(seen.par_chunks(SCAN_BLOCK)).zip(firsts).for_each(
+            |((offsets_out, seen), first)| {
                 let mut at = first;
-                for ((seen_out, offset_out), &s) in seen_out.iter_mut().zip(offsets_out).zip(seen) {
-                    *seen_out = s;
+                for (offset_out, &s) in offsets_out.iter_mut().zip(seen) {
                     *offset_out = at as i64;
                     at += kept(s);
                 }
-            })
+            },
+        )
     });
     true
 }
