@@ -612,13 +612,10 @@ def _join(parts: Sequence[Optional[np.ndarray]]) -> Optional[np.ndarray]:
 
 def _join_all_hits(shape: Tuple[int, ...], parts: Sequence[AllHits], starts: Sequence[int]) -> AllHits:
     """The pieces' `AllHits` as one: each piece's hits follow the previous pieces', so its offsets
-    shift by the hits before it and its ray indices by the rays before it."""
-    hits_before = np.cumsum([0] + [len(p.ray_index) for p in parts])
+    shift by the hits before it (the ray indices, made from the offsets, follow)."""
+    hits_before = np.cumsum([0] + [int(p.offsets[-1]) for p in parts])
     offsets = [parts[0].offsets[:1]] + [p.offsets[1:] + h for p, h in zip(parts, hits_before)]
-    arrays: Dict[str, np.ndarray] = {
-        "offsets": np.concatenate(offsets),
-        "ray_index": np.concatenate([p.ray_index + s for p, s in zip(parts, starts)]),
-    }
+    arrays: Dict[str, np.ndarray] = {"offsets": np.concatenate(offsets)}
     for name in HIT_FIELDS:
         joined = _join([getattr(p, name) for p in parts])
         if joined is not None:
