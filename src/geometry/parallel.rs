@@ -101,10 +101,12 @@ pub fn install<R: Send>(work: impl FnOnce() -> R + Send) -> R {
     }
 }
 
-/// `dst.copy_from_slice(src)` in pieces of a megabyte on all cores (host staging passes).
+/// `dst.copy_from_slice(src)` in pieces of 128 KiB on all cores (host staging passes). Pieces of
+/// a megabyte left a chunk's 2 MB of counts to two cores: on the H200's 16, a million rays' `t`
+/// unpacked in 0.13 ms instead of 0.21, and every field of a closest hit in 0.73 instead of 1.75.
 pub fn copy(dst: &mut [u8], src: &[u8]) {
     use rayon::prelude::*;
-    const PIECE_BYTES: usize = 1 << 20;
+    const PIECE_BYTES: usize = 1 << 17;
     assert_eq!(dst.len(), src.len(), "a parallel copy's two sides differ in length");
     install(|| {
         dst.par_chunks_mut(PIECE_BYTES).zip(src.par_chunks(PIECE_BYTES)).for_each(|(d, s)| d.copy_from_slice(s))

@@ -827,14 +827,6 @@ impl Drop for PinnedPair {
     }
 }
 
-/// Copies `dst.len()` bytes on all cores (the pinned side and a caller's array).
-fn copy_on_all_cores(dst: &mut [u8], src: &[u8]) {
-    use rayon::prelude::*;
-    crate::geometry::parallel::install(|| {
-        dst.par_chunks_mut(1 << 20).zip(src.par_chunks(1 << 20)).for_each(|(d, s)| d.copy_from_slice(s))
-    });
-}
-
 impl Stream {
     /// Copies `src` into device memory at `dst`, through two pinned buffers where the driver
     /// gives them (the host fills one while the other's chunk crosses the bus), else straight
@@ -875,7 +867,7 @@ impl Stream {
             }
             // SAFETY: the buffer holds `PINNED_CHUNK` bytes and no copy reads it now.
             let pinned = unsafe { std::slice::from_raw_parts_mut(pair.buffer(k), len) };
-            copy_on_all_cores(pinned, &src[at..at + len]);
+            crate::geometry::parallel::copy(pinned, &src[at..at + len]);
             // SAFETY: the chunk lies within the caller's device memory; the pinned bytes stay
             // unchanged until this chunk's event.
             unsafe { self.copy_from_host(dst + at as u64, pair.buffer(k), len)? };
