@@ -454,6 +454,60 @@ def test_large_arrays_cross_in_chunks(bunny):
     assert_same(on_host(scene.distance(cuda(p), precision="exact")), want.distance)
 
 
+def lent(array: np.ndarray) -> bool:
+    """Whether ``array``'s memory is a page-locked block vkray lent (its base chain holds one)."""
+    while array is not None:
+        if type(array).__name__ == "HostBlock":
+            return True
+        array = getattr(array, "base", None)
+    return False
+
+
+def test_answers_through_the_host_are_made_in_pinned_memory(bunny, monkeypatch):
+    """A query of CUDA arrays through the host makes its answers in page-locked blocks, copied to
+    CUDA memory from there; only its own thread's answers, only while it runs (an error included):
+    four threads at once, each a CUDA query and then a numpy one, the same answers as numpy's."""
+    v, scene = bunny
+    made = []
+    through_host = vkray._device.Scene._through_host
+
+    def spying(self, query, run):
+        def kept(scene_, q):
+            answer = run(scene_, q)
+            made.append(answer)
+            return answer
+        return through_host(self, query, kept)
+
+    monkeypatch.setattr(vkray._device.Scene, "_through_host", spying)
+    sets = [points_around(v, 150_001 + k, seed=40 + k) for k in range(4)]  # 3.6 MB of positions each
+    fields = ["distance", "position", "prim_id", "uv", "normal"]
+    expected = [scene.closest_points(p, precision="exact", outputs=fields) for p in sets]
+    assert not any(lent(getattr(e, name)) for e in expected for name in fields)
+
+    def work(k):
+        runs = []
+        for _ in range(3):
+            found = scene.closest_points(cuda(sets[k]), precision="exact", outputs=fields)
+            after = scene.closest_points(sets[k], precision="exact", outputs=fields)
+            runs.append(({name: on_host(getattr(found, name)) for name in fields}, after))
+        return runs
+
+    for k, runs in enumerate(oracle.in_threads(len(sets), work)):
+        for found, after in runs:
+            for name in fields:
+                assert_same(found[name], getattr(expected[k], name), err_msg=name)
+                assert_same(getattr(after, name), getattr(expected[k], name), err_msg=name)
+                assert not lent(getattr(after, name)), name  # a numpy query's answers are numpy's
+    assert len(made) == 12
+    assert all(lent(answer.position) and lent(answer.distance) for answer in made)
+    bad = points_around(v, 300_000, seed=50)
+    bad[123] = np.nan
+    with pytest.raises(ValueError, match="123"):
+        scene.distance(cuda(bad), precision="exact")
+    assert not lent(scene.distance(bad[:122], precision="exact"))  # the error left no pinned answers on
+    assert not lent(scene.distance(points_around(v, 300_000, seed=51), precision="exact"))
+
+
 def test_one_ray_and_one_point_keep_their_shapes(bunny):
     v, scene = bunny
     o, d = oracle.random_rays(v, 1, seed=13)

@@ -753,6 +753,23 @@ fn pin(bytes: usize) -> Option<usize> {
     (result == sys::CUresult::CUDA_SUCCESS).then_some(pointer as usize)
 }
 
+/// Whether `pointer` lies in page-locked host memory CUDA knows (`cuMemHostAlloc`'s, as a
+/// `HostBlock`'s): a copy from there crosses the bus by DMA, with no staging of the driver's or
+/// vkray's (`Stream::write_through_pinned`). The context must be current.
+pub fn is_pinned(pointer: *const u8) -> bool {
+    let mut kind = 0u32;
+    // SAFETY: the memory type attribute is a CUmemorytype (a u32) written into `kind`; any
+    // address may be asked (memory CUDA does not know answers an error).
+    let result = unsafe {
+        sys::cuPointerGetAttribute(
+            &mut kind as *mut u32 as *mut c_void,
+            sys::CUpointer_attribute::CU_POINTER_ATTRIBUTE_MEMORY_TYPE,
+            pointer as sys::CUdeviceptr,
+        )
+    };
+    result == sys::CUresult::CUDA_SUCCESS && kind == sys::CUmemorytype::CU_MEMORYTYPE_HOST as u32
+}
+
 /// Frees page-locked memory of the current context (its result ignored: after a fork, or with
 /// the context gone, there is nothing left to free).
 fn unpin(pointer: usize) {

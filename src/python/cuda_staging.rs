@@ -11,7 +11,7 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
 use super::dlpack::{self, CudaTensor, PyCudaArray};
-use crate::gpu::cuda::{Cuda, CudaAllocation, HostBlock, Stream};
+use crate::gpu::cuda::{is_pinned, Cuda, CudaAllocation, HostBlock, Stream};
 
 /// A CUDA array's elements read into host memory: the bytes its strides span, with the numpy
 /// dtype, shape and byte strides that view them.
@@ -84,6 +84,42 @@ pub(super) fn read_to_host<'py>(cuda: &Arc<Cuda>, value: &Bound<'py, PyAny>, nam
 /// driver's pageable staging and fresh pages: 1M float32 rays' two arrays took about 3.4 ms
 /// through pageable memory on an H200.
 const THROUGH_PINNED_BYTES: usize = 1 << 20;
+
+thread_local! {
+    /// The GPU whose page-locked blocks this thread's query answers are made in, while a query of
+    /// CUDA arrays runs through the host (`PyDevice.pinned_answers`): its answers then cross the
+    /// bus by DMA from where they were written, with no copy into staging on the host.
+    static PINNED_ANSWERS: std::cell::RefCell<Option<Arc<Cuda>>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Makes this thread's answers in `cuda`'s page-locked blocks (None: in numpy's memory again).
+pub(super) fn set_pinned_answers(cuda: Option<Arc<Cuda>>) {
+    PINNED_ANSWERS.with(|held| *held.borrow_mut() = cuda);
+}
+
+/// An uninitialized array of `shape` and `dtype` in a page-locked block, where this thread's
+/// answers are made there (`set_pinned_answers`) and the array is large enough to gain from it
+/// (`THROUGH_PINNED_BYTES`); else None (numpy's `empty` then).
+pub(super) fn pinned_empty<'py>(
+    py: Python<'py>,
+    shape: &[usize],
+    dtype: &str,
+) -> PyResult<Option<Bound<'py, numpy::PyUntypedArray>>> {
+    let Some(cuda) = PINNED_ANSWERS.with(|held| held.borrow().clone()) else { return Ok(None) };
+    let numpy = py.import("numpy")?;
+    let itemsize: usize = numpy.getattr("dtype")?.call1((dtype,))?.getattr("itemsize")?.extract()?;
+    let bytes = shape.iter().product::<usize>() * itemsize;
+    if bytes < THROUGH_PINNED_BYTES {
+        return Ok(None);
+    }
+    let block = py.detach(|| -> crate::Result<Option<HostBlock>> {
+        let _current = cuda.enter()?;
+        Ok(HostBlock::take(&cuda, bytes))
+    })?;
+    let Some(block) = block else { return Ok(None) };
+    let array = lend(py, block)?.call_method1("view", (dtype,))?.call_method1("reshape", (shape.to_vec(),))?;
+    Ok(Some(array.downcast_into::<numpy::PyUntypedArray>()?))
+}
 
 /// The Python object that owns a `HostBlock` lent as a numpy array's memory (the array's base):
 /// the block goes back to the idle ones when the array is gone.
@@ -193,7 +229,11 @@ pub(super) fn write_from_host(
     let (allocation, ready) = bytes.py().detach(|| -> crate::Result<_> {
         let _current = cuda.enter()?;
         let allocation = CudaAllocation::new(&stream, host.len())?;
-        if host.len() >= THROUGH_PINNED_BYTES {
+        if is_pinned(host.as_ptr()) {
+            // An answer written into a lent block (`pinned_empty`): straight across the bus.
+            // SAFETY: as below.
+            unsafe { stream.copy_from_host(allocation.pointer, host.as_ptr(), host.len())? };
+        } else if host.len() >= THROUGH_PINNED_BYTES {
             // SAFETY: the allocation is fresh device memory of this context with room for the
             // bytes; it synchronizes the stream before returning.
             unsafe { stream.write_through_pinned(allocation.pointer, host)? };

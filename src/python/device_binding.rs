@@ -256,6 +256,16 @@ impl PyDevice {
         cuda_staging::write_from_host(&cuda, bytes, dtype, shape)
     }
 
+    /// Makes this thread's query answers (from now until `pinned_answers(False)`) in page-locked
+    /// memory of the device's GPU, from which `cuda_write` copies them by DMA alone: for a query
+    /// of CUDA arrays that runs through the host (`Scene._through_host`). Arrays under 1 MiB, and
+    /// any where the driver pins no more, stay numpy's.
+    fn pinned_answers(&self, py: Python<'_>, on: bool) -> PyResult<()> {
+        let cuda = if on { Some(self.cuda_for(py, None)?) } else { None };
+        cuda_staging::set_pinned_answers(cuda);
+        Ok(())
+    }
+
     #[getter]
     fn get_chunk_rays(&self) -> usize {
         self.tracer.chunk_rays()

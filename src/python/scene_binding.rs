@@ -160,6 +160,9 @@ fn sensor_rays(d: &Bound<'_, PyDict>) -> PyResult<SensorRays> {
 /// A new uninitialized numpy array (numpy raises MemoryError where it cannot be had); the core
 /// writes every element before the caller sees it.
 fn empty<'py>(py: Python<'py>, shape: &[usize], dtype: &str) -> PyResult<Bound<'py, PyUntypedArray>> {
+    if let Some(pinned) = super::cuda_staging::pinned_empty(py, shape, dtype)? {
+        return Ok(pinned);
+    }
     let array = py.import("numpy")?.getattr("empty")?.call1((shape.to_vec(), dtype))?;
     Ok(array.downcast_into::<PyUntypedArray>()?)
 }

@@ -186,11 +186,16 @@ fn write_hit_fields(
         }
     }
     parallel::install(|| {
-        blocks.into_par_iter().enumerate().for_each(|(b, pieces)| {
+        // Each row's hit made once for all its columns (a closure call and a record's copy a
+        // field a row before).
+        blocks.into_par_iter().enumerate().for_each_init(Vec::new, |hits, (b, pieces)| {
+            let first = b * FIELD_BLOCK_ROWS;
+            let Some(rows) = pieces.first().map(|(_, width, piece)| piece.len() / width) else { return };
+            hits.clear();
+            hits.extend((first..first + rows).map(&hit));
             for (column, width, piece) in pieces {
-                for (k, dst) in piece.chunks_exact_mut(width).enumerate() {
-                    let i = b * FIELD_BLOCK_ROWS + k;
-                    write_hit_column(scene, column, wide, hit(i), || point(i), dst);
+                for ((k, dst), hit) in piece.chunks_exact_mut(width).enumerate().zip(hits.iter()) {
+                    write_hit_column(scene, column, wide, *hit, || point(first + k), dst);
                 }
             }
         })
