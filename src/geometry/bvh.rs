@@ -21,6 +21,44 @@ pub struct Node {
 pub struct Bvh {
     nodes: Vec<Node>,
     items: Vec<u32>,
+    /// Each item's box in leaf order (`items`' order), in f32 rounded outward: `nearest` bounds
+    /// an item by it before visiting it, read beside its neighbours' rather than made from the
+    /// item (a triangle's three corners fetched through its indices), at half an f64 box's bytes.
+    item_boxes: Vec<ItemBox>,
+}
+
+/// An item's box in f32, every bound rounded outward (it holds the f64 box it was made from).
+#[derive(Clone, Copy)]
+struct ItemBox {
+    min: [f32; 3],
+    max: [f32; 3],
+}
+
+impl ItemBox {
+    fn around(b: &Aabb) -> ItemBox {
+        // The nearest f32, moved one step out where it rounded inward (NaN stays NaN).
+        let down = |x: f64| {
+            let f = x as f32;
+            if f64::from(f) > x {
+                f.next_down()
+            } else {
+                f
+            }
+        };
+        let up = |x: f64| {
+            let f = x as f32;
+            if f64::from(f) < x {
+                f.next_up()
+            } else {
+                f
+            }
+        };
+        ItemBox { min: b.min.to_array().map(down), max: b.max.to_array().map(up) }
+    }
+
+    fn aabb(&self) -> Aabb {
+        Aabb { min: DVec3::from_array(self.min.map(f64::from)), max: DVec3::from_array(self.max.map(f64::from)) }
+    }
 }
 
 /// The deepest a leaf lies: the GPU's closest-point and winding shaders walk these trees with
@@ -36,7 +74,11 @@ const STACK: usize = 64;
 impl Bvh {
     /// `boxes` must be conservative: the traversal trusts them to hold every hit.
     pub fn build(boxes: &[Aabb]) -> Bvh {
-        let mut bvh = Bvh { nodes: Vec::with_capacity(2 * boxes.len() / LEAF_ITEMS + 1), items: Vec::new() };
+        let mut bvh = Bvh {
+            nodes: Vec::with_capacity(2 * boxes.len() / LEAF_ITEMS + 1),
+            items: Vec::new(),
+            item_boxes: Vec::new(),
+        };
         let mut items: Vec<u32> = (0..boxes.len() as u32).collect();
         if boxes.is_empty() {
             return bvh;
@@ -67,13 +109,14 @@ impl Bvh {
             todo.push((left, depth + 1, lo, lo + mid));
             todo.push((left + 1, depth + 1, lo + mid, hi));
         }
+        bvh.item_boxes = items.iter().map(|&i| ItemBox::around(&boxes[i as usize])).collect();
         bvh.items = items;
         bvh
     }
 
     /// Calls `visit` with every item whose box may hold something nearer than `*best`, by
-    /// `lower_bound` of its box (a distance no item in the box can beat), nearer boxes first;
-    /// `visit` may lower `*best`.
+    /// `lower_bound` of its box (a distance no item in the box can beat; the item's own box, in
+    /// f32 rounded outward, last), nearer boxes first; `visit` may lower `*best`.
     pub fn nearest(&self, lower_bound: impl Fn(&Aabb) -> f64, best: &mut f64, mut visit: impl FnMut(u32, &mut f64)) {
         if self.nodes.is_empty() {
             return;
@@ -89,8 +132,12 @@ impl Bvh {
             }
             let node = &self.nodes[index as usize];
             if node.count > 0 {
-                for &item in &self.items[node.first as usize..(node.first + node.count) as usize] {
-                    visit(item, best);
+                let leaf = node.first as usize..(node.first + node.count) as usize;
+                for (&item, own) in self.items[leaf.clone()].iter().zip(&self.item_boxes[leaf]) {
+                    // Most of a leaf's items end here, by their own boxes.
+                    if lower_bound(&own.aabb()) <= *best {
+                        visit(item, best);
+                    }
                 }
                 continue;
             }
@@ -318,5 +365,71 @@ mod tests {
         assert!(met.windows(2).all(|w| w[0] < w[1]), "an item met twice");
         assert!(expected.iter().all(|i| met.binary_search(i).is_ok()), "a box the ray enters was not met");
         assert!(met.len() < boxes.len() / 4, "the hierarchy pruned little: {} of {}", met.len(), boxes.len());
+    }
+
+    /// An item's f32 box holds its f64 box, one f32 step at most beyond each bound, at any
+    /// magnitude and sign (values f32 holds exactly stay as they are).
+    #[test]
+    fn item_boxes_hold_their_boxes_rounded_outward() {
+        let values = [0.0, -0.0, 1.0, 0.1, -0.1, 1e7 + 0.3, -1e7 - 0.3, 3.4e38, -3.4e38, 1e-40, 1.5, 2f64.powi(-149)];
+        for &lo in &values {
+            for &extent in &[0.0, 1e-12, 0.25, 1e6] {
+                let b = Aabb { min: DVec3::splat(lo), max: DVec3::splat(lo + extent) };
+                let own = ItemBox::around(&b).aabb();
+                assert!(own.min.cmple(b.min).all() && own.max.cmpge(b.max).all(), "{lo} {extent}: not held");
+                let within_a_step = |f: f64, x: f64, outward: fn(f32) -> f32| {
+                    let exact = (x as f32) as f64 == x;
+                    if exact {
+                        f == x
+                    } else {
+                        f64::from(outward(f as f32)) != f && (f - x).abs() <= (f - f64::from(outward(f as f32))).abs()
+                    }
+                };
+                assert!(
+                    within_a_step(own.min.x, b.min.x, f32::next_down),
+                    "{lo} {extent}: min {} for {}",
+                    own.min.x,
+                    b.min.x
+                );
+                assert!(
+                    within_a_step(own.max.x, b.max.x, f32::next_up),
+                    "{lo} {extent}: max {} for {}",
+                    own.max.x,
+                    b.max.x
+                );
+            }
+        }
+    }
+
+    /// The nearest item by distance from points, through `nearest` (its boxes and the items' own
+    /// boxes pruning), equals a scan of every item: spheres about scattered centres.
+    #[test]
+    fn nearest_finds_what_a_scan_of_every_item_finds() {
+        let centres: Vec<DVec3> = (0..3000)
+            .map(|i| DVec3::new((i * 37 % 101) as f64 * 0.31, (i * 53 % 97) as f64 * 0.29, (i * 71 % 89) as f64 * 0.37))
+            .collect();
+        let radius = 0.05;
+        let boxes: Vec<Aabb> = centres.iter().map(|&c| Aabb { min: c - radius, max: c + radius }).collect();
+        let bvh = Bvh::build(&boxes);
+        let gap = |b: &Aabb, p: DVec3| (b.min - p).max(p - b.max).max(DVec3::ZERO).length();
+        for k in 0..200 {
+            let p = DVec3::new(k as f64 * 0.17 % 31.0, k as f64 * 0.23 % 29.0, k as f64 * 0.41 % 33.0) - 1.0;
+            let distance = |i: u32| ((p - centres[i as usize]).length() - radius).max(0.0);
+            let scanned = (0..centres.len() as u32).map(|i| (distance(i), i)).min_by(|a, b| a.partial_cmp(b).unwrap());
+            let mut best = f64::INFINITY;
+            let mut found = None;
+            bvh.nearest(
+                |b| gap(b, p),
+                &mut best,
+                |i, best| {
+                    let d = distance(i);
+                    if found.is_none_or(|f| (d, i) < f) {
+                        found = Some((d, i));
+                        *best = d;
+                    }
+                },
+            );
+            assert_eq!(found, scanned, "point {p}");
+        }
     }
 }

@@ -468,20 +468,11 @@ impl<'a> ReferenceTracer<'a> {
                 // distance so far, or the limit's.
                 let mut reach_squared = best.map_or(limit, |b| b.distance);
                 let before = reach_squared;
-                let pad = set.triangles.item_pad();
-                let spheres = set.triangles.is_spheres();
+                // (Each item bounded by its own box first, in `nearest`: most of a leaf's end there.)
                 set.triangles.bvh().nearest(
                     |b| weighted_gap(b, local, weights, scale) * (1.0 - 2e-12),
                     &mut reach_squared,
                     |prim, reach_squared| {
-                        // A triangle's own box (the one the hierarchy holds it by) is a tighter
-                        // bound than its leaf's: most of a leaf's triangles end here.
-                        if !spheres {
-                            let own = Aabb::of_corners(set.triangles.triangle(prim as usize)).padded(pad);
-                            if weighted_gap(&own, local, weights, scale) * (1.0 - 2e-12) > *reach_squared {
-                                return;
-                            }
-                        }
                         let hit = measure_item(set, instance, prim, p, scale, moved);
                         if hit.distance <= limit && best.is_none_or(|b| hit.is_before(&b)) {
                             best = Some(hit);
