@@ -162,6 +162,14 @@ def point_table(report: Report, engines: Engines, points: np.ndarray, repeat: in
             "lavapipe": (lambda: vulkan.signed_distance(points)) if vulkan else None,
         },
     }
+    if PRECISION != "exact":
+        # The exact tier's signs come through the scene's inside grid (the reference tier's, each
+        # point's own test), its distances from the same search: the same answers, checked here.
+        same = np.array_equal(cpu.signed_distance(points, precision="exact"), cpu.signed_distance(points, precision=PRECISION))
+        queries[f"signed distance, exact tier ({'the same answers' if same else 'ANSWERS DIFFER'})"] = {
+            VKRAY: lambda: cpu.signed_distance(points, precision="exact"),
+            "open3d": lambda: o3s.compute_signed_distance(tensor),
+        }
     rows = []
     for query, runs in queries.items():
         seconds = {e: best_run(repeat, run, warm=True)[0] for e, run in runs.items() if run is not None}
