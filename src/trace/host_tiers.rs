@@ -780,10 +780,16 @@ pub fn closest_points(
     in_blocks(n, interrupt, |range| {
         let order = &order.as_slice()[range.clone()];
         parallel::install(|| {
-            sorted[range].par_iter_mut().zip(order).with_min_len(64).for_each_init(
+            // The block's points gathered in the curve's order first: a pass whose reads overlap,
+            // where each search would wait for its point's.
+            let gathered: Vec<DVec3> = order
+                .par_iter()
+                .with_min_len(4096)
+                .map(|&i| DVec3::from_array(points.row_f64(i as usize)) - scene.center)
+                .collect();
+            sorted[range].par_iter_mut().zip(gathered).with_min_len(64).for_each_init(
                 || None,
-                |hint, (hit, &i)| {
-                    let p = DVec3::from_array(points.row_f64(i as usize)) - scene.center;
+                |hint, (hit, p)| {
                     *hit = tracer.closest_point_from(p, 0xFF, max_distance, *hint);
                     *hint = hit.map(|h| (h.instance, h.prim)).or(*hint);
                 },
