@@ -660,6 +660,94 @@ impl PlainPacker<'_> {
     }
 }
 
+/// `K` rays packed as `PlainPacker::ray` packs each, as lanes side by side (one array an axis):
+/// origins in the frame, directions, and the interval every ray shares.
+pub struct PlainLanes<const K: usize> {
+    pub origins: [[f32; K]; 3],
+    pub directions: [[f32; K]; 3],
+    pub interval: [f32; 2],
+}
+
+impl PlainPacker<'_> {
+    /// Rays `first..first + K` packed as lanes (as `ray` packs each), where all K exist and every
+    /// one is valid and near the scene; else None (`ray` or `pack` then). Loops over lanes with no
+    /// branch, so that the lanes are computed side by side in vectors.
+    #[inline(always)]
+    pub fn lanes<const K: usize>(&self, first: usize) -> Option<PlainLanes<K>> {
+        let PlainRays { origins, shared_origin, directions, interval } = self.plain;
+        // The rays a few packets on, asked of memory now: a packet's trace evicts them from the
+        // caches, and waiting for them was most of a packet's packing with rays of their own
+        // origins.
+        prefetch(directions, 3 * (first + 4 * K), 3 * K);
+        if !shared_origin {
+            prefetch(origins, 3 * (first + 4 * K), 3 * K);
+        }
+        let directions = &directions.get(3 * first..3 * (first + K))?[..3 * K];
+        let mut lanes = PlainLanes { origins: [[0.0; K]; 3], directions: [[0.0; K]; 3], interval };
+        let mut given = [[0.0f32; K]; 3];
+        if shared_origin {
+            let shared = origins.get(..3)?;
+            for axis in 0..3 {
+                given[axis] = [shared[axis]; K];
+            }
+        } else {
+            let origins = &origins.get(3 * first..3 * (first + K))?[..3 * K];
+            for lane in 0..K {
+                for axis in 0..3 {
+                    given[axis][lane] = origins[3 * lane + axis];
+                }
+            }
+        }
+        for lane in 0..K {
+            for axis in 0..3 {
+                lanes.directions[axis][lane] = directions[3 * lane + axis];
+            }
+        }
+        // As `ray`: each origin into the frame in f64, its distance from the bounds' centre
+        // summed in `length_squared`'s order.
+        let (shift, center) = (self.frame.shift.to_array(), self.frame.bounds_center.to_array());
+        let mut far = [0.0f64; K];
+        for axis in 0..3 {
+            for lane in 0..K {
+                let near = f64::from(given[axis][lane]) - shift[axis];
+                let off = near - center[axis];
+                far[lane] += off * off;
+                lanes.origins[axis][lane] = near as f32;
+            }
+        }
+        let mut refused = 0u32;
+        for lane in 0..K {
+            let [ox, oy, oz] = [given[0][lane], given[1][lane], given[2][lane]];
+            let [dx, dy, dz] = [0, 1, 2].map(|axis| lanes.directions[axis][lane]);
+            // NaN where any is infinite or NaN (a sum of comparisons packs poorly in vectors).
+            let finite = (ox * 0.0 + oy * 0.0 + oz * 0.0 + dx * 0.0 + dy * 0.0 + dz * 0.0) == 0.0;
+            let zero = dx.abs().max(dy.abs()).max(dz.abs()) == 0.0;
+            refused |= u32::from(!finite | zero | (far[lane] > self.frame.far_squared));
+        }
+        (refused == 0).then_some(lanes)
+    }
+}
+
+/// Asks the caches for `values[at..at + len]` (what of it exists), without waiting.
+#[inline(always)]
+fn prefetch(values: &[f32], at: usize, len: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let end = values.len().min(at + len);
+        // One line of 64 bytes in 16 floats.
+        for k in (at..end).step_by(16) {
+            // SAFETY: a prefetch reads nothing and cannot fault; the address is inside `values`.
+            unsafe {
+                std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                    values.as_ptr().add(k) as *const i8
+                )
+            };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (values, at, len);
+}
+
 /// How far a far ray's origin was advanced before packing: `t` (in units of its direction) for
 /// the ray at position `ray` of the packed chunk.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -15,7 +15,7 @@ use crate::embree::api::{
 use crate::error::{invalid_value, Error, Result};
 use crate::geometry::parallel::{self, try_vec, try_zeroed};
 use crate::geometry::precision::Cull;
-use crate::geometry::rays::{Advance, Frame, PlainPacker, Rays, RAY_FLOATS};
+use crate::geometry::rays::{Advance, Frame, PlainLanes, PlainPacker, Rays, RAY_FLOATS};
 use crate::geometry::reference::ReferenceHit;
 use crate::scene::{CpuScene, MeshKind, Scene};
 use crate::trace::hit_fields::{Field, HitSink};
@@ -140,6 +140,162 @@ fn power_of_two(k: i32) -> f64 {
     f64::from_bits(((k + 1023) as u64) << 52)
 }
 
+/// Plain lanes (`PlainPacker::lanes`) into `packet` as `embree_ray` makes each ray, with each
+/// lane's `t_unit`, where every factor is a normal f32 and each direction's longest component a
+/// normal one (false otherwise: `embree_ray` then). No branch a lane, so that the lanes are
+/// scaled side by side (a ray at a time, the packing cost a third of a camera ray's closest hit).
+#[inline(always)]
+fn embree_lanes<const K: usize>(lanes: &PlainLanes<K>, units: Units, ready: &mut ReadyPacket<K>) -> bool {
+    let k = units.inverse_exponent;
+    let Some(o) = normal_power_of_two(k) else { return false };
+    let ReadyPacket { packet, t_units, .. } = ready;
+    let [dx, dy, dz] = &lanes.directions;
+    let mut refused = 0u32;
+    for lane in 0..K {
+        let bits = dx[lane].abs().max(dy[lane].abs()).max(dz[lane].abs()).to_bits();
+        // `exponent_at_or_above` of a normal longest component (the lanes' are finite).
+        let exponent = (bits >> 23) as i32;
+        let up = exponent - 127 + i32::from(bits & 0x7f_ffff != 0);
+        let (down_bits, t_bits) = (127 - up, 127 + k + up);
+        let normal = |bits: i32| (1..=254).contains(&bits);
+        refused |= u32::from((exponent == 0) | !normal(down_bits) | !normal(t_bits));
+        let d = f32::from_bits((down_bits.clamp(1, 254) as u32) << 23);
+        let t = f32::from_bits((t_bits.clamp(1, 254) as u32) << 23);
+        packet.dir_x[lane] = dx[lane] * d;
+        packet.dir_y[lane] = dy[lane] * d;
+        packet.dir_z[lane] = dz[lane] * d;
+        packet.tnear[lane] = (lanes.interval[0] * t).min(f32::MAX);
+        packet.tfar[lane] = (lanes.interval[1] * t).min(f32::MAX);
+        t_units[lane] = units.unit * f64::from_bits(((1023 - up).clamp(1, 2046) as u64) << 52);
+    }
+    for lane in 0..K {
+        packet.org_x[lane] = lanes.origins[0][lane] * o;
+        packet.org_y[lane] = lanes.origins[1][lane] * o;
+        packet.org_z[lane] = lanes.origins[2][lane] * o;
+    }
+    refused == 0
+}
+
+/// A packet of Embree's made ready: its rays, the lanes that hold one (`valid`), and what each
+/// lane's `t` is multiplied by to be the caller's (`embree_ray`).
+struct ReadyPacket<const K: usize> {
+    packet: RtcRayHitPacket<K>,
+    valid: RtcValid<K>,
+    t_units: [f64; K],
+}
+
+impl<const K: usize> ReadyPacket<K> {
+    fn new() -> ReadyPacket<K> {
+        ReadyPacket { packet: RtcRayHitPacket::default(), valid: RtcValid([0i32; K]), t_units: [1.0f64; K] }
+    }
+
+    /// Made ready again for new rays (filled in place: a packet is 700 bytes and more, whose
+    /// copies cost more than its packing): no lane valid, no hit.
+    #[inline(always)]
+    fn clear(&mut self) {
+        self.valid = RtcValid([0i32; K]);
+        self.packet.geom_id = [INVALID_ID; K];
+        self.packet.inst_id = [INVALID_ID; K];
+    }
+
+    /// The rays of `packed` (at most `K` packed rays), lane k's mask `mask(k)`.
+    fn fill_packed(&mut self, packed: &[f32], mask: impl Fn(usize) -> u8, units: Units) {
+        self.clear();
+        let ReadyPacket { packet, valid, t_units } = self;
+        for (lane, ray) in packed.chunks_exact(RAY_FLOATS).enumerate() {
+            let (r, t_unit) = embree_ray(ray, mask(lane), units);
+            [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
+            [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
+            (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
+            (valid.0[lane], t_units[lane]) = (-1, t_unit);
+        }
+    }
+}
+
+/// Fills `ready` (but its masks) with plain rays `first..first + K` (`PlainPacker::lanes`,
+/// `embree_lanes`), where they take that way; false otherwise, and the packet is to be filled
+/// again. In AVX2's vectors where the CPU has them (the lanes side by side: a third of the
+/// packing's time a ray).
+#[inline(always)]
+fn fill_plain<const K: usize>(packer: &PlainPacker, first: usize, units: Units, ready: &mut ReadyPacket<K>) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2.
+        return unsafe { fill_plain_avx2(packer, first, units, ready) };
+    }
+    fill_plain_here(packer, first, units, ready)
+}
+
+/// `fill_plain` compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fill_plain_avx2<const K: usize>(
+    packer: &PlainPacker,
+    first: usize,
+    units: Units,
+    ready: &mut ReadyPacket<K>,
+) -> bool {
+    fill_plain_here(packer, first, units, ready)
+}
+
+/// `fill_plain` for the instructions the caller is compiled for.
+#[inline(always)]
+fn fill_plain_here<const K: usize>(
+    packer: &PlainPacker,
+    first: usize,
+    units: Units,
+    ready: &mut ReadyPacket<K>,
+) -> bool {
+    ready.clear();
+    let Some(lanes) = packer.lanes::<K>(first) else { return false };
+    if !embree_lanes(&lanes, units, ready) {
+        return false;
+    }
+    ready.valid = RtcValid([-1i32; K]);
+    true
+}
+
+/// A block's rays as its packets take them: lane by lane from the caller's plain rays where every
+/// ray of a packet is valid and near the scene (no pass over the block first), else packed
+/// (`pack_block`) packet by packet.
+struct BlockRays<'a> {
+    rays: &'a Rays<'a>,
+    packer: Option<&'a PlainPacker<'a>>,
+    frame: &'a Frame,
+    /// The block's first ray and its number of rays.
+    first: usize,
+    count: usize,
+    units: Units,
+}
+
+impl BlockRays<'_> {
+    /// Fills `ready` with packet `p` of the block (rays `p * K..` of it, at most `K`), lane k's
+    /// mask `mask(k)`, and adds the advances of its far rays (at their places in the block) to
+    /// `advances`.
+    fn packet<const K: usize>(
+        &self,
+        p: usize,
+        mask: impl Fn(usize) -> u8,
+        (scratch, advances): (&mut [f32], &mut Vec<Advance>),
+        ready: &mut ReadyPacket<K>,
+    ) -> Result<()> {
+        let (first, count) = (self.first + p * K, K.min(self.count - p * K));
+        if let Some(packer) = self.packer.filter(|_| count == K) {
+            if fill_plain(packer, first, self.units, ready) {
+                for lane in 0..K {
+                    ready.packet.mask[lane] = u32::from(mask(lane));
+                }
+                return Ok(());
+            }
+        }
+        let packed = &mut scratch[..count * RAY_FLOATS];
+        let far = pack_block(self.rays, self.packer, first, packed, self.frame)?;
+        advances.extend(far.into_iter().map(|a| Advance { ray: a.ray + p * K, ..a }));
+        ready.fill_packed(packed, mask, self.units);
+        Ok(())
+    }
+}
+
 /// Rays one task of the fast tier packs, traces and writes out at once (the chunk's tasks run on
 /// every core, with no pass over the whole chunk between them).
 const BLOCK_RAYS: usize = 2048;
@@ -201,19 +357,13 @@ pub fn trace_fast(
                     let context = QueryContext::new(scene, request.cull, threshold, every);
                     (context, vec![0f32; BLOCK_RAYS * RAY_FLOATS], vec![MISS; BLOCK_RAYS])
                 },
-                |(context, packed, answers), (b, out)| -> Result<()> {
+                |(context, scratch, answers), (b, out)| -> Result<()> {
                     let first = start + b * BLOCK_RAYS;
                     let count = BLOCK_RAYS.min(start + len - first);
-                    let (packed, answers) = (&mut packed[..count * RAY_FLOATS], &mut answers[..count]);
-                    let advances = pack_block(rays, packer.as_ref(), first, packed, &frame)?;
-                    let mask = |k: usize| rays.mask.get(first + k);
-                    match (plan.packets, every) {
-                        (16, false) => trace_packets::<16>(&plan, packed, answers, mask),
-                        (8, false) => trace_packets::<8>(&plan, packed, answers, mask),
-                        (16, true) => trace_every_packets::<16>(&plan, context, packed, answers, mask),
-                        (8, true) => trace_every_packets::<8>(&plan, context, packed, answers, mask),
-                        _ => trace_rays(&plan, context, packed, answers, mask),
-                    }
+                    let answers = &mut answers[..count];
+                    let units = Units::of(hierarchy);
+                    let block = BlockRays { rays, packer: packer.as_ref(), frame: &frame, first, count, units };
+                    let advances = trace_block(&plan, context, &block, scratch, answers)?;
                     if query == Query::Closest {
                         add_advances(answers, &advances);
                     }
@@ -232,6 +382,32 @@ pub fn trace_fast(
     })?;
     profile.host_f64 = began.elapsed().as_secs_f64();
     Ok(())
+}
+
+/// Answers the rays of `block` (`answers`, one a ray) as `plan` asks; returns the advances of
+/// its far rays.
+fn trace_block(
+    plan: &Plan,
+    context: &mut QueryContext,
+    block: &BlockRays,
+    scratch: &mut [f32],
+    answers: &mut [RayAnswer],
+) -> Result<Vec<Advance>> {
+    let (rays, first) = (block.rays, block.first);
+    let mask = |k: usize| rays.mask.get(first + k);
+    let every = matches!(plan.query, Query::Count | Query::Transmit);
+    Ok(match (plan.packets, every) {
+        (16, false) => trace_packets::<16>(plan, block, scratch, answers, mask)?,
+        (8, false) => trace_packets::<8>(plan, block, scratch, answers, mask)?,
+        (16, true) => trace_every_packets::<16>(plan, context, block, scratch, answers, mask)?,
+        (8, true) => trace_every_packets::<8>(plan, context, block, scratch, answers, mask)?,
+        _ => {
+            let packed = &mut scratch[..block.count * RAY_FLOATS];
+            let advances = pack_block(rays, block.packer, first, packed, block.frame)?;
+            trace_rays(plan, context, packed, answers, mask);
+            advances
+        }
+    })
 }
 
 /// Packs the block of rays from `first` into `packed` as `Rays::pack` does: by `packer` where
@@ -277,22 +453,23 @@ fn trace_rays(
     }
 }
 
-/// Closest hits (or occlusion) of a block's packed rays in Embree's packets of `K` rays, with no
-/// filter: `mask(k)` is ray k's mask; `answers` one per ray.
-fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [RayAnswer], mask: impl Fn(usize) -> u8) {
-    let units = Units::of(plan.hierarchy);
+/// Closest hits (or occlusion) of a block's rays in Embree's packets of `K` rays, with no
+/// filter: `mask(k)` is ray k's mask; `answers` one per ray. Returns the advances of the block's
+/// far rays.
+fn trace_packets<const K: usize>(
+    plan: &Plan,
+    block: &BlockRays,
+    scratch: &mut [f32],
+    answers: &mut [RayAnswer],
+    mask: impl Fn(usize) -> u8,
+) -> Result<Vec<Advance>> {
+    let units = block.units;
     let order = if plan.coherent { RAY_QUERY_FLAG_COHERENT } else { RAY_QUERY_FLAG_INCOHERENT };
-    for (p, (answers, rays)) in answers.chunks_mut(K).zip(packed.chunks(K * RAY_FLOATS)).enumerate() {
-        let mut packet = RtcRayHitPacket::<K>::default();
-        let mut valid = RtcValid([0i32; K]);
-        let mut t_units = [1.0f64; K];
-        for (lane, ray) in rays.chunks_exact(RAY_FLOATS).enumerate() {
-            let (r, t_unit) = embree_ray(ray, mask(p * K + lane), units);
-            [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
-            [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
-            (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
-            (valid.0[lane], t_units[lane]) = (-1, t_unit);
-        }
+    let mut advances = Vec::new();
+    let mut ready = ReadyPacket::<K>::new();
+    for (p, answers) in answers.chunks_mut(K).enumerate() {
+        block.packet::<K>(p, |lane| mask(p * K + lane), (scratch, &mut advances), &mut ready)?;
+        let ReadyPacket { packet, valid, t_units } = &mut ready;
         let mut args = RtcArguments {
             flags: order,
             feature_mask: FEATURE_FLAGS_ALL,
@@ -304,23 +481,24 @@ fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [Ray
         let scene = plan.hierarchy.scene();
         if plan.query == Query::Occluded {
             // SAFETY: the scene is committed and held; no context or filter is passed.
-            unsafe { scene.trace_packet(&valid, &mut packet, &mut args, true) };
+            unsafe { scene.trace_packet(valid, packet, &mut args, true) };
             for (lane, answer) in answers.iter_mut().enumerate() {
                 *answer = if packet.tfar[lane] == f32::NEG_INFINITY { RayAnswer { prim: 0, ..MISS } } else { MISS };
             }
             continue;
         }
         // SAFETY: as above.
-        unsafe { scene.trace_packet(&valid, &mut packet, &mut args, false) };
+        unsafe { scene.trace_packet(valid, packet, &mut args, false) };
         for (lane, answer) in answers.iter_mut().enumerate() {
             *answer = if packet.geom_id[lane] == INVALID_ID {
                 MISS
             } else {
-                let found = nearest(plan.scene, &lane_hit(&packet, lane), plan.normals, units.unit);
+                let found = nearest(plan.scene, &lane_hit(packet, lane), plan.normals, units.unit);
                 RayAnswer { t: (f64::from(found.t) * t_units[lane]) as f32, ..found }
             };
         }
     }
+    Ok(advances)
 }
 
 /// Counts or transmittance (`plan.query`) of a block's packed rays in Embree's packets of `K`
@@ -328,13 +506,17 @@ fn trace_packets<const K: usize>(plan: &Plan, packed: &[f32], answers: &mut [Ray
 fn trace_every_packets<const K: usize>(
     plan: &Plan,
     context: &mut QueryContext,
-    packed: &[f32],
+    block: &BlockRays,
+    scratch: &mut [f32],
     answers: &mut [RayAnswer],
     mask: impl Fn(usize) -> u8,
-) {
-    let units = Units::of(plan.hierarchy);
-    for (p, (answers, rays)) in answers.chunks_mut(K).zip(packed.chunks(K * RAY_FLOATS)).enumerate() {
-        every_hit_of_packet::<K>(plan.hierarchy, context, rays, |lane| mask(p * K + lane), plan.coherent, units);
+) -> Result<Vec<Advance>> {
+    // Counts and transmittance need no advance: nothing lies before an advanced origin.
+    let mut advances = Vec::new();
+    let mut ready = ReadyPacket::<K>::new();
+    for (p, answers) in answers.chunks_mut(K).enumerate() {
+        block.packet::<K>(p, |lane| mask(p * K + lane), (scratch, &mut advances), &mut ready)?;
+        every_hit_of_packet::<K>(plan.hierarchy, context, &mut ready, plan.coherent);
         let scene = context.scene();
         let mut found = context.sorted_found();
         for (lane, answer) in answers.iter_mut().enumerate() {
@@ -346,35 +528,25 @@ fn trace_every_packets<const K: usize>(
             found = rest;
         }
     }
+    Ok(Vec::new())
 }
 
-/// Traces `rays` (packed, at most `K`) as one packet of Embree's through `context`'s filter,
-/// which keeps every hit in `context.found` under its lane (`Candidate::ray`); returns each
-/// lane's `t_unit` (`embree_ray`).
+/// Traces `ready` as one packet of Embree's through `context`'s filter, which keeps every hit in
+/// `context.found` under its lane (`Candidate::ray`); returns each lane's `t_unit` (`embree_ray`).
 fn every_hit_of_packet<const K: usize>(
     hierarchy: &CpuScene,
     context: &mut QueryContext,
-    rays: &[f32],
-    mask: impl Fn(usize) -> u8,
+    ready: &mut ReadyPacket<K>,
     coherent: bool,
-    units: Units,
 ) -> [f64; K] {
-    let mut packet = RtcRayHitPacket::<K>::default();
-    let mut valid = RtcValid([0i32; K]);
-    let mut t_units = [1.0f64; K];
-    for (lane, ray) in rays.chunks_exact(RAY_FLOATS).enumerate() {
-        let (r, t_unit) = embree_ray(ray, mask(lane), units);
-        [packet.org_x[lane], packet.org_y[lane], packet.org_z[lane]] = r.org;
-        [packet.dir_x[lane], packet.dir_y[lane], packet.dir_z[lane]] = r.dir;
-        (packet.tnear[lane], packet.tfar[lane], packet.mask[lane]) = (r.tnear, r.tfar, r.mask);
-        // The filter files each hit under its ray's id.
-        (packet.id[lane], valid.0[lane], t_units[lane]) = (lane as u32, -1, t_unit);
-    }
+    let ReadyPacket { packet, valid, t_units } = ready;
+    // The filter files each hit under its ray's id.
+    packet.id = std::array::from_fn(|lane| lane as u32);
     context.found.clear();
     let mut args = context.arguments(coherent);
     // SAFETY: the scene is committed and held; `args` points into `context`, alive here.
-    unsafe { hierarchy.scene().trace_packet(&valid, &mut packet, &mut args, false) };
-    t_units
+    unsafe { hierarchy.scene().trace_packet(valid, packet, &mut args, false) };
+    *t_units
 }
 
 /// How many of `found` (sorted by lane, the lanes before `lane` taken off) are lane `lane`'s.
@@ -667,9 +839,10 @@ impl KeptHits<'_> {
         coherent: bool,
     ) {
         let units = Units::of(hierarchy);
+        let mut ready = ReadyPacket::<K>::new();
         for (p, rays) in block.chunks(K * RAY_FLOATS).enumerate() {
-            let t_units =
-                every_hit_of_packet::<K>(hierarchy, context, rays, |lane| mask(p * K + lane), coherent, units);
+            ready.fill_packed(rays, |lane| mask(p * K + lane), units);
+            let t_units = every_hit_of_packet::<K>(hierarchy, context, &mut ready, coherent);
             let mut found = context.sorted_found();
             for (lane, &t_unit) in t_units.iter().enumerate().take(rays.len() / RAY_FLOATS) {
                 let (mine, rest) = found.split_at(hits_of_lane(found, lane));
@@ -778,5 +951,85 @@ mod tests {
             }
         }
         assert!(checked > 500 && in_f32 > 300, "{checked} rays, {in_f32} scaled in f32");
+    }
+
+    /// Packets filled lane by lane from plain rays (`fill_plain`) equal those of the rays packed
+    /// one at a time (`pack_block`, `embree_ray`) bit for bit, and are refused exactly where a
+    /// ray is invalid or far (or a factor no normal f32).
+    #[test]
+    fn packets_of_plain_lanes_equal_packets_of_packed_rays() {
+        use crate::geometry::arrays::Vec3s;
+        use crate::geometry::rays::{Masks, PerRay};
+        const K: usize = 8;
+        let values = [1.0f32, -0.7, 0.3, 1e-30, -1e-38, 1e-44, 3e38, 123.456, 0.0, -0.0, 1e7, f32::NAN];
+        let (mut origins, mut directions) = (Vec::new(), Vec::new());
+        for i in 0..values.len() * values.len() * 12 {
+            let pick = |k: usize| values[(i / values.len().pow(k as u32 % 2 + 1) + k * i) % values.len()];
+            // Mostly ordinary rays, so that most packets are whole; a few of every kind.
+            let odd = i % 19 == 0;
+            let o = if odd { [pick(0), pick(1), pick(2)] } else { [0.1 * (i % 7) as f32, -0.2, 0.05 * (i % 3) as f32] };
+            let d = if odd {
+                [pick(3), pick(4), pick(5)]
+            } else {
+                [0.3, -0.2 * (i % 11) as f32, 1.0 / (1 + i % 13) as f32]
+            };
+            origins.extend(o);
+            directions.extend(d);
+        }
+        let rays = Rays {
+            origins: Vec3s::F32(&origins),
+            directions: Vec3s::F32(&directions),
+            tmin: PerRay::All(0.0),
+            tmax: PerRay::All(f64::INFINITY),
+            mask: Masks::All(0xFF),
+            sensor: None,
+        };
+        let n = rays.len();
+        let (mut whole, mut refused) = (0, 0);
+        for unit_exponent in [-120, -3, 0, 5, 126] {
+            let units = Units::new(2f64.powi(unit_exponent));
+            for frame in [
+                Frame::new(DVec3::ZERO, DVec3::ZERO, 1.0),
+                Frame::new(DVec3::new(0.1, -0.2, 0.3), DVec3::new(0.01, 0.0, 0.0), 2.0),
+                Frame::new(DVec3::new(1e7, 0.0, -1e7), DVec3::ZERO, 1e8),
+            ] {
+                let packer = rays.plain_packer(&frame).expect("plain rays");
+                let mut scratch = vec![0f32; K * RAY_FLOATS];
+                for first in (0..n - K).step_by(K) {
+                    let (mut lanes, mut packed) = (ReadyPacket::<K>::new(), ReadyPacket::<K>::new());
+                    let by_lanes = fill_plain(&packer, first, units, &mut lanes);
+                    let each = (first..first + K).all(|i| packer.ray(i).is_some());
+                    if !each {
+                        assert!(!by_lanes, "rays {first}.. has an invalid or far ray");
+                        continue;
+                    }
+                    pack_block(&rays, Some(&packer), first, &mut scratch, &frame).expect("valid rays");
+                    packed.fill_packed(&scratch, |_| 0, units);
+                    let scaled_in_f32 = (0..K).all(|lane| {
+                        let longest = scratch[lane * RAY_FLOATS + 4..lane * RAY_FLOATS + 7]
+                            .iter()
+                            .fold(0f32, |m, c| m.max(c.abs()));
+                        let up = exponent_at_or_above(longest).unwrap();
+                        let k = units.inverse_exponent;
+                        longest.is_normal() && [k, -up, k + up].iter().all(|&e| normal_power_of_two(e).is_some())
+                    });
+                    assert_eq!(by_lanes, scaled_in_f32, "rays {first}.., units 2^{unit_exponent}");
+                    if !by_lanes {
+                        refused += 1;
+                        continue;
+                    }
+                    let (a, b) = (&lanes.packet, &packed.packet);
+                    let bits = |p: &RtcRayHitPacket<K>| {
+                        [p.org_x, p.org_y, p.org_z, p.tnear, p.dir_x, p.dir_y, p.dir_z, p.tfar]
+                            .map(|v| v.map(f32::to_bits))
+                    };
+                    assert_eq!(bits(a), bits(b), "rays {first}.., units 2^{unit_exponent}");
+                    assert_eq!(lanes.t_units, packed.t_units);
+                    assert_eq!(lanes.valid.0, packed.valid.0);
+                    whole += 1;
+                }
+            }
+        }
+        assert!(whole > 200 && refused > 10, "{whole} packets filled by lanes, {refused} refused");
     }
 }
