@@ -309,6 +309,9 @@ struct Plan<'a> {
     normals: bool,
     /// Rays a packet takes (1: one ray at a time, through the filter where the query needs it).
     packets: usize,
+    /// The scene is one mesh of triangles, unturned and unscaled: every hit's instance is 0 and
+    /// its normal Embree's (`unpack_plain`).
+    plain_mesh: bool,
 }
 
 /// Traces the batch's rays in the fast tier (closest hits, occlusion, counts, transmittance),
@@ -342,6 +345,8 @@ pub fn trace_fast(
         coherent: rays.sensor.is_some(),
         normals: sink.field(Field::Normal).is_some(),
         packets: if plain || every_in_packets { packet_width } else { 1 },
+        plain_mesh: matches!(scene.placements.as_slice(),
+            [p] if p.mesh.kind == MeshKind::Triangles && p.to_local.linear == DMat3::IDENTITY),
     };
     let (n, frame) = (rays.len(), scene.frame());
     let mut hit = sink.hit.take();
@@ -489,6 +494,10 @@ fn trace_packets<const K: usize>(
         }
         // SAFETY: as above.
         unsafe { scene.trace_packet(valid, packet, &mut args, false) };
+        if plan.plain_mesh {
+            unpack_plain(packet, t_units, plan.normals, answers);
+            continue;
+        }
         for (lane, answer) in answers.iter_mut().enumerate() {
             *answer = if packet.geom_id[lane] == INVALID_ID {
                 MISS
@@ -499,6 +508,70 @@ fn trace_packets<const K: usize>(
         }
     }
     Ok(advances)
+}
+
+/// The answers of a traced packet's lanes (`nearest`'s, bit for bit), one a lane of `answers`,
+/// where the scene is one mesh of triangles held as placed (`Plan::plain_mesh`): no placement
+/// looked up a hit, and the normals side by side, in AVX2's vectors where the CPU has them.
+#[inline(always)]
+fn unpack_plain<const K: usize>(
+    packet: &RtcRayHitPacket<K>,
+    t_units: &[f64; K],
+    normals: bool,
+    answers: &mut [RayAnswer],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2.
+        return unsafe { unpack_plain_avx2(packet, t_units, normals, answers) };
+    }
+    unpack_plain_here(packet, t_units, normals, answers)
+}
+
+/// `unpack_plain` compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn unpack_plain_avx2<const K: usize>(
+    packet: &RtcRayHitPacket<K>,
+    t_units: &[f64; K],
+    normals: bool,
+    answers: &mut [RayAnswer],
+) {
+    unpack_plain_here(packet, t_units, normals, answers)
+}
+
+/// `unpack_plain` for the instructions the caller is compiled for.
+#[inline(always)]
+fn unpack_plain_here<const K: usize>(
+    packet: &RtcRayHitPacket<K>,
+    t_units: &[f64; K],
+    normals: bool,
+    answers: &mut [RayAnswer],
+) {
+    let mut normal = [MISS.normal; K];
+    if normals {
+        for (lane, normal) in normal.iter_mut().enumerate() {
+            // `nearest`'s normal of an unturned placement: Embree's, normalized in f64 as
+            // `DVec3::normalize` does.
+            let [x, y, z] = [packet.ng_x[lane], packet.ng_y[lane], packet.ng_z[lane]].map(f64::from);
+            let recip = 1.0 / (x * x + y * y + z * z).sqrt();
+            *normal = [(x * recip) as f32, (y * recip) as f32, (z * recip) as f32];
+        }
+    }
+    for (lane, answer) in answers.iter_mut().enumerate() {
+        *answer = if packet.geom_id[lane] == INVALID_ID {
+            MISS
+        } else {
+            RayAnswer {
+                t: (f64::from(packet.tfar[lane]) * t_units[lane]) as f32,
+                uv: [packet.u[lane], packet.v[lane]],
+                prim: packet.prim_id[lane] as i32,
+                geometry: packet.geom_id[lane] as i32,
+                instance: 0,
+                normal: normal[lane],
+            }
+        };
+    }
 }
 
 /// Counts or transmittance (`plan.query`) of a block's packed rays in Embree's packets of `K`
@@ -951,6 +1024,37 @@ mod tests {
             }
         }
         assert!(checked > 500 && in_f32 > 300, "{checked} rays, {in_f32} scaled in f32");
+    }
+
+    /// The lanes' answers (`unpack_plain`) are `nearest`'s normals (`DVec3::normalize`), bit for
+    /// bit, with their `t` in the caller's units.
+    #[test]
+    fn answers_of_plain_lanes_are_those_of_nearest() {
+        let values = [1.0f32, -0.7, 0.3, 1e-30, -1e-38, 3e38, 123.456, 0.0, 1e-7, -2.5e-3, 7.0e5];
+        let mut packet = RtcRayHitPacket::<8>::default();
+        let mut answers = [MISS; 8];
+        let mut checked = 0;
+        for (i, &a) in values.iter().enumerate() {
+            for (j, &b) in values.iter().enumerate() {
+                for lane in 0..8 {
+                    let c = values[(i + j + lane) % values.len()];
+                    [packet.ng_x[lane], packet.ng_y[lane], packet.ng_z[lane]] = [a, b * (lane as f32 + 1.0), c];
+                    (packet.geom_id[lane], packet.prim_id[lane], packet.tfar[lane]) = (0, lane as u32, 2.5);
+                }
+                packet.geom_id[7] = INVALID_ID;
+                unpack_plain(&packet, &[0.5; 8], true, &mut answers[..7]);
+                for (lane, answer) in answers.iter().enumerate().take(7) {
+                    let ng = DVec3::new(packet.ng_x[lane].into(), packet.ng_y[lane].into(), packet.ng_z[lane].into());
+                    let expected = ng.normalize().as_vec3().to_array().map(f32::to_bits);
+                    assert_eq!(answer.normal.map(f32::to_bits), expected, "{ng:?}");
+                    assert_eq!((answer.t, answer.prim, answer.instance, answer.geometry), (1.25, lane as i32, 0, 0));
+                    checked += 1;
+                }
+                unpack_plain(&packet, &[0.5; 8], false, &mut answers);
+                assert_eq!((answers[7].prim, answers[0].normal[0].is_nan()), (-1, true));
+            }
+        }
+        assert!(checked > 800);
     }
 
     /// Packets filled lane by lane from plain rays (`fill_plain`) equal those of the rays packed
