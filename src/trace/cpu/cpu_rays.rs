@@ -143,7 +143,8 @@ fn power_of_two(k: i32) -> f64 {
 /// Plain lanes (`PlainPacker::lanes`) into `packet` as `embree_ray` makes each ray, with each
 /// lane's `t_unit`, where every factor is a normal f32 and each direction's longest component a
 /// normal one (false otherwise: `embree_ray` then). No branch a lane, so that the lanes are
-/// scaled side by side (a ray at a time, the packing cost a third of a camera ray's closest hit).
+/// scaled side by side (packed a ray at a time, then copied into packets, vkray's own work on a
+/// camera ray's closest hit was 0.62 of Embree's; lane by lane 0.43).
 #[inline(always)]
 fn embree_lanes<const K: usize>(lanes: &PlainLanes<K>, units: Units, ready: &mut ReadyPacket<K>) -> bool {
     let k = units.inverse_exponent;
@@ -214,8 +215,7 @@ impl<const K: usize> ReadyPacket<K> {
 
 /// Fills `ready` (but its masks) with plain rays `first..first + K` (`PlainPacker::lanes`,
 /// `embree_lanes`), where they take that way; false otherwise, and the packet is to be filled
-/// again. In AVX2's vectors where the CPU has them (the lanes side by side: a third of the
-/// packing's time a ray).
+/// again. In AVX2's vectors where the CPU has them (the lanes side by side).
 #[inline(always)]
 fn fill_plain<const K: usize>(packer: &PlainPacker, first: usize, units: Units, ready: &mut ReadyPacket<K>) -> bool {
     #[cfg(target_arch = "x86_64")]
