@@ -21,7 +21,7 @@ use crate::geometry::arrays::instance_transform;
 use crate::geometry::interrupt::Interrupt;
 use crate::geometry::rays::Rays;
 use crate::geometry::sensor::{SensorKind, SensorRays};
-use crate::gpu::memory::host_memory_available;
+use crate::gpu::memory::short_of_host_memory;
 use crate::scene::Scene;
 use crate::trace::hit_columns::{AskedColumn, HitColumn, HitColumns};
 use crate::trace::hit_fields::{position_bytes_per_ray, FIELDS};
@@ -884,8 +884,8 @@ fn check_fits(tracer: &DeviceTracer, request: Request, fields: &[String], n: usi
         })
         .sum();
     let needed = (n as u128) * (per_ray as u128) + tracer.working_bytes(request, n) as u128;
-    match host_memory_available() {
-        Some(available) if needed > available as u128 => Err(PyMemoryError::new_err(format!(
+    match short_of_host_memory(needed) {
+        Some(available) => Err(PyMemoryError::new_err(format!(
             "a query of {n} rays needs about {:.2} GB of host memory (its outputs and working buffers), \
              more than the {:.2} GB available: trace fewer rays at a time, or ask fewer outputs",
             needed as f64 / 1e9,

@@ -953,8 +953,8 @@ pub fn positions(scene: &Scene, rays: &Rays, hits: &HitTriangles, out: &mut [u8]
 /// Refuses a result of `hits` hits that would not fit in the host's memory, before storing any.
 pub(crate) fn check_hits_fit(hits: usize, bytes_per_hit: usize) -> Result<()> {
     let needed = hits as u128 * bytes_per_hit as u128;
-    match crate::gpu::memory::host_memory_available() {
-        Some(available) if needed > available as u128 => Err(Error::OutOfMemory(format!(
+    match crate::gpu::memory::short_of_host_memory(needed) {
+        Some(available) => Err(Error::OutOfMemory(format!(
             "the {hits} hits of this query need about {:.2} GB of host memory, more than the {:.2} GB \
              available: trace fewer rays at a time, set max_hits, or ask fewer outputs",
             needed as f64 / 1e9,
