@@ -160,6 +160,12 @@ impl Bvh {
         &self.nodes
     }
 
+    /// The box of the `k`th item in leaf order (`items()[k]`'s), in f32 rounded outward: its
+    /// lower corner, its upper.
+    pub fn item_box(&self, k: usize) -> ([f32; 3], [f32; 3]) {
+        (self.item_boxes[k].min, self.item_boxes[k].max)
+    }
+
     /// The boxes' indices in leaf order: a leaf holds `items[first..first + count]`.
     pub fn items(&self) -> &[u32] {
         &self.items

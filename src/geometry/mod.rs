@@ -18,6 +18,8 @@ pub mod arrays;
 
 pub mod bvh;
 
+pub mod nearest_tree;
+
 pub mod winding;
 
 pub mod reference;

@@ -8,6 +8,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::bvh::Bvh;
+use super::nearest_tree::{NearestQuery, NearestTree};
 use super::parallel;
 use super::winding::{self, Triangles, WindingTree};
 
@@ -27,6 +28,7 @@ pub struct TriangleSet {
     /// A sphere set's spheres (centre, radius); empty for triangles.
     pub spheres: Vec<(DVec3, f64)>,
     bvh: OnceLock<Bvh>,
+    nearest: OnceLock<Option<NearestTree>>,
     winding: OnceLock<WindingTree>,
     closed: OnceLock<bool>,
 }
@@ -44,6 +46,7 @@ impl TriangleSet {
             part_offsets,
             spheres,
             bvh: OnceLock::new(),
+            nearest: OnceLock::new(),
             winding: OnceLock::new(),
             closed: OnceLock::new(),
         }
@@ -114,6 +117,14 @@ impl TriangleSet {
                 parallel::install(|| (0..items).into_par_iter().map(|p| self.item_bounds(p).padded(pad)).collect());
             Bvh::build(&boxes)
         })
+    }
+
+    /// The hierarchy's four-wide f32 form for nearest-item searches (built on first use); None
+    /// where its boxes lie beyond what f32 bounds take (`NearestTree::build`).
+    pub fn nearest_tree(&self) -> Option<&NearestTree> {
+        self.nearest
+            .get_or_init(|| NearestTree::build(self.bvh(), &|item| (!self.is_spheres()).then(|| self.triangle(item))))
+            .as_ref()
     }
 
     /// The boundaries of the hierarchy's nodes, for winding numbers (built on first use).
@@ -468,18 +479,24 @@ impl<'a> ReferenceTracer<'a> {
                 // distance so far, or the limit's.
                 let mut reach_squared = best.map_or(limit, |b| b.distance);
                 let before = reach_squared;
-                // (Each item bounded by its own box first, in `nearest`: most of a leaf's end there.)
-                set.triangles.bvh().nearest(
-                    |b| weighted_gap(b, local, weights, scale) * (1.0 - 2e-12),
-                    &mut reach_squared,
-                    |prim, reach_squared| {
-                        let hit = measure_item(set, instance, prim, p, scale, moved);
-                        if hit.distance <= limit && best.is_none_or(|b| hit.is_before(&b)) {
-                            best = Some(hit);
-                            *reach_squared = hit.distance;
-                        }
-                    },
-                );
+                let mut measure = |prim: u32, reach_squared: &mut f64| {
+                    let hit = measure_item(set, instance, prim, p, scale, moved);
+                    if hit.distance <= limit && best.is_none_or(|b| hit.is_before(&b)) {
+                        best = Some(hit);
+                        *reach_squared = hit.distance;
+                    }
+                };
+                // Through the four-wide f32 tree where it takes the point (scale 1: lengths in
+                // f32's range), else the binary f64 one; each item bounded by its own box first.
+                let wide = (scale == 1.0).then(|| set.triangles.nearest_tree()).flatten();
+                match wide.and_then(|tree| Some((tree, NearestQuery::new(tree, local, weights)?))) {
+                    Some((tree, query)) => tree.nearest(&query, &mut reach_squared, &mut measure),
+                    None => set.triangles.bvh().nearest(
+                        |b| weighted_gap(b, local, weights, scale) * (1.0 - 2e-12),
+                        &mut reach_squared,
+                        &mut measure,
+                    ),
+                }
                 if reach_squared != before {
                     *reach = reach_squared.sqrt();
                 }
