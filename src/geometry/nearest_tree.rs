@@ -16,7 +16,7 @@ use rayon::prelude::*;
 
 use super::bvh::Bvh;
 use super::parallel;
-use super::precision::round_outward;
+use super::precision::{round_outward, Ray64};
 
 /// The extents (largest coordinate's magnitude) of trees that are built: their scale and its
 /// square stay within f32's and f64's ranges.
@@ -259,6 +259,77 @@ impl NearestQuery {
     }
 }
 
+/// A ray to trace through the tree, as its f32 slab tests take it: the origin and the
+/// direction rounded to f32 (scaled as the tree), the direction's inverse, what each box is grown
+/// by on each axis (the origin's rounding, and the direction's over the farthest the ray can
+/// reach within the tree), and the ray's interval.
+pub struct RayQuery {
+    origin: [f32; 3],
+    inverse: [f32; 3],
+    grow: [f32; 3],
+    tmin: f32,
+    tmax: f32,
+}
+
+/// The magnitudes a traced ray's direction's components lie within, scaled as the tree (2^-120 to
+/// 2^120: they and their inverses stay normal f32s).
+const DIRECTION_RANGE: (f64, f64) = EXTENTS;
+
+/// What an entry or exit distance is moved out by, relatively: past the rounding of its
+/// difference and product (2^-24 each) with room.
+const SLAB_GROW: f32 = 1.0 / (1u32 << 18) as f32;
+
+impl RayQuery {
+    /// The query of `ray` (in the tree's frame); None where its origin lies far beyond the
+    /// tree, a component of its direction is 0 or out of f32's comfortable range, or its
+    /// interval is not a finite start and a later end (the f64 traversal then runs).
+    pub fn new(tree: &NearestTree, ray: &Ray64) -> Option<RayQuery> {
+        // Scaling origin and direction alike keeps every point's t.
+        let (o, d) = (ray.origin * tree.scale, ray.direction * tree.scale);
+        let within = o.abs().max_element() < POINT_LIMIT; // (false for NaN)
+                                                          // Each component and its inverse well within f32's normal range.
+        let steep = d.abs().min_element() > DIRECTION_RANGE.0 && d.abs().max_element() < DIRECTION_RANGE.1;
+        if !(within && steep && ray.tmin >= 0.0 && ray.tmin.is_finite() && ray.tmax >= ray.tmin) {
+            return None;
+        }
+        // Within the tree's box every coordinate is at most `magnitude`: no t past this reaches
+        // it.
+        let farthest = ((tree.magnitude + o.abs().max_element()) / d.abs().max_element()) * (1.0 + 1e-9);
+        let origin = o.to_array().map(|x| x as f32);
+        let direction = d.to_array().map(|x| x as f32);
+        let grow = std::array::from_fn(|axis| {
+            let moved =
+                (o[axis] - f64::from(origin[axis])).abs() + farthest * (d[axis] - f64::from(direction[axis])).abs();
+            // And the rounding of `bound ∓ grow` (2^-24 of the coordinates' magnitudes), whose
+            // difference with the origin may be far smaller than either: 2^-21 of them.
+            let rounding = (tree.magnitude + o.abs().max_element()) * (1.0 / f64::from(1u32 << 21));
+            up(moved * (1.0 + 1e-6) + rounding) + f32::MIN_POSITIVE
+        });
+        let tmin = round_outward(ray.tmin, true).max(0.0);
+        let tmax = up(ray.tmax.min(farthest));
+        Some(RayQuery { origin, inverse: direction.map(|x| 1.0 / x), grow, tmin, tmax })
+    }
+
+    /// Where the ray enters each of four boxes (grown by `grow`) before `reach` (infinite
+    /// where it does not): at most where it enters the box itself.
+    #[inline(always)]
+    fn entries(&self, boxes: &Boxes4, reach: f32) -> [f32; 4] {
+        let mut near = [self.tmin; 4];
+        let mut far = [reach.min(self.tmax); 4];
+        for axis in 0..3 {
+            let (o, inverse, grow) = (self.origin[axis], self.inverse[axis], self.grow[axis]);
+            for k in 0..4 {
+                let a = (boxes.min[axis][k] - grow - o) * inverse;
+                let b = (boxes.max[axis][k] + grow - o) * inverse;
+                let (enter, exit) = (a.min(b), a.max(b));
+                near[k] = near[k].max(enter - enter.abs() * SLAB_GROW);
+                far[k] = far[k].min(exit + exit.abs() * SLAB_GROW);
+            }
+        }
+        std::array::from_fn(|k| if near[k] <= far[k] { near[k] } else { f32::INFINITY })
+    }
+}
+
 /// The f32 at or above `x` (infinite above f32's range).
 #[inline]
 fn up(x: f64) -> f32 {
@@ -387,6 +458,56 @@ impl NearestTree {
                         at -= 1;
                     }
                     stack[at] = (child, bound);
+                    n += 1;
+                }
+            }
+        }
+    }
+}
+
+impl NearestTree {
+    /// `Bvh::traverse` through the wide tree: calls `visit` with every item whose box the ray
+    /// may enter before `*tmax` (each box tested in f32, grown past every rounding: a superset
+    /// of the f64 traversal's), nearer boxes first; `visit` may lower `*tmax` (a closer hit) or
+    /// return false to stop.
+    pub fn traverse(&self, query: &RayQuery, tmax: &mut f64, mut visit: impl FnMut(u32, &mut f64) -> bool) {
+        // Finite (no t beyond the tree's box matters), so that a box missed (entered at
+        // infinity) is never within reach.
+        let mut reach = up(*tmax).min(query.tmax);
+        let mut stack = [(0u32, 0f32); STACK];
+        stack[0] = (self.root, query.tmin);
+        let mut n = 1;
+        while n > 0 {
+            n -= 1;
+            let (slot, entry) = stack[n];
+            if entry > reach {
+                continue;
+            }
+            if slot & LEAF != 0 {
+                let leaf = &self.leaves[(slot & !LEAF) as usize];
+                let entries = query.entries(&leaf.boxes, reach);
+                for (k, &entry) in entries.iter().enumerate().take(leaf.count as usize) {
+                    if entry <= reach {
+                        if !visit(self.items[(leaf.first as usize) + k], tmax) {
+                            return;
+                        }
+                        reach = up(*tmax).min(query.tmax);
+                    }
+                }
+                continue;
+            }
+            let node = &self.nodes[slot as usize];
+            let entries = query.entries(&node.boxes, reach);
+            // The children the ray enters, pushed farthest first (popped nearest first).
+            let start = n;
+            for (&child, &entry) in node.slots.iter().zip(&entries) {
+                if child != EMPTY && entry <= reach {
+                    let mut at = n;
+                    while at > start && stack[at - 1].1 < entry {
+                        stack[at] = stack[at - 1];
+                        at -= 1;
+                    }
+                    stack[at] = (child, entry);
                     n += 1;
                 }
             }
@@ -526,6 +647,57 @@ mod tests {
                 pruned += soup.len() - measured;
             }
             assert!(pruned > 300 * soup.len() * 9 / 10, "the tree pruned little: {pruned}");
+        }
+    }
+
+    /// The wide traversal meets every item the binary f64 traversal meets (a superset: its
+    /// boxes are grown past rounding), and few more; rays from near and far, at the origin and
+    /// 1e7 from it, at 1e-30 and 1e30.
+    #[test]
+    fn traversal_meets_what_the_binary_traversal_meets() {
+        let mut stream = Stream(5);
+        for (centre, size) in
+            [(DVec3::ZERO, 1.0), (DVec3::new(1e7, -3e6, 2e6), 1.0), (DVec3::ZERO, 1e-30), (DVec3::ZERO, 1e30)]
+        {
+            let soup = triangles(&mut stream, 2000, centre, size);
+            let (bvh, tree) = tree_over(&soup);
+            let (mut wide_met, mut binary_met) = (0, 0);
+            for k in 0..200 {
+                let origin =
+                    if k % 2 == 0 { soup[k][0] + stream.vector(size) } else { centre + stream.vector(80.0 * size) };
+                let direction = DVec3::new(0.6, 0.48, 0.64) * if k % 3 == 0 { 1.0 } else { -1.0 } + stream.vector(0.1);
+                let ray =
+                    Ray64 { origin, direction, tmin: 0.0, tmax: if k % 4 == 0 { 10.0 * size } else { f64::INFINITY } };
+                let mut binary = Vec::new();
+                bvh.traverse(&ray, &mut ray.tmax.clone(), |item, _| {
+                    binary.push(item);
+                    true
+                });
+                let mut wide = Vec::new();
+                let query = RayQuery::new(&tree, &ray).expect("a ray the tree takes");
+                tree.traverse(&query, &mut ray.tmax.clone(), |item, _| {
+                    wide.push(item);
+                    true
+                });
+                wide.sort_unstable();
+                assert!(wide.windows(2).all(|w| w[0] < w[1]), "an item met twice");
+                // The binary traversal meets a leaf's items together; the wide one tests each
+                // item's box: it must meet every item whose own box the ray enters.
+                let inverse = ray.direction.recip();
+                let entered =
+                    |i: &&u32| Aabb::of_points(soup[**i as usize].iter().copied()).entry(&ray, inverse).is_some();
+                let expected: Vec<u32> = binary.iter().filter(entered).copied().collect();
+                assert!(
+                    expected.iter().all(|i| wide.binary_search(i).is_ok()),
+                    "ray {ray:?}: the wide traversal missed an item"
+                );
+                (wide_met, binary_met) = (wide_met + wide.len(), binary_met + binary.len());
+            }
+            // f32 boxes 1e7 from the origin are grown by f32's step there (about a unit: the
+            // triangles' size), which prunes little; a mesh's own frame is centred on it.
+            if centre == DVec3::ZERO {
+                assert!(wide_met <= binary_met + binary_met / 10, "{size}: met {wide_met} against {binary_met}");
+            }
         }
     }
 

@@ -8,7 +8,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::bvh::Bvh;
-use super::nearest_tree::{NearestQuery, NearestTree};
+use super::nearest_tree::{NearestQuery, NearestTree, RayQuery};
 use super::parallel;
 use super::winding::{self, Triangles, WindingTree};
 
@@ -410,7 +410,7 @@ impl<'a> ReferenceTracer<'a> {
             }
             let local = ShearedRay::new(Ray64 { tmax: *tmax, ..ray.transformed(&set.to_local) });
             let mut go_on = true;
-            set.triangles.bvh().traverse(&local.ray, tmax, |prim, tmax| {
+            let mut test = |prim: u32, tmax: &mut f64| {
                 let [a, b, c] = set.triangles.triangle(prim as usize);
                 let Some(hit) = watertight_edges(&local, a, b, c, filter.contacts) else { return true };
                 if hit.t > *tmax || !(set.cull_disable || filter.cull.keeps(hit.front != set.flip_facing)) {
@@ -421,7 +421,14 @@ impl<'a> ReferenceTracer<'a> {
                 }
                 go_on = found(ReferenceHit { t: hit.t, u: hit.u, v: hit.v, instance, prim }, hit.front, tmax);
                 go_on
-            });
+            };
+            // Through the four-wide f32 tree where it takes the ray (its boxes grown past
+            // rounding: every triangle the binary f64 traversal meets, and a few more).
+            let tree = set.triangles.nearest_tree();
+            match tree.and_then(|tree| Some((tree, RayQuery::new(tree, &local.ray)?))) {
+                Some((tree, query)) => tree.traverse(&query, tmax, &mut test),
+                None => set.triangles.bvh().traverse(&local.ray, tmax, &mut test),
+            }
             go_on
         });
     }
