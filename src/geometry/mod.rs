@@ -18,7 +18,7 @@ pub mod arrays;
 
 pub mod bvh;
 
-pub mod nearest_tree;
+pub mod wide_tree;
 
 pub mod winding;
 

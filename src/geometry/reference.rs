@@ -8,8 +8,8 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::bvh::Bvh;
-use super::nearest_tree::{NearestQuery, NearestTree, RayQuery};
 use super::parallel;
+use super::wide_tree::{NearestQuery, RayQuery, WideTree};
 use super::winding::{self, Triangles, WindingTree};
 
 use crate::geometry::precision::{
@@ -28,7 +28,7 @@ pub struct TriangleSet {
     /// A sphere set's spheres (centre, radius); empty for triangles.
     pub spheres: Vec<(DVec3, f64)>,
     bvh: OnceLock<Bvh>,
-    nearest: OnceLock<Option<NearestTree>>,
+    wide: OnceLock<Option<WideTree>>,
     winding: OnceLock<WindingTree>,
     closed: OnceLock<bool>,
 }
@@ -46,7 +46,7 @@ impl TriangleSet {
             part_offsets,
             spheres,
             bvh: OnceLock::new(),
-            nearest: OnceLock::new(),
+            wide: OnceLock::new(),
             winding: OnceLock::new(),
             closed: OnceLock::new(),
         }
@@ -119,11 +119,11 @@ impl TriangleSet {
         })
     }
 
-    /// The hierarchy's four-wide f32 form for nearest-item searches (built on first use); None
-    /// where its boxes lie beyond what f32 bounds take (`NearestTree::build`).
-    pub fn nearest_tree(&self) -> Option<&NearestTree> {
-        self.nearest
-            .get_or_init(|| NearestTree::build(self.bvh(), &|item| (!self.is_spheres()).then(|| self.triangle(item))))
+    /// The hierarchy's four-wide f32 form for nearest searches and rays (built on first use); None
+    /// where its boxes lie beyond what f32 bounds take (`WideTree::build`).
+    pub fn wide_tree(&self) -> Option<&WideTree> {
+        self.wide
+            .get_or_init(|| WideTree::build(self.bvh(), &|item| (!self.is_spheres()).then(|| self.triangle(item))))
             .as_ref()
     }
 
@@ -424,7 +424,7 @@ impl<'a> ReferenceTracer<'a> {
             };
             // Through the four-wide f32 tree where it takes the ray (its boxes grown past
             // rounding: every triangle the binary f64 traversal meets, and a few more).
-            let tree = set.triangles.nearest_tree();
+            let tree = set.triangles.wide_tree();
             match tree.and_then(|tree| Some((tree, RayQuery::new(tree, &local.ray)?))) {
                 Some((tree, query)) => tree.traverse(&query, tmax, &mut test),
                 None => set.triangles.bvh().traverse(&local.ray, tmax, &mut test),
@@ -495,7 +495,7 @@ impl<'a> ReferenceTracer<'a> {
                 };
                 // Through the four-wide f32 tree where it takes the point (scale 1: lengths in
                 // f32's range), else the binary f64 one; each item bounded by its own box first.
-                let wide = (scale == 1.0).then(|| set.triangles.nearest_tree()).flatten();
+                let wide = (scale == 1.0).then(|| set.triangles.wide_tree()).flatten();
                 match wide.and_then(|tree| Some((tree, NearestQuery::new(tree, local, weights)?))) {
                     Some((tree, query)) => tree.nearest(&query, &mut reach_squared, &mut measure),
                     None => set.triangles.bvh().nearest(

@@ -1,12 +1,14 @@
 //! A four-wide tree of f32 boxes over a `Bvh`'s items, for the host's nearest-item searches
-//! (closest points, distances): a node's four children bounded side by side (one vector of each
-//! bound) where the binary tree bounds two in f64, one at a time, each behind a branch; a leaf's
-//! items likewise. Built from the binary tree (its leaves kept, its inner levels collapsed two
-//! into one), on first use.
+//! (closest points, distances) and its f64 tiers' rays: a node's four children bounded (or
+//! entered) side by side, one vector of each bound, where the binary tree tests two in f64, one at
+//! a time, each behind a branch; a leaf's items likewise, each triangle also bounded by its
+//! planes for nearest searches. Built from the binary tree (its leaves kept, its inner levels
+//! collapsed two into one), on a mesh's first such query.
 //!
-//! The bounds are f32 and must stay lower bounds of what the f64 search measures: every box is
-//! rounded outward, each gap is shrunk past the point's rounding to f32 and the arithmetic's, and
-//! the sum past its own rounding. Lengths are scaled by a power of two (exactly) that brings the
+//! The f32 tests must keep every item the f64 ones keep (the answers stay the binary tree's, bit
+//! for bit): every box is rounded outward; a nearest search's gaps are shrunk past the point's
+//! rounding to f32 and the arithmetic's, and their sum past its own rounding; a ray's boxes are
+//! grown past its origin's and direction's rounding, its entries and exits moved out past theirs. Lengths are scaled by a power of two (exactly) that brings the
 //! tree's extent near 1, so that a tiny mesh's squared gaps do not underflow f32 (which would
 //! leave nothing pruned) nor a large one's overflow; a tree beyond `EXTENTS` (or a point far
 //! beyond its tree) is left to the f64 search.
@@ -162,7 +164,7 @@ struct WideLeaf {
     count: u32,
 }
 
-pub struct NearestTree {
+pub struct WideTree {
     nodes: Vec<WideNode>,
     leaves: Vec<WideLeaf>,
     /// The items in leaf order (`Bvh::items`).
@@ -203,7 +205,7 @@ impl NearestQuery {
     /// The query from `local` (the point in the tree's frame) with squared gaps weighted by
     /// `weights` (each at most what bounds the f64 search's, `reference::weighted_gap`); None
     /// where the point lies beyond what the f32 bounds take (the f64 search then runs).
-    pub fn new(tree: &NearestTree, local: DVec3, weights: DVec3) -> Option<NearestQuery> {
+    pub fn new(tree: &WideTree, local: DVec3, weights: DVec3) -> Option<NearestQuery> {
         let local = local * tree.scale;
         let within = local.abs().max_element() < POINT_LIMIT; // (false for NaN)
         if !within || !weights.is_finite() {
@@ -283,7 +285,7 @@ impl RayQuery {
     /// The query of `ray` (in the tree's frame); None where its origin lies far beyond the
     /// tree, a component of its direction is 0 or out of f32's comfortable range, or its
     /// interval is not a finite start and a later end (the f64 traversal then runs).
-    pub fn new(tree: &NearestTree, ray: &Ray64) -> Option<RayQuery> {
+    pub fn new(tree: &WideTree, ray: &Ray64) -> Option<RayQuery> {
         // Scaling origin and direction alike keeps every point's t.
         let (o, d) = (ray.origin * tree.scale, ray.direction * tree.scale);
         let within = o.abs().max_element() < POINT_LIMIT; // (false for NaN)
@@ -341,10 +343,10 @@ fn up(x: f64) -> f32 {
     }
 }
 
-impl NearestTree {
+impl WideTree {
     /// The tree over `bvh`'s leaves and items, `triangle(item)` each item's corners (None: not
     /// a triangle); None where it has none, or its extent lies beyond `EXTENTS`.
-    pub fn build(bvh: &Bvh, triangle: &(dyn Fn(usize) -> Option<[DVec3; 3]> + Sync)) -> Option<NearestTree> {
+    pub fn build(bvh: &Bvh, triangle: &(dyn Fn(usize) -> Option<[DVec3; 3]> + Sync)) -> Option<WideTree> {
         let root = &bvh.nodes().first()?.bounds;
         let extent = root.min.abs().max(root.max.abs()).max_element();
         if !(extent >= EXTENTS.0 && extent <= EXTENTS.1) {
@@ -356,7 +358,7 @@ impl NearestTree {
         let items = bvh.items().to_vec();
         let leaves = bvh.nodes().iter().filter(|n| n.count > 0).count();
         let (nodes, leaves) = (Vec::with_capacity(leaves / 2 + 1), Vec::with_capacity(leaves));
-        let mut tree = NearestTree { nodes, leaves, items, root: EMPTY, scale, magnitude };
+        let mut tree = WideTree { nodes, leaves, items, root: EMPTY, scale, magnitude };
         tree.root = tree.collapse(bvh, 0);
         // The leaves' planes, on all cores.
         let items = &tree.items;
@@ -465,7 +467,7 @@ impl NearestTree {
     }
 }
 
-impl NearestTree {
+impl WideTree {
     /// `Bvh::traverse` through the wide tree: calls `visit` with every item whose box the ray
     /// may enter before `*tmax` (each box tested in f32, grown past every rounding: a superset
     /// of the f64 traversal's), nearer boxes first; `visit` may lower `*tmax` (a closer hit) or
@@ -555,10 +557,10 @@ mod tests {
             .collect()
     }
 
-    fn tree_over(triangles: &[[DVec3; 3]]) -> (Bvh, NearestTree) {
+    fn tree_over(triangles: &[[DVec3; 3]]) -> (Bvh, WideTree) {
         let boxes: Vec<Aabb> = triangles.iter().map(|t| Aabb::of_points(t.iter().copied())).collect();
         let bvh = Bvh::build(&boxes);
-        let tree = NearestTree::build(&bvh, &|i| Some(triangles[i])).expect("a tree within f32's range");
+        let tree = WideTree::build(&bvh, &|i| Some(triangles[i])).expect("a tree within f32's range");
         (bvh, tree)
     }
 
@@ -708,7 +710,7 @@ mod tests {
         for size in [1e40, 1e-40] {
             let far = [[DVec3::splat(size), DVec3::new(size, 0.0, 0.0), DVec3::new(0.0, size, size)]];
             let boxes: Vec<Aabb> = far.iter().map(|t| Aabb::of_points(t.iter().copied())).collect();
-            assert!(NearestTree::build(&Bvh::build(&boxes), &|i| Some(far[i])).is_none(), "{size}");
+            assert!(WideTree::build(&Bvh::build(&boxes), &|i| Some(far[i])).is_none(), "{size}");
         }
         let near = [[DVec3::ZERO, DVec3::X, DVec3::Y]];
         let (_, tree) = tree_over(&near);
