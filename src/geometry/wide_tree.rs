@@ -449,20 +449,7 @@ impl WideTree {
                 continue;
             }
             let node = &self.nodes[slot as usize];
-            let bounds = query.bounds(&node.boxes);
-            // The children within reach, pushed farthest first (popped nearest first).
-            let start = n;
-            for (&child, &bound) in node.slots.iter().zip(&bounds) {
-                if child != EMPTY && bound <= reach {
-                    let mut at = n;
-                    while at > start && stack[at - 1].1 < bound {
-                        stack[at] = stack[at - 1];
-                        at -= 1;
-                    }
-                    stack[at] = (child, bound);
-                    n += 1;
-                }
-            }
+            n = push_nearest_last(&mut stack, n, node, &query.bounds(&node.boxes), reach);
         }
     }
 }
@@ -499,22 +486,35 @@ impl WideTree {
                 continue;
             }
             let node = &self.nodes[slot as usize];
-            let entries = query.entries(&node.boxes, reach);
-            // The children the ray enters, pushed farthest first (popped nearest first).
-            let start = n;
-            for (&child, &entry) in node.slots.iter().zip(&entries) {
-                if child != EMPTY && entry <= reach {
-                    let mut at = n;
-                    while at > start && stack[at - 1].1 < entry {
-                        stack[at] = stack[at - 1];
-                        at -= 1;
-                    }
-                    stack[at] = (child, entry);
-                    n += 1;
-                }
-            }
+            n = push_nearest_last(&mut stack, n, node, &query.entries(&node.boxes, reach), reach);
         }
     }
+}
+
+/// Pushes the children of `node` whose `keys` (bounds, or entry distances) are within `reach`
+/// onto the first `n` entries of `stack`, farthest first (so that the nearest is popped first);
+/// returns the new length.
+#[inline(always)]
+fn push_nearest_last(
+    stack: &mut [(u32, f32); STACK],
+    mut n: usize,
+    node: &WideNode,
+    keys: &[f32; 4],
+    reach: f32,
+) -> usize {
+    let start = n;
+    for (&child, &key) in node.slots.iter().zip(keys) {
+        if child != EMPTY && key <= reach {
+            let mut at = n;
+            while at > start && stack[at - 1].1 < key {
+                stack[at] = stack[at - 1];
+                at -= 1;
+            }
+            stack[at] = (child, key);
+            n += 1;
+        }
+    }
+    n
 }
 
 #[cfg(test)]
