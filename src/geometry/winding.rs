@@ -185,10 +185,92 @@ pub fn beyond_margin(bounds: &Aabb, p: DVec3) -> bool {
 /// Twice the signed solid angle of the triangle (a, b, c) seen from the origin (the corners
 /// relative to the point), by Van Oosterom and Strackee's formula.
 pub fn twice_solid_angle(a: DVec3, b: DVec3, c: DVec3) -> f64 {
-    let (la, lb, lc) = (a.length(), b.length(), c.length());
-    let numerator = a.dot(b.cross(c));
-    let denominator = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
-    2.0 * numerator.atan2(denominator)
+    let terms = SolidAngleTerms::of(a, b, c, a.length());
+    2.0 * terms.numerator.atan2(terms.denominator)
+}
+
+/// Van Oosterom and Strackee's numerator and denominator of the triangle (a, b, c) about the
+/// origin (half its solid angle is their `atan2`), and the product of the corners' distances.
+pub struct SolidAngleTerms {
+    pub numerator: f64,
+    pub denominator: f64,
+    pub lengths: f64,
+}
+
+impl SolidAngleTerms {
+    /// The terms of (a, b, c), `a`'s length given (a fan's apex shares it).
+    #[inline]
+    pub fn of(a: DVec3, b: DVec3, c: DVec3, la: f64) -> SolidAngleTerms {
+        let (lb, lc) = (b.length(), c.length());
+        let lengths = la * lb * lc;
+        let numerator = a.dot(b.cross(c));
+        let denominator = lengths + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
+        SolidAngleTerms { numerator, denominator, lengths }
+    }
+
+    /// Whether the origin lies on the triangle or within 1e-10 of its size of its inside, where
+    /// its solid angle jumps by 4π (shaders/solid_angle.glsl `near_inside`).
+    #[inline]
+    pub fn near_inside(&self) -> bool {
+        self.denominator <= 0.0 && self.numerator.abs() <= 1e-10 * self.lengths
+    }
+}
+
+/// A sum of `atan2(y, x)` over many (y, x) with one arctangent: the product of the complex
+/// numbers x + iy (its argument is the sum's, modulo 2π), and the turns the sum made past ±π,
+/// counted as each factor is taken. The libm arctangent of each term was most of the caps'
+/// solid angles (a fan of a hundred triangles about each point near a hole).
+///
+/// The product's size is kept near 1 by a power of two a factor (no rounding). A turn is
+/// counted where two factors on one side of the real axis (by the sign bit, as `atan2` reads
+/// it) make a product on the other: their arguments' sum passed ±π. The result differs from
+/// the sum of the terms' own arctangents by rounding alone (a few ulps a term).
+#[derive(Clone, Copy, Debug)]
+pub struct ArgumentSum {
+    x: f64,
+    y: f64,
+    turns: i32,
+}
+
+impl Default for ArgumentSum {
+    fn default() -> ArgumentSum {
+        ArgumentSum { x: 1.0, y: 0.0, turns: 0 }
+    }
+}
+
+impl ArgumentSum {
+    /// Adds `atan2(y, x)` (nothing for y = x = 0, whose `atan2` is ±0 or ±π by the zeros' signs:
+    /// the callers treat such a term, a point on a triangle's edge or corner, as unsure).
+    #[inline]
+    pub fn add(&mut self, y: f64, x: f64) {
+        if x == 0.0 && y == 0.0 {
+            return;
+        }
+        let (px, py) = (self.x * x - self.y * y, self.x * y + self.y * x);
+        let (was_upper, term_upper, upper) = (self.y.is_sign_positive(), y.is_sign_positive(), py.is_sign_positive());
+        if was_upper == term_upper && upper != was_upper {
+            self.turns += if was_upper { 1 } else { -1 };
+        }
+        let scale = power_of_two_below(px.abs().max(py.abs()));
+        (self.x, self.y) = (px * scale, py * scale);
+    }
+
+    /// The sum of the arguments added (NaN where a term was NaN or infinite).
+    pub fn total(&self) -> f64 {
+        self.y.atan2(self.x) + std::f64::consts::TAU * f64::from(self.turns)
+    }
+}
+
+/// The power of two that brings `m` (finite, above zero) into [1, 2); 1 for zero, subnormals,
+/// infinities and NaN (whose product `total` reports).
+#[inline]
+fn power_of_two_below(m: f64) -> f64 {
+    let exponent = (m.to_bits() >> 52) & 0x7ff;
+    if exponent == 0 || exponent == 0x7ff {
+        return 1.0;
+    }
+    // 2^-(exponent - 1023): its biased exponent is 2046 - exponent, within [1, 2045].
+    f64::from_bits((2046 - exponent) << 52)
 }
 
 fn net_edge(u: u32, v: u32) -> NetEdge {
@@ -431,6 +513,64 @@ mod tests {
             let fast = tree.winding_number(set.triangles(), &placed, scene, to_local.point(scene));
             let brute = brute_force(&set, &placed, scene);
             assert!((fast - brute).abs() < 1e-11, "{p}: {fast} against {brute}");
+        }
+    }
+
+    /// A fixed stream of numbers in [0, 1) (SplitMix64).
+    fn stream(seed: u64) -> impl FnMut() -> f64 {
+        let mut state = seed;
+        move || {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    #[test]
+    fn argument_sums_equal_sums_of_arctangents() {
+        let mut next = stream(7);
+        // Terms of every kind: anywhere, on and near both axes (±0 included), and of sizes from
+        // 1e-200 to 1e200 (the product's scaling).
+        let mut term = |k: usize| -> (f64, f64) {
+            let (y, x) = (next() - 0.5, next() - 0.5);
+            let size = 10f64.powf(next() * 400.0 - 200.0);
+            let (y, x) = match k % 9 {
+                0 => (0.0, x),
+                1 => (-0.0, x),
+                2 => (y, 0.0),
+                3 => (y * 1e-17, -1.0),
+                4 => (-y.abs() * 1e-17, -1.0),
+                5 => (y * 1e-17, 1.0),
+                _ => (y, x),
+            };
+            (y * size, x * size)
+        };
+        for length in [1, 2, 3, 10, 100, 1000] {
+            for trial in 0..200 {
+                let terms: Vec<(f64, f64)> = (0..length).map(|k| term(k * 31 + trial)).collect();
+                let mut sum = ArgumentSum::default();
+                for &(y, x) in &terms {
+                    sum.add(y, x);
+                }
+                let expected: f64 = terms.iter().map(|&(y, x)| y.atan2(x)).sum();
+                let error = (sum.total() - expected).abs();
+                assert!(error <= 1e-14 * length as f64 + 1e-15, "{length} terms: {} against {expected}", sum.total());
+            }
+        }
+    }
+
+    #[test]
+    fn argument_sums_count_every_turn() {
+        // n equal steps of an angle just below π (and just above -π): the sum turns many times.
+        for (angle, n) in [(3.0, 1000), (-3.1, 777), (std::f64::consts::PI - 1e-12, 64), (2.0, 3)] {
+            let mut sum = ArgumentSum::default();
+            for _ in 0..n {
+                sum.add(angle.sin(), angle.cos());
+            }
+            let expected = angle * n as f64;
+            assert!((sum.total() - expected).abs() < 1e-12 * n as f64, "{} against {expected}", sum.total());
         }
     }
 }

@@ -11,7 +11,7 @@ use glam::DVec3;
 
 use crate::geometry::precision::{watertight_edges, Ray64, ShearedRay};
 use crate::geometry::reference::ReferenceTracer;
-use crate::geometry::winding::twice_solid_angle;
+use crate::geometry::winding::{ArgumentSum, SolidAngleTerms};
 use crate::gpu::records::{WindingCapEdge, WindingCapHole};
 use crate::scene::{CapGeometry, Placement};
 use crate::trace::request::Crossings;
@@ -127,20 +127,17 @@ pub fn fan_winding_bound(p: DVec3, hole: &WindingCapHole) -> f64 {
 }
 
 /// Twice the solid angle of `hole`'s fan about `p` (scene frame), and whether `p` lies within
-/// rounding of one of its triangles' insides (where the angle jumps by 4π).
+/// rounding of one of its triangles' insides (where the angle jumps by 4π). The triangles'
+/// arctangents are summed as one (`ArgumentSum`).
 fn fan_angle(p: DVec3, hole: &WindingCapHole, edges: &[WindingCapEdge]) -> (f64, bool) {
     let apex = DVec3::from_array(hole.apex_scene) - p;
-    edges.iter().fold((0.0, false), |(sum, near), e| {
+    let apex_length = apex.length();
+    let (mut sum, mut near) = (ArgumentSum::default(), false);
+    for e in edges {
         let (a, b) = (DVec3::from_array(e.a_scene) - p, DVec3::from_array(e.b_scene) - p);
-        (sum + twice_solid_angle(apex, a, b), near || near_inside(apex, a, b))
-    })
-}
-
-/// Whether the origin lies on the triangle (a, b, c) or within 1e-10 of its size of its inside
-/// (shaders/solid_angle.glsl `near_inside`).
-fn near_inside(a: DVec3, b: DVec3, c: DVec3) -> bool {
-    let (la, lb, lc) = (a.length(), b.length(), c.length());
-    let numerator = a.dot(b.cross(c));
-    let denominator = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
-    denominator <= 0.0 && numerator.abs() <= 1e-10 * la * lb * lc
+        let terms = SolidAngleTerms::of(apex, a, b, apex_length);
+        sum.add(terms.numerator, terms.denominator);
+        near |= terms.near_inside();
+    }
+    (2.0 * sum.total(), near)
 }
