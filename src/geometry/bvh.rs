@@ -2,7 +2,9 @@
 //! and winding numbers' (each mesh's and the one over a scene's instances).
 
 use glam::DVec3;
+use rayon::prelude::*;
 
+use super::parallel;
 use crate::geometry::precision::{Aabb, Ray64};
 
 /// Items one leaf holds at most.
@@ -73,45 +75,25 @@ const STACK: usize = 64;
 
 impl Bvh {
     /// `boxes` must be conservative: the traversal trusts them to hold every hit.
+    ///
+    /// The splits are found on all cores (`plan`: the two sides of a split are disjoint runs of
+    /// the items, split on their own), then laid out in one pass in the order a single-threaded
+    /// top-down build takes them (the same nodes, numbered the same: `lay_out`).
     pub fn build(boxes: &[Aabb]) -> Bvh {
-        let mut bvh = Bvh {
-            nodes: Vec::with_capacity(2 * boxes.len() / LEAF_ITEMS + 1),
-            items: Vec::new(),
-            item_boxes: Vec::new(),
-        };
         let mut items: Vec<u32> = (0..boxes.len() as u32).collect();
         if boxes.is_empty() {
-            return bvh;
+            return Bvh { nodes: Vec::new(), items, item_boxes: Vec::new() };
         }
-        let centers: Vec<DVec3> = boxes.iter().map(Aabb::center).collect();
-        bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
-        // (node, its depth, range of `items`) still to split.
-        let mut todo = vec![(0usize, 0u32, 0usize, items.len())];
-        while let Some((node, depth, lo, hi)) = todo.pop() {
-            let slice = &mut items[lo..hi];
-            let bounds = slice.iter().fold(Aabb::EMPTY, |b, &i| b.union(&boxes[i as usize]));
-            bvh.nodes[node].bounds = bounds;
-            if slice.len() <= LEAF_ITEMS {
-                bvh.nodes[node].first = lo as u32;
-                bvh.nodes[node].count = slice.len() as u32;
-                continue;
-            }
-            // Median splits keep `depth + levels_below(n)` as it is: SAH only while that has room.
-            let room = depth + levels_below(slice.len()) + 2 < MAX_DEPTH;
-            let mid = room
-                .then(|| sah_split(slice, boxes, &centers))
-                .flatten()
-                .unwrap_or_else(|| median_split(slice, &centers));
-            let left = bvh.nodes.len();
-            bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
-            bvh.nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
-            bvh.nodes[node].first = left as u32;
-            todo.push((left, depth + 1, lo, lo + mid));
-            todo.push((left + 1, depth + 1, lo + mid, hi));
-        }
-        bvh.item_boxes = items.iter().map(|&i| ItemBox::around(&boxes[i as usize])).collect();
-        bvh.items = items;
-        bvh
+        let (nodes, items) = parallel::install(|| {
+            let centers: Vec<DVec3> = boxes.par_iter().with_min_len(4096).map(Aabb::center).collect();
+            let inputs = SplitInputs { boxes, centers: &centers };
+            let plan = plan_subtree(inputs, &mut items, 0);
+            (lay_out(&plan, items.len()), items)
+        });
+        let item_boxes = parallel::install(|| {
+            items.par_iter().with_min_len(4096).map(|&i| ItemBox::around(&boxes[i as usize])).collect()
+        });
+        Bvh { nodes, items, item_boxes }
     }
 
     /// Calls `visit` with every item whose box may hold something nearer than `*best`, by
@@ -226,6 +208,95 @@ impl Bvh {
 }
 
 /// Levels of median splits below a node of `n` items before its leaves.
+/// What every split of one build reads: the items' boxes and their centres.
+#[derive(Clone, Copy)]
+struct SplitInputs<'a> {
+    boxes: &'a [Aabb],
+    centers: &'a [DVec3],
+}
+
+/// A node as `plan_subtree` found it: its box, and where its run of items splits (0: a leaf).
+struct PlannedNode {
+    bounds: Aabb,
+    split: u32,
+}
+
+/// Runs of items at least this long are split with their two sides on two cores (and their
+/// boxes and bins summed on all cores); shorter ones on one.
+const PARALLEL_ITEMS: usize = 1 << 14;
+
+/// The nodes of the subtree over `items` (at `depth`), each node before its right subtree and
+/// that before its left (the order `lay_out` takes them in), in pieces: the two sides of a split
+/// found on two cores are joined without copying each other's nodes. `items` is left in leaf
+/// order.
+fn plan_subtree(inputs: SplitInputs, items: &mut [u32], depth: u32) -> Vec<Vec<PlannedNode>> {
+    if items.len() < PARALLEL_ITEMS {
+        let mut nodes = Vec::new();
+        plan_nodes(inputs, items, depth, &mut nodes);
+        return vec![nodes];
+    }
+    let bounds = fold_items(items, Aabb::EMPTY, |b, i| *b = b.union(&inputs.boxes[i]), |a, b| a.union(&b));
+    let split = split_items(inputs, items, depth);
+    let (left, right) = items.split_at_mut(split);
+    let (right, left) =
+        rayon::join(|| plan_subtree(inputs, right, depth + 1), || plan_subtree(inputs, left, depth + 1));
+    let mut pieces = vec![vec![PlannedNode { bounds, split: split as u32 }]];
+    pieces.extend(right);
+    pieces.extend(left);
+    pieces
+}
+
+/// `plan_subtree` on one core, into `nodes`.
+fn plan_nodes(inputs: SplitInputs, items: &mut [u32], depth: u32, nodes: &mut Vec<PlannedNode>) {
+    let bounds = items.iter().fold(Aabb::EMPTY, |b, &i| b.union(&inputs.boxes[i as usize]));
+    if items.len() <= LEAF_ITEMS {
+        nodes.push(PlannedNode { bounds, split: 0 });
+        return;
+    }
+    let split = split_items(inputs, items, depth);
+    nodes.push(PlannedNode { bounds, split: split as u32 });
+    let (left, right) = items.split_at_mut(split);
+    plan_nodes(inputs, right, depth + 1, nodes);
+    plan_nodes(inputs, left, depth + 1, nodes);
+}
+
+/// Splits a run of more than `LEAF_ITEMS` items at `depth` in place (the left child's first);
+/// returns the left child's count. Median splits keep `depth + levels_below(n)` as it is: SAH
+/// only while that has room.
+fn split_items(inputs: SplitInputs, items: &mut [u32], depth: u32) -> usize {
+    let room = depth + levels_below(items.len()) + 2 < MAX_DEPTH;
+    room.then(|| sah_split(items, inputs.boxes, inputs.centers))
+        .flatten()
+        .unwrap_or_else(|| median_split(items, inputs.centers))
+}
+
+/// The planned nodes as the hierarchy's array: each inner node's two children side by side,
+/// numbered as a single-threaded top-down build numbers them (it splits the node taken last
+/// from its stack and puts its left child, then its right, on the stack).
+fn lay_out(plan: &[Vec<PlannedNode>], items: usize) -> Vec<Node> {
+    let mut nodes = Vec::with_capacity(2 * items / LEAF_ITEMS + 1);
+    nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+    let mut planned = plan.iter().flatten();
+    // (node, range of the items) still to lay out.
+    let mut todo = vec![(0usize, 0usize, items)];
+    while let Some((node, lo, hi)) = todo.pop() {
+        let next = planned.next().expect("a planned node for every node laid out");
+        nodes[node].bounds = next.bounds;
+        if next.split == 0 {
+            (nodes[node].first, nodes[node].count) = (lo as u32, (hi - lo) as u32);
+            continue;
+        }
+        let left = nodes.len();
+        nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+        nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+        nodes[node].first = left as u32;
+        let mid = lo + next.split as usize;
+        todo.push((left, lo, mid));
+        todo.push((left + 1, mid, hi));
+    }
+    nodes
+}
+
 fn levels_below(n: usize) -> u32 {
     n.div_ceil(LEAF_ITEMS).next_power_of_two().trailing_zeros()
 }
@@ -254,23 +325,32 @@ fn widest_axis(extent: DVec3) -> usize {
 /// extent on each axis, partitioned in place (left items first; returns their number), or None
 /// where every candidate leaves a side empty.
 fn sah_split(slice: &mut [u32], boxes: &[Aabb], centers: &[DVec3]) -> Option<usize> {
-    let cb = Aabb::of_points(slice.iter().map(|&i| centers[i as usize]));
+    let cb = fold_items(slice, Aabb::EMPTY, |b, i| *b = b.union(&Aabb::of_points([centers[i]])), |a, b| a.union(&b));
     let extent = cb.extent();
+    // Bins per unit length on each axis (a product a bin, not a quotient: the builds' hot loop).
+    let scale = DVec3::splat(SAH_BINS as f64) / extent;
     let bin_of = |axis: usize, c: DVec3| -> usize {
-        let x = (c[axis] - cb.min[axis]) / extent[axis] * SAH_BINS as f64;
+        let x = (c[axis] - cb.min[axis]) * scale[axis];
         (x as usize).min(SAH_BINS - 1)
     };
+    // Every axis's bins in one pass over the items (each box read once).
+    let binned = fold_items(
+        slice,
+        [Bins::default(); 3],
+        |bins, i| {
+            let item = &boxes[i];
+            for (axis, bins) in bins.iter_mut().enumerate() {
+                let b = bin_of(axis, centers[i]);
+                bins.counts[b] += 1;
+                bins.boxes[b] = bins.boxes[b].union(item);
+            }
+        },
+        |a, b| std::array::from_fn(|axis| a[axis].join(&b[axis])),
+    );
     let mut best: Option<(f64, usize, usize)> = None;
-    for axis in 0..3 {
+    for (axis, Bins { counts, boxes: bins }) in binned.iter().enumerate() {
         if extent[axis] <= 0.0 || !extent[axis].is_finite() {
             continue;
-        }
-        let mut counts = [0usize; SAH_BINS];
-        let mut bins = [Aabb::EMPTY; SAH_BINS];
-        for &i in slice.iter() {
-            let b = bin_of(axis, centers[i as usize]);
-            counts[b] += 1;
-            bins[b] = bins[b].union(&boxes[i as usize]);
         }
         // Right-hand sweeps: the area and count of bins k.. for each k.
         let mut right_area = [0.0f64; SAH_BINS];
@@ -306,6 +386,50 @@ fn sah_split(slice: &mut [u32], boxes: &[Aabb], centers: &[DVec3]) -> Option<usi
     (left > 0 && left < slice.len()).then_some(left)
 }
 
+/// One axis's bins of a SAH split: each bin's item count and their boxes' union.
+#[derive(Clone, Copy)]
+struct Bins {
+    counts: [usize; SAH_BINS],
+    boxes: [Aabb; SAH_BINS],
+}
+
+impl Default for Bins {
+    fn default() -> Bins {
+        Bins { counts: [0; SAH_BINS], boxes: [Aabb::EMPTY; SAH_BINS] }
+    }
+}
+
+impl Bins {
+    fn join(&self, other: &Bins) -> Bins {
+        Bins {
+            counts: std::array::from_fn(|k| self.counts[k] + other.counts[k]),
+            boxes: std::array::from_fn(|k| self.boxes[k].union(&other.boxes[k])),
+        }
+    }
+}
+
+/// `items` folded into `empty` by `add` (in place: the bins are kilobytes): on all cores (pieces
+/// joined by `join`, which must be associative and exact: unions of boxes, sums of counts) for
+/// runs of `PARALLEL_ITEMS` or more.
+fn fold_items<T: Copy + Send + Sync>(
+    items: &[u32],
+    empty: T,
+    add: impl Fn(&mut T, usize) + Sync,
+    join: impl Fn(T, T) -> T + Sync,
+) -> T {
+    let fold = |chunk: &[u32]| {
+        let mut acc = empty;
+        for &i in chunk {
+            add(&mut acc, i as usize);
+        }
+        acc
+    };
+    if items.len() < PARALLEL_ITEMS {
+        return fold(items);
+    }
+    items.par_chunks(PARALLEL_ITEMS / 4).map(fold).reduce(|| empty, &join)
+}
+
 fn half_area(b: &Aabb) -> f64 {
     let e = b.extent();
     e.x * e.y + e.y * e.z + e.z * e.x
@@ -324,6 +448,62 @@ mod tests {
         }
         let left = depth_and_items(bvh, n.first as usize, depth + 1, seen);
         left.max(depth_and_items(bvh, n.first as usize + 1, depth + 1, seen))
+    }
+
+    /// The single-threaded top-down build `Bvh::build` replaces (its splits, one node at a time
+    /// off a stack): the oracle of the parallel build's layout.
+    fn build_on_one_thread(boxes: &[Aabb]) -> (Vec<Node>, Vec<u32>) {
+        let centers: Vec<DVec3> = boxes.iter().map(Aabb::center).collect();
+        let inputs = SplitInputs { boxes, centers: &centers };
+        let mut items: Vec<u32> = (0..boxes.len() as u32).collect();
+        let mut nodes = vec![Node { bounds: Aabb::EMPTY, first: 0, count: 0 }];
+        let mut todo = vec![(0usize, 0u32, 0usize, items.len())];
+        while let Some((node, depth, lo, hi)) = todo.pop() {
+            let slice = &mut items[lo..hi];
+            nodes[node].bounds = slice.iter().fold(Aabb::EMPTY, |b, &i| b.union(&boxes[i as usize]));
+            if slice.len() <= LEAF_ITEMS {
+                (nodes[node].first, nodes[node].count) = (lo as u32, slice.len() as u32);
+                continue;
+            }
+            let mid = split_items(inputs, slice, depth);
+            let left = nodes.len();
+            nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+            nodes.push(Node { bounds: Aabb::EMPTY, first: 0, count: 0 });
+            nodes[node].first = left as u32;
+            todo.push((left, depth + 1, lo, lo + mid));
+            todo.push((left + 1, depth + 1, lo + mid, hi));
+        }
+        (nodes, items)
+    }
+
+    /// The parallel build lays out the nodes and items the single-threaded one does, bit for bit:
+    /// boxes of a surface (long runs split on many cores), of points in a line (median splits
+    /// past the depth's room) and a few (one core).
+    #[test]
+    fn parallel_builds_equal_the_single_threaded_build() {
+        let surface: Vec<Aabb> = (0..150_000)
+            .map(|i| {
+                let (u, v) = (f64::from(i % 400) * 0.01, f64::from(i / 400) * 0.013);
+                let c = DVec3::new(u, v, (u * 3.0).sin() * (v * 2.0).cos());
+                Aabb { min: c, max: c + DVec3::new(0.011, 0.014, 0.002 * f64::from(i % 7)) }
+            })
+            .collect();
+        let line: Vec<Aabb> = (0..70_000)
+            .map(|i| {
+                let x = if i < 60 { 2f64.powi(i) } else { f64::from(i) };
+                Aabb { min: DVec3::new(x, 0.0, 0.0), max: DVec3::new(x + 0.5, 1.0, 1.0) }
+            })
+            .collect();
+        for boxes in [surface, line, (0..9).map(|i| Aabb::of_points([DVec3::splat(f64::from(i))])).collect()] {
+            let bvh = Bvh::build(&boxes);
+            let (nodes, items) = build_on_one_thread(&boxes);
+            assert_eq!(bvh.items(), &items[..]);
+            assert_eq!(bvh.nodes().len(), nodes.len());
+            for (a, b) in bvh.nodes().iter().zip(&nodes) {
+                assert_eq!((a.first, a.count), (b.first, b.count));
+                assert!(a.bounds.min == b.bounds.min && a.bounds.max == b.bounds.max);
+            }
+        }
     }
 
     /// Boxes strung out so that SAH splits would peel one off at a time (each twice the last):
