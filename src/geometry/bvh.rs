@@ -76,7 +76,7 @@ const STACK: usize = 64;
 impl Bvh {
     /// `boxes` must be conservative: the traversal trusts them to hold every hit.
     ///
-    /// The splits are found on all cores (`plan`: the two sides of a split are disjoint runs of
+    /// The splits are found on all cores (`plan_subtree`: the two sides of a split are disjoint runs of
     /// the items, split on their own), then laid out in one pass in the order a single-threaded
     /// top-down build takes them (the same nodes, numbered the same: `lay_out`).
     pub fn build(boxes: &[Aabb]) -> Bvh {
@@ -207,7 +207,6 @@ impl Bvh {
     }
 }
 
-/// Levels of median splits below a node of `n` items before its leaves.
 /// What every split of one build reads: the items' boxes and their centres.
 #[derive(Clone, Copy)]
 struct SplitInputs<'a> {
@@ -297,6 +296,7 @@ fn lay_out(plan: &[Vec<PlannedNode>], items: usize) -> Vec<Node> {
     nodes
 }
 
+/// Levels of median splits below a node of `n` items before its leaves.
 fn levels_below(n: usize) -> u32 {
     n.div_ceil(LEAF_ITEMS).next_power_of_two().trailing_zeros()
 }
