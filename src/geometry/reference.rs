@@ -336,9 +336,11 @@ impl<'a> ReferenceTracer<'a> {
     pub fn new(sets: Vec<PlacedSet<'a>>) -> ReferenceTracer<'a> {
         // Build every hierarchy here, before tracing: built lazily inside the parallel trace, a
         // thread waiting on one under construction could be the thread constructing it (rayon
-        // steals work while it waits) and never wake.
+        // steals work while it waits: the builds run on all cores) and never wake. The four-wide
+        // tree too (most of the tracer's queries walk it).
         for set in &sets {
             set.triangles.bvh();
+            set.triangles.wide_tree();
         }
         let boxes: Vec<Aabb> = sets.iter().map(|s| s.bounds).collect();
         ReferenceTracer { top: Bvh::build(&boxes), sets }
